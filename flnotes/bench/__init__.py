@@ -1,0 +1,102 @@
+"""Benchmarks behind ``make bench``: per-step solve times and certification times.
+
+Each section module (``error``, ``clfcbf``, ``mpc``) defines
+``run(fast: bool) -> dict`` returning
+
+    {"title": str, "rows": [dict, ...], "notes": [str, ...], "figures": [path, ...]}
+
+where every row is one line of the section's table (the paper's numbers sit
+in rows of their own, with ``"source": "paper"``). ``python -m flnotes.bench``
+runs all sections, then writes ``_build/bench/results.json``,
+``_build/bench/results.md`` and the plots, and prints the machine it ran on.
+Speed is measured here, never asserted in tests.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+SECTIONS = ("error", "clfcbf", "mpc")
+
+
+def out_dir() -> Path:
+    path = Path(os.environ.get("FLNOTES_BENCH_DIR", Path(__file__).resolve().parents[2] / "_build" / "bench"))
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def machine() -> dict:
+    """Cores, CPU model, Python and solver versions: printed with every benchmark."""
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    versions = {}
+    for mod in ("numpy", "scipy", "sklearn", "cvxpy", "highspy", "pyscipopt", "daqp"):
+        try:
+            versions[mod] = getattr(importlib.import_module(mod), "__version__", "?")
+        except Exception:
+            versions[mod] = "not installed"
+    return dict(cores=os.cpu_count(), cpu=cpu, python=platform.python_version(), platform=platform.platform(), versions=versions)
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """Rows of dicts as a Markdown table (columns in first-seen order)."""
+    if not rows:
+        return "(no rows)\n"
+    cols: list[str] = []
+    for r in rows:
+        cols += [c for c in r if c not in cols]
+
+    def fmt(v) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return "" if v is None else str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    fast = "--fast" in argv or os.environ.get("FLNOTES_FAST") == "1"
+    only = [a for a in argv if not a.startswith("--")] or list(SECTIONS)
+    info = machine()
+    print(f"machine: {info['cores']} cores, {info['cpu']}, Python {info['python']}", flush=True)
+    results = dict(machine=info, fast=fast, sections={})
+    md = [f"# flnotes benchmarks\n\nMachine: {info['cores']} cores, {info['cpu']}, Python {info['python']}; "
+          + ", ".join(f"{k} {v}" for k, v in info["versions"].items()) + ("\n\n(fast mode)\n" if fast else "\n")]
+    status = 0
+    for name in only:
+        t0 = time.perf_counter()
+        print(f"== {name}", flush=True)
+        try:
+            sec = importlib.import_module(f"flnotes.bench.{name}").run(fast=fast)
+        except Exception as exc:  # a failing section is reported, the others still run
+            import traceback
+            traceback.print_exc()
+            sec = dict(title=name, rows=[], notes=[f"FAILED: {type(exc).__name__}: {exc}"], figures=[])
+            status = 1
+        sec["seconds"] = time.perf_counter() - t0
+        results["sections"][name] = sec
+        md.append(f"\n## {sec['title']}\n\n" + markdown_table(sec["rows"]) + "".join(f"\n- {n}" for n in sec.get("notes", []))
+                  + "".join(f"\n\n![{Path(f).stem}]({Path(f).name})" for f in sec.get("figures", [])) + "\n")
+        print(markdown_table(sec["rows"]), flush=True)
+        for n in sec.get("notes", []):
+            print("-", n)
+    out = out_dir()
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=lambda o: getattr(o, "tolist", lambda: str(o))()))
+    (out / "results.md").write_text("\n".join(md))
+    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
+    return status
