@@ -63,6 +63,16 @@ class Encoding:
 def _as_params_or_arrays(bounds: Optional[NodeBounds], L, U, net: ReLUNet, T: Optional[int]):
     if bounds is not None:
         L, U = bounds.L, bounds.U
+        if any(np.ndim(a) == 2 for a in L):
+            # a batch from fbbt(net, lo, hi) with lo, hi of shape (T, n_in) stores (T, n_k) per layer;
+            # encode works column-wise (one column per point), so bring them to (n_k, T)
+            if T is None:
+                raise ValueError("bounds hold a batch of boxes (arrays of shape (T, n_k)) but x is a single "
+                                 "point of shape (n_in,): pass x of shape (n_in, T) or bounds for one box")
+            if any(np.shape(a) != (T, W.shape[0]) for a, W in zip(L, net.W[:-1])):
+                raise ValueError(f"bounds hold a batch of {np.shape(L[0])[0]} boxes but x has {T} columns: "
+                                 f"call fbbt with lo, hi of shape ({T}, {net.n_in})")
+            L, U = [np.asarray(a).T for a in L], [np.asarray(a).T for a in U]
     if L is None or U is None:
         raise ValueError("encode needs node bounds: pass bounds=fbbt(net, lo, hi) (or L= and U= lists)")
     if len(L) != net.K - 1 or len(U) != net.K - 1:
@@ -84,9 +94,12 @@ def encode(net: ReLUNet, x, bounds: Optional[NodeBounds] = None, L: Optional[Seq
         (every step of an MPC horizon, all at once).
     bounds
         Node bounds valid for every admissible ``x`` (e.g. ``fbbt(net, lo, hi)``).
-        Arrays of shape (n_k,) apply to every column; (n_k, T) per column.
+        Bounds for one box (arrays of shape (n_k,)) apply to every column; a
+        batch from ``fbbt(net, lo, hi)`` with ``lo``, ``hi`` of shape
+        (T, n_in) gives column ``t`` the bounds of box ``t``.
     L, U
-        Alternatively, lists of per-layer bounds; these may be cvxpy
+        Alternatively, lists of per-layer bounds of shape (n_k,) or (n_k, T)
+        (note: column-wise, the transpose of a batch ``NodeBounds``); these may be cvxpy
         ``Parameter`` objects of shape (n_k,) or (n_k, T) that are updated each
         control step without rebuilding anything. With parameters every neuron
         gets a binary, since stability is only known at solve time.
@@ -186,9 +199,11 @@ class BigMForm:
     ``w = [x (n_in) | ybar^1, yund^1, alpha^1 | ... | ybar^{K-1}, yund^{K-1}, alpha^{K-1} | y^K (n_out)]``
 
     with ``A_eq w = b_eq``, ``A_ub w <= b_ub``, ``lb <= w <= ub`` and
-    ``integrality[i] = 1`` for the binaries of unstable neurons (stable ones
-    are fixed by ``lb = ub``). ``x`` is left free (``-inf``/``inf``) for the
-    caller to bound or fix.
+    ``integrality[i] = 1`` for every ``alpha`` entry. The ``alpha`` of a
+    stable neuron is fixed by ``lb = ub`` (a solver's presolve removes it, so
+    it costs no branching); it stays marked integer so that the same model
+    remains exact after :meth:`update` with bounds under which the neuron is
+    unstable. ``x`` is left free (``-inf``/``inf``) for the caller to bound or fix.
 
     Attributes
     ----------
@@ -217,6 +232,12 @@ class BigMForm:
     alpha: list
     ub_rows_U: list
     ub_rows_L: list
+
+    @property
+    def n_binaries(self) -> int:
+        """Binaries left free by the bounds the form was built with (its unstable neurons)."""
+        a = np.concatenate(self.alpha) if self.alpha else np.zeros(0, int)
+        return int(np.sum(self.lb[a] < self.ub[a]))
 
     def update(self, bounds: NodeBounds) -> tuple[sp.csr_matrix, Array, Array, Array]:
         """``(A_ub, b_ub, lb, ub)`` for new node bounds, with the same sparsity pattern.
@@ -303,9 +324,9 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     for k, (L, U) in enumerate(zip(bounds.L, bounds.U)):
         _write_layer(A_ub, b_ub, lb, ub, form, k, np.asarray(L, float), np.asarray(U, float))
     form.A_ub, form.b_ub, form.lb, form.ub = A_ub.tocsr(), b_ub, lb, ub
-    # stable neurons: their alpha is fixed by lb == ub and needs no branching
-    fixed = lb == ub
-    form.integrality = np.where(fixed, 0, integrality)
+    # stable neurons: their alpha is fixed by lb == ub and needs no branching; it stays marked integer so
+    # that a persistent model stays exact after update() with bounds under which the neuron is unstable
+    form.integrality = integrality
     return form
 
 

@@ -91,3 +91,43 @@ def paper_net(name: str, refresh: bool = False, **overrides) -> tuple[ReLUNet, T
     tmpj.write_text(json.dumps(d))
     os.replace(tmpj, meta)
     return net, rep
+
+
+#: Settings of the certified error bound used by the book (see :func:`paper_eps`).
+EPS_SETTINGS = dict(rtol=1e-3, atol=0.0, pso=dict(n_particles=100, n_iter=300, seed=0), n_samples=10_000, seed=0)
+_EPS_VERSION = "certify-v1"  # bump when the certification algorithm changes, to refresh cached brackets
+
+
+def paper_eps(name: str, refresh: bool = False, **overrides):
+    """The certified error bound ``eps`` of eq. (approx_err) for the book's network, computed once and cached.
+
+    Runs :func:`flnotes.error.pso_max_error` (the paper's estimate, used as a
+    starting lower bound) and then :func:`flnotes.error.certify_error` on
+    :func:`paper_net` ``(name)`` over the system's domain box, with
+    :data:`EPS_SETTINGS`. The result is an :class:`flnotes.error.ErrorBracket`;
+    chapters use its ``upper`` as ``eps`` in ``u_max^eps = u_max - eps``
+    (eq. Phi_NN_ep). Cached on disk next to the network, keyed by the
+    network's settings and the certification settings; ``overrides`` change
+    :data:`NET_SETTINGS` exactly as in :func:`paper_net`.
+    """
+    from .error import ErrorBracket, certify_error, pso_max_error
+
+    sysm = system(name)
+    net_settings = {**NET_SETTINGS[name], **overrides}
+    key = _key(name, dict(net=_key(name, net_settings), version=_EPS_VERSION,
+                          **{k: (json.dumps(v, sort_keys=True) if isinstance(v, dict) else v) for k, v in EPS_SETTINGS.items()}))
+    path = cache_dir() / f"eps-{name}-{key}.json"
+    if path.exists() and not refresh:
+        d = json.loads(path.read_text())
+        d = {k: (np.array(v) if isinstance(v, list) else v) for k, v in d.items()}
+        return ErrorBracket(**d)
+    net, _ = paper_net(name, **overrides)
+    pso = pso_max_error(sysm, net, **EPS_SETTINGS["pso"])
+    br = certify_error(sysm, net, rtol=EPS_SETTINGS["rtol"], atol=EPS_SETTINGS["atol"], seeds=pso,
+                       n_samples=EPS_SETTINGS["n_samples"], seed=EPS_SETTINGS["seed"])
+    d = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in br.__dict__.items()
+         if k not in ("partition", "history")}
+    tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.json")
+    tmp.write_text(json.dumps(d))
+    os.replace(tmp, path)
+    return br

@@ -173,8 +173,10 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         ``z -> v`` applied when the controller raises; default: the previous
         ``v`` (zero at the first step). Such steps are flagged and counted.
     progress
-        Print a one-line progress indicator; default: on for runs of more than
-        200 steps.
+        Print a one-line progress indicator. ``True``: every 5 % of the run;
+        ``None`` (default): only on long runs, every 5 s of wall-clock time
+        once the run has lasted that long (short runs print nothing);
+        ``False``: never.
 
     Returns
     -------
@@ -196,7 +198,9 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     if not np.all(np.isfinite(x)):
         raise ValueError(f"x0 contains NaN or inf: {x}")
     K = int(round(t_final / ts))
-    progress = K > 200 if progress is None else progress
+    every_s = 5.0 if progress is None else 0.0  # progress=None: time-based, silent on short runs
+    progress = True if progress is None else bool(progress)
+    last_print, printed = time.perf_counter(), False
     m = system.m
 
     ts_list, xs, zs, vs, us, unn, times, stats, fbs, steps = [0.0], [x.copy()], [system.to_z(x)], [], [], [], [], [], [], []
@@ -227,8 +231,20 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
             message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
             break
         X = sol.y.T
-        U = (np.array([system.Phi(np.asarray(system.to_z(xx), float), v) for xx in X[:-1]]) if hold == "v"
-             else np.repeat(u_k[None], len(X) - 1, axis=0))
+        Zs = np.array([system.to_z(xx) for xx in X], float)
+        if system.extra is not None:  # Remark 1: leaving phi(z, v) <= 0 voids the linearization
+            phi_x = np.asarray(system.extra(Zs, np.repeat(v[None], len(Zs), axis=0)), float)
+            if np.any(phi_x > 0):
+                j = int(np.argmax(phi_x.max(axis=1) > 0))
+                message = (f"stopped at t = {grid[j]:.3f} s: Remark 1's operating constraint is violated "
+                           f"(max varphi(z, v) = {phi_x.max():.3g} > 0), the linearizing map is not valid there")
+                break
+        try:
+            U = (system.Phi(Zs[:-1], np.repeat(v[None], len(Zs) - 1, axis=0)) if hold == "v"
+                 else np.repeat(u_k[None], len(X) - 1, axis=0))
+        except Exception as exc:
+            message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
+            break
         t_fine.append(grid[:-1]), x_fine.append(X[:-1]), u_fine.append(U)
         vs.append(v), us.append(u_k), times.append(res.solve_time), stats.append(res.status), fbs.append(res.fallback)
         steps.append(res)
@@ -237,10 +253,12 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         x = X[-1].copy()
         v_prev = v
         ts_list.append(t + ts), xs.append(x.copy()), zs.append(np.asarray(system.to_z(x), float))
-        if progress and (k + 1) % max(1, K // 20) == 0:
-            el = time.perf_counter() - t_start
-            print(f"\rstep {k + 1}/{K} ({100 * (k + 1) // K}%), {el:.1f} s", end="", flush=True)
-    if progress:
+        now = time.perf_counter()
+        if progress and ((every_s and now - last_print >= every_s)
+                         or (not every_s and (k + 1) % max(1, K // 20) == 0)):
+            print(f"\rstep {k + 1}/{K} ({100 * (k + 1) // K}%), {now - t_start:.1f} s", end="", flush=True)
+            last_print, printed = now, True
+    if printed:
         print(flush=True)
     Z = np.array(zs)
     zf = np.vstack(x_fine) if x_fine else np.zeros((0, len(x)))

@@ -289,6 +289,8 @@ def msd(u_max: float = 5.0, z_box: float = 5.0, v_box: float = 10.0) -> FLSystem
     ``x1' = x2``, ``x2' = -s(x2) - x1 + u``, ``|u| <= 5``; ``z = x`` and
     ``Phi(z, v) = v + s(z_2) + z_1``. Training box ``T = {|z| <= 5, |v| <= 10}``.
     """
+    from .interval import msd_phi  # interval version of Phi, for certifying eps (flnotes.error)
+
     A, B = brunovsky([2])
 
     def phi(z: Array, v: Array) -> Array:
@@ -301,6 +303,7 @@ def msd(u_max: float = 5.0, z_box: float = 5.0, v_box: float = 10.0) -> FLSystem
         name="MSD", A=A, B=B, phi=phi,
         lo=[-z_box, -z_box, -v_box], hi=[z_box, z_box, v_box], u_max=[u_max],
         f=f, to_z=lambda x: np.asarray(x, float).copy(), to_x=lambda z: np.asarray(z, float).copy(),
+        phi_interval=msd_phi,
         state_names=("z1 (position)", "z2 (velocity)"), input_names=("v",),
         params=dict(u_max=u_max),
     )
@@ -319,6 +322,8 @@ def quad1d(Gamma: float = 10.0, gamma: float = 0.3, tau: float = 0.2, u_max: flo
     On the training box ``|z| <= 5`` it holds automatically, since there
     ``|zeta| <= (5 + 0.3*5)/10 = 0.65``.
     """
+    from .interval import make_quad1d_phi  # interval version of Phi, for certifying eps (flnotes.error)
+
     A, B = brunovsky([3])
 
     def zeta(z: Array) -> Array:
@@ -348,7 +353,7 @@ def quad1d(Gamma: float = 10.0, gamma: float = 0.3, tau: float = 0.2, u_max: flo
     sysm = FLSystem(
         name="Quad-1D", A=A, B=B, phi=phi,
         lo=[-z_box] * 3 + [-v_box], hi=[z_box] * 3 + [v_box], u_max=[u_max],
-        f=f, to_z=to_z, to_x=to_x, extra=extra,
+        f=f, to_z=to_z, to_x=to_x, extra=extra, phi_interval=make_quad1d_phi(Gamma, gamma, tau),
         state_names=("x", "x'", "x''"), input_names=("v",),
         params=dict(Gamma=Gamma, gamma=gamma, tau=tau, u_max=u_max, zeta_max=zeta_max),
     )

@@ -1,0 +1,986 @@
+"""One solver layer for the mixed-integer programs of the controllers.
+
+The CLF-CBF programs (eq. CLF_CBF with the costs eq. LP_cost / eq. QP_cost) and
+the MPC (eq. MPC_form_miqp) are all instances of
+
+    min  0.5 w'H w + c'w + c0
+    s.t. rl <= A w <= ru,   lb <= w <= ub,   w_i integer where integrality[i] == 1,
+
+with the big-M constraints of eq. (MIP_general) inside ``A``. A controller
+builds the program once (:class:`MIQP`), hands it to :func:`make_solver`, and
+at every control step only changes numbers in place (:meth:`Solver.update`:
+the measured state enters through ``lb``/``ub`` or ``rl``/``ru``, the
+reference through ``c``, new node bounds through the big-M coefficients of
+``A``) before calling :meth:`Solver.solve`. The back-ends keep their model
+between calls:
+
+* ``"highs"``: HiGHS through highspy (MILPs and continuous QPs; HiGHS has no
+  mixed-integer QP solver);
+* ``"scip"``: SCIP through PySCIPOpt, the reference MIQP solver (the quadratic
+  objective becomes an epigraph constraint ``t >= 0.5 w'Hw``);
+* ``"daqp"``: DAQP, a dual active-set QP solver with its own depth-first
+  branch and bound over binary constraints, written for hybrid MPC
+  (Arnström, Bemporad & Axehill 2022);
+* ``"gurobi"``, ``"cplex"``: commercial solvers, used only when installed.
+
+``"auto"`` picks HiGHS for a MILP and DAQP for a mixed-integer QP (the fastest
+exact back-end measured on the book's programs, see the chapter "Making it
+real-time"). Every back-end reports the same :class:`MIQPResult`, with the
+objective re-evaluated from the returned ``w`` (constants included) so that
+back-ends can be compared number for number.
+"""
+from __future__ import annotations
+
+import importlib
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import scipy.sparse as sp
+
+Array = np.ndarray
+
+#: Back-ends by name; ``"auto"`` is also accepted by :func:`make_solver`.
+BACKENDS = ("highs", "scip", "daqp", "gurobi", "cplex")
+
+#: What to install for each back-end.
+_INSTALL = {"highs": "highspy", "scip": "PySCIPOpt", "daqp": "daqp", "gurobi": "gurobipy", "cplex": "cplex"}
+_MODULE = {"highs": "highspy", "scip": "pyscipopt", "daqp": "daqp", "gurobi": "gurobipy", "cplex": "cplex"}
+
+_INF = 1e20  # anything at least this large is infinite for every back-end
+
+
+# ---------------------------------------------------------------------------
+# Problem and result
+# ---------------------------------------------------------------------------
+@dataclass
+class MIQP:
+    """``min 0.5 w'Hw + c'w + c0  s.t.  rl <= A w <= ru,  lb <= w <= ub``, integers where ``integrality == 1``.
+
+    Attributes
+    ----------
+    H
+        (n, n) symmetric positive semidefinite cost matrix, or ``None`` for a
+        MILP (an all-zero ``H`` is treated as ``None``).
+    c, c0
+        Linear cost (n,) and constant.
+    A, rl, ru
+        (m, n) constraint matrix and row bounds (m,); a row with
+        ``rl == ru`` is an equality, ``-inf``/``inf`` leave a side free.
+    lb, ub
+        Variable bounds (n,), possibly infinite.
+    integrality
+        (n,) array of 0 (continuous) and 1 (integer). The big-M encoding of
+        eq. (MIP_general) only needs binaries (integers with bounds [0, 1]).
+    """
+
+    H: Optional[sp.csc_matrix]
+    c: Array
+    c0: float
+    A: sp.csr_matrix
+    rl: Array
+    ru: Array
+    lb: Array
+    ub: Array
+    integrality: Array
+
+    def __post_init__(self) -> None:
+        self.c = _vec(self.c, None, "c")
+        n = self.c.size
+        self.c0 = float(self.c0)
+        if not np.isfinite(self.c0):
+            raise ValueError(f"c0 must be finite, got {self.c0}")
+        if self.H is not None:
+            H = sp.csc_matrix(self.H, dtype=float)
+            if H.shape != (n, n):
+                raise ValueError(f"H must have shape ({n}, {n}) to match c, got {H.shape}")
+            if H.nnz and not np.all(np.isfinite(H.data)):
+                raise ValueError("H contains NaN or inf")
+            if H.nnz and abs(H - H.T).max() > 1e-9 * max(1.0, abs(H).max()):
+                raise ValueError("H must be symmetric: pass (H + H.T) / 2")
+            H.eliminate_zeros()
+            self.H = H if H.nnz else None
+        A = sp.csr_matrix(self.A, dtype=float)
+        if A.ndim != 2 or A.shape[1] != n:
+            raise ValueError(f"A must have shape (m, {n}) to match c, got {A.shape}")
+        if A.nnz and not np.all(np.isfinite(A.data)):
+            raise ValueError("A contains NaN or inf")
+        A.sort_indices()
+        self.A = A
+        m = A.shape[0]
+        self.rl = _vec(self.rl, m, "rl", allow_inf=True)
+        self.ru = _vec(self.ru, m, "ru", allow_inf=True)
+        self.lb = _vec(self.lb, n, "lb", allow_inf=True)
+        self.ub = _vec(self.ub, n, "ub", allow_inf=True)
+        _check_order(self.rl, self.ru, "rl", "ru")
+        _check_order(self.lb, self.ub, "lb", "ub")
+        integ = np.asarray(self.integrality)
+        if integ.shape != (n,):
+            raise ValueError(f"integrality must have shape ({n},) to match c, got {integ.shape}")
+        if not np.all(np.isin(integ, (0, 1))):
+            raise ValueError("integrality must contain only 0 (continuous) and 1 (integer)")
+        self.integrality = integ.astype(np.int8)
+
+    @property
+    def n(self) -> int:
+        """Number of variables."""
+        return self.c.size
+
+    @property
+    def m(self) -> int:
+        """Number of constraint rows."""
+        return self.A.shape[0]
+
+    @property
+    def n_integer(self) -> int:
+        """Number of integer variables that are not fixed by their bounds (what branch and bound sees)."""
+        return int(np.sum((self.integrality == 1) & (self.lb < self.ub)))
+
+    @property
+    def is_mip(self) -> bool:
+        return bool(np.any(self.integrality == 1))
+
+    def objective(self, w: Array) -> float:
+        """``0.5 w'Hw + c'w + c0`` at ``w``."""
+        w = np.asarray(w, float)
+        val = self.c @ w + self.c0
+        if self.H is not None:
+            val += 0.5 * w @ (self.H @ w)
+        return float(val)
+
+    def violation(self, w: Array) -> float:
+        """Largest violation of rows, bounds and integrality at ``w`` (0 when feasible)."""
+        w = np.asarray(w, float)
+        Aw = self.A @ w
+        v = [0.0]
+        if self.m:
+            v += [np.max(self.rl - Aw), np.max(Aw - self.ru)]
+        v += [np.max(self.lb - w), np.max(w - self.ub)]
+        iw = w[self.integrality == 1]
+        if iw.size:
+            v.append(np.max(np.abs(iw - np.round(iw))))
+        return float(max(v))
+
+    def copy(self) -> "MIQP":
+        return MIQP(None if self.H is None else self.H.copy(), self.c.copy(), self.c0, self.A.copy(), self.rl.copy(),
+                    self.ru.copy(), self.lb.copy(), self.ub.copy(), self.integrality.copy())
+
+
+@dataclass
+class MIQPResult:
+    """What every back-end returns.
+
+    Attributes
+    ----------
+    status
+        ``"optimal"`` (within the requested gap), ``"time_limit"`` (the
+        incumbent, if any, is returned; ``w`` may be ``None``),
+        ``"infeasible"`` or ``"error"``.
+    w
+        The solution (n,), or ``None``.
+    objective
+        ``0.5 w'Hw + c'w + c0`` re-evaluated at ``w`` (``nan`` without one).
+    bound
+        A lower bound on the optimum proved by the solver (``-inf`` if none).
+    gap
+        ``|objective - bound| / max(1, |objective|)``.
+    nodes
+        Branch-and-bound nodes (0 for a continuous program).
+    time
+        Wall-clock seconds of :meth:`Solver.solve` (data transfer included).
+    backend
+        The back-end's name.
+    message
+        The solver's own status text.
+    """
+
+    status: str
+    w: Optional[Array]
+    objective: float
+    bound: float
+    gap: float
+    nodes: int
+    time: float
+    backend: str
+    message: str = ""
+
+
+def _result(problem: MIQP, status: str, w, bound: float, nodes: int, t0: float, backend: str, message: str) -> MIQPResult:
+    if w is not None:
+        w = np.asarray(w, float).copy()
+        obj = problem.objective(w)
+    else:
+        obj = np.nan
+    if status == "optimal" and not np.isfinite(bound):
+        bound = obj
+    if status == "optimal":
+        bound = min(bound, obj)
+    gap = abs(obj - bound) / max(1.0, abs(obj)) if (w is not None and np.isfinite(bound)) else np.inf
+    return MIQPResult(status=status, w=w, objective=obj, bound=float(bound), gap=float(gap), nodes=int(nodes),
+                      time=time.perf_counter() - t0, backend=backend, message=str(message))
+
+
+# ---------------------------------------------------------------------------
+# Checks
+# ---------------------------------------------------------------------------
+def _vec(x, n: Optional[int], name: str, allow_inf: bool = False) -> Array:
+    a = np.asarray(x, float)
+    if a.ndim == 0 and n is not None:
+        a = np.full(n, float(a))
+    if a.ndim != 1 or (n is not None and a.shape != (n,)):
+        want = f"({n},)" if n is not None else "(n,)"
+        raise ValueError(f"{name} must have shape {want}, got {np.shape(x)}")
+    if np.any(np.isnan(a)) or (not allow_inf and not np.all(np.isfinite(a))):
+        raise ValueError(f"{name} contains NaN{'' if allow_inf else ' or inf'}")
+    return a.copy()
+
+
+def _check_order(lo: Array, hi: Array, lo_name: str, hi_name: str) -> None:
+    bad = np.flatnonzero(lo > hi)
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"{lo_name}[{i}] = {lo[i]} > {hi_name}[{i}] = {hi[i]}: every lower bound must be <= its upper bound")
+
+
+def _require(backend: str):
+    try:
+        return importlib.import_module(_MODULE[backend])
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ImportError(f"the {backend!r} back-end needs the Python package {_INSTALL[backend]!r}: "
+                          f"pip install {_INSTALL[backend]} (or choose another backend from {BACKENDS})") from exc
+
+
+def available_backends() -> tuple[str, ...]:
+    """The back-ends whose Python package can be imported here (commercial ones need a license too)."""
+    out = []
+    for b in BACKENDS:
+        try:
+            importlib.import_module(_MODULE[b])
+            out.append(b)
+        except ImportError:
+            pass
+    return tuple(out)
+
+
+# ---------------------------------------------------------------------------
+# The solver interface
+# ---------------------------------------------------------------------------
+class Solver:
+    """A persistent model of one :class:`MIQP`, re-solved with new data at every control step.
+
+    Subclasses implement ``_build``, ``_push`` (send changed data to the
+    back-end) and ``_solve``. The problem data kept in :attr:`problem` is
+    always the current one.
+    """
+
+    name = "base"
+    supports_miqp = True
+
+    def __init__(self, problem: MIQP, **options):
+        if not isinstance(problem, MIQP):
+            raise ValueError(f"problem must be an flnotes.miqp.MIQP, got {type(problem).__name__}")
+        self.problem = problem.copy()
+        self.options = dict(options)
+        p = self.problem
+        if p.is_mip and p.H is not None and not self.supports_miqp:
+            raise ValueError(f"the {self.name!r} back-end cannot solve a mixed-integer QP (H is not None and "
+                             f"{int(p.integrality.sum())} integer variables); use backend='daqp' or 'scip'")
+        # the sparsity pattern of A, to map new values onto it
+        coo = p.A.tocoo()
+        self._Arow, self._Acol = coo.row.astype(np.int64), coo.col.astype(np.int64)
+        self._pattern = sp.csr_matrix((np.ones(p.A.nnz), (self._Arow, self._Acol)), shape=p.A.shape)
+        self._build()
+
+    # -- public API ----------------------------------------------------------
+    def update(self, *, c=None, c0=None, rl=None, ru=None, lb=None, ub=None, A=None) -> None:
+        """Change numbers of the program in place (the structure stays).
+
+        Parameters
+        ----------
+        c, c0, rl, ru, lb, ub
+            New values, same shapes as in the :class:`MIQP`.
+        A
+            New constraint matrix with the same sparsity pattern (entries may
+            become zero; no new nonzeros).
+        """
+        p = self.problem
+        changed = {}
+        if c is not None:
+            p.c = _vec(c, p.n, "c"); changed["c"] = True
+        if c0 is not None:
+            c0 = float(c0)
+            if not np.isfinite(c0):
+                raise ValueError(f"c0 must be finite, got {c0}")
+            p.c0 = c0
+        if rl is not None or ru is not None:
+            new_rl = _vec(rl, p.m, "rl", allow_inf=True) if rl is not None else p.rl
+            new_ru = _vec(ru, p.m, "ru", allow_inf=True) if ru is not None else p.ru
+            _check_order(new_rl, new_ru, "rl", "ru")
+            eq_old, eq_new = p.rl == p.ru, new_rl == new_ru
+            p.rl, p.ru = new_rl, new_ru
+            changed["rows"] = True
+            if np.any(eq_old != eq_new):
+                changed["row_kind"] = True
+        if lb is not None or ub is not None:
+            new_lb = _vec(lb, p.n, "lb", allow_inf=True) if lb is not None else p.lb
+            new_ub = _vec(ub, p.n, "ub", allow_inf=True) if ub is not None else p.ub
+            _check_order(new_lb, new_ub, "lb", "ub")
+            p.lb, p.ub = new_lb, new_ub
+            changed["bounds"] = True
+        if A is not None:
+            vals = self._values_on_pattern(A)
+            old = p.A.data
+            diff = np.flatnonzero(vals != old)
+            if diff.size:
+                p.A = sp.csr_matrix((vals, p.A.indices, p.A.indptr), shape=p.A.shape)
+                changed["A"] = diff
+        if changed:
+            self._push(changed)
+
+    def solve(self, warm_start: Optional[Array] = None, time_limit: Optional[float] = None,
+              gap: float = 1e-6) -> MIQPResult:
+        """Solve the current program.
+
+        Parameters
+        ----------
+        warm_start
+            A candidate solution (n,), e.g. the previous plan shifted by one
+            step. Back-ends use it as an incumbent (or an initial working
+            set); it never changes the optimum.
+        time_limit
+            Seconds; ``None`` for no limit.
+        gap
+            Relative optimality gap ``|obj - bound| / max(1, |obj|)`` at which
+            the search stops.
+        """
+        ws = None
+        if warm_start is not None:
+            ws = np.asarray(warm_start, float)
+            if ws.shape != (self.problem.n,):
+                raise ValueError(f"warm_start must have shape ({self.problem.n},), got {ws.shape}")
+            if not np.all(np.isfinite(ws)):
+                ws = None
+        if time_limit is not None and not time_limit > 0:
+            raise ValueError(f"time_limit must be positive seconds or None, got {time_limit}")
+        if not gap >= 0:
+            raise ValueError(f"gap must be >= 0, got {gap}")
+        t0 = time.perf_counter()
+        try:
+            return self._solve(ws, time_limit, float(gap), t0)
+        except (ValueError, ImportError):
+            raise
+        except Exception as exc:  # a solver failure is a result, not a crash of the control loop
+            return _result(self.problem, "error", None, -np.inf, 0, t0, self.name, f"{type(exc).__name__}: {exc}")
+
+    # -- helpers -------------------------------------------------------------
+    def _values_on_pattern(self, A) -> Array:
+        p = self.problem
+        A = sp.csr_matrix(A, dtype=float)
+        if A.shape != p.A.shape:
+            raise ValueError(f"A must have shape {p.A.shape} (the same as when the solver was built), got {A.shape}")
+        if A.nnz:
+            S = A.copy()
+            S.data = np.ones_like(S.data)
+            outside = S - S.multiply(self._pattern)
+            outside.eliminate_zeros()
+            if outside.nnz:
+                raise ValueError("A has nonzeros outside the sparsity pattern the solver was built with; "
+                                 "build a new solver (make_solver) for a new structure")
+            if not np.all(np.isfinite(A.data)):
+                raise ValueError("A contains NaN or inf")
+        return np.asarray(A[self._Arow, self._Acol], float).ravel()
+
+    def _warm_ok(self, ws: Optional[Array], tol: float = 1e-7) -> bool:
+        return ws is not None and self.problem.violation(ws) <= tol
+
+    # -- to implement ----------------------------------------------------------
+    def _build(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _push(self, changed: dict) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def make_solver(problem: MIQP, backend: str = "auto", **options) -> Solver:
+    """A persistent solver for ``problem``.
+
+    Parameters
+    ----------
+    problem
+        The program; its structure (sizes, sparsity of ``A``, ``H``,
+        integrality) is fixed from now on, its numbers change with
+        :meth:`Solver.update`.
+    backend
+        One of :data:`BACKENDS`, or ``"auto"``: HiGHS for a MILP or a
+        continuous program, DAQP for a mixed-integer QP.
+    **options
+        Back-end options: ``threads`` (HiGHS, SCIP, commercial), ``params``
+        (dict of native parameters), DAQP's ``reg`` (see :class:`DaqpSolver`).
+
+    Returns
+    -------
+    Solver
+    """
+    if backend == "auto":
+        backend = "daqp" if (problem.H is not None and problem.is_mip) else "highs"
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose 'auto' or one of {BACKENDS}")
+    _require(backend)
+    cls = {"highs": HighsSolver, "scip": ScipSolver, "daqp": DaqpSolver, "gurobi": GurobiSolver,
+           "cplex": CplexSolver}[backend]
+    return cls(problem, **options)
+
+
+# ---------------------------------------------------------------------------
+# HiGHS
+# ---------------------------------------------------------------------------
+class HighsSolver(Solver):
+    """HiGHS (Huangfu & Hall 2018) through highspy, one persistent ``Highs`` object.
+
+    MILPs go to its branch and cut, continuous QPs to its active-set QP
+    solver. A warm start is passed with ``setSolution`` (an incumbent).
+    """
+
+    name = "highs"
+    supports_miqp = False
+
+    def _build(self) -> None:
+        hp = _require("highs")
+        self._hp = hp
+        p = self.problem
+        h = hp.Highs()
+        h.setOptionValue("output_flag", False)
+        h.setOptionValue("threads", int(self.options.get("threads", 1)))
+        for k, v in self.options.get("params", {}).items():
+            h.setOptionValue(k, v)
+        lp = hp.HighsLp()
+        lp.num_col_, lp.num_row_ = p.n, p.m
+        lp.col_cost_ = p.c
+        lp.col_lower_, lp.col_upper_ = _hinf(p.lb), _hinf(p.ub)
+        lp.row_lower_, lp.row_upper_ = _hinf(p.rl), _hinf(p.ru)
+        Ac = p.A.tocsc()
+        Ac.sort_indices()
+        lp.a_matrix_.format_ = hp.MatrixFormat.kColwise
+        lp.a_matrix_.start_ = Ac.indptr.astype(np.int32)
+        lp.a_matrix_.index_ = Ac.indices.astype(np.int32)
+        lp.a_matrix_.value_ = Ac.data
+        lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = p.n, p.m
+        if p.is_mip:
+            lp.integrality_ = [hp.HighsVarType.kInteger if i else hp.HighsVarType.kContinuous for i in p.integrality]
+        lp.offset_ = p.c0
+        st = h.passModel(lp)
+        if st == hp.HighsStatus.kError:
+            raise ValueError("HiGHS rejected the model (passModel returned an error)")
+        if p.H is not None:
+            Ht = sp.tril(p.H, format="csc")
+            Ht.sort_indices()
+            hess = hp.HighsHessian()
+            hess.dim_ = p.n
+            hess.format_ = hp.HessianFormat.kTriangular
+            hess.start_ = Ht.indptr.astype(np.int32)
+            hess.index_ = Ht.indices.astype(np.int32)
+            hess.value_ = Ht.data
+            if h.passHessian(hess) == hp.HighsStatus.kError:
+                raise ValueError("HiGHS rejected the Hessian H (it must be positive semidefinite)")
+        self._h = h
+        self._idx_n = np.arange(p.n, dtype=np.int32)
+        self._idx_m = np.arange(p.m, dtype=np.int32)
+
+    def _push(self, changed: dict) -> None:
+        p, h = self.problem, self._h
+        if "c" in changed:
+            h.changeColsCost(p.n, self._idx_n, p.c)
+        h.changeObjectiveOffset(p.c0)
+        if "bounds" in changed:
+            h.changeColsBounds(p.n, self._idx_n, _hinf(p.lb), _hinf(p.ub))
+        if "rows" in changed and p.m:
+            h.changeRowsBounds(p.m, self._idx_m, _hinf(p.rl), _hinf(p.ru))
+        if "A" in changed:
+            vals = p.A.data
+            for k in changed["A"]:
+                h.changeCoeff(int(self._Arow[k]), int(self._Acol[k]), float(vals[k]))
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        hp, h, p = self._hp, self._h, self.problem
+        h.changeObjectiveOffset(p.c0)
+        h.setOptionValue("time_limit", float(time_limit) if time_limit else hp.kHighsInf)
+        h.setOptionValue("mip_rel_gap", gap)
+        h.setOptionValue("mip_abs_gap", gap)
+        if p.is_mip:
+            h.clearSolver()  # a fresh search on the new data (the model is kept)
+        if ws is not None and p.is_mip:
+            sol = hp.HighsSolution()
+            sol.col_value = ws
+            sol.value_valid = True
+            h.setSolution(sol)
+        h.run()
+        ms = h.getModelStatus()
+        info = h.getInfo()
+        M = hp.HighsModelStatus
+        w = None
+        if info.primal_solution_status == hp.kSolutionStatusFeasible:
+            w = np.array(h.getSolution().col_value)
+        nodes = int(info.mip_node_count) if p.is_mip else 0
+        if ms == M.kOptimal:
+            bound = info.mip_dual_bound if p.is_mip else np.nan
+            return _result(p, "optimal", w, bound, nodes, t0, self.name, h.modelStatusToString(ms))
+        if ms == M.kInfeasible:
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, h.modelStatusToString(ms))
+        if ms == M.kTimeLimit:
+            bound = info.mip_dual_bound if p.is_mip else -np.inf
+            return _result(p, "time_limit", w, bound, nodes, t0, self.name, h.modelStatusToString(ms))
+        return _result(p, "error", None, -np.inf, nodes, t0, self.name, h.modelStatusToString(ms))
+
+
+def _hinf(a: Array) -> Array:
+    from highspy import kHighsInf
+    out = np.asarray(a, float).copy()
+    out[out >= _INF] = kHighsInf
+    out[out <= -_INF] = -kHighsInf
+    return out
+
+
+# ---------------------------------------------------------------------------
+# SCIP
+# ---------------------------------------------------------------------------
+class ScipSolver(Solver):
+    """SCIP (Bestuzheva et al. 2021) through PySCIPOpt: the reference solver for mixed-integer QPs.
+
+    The quadratic objective is written with an epigraph variable,
+    ``min t + c'w + c0`` s.t. ``0.5 w'Hw <= t``, which SCIP recognizes as a
+    convex quadratic constraint. The model is persistent: between solves it
+    is returned to the problem stage (``freeTransform``) and bounds, row
+    sides and coefficients are changed in place (``chgVarLb/Ub``,
+    ``chgLhs/chgRhs``, ``chgCoefLinear``); the linear objective is reset with
+    ``setObjective``. A warm start is added as a solution (``addSol``).
+    """
+
+    name = "scip"
+
+    def _build(self) -> None:
+        scip = _require("scip")
+        p = self.problem
+        m = scip.Model()
+        m.hideOutput()
+        m.setParam("parallel/maxnthreads", int(self.options.get("threads", 1)))
+        # tighter than SCIP's default 1e-6: the comparisons between back-ends are at 1e-6 relative
+        m.setParam("numerics/feastol", float(self.options.get("feastol", 1e-9)))
+        for k, v in self.options.get("params", {}).items():
+            m.setParam(k, v)
+        self._inf = m.infinity()
+        self._x = [m.addVar(name=f"w{i}", vtype="I" if p.integrality[i] else "C", lb=self._s(p.lb[i]),
+                            ub=self._s(p.ub[i])) for i in range(p.n)]
+        A = p.A
+        self._cons = []
+        for r in range(p.m):
+            s, e = A.indptr[r], A.indptr[r + 1]
+            expr = scip.quicksum(float(a) * self._x[j] for a, j in zip(A.data[s:e], A.indices[s:e]))
+            cons = m.addCons(self._range(expr, p.rl[r], p.ru[r]), name=f"r{r}")
+            self._cons.append(cons)
+        self._t = None
+        if p.H is not None:
+            self._t = m.addVar(name="t", lb=None, ub=None)
+            Hu = sp.triu(p.H, format="coo")
+            quad = scip.quicksum((0.5 if i == j else 1.0) * float(v) * self._x[i] * self._x[j]
+                                 for i, j, v in zip(Hu.row, Hu.col, Hu.data))
+            m.addCons(quad - self._t <= 0, name="epigraph")
+        self._m, self._scip = m, scip
+        self._set_objective()
+
+    def _s(self, v: float):
+        return None if abs(v) >= _INF else float(v)
+
+    def _range(self, expr, lo: float, hi: float):
+        if lo == hi:
+            return expr == float(lo)
+        lo_f, hi_f = lo > -_INF, hi < _INF
+        if lo_f and hi_f:
+            return (float(lo) <= expr) <= float(hi)
+        if lo_f:
+            return expr >= float(lo)
+        if hi_f:
+            return expr <= float(hi)
+        return expr <= self._inf
+
+    def _set_objective(self) -> None:
+        p, scip = self.problem, self._scip
+        nz = np.flatnonzero(p.c)
+        obj = scip.quicksum(float(p.c[i]) * self._x[i] for i in nz)
+        if self._t is not None:
+            obj = obj + self._t
+        self._m.setObjective(obj, "minimize", clear=True)
+
+    def _push(self, changed: dict) -> None:
+        m, p = self._m, self.problem
+        m.freeTransform()
+        if "c" in changed:
+            self._set_objective()
+        if "bounds" in changed:
+            for i in range(p.n):
+                # widen first, so that lb <= ub holds at every moment
+                m.chgVarLb(self._x[i], None)
+                m.chgVarUb(self._x[i], None)
+                m.chgVarLb(self._x[i], self._s(p.lb[i]))
+                m.chgVarUb(self._x[i], self._s(p.ub[i]))
+        if "rows" in changed:
+            for r, cons in enumerate(self._cons):
+                m.chgLhs(cons, None)
+                m.chgRhs(cons, None)
+                m.chgLhs(cons, self._s(p.rl[r]))
+                m.chgRhs(cons, self._s(p.ru[r]))
+        if "A" in changed:
+            vals = p.A.data
+            for k in changed["A"]:
+                m.chgCoefLinear(self._cons[int(self._Arow[k])], self._x[int(self._Acol[k])], float(vals[k]))
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        m, p = self._m, self.problem
+        m.freeTransform()
+        m.setParam("limits/time", float(time_limit) if time_limit else 1e20)
+        m.setParam("limits/gap", 0.5 * gap)  # SCIP divides by min(|primal|, |dual|): keep a margin
+        m.setParam("limits/absgap", 0.5 * gap)
+        if ws is not None and self._warm_ok(ws):
+            sol = m.createSol()
+            for i in range(p.n):
+                m.setSolVal(sol, self._x[i], float(ws[i]))
+            if self._t is not None:
+                m.setSolVal(sol, self._t, float(0.5 * ws @ (p.H @ ws)) + 1e-9)
+            m.addSol(sol, free=True)
+        m.optimize()
+        st = m.getStatus()
+        nodes = m.getNNodes() if p.is_mip else 0
+        w = None
+        if m.getNSols() > 0:
+            best = m.getBestSol()
+            w = np.array([m.getSolVal(best, x) for x in self._x])
+        try:
+            bound = m.getDualbound() + p.c0
+        except Exception:
+            bound = -np.inf
+        if abs(bound) >= 1e19:
+            bound = -np.inf
+        if st in ("optimal", "gaplimit") and w is not None:
+            return _result(p, "optimal", w, bound, nodes, t0, self.name, st)
+        if st == "infeasible":
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, st)
+        if st in ("timelimit", "nodelimit", "userinterrupt"):
+            return _result(p, "time_limit", w, bound, nodes, t0, self.name, st)
+        return _result(p, "error", w, bound, nodes, t0, self.name, st)
+
+
+# ---------------------------------------------------------------------------
+# DAQP
+# ---------------------------------------------------------------------------
+class DaqpSolver(Solver):
+    """DAQP (Arnström, Bemporad & Axehill 2022): dual active-set QP with branch and bound over binaries.
+
+    Every variable's bounds become DAQP's "simple bounds"; a binary variable
+    gets the ``BINARY`` sense (16: one of its two bounds must hold with
+    equality), an equality row or a fixed variable the ``EQUALITY`` sense (5).
+    DAQP's branch and bound is depth first and prunes every node whose
+    relaxation is not better than ``fval_bound``.
+
+    Positive semidefinite ``H``. DAQP factors ``H``; for the big-M programs
+    ``H`` is zero on the network's variables. With ``reg=None`` (default)
+    DAQP's own proximal-point iterations handle the singular directions
+    (``eps_prox``), which solves every node's QP exactly; ``reg=delta > 0``
+    instead adds ``delta`` to the zero diagonal, a perturbed problem whose
+    solution is then re-evaluated on the true objective.
+
+    Warm start. A feasible warm start ``w_ws`` gives the incumbent bound
+    ``fval_bound = J(w_ws)``: DAQP then only explores nodes that can beat it,
+    and if none does (exit flag "infeasible" under the bound), ``w_ws`` itself
+    is the optimum. Pruning never discards a better solution, so this is exact.
+    """
+
+    name = "daqp"
+
+    def _build(self) -> None:
+        daqp = _require("daqp")
+        p = self.problem
+        bad = np.flatnonzero((p.integrality == 1) & ((p.lb < 0) | (p.ub > 1)) & (p.lb < p.ub))
+        if bad.size:
+            raise ValueError(f"the 'daqp' back-end supports binary integers only (bounds within [0, 1]); "
+                             f"variable {bad[0]} has bounds [{p.lb[bad[0]]}, {p.ub[bad[0]]}]: use backend='scip' or 'highs'")
+        self._daqp = daqp
+        reg = self.options.get("reg", None)
+        H = np.zeros((p.n, p.n)) if p.H is None else p.H.toarray()
+        self._eps_prox = 0.0
+        if p.H is None or not _is_pd(H):
+            if reg:
+                d = np.abs(np.diag(H)) <= 1e-12
+                H = H + float(reg) * np.diag(d.astype(float))
+                if not _is_pd(H):
+                    H = H + float(reg) * np.eye(p.n)
+            else:
+                self._eps_prox = float(self.options.get("eps_prox", 1e-6))
+                if p.H is None:
+                    H = None if self._eps_prox else H
+        self._H = H
+        self._Ad = p.A.toarray()
+        self._model = None
+        # the big-M rows are degenerate: DAQP's default cycling guard (10 iterations without progress)
+        # stops too early on them
+        self._settings = dict(eps_prox=self._eps_prox, primal_tol=float(self.options.get("primal_tol", 1e-7)),
+                              cycle_tol=1000, progress_tol=1e-10)
+        self._settings.update(self.options.get("params", {}))
+
+    def _sense(self) -> Array:
+        p = self.problem
+        s = np.zeros(p.n + p.m, dtype=np.int32)
+        binary = (p.integrality == 1) & (p.lb < p.ub)
+        s[:p.n][binary] = 16
+        s[:p.n][p.lb == p.ub] = 5
+        s[p.n:][p.rl == p.ru] = 5
+        return s
+
+    def _bounds(self) -> tuple[Array, Array]:
+        p = self.problem
+        lb, ub = p.lb.copy(), p.ub.copy()
+        ib = p.integrality == 1
+        lb[ib], ub[ib] = np.ceil(lb[ib] - 1e-9), np.floor(ub[ib] + 1e-9)
+        bu, bl = np.concatenate([ub, p.ru]), np.concatenate([lb, p.rl])
+        bu[bu >= _INF] = np.inf
+        bl[bl <= -_INF] = -np.inf
+        return bu, bl
+
+    def _push(self, changed: dict) -> None:
+        if "A" in changed:
+            self._Ad[self._Arow[changed["A"]], self._Acol[changed["A"]]] = self.problem.A.data[changed["A"]]
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        daqp, p = self._daqp, self.problem
+        bu, bl = self._bounds()
+        settings = dict(self._settings)
+        if time_limit:
+            settings["time_limit"] = float(time_limit)
+        incumbent = None
+        if ws is not None and p.is_mip:
+            w0 = ws.copy()
+            ib = p.integrality == 1
+            w0[ib] = np.round(w0[ib])
+            if self._warm_ok(w0):
+                incumbent = w0
+                J = p.objective(w0) - p.c0
+                settings["fval_bound"] = J - 1e-9 * max(1.0, abs(J))
+        A = self._Ad if p.m else np.zeros((0, p.n))
+        H = self._H
+        x, fval, flag, info = daqp.solve(H, p.c, A, bu, bl, self._sense(), **settings)
+        nodes = int(info.get("nodes", 0)) if p.is_mip else 0
+        if flag in _DAQP_OPTIMAL:
+            w = np.asarray(x, float)
+            if p.is_mip:
+                ib = p.integrality == 1
+                w[ib] = np.round(w[ib])
+            if incumbent is not None and p.objective(incumbent) <= p.objective(w):
+                w = incumbent
+            return _result(p, "optimal", w, np.nan, nodes, t0, self.name, f"exitflag {flag}")
+        if flag == -1:
+            if incumbent is not None:  # nothing beats the warm start: it is optimal
+                return _result(p, "optimal", incumbent, np.nan, nodes, t0, self.name, "warm start optimal (exitflag -1 under fval_bound)")
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, "exitflag -1 (infeasible)")
+        msg = _DAQP_FLAGS.get(flag, f"exitflag {flag}")
+        if flag > 0:  # a positive flag DAQP does not document: a point, but no proof of optimality
+            w = np.asarray(x, float)
+            ib = p.integrality == 1
+            w[ib] = np.round(w[ib])
+            cand = [v for v in (w, incumbent) if v is not None and p.violation(v) <= 1e-6]
+            best = min(cand, key=p.objective) if cand else None
+            return _result(p, "time_limit", best, -np.inf, nodes, t0, self.name,
+                           f"exitflag {flag} (not documented as optimal: returned as an unproven incumbent)")
+        if "time" in msg:
+            return _result(p, "time_limit", incumbent, -np.inf, nodes, t0, self.name, msg)
+        return _result(p, "error", None, -np.inf, nodes, t0, self.name, msg)
+
+
+#: DAQP exit flags that certify an optimum: 1 optimal, 2 soft optimal (no soft constraints are used here), 4 optimal
+#: after proximal-point iterations (singular H; checked against SCIP and brute force in the tests).
+_DAQP_OPTIMAL = (1, 2, 4)
+_DAQP_FLAGS = {-1: "infeasible", -2: "cycling", -3: "unbounded", -4: "iteration limit", -5: "nonconvex",
+               -6: "overdetermined initial active set", -7: "time limit reached", -8: "unsupported problem"}
+
+
+def _is_pd(H: Array) -> bool:
+    try:
+        np.linalg.cholesky(H + 0.0)
+    except np.linalg.LinAlgError:
+        return False
+    d = np.linalg.eigvalsh(H)
+    return bool(d.min() > 1e-10 * max(1.0, d.max()))
+
+
+# ---------------------------------------------------------------------------
+# Commercial back-ends (only if installed)
+# ---------------------------------------------------------------------------
+class GurobiSolver(Solver):
+    """Gurobi through gurobipy's matrix API (needs a license for larger programs)."""
+
+    name = "gurobi"
+
+    def _build(self) -> None:
+        gp = _require("gurobi")
+        p = self.problem
+        env = gp.Env(empty=True)
+        env.setParam("OutputFlag", 0)
+        env.start()
+        m = gp.Model(env=env)
+        m.Params.Threads = int(self.options.get("threads", 1))
+        for k, v in self.options.get("params", {}).items():
+            m.setParam(k, v)
+        vt = np.where(p.integrality == 1, gp.GRB.INTEGER, gp.GRB.CONTINUOUS)
+        x = m.addMVar(p.n, lb=_ginf(p.lb, gp), ub=_ginf(p.ub, gp), vtype=vt)
+        self._rows = m.addMConstr(p.A, x, gp.GRB.LESS_EQUAL, _ginf(p.ru, gp)) if p.m else None
+        self._rows_lo = m.addMConstr(p.A, x, gp.GRB.GREATER_EQUAL, _ginf(p.rl, gp)) if p.m else None
+        self._m, self._xv, self._gp = m, x, gp
+        self._set_obj()
+        m.update()
+
+    def _set_obj(self) -> None:
+        p, gp = self.problem, self._gp
+        if p.H is not None:
+            self._m.setMObjective(0.5 * p.H, p.c, p.c0, sense=gp.GRB.MINIMIZE)
+        else:
+            self._m.setMObjective(None, p.c, p.c0, sense=gp.GRB.MINIMIZE)
+
+    def _push(self, changed: dict) -> None:
+        p, gp = self.problem, self._gp
+        self._set_obj()
+        if "bounds" in changed:
+            self._xv.LB, self._xv.UB = _ginf(p.lb, gp), _ginf(p.ub, gp)
+        if "rows" in changed and p.m:
+            self._rows.RHS, self._rows_lo.RHS = _ginf(p.ru, gp), _ginf(p.rl, gp)
+        if "A" in changed:
+            xs = self._xv.tolist()
+            cu, cl = self._rows.tolist(), self._rows_lo.tolist()
+            for k in changed["A"]:
+                r, j, v = int(self._Arow[k]), int(self._Acol[k]), float(p.A.data[k])
+                self._m.chgCoeff(cu[r], xs[j], v)
+                self._m.chgCoeff(cl[r], xs[j], v)
+        self._m.update()
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        m, p, gp = self._m, self.problem, self._gp
+        self._set_obj()
+        m.Params.TimeLimit = float(time_limit) if time_limit else gp.GRB.INFINITY
+        m.Params.MIPGap, m.Params.MIPGapAbs = gap, gap
+        if ws is not None:
+            self._xv.Start = ws
+        m.optimize()
+        st = m.Status
+        w = np.array(self._xv.X) if m.SolCount > 0 else None
+        nodes = int(m.NodeCount) if p.is_mip else 0
+        bound = float(m.ObjBound) if p.is_mip and m.SolCount else np.nan
+        if st == gp.GRB.OPTIMAL:
+            return _result(p, "optimal", w, bound, nodes, t0, self.name, "OPTIMAL")
+        if st in (gp.GRB.INFEASIBLE, gp.GRB.INF_OR_UNBD):
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, f"status {st}")
+        if st == gp.GRB.TIME_LIMIT:
+            return _result(p, "time_limit", w, bound if np.isfinite(bound) else -np.inf, nodes, t0, self.name, "TIME_LIMIT")
+        return _result(p, "error", w, -np.inf, nodes, t0, self.name, f"status {st}")
+
+
+def _ginf(a: Array, gp) -> Array:
+    out = np.asarray(a, float).copy()
+    out[out >= _INF] = gp.GRB.INFINITY
+    out[out <= -_INF] = -gp.GRB.INFINITY
+    return out
+
+
+class CplexSolver(Solver):
+    """IBM CPLEX through its Python API (the Community Edition limits the program size)."""
+
+    name = "cplex"
+
+    def _build(self) -> None:
+        cplex = _require("cplex")
+        p = self.problem
+        c = cplex.Cplex()
+        for stream in (c.set_log_stream, c.set_results_stream, c.set_warning_stream, c.set_error_stream):
+            stream(None)
+        c.parameters.threads.set(int(self.options.get("threads", 1)))
+        inf = cplex.infinity
+        types = "".join("I" if i else "C" for i in p.integrality) if p.is_mip else ""
+        c.variables.add(obj=p.c.tolist(), lb=np.clip(p.lb, -inf, inf).tolist(), ub=np.clip(p.ub, -inf, inf).tolist(),
+                        types=types)
+        senses, rhs, rng = [], [], []
+        for r in range(p.m):
+            lo, hi = p.rl[r], p.ru[r]
+            if lo == hi:
+                senses.append("E"); rhs.append(lo); rng.append(0.0)
+            elif lo > -_INF and hi < _INF:
+                senses.append("R"); rhs.append(lo); rng.append(hi - lo)
+            elif hi < _INF:
+                senses.append("L"); rhs.append(hi); rng.append(0.0)
+            else:
+                senses.append("G"); rhs.append(lo if lo > -_INF else -inf); rng.append(0.0)
+        A = p.A
+        rows = [cplex.SparsePair(ind=A.indices[A.indptr[r]:A.indptr[r + 1]].tolist(),
+                                 val=A.data[A.indptr[r]:A.indptr[r + 1]].tolist()) for r in range(p.m)]
+        if p.m:
+            c.linear_constraints.add(lin_expr=rows, senses="".join(senses), rhs=rhs, range_values=rng)
+        if p.H is not None:
+            Hc = p.H.tocsc()
+            c.objective.set_quadratic([cplex.SparsePair(ind=Hc.indices[Hc.indptr[j]:Hc.indptr[j + 1]].tolist(),
+                                                        val=Hc.data[Hc.indptr[j]:Hc.indptr[j + 1]].tolist())
+                                       for j in range(p.n)])
+        self._c, self._cplex = c, cplex
+
+    def _push(self, changed: dict) -> None:
+        p, c, inf = self.problem, self._c, self._cplex.infinity
+        if "c" in changed:
+            c.objective.set_linear(list(zip(range(p.n), p.c.tolist())))
+        if "bounds" in changed:
+            c.variables.set_lower_bounds(list(zip(range(p.n), np.clip(p.lb, -inf, inf).tolist())))
+            c.variables.set_upper_bounds(list(zip(range(p.n), np.clip(p.ub, -inf, inf).tolist())))
+        if "rows" in changed:
+            if "row_kind" in changed:
+                raise ValueError("the 'cplex' back-end cannot turn an equality row into an inequality in place")
+            for r in range(p.m):
+                lo, hi = p.rl[r], p.ru[r]
+                if lo == hi:
+                    c.linear_constraints.set_rhs(r, lo)
+                elif lo > -_INF and hi < _INF:
+                    c.linear_constraints.set_rhs(r, lo)
+                    c.linear_constraints.set_range_values(r, hi - lo)
+                elif hi < _INF:
+                    c.linear_constraints.set_rhs(r, hi)
+                else:
+                    c.linear_constraints.set_rhs(r, max(lo, -inf))
+        if "A" in changed:
+            c.linear_constraints.set_coefficients([(int(self._Arow[k]), int(self._Acol[k]), float(p.A.data[k]))
+                                                   for k in changed["A"]])
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        c, p = self._c, self.problem
+        c.parameters.timelimit.set(float(time_limit) if time_limit else 1e75)
+        if p.is_mip:
+            c.parameters.mip.tolerances.mipgap.set(gap)
+            c.parameters.mip.tolerances.absmipgap.set(gap)
+            c.MIP_starts.delete()
+            if ws is not None:
+                c.MIP_starts.add(self._cplex.SparsePair(ind=list(range(p.n)), val=ws.tolist()),
+                                 c.MIP_starts.effort_level.auto)
+        c.solve()
+        sol = c.solution
+        st = sol.get_status_string()
+        try:
+            w = np.array(sol.get_values())
+        except Exception:
+            w = None
+        nodes = int(sol.progress.get_num_nodes_processed()) if p.is_mip else 0
+        try:
+            bound = sol.MIP.get_best_objective() + p.c0 if p.is_mip else np.nan
+        except Exception:
+            bound = -np.inf
+        s = st.lower()
+        if "optimal" in s and "infeasible" not in s:
+            return _result(p, "optimal", w, bound, nodes, t0, self.name, st)
+        if "infeasible" in s:
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, st)
+        if "time limit" in s:
+            return _result(p, "time_limit", w, bound, nodes, t0, self.name, st)
+        return _result(p, "error", w, -np.inf, nodes, t0, self.name, st)

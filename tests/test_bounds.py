@@ -1,0 +1,128 @@
+"""FBBT node bounds (Grimstad & Andersson 2019, Sec. 4.3): soundness, batches, fixed coordinates, stable neurons."""
+import numpy as np
+import pytest
+
+import flnotes as fl
+
+
+def _random_net(n_in, widths, seed, scale=1.0):
+    rng = np.random.default_rng(seed)
+    sizes = (n_in, *widths, 1)
+    return fl.ReLUNet([scale * rng.normal(size=(b, a)) / np.sqrt(a) for a, b in zip(sizes[:-1], sizes[1:])],
+                      [0.3 * rng.normal(size=b) for b in sizes[1:]])
+
+
+def _assert_sound(net, lo, hi, n=100_000, seed=0):
+    b = fl.fbbt(net, lo, hi)
+    pre = fl.sample_preactivations(net, lo, hi, n=n, seed=seed)  # uniform samples plus every corner
+    assert len(pre) == len(b.L) == net.K - 1
+    for a, L, U in zip(pre, b.L, b.U):
+        assert a.shape[1] == L.shape[0]
+        assert np.all(L <= U)
+        assert np.all(a >= L - 1e-9), (a.min(0) - L).min()
+        assert np.all(a <= U + 1e-9), (U - a.max(0)).min()
+    assert b.contains(pre)
+    X = np.random.default_rng(seed + 1).uniform(lo, hi, (10_000, net.n_in))
+    out = net(X)
+    assert np.all(out >= b.out_L - 1e-9) and np.all(out <= b.out_U + 1e-9)
+    return b, pre
+
+
+@pytest.mark.parametrize("n_in,widths,seed", [(2, (5,), 0), (3, (10, 10), 1), (4, (8, 12, 6), 2), (3, (20, 20, 20), 3),
+                                              (6, (16, 4, 16, 4), 4)])
+def test_fbbt_sound_on_random_nets(n_in, widths, seed):
+    rng = np.random.default_rng(100 + seed)
+    lo = rng.uniform(-3, 0, n_in)
+    hi = lo + rng.uniform(0.1, 4, n_in)
+    _assert_sound(_random_net(n_in, widths, seed), lo, hi, seed=seed)
+
+
+def test_fbbt_sound_on_paper_nets():
+    for name in ("MSD", "Quad-1D"):
+        system = fl.paper.system(name)
+        net, _ = fl.paper_net(name)
+        b, pre = _assert_sound(net, system.lo, system.hi)
+        # first layer: interval arithmetic is exact on an affine map, so the corners attain L and U
+        np.testing.assert_allclose(pre[0].min(0), b.L[0], atol=1e-9)
+        np.testing.assert_allclose(pre[0].max(0), b.U[0], atol=1e-9)
+        # and on a small box around a point of the domain
+        c = np.random.default_rng(5).uniform(system.lo, system.hi)
+        lo, hi = np.maximum(c - 0.2, system.lo), np.minimum(c + 0.2, system.hi)
+        _assert_sound(net, lo, hi, n=20_000)
+
+
+def test_first_layer_exact_and_deeper_layers_contain_samples():
+    net = _random_net(3, (6, 6), seed=9)
+    lo, hi = -np.ones(3), np.ones(3)
+    b = fl.fbbt(net, lo, hi)
+    L, U = fl.interval_affine(net.W[0], net.b[0], lo[None], hi[None])
+    np.testing.assert_allclose(b.L[0], L[0])
+    np.testing.assert_allclose(b.U[0], U[0])
+    W = net.W[0]
+    np.testing.assert_allclose(b.U[0], np.abs(W).sum(1) + net.b[0])  # box [-1, 1]^3: U = |W| 1 + b
+
+
+def test_batch_boxes_agree_with_single_calls():
+    net = _random_net(4, (10, 10, 10), seed=11)
+    rng = np.random.default_rng(12)
+    T = 10  # T == n_k on purpose: a transposition would go unnoticed by shapes
+    lo = rng.uniform(-2, 0, (T, 4))
+    hi = lo + rng.uniform(0, 2, (T, 4))
+    hi[3] = lo[3]  # one degenerate box
+    b = fl.fbbt(net, lo, hi)
+    assert all(L.shape == (T, 10) for L in b.L) and b.out_L.shape == (T, 1)
+    for t in range(T):
+        bt = fl.fbbt(net, lo[t], hi[t])
+        for k in range(net.K - 1):
+            np.testing.assert_allclose(b.L[k][t], bt.L[k], rtol=0, atol=1e-12)
+            np.testing.assert_allclose(b.U[k][t], bt.U[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(b.out_U[t], bt.out_U, rtol=0, atol=1e-12)
+    assert b.n_unstable == sum(fl.fbbt(net, lo[t], hi[t]).n_unstable for t in range(T))
+
+
+def test_fixed_coordinates():
+    net = _random_net(3, (12, 12), seed=13)
+    z = np.array([0.4, -0.7])
+    lo, hi = np.r_[z, -2.0], np.r_[z, 2.0]  # z measured, v free: what a controller sees
+    _assert_sound(net, lo, hi, n=20_000)
+    full = fl.fbbt(net, np.array([-1.0, -1.0, -2.0]), np.array([1.0, 1.0, 2.0]))
+    fixed = fl.fbbt(net, lo, hi)
+    for k in range(net.K - 1):  # a sub-box gives bounds inside the full box's ones
+        assert np.all(fixed.L[k] >= full.L[k] - 1e-12) and np.all(fixed.U[k] <= full.U[k] + 1e-12)
+    assert fixed.n_unstable <= full.n_unstable
+    x = np.array([0.4, -0.7, 1.3])
+    point = fl.fbbt(net, x, x)  # every coordinate fixed: the bounds are the pre-activations themselves
+    for a, L, U in zip(net.preactivations(x), point.L, point.U):
+        np.testing.assert_allclose(L, a[0], atol=1e-12)
+        np.testing.assert_allclose(U, a[0], atol=1e-12)
+    assert point.n_unstable == 0  # (almost surely: no pre-activation is exactly 0)
+
+
+def test_stable_flags_are_consistent():
+    net = _random_net(3, (15, 15, 15), seed=14)
+    lo, hi = -np.ones(3), np.ones(3)
+    b = fl.fbbt(net, lo, hi)
+    pre = fl.sample_preactivations(net, lo, hi, n=20_000)
+    total = 0
+    for act, ina, uns, L, U, a in zip(b.active, b.inactive, b.unstable, b.L, b.U, pre):
+        assert np.all(act.astype(int) + ina.astype(int) + uns.astype(int) == 1)  # a partition
+        np.testing.assert_array_equal(act, L >= 0)
+        np.testing.assert_array_equal(ina, U <= 0)
+        assert np.all(a[:, act] >= 0) and np.all(a[:, ina] <= 0)  # stable neurons never switch
+        total += uns.sum()
+    assert b.n_unstable == total
+    assert b.n_unstable + b.n_stable == net.n_hidden
+    assert all(np.all(w >= 0) for w in b.width())
+    assert "unstable" in b.summary()
+
+
+def test_bad_boxes_raise():
+    net = _random_net(3, (4,), seed=0)
+    with pytest.raises(ValueError, match="box is empty"):
+        fl.fbbt(net, np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match=r"lo and hi must have shape \(3,\)"):
+        fl.fbbt(net, np.zeros(2), np.ones(2))
+    with pytest.raises(ValueError, match="lo and hi must have shape"):
+        fl.fbbt(net, np.zeros((2, 3)), np.ones((3, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        fl.fbbt(net, np.array([0.0, np.nan, 0.0]), np.ones(3))

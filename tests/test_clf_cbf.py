@@ -1,0 +1,268 @@
+"""The CLF-CBF controller of eq. (CLF_CBF): exact 1-D enumeration, MILP/MIQP backends, closed loop, infeasibility."""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.control import (ClfCbfController, DistanceCBF, QuadraticCLF, as_certificate, clf_cbf_checks,
+                             cross_check_exact, exact_1d_feasible_set, network_pieces_1d)
+
+S = fl.paper.MSD_SETTING
+EPS = fl.paper.TABLE1["MSD"]["eps"]
+
+
+@pytest.fixture(scope="module")
+def msd():
+    net, _ = fl.paper_net("MSD")
+    return fl.msd(), net
+
+
+def parts():
+    return QuadraticCLF(S["P"]), DistanceCBF(S["z_o"], S["r_o"]), (lambda z: -S["K_nominal"] @ z)
+
+
+def rel(a, b):
+    return abs(a - b) / max(1.0, abs(b))
+
+
+# --------------------------------------------------------------------------- certificates
+def test_clf_and_cbf_values_and_gradients():
+    V, H, _ = parts()
+    rng = np.random.default_rng(0)
+    for z in rng.uniform(-3, 3, (5, 2)):
+        for f in (V, H):
+            g = np.array([(f(z + h) - f(z - h)) / 2e-6 for h in np.eye(2) * 1e-6])
+            assert np.allclose(f.grad(z), g, atol=1e-6)
+    assert np.isclose(V(np.array([1.0, 0.0])), S["P"][0, 0])
+    assert np.isclose(H(S["z_o"]), -S["r_o"]) and np.allclose(H.grad(S["z_o"]), 0)
+    Z = rng.uniform(-3, 3, (7, 2))
+    assert np.allclose(H(Z), [H(z) for z in Z]) and np.allclose(V(Z), [V(z) for z in Z])
+    # a user's own pair (fn, grad) is accepted
+    c = as_certificate((lambda z: z @ z, lambda z: 2 * z), "W")
+    assert c(np.array([1.0, 2.0])) == 5.0 and np.allclose(c.grad(np.array([1.0, 2.0])), [2, 4])
+    with pytest.raises(ValueError, match="positive definite"):
+        QuadraticCLF(-np.eye(2))
+    with pytest.raises(ValueError, match="r_o"):
+        DistanceCBF([0, 0], -1.0)
+
+
+# --------------------------------------------------------------------------- exact 1-D method
+@pytest.mark.parametrize("z", [S["z0"], np.array([1.0, 0.3]), np.array([-2.0, -4.5]), np.array([0.01, -0.02])])
+def test_pieces_reproduce_the_network_and_its_activation_regions(msd, z):
+    _, net = msd
+    pw = network_pieces_1d(net, z, -10.0, 10.0)
+    v = np.linspace(-10, 10, 40001)
+    X = np.column_stack([np.repeat(z[None], len(v), 0), v])
+    assert np.abs(pw(v) - net(X)[:, 0]).max() < 1e-9
+    # inside every piece the activation pattern is constant (the knots are all the breakpoints)
+    for a, b in zip(pw.knots[:-1], pw.knots[1:]):
+        pts = np.linspace(a, b, 7)[1:-1]
+        pats = net.activation_pattern(np.column_stack([np.repeat(z[None], len(pts), 0), pts]))
+        assert all(np.all(p == p[0]) for p in pats)
+
+
+def test_feasible_set_is_exact(msd):
+    _, net = msd
+    bound = 5.0 - EPS
+    for z in [S["z0"], np.array([2.0, -1.0]), np.array([4.5, 4.5])]:
+        iv = exact_1d_feasible_set(net, z, -10.0, 10.0, bound)
+        v = np.linspace(-10, 10, 20001)
+        inside = np.abs(net(np.column_stack([np.repeat(z[None], len(v), 0), v]))[:, 0]) <= bound
+        in_iv = np.zeros_like(inside)
+        for a, b in iv:
+            in_iv |= (v >= a) & (v <= b)
+        near = np.min(np.abs(v[:, None] - iv.ravel()[None, :]), axis=1) < 1e-9 if len(iv) else np.zeros_like(inside)
+        assert np.all((inside == in_iv) | near)
+        assert np.all(np.diff(iv.ravel()) >= 0), "intervals sorted and disjoint"
+
+
+def test_exact_method_needs_a_single_input():
+    A, B = fl.brunovsky([1, 1])
+    rng = np.random.default_rng(1)
+    net = fl.ReLUNet([rng.normal(size=(5, 4)), rng.normal(size=(2, 5))], [rng.normal(size=5), rng.normal(size=2)])
+    sysm = fl.FLSystem("two", A, B, phi=lambda z, v: v, lo=[-1] * 4, hi=[1] * 4, u_max=[1, 1],
+                       f=lambda x, u: u, to_z=lambda x: x, to_x=lambda z: z)
+    with pytest.raises(ValueError, match="single input"):
+        network_pieces_1d(net, np.zeros(3), -1, 1)
+    with pytest.raises(ValueError, match="m = 2 inputs"):
+        ClfCbfController(sysm, net, 0.1, QuadraticCLF(np.eye(2)), None, cost="linear", backend="exact")
+
+
+# --------------------------------------------------------------------------- backends agree
+STATES = [S["z0"], np.array([1.0, 0.3]), np.array([0.02, -0.01]), np.array([2.5, 0.9]), np.array([-1.5, 2.0]),
+          np.array([0.5, 1.0])]  # the last one has z2 = 1: grad H^T B = 0 and the CBF condition fails
+
+
+@pytest.mark.parametrize("cost, backend", [("linear", "highs"), ("linear", "scip"), ("linear", "cvxpy"),
+                                           ("quadratic", "scip")])
+def test_mip_backends_match_the_exact_enumeration(msd, cost, backend):
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost=cost, backend=backend)
+    ex = ctrl.with_backend("exact")
+    states = STATES[:3] + STATES[-1:] if backend == "cvxpy" else STATES
+    for z in states:
+        r, rx = ctrl.step(z), ex.step(z)
+        assert r.status == rx.status and r.fallback == rx.fallback
+        assert rel(r.info["objective"], rx.info["objective"]) <= 1e-6, (z, r.info, rx.info)
+        # whenever the program is feasible the applied v satisfies (CLF_CBF_b)-(CLF_CBF_d) up to tolerances
+        if not r.fallback:
+            d = ctrl.program_data(z)
+            assert abs(r.info["phi_nn"][0]) <= 5.0 - EPS + 1e-6
+            assert d["aH"] @ r.v + d["bH"] >= -1e-6
+            assert r.info["delta"] >= d["aV"] @ r.v + d["bV"] - 1e-6 and r.info["delta"] >= -1e-9
+
+
+def test_persistent_model_matches_bigm_form_update(msd):
+    """The fast in-place write of the big-M coefficients equals BigMForm.update on the same bounds."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend="highs")
+    impl = ctrl._impl
+    z = np.array([1.0, -2.0])
+    b = ctrl.node_bounds(z)
+    kw = impl.write(z, ctrl.program_data(z), b, soft=False)
+    A_ub, b_ub, lb, ub = impl.form.update(b)
+    n_eq, n_ub, nf = impl.form.A_eq.shape[0], impl.form.A_ub.shape[0], impl.form.n
+    assert np.allclose(kw["A"][n_eq:n_eq + n_ub, :nf].toarray(), A_ub.toarray())
+    assert np.allclose(kw["ru"][n_eq:n_eq + n_ub], b_ub)
+    keep = np.setdiff1d(np.arange(nf), impl.form.x)
+    assert np.array_equal(kw["lb"][keep], lb[keep]) and np.array_equal(kw["ub"][keep], ub[keep])
+
+
+# --------------------------------------------------------------------------- closed loop
+@pytest.fixture(scope="module")
+def runs(msd):
+    sysm, net = msd
+    V, H, k = parts()
+    out = {}
+    for cost, backend in [("linear", "highs"), ("quadratic", "scip")]:
+        ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost=cost, backend=backend)
+        log = fl.simulate(sysm, ctrl, t_final=10.0, ts=0.05, z0=S["z0"], hold="u", net=net)
+        out[cost] = (ctrl, log)
+    return out
+
+
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_closed_loop_on_the_true_plant(runs, cost):
+    ctrl, log = runs[cost]
+    _, H, _ = parts()
+    chk = clf_cbf_checks(log, H)
+    assert log.message == "" and chk["steps"] == 200
+    assert chk["fallback_steps"] == 0 and chk["non_optimal_steps"] == 0
+    # the true input never exceeds u_max (u is held between samples), the network output stays within u_max^eps
+    assert chk["max_abs_u"] <= 5.0 and chk["max_abs_u_between"] <= 5.0
+    assert chk["max_abs_u_nn"] <= 5.0 - EPS + 1e-6
+    # safety: H(z) >= 0 at every sample and along the integrated trajectory
+    assert chk["min_H"] > 0 and chk["min_H_between"] > 0
+    # convergence: ||z|| decreases to a small value (Lcost slides slowly along grad V^T B = 0)
+    nz = np.linalg.norm(log.z, axis=1)
+    assert nz[-1] < 0.1 * nz[0]
+    if cost == "quadratic":
+        assert nz[-1] < 1e-3
+    # the nominal law alone would have violated |u| <= 5 from the same start (see test_simulate)
+
+
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_closed_loop_optima_match_the_exact_method(runs, cost):
+    ctrl, log = runs[cost]
+    chk = cross_check_exact(ctrl, log)
+    assert chk["steps"] == log.n_steps
+    assert chk["max_rel_diff"] <= 1e-6
+
+
+# --------------------------------------------------------------------------- infeasibility
+@pytest.mark.parametrize("backend", ["exact", "highs", "cvxpy"])
+def test_infeasible_cbf_reports_and_falls_back(msd, backend):
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend=backend)
+    r = ctrl.step(np.array([0.5, 1.0]))
+    assert r.status == "infeasible" and r.fallback
+    assert r.info["fallback_rule"] == "softened program"
+    # the fallback keeps the network bound (its slack is zero) and gives up part of the CBF condition
+    assert r.info["slack_u"][0] <= 1e-7 and r.info["slack_H"][0] > 0
+    assert abs(r.info["phi_nn"][0]) <= 5.0 - EPS + 1e-6
+
+
+def test_input_bound_too_small_gives_up_the_input_bound_last(msd):
+    """u_max = 1: at z = [5, 5] no v in [-10, 10] gives |Phi_NN| <= u_max^eps; the fallback minimizes the excess."""
+    _, net = msd
+    sysm = fl.msd(u_max=1.0)
+    V, H, k = parts()
+    z = np.array([5.0, 5.0])
+    res = {}
+    for backend in ("exact", "highs"):
+        ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic" if backend == "exact" else "linear",
+                                backend=backend)
+        r = ctrl.step(z)
+        assert r.status == "infeasible" and r.fallback and r.info["slack_u"][0] > 0
+        res[backend] = r.v[0]
+    pw = network_pieces_1d(net, z, -10, 10)
+    assert np.all(pw.values > 1.0 - EPS)  # indeed infeasible
+    assert np.allclose([res["exact"], res["highs"]], -10.0)  # the smallest |Phi_NN| is at v_lo
+
+
+def test_closed_loop_with_too_small_u_max_reports_infeasibility_and_never_crashes(msd):
+    """u_max = 2: near the obstacle the input cannot brake enough for the CBF condition.
+
+    Infeasible steps are reported and counted, the softened program is applied, the
+    input bound is kept (it is given up last) and the run goes on to the end.
+    """
+    _, net = msd
+    sysm = fl.msd(u_max=2.0)
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="exact")
+    log = fl.simulate(sysm, ctrl, t_final=6.0, ts=0.05, z0=S["z0"], hold="u", net=net)
+    s = log.summary()
+    assert log.n_steps == 120 and log.message == ""
+    n_inf = sum(st == "infeasible" for st in log.status)
+    assert n_inf > 0 and s["fallback_steps"] == n_inf == s["non_optimal_steps"]
+    assert all(r.info["fallback_rule"] == "softened program" for r in log.steps if r.fallback)
+    assert all(r.info["slack_H"][0] > 0 and r.info["slack_u"][0] <= 1e-9 for r in log.steps if r.fallback)
+    assert np.abs(log.u).max() <= 2.0 and np.abs(log.u_fine).max() <= 2.0
+    # the same steps with the MIQP backend: same verdicts, same softened optimum
+    ctrl_milp = ctrl.with_backend("scip")
+    for i in np.flatnonzero(log.fallback)[:3]:
+        r = ctrl_milp.step(log.z[i])
+        assert r.status == "infeasible" and r.fallback
+        assert rel(r.info["objective"], log.steps[i].info["objective"]) <= 1e-6
+    # a solver that raises is caught by the controller, not by the simulation
+    ctrl_bad = ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="exact")
+    ctrl_bad._impl.solve = lambda *a, **kw: (_ for _ in ()).throw(RuntimeError("boom"))
+    r = ctrl_bad.step(np.array([1.0, 1.0]))
+    assert r.fallback and r.status.startswith("error: RuntimeError") and r.info["fallback_rule"].startswith("k(z)")
+
+
+def test_multi_input_system_works_with_the_milp(msd):
+    """Two decoupled double integrators with a random network: the MILP backend handles m = 2."""
+    A, B = fl.brunovsky([2, 2])
+    rng = np.random.default_rng(3)
+    W1, W2 = rng.normal(size=(8, 6)) * 0.5, rng.normal(size=(2, 8)) * 0.5
+    net = fl.ReLUNet([W1, W2], [rng.normal(size=8) * 0.1, np.zeros(2)])
+    sysm = fl.FLSystem("2x MSD", A, B, phi=lambda z, v: v, lo=[-5] * 4 + [-10] * 2, hi=[5] * 4 + [10] * 2,
+                       u_max=[5, 5], f=lambda x, u: A @ x + B @ u, to_z=lambda x: x, to_x=lambda z: z)
+    P = np.kron(np.eye(2), S["P"])
+    ctrl = ClfCbfController(sysm, net, 0.1, QuadraticCLF(P), DistanceCBF([1.5, 1.0, 0.0, 0.0], 0.8),
+                            lambda z: -np.kron(np.eye(2), S["K_nominal"]) @ z, cost="linear", backend="highs")
+    ref = ctrl.with_backend("cvxpy")
+    for z in [np.array([0.0, 4.0, 1.0, -1.0]), np.array([2.0, 0.0, 0.0, 2.0])]:
+        r, rr = ctrl.step(z), ref.step(z)
+        assert r.v.shape == (2,) and r.status == rr.status
+        assert rel(r.info["objective"], rr.info["objective"]) <= 1e-6
+        assert np.all(np.abs(r.info["phi_nn"]) <= 5.0 - 0.1 + 1e-6) or r.fallback
+
+
+def test_auto_backend_and_clear_errors(msd):
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k)
+    assert ctrl.backend == "exact" and ctrl.cost == "linear" and "no model" in ctrl.describe()
+    assert np.allclose(ctrl(S["z0"]), ctrl.history[-1].v) and ctrl.stats()["steps"] == 1
+    with pytest.raises(ValueError, match="nominal law k"):
+        ClfCbfController(sysm, net, EPS, V, H, None, cost="quadratic")
+    with pytest.raises(ValueError, match="HiGHS has no mixed-integer QP"):
+        ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="highs")
+    with pytest.raises(ValueError, match="u_max - eps must stay positive"):
+        ClfCbfController(sysm, net, 6.0, V, H, k)
+    with pytest.raises(ValueError, match="cost must be"):
+        ClfCbfController(sysm, net, EPS, V, H, k, cost="cubic")

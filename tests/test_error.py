@@ -1,0 +1,248 @@
+"""The error bound eps of eq. (approx_err): PSO estimate and certified bracket (flnotes.error, flnotes.interval)."""
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes import interval as iv
+from flnotes.error import (ErrorBracket, NotCertifiable, certify_error, grid_max_error, pso_max_error,
+                           sample_max_error, worst_violation)
+from flnotes.interval import Interval
+
+N_DENSE = 100_000
+
+
+def _dense_max(f, net, lo, hi, seed=123):
+    X = np.random.default_rng(seed).uniform(lo, hi, (N_DENSE, len(lo)))
+    Y = np.asarray(f(X), float).reshape(N_DENSE, -1)
+    return np.abs(Y - net(X)).max(0)
+
+
+# --------------------------------------------------------------------------- interval arithmetic
+def test_rounding_is_outward_for_exact_rationals():
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(-3, 3, 200), rng.uniform(-3, 3, 200)
+    A, B = Interval(a), Interval(b)
+    for op, name in ((lambda x, y: x + y, "+"), (lambda x, y: x - y, "-"), (lambda x, y: x * y, "*"),
+                     (lambda x, y: x / y, "/")):
+        R = op(A, B)
+        for k in range(len(a)):
+            exact = op(Fraction(a[k]), Fraction(b[k]))
+            assert Fraction(R.lo[k]) <= exact <= Fraction(R.hi[k]), name
+    # a matrix product with many terms: the midpoint-radius bound must contain the exact rational result
+    W, x, c = rng.normal(size=(7, 30)), rng.normal(size=(5, 30)), rng.normal(size=7)
+    Y = iv.affine(W, c, Interval(x))
+    for t in range(5):
+        for j in range(7):
+            exact = sum(Fraction(W[j, i]) * Fraction(x[t, i]) for i in range(30)) + Fraction(c[j])
+            assert Fraction(Y.lo[t, j]) <= exact <= Fraction(Y.hi[t, j])
+
+
+@pytest.mark.parametrize("fun, np_fun, lo_range", [
+    (iv.exp, np.exp, (-3, 3)), (iv.tanh, np.tanh, (-3, 3)), (iv.sqrt, np.sqrt, (0.1, 4)),
+    (iv.abs_, np.abs, (-2, 2)), (iv.arcsin, np.arcsin, (-0.9, 0.8)), (iv.sqr, np.square, (-2, 2)),
+    (lambda x: 1.0 / (1.0 + iv.sqr(x)), lambda x: 1.0 / (1.0 + x**2), (-2, 2)),
+    (lambda x: x**3 - 2.0 * x, lambda x: x**3 - 2 * x, (-2, 2)),
+])
+def test_value_and_gradient_enclosures(fun, np_fun, lo_range):
+    rng = np.random.default_rng(1)
+    lo = rng.uniform(*lo_range, (3000, 1))
+    hi = np.minimum(lo + rng.uniform(0, 0.1, lo.shape), lo_range[1] + 0.09)
+    Y = fun(Interval.variables(lo, hi))
+    x = rng.uniform(lo, hi)
+    h = 1e-6
+    y, d = np_fun(x), (np_fun(np.minimum(x + h, hi)) - np_fun(np.maximum(x - h, lo))) / (np.minimum(x + h, hi) - np.maximum(x - h, lo))
+    assert np.all((Y.lo <= y) & (y <= Y.hi))
+    assert np.all((Y.dlo[..., 0] - 1e-5 <= d) & (d <= Y.dhi[..., 0] + 1e-5))
+
+
+def test_system_phi_intervals_enclose_phi_and_gradient():
+    rng = np.random.default_rng(2)
+    for s in (fl.msd(), fl.quad1d()):
+        lo = rng.uniform(s.lo, s.hi, (5000, s.n_in))
+        hi = np.minimum(lo + rng.uniform(0, 0.2, lo.shape), s.hi)
+        X = Interval.variables(lo, hi)
+        F = s.phi_interval(X[:, : s.n_z], X[:, s.n_z:])
+        P = rng.uniform(lo, hi)
+        y = s.phi_stacked(P)
+        assert np.all((F.lo <= y) & (y <= F.hi))
+        for j in range(s.n_in):
+            e = np.zeros(s.n_in)
+            e[j] = 1e-7
+            d = (s.phi_stacked(np.minimum(P + e, hi)) - s.phi_stacked(np.maximum(P - e, lo))) / (
+                np.minimum(P + e, hi) - np.maximum(P - e, lo))[:, j:j + 1]
+            assert np.all((F.dlo[:, :, j] - 1e-5 <= d) & (d <= F.dhi[:, :, j] + 1e-5))
+
+
+def _random_net(n_in, widths, n_out, seed):
+    rng = np.random.default_rng(seed)
+    sizes = [n_in, *widths, n_out]
+    return fl.ReLUNet([rng.normal(size=(sizes[k + 1], sizes[k])) / np.sqrt(sizes[k]) for k in range(len(sizes) - 1)],
+                      [0.3 * rng.normal(size=sizes[k + 1]) for k in range(len(sizes) - 1)])
+
+
+def test_network_enclosures_are_sound():
+    net = _random_net(3, (12, 12, 12), 2, seed=3)
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(-2, 2, (400, 3))
+    hi = lo + rng.uniform(0, 1.0, lo.shape)
+    X = Interval.variables(lo, hi)
+    N = iv.net_interval(net, X)
+    pre = iv.net_preactivations(net, Interval(lo, hi))
+    bounds = [iv.net_linear_bound(net, pre, Interval(lo, hi), i, s) for i in range(2) for s in (1.0, -1.0)]
+    for t in range(0, 400, 40):
+        P = rng.uniform(lo[t], hi[t], (2000, 3))
+        Y = net(P)
+        assert np.all((N.lo[t] <= Y) & (Y <= N.hi[t]))
+        for (a, c), (i, s) in zip(bounds, [(i, s) for i in range(2) for s in (1.0, -1.0)]):
+            assert np.all(s * Y[:, i] >= P @ a[t] + c[t] - 1e-12)
+        # Clarke Jacobian enclosure: finite differences of the network inside the box
+        h = 1e-6 * (hi[t] - lo[t])
+        for j in range(3):
+            Q = P.copy()
+            Q[:, j] = np.clip(Q[:, j], lo[t, j], hi[t, j] - h[j])
+            d = (net(Q + np.eye(3)[j] * h[j]) - net(Q)) / h[j]
+            assert np.all((N.dlo[t, :, j] - 1e-6 <= d) & (d <= N.dhi[t, :, j] + 1e-6))
+
+
+# --------------------------------------------------------------------------- the two systems
+@pytest.mark.parametrize("name", ["MSD", "Quad-1D"])
+def test_certified_eps_dominates_dense_sample_and_pso(name):
+    s = fl.paper.system(name)
+    net, _ = fl.paper_net(name)
+    br = fl.paper.paper_eps(name)
+    assert isinstance(br, ErrorBracket) and br.converged.all()
+    dense = _dense_max(s.phi_stacked, net, s.lo, s.hi)
+    pso = pso_max_error(s, net, seed=7)
+    assert np.all(br.upper >= dense)
+    assert np.all(br.upper >= pso.eps)
+    assert np.all(br.lower <= br.upper)
+    assert np.all(br.width <= br.rtol * br.lower + 1e-15)
+    # the lower end is attained: the error at the reported maximizer is at least `lower`
+    at = np.abs(s.phi_stacked(br.argmax) - net(br.argmax))[np.arange(s.m), np.arange(s.m)]
+    assert np.all(at >= br.lower - 1e-12)
+
+
+def test_certification_from_scratch_matches_cached_and_pso_is_deterministic():
+    s = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    br = certify_error(s, net, rtol=0.05)
+    ref = fl.paper.paper_eps("MSD")
+    assert br.lower[0] <= ref.upper[0] and ref.lower[0] <= br.upper[0]      # the two brackets overlap
+    assert br.width[0] <= 0.05 * br.lower[0] + 1e-15
+    a, b = pso_max_error(s, net, seed=3), pso_max_error(s, net, seed=3)
+    assert np.array_equal(a.eps, b.eps) and np.array_equal(a.argmax, b.argmax)
+
+
+def test_certified_eps_keeps_the_true_input_bound():
+    """Proposition 1: with the certified eps no point satisfying |Phi_NN| <= u_max - eps has |Phi| > u_max."""
+    s = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    br = fl.paper.paper_eps("MSD")
+    res = worst_violation(s, net, br.upper, at=br.argmax, n=50_000)
+    assert res["n_feasible"] > 0 and np.all(res["violation"] <= 0)
+
+
+# --------------------------------------------------------------------------- user-supplied Phi
+def _smooth_f(X):
+    return np.hstack([np.exp(-X[:, :1] ** 2) * np.tanh(2 * X[:, 1:2]) + np.sqrt(1 + X[:, 2:3] ** 2),
+                      np.abs(X[:, :1] - 0.2) * X[:, 1:2] / (2.0 + X[:, 2:3] ** 2)])
+
+
+def _smooth_f_interval(X):
+    a = iv.exp(-iv.sqr(X[:, 0:1])) * iv.tanh(2.0 * X[:, 1:2]) + iv.sqrt(1.0 + iv.sqr(X[:, 2:3]))
+    b = iv.abs(X[:, 0:1] - 0.2) * X[:, 1:2] / (2.0 + iv.sqr(X[:, 2:3]))
+    return iv.hstack([a, b])
+
+
+def test_random_network_against_smooth_user_function():
+    net = _random_net(3, (16, 16), 2, seed=5)
+    lo, hi = np.array([-1.5, -1.0, -2.0]), np.array([1.0, 1.5, 1.0])
+    br = certify_error(_smooth_f, net, lo, hi, f_interval=_smooth_f_interval, rtol=0.01)
+    dense = _dense_max(_smooth_f, net, lo, hi)
+    pso = pso_max_error(_smooth_f, net, lo, hi, n_particles=40, n_iter=100)
+    assert br.upper.shape == (2,) and br.converged.all()
+    assert np.all(br.upper >= dense) and np.all(br.upper >= pso.eps)
+    assert np.all(br.width <= 0.01 * br.lower + 1e-15)
+
+
+def test_lipschitz_certification_is_sound():
+    s = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    lo, hi = np.array([-1.0, -0.5, -1.0]), np.array([0.0, 0.5, 1.0])
+    # |dPhi/dz1| = 1, |dPhi/dv| = 1, |s'(z2)| <= 1 + 10 (0.8 + 0.2) = 11
+    br = certify_error(s.phi_stacked, net, lo, hi, lipschitz=[1.0, 11.0, 1.0], rtol=0.05)
+    assert br.method == "lipschitz" and br.converged.all()
+    assert br.upper[0] >= _dense_max(s.phi_stacked, net, lo, hi)[0]
+
+
+# --------------------------------------------------------------------------- a known answer
+def test_bracket_contains_exact_max_for_piecewise_linear_f():
+    """1-D: f(x) = |x| - 0.5 |x - 0.3| and a one-hidden-layer net fitted to it. Both are piecewise linear, so
+    |f - net| is maximal at a breakpoint of f (0, 0.3), of the net (-b_j / w_j) or an end of the interval."""
+    def f(X):
+        return np.abs(X) - 0.5 * np.abs(X - 0.3)
+
+    def f_iv(X):
+        return iv.abs(X) - 0.5 * iv.abs(X - 0.3)
+
+    lo, hi = np.array([-1.0]), np.array([1.0])
+    net, _ = fl.fit_relu(f, lo, hi, widths=(6,), n_per_axis=41, max_iter=200, seed=0)
+    W, b = net.W[0][:, 0], net.b[0]
+    kinks = -b[W != 0] / W[W != 0]
+    cand = np.concatenate([[-1.0, 1.0, 0.0, 0.3], kinks[(kinks >= -1) & (kinks <= 1)]])[:, None]
+    exact = np.abs(f(cand) - net(cand)).max()
+    br = certify_error(f, net, lo, hi, f_interval=f_iv, rtol=1e-6)
+    assert br.lower[0] <= exact <= br.upper[0] + 1e-12
+    assert br.width[0] <= 1e-6 * exact + 1e-12
+    assert pso_max_error(f, net, lo, hi).eps[0] <= exact + 1e-12
+    assert grid_max_error(f, net, lo, hi, 2001).eps[0] <= exact + 1e-12
+
+
+def test_bracket_contains_known_bump_height_in_3d():
+    """f = net + a tent of height 0.3 centred at x0: the error |f - net| is the tent, whose max is exactly 0.3."""
+    net = _random_net(3, (10, 10), 1, seed=8)
+    x0, r = np.array([0.2, -0.4, 0.1]), 0.5
+
+    def f(X):
+        return net(X) + 0.3 * np.maximum(1.0 - np.abs(X - x0).sum(1, keepdims=True) / r, 0.0)
+
+    def f_iv(X):
+        d = iv.abs(X[:, 0:1] - x0[0]) + iv.abs(X[:, 1:2] - x0[1]) + iv.abs(X[:, 2:3] - x0[2])
+        return iv.net_interval(net, X) + 0.3 * iv.relu(1.0 - d / r)
+
+    lo, hi = -np.ones(3), np.ones(3)
+    br = certify_error(f, net, lo, hi, f_interval=f_iv, rtol=1e-3)
+    assert br.lower[0] <= 0.3 <= br.upper[0] and br.upper[0] <= 0.3 * 1.001 + 1e-12
+
+
+# --------------------------------------------------------------------------- bad input
+def test_bad_inputs_give_clear_errors():
+    s = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    with pytest.raises(ValueError, match="box is empty"):
+        certify_error(s, net, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="box is empty"):
+        pso_max_error(s, net, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"shape \(1, 3\)|lo must have shape"):
+        certify_error(s, net, np.zeros(2), np.ones(2))
+    with pytest.raises(ValueError, match="returned shape"):
+        certify_error(lambda X: X[:, :2], net, s.lo, s.hi, lipschitz=1.0)
+    with pytest.raises(ValueError, match="returned shape"):
+        pso_max_error(lambda X: X.sum(), net, s.lo, s.hi)
+    with pytest.raises(NotCertifiable, match="cannot certify"):
+        certify_error(s.phi_stacked, net, s.lo, s.hi)
+    with pytest.raises(NotCertifiable, match="flnotes.interval"):
+        certify_error(s.phi_stacked, net, s.lo, s.hi, f_interval=lambda X: np.exp(X.lo[:, :1]))
+
+
+def test_singular_phi_is_not_certifiable():
+    q = fl.quad1d()
+    net, _ = fl.paper_net("Quad-1D")
+    lo, hi = q.lo.copy(), q.hi.copy()
+    lo[2], hi[2] = -12.0, 12.0  # |zeta| reaches 1 (90 degrees of pitch): Phi is undefined there
+    with pytest.raises(NotCertifiable, match="arcsin|sqrt"):
+        certify_error(q, net, lo, hi)

@@ -1,0 +1,324 @@
+"""The book as a reader sees it.
+
+Builds the book in fast mode (``FLNOTES_FAST=1``) into ``_build/test_html`` with the
+same strictness as ``make book`` (warnings are errors, every notebook executed),
+then checks the HTML:
+
+* static checks, always: MathJax is loaded from the book's own ``_static`` (no CDN;
+  other external scripts, such as the ipywidgets manager, only raise a warning), every ``<img>`` resolves to a file, every
+  internal link resolves to a file and, with a fragment, to an anchor in it;
+* in a browser, when Debian's ``chromium`` is there (installed on the fly with
+  apt-get when running as root): the intro and every chapter page are opened in
+  headless Chromium; after its scripts ran, the math must be typeset by MathJax
+  (``mjx-container`` present, no raw ``$$``, ``\\(`` or ``\\[`` left in the text).
+  Screenshots are written to ``_build/screenshots/``.
+
+Set ``FLNOTES_RENDERED_HTML=<folder with index.html>`` to check an existing build
+(e.g. ``_build/html`` after ``make book``) instead of building again.
+"""
+from __future__ import annotations
+
+import functools
+import http.server
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import warnings
+from html.parser import HTMLParser
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+BUILD_OUT = ROOT / "_build" / "test_html"
+SCREENSHOTS = ROOT / "_build" / "screenshots"
+BUILD_TIMEOUT = int(os.environ.get("FLNOTES_RENDER_TIMEOUT", "3600"))
+
+
+# ----------------------------------------------------------------------------------
+# the build
+def _jupyter_book_cmd() -> list[str]:
+    exe = Path(sys.executable).parent / "jupyter-book"
+    if exe.exists():
+        return [str(exe)]
+    return [sys.executable, "-c", "from jupyter_book.cli.main import main; main()"]
+
+
+_BUILD_FAILURE: list[str] = []
+
+
+def _problems(log_text: str, limit: int = 40) -> str:
+    """The lines of a build log that say what went wrong (warnings, errors, tracebacks' ends)."""
+    keep = [
+        re.sub(r"\x1b\[[0-9;]*m", "", line)
+        for line in log_text.splitlines()
+        if re.search(r"WARNING|ERROR|Error|Exception|Traceback", line) and "IPKernelApp" not in line
+        and "ParserConfig(" not in line
+    ]
+    more = f"\n  ... {len(keep) - limit} more" if len(keep) > limit else ""
+    return "\n  ".join(keep[:limit]) + more
+
+
+@pytest.fixture(scope="module")
+def html_dir() -> Path:
+    given = os.environ.get("FLNOTES_RENDERED_HTML")
+    if given:
+        path = Path(given).resolve()
+        assert (path / "index.html").is_file(), f"FLNOTES_RENDERED_HTML={given} holds no index.html"
+        return path
+    if _BUILD_FAILURE:  # reported in full once, by the first test that asked for the build
+        pytest.fail(f"the fast build failed (see the first error of this module; log in {_BUILD_FAILURE[0]})", pytrace=False)
+    env = dict(os.environ, FLNOTES_FAST="1", PYTHONDONTWRITEBYTECODE="1")
+    env.pop("MPLBACKEND", None)  # let the kernels use the inline backend, so figures are rendered
+    if BUILD_OUT.exists():
+        shutil.rmtree(BUILD_OUT)
+    cmd = _jupyter_book_cmd() + ["build", str(ROOT), "--path-output", str(BUILD_OUT), "--all", "-W", "-n", "--keep-going"]
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=BUILD_TIMEOUT)
+    log = BUILD_OUT / "build.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(proc.stdout + "\n" + proc.stderr)
+    if proc.returncode != 0:
+        _BUILD_FAILURE.append(str(log))
+        pytest.fail(
+            f"the book does not build in fast mode with warnings as errors (exit {proc.returncode}).\n"
+            f"What went wrong:\n  {_problems(proc.stdout + proc.stderr)}\nFull log: {log}",
+            pytrace=False,
+        )
+    path = BUILD_OUT / "_build" / "html"
+    assert (path / "index.html").is_file()
+    return path
+
+
+def _toc_pages() -> list[str]:
+    toc = yaml.safe_load((ROOT / "_toc.yml").read_text())
+    pages = [toc["root"]]
+
+    def walk(entries):
+        for e in entries or []:
+            if "file" in e:
+                pages.append(e["file"])
+            walk(e.get("sections"))
+
+    for part in toc.get("parts", []):
+        walk(part.get("chapters"))
+    walk(toc.get("chapters"))
+    return pages
+
+
+PAGES = _toc_pages()
+CHAPTERS = [p for p in PAGES if p == "book/intro" or re.match(r"book/\d\d_", p)]
+
+
+# ----------------------------------------------------------------------------------
+# HTML parsing
+class _Collector(HTMLParser):
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.ids: set[str] = set()
+        self.links: list[str] = []
+        self.imgs: list[str] = []
+        self.scripts: list[str] = []
+        self.stylesheets: list[str] = []
+        self.text: list[str] = []
+        self._skip = 0
+        self._skip_tags = ("script", "style", "pre", "code", "textarea", "mjx-assistive-mml", "mjx-container")
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        for key in ("id", "name"):
+            if a.get(key):
+                self.ids.add(a[key])
+        if tag == "a" and a.get("href") is not None:
+            self.links.append(a["href"])
+        elif tag == "img" and a.get("src") is not None:
+            self.imgs.append(a["src"])
+        elif tag == "script" and a.get("src"):
+            self.scripts.append(a["src"])
+        elif tag == "link" and "stylesheet" in (a.get("rel") or "") and a.get("href"):
+            self.stylesheets.append(a["href"])
+        if tag in self._skip_tags:
+            self._skip += 1
+
+    def handle_endtag(self, tag):
+        if tag in self._skip_tags and self._skip:
+            self._skip -= 1
+
+    def handle_data(self, data):
+        if not self._skip:
+            self.text.append(data)
+
+
+@functools.lru_cache(maxsize=None)
+def _parse(path: Path) -> _Collector:
+    c = _Collector()
+    c.feed(path.read_text(encoding="utf-8", errors="replace"))
+    return c
+
+
+def _pages(html_dir: Path) -> list[Path]:
+    return sorted(p for p in html_dir.rglob("*.html") if "_static" not in p.parts and "_sources" not in p.parts)
+
+
+def _is_external(url: str) -> bool:
+    return bool(urlsplit(url).scheme) or url.startswith("//")
+
+
+# ----------------------------------------------------------------------------------
+# static checks (no browser needed)
+def test_every_toc_page_is_built(html_dir):
+    missing = [p for p in PAGES if not (html_dir / f"{p}.html").is_file()]
+    assert not missing, f"pages of _toc.yml missing from the HTML: {missing}"
+
+
+def test_mathjax_is_local(html_dir):
+    mj = html_dir / "_static" / "mathjax" / "tex-chtml.js"
+    assert mj.is_file(), "the offline MathJax (sphinx-mathjax-offline) was not copied to _static/mathjax"
+    with_math = 0
+    others: set[str] = set()
+    for page in _pages(html_dir):
+        c = _parse(page)
+        external = [s for s in c.scripts + c.stylesheets if _is_external(s)]
+        ext_mj = [s for s in external if "mathjax" in s.lower()]
+        assert not ext_mj, f"{page.relative_to(html_dir)} loads MathJax from the network: {ext_mj}"
+        others.update(external)
+        mj_scripts = [s for s in c.scripts if "mathjax" in s.lower()]
+        for s in mj_scripts:
+            target = (page.parent / unquote(urlsplit(s).path)).resolve()
+            assert target.is_file(), f"{page.relative_to(html_dir)}: MathJax script {s} does not exist"
+            assert target == mj.resolve(), f"{page.relative_to(html_dir)}: unexpected MathJax {s}"
+        with_math += bool(mj_scripts)
+    intro = _parse(html_dir / "book" / "intro.html")
+    assert any("mathjax" in s for s in intro.scripts), "the intro has math but loads no MathJax"
+    assert with_math >= 1
+    if others:
+        # not fatal: e.g. myst-nb adds require.js and the ipywidgets embed manager from
+        # CDNs to pages with widget outputs; those widgets do not show offline
+        warnings.warn("external scripts/stylesheets (not available offline): " + ", ".join(sorted(others)))
+
+
+def test_images_exist(html_dir):
+    problems = []
+    for page in _pages(html_dir):
+        for src in _parse(page).imgs:
+            if src.startswith("data:"):
+                continue
+            if _is_external(src):
+                problems.append(f"{page.relative_to(html_dir)}: external image {src} (not shown offline)")
+                continue
+            target = page.parent / unquote(urlsplit(src).path)
+            if not target.is_file():
+                problems.append(f"{page.relative_to(html_dir)}: missing image {src}")
+    assert not problems, "\n".join(problems)
+
+
+def test_internal_links_resolve(html_dir):
+    problems = []
+    for page in _pages(html_dir):
+        for href in _parse(page).links:
+            if not href or href == "#" or _is_external(href) or href.startswith(("mailto:", "javascript:")):
+                continue
+            parts = urlsplit(href)
+            target = page if not parts.path else (page.parent / unquote(parts.path))
+            if target.is_dir():
+                target = target / "index.html"
+            if not target.exists():
+                problems.append(f"{page.relative_to(html_dir)}: link to missing {href}")
+                continue
+            frag = unquote(parts.fragment)
+            if frag and target.suffix == ".html" and frag not in _parse(target.resolve()).ids:
+                problems.append(f"{page.relative_to(html_dir)}: link {href}: no anchor #{frag}")
+    assert not problems, "\n".join(problems[:50]) + (f"\n... {len(problems)} in all" if len(problems) > 50 else "")
+
+
+def test_no_raw_tex_in_static_text(html_dir):
+    # Sphinx turns $...$ into math nodes; a leftover $$ means a formula was not parsed
+    problems = []
+    for page in _pages(html_dir):
+        text = "".join(_parse(page).text)
+        if "$$" in text:
+            problems.append(f"{page.relative_to(html_dir)}: raw $$ in the page text")
+    assert not problems, "\n".join(problems)
+
+
+# ----------------------------------------------------------------------------------
+# in a browser
+def _chromium() -> str | None:
+    for name in ("chromium", "chromium-browser"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+@pytest.fixture(scope="module")
+def chromium() -> str:
+    exe = _chromium()
+    if exe is None and hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("apt-get"):
+        env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+        try:
+            subprocess.run(["apt-get", "update", "-qq"], env=env, capture_output=True, timeout=600)
+            subprocess.run(["apt-get", "install", "-y", "-qq", "chromium", "chromium-driver"],
+                           env=env, capture_output=True, timeout=1200)
+        except (OSError, subprocess.SubprocessError):
+            pass
+        exe = _chromium()
+    if exe is None:
+        pytest.skip("Debian's chromium is not installed and could not be installed "
+                    "(apt-get install chromium chromium-driver); browser checks skipped, static checks still ran")
+    return exe
+
+
+@pytest.fixture(scope="module")
+def server(html_dir):
+    handler = functools.partial(_QuietHandler, directory=str(html_dir))
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):  # keep the test output readable
+        pass
+
+
+def _chrome(exe: str, profile: str, *args: str, timeout: int = 120) -> subprocess.CompletedProcess:
+    flags = [
+        "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+        "--disable-dev-shm-usage", "--hide-scrollbars", f"--user-data-dir={profile}",
+        "--virtual-time-budget=10000",
+    ]
+    return subprocess.run([exe, *flags, *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("page", CHAPTERS)
+def test_page_renders_in_chromium(page, chromium, server, html_dir):
+    url = f"{server}/{page}.html"
+    with tempfile.TemporaryDirectory(prefix="flnotes-chrome-") as profile:
+        proc = _chrome(chromium, profile, "--dump-dom", url)
+        dom = proc.stdout
+        assert "<html" in dom.lower(), f"Chromium returned no DOM for {url}: {proc.stderr[-2000:]}"
+        has_math = 'class="math' in (html_dir / f"{page}.html").read_text(encoding="utf-8")
+        if has_math:
+            assert "mjx-container" in dom, f"{page}: the math was not typeset by MathJax"
+        c = _Collector()
+        c.feed(dom)
+        text = "".join(c.text)
+        raw = re.findall(r"\$\$|\\\(|\\\[", text)
+        assert not raw, f"{page}: raw TeX left in the rendered text: {raw[:5]}"
+        assert "<mjx-merror" not in dom, f"{page}: MathJax reported a TeX error"
+
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        shot = SCREENSHOTS / (page.replace("/", "__") + ".png")
+        _chrome(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url)
+        assert shot.is_file() and shot.stat().st_size > 10_000, f"{page}: no screenshot written"
