@@ -62,7 +62,7 @@ Array = np.ndarray
 __all__ = [
     "Certificate", "QuadraticCLF", "DistanceCBF", "as_certificate",
     "PiecewiseAffine1D", "network_pieces_1d", "exact_1d_feasible_set", "solve_exact_1d",
-    "ClfCbfController", "clf_cbf_checks", "cross_check_exact", "chapter_eps", "solve_time_table", "TableRows", "BACKENDS",
+    "ClfCbfController", "clf_cbf_checks", "cross_check_exact", "chapter_eps", "solve_time_table", "TableRows",
 ]
 
 #: Backends of :class:`ClfCbfController`; the persistent ones need :mod:`flnotes.miqp`.

@@ -36,8 +36,8 @@ from .systems import FLSystem
 Array = np.ndarray
 
 __all__ = ["ErrorEstimate", "ErrorBracket", "NotCertifiable", "pso_max_error", "sample_max_error",
-           "grid_max_error", "de_max_error", "certify_error", "error_function", "worst_violation",
-           "table1_rows", "architecture_sweep"]
+           "grid_max_error", "de_max_error", "certify_error", "error_function", "worst_violation", "local_max_error",
+           "table1_rows", "architecture_sweep", "estimates_table", "enclosure_widths"]
 
 
 # ============================================================================ results
@@ -48,7 +48,7 @@ class ErrorEstimate:
     Attributes
     ----------
     method
-        ``"pso"``, ``"grid"``, ``"sample"`` or ``"de"``.
+        ``"pso"``, ``"grid"``, ``"sample"``, ``"de"`` or ``"local"``.
     eps
         Largest error found per output, shape (m,).
     argmax
@@ -311,23 +311,54 @@ def de_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array
     fun, lo, hi = _resolve(f, net, lo, hi)
     t0 = time.perf_counter()
     m = net.n_out
-    eps, argmax, hist, n_evals = np.zeros(m), np.zeros((m, net.n_in)), [], 0
+    eps, argmax, hist, count = np.zeros(m), np.zeros((m, net.n_in)), [], [0]
     for i in range(m):
         best = []
 
         def neg(Xt: Array) -> Array:  # DE passes candidates as columns: (n_in, S)
             X = np.atleast_2d(Xt.T)
+            count[0] += len(X)
             return -np.abs(fun(X)[:, i] - net(X)[:, i])
 
         res = differential_evolution(neg, list(zip(lo, hi)), seed=seed, maxiter=maxiter, popsize=popsize, tol=tol,
                                      polish=False, vectorized=True, updating="deferred",
                                      callback=lambda intermediate_result: best.append(-intermediate_result.fun))
-        eps[i], argmax[i], n_evals = -res.fun, res.x, n_evals + res.nfev
+        eps[i], argmax[i] = -res.fun, res.x
         hist.append(best)
     L = max(len(h) for h in hist)
     history = np.array([h + [h[-1]] * (L - len(h)) if h else [np.nan] * L for h in hist])
-    return ErrorEstimate("de", eps, argmax, n_evals, time.perf_counter() - t0, history,
+    return ErrorEstimate("de", eps, argmax, count[0], time.perf_counter() - t0, history,
                          dict(seed=seed, maxiter=maxiter, popsize=popsize, tol=tol))
+
+
+def local_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n_starts: int = 20,
+                    seed: int = 0, output: int = 0) -> ErrorEstimate:
+    """Gradient-based local ascent of ``|Phi_i - Phi_NN,i|`` (L-BFGS-B) from random starts.
+
+    Shows why the paper avoids gradient methods for eq. (epsilon_find): the
+    cost is not differentiable at the network's kinks and has many local
+    maxima, so each start stops somewhere else. ``history`` holds the final
+    value of every start (shape (1, n_starts), sorted, for ``output``).
+    """
+    from scipy.optimize import minimize
+
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    n_evals, finals, points = 0, [], []
+
+    def neg(x: Array) -> float:
+        X = x[None, :]
+        return -float(np.abs(fun(X)[0, output] - net(X)[0, output]))
+
+    for x0 in rng.uniform(lo, hi, (n_starts, net.n_in)):
+        res = minimize(neg, x0, method="L-BFGS-B", bounds=list(zip(lo, hi)))
+        finals.append(-res.fun)
+        points.append(res.x)
+        n_evals += res.nfev
+    k = int(np.argmax(finals))
+    return ErrorEstimate("local", np.array([finals[k]]), np.array([points[k]]), n_evals, time.perf_counter() - t0,
+                         np.sort(np.array(finals))[None, :], dict(n_starts=n_starts, seed=seed, output=output))
 
 
 # ============================================================================ certification
@@ -370,9 +401,10 @@ def _interval_f(f, net: ReLUNet, f_interval, lipschitz, fun) -> tuple[Callable[[
             f"of Phi written with flnotes.interval, e.g. FLSystem(phi_interval=...)) or lipschitz (constants L with "
             f"|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j| on the box). Sampling or PSO alone only give a lower bound.")
     L = np.asarray(lipschitz, float)
-    L = np.broadcast_to(L if L.ndim != 1 or L.shape == (n,) else L[:, None], (m, n)).copy() if L.ndim <= 2 else L
-    if L.shape != (m, n) or not np.all(np.isfinite(L)) or np.any(L < 0):
-        raise ValueError(f"lipschitz must be a non-negative scalar, shape ({n},) or ({m}, {n}); got {np.shape(lipschitz)}")
+    if L.shape not in ((), (n,), (m, n)) or not np.all(np.isfinite(L)) or np.any(L < 0):
+        raise ValueError(f"lipschitz must be a finite non-negative scalar, or of shape ({n},) (per input) or "
+                         f"({m}, {n}) (per output and input); got shape {L.shape}")
+    L = np.broadcast_to(L, (m, n)).copy()
 
     def enc_lip(X: Interval) -> Interval:
         # f(x) for x in the box lies in f(m) +- sum_j L_ij r_j; f(m) itself is trusted to FTOL relative accuracy
@@ -463,12 +495,14 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     enclosures, whichever is tighter:
 
     * the natural interval extension ``Phi(B) - Phi_NN(B)``;
-    * the mean-value form ``g(m) + grad g(B) . (B - m)`` with ``m`` the centre
-      of ``B``, where ``grad Phi(B)`` comes from forward-mode interval
-      differentiation of ``f_interval`` and ``grad Phi_NN(B)`` from the
-      network's interval Jacobian (each neuron contributes 1 if stably active
-      on ``B``, 0 if stably inactive, ``[0, 1]`` otherwise; on a box where all
-      neurons are stable the network is affine and its gradient exact).
+    * for each sign ``s = +-1``, a linear relaxation of the network,
+      ``s Phi_NN,i(x) >= a_s . x + c_s`` on ``B``
+      (:func:`flnotes.interval.net_linear_bound`; exact where all neurons
+      are stable on ``B``, since the network is affine there), against the
+      mean-value form of ``Phi``:
+      ``max_B s g_i <= s Phi_i(m) - a_s . m - c_s + sum_j r_j max|s dPhi_i/dx_j(B) - a_s,j|``
+      with ``m`` the centre and ``r`` the half-widths of ``B``; ``dPhi(B)``
+      comes from forward-mode interval differentiation of ``f_interval``.
 
     The centre and two vertex guesses give rigorous lower values. Boxes whose
     upper bound cannot beat the best lower value by more than the tolerance
@@ -502,7 +536,10 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         ``|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j|`` on the box (scalar,
         (n_in,) or (m, n_in)). Then ``Phi`` is only evaluated at points, and its
         floating-point value is trusted to a relative accuracy of 1e-12. Much
-        slower to converge than ``f_interval`` (first order instead of second).
+        slower to converge than ``f_interval``: the enclosure is first order
+        (it cannot see ``Phi`` and ``Phi_NN`` cancel), so sub-boxes must shrink
+        to about ``tolerance / L``; practical in one or two dimensions or for
+        coarse tolerances only.
     rtol, atol
         Stop when ``upper - lower <= max(atol, rtol * lower)``.
     seeds
@@ -632,8 +669,8 @@ def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x:
 
 
 # ============================================================================ what eps is for
-def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], at: Optional[Array] = None,
-                    n: int = 200_000, n_v: int = 4001, seed: int = 0) -> dict:
+def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_z: int = 3000, n_v: int = 2001,
+                    at: Optional[Array] = None, seed: int = 0, chunk: int = 400_000) -> dict:
     """Search for a point that satisfies eq. (Phi_NN_ep) but violates the true input bound.
 
     Among points with ``|Phi_NN(z, v)| <= u_max - eps`` (the constraint the
@@ -648,37 +685,45 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], at
         The system (its box and ``u_max``) and the network.
     eps
         The error bound to test, scalar or (m,).
+    n_z, n_v
+        ``n_z`` random states ``z`` of the box, each with ``n_v`` inputs ``v``
+        (a uniform grid when m = 1, random otherwise): violations sit where
+        ``Phi_NN`` reaches ``u_max - eps``, which a scan over ``v`` finds.
     at
-        Optional points (N, n_in) whose ``z`` part is kept while ``v`` is
-        scanned on ``n_v`` values per input (e.g. the maximizer of the
-        error, where a violation is most likely).
-    n, seed
-        Uniform random points of the box searched as well.
+        Optional extra points (N, n_in) whose ``z`` is scanned too.
+    seed, chunk
+        Seed of the random states; evaluation chunk size.
 
     Returns
     -------
     dict
         ``violation`` (the largest ``|Phi| - u_max`` found among feasible
-        points, per output), ``point`` (where), ``n_feasible``.
+        points, per output), ``point`` (where), ``n_feasible``, ``n_points``.
     """
     eps = np.broadcast_to(np.asarray(eps, float), (system.m,))
     rng = np.random.default_rng(seed)
-    X = [rng.uniform(system.lo, system.hi, (n, system.n_in))]
+    n_z_dim = system.n_z
+    Z = rng.uniform(system.lo[:n_z_dim], system.hi[:n_z_dim], (n_z, n_z_dim))
     if at is not None:
-        A = as_batch(at, system.n_in, "at")
-        vs = (np.linspace(system.lo[system.n_z:], system.hi[system.n_z:], n_v) if system.m == 1
-              else rng.uniform(system.lo[system.n_z:], system.hi[system.n_z:], (n_v, system.m)))
-        for a in A:
-            Z = np.tile(a[: system.n_z], (len(vs), 1))
-            X.append(np.hstack([Z, vs.reshape(len(vs), -1)]))
-    X = np.vstack(X)
-    feasible = np.all(np.abs(net(X)) <= system.u_max - eps, axis=1)
-    Xf = X[feasible]
-    if not len(Xf):
-        return dict(violation=np.full(system.m, -np.inf), point=None, n_feasible=0)
-    V = np.abs(system.phi_stacked(Xf)) - system.u_max
-    k = V.max(1).argmax()
-    return dict(violation=V.max(0), point=Xf[k], n_feasible=int(feasible.sum()))
+        Z = np.vstack([as_batch(at, system.n_in, "at")[:, :n_z_dim], Z])
+    vlo, vhi = system.lo[n_z_dim:], system.hi[n_z_dim:]
+    V = (np.linspace(vlo, vhi, n_v) if system.m == 1 else rng.uniform(vlo, vhi, (n_v, system.m))).reshape(n_v, -1)
+    best, point, n_feas = np.full(system.m, -np.inf), None, 0
+    per = max(1, chunk // n_v)
+    for k in range(0, len(Z), per):
+        Zk = Z[k:k + per]
+        X = np.hstack([np.repeat(Zk, n_v, 0), np.tile(V, (len(Zk), 1))])
+        feasible = np.all(np.abs(net(X)) <= system.u_max - eps, axis=1)
+        if not feasible.any():
+            continue
+        Xf = X[feasible]
+        n_feas += len(Xf)
+        viol = np.abs(system.phi_stacked(Xf)) - system.u_max
+        j = viol.max(1).argmax()
+        if viol[j].max() > best.max():
+            point = Xf[j]
+        best = np.maximum(best, viol.max(0))
+    return dict(violation=best, point=point, n_feasible=n_feas, n_points=len(Z) * n_v)
 
 
 # ============================================================================ the paper's Table 1 and sweeps
@@ -702,14 +747,15 @@ def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
         br = paper.paper_eps(name)
         n_s = "x".join(str(k) for k in rep.n_per_axis) if len(set(rep.n_per_axis)) > 1 else str(rep.n_per_axis[0])
         rows.append({"system": name, "source": "flnotes", "K": net.K, "n_bar": net.widths[0], "n_s": n_s,
-                     "eps (PSO)": round(float(pso.eps[0]), 4),
-                     "eps certified": f"[{br.lower[0]:.4f}, {br.upper[0]:.4f}]",
+                     "eps (PSO)": round(float(pso.eps[0]), 5),
+                     "eps certified": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
                      "training time (s)": round(rep.time_s, 1)})
     return rows
 
 
 def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), depths: Sequence[int] = (1, 2, 3),
-                       n_per_axis: Sequence[int] = (10, 20, 30), max_iter: int = 300, seed: int = 0,
+                       n_per_axis: Sequence[int] = (10, 20, 30), max_iter: int = 300, max_train: Optional[int] = None,
+                       seed: int = 0,
                        rtol: float = 0.05, max_time: float = 20.0, n_samples: int = 20_000,
                        cache: bool = True, progress: bool = False) -> list[dict]:
     """Train small networks over a grid of widths, depths and grid densities; estimate and certify each eps.
@@ -718,8 +764,10 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
     (``width * depth``, the binaries of one copy of eq. (MIP_general)),
     ``eps_sample`` (max over ``n_samples`` random points), ``eps_pso``,
     ``eps_certified`` (upper end of :func:`certify_error` with ``rtol``),
-    ``eps_lower``, ``train_time_s`` and ``certify_time_s``. The table is
-    cached on disk (keyed by all arguments), so a chapter computes it once.
+    ``eps_lower``, ``train_time_s`` and ``certify_time_s``. ``max_train``
+    caps the training points per network (a random subset of the grid, as in
+    :func:`flnotes.fit_relu`; ``None``: the whole grid). The table is cached
+    on disk (keyed by all arguments), so a chapter computes it once.
     """
     import hashlib
     import json
@@ -728,7 +776,7 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
     from .network import fit_relu
 
     args = dict(system=system.name, lo=system.lo.tolist(), hi=system.hi.tolist(), widths=list(widths),
-                depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, seed=seed, rtol=rtol,
+                depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, max_train=max_train, seed=seed, rtol=rtol,
                 max_time=max_time, n_samples=n_samples, version=1)
     path = cache_dir() / f"sweep-{system.name}-{hashlib.sha1(json.dumps(args, sort_keys=True).encode()).hexdigest()[:12]}.json"
     if cache and path.exists():
@@ -738,7 +786,7 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
         for depth in depths:
             for width in widths:
                 net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(width,) * depth,
-                                    n_per_axis=n_s, max_train=None, max_iter=max_iter, seed=seed)
+                                    n_per_axis=n_s, max_train=max_train, max_iter=max_iter, seed=seed)
                 smp = sample_max_error(system, net, n=n_samples, seed=seed)
                 pso = pso_max_error(system, net, n_particles=50, n_iter=100, seed=seed)
                 br = certify_error(system, net, rtol=rtol, seeds=pso, n_samples=1000, max_time=max_time)
@@ -753,4 +801,59 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(rows))
         tmp.replace(path)
+    return rows
+
+
+# ============================================================================ teaching helpers
+def estimates_table(estimates: dict, brackets: Optional[dict] = None) -> list[dict]:
+    """Rows comparing estimates of eq. (epsilon_find): system, method, eps found, evaluations, time.
+
+    ``estimates`` maps a system name to a list of :class:`ErrorEstimate`;
+    ``brackets`` optionally maps it to an :class:`ErrorBracket`, added as a
+    last row and used to report each estimate relative to the certified lower bound.
+    """
+    names = {"pso": "particle swarm", "de": "differential evolution", "grid": "dense grid",
+             "sample": "random samples", "local": "L-BFGS-B, best of several starts"}
+    rows = []
+    for system, ests in estimates.items():
+        br = None if brackets is None else brackets.get(system)
+        for e in ests:
+            row = {"system": system, "method": names.get(e.method, e.method), "eps found": round(float(e.eps[0]), 5),
+                   "evaluations": f"{e.n_evals:,}", "time (s)": round(e.time_s, 2)}
+            if br is not None:
+                row["found / certified lower"] = round(float(e.eps[0] / br.lower[0]), 3)
+            rows.append(row)
+        if br is not None:
+            rows.append({"system": system, "method": "certified bracket",
+                         "eps found": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
+                         "evaluations": f"{int(br.n_boxes[0]):,} boxes", "time (s)": round(float(br.time_s[0]), 2),
+                         "found / certified lower": 1.0})
+    return rows
+
+
+def enclosure_widths(system: FLSystem, net: ReLUNet, x0: Array, radii: Sequence[float] = (1.0, 0.3, 0.1, 0.03, 0.01),
+                     n_samples: int = 20_000, seed: int = 0) -> list[dict]:
+    """How tight are the bounds of ``max |Phi - Phi_NN|`` on boxes ``x0 +- r``?
+
+    For each radius: the largest error on the box estimated by sampling (a
+    lower bound), the bound from the natural interval extension
+    ``Phi(B) - Phi_NN(B)`` (it ignores that the two nearly cancel and
+    overestimates by O(r)), and the bound :func:`certify_error` uses (mean-value
+    form of ``Phi`` against a linear relaxation of ``Phi_NN``; O(r^2) where the
+    network is affine on the box).
+    """
+    f_enc, _ = _interval_f(system, net, None, None, system.phi_stacked)
+    ev = _Evaluator(f_enc, net, 0, system.hi - system.lo)
+    x0 = np.asarray(x0, float)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for r in radii:
+        lo, hi = np.maximum(x0 - r, system.lo)[None], np.minimum(x0 + r, system.hi)[None]
+        X = Interval(lo, hi, check=False)
+        G = f_enc(X) - iv.net_interval(net, X)
+        ub = ev.boxes(lo, hi)[0][0]
+        P = rng.uniform(lo[0], hi[0], (n_samples, system.n_in))
+        rows.append({"radius r": r, "sampled max error": float(np.abs(system.phi_stacked(P) - net(P))[:, 0].max()),
+                     "natural interval bound": float(max(G.hi[0, 0], -G.lo[0, 0])),
+                     "certify_error's bound": float(ub)})
     return rows

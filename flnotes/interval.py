@@ -19,8 +19,8 @@ Every result is widened outward so that floating-point rounding can never make
 an enclosure too narrow:
 
 * ``+ - * /`` and ``sqrt`` are correctly rounded in IEEE 754 double precision,
-  so moving each result one unit in the last place outward
-  (:func:`numpy.nextafter`) is enough;
+  so moving each result outward by one unit in the last place is enough
+  (:func:`down`, :func:`up` move it by a few);
 * ``exp``, ``tanh``, ``arcsin`` come from the C math library / numpy's SIMD
   kernels, which are accurate to a few ulp but not correctly rounded; their
   results are widened by :data:`LIBM_ULPS` ulp (relative) plus
@@ -64,13 +64,14 @@ _NORMAL = 2.0**-1022
 
 
 def down(x: Array) -> Array:
-    """A float below ``x`` by at least one ulp (two to four in practice).
+    """A float below ``x`` by at least one ulp: a lower bound after one correctly rounded operation.
 
-    If ``x`` is the correctly rounded result of one operation, ``down(x)`` is
-    a lower bound of the exact result: with ``d = |x| 2^-50 + 2^-1022 >= 4 ulp(x)``
-    the rounded difference ``fl(x - d) >= x - d - ulp/2``... is at most
-    ``x - 3 ulp(x) < exact``. Same cost as three array operations, much
-    cheaper than :func:`numpy.nextafter`, and at most 4 ulp wider.
+    If ``x = fl(y)`` is the correctly rounded result of one operation, the
+    exact ``y >= x - ulp(x)/2``. With ``d = |x| 2^-50 + 2^-1022`` we have
+    ``d >= 4 ulp(x)`` (also for subnormal ``x``), and the rounded difference
+    ``fl(x - d) <= x - d + ulp(x - d)/2 <= x - 4 ulp(x) + ulp(x) < y``.
+    Three array operations: much cheaper than :func:`numpy.nextafter`, at
+    the price of a few ulp of extra width.
     """
     return x - (np.abs(x) * _STEP + _NORMAL)
 
@@ -78,7 +79,7 @@ def down(x: Array) -> Array:
 def up(x: Array) -> Array:
     """A float above ``x`` by at least one ulp: an upper bound after one correctly rounded operation.
 
-    See :func:`down` for the argument (``fl(x + d) >= x + 3 ulp(x)``).
+    See :func:`down` for the argument (``fl(x + d) >= x + 3 ulp(x) > y``).
     """
     return x + (np.abs(x) * _STEP + _NORMAL)
 

@@ -43,24 +43,40 @@ measured. All of them are exact: they never change the optimum.
   of eq. (MPC_form_miqp), so a plan that passes the check is its optimum.
 * ``formulation="sparse"`` keeps ``z(0..N_p)`` as variables tied by the
   dynamics rows (the form written in the paper); ``"condensed"`` eliminates
-  them (``z(k) = A_d^k z(0) + sum_j A_d^{k-1-j} B_d v(j)``), which suits dense
-  active-set solvers.
+  them (``z(k) = A_d^k z(0) + sum_j A_d^{k-1-j} B_d v(j)``); both keep one
+  persistent solver model per set of encoded steps and only update numbers.
+  ``"compact"`` (the default with DAQP) is condensed too and rebuilt for each
+  state with the stable neurons substituted out, no equality rows and only
+  the free binaries (eq. MIP_general with ``yund = ybar - a``), which suits
+  DAQP's dense branch and bound.
+* Warm start polish: with ``formulation="compact"`` the warm start (shifted
+  plan, or at the first step the screening QP's plan repaired step by step)
+  is improved by the QP with its activation pattern fixed before the branch
+  and bound starts; a better incumbent prunes more nodes.
 * ``backend``: ``"cvxpy-scip"`` is the reference (the program written with
   :func:`flnotes.encode` and solved cold by SCIP through cvxpy, every copy
   encoded); the other backends keep persistent models of the matrix form (see
   :meth:`MPC.problem`) and only update their numbers.
-* ``time_limit``: when the solver stops at the limit, its best incumbent is
-  returned if it is feasible for the whole program (status ``"time_limit"``,
-  gap recorded); otherwise the previous plan shifted by one step is applied
-  (``fallback=True``). Nothing is silent: every step's status, gap, nodes and
-  time are kept in :attr:`MPC.history`.
+* ``time_limit`` (seconds per control step, bounds and set-up included): when
+  it is hit, the solver's best incumbent is returned if it satisfies the
+  constraints at every predicted step (status ``"time_limit"``, its gap to the
+  relaxation's bound recorded). Otherwise a fallback plan is applied
+  (``fallback=True``): the previous plan shifted by one step, its new last input
+  chosen so that the network constraint holds (:meth:`MPC.shifted_plan`), or at
+  the first step the screening QP's plan repaired step by step
+  (:meth:`MPC.repair_plan`), whichever satisfies the constraints. If none does,
+  the shifted plan is still applied and the message says so; with no plan at
+  all ``v`` is ``None`` and :meth:`MPC.step` raises. The same fallback applies
+  when the program is infeasible or the solver fails. Nothing is silent: every
+  step's status, gap, nodes, time and message are kept in :attr:`MPC.history`.
 """
 from __future__ import annotations
 
 import time
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Callable, Mapping, Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -75,9 +91,8 @@ from .tightening import EmptyBoxError, horizon_boxes, lp_bounds
 
 Array = np.ndarray
 
-__all__ = ["MPC", "MPCStep", "sine_reference", "active_fraction", "tracking_error", "closed_loop_checks",
-           "time_stats_ms", "table2", "run_closed_loop", "horizon_sweep", "recorded_problems", "hardest_steps",
-           "compare_to_reference", "lever_study"]
+#: Exported to ``flnotes``; the chapter's measurement helpers below stay under ``flnotes.mpc``.
+__all__ = ["MPC", "MPCStep", "sine_reference"]
 
 #: Accepted ``backend`` names: the cvxpy reference and the persistent back-ends of :mod:`flnotes.miqp`.
 BACKENDS = ("auto", "cvxpy-scip", "highs", "scip", "daqp", "gurobi", "cplex")
@@ -521,9 +536,9 @@ class MPC:
     backend
         ``"cvxpy-scip"``: the reference, the program written with
         :func:`flnotes.encode` and solved cold by SCIP through cvxpy.
-        ``"auto"``, ``"scip"``, ``"daqp"``, ``"gurobi"``, ``"cplex"``: a
-        persistent model through :func:`flnotes.miqp.make_solver`
-        (``"auto"`` lets the solver layer choose).
+        ``"daqp"``, ``"scip"``, ``"gurobi"``, ``"cplex"``: through
+        :func:`flnotes.miqp.make_solver`. ``"auto"`` is ``"daqp"``, the fastest
+        exact back-end measured on this program.
     bounds
         ``"box"``, ``"horizon"`` or ``"lp"``: see the module docstring.
     warm_start, screening, lazy
@@ -531,9 +546,10 @@ class MPC:
     formulation
         ``"sparse"``, ``"condensed"`` or ``"auto"`` (condensed for DAQP, sparse otherwise).
     time_limit
-        Seconds per control step for the solvers, or ``None``. On hit: the
-        best incumbent if it is feasible for the whole program (status
-        ``"time_limit"``), else the shifted previous plan (``fallback=True``).
+        Seconds per control step (bounds and set-up included), or ``None``. On
+        hit: the best incumbent if it is feasible for the whole program
+        (status ``"time_limit"``), else a fallback plan (``fallback=True``);
+        see the module docstring.
     gap
         Relative optimality gap at which the solver stops.
     discretization
@@ -552,10 +568,14 @@ class MPC:
     """
 
     def __init__(self, system: FLSystem, net: ReLUNet, eps, horizon: int = 10, ts: float = 0.1,
-                 Q=None, R=None, P=None, *, backend: str = "auto", bounds: str = "horizon",
+                 Q=None, R=None, P=None, *, backend: str = "auto", bounds: str = "lp",
                  warm_start: bool = True, screening: bool = True, lazy: bool = True, formulation: str = "auto",
                  time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
                  v_box: Optional[tuple] = None, solver_options: Optional[dict] = None):
+        self._init_args = dict(system=system, net=net, eps=eps, horizon=horizon, ts=ts, Q=Q, R=R, P=P, backend=backend,
+                               bounds=bounds, warm_start=warm_start, screening=screening, lazy=lazy,
+                               formulation=formulation, time_limit=time_limit, gap=gap, discretization=discretization,
+                               v_box=v_box, solver_options=solver_options)
         if net.n_in != system.n_in or net.n_out != system.m:
             raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but the system needs (z, v) in R^{system.n_in} "
                              f"-> u in R^{system.m}")
@@ -589,11 +609,11 @@ class MPC:
         self.z_lo, self.z_hi = system.lo[: self.n_z].copy(), system.hi[: self.n_z].copy()
         vb = (system.lo[self.n_z:], system.hi[self.n_z:]) if v_box is None else v_box
         self.v_lo, self.v_hi = as_vector(vb[0], self.m, "v_box[0]"), as_vector(vb[1], self.m, "v_box[1]")
-        self.backend, self.bounds = backend, bounds
+        self.backend, self.bounds = ("daqp" if backend == "auto" else backend), bounds
         self.warm_start, self.screening, self.lazy = bool(warm_start), bool(screening), bool(lazy)
-        self.formulation = ("compact" if backend in ("daqp", "auto") else "sparse") if formulation == "auto" else formulation
+        self.formulation = ("compact" if self.backend == "daqp" else "sparse") if formulation == "auto" else formulation
         self.time_limit, self.gap = time_limit, float(gap)
-        self.solver_options = dict(DAQP_OPTIONS if backend in ("daqp", "auto") else {}, **(solver_options or {}))
+        self.solver_options = dict(DAQP_OPTIONS if self.backend == "daqp" else {}, **(solver_options or {}))
         self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
         self._form = bigm_form(net, self.box_bounds)
         self._build_condensed()
@@ -602,6 +622,9 @@ class MPC:
         self._active_prev: tuple = ()
         self._programs: "OrderedDict[tuple, list]" = OrderedDict()  # steps -> [program, solver]
         self._cvx = None
+        self._candidate: Optional[tuple[Array, Array]] = None
+        self.last_program = None
+        self._R = np.zeros((self.N + 1, self.n_z))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -619,6 +642,21 @@ class MPC:
         self.history = []
         self._plan = None
         self._active_prev = ()
+
+    def set_previous_plan(self, plan: Optional[tuple[Array, Array]]) -> None:
+        """Set (or clear, with ``None``) the plan ``(z_pred, v_pred)`` that the next call shifts for its warm start."""
+        if plan is None:
+            self._plan = None
+            return
+        Z, V = np.asarray(plan[0], float), np.asarray(plan[1], float)
+        if Z.shape != (self.N + 1, self.n_z) or V.shape != (self.N, self.m):
+            raise ValueError(f"plan must be (z_pred, v_pred) of shapes ({self.N + 1}, {self.n_z}) and ({self.N}, {self.m}), "
+                             f"got {Z.shape} and {V.shape}")
+        self._plan = (Z, V)
+
+    def clone(self, **changes) -> "MPC":
+        """A new controller with the same settings except ``changes`` (no history, no previous plan)."""
+        return MPC(**{**self._init_args, **changes})
 
     # ------------------------------------------------------------------ prediction model
     def _build_condensed(self) -> None:
@@ -660,12 +698,53 @@ class MPC:
         return self.violated_steps(z_pred, v_pred, tol).size == 0
 
     def shifted_plan(self, z: Array) -> Optional[tuple[Array, Array]]:
-        """The previous plan shifted by one step (last input repeated), re-predicted from the measured ``z``."""
+        """The previous plan shifted by one step, re-predicted from the measured ``z``.
+
+        The new last input is chosen by :meth:`feasible_tail`, so that the
+        shifted plan satisfies eq. (MPC_form_miqp_b)-(d) whenever the previous
+        one did and the plant followed the prediction (the nominal case).
+        Returns ``(z_pred, v_pred)``, or ``None`` when there is no previous plan.
+        """
         if self._plan is None:
             return None
         V = self._plan[1]
         V = np.vstack([V[1:], V[-1:]])
+        Z = self.predict(z, V)
+        V[-1] = self.feasible_tail(Z[-2], V[-1])
         return self.predict(z, V), V
+
+    def repair_plan(self, z: Array, v_guess: Array) -> tuple[Array, Array]:
+        """A plan built step by step from ``v_guess`` (N_p, m): each input replaced by :meth:`feasible_tail`.
+
+        A cheap first incumbent when no previous plan exists (e.g. from the
+        screening QP's inputs); check it with :meth:`plan_feasible`.
+        """
+        V = np.array(v_guess, float).reshape(self.N, self.m)
+        zk = np.asarray(z, float)
+        for k in range(self.N):
+            V[k] = self.feasible_tail(zk, V[k])
+            zk = self.Ad @ zk + self.Bd @ V[k]
+        return self.predict(z, V), V
+
+    def feasible_tail(self, z: Array, v_guess: Array, n_grid: int = 2001) -> Array:
+        """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box, closest to ``v_guess``.
+
+        Searched on a grid of the ``v``-range (single-input systems) and checked
+        with the network's forward pass; ``v_guess`` is returned unchanged when
+        it is admissible or when no grid point is.
+        """
+        v_guess = np.asarray(v_guess, float)
+        cand = v_guess[None]
+        if self.m == 1:
+            cand = np.r_[v_guess, np.linspace(self.v_lo[0], self.v_hi[0], n_grid)][:, None]
+        u = self.net(np.hstack([np.repeat(np.asarray(z)[None], len(cand), 0), cand]))
+        nxt = z @ self.Ad.T + cand @ self.Bd.T
+        ok = (np.all(np.abs(u) <= self.u_eps, axis=1) & np.all(nxt >= self.z_lo, axis=1)
+              & np.all(nxt <= self.z_hi, axis=1))
+        if not ok.any() or ok[0]:
+            return v_guess
+        i = np.flatnonzero(ok)
+        return cand[i[np.argmin(np.abs(cand[i] - v_guess).sum(axis=1))]].copy()
 
     # ------------------------------------------------------------------ node bounds
     def box_bounds_horizon(self) -> NodeBounds:
@@ -751,8 +830,11 @@ class MPC:
         return prog.miqp()
 
     # ------------------------------------------------------------------ screening QP
-    def _screen(self, z: Array, R: Array) -> tuple[Optional[tuple[Array, Array]], float]:
-        """The QP of eq. (MPC_form_miqp) without (b), condensed, by DAQP. Returns ((z_pred, v_pred) or None, time)."""
+    def _screen(self, z: Array, R: Array) -> tuple[Optional[tuple[Array, Array]], float, int]:
+        """The QP of eq. (MPC_form_miqp) without (b), condensed, by DAQP.
+
+        Returns ``((z_pred, v_pred) or None, time, DAQP exit flag)``; flag -1 means infeasible.
+        """
         import daqp
 
         t0 = time.perf_counter()
@@ -765,9 +847,9 @@ class MPC:
         x, _, flag, _ = daqp.solve(self._Hqp, f, A, bu, bl, np.zeros(len(bu), dtype=np.int32))
         dt = time.perf_counter() - t0
         if flag != 1:
-            return None, dt
+            return None, dt, int(flag)
         V = np.asarray(x).reshape(N, m)
-        return (self.predict(z, V), V), dt
+        return (self.predict(z, V), V), dt, int(flag)
 
     # ------------------------------------------------------------------ checks
     def _check_z(self, z) -> Array:
@@ -813,6 +895,7 @@ class MPC:
         t_start = time.perf_counter()
         z = self._check_z(z)
         R = self._check_ref(z_ref)
+        self._R = R
         if self.backend == "cvxpy-scip":
             step = self._solve_cvxpy(z, R)
         else:
@@ -828,23 +911,34 @@ class MPC:
                        status=status, **kw)
 
     def _fallback(self, z: Array, status: str, base: dict) -> MPCStep:
-        """No plan from this solve: apply the previous plan shifted by one step, if there is one."""
-        sh = self.shifted_plan(z)
-        if sh is None:
-            return MPCStep(v=None, z_pred=None, v_pred=None, u_nn_pred=None, status=status, **base)
+        """No plan from this solve: apply the previous plan shifted by one step if it is admissible, else the
+        screening QP's plan repaired step by step (:meth:`repair_plan`) if that one is; else report no input."""
         base = dict(base)
-        base["message"] = (base.get("message", "") + "; applied the previous plan shifted by one step").lstrip("; ")
-        return self._result(*sh, status=status, fallback=True, **base)
+        for plan, what in ((self.shifted_plan(z), "the previous plan shifted by one step"),
+                           (self._candidate, "the QP plan repaired step by step")):
+            if plan is not None and self.plan_feasible(*plan):
+                base["message"] = (base.get("message", "") + f"; applied {what}").lstrip("; ")
+                base["objective"] = self.cost(plan[0], plan[1], self._R)
+                return self._result(*plan, status=status, fallback=True, **base)
+        sh = self.shifted_plan(z)
+        if sh is not None:  # not admissible for the network constraint: still applied, and said so
+            base["message"] = (base.get("message", "") + "; applied the previous plan shifted by one step, which "
+                               "violates the network constraint at some predicted step").lstrip("; ")
+            base["objective"] = self.cost(sh[0], sh[1], self._R)
+            return self._result(*sh, status=status, fallback=True, **base)
+        return MPCStep(v=None, z_pred=None, v_pred=None, u_nn_pred=None, status=status, **base)
 
     def _solve_persistent(self, z: Array, R: Array) -> MPCStep:
         from .miqp import make_solver
 
         t0 = time.perf_counter()
+        self._candidate = None
         stats = dict(solve_time=0.0, nodes=0, rounds=0)
         # screening: the QP without the network constraint (exact when it satisfies it)
         active: set = set(range(self.N))
+        qp = None
         if self.screening or self.lazy:
-            qp, dt = self._screen(z, R)
+            qp, dt, flag = self._screen(z, R)
             stats["solve_time"] += dt
             if qp is not None:
                 Zq, Vq = qp
@@ -858,9 +952,10 @@ class MPC:
                     active = set(viol.tolist()) | {k - 1 for k in self._active_prev if k >= 1}
                     if not active:
                         active = {0}
-            elif self.lazy:  # no admissible trajectory even without the network constraint
+            elif flag == -1:  # no admissible trajectory even without the network constraint
                 return self._fallback(z, "infeasible", dict(backend="qp-screening", message="the QP without the "
                                       "network constraint is infeasible (the state box cannot be kept)", **stats))
+            # any other failure of the screening QP: no shortcut, every step encoded
         try:
             nb, zl, zh = self.node_bounds(z, steps=sorted(active))
         except EmptyBoxError as exc:
@@ -868,6 +963,10 @@ class MPC:
         shifted = self.shifted_plan(z) if self.warm_start else None
         if shifted is not None and not self.plan_feasible(*shifted):
             shifted = None
+        if shifted is None and self._plan is None and qp is not None:  # no previous plan: repair the QP's
+            self._candidate = self.repair_plan(z, qp[1])
+            if self.warm_start and self.plan_feasible(*self._candidate):
+                shifted = self._candidate
         while True:
             try:
                 self.tighten(nb, active)
@@ -887,15 +986,27 @@ class MPC:
                 solver = entry[1]
             self.last_program = prog
             w0 = prog.vector(*shifted) if shifted is not None else None
+            if w0 is not None and self.formulation == "compact":
+                w0, dt = self._polish(prog, w0, z)
+                stats["solve_time"] += dt
             remaining = None
             if self.time_limit is not None:
-                remaining = max(self.time_limit - (time.perf_counter() - t0), 1e-3)
+                remaining = self.time_limit - (time.perf_counter() - t0)
+                if remaining <= 0:  # the budget went into bounds and set-up: no solve at all
+                    return self._fallback(z, "time_limit", dict(
+                        warm_started=False, n_binaries=prog.n_free, encoded_steps=prog.steps, backend=self.backend,
+                        message="time limit reached before the solve", **stats))
             res = solver.solve(warm_start=w0, time_limit=remaining, gap=self.gap)
             stats["solve_time"] += float(res.time)
             stats["nodes"] += int(res.nodes)
             stats["rounds"] += 1
             status = _status(res.status)
-            base = dict(bound=float(res.bound), gap=float(res.gap), warm_started=w0 is not None,
+            bound, gap = float(res.bound), float(res.gap)
+            if status == "time_limit" and res.w is not None and not np.isfinite(bound):
+                bound = self._relaxation_bound(prog)
+                obj = float(res.objective)
+                gap = abs(obj - bound) / max(1.0, abs(obj)) if np.isfinite(bound) else np.nan
+            base = dict(bound=bound, gap=gap, warm_started=w0 is not None,
                         n_binaries=prog.n_free, encoded_steps=prog.steps, backend=str(res.backend),
                         message=str(res.message), **stats)
             if res.w is None or status not in ("optimal", "time_limit"):
@@ -913,6 +1024,39 @@ class MPC:
             if self.time_limit is not None and time.perf_counter() - t0 >= self.time_limit:
                 return self._fallback(z, "time_limit", base)
             active |= new
+
+    def _polish(self, prog, w0: Array, z: Array) -> tuple[Array, float]:
+        """Improve a feasible warm start: the QP with its activation pattern fixed (a convex piece of the program)."""
+        from .miqp import MIQP, make_solver
+
+        t0 = time.perf_counter()
+        ib = np.flatnonzero(prog.integrality == 1)
+        if ib.size == 0:
+            return w0, 0.0
+        lb, ub = prog.lb.copy(), prog.ub.copy()
+        lb[ib] = ub[ib] = np.round(w0[ib])
+        try:
+            res = make_solver(MIQP(prog.H, prog.c, prog.c0, prog.A, prog.rl, prog.ru, lb, ub, prog.integrality),
+                              backend="daqp", **DAQP_OPTIONS).solve()
+        except Exception:
+            return w0, time.perf_counter() - t0
+        if res.w is not None and _status(res.status) == "optimal":
+            w = np.asarray(res.w)
+            Z, V = prog.plan(w, z)
+            if self.plan_feasible(Z, V) and float(res.objective) <= _objective(prog, w0):
+                return w, time.perf_counter() - t0
+        return w0, time.perf_counter() - t0
+
+    def _relaxation_bound(self, prog) -> float:
+        """Lower bound on eq. (MPC_form_miqp): the continuous relaxation of the program with the encoded steps."""
+        from .miqp import MIQP, make_solver
+
+        try:
+            res = make_solver(MIQP(prog.H, prog.c, prog.c0, prog.A, prog.rl, prog.ru, prog.lb, prog.ub,
+                                   np.zeros_like(prog.integrality)), backend="daqp", **DAQP_OPTIONS).solve()
+        except Exception:
+            return np.nan
+        return float(res.objective) if _status(res.status) == "optimal" and res.w is not None else np.nan
 
     # ------------------------------------------------------------------ the reference: cvxpy + SCIP, cold
     def _build_cvxpy(self, bounds: Optional[NodeBounds]):
@@ -938,6 +1082,7 @@ class MPC:
     def _solve_cvxpy(self, z: Array, R: Array) -> MPCStep:
         import cvxpy as cp
 
+        self._candidate = None
         if self.bounds == "box":
             if self._cvx is None:
                 self._cvx = self._build_cvxpy(None)
@@ -954,7 +1099,10 @@ class MPC:
             opts["limits/time"] = float(self.time_limit)
         t0 = time.perf_counter()
         try:
-            cv["prob"].solve(solver=cp.SCIP, scip_params=opts)
+            with warnings.catch_warnings():  # cvxpy warns on infinite bounds and on SCIP's "gaplimit" status
+                warnings.simplefilter("ignore", RuntimeWarning)
+                warnings.simplefilter("ignore", UserWarning)
+                cv["prob"].solve(solver=cp.SCIP, scip_params=opts)
             st = cv["prob"].status
         except cp.error.SolverError as exc:
             st = f"error: {exc}"
@@ -1037,6 +1185,12 @@ class MPC:
         return (f"MPC({self.system.name}, N_p={self.N}, ts={self.ts}, backend={self.backend!r}, bounds={self.bounds!r}, "
                 f"warm_start={self.warm_start}, screening={self.screening}, lazy={self.lazy}, "
                 f"formulation={self.formulation!r}, time_limit={self.time_limit})")
+
+
+def _objective(prog, w: Array) -> float:
+    """``0.5 w'Hw + c'w + c0`` of a program's matrix form."""
+    w = np.asarray(w, float)
+    return float(0.5 * w @ (prog.H @ w) + prog.c @ w + prog.c0)
 
 
 def _weight(W, n: int, name: str) -> Array:
@@ -1160,16 +1314,23 @@ def run_closed_loop(system: FLSystem, net: ReLUNet, eps, t_final: float, referen
 
 
 def horizon_sweep(system: FLSystem, net: ReLUNet, eps, horizons: Sequence[int], t_final: float,
-                  reference: Callable[[Array], Array], z0: Array, **mpc_kwargs) -> tuple[dict, list[dict]]:
+                  reference: Callable[[Array], Array], z0: Array, known: Optional[Mapping[int, tuple]] = None,
+                  **mpc_kwargs) -> tuple[dict, list[dict]]:
     """Closed-loop runs for several prediction horizons ``N_p`` (the paper's Figure 6).
 
-    Returns ``({N_p: log}, rows)`` where each row holds ``N_p``, the per-step
-    time statistics (ms), the binaries ``N_p sum_k n_k`` and after elimination,
-    and the tracking error over the second half of the run.
+    ``known`` maps a horizon to an existing ``(log, mpc)`` run of the same
+    length (it is reused, not rerun). Returns ``({N_p: log}, rows)`` where each
+    row holds ``N_p``, the per-step time statistics (ms), the binaries
+    ``N_p sum_k n_k`` and after elimination, and the tracking error over the
+    second half of the run.
     """
     logs, rows = {}, []
+    known = dict(known or {})
     for Np in horizons:
-        log, mpc = run_closed_loop(system, net, eps, t_final, reference, z0, horizon=int(Np), **mpc_kwargs)
+        if int(Np) in known and abs(known[int(Np)][0].t[-1] - t_final) < 1e-9:
+            log, mpc = known[int(Np)]
+        else:
+            log, mpc = run_closed_loop(system, net, eps, t_final, reference, z0, horizon=int(Np), **mpc_kwargs)
         logs[int(Np)] = log
         st = time_stats_ms(log.solve_time)
         chk = closed_loop_checks(log, mpc, reference)
@@ -1182,18 +1343,53 @@ def horizon_sweep(system: FLSystem, net: ReLUNet, eps, horizons: Sequence[int], 
     return logs, rows
 
 
-def recorded_problems(log, indices: Sequence[int]) -> list[tuple[Array, Array]]:
-    """``(z_k, z_ref over the horizon)`` at the sampling instants ``indices`` of an MPC run."""
+def binaries_per_step(mpc: "MPC", z: Array, bounds: Sequence[str] = ("box", "horizon", "lp")) -> list[dict]:
+    """Binaries needed at each predicted step for the measured ``z`` under several ``bounds`` switches.
+
+    One row per switch: the free binaries (unstable neurons) at every step
+    ``k = 0..N_p-1`` and their total, against ``sum_k n_k`` per step.
+    """
+    rows, keep = [], mpc.bounds
+    try:
+        for b in bounds:
+            mpc.bounds = b
+            nb, _, _ = mpc.node_bounds(mpc._check_z(z))
+            per = np.sum([u.reshape(mpc.N, -1).sum(axis=1) for u in nb.unstable], axis=0).astype(int)
+            rows.append(dict(bounds=b, per_step=per, total=int(per.sum()), full=mpc.n_binaries_full))
+    finally:
+        mpc.bounds = keep
+    return rows
+
+
+def prediction_mismatch(log, mpc: "MPC") -> float:
+    """``max_k |z_{k+1} - (A_d z_k + B_d v_k)|`` on the true plant: 0 when the plant is exactly linearized."""
+    pred = log.z[:-1] @ mpc.Ad.T + log.v @ mpc.Bd.T
+    return float(np.abs(pred - log.z[1:]).max())
+
+
+def recorded_problems(log, indices: Sequence[int], with_plans: bool = False) -> list[tuple]:
+    """``(z_k, z_ref over the horizon)`` at the sampling instants ``indices`` of an MPC run.
+
+    With ``with_plans=True`` each problem also carries the plan ``(z_pred, v_pred)``
+    the controller had computed at step ``k - 1`` (``None`` at ``k = 0``), so that
+    :func:`lever_study` can replay it with the warm start it had in closed loop.
+    """
     out = []
     for k in indices:
-        info = log.steps[int(k)].info or {}
+        k = int(k)
+        info = log.steps[k].info or {}
         if "z_ref" not in info:
             raise ValueError(f"step {k} of the log has no recorded reference (was it run with flnotes.mpc.MPC?)")
-        out.append((log.z[int(k)].copy(), np.asarray(info["z_ref"]).copy()))
+        item = (log.z[k].copy(), np.asarray(info["z_ref"]).copy())
+        if with_plans:
+            prev = (log.steps[k - 1].info or {}) if k >= 1 else {}
+            plan = (np.asarray(prev["z_pred"]), np.asarray(prev["v_pred"])) if prev.get("v_pred") is not None else None
+            item = item + (plan,)
+        out.append(item)
     return out
 
 
-def hardest_steps(log, n: int, min_gap: int = 0) -> list[int]:
+def hardest_steps(log, n: int) -> list[int]:
     """Indices of the ``n`` sampling instants with the largest controller time in a run."""
     order = np.argsort(-np.nan_to_num(log.solve_time, nan=0.0))
     return sorted(int(k) for k in order[:n])
@@ -1202,26 +1398,24 @@ def hardest_steps(log, n: int, min_gap: int = 0) -> list[int]:
 def compare_to_reference(mpc: "MPC", problems: Sequence[tuple[Array, Array]], **reference_kwargs) -> list[dict]:
     """Solve recorded problems with ``mpc`` and with a cold SCIP solve of the same program (cvxpy).
 
-    Each problem is solved from scratch by both (``mpc`` forgets its previous
-    plan first, so no warm start), and the optimal costs are compared. Returns
+    Each problem is solved from scratch by both (a fresh copy of ``mpc`` with
+    the same settings, so no warm start; ``mpc`` itself is left untouched),
+    and the optimal costs are compared. Returns
     one row per problem: both objectives, the relative difference, both times
     (ms) and statuses. ``reference_kwargs`` change the reference controller
     (default ``bounds="horizon"``; any valid bounds give the same optimum).
     """
-    kw = dict(horizon=mpc.N, ts=mpc.ts, Q=mpc.Q, R=mpc.R, P=mpc.P if np.any(mpc.P) else None,
-              discretization=mpc.discretization, v_box=(mpc.v_lo, mpc.v_hi), gap=1e-6, bounds="horizon")
-    kw.update(reference_kwargs)
-    ref = MPC(mpc.system, mpc.net, mpc.eps, backend="cvxpy-scip", **kw)
+    ref = mpc.clone(**{**dict(backend="cvxpy-scip", bounds="horizon", gap=1e-6, time_limit=None, solver_options=None,
+                              formulation="auto"), **reference_kwargs})
     rows = []
     for z, R in problems:
-        mpc.reset()
-        a = mpc(z, R)
+        fresh = mpc.clone()
+        a = fresh(z, R)
         b = ref(z, R)
         rel = abs(a.objective - b.objective) / max(1.0, abs(b.objective))
         rows.append(dict(objective=a.objective, scip_objective=b.objective, rel_diff=float(rel),
                          ms=a.wall_time * 1e3, scip_ms=b.wall_time * 1e3, status=a.status, scip_status=b.status,
                          binaries=a.n_binaries, scip_binaries=b.n_binaries))
-    mpc.reset()
     return rows
 
 
@@ -1231,7 +1425,8 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
 
     The problems are solved in order by one controller per configuration, so
     a warm start sees the previous problem's plan (as in closed loop when the
-    problems are consecutive). Returns one row per configuration with the
+    problems are consecutive); problems from ``recorded_problems(...,
+    with_plans=True)`` instead start from the plan recorded in closed loop. Returns one row per configuration with the
     per-solve times (ms, array ``ms`` and statistics), the mean binaries left
     free, the mean nodes, and the largest relative difference of the optimal
     cost from the first configuration (every lever is exact, so it must be ~0).
@@ -1239,7 +1434,11 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
     rows, base = [], None
     for label, kw in configs.items():
         mpc = MPC(system, net, eps, **{**common, **kw})
-        steps = [mpc(z, R) for z, R in problems]
+        steps = []
+        for prob in problems:
+            if len(prob) == 3:  # replay: the previous plan it had in closed loop
+                mpc.set_previous_plan(prob[2])
+            steps.append(mpc(prob[0], prob[1]))
         obj = np.array([s.objective for s in steps])
         if base is None:
             base = obj

@@ -34,7 +34,7 @@ from .network import ReLUNet
 
 Array = np.ndarray
 
-__all__ = ["EmptyBoxError", "lp_bounds", "horizon_boxes", "intersect", "propagate", "LPTightener"]
+__all__ = ["EmptyBoxError", "lp_bounds", "horizon_boxes", "intersect", "propagate", "LPTightener", "ellipsoid_box"]
 
 
 class EmptyBoxError(ValueError):
@@ -221,8 +221,14 @@ class LPTightener:
             return None, None
         return lo + b[j], hi + b[j]
 
-    def tighten(self, lo: Array, hi: Array, prior: Optional[NodeBounds] = None, output: bool = True) -> NodeBounds:
-        """Bounds for the input box ``[lo, hi]`` (one box), starting from FBBT (intersected with ``prior``)."""
+    def tighten(self, lo: Array, hi: Array, prior: Optional[NodeBounds] = None, output: bool = True,
+                skip_stable: bool = False) -> NodeBounds:
+        """Bounds for the input box ``[lo, hi]`` (one box), starting from FBBT (intersected with ``prior``).
+
+        ``skip_stable=True`` solves LPs only for neurons that are still unstable when their
+        layer is reached (a stable neuron needs no binary; its bounds only feed the interval
+        bounds of later layers): about half the LPs for the same binaries.
+        """
         net = self.net
         start = fbbt(net, lo, hi)
         if prior is not None:
@@ -233,6 +239,8 @@ class LPTightener:
             self.set_layer(k, L[k], U[k])
         for k in range(net.K - 1):
             for j in range(len(L[k])):
+                if skip_stable and (L[k][j] >= 0 or U[k][j] <= 0):
+                    continue
                 a_lo, a_hi = self.preactivation_range(k, j)
                 if a_lo is None:
                     raise EmptyBoxError("the LP relaxation is infeasible: no input in the box gives an output "
@@ -259,8 +267,23 @@ class LPTightener:
         return NodeBounds(L, U, oL, oU, method="lp")
 
 
+_TIGHTENERS: dict = {}
+
+
+def _tightener(net: ReLUNet, out_bounds, tol: float) -> LPTightener:
+    """One persistent LP per (network, output bounds), reused across calls (the model is only updated)."""
+    key = (id(net), None if out_bounds is None else (tuple(np.asarray(out_bounds[0], float)),
+                                                      tuple(np.asarray(out_bounds[1], float))), float(tol))
+    t = _TIGHTENERS.get(key)
+    if t is None or t.net is not net:
+        if len(_TIGHTENERS) > 16:
+            _TIGHTENERS.clear()
+        t = _TIGHTENERS[key] = LPTightener(net, out_bounds=out_bounds, tol=tol)
+    return t
+
+
 def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Array, Array]] = None,
-              prior: Optional[NodeBounds] = None, tol: float = 1e-7) -> NodeBounds:
+              prior: Optional[NodeBounds] = None, tol: float = 1e-7, skip_stable: bool = False) -> NodeBounds:
     """Node bounds by LP-based tightening (Grimstad & Andersson 2019), eq. (MIP_general) relaxed.
 
     Parameters
@@ -281,6 +304,9 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     tol
         Relative safety margin added to every LP optimum (the LP solver's
         tolerances must not make a bound invalid).
+    skip_stable
+        Solve LPs only for neurons still unstable when reached (faster, same
+        binaries; stable neurons keep their interval bounds).
 
     Returns
     -------
@@ -300,14 +326,14 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
         raise ValueError(f"lo and hi must have shape ({net.n_in},) or (T, {net.n_in}), got {np.shape(lo)} and {np.shape(hi)}")
     for t in range(len(lo2)):
         check_box(lo2[t], hi2[t], net.n_in)
-    tightener = LPTightener(net, out_bounds=out_bounds, tol=tol)
+    tightener = _tightener(net, out_bounds, tol)
     res = []
     for t in range(len(lo2)):
         pr = None
         if prior is not None:
             pr = prior if np.ndim(prior.L[0]) == 1 else NodeBounds([a[t] for a in prior.L], [a[t] for a in prior.U],
                                                                    prior.out_L[t], prior.out_U[t], prior.method)
-        res.append(tightener.tighten(lo2[t], hi2[t], prior=pr))
+        res.append(tightener.tighten(lo2[t], hi2[t], prior=pr, skip_stable=skip_stable))
     method = "lp+out" if out_bounds is not None else "lp"
     if not batch:
         b = res[0]
@@ -396,3 +422,46 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
             raise EmptyBoxError(f"no admissible input keeps the predicted state in the box at step {k + 1}")
         zl, zu = np.minimum(zl, zu), np.maximum(zl, zu)
     return lo, hi
+
+
+# ---------------------------------------------------------------------------
+# Optimality-based boxes: the level set of a convex relaxation
+# ---------------------------------------------------------------------------
+def ellipsoid_box(S: Array, H_inv: Array, V_c: Array, offset: Array, delta: float) -> tuple[Array, Array]:
+    """Box of ``S V + offset`` over the ellipsoid ``0.5 (V - V_c)' H (V - V_c) <= delta``.
+
+    With ``(V_c, J_c)`` the optimum of a convex QP relaxation ``min J(V)`` over a convex set
+    ``C`` (``J`` convex quadratic with Hessian ``H``), every ``V`` in ``C`` satisfies
+
+        J(V) >= J_c + 0.5 (V - V_c)' H (V - V_c)
+
+    (the first-order optimality of ``V_c`` plus the exact second-order term). So every
+    solution better than a level ``J_up`` lies in this ellipsoid with ``delta = J_up - J_c``,
+    and the ``i``-th row of ``S V`` ranges over ``S_i V_c +- sqrt(2 delta S_i H^-1 S_i')``.
+    These boxes, much smaller than the reachable boxes when the relaxation is tight, give
+    node bounds that are valid for every improving solution (the MPC's "level-set" lever).
+
+    Parameters
+    ----------
+    S
+        (r, n) rows of the linear map (e.g. ``z(k) = Sx[k] z0 + Su[k] V`` stacked with ``v(k)``).
+    H_inv
+        (n, n) inverse of the positive definite Hessian ``H``.
+    V_c
+        (n,) center (the relaxation's optimum).
+    offset
+        (r,) constant added to ``S V``.
+    delta
+        ``J_up - J_c >= 0``.
+
+    Returns
+    -------
+    lo, hi
+        Arrays of shape (r,).
+    """
+    S = np.atleast_2d(np.asarray(S, float))
+    if delta < 0:
+        raise ValueError(f"delta = J_up - J_c must be >= 0, got {delta}")
+    center = S @ np.asarray(V_c, float) + np.asarray(offset, float)
+    rad = np.sqrt(2.0 * delta * np.maximum(np.einsum("ij,jk,ik->i", S, H_inv, S), 0.0))
+    return center - rad, center + rad

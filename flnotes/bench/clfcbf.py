@@ -22,7 +22,8 @@ TARGET_MS = 5.0
 
 def _stats(ms: np.ndarray) -> dict:
     ms = ms[np.isfinite(ms)]
-    return dict(min=float(ms.min()), median=float(np.median(ms)), max=float(ms.max()), mean=float(ms.mean()))
+    return dict(min=float(ms.min()), median=float(np.median(ms)), p99=float(np.percentile(ms, 99)),
+                max=float(ms.max()), mean=float(ms.mean()))
 
 
 def _rel(a: float, b: float) -> float:
@@ -96,11 +97,13 @@ def run(fast: bool) -> dict:
     for cost_name in ("Lcost", "Qcost"):
         best = min((r for r in rows if r["controller"] == cost_name and r["source"] == "flnotes"
                     and r["non_optimal"] == 0 and r["max_rel_diff_vs_exact"] <= 1e-6), key=lambda r: r["max"])
-        hit = [r["backend"] for r in rows if r["controller"] == cost_name and r["source"] == "flnotes"
-               and r["max"] <= TARGET_MS and r["max_rel_diff_vs_exact"] <= 1e-6]
-        notes.append(f"{cost_name}: target max <= {TARGET_MS:g} ms per step met by: {', '.join(hit) or 'none'}; "
-                     f"fastest exact backend by max time: {best['backend']} ({best['max']:.3g} ms max, "
-                     f"{best['median']:.3g} ms median)")
+        ok = [r for r in rows if r["controller"] == cost_name and r["source"] == "flnotes"
+              and r["non_optimal"] == 0 and r["max_rel_diff_vs_exact"] <= 1e-6]
+        hit = {key: [r["backend"] for r in ok if r[key] <= TARGET_MS] for key in ("max", "p99", "cpu_max")}
+        notes.append(f"{cost_name}: target <= {TARGET_MS:g} ms per step met by wall-clock max: "
+                     f"{', '.join(hit['max']) or 'none'}; by wall-clock 99th percentile: {', '.join(hit['p99']) or 'none'}; "
+                     f"by CPU-time max: {', '.join(hit['cpu_max']) or 'none'}. Fastest exact backend: {best['backend']} "
+                     f"({best['median']:.3g} ms median, {best['p99']:.3g} ms p99, {best['max']:.3g} ms max wall-clock)")
     notes.append(f"eps = {np.ravel(eps)[0]:.4f} ({eps_src}); ts = {ts} s, t_final = {t_final} s, hold = 'u'")
     notes.append("wall-clock times on a shared machine are noisy (other processes compete for the cores); "
                  "the CPU-time columns (thread time) are less sensitive to that")

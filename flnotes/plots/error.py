@@ -15,7 +15,7 @@ from matplotlib.patches import Rectangle
 from .style import COLORS, new_axes
 
 __all__ = ["error_slice", "pso_swarm", "estimator_convergence", "certification_progress", "partition_slice",
-           "eps_sweep", "show_table", "explore_architecture"]
+           "eps_sweep", "violation_line", "show_table", "show_source", "explore_architecture"]
 
 _METHOD_STYLE = {
     "pso": dict(color="#d95f02", marker="*", label="PSO"),
@@ -93,7 +93,7 @@ def pso_swarm(system, net, est, dims: Sequence[int] = (1, 2), iterations: Sequen
     if est.swarm is None:
         raise ValueError("this estimate has no recorded swarm: run pso_max_error(..., record=True)")
     fig, axes = new_axes(1, len(iterations), figsize=(3.4 * len(iterations), 3.4), sharey=True)
-    axes = np.atleast_1d(axes)
+    axes = np.asarray(axes).ravel()
     at = est.argmax[0]
     A, Bm, X = _slice_grid(system.lo, system.hi, tuple(dims), at, n)
     E = np.abs(system.phi_stacked(X)[:, 0] - net(X)[:, 0]).reshape(A.shape)
@@ -194,23 +194,93 @@ def partition_slice(bracket, system, dims: Sequence[int] = (1, 2), at: Optional[
     return ax
 
 
-def eps_sweep(rows: Sequence[dict], key: str = "eps_certified", ax=None, paper_eps: Optional[float] = None):
-    """``eps`` against the hidden width, one line per (depth, grid density), from :func:`flnotes.error.architecture_sweep`."""
-    if ax is None:
-        fig, ax = new_axes(figsize=(7.0, 3.8))
-    groups = sorted({(r["depth"], r["n_s"]) for r in rows})
-    cmap = plt.get_cmap("viridis")
-    for g, (depth, n_s) in enumerate(groups):
-        rr = sorted([r for r in rows if (r["depth"], r["n_s"]) == (depth, n_s)], key=lambda r: r["width"])
-        ax.plot([r["width"] for r in rr], [r[key] for r in rr], marker="o", color=cmap(g / max(len(groups) - 1, 1)),
-                ls=["-", "--", ":", "-."][depth % 4], label=f"{depth} hidden, $n_s$ = {n_s}")
-    if paper_eps is not None:
-        ax.axhline(paper_eps, color="k", lw=1, ls="--", label=f"paper's eps {paper_eps}")
-    ax.set_xlabel(r"hidden width $\bar n$")
-    ax.set_ylabel(key.replace("_", " "))
-    ax.set_yscale("log")
-    ax.legend(loc="upper right", ncol=2, fontsize=7.5)
-    return ax
+def eps_sweep(rows: Sequence[dict], key: str = "eps_certified", paper_eps: Optional[float] = None):
+    """``eps`` against the hidden width, one panel per grid density ``n_s`` and one line per depth.
+
+    ``rows`` come from :func:`flnotes.error.architecture_sweep`.
+    """
+    grids = sorted({r["n_s"] for r in rows})
+    depths = sorted({r["depth"] for r in rows})
+    fig, axes = new_axes(1, len(grids), figsize=(3.6 * len(grids), 3.4), sharey=True)
+    axes = np.asarray(axes).ravel()
+    colors = ["#1b9e77", "#d95f02", "#7570b3", "#e7298a"]
+    for ax, n_s in zip(axes, grids):
+        for depth, c in zip(depths, colors):
+            rr = sorted([r for r in rows if (r["depth"], r["n_s"]) == (depth, n_s)], key=lambda r: r["width"])
+            ax.plot([r["width"] for r in rr], [r[key] for r in rr], marker="o", color=c, label=f"{depth} hidden")
+        if paper_eps is not None:
+            ax.axhline(paper_eps, color="k", lw=1, ls="--", label=f"paper's eps ({paper_eps})")
+        ax.set_title(f"grid $n_s$ = {n_s} per axis")
+        ax.set_xlabel(r"hidden width $\bar n$")
+        ax.set_yscale("log")
+    axes[0].set_ylabel(key.replace("_", " "))
+    axes[-1].legend(loc="upper right", fontsize=7.5)
+    return axes
+
+
+def violation_line(system, net, z: np.ndarray, eps: dict, v_focus: Optional[float] = None, half_window: float = 0.4,
+                   n: int = 4001):
+    """``Phi(z, v)`` and ``Phi_NN(z, v)`` along ``v`` at a fixed state ``z`` (single-input systems).
+
+    ``eps`` maps a label to an error bound; for each, the level
+    ``u_max - eps`` of eq. (Phi_NN_ep) is drawn and the inputs ``v`` it allows
+    although the true input ``|Phi|`` exceeds ``u_max`` (a violation of eq.
+    constraintU) are marked. With ``v_focus`` a second panel zooms on
+    ``v_focus +- half_window``.
+    """
+    if system.m != 1:
+        raise ValueError("violation_line draws single-input systems (m = 1)")
+    z = np.asarray(z, float)[: system.n_z]
+    u_max = float(system.u_max[0])
+    panels = [(system.lo[-1], system.hi[-1])]
+    if v_focus is not None:
+        panels.append((max(system.lo[-1], v_focus - half_window), min(system.hi[-1], v_focus + half_window)))
+    fig, axes = new_axes(1, len(panels), figsize=(5.2 * len(panels), 3.8))
+    axes = np.asarray(axes).ravel()
+    for p, (ax, (a, b)) in enumerate(zip(axes, panels)):
+        v = np.linspace(a, b, n)
+        X = np.hstack([np.tile(z, (n, 1)), v[:, None]])
+        phi, nn = system.phi_stacked(X)[:, 0], net(X)[:, 0]
+        ax.plot(v, phi, color=COLORS["true"], label=r"$\Phi(z, v)$")
+        ax.plot(v, nn, color=COLORS["nn"], ls="--", label=r"$\Phi_{NN}(z, v)$")
+        for sgn in (1, -1):
+            ax.axhline(sgn * u_max, color=COLORS["u_max"], lw=1, label=r"$\pm u_{max}$" if sgn > 0 else None)
+        for (label, e), c in zip(eps.items(), ["#d62728", COLORS["u_max_eps"], "#7570b3"]):
+            e = float(np.atleast_1d(e)[0])
+            for sgn in (1, -1):
+                ax.axhline(sgn * (u_max - e), color=c, ls=":", lw=1.4,
+                           label=f"$\\pm(u_{{max}} - \\epsilon)$, {label}" if sgn > 0 else None)
+            bad = (np.abs(nn) <= u_max - e) & (np.abs(phi) > u_max)
+            if bad.any():
+                ax.plot(v[bad], phi[bad], ".", color=c, ms=4, label=f"allowed by {label}, $|\\Phi| > u_{{max}}$")
+        if p == 1:
+            mid = np.concatenate([phi, nn])
+            pad = 0.25 * (mid.max() - mid.min()) + 1e-9
+            ax.set_ylim(mid.min() - pad, mid.max() + pad)
+            ax.set_title(f"zoom on v = {v_focus:.3g}")
+        else:
+            ax.set_title(f"{system.name} at z = {np.array2string(z, precision=3)}")
+            if v_focus is not None:
+                ax.axvspan(*panels[1], color="0.85", zorder=0)
+        ax.set_xlabel(system.input_names[0])
+    axes[0].set_ylabel("input u")
+    axes[-1].legend(loc="best", fontsize=7)
+    return axes
+
+
+def show_source(func, skip_docstring: bool = True):
+    """The source code of a function as a rendered code block (for reading the algorithm in a chapter)."""
+    import inspect
+
+    from IPython.display import Markdown
+
+    src = inspect.getsource(func)
+    if skip_docstring and func.__doc__:
+        i = src.find('"""')
+        j = src.find('"""', i + 3)
+        if i >= 0 and j > i:
+            src = src[:i].rstrip() + "\n" + src[j + 3:].lstrip("\n")
+    return Markdown("```python\n" + src.rstrip() + "\n```")
 
 
 def show_table(rows: Sequence[dict]):

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from typing import Callable, Mapping, Optional, Sequence
 
-import matplotlib.pyplot as plt
 import numpy as np
 
 from .style import COLORS, bound_lines, new_axes
@@ -39,7 +38,7 @@ def plot_mpc_tracking(log, reference: Optional[Callable[[Array], Array]] = None,
     """
     comps = list(components)
     fig, axes = new_axes(len(comps), 1, figsize=(7.0, 1.9 * len(comps) + 0.4), sharex=True)
-    axes = np.atleast_1d(axes)
+    axes = np.atleast_1d(axes).ravel()
     names = list(log.system.state_names)
     t_line = np.r_[log.t_fine, log.t[-1]] if len(log.t_fine) else log.t
     z_line = np.vstack([log.z_fine, log.z[-1:]]) if len(log.z_fine) else log.z
@@ -50,8 +49,8 @@ def plot_mpc_tracking(log, reference: Optional[Callable[[Array], Array]] = None,
         ax.plot(t_line, z_line[:, i], color=COLORS["true"], lw=1.4, label="closed loop (true plant)")
         ax.plot(log.t, log.z[:, i], ".", color=COLORS["true"], ms=3)
         ax.set_ylabel(names[i] if i < len(names) else f"z{i + 1}")
-    axes[0].legend(loc="upper right", ncol=2)
     axes[-1].set_xlabel("t [s]")
+    axes[-1].legend(loc="upper center", bbox_to_anchor=(0.5, -0.4), ncol=2)
     if title:
         axes[0].set_title(title)
     return fig
@@ -109,7 +108,7 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
     ax.set_ylabel("u [rad]")
     ax.set_xlim(0, t_end + (ts * len(log.steps[0].info.get("u_nn_pred", [])) if predictions and log.steps
                               and log.steps[0].info and t_max is None else 0))
-    ax.legend(loc="lower right", ncol=2, fontsize=7.5)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8)
     if title:
         ax.set_title(title)
     return fig
@@ -128,7 +127,8 @@ def plot_horizon_sweep(runs: Mapping[int, object], reference: Optional[Callable[
     reference
         ``t -> z_ref(t)``; its first component is drawn in grey.
     """
-    fig, (ax1, ax2) = new_axes(2, 1, figsize=(7.0, 5.2), sharex=True)
+    fig, axes = new_axes(2, 1, figsize=(7.0, 5.2), sharex=True)
+    ax1, ax2 = np.asarray(axes).ravel()
     t_any = None
     for i, (Np, log) in enumerate(sorted(runs.items())):
         c = _SWEEP_COLORS[i % len(_SWEEP_COLORS)]
@@ -192,7 +192,8 @@ def plot_step_times(rows: Sequence[Mapping], key: str = "ms", label_key: str = "
     else:
         fig = ax.figure
     data = [np.maximum(np.asarray(r[key], float), 1e-3) for r in rows]
-    ax.boxplot(data, vert=False, labels=[str(r[label_key]) for r in rows], whis=(0, 100))
+    ax.boxplot(data, orientation="horizontal", whis=(0, 100))
+    ax.set_yticks(np.arange(1, len(rows) + 1), [str(r[label_key]) for r in rows])
     ax.set_xscale("log")
     ax.set_xlabel("time per solve [ms]")
     if title:

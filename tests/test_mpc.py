@@ -1,0 +1,173 @@
+"""The MPC of eq. (MPC_form_miqp) on the 1-D quadrotor: closed loop, exactness against SCIP, errors."""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.mpc import MPC, closed_loop_checks, compare_to_reference, recorded_problems, sine_reference
+
+S = fl.paper.QUAD_SETTING
+EPS = fl.paper.TABLE1["Quad-1D"]["eps"]
+
+
+@pytest.fixture(scope="module")
+def quad():
+    net, _ = fl.paper_net("Quad-1D")
+    return fl.quad1d(), net
+
+
+@pytest.fixture(scope="module")
+def run(quad):
+    """A short closed loop with the book's default levers (fast mode of the chapter's run)."""
+    sysm, net = quad
+    ref = sine_reference(1.5, 1.0)
+    mpc = MPC(sysm, net, EPS, horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], time_limit=30.0)
+    log = fl.simulate(sysm, mpc, t_final=6.0, ts=S["ts"], z0=S["z0"], reference=ref, net=net)
+    return log, mpc, ref
+
+
+def test_closed_loop_respects_the_input_bound_at_samples(run):
+    log, mpc, ref = run
+    assert log.message == ""
+    assert log.n_steps == 60
+    u_max = log.system.u_max[0]
+    # the true input at every sampling instant: |Phi(z_k, v_k)| <= u_max (Proposition 1)
+    assert np.all(np.abs(log.u) <= u_max + 1e-9)
+    # and the network's output is within u_max^eps there (it is the constraint imposed)
+    assert np.all(np.abs(log.u_nn) <= mpc.u_eps + 1e-6)
+    # the constraint matters in this run (otherwise the test would be trivially true)
+    assert np.max(np.abs(log.u_nn)) >= 0.99 * mpc.u_eps[0]
+
+
+def test_every_predicted_step_satisfies_the_network_constraint(run):
+    log, mpc, _ = run
+    for k, st in enumerate(log.steps):
+        pred = st.info["u_nn_pred"]
+        assert pred.shape == (mpc.N, 1)
+        assert np.all(np.abs(pred) <= mpc.u_eps + 1e-6), f"step {k}: predicted |Phi_NN| = {np.abs(pred).max()}"
+        # the predicted states stay in the network's domain box (eq. MPC_form_miqp_d)
+        assert np.all(mpc.system.in_domain(st.info["z_pred"], tol=1e-6))
+        # the prediction is the nominal model's (eq. MPC_form_miqp_c)
+        Z, V = st.info["z_pred"], st.info["v_pred"]
+        assert np.allclose(Z[1:], Z[:-1] @ mpc.Ad.T + V @ mpc.Bd.T, atol=1e-7)
+
+
+def test_tracking_error_shrinks(run):
+    log, mpc, ref = run
+    chk = closed_loop_checks(log, mpc, ref)
+    e = np.abs(log.z[:, 0] - ref(log.t)[:, 0])
+    first, last = e[: len(e) // 3], e[-len(e) // 3:]
+    assert last.max() < 0.5 * first.max()
+    assert chk["tracking_error_rms_second_half"] < chk["tracking_error_initial"]
+    assert chk["non_optimal_steps"] == 0 and chk["fallback_steps"] == 0
+
+
+def test_optimum_equals_a_cold_scip_solve(run, quad):
+    """On recorded states that needed the MIQP, the optimal cost equals SCIP's on the full program."""
+    log, mpc, _ = run
+    hard = [k for k, h in enumerate(mpc.history) if not h.screened]
+    assert len(hard) >= 3
+    picks = [hard[0], hard[len(hard) // 2], hard[-1]]
+    rows = compare_to_reference(mpc, recorded_problems(log, picks))
+    for r in rows:
+        assert r["status"] == "optimal" and r["scip_status"] == "optimal"
+        assert r["rel_diff"] <= 1e-6, r
+
+
+def test_screened_steps_are_exact(run):
+    """A step returned by screening is the QP optimum and satisfies the constraint: the MIQP optimum."""
+    log, mpc, _ = run
+    scr = [k for k, h in enumerate(mpc.history) if h.screened]
+    assert scr, "no step was screened in this run"
+    h = mpc.history[scr[0]]
+    assert h.nodes == 0 and np.all(np.abs(h.u_nn_pred) <= mpc.u_eps)
+
+
+def test_formulations_agree(quad):
+    """Sparse (SCIP, persistent), compact (DAQP) and the cvxpy reference give the same optimum."""
+    sysm, net = quad
+    ref = sine_reference(1.5, 1.0)
+    z, R = S["z0"], ref(S["ts"] * np.arange(S["horizon"] + 1))
+    common = dict(horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"])
+    a = MPC(sysm, net, EPS, backend="daqp", **common)(z, R)
+    b = MPC(sysm, net, EPS, backend="scip", formulation="sparse", **common)(z, R)
+    c = MPC(sysm, net, EPS, backend="scip", formulation="condensed", **common)(z, R)
+    for s in (a, b, c):
+        assert s.status == "optimal"
+    assert abs(a.objective - b.objective) <= 1e-6 * abs(b.objective)
+    assert abs(c.objective - b.objective) <= 1e-6 * abs(b.objective)
+
+
+def test_time_limit_is_reported_never_silent(quad):
+    sysm, net = quad
+    ref = sine_reference(1.5, 1.0)
+    mpc = MPC(sysm, net, EPS, horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], screening=False)
+    first = mpc(S["z0"], ref(S["ts"] * np.arange(11)))
+    assert first.status == "optimal"
+    mpc.time_limit = 1e-6
+    mpc.warm_start = False
+    z1 = first.z_pred[1]
+    st = mpc(z1, ref(S["ts"] * (1 + np.arange(11))))
+    assert st.status == "time_limit"
+    assert st.v is not None
+    # either the solver's incumbent (feasible for the whole program) or the shifted previous plan
+    assert st.fallback or mpc.plan_feasible(st.z_pred, st.v_pred)
+    if st.fallback:
+        assert np.allclose(st.v, first.v_pred[1])
+    assert mpc.summary()["time_limit_hits"] == 1
+
+
+def test_bad_inputs_give_clear_errors(quad):
+    sysm, net = quad
+    mpc = MPC(sysm, net, EPS, horizon=5, ts=0.1, Q=S["Q"], R=S["R"])
+    with pytest.raises(ValueError, match="outside the network's trained domain"):
+        mpc(np.array([0.0, 6.0, 0.0]), np.zeros(3))
+    with pytest.raises(ValueError, match="z_ref must have shape"):
+        mpc(np.zeros(3), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="z must be the measured state"):
+        mpc(np.zeros(4), np.zeros(3))
+    with pytest.raises(ValueError, match="horizon"):
+        MPC(sysm, net, EPS, horizon=0)
+    with pytest.raises(ValueError, match="eps"):
+        MPC(sysm, net, 0.2)  # eps > u_max: no admissible input
+    with pytest.raises(ValueError, match="backend"):
+        MPC(sysm, net, EPS, backend="cplexx")
+
+
+@pytest.mark.parametrize("backend", ["daqp", "cvxpy-scip"])
+def test_infeasible_start_is_reported(quad, backend):
+    """At z = [0, 0, 5] the pitch is ~0.52 rad: no v in the box brings |Phi_NN| down to u_max^eps."""
+    sysm, net = quad
+    mpc = MPC(sysm, net, EPS, horizon=3, ts=0.1, Q=S["Q"], R=S["R"], backend=backend)
+    z = np.array([0.0, 0.0, 5.0])
+    st = mpc(z, np.zeros(3))
+    assert st.status == "infeasible" and st.v is None and not st.fallback
+    with pytest.raises(RuntimeError, match="infeasible"):
+        mpc.step(z, 0.0, None)
+
+
+def test_simulate_survives_an_infeasible_start(quad):
+    sysm, net = quad
+    mpc = MPC(sysm, net, EPS, horizon=3, ts=0.1, Q=S["Q"], R=S["R"])
+    log = fl.simulate(sysm, mpc, t_final=0.2, ts=0.1, z0=[0.0, 4.0, 4.5], net=net)
+    assert log.n_steps >= 1
+    assert log.fallback[0] and log.status[0].startswith("error")
+
+
+def test_levers_do_not_change_the_optimum(run, quad):
+    """Every lever is exact: bounds, warm start, constraint generation and formulation give the same optimum."""
+    from flnotes.mpc import lever_study
+
+    log, mpc, _ = run
+    sysm, net = quad
+    hard = [k for k, h in enumerate(mpc.history) if not h.screened and k >= 1][:2]
+    problems = recorded_problems(log, hard, with_plans=True)
+    configs = {
+        "daqp lp warm": dict(backend="daqp", bounds="lp"),
+        "daqp horizon cold": dict(backend="daqp", bounds="horizon", warm_start=False),
+        "daqp box lazy": dict(backend="daqp", bounds="box"),
+        "scip compact": dict(backend="scip", formulation="compact", bounds="horizon"),
+    }
+    rows = lever_study(sysm, net, EPS, problems, configs, horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"])
+    for r in rows:
+        assert r["statuses"] == "optimal", r
+        assert r["max_rel_diff"] <= 1e-6, r

@@ -1,0 +1,179 @@
+"""Tightened node bounds stay valid: they contain every sampled feasible pre-activation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.tightening import EmptyBoxError, ellipsoid_box, horizon_boxes, intersect, lp_bounds
+
+
+@pytest.fixture(scope="module")
+def small_net():
+    """A small ReLU network fitted to the Quad-1D map on a coarse grid (seconds)."""
+    s = fl.quad1d()
+    net, _ = fl.fit_relu(s.phi_stacked, s.lo, s.hi, widths=(8, 8), n_per_axis=7, max_iter=300, seed=1)
+    return s, net
+
+
+def _samples(net, lo, hi, n=40_000, seed=0):
+    X = np.random.default_rng(seed).uniform(lo, hi, (n, net.n_in))
+    out, pre = net.forward(X)
+    return X, out, pre
+
+
+def _contains(bounds, pre, tol=1e-7):
+    return all(np.all(a >= L - tol) and np.all(a <= U + tol) for a, L, U in zip(pre, bounds.L, bounds.U))
+
+
+def _not_looser(tight, loose, tol=1e-9):
+    return all(np.all(Lt >= Ll - tol) and np.all(Ut <= Ul + tol)
+               for Lt, Ll, Ut, Ul in zip(tight.L, loose.L, tight.U, loose.U))
+
+
+def test_fbbt_and_lp_bounds_contain_every_sampled_preactivation(small_net):
+    s, net = small_net
+    lo, hi = s.lo.copy(), s.hi.copy()
+    lo[0], hi[0] = -1.0, 2.0  # a smaller box, to exercise stable neurons
+    _, _, pre = _samples(net, lo, hi)
+    fb = fl.fbbt(net, lo, hi)
+    lp = lp_bounds(net, lo, hi)
+    assert _contains(fb, pre) and _contains(lp, pre)
+    assert _not_looser(lp, fb)
+    assert lp.n_unstable <= fb.n_unstable
+    assert sum(float((U - L).sum()) for L, U in zip(lp.L, lp.U)) < sum(float((U - L).sum()) for L, U in zip(fb.L, fb.U))
+
+
+def test_lp_bounds_with_output_bounds_contain_every_feasible_sample(small_net):
+    s, net = small_net
+    u_eps = 0.1745 - 0.0322
+    X, out, pre = _samples(net, s.lo, s.hi, n=200_000, seed=1)
+    ok = np.all(np.abs(out) <= u_eps, axis=1)
+    assert ok.sum() > 1000  # the check below must see many feasible points
+    b = lp_bounds(net, s.lo, s.hi, out_bounds=(-np.array([u_eps]), np.array([u_eps])))
+    assert b.method == "lp+out"
+    assert _contains(b, [a[ok] for a in pre])
+    assert _not_looser(b, lp_bounds(net, s.lo, s.hi))
+    assert np.all(b.out_L >= -u_eps - 1e-6) and np.all(b.out_U <= u_eps + 1e-6)
+
+
+def test_skip_stable_gives_the_same_binaries_and_valid_bounds(small_net):
+    s, net = small_net
+    lo, hi = s.lo * 0.3, s.hi * 0.3
+    full, fast = lp_bounds(net, lo, hi), lp_bounds(net, lo, hi, skip_stable=True)
+    _, _, pre = _samples(net, lo, hi, seed=2)
+    assert _contains(fast, pre)
+    assert _not_looser(fast, fl.fbbt(net, lo, hi))
+    assert fast.n_unstable >= full.n_unstable  # never fewer binaries than the full tightening
+
+
+def test_batched_lp_bounds_match_box_by_box(small_net):
+    s, net = small_net
+    rng = np.random.default_rng(3)
+    c = rng.uniform(s.lo * 0.5, s.hi * 0.5, (3, net.n_in))
+    lo, hi = c - 0.5, c + 0.5
+    batch = lp_bounds(net, lo, hi)
+    for t in range(3):
+        one = lp_bounds(net, lo[t], hi[t])
+        for k in range(len(one.L)):
+            assert np.allclose(batch.L[k][t], one.L[k]) and np.allclose(batch.U[k][t], one.U[k])
+        _, _, pre = _samples(net, lo[t], hi[t], n=5_000, seed=t)
+        assert _contains(one, pre)
+
+
+def test_output_bounds_that_no_input_meets_raise(small_net):
+    s, net = small_net
+    with pytest.raises(EmptyBoxError):
+        lp_bounds(net, s.lo, s.hi, out_bounds=(np.array([50.0]), np.array([60.0])))
+
+
+def test_horizon_boxes_contain_every_simulated_trajectory():
+    s = fl.quad1d()
+    Ad, Bd = s.discretize(0.1, "rk4")
+    z0 = np.array([-0.5, -0.15, -0.2])
+    z_lo, z_hi, v_lo, v_hi = s.lo[:3], s.hi[:3], s.lo[3:], s.hi[3:]
+    N = 12
+    lo, hi = horizon_boxes(Ad, Bd, z0, z_lo, z_hi, v_lo, v_hi, N)
+    assert lo.shape == hi.shape == (N, 4)
+    assert np.allclose(lo[0, :3], z0) and np.allclose(hi[0, :3], z0)
+    rng = np.random.default_rng(0)
+    n_kept = 0
+    for _ in range(4000):
+        V = rng.choice([v_lo[0], v_hi[0]], N)[:, None] * rng.uniform(0.3, 1.0) if rng.random() < 0.5 \
+            else rng.uniform(v_lo, v_hi, (N, 1))
+        Z = [z0]
+        for k in range(N - 1):
+            Z.append(Ad @ Z[-1] + Bd @ V[k])
+        Z = np.array(Z)
+        if np.any(Z < z_lo) or np.any(Z > z_hi):
+            continue  # leaves the state box: not admissible in the MPC
+        n_kept += 1
+        X = np.hstack([Z, V])
+        assert np.all(X >= lo - 1e-9) and np.all(X <= hi + 1e-9)
+    assert n_kept > 1000
+    # tighter than the state box after a few steps, never wider
+    assert np.all(lo[:, :3] >= z_lo - 1e-12) and np.all(hi[:, :3] <= z_hi + 1e-12)
+    assert np.all(hi[1:4, 2] - lo[1:4, 2] < z_hi[2] - z_lo[2])
+
+
+def test_horizon_boxes_reject_a_state_outside_the_box():
+    s = fl.quad1d()
+    Ad, Bd = s.discretize(0.1, "rk4")
+    with pytest.raises(EmptyBoxError):
+        horizon_boxes(Ad, Bd, [9.0, 0, 0], s.lo[:3], s.hi[:3], s.lo[3:], s.hi[3:], 5)
+    with pytest.raises(ValueError, match="horizon"):
+        horizon_boxes(Ad, Bd, [0.0, 0, 0], s.lo[:3], s.hi[:3], s.lo[3:], s.hi[3:], 0)
+
+
+def test_fbbt_on_horizon_boxes_contains_the_preactivations_along_trajectories(small_net):
+    s, net = small_net
+    Ad, Bd = s.discretize(0.1, "rk4")
+    z0 = np.array([0.3, -0.2, 0.1])
+    N = 6
+    lo, hi = horizon_boxes(Ad, Bd, z0, s.lo[:3], s.hi[:3], s.lo[3:], s.hi[3:], N)
+    nb = fl.fbbt(net, lo, hi)
+    rng = np.random.default_rng(1)
+    kept = 0
+    for _ in range(1000):
+        V = rng.uniform(s.lo[3:], s.hi[3:], (N, 1))
+        Z = [z0]
+        for k in range(N - 1):
+            Z.append(Ad @ Z[-1] + Bd @ V[k])
+        Z = np.array(Z)
+        if np.any(Z < s.lo[:3]) or np.any(Z > s.hi[:3]):
+            continue  # not admissible: the MPC keeps the predictions in the state box
+        kept += 1
+        pre = net.preactivations(np.hstack([Z, V]))
+        for k in range(N):
+            assert all(np.all(a[k] >= L[k] - 1e-9) and np.all(a[k] <= U[k] + 1e-9) for a, L, U in zip(pre, nb.L, nb.U))
+    assert kept > 200
+
+
+def test_ellipsoid_box_contains_the_level_set():
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(5, 5))
+    H = F @ F.T + 0.5 * np.eye(5)
+    V_c, delta = rng.normal(size=5), 0.7
+    S, off = rng.normal(size=(3, 5)), rng.normal(size=3)
+    lo, hi = ellipsoid_box(S, np.linalg.inv(H), V_c, off, delta)
+    # points on and inside the ellipsoid 0.5 (V - V_c)' H (V - V_c) <= delta
+    D = rng.normal(size=(20_000, 5))
+    r = np.sqrt(np.einsum("ij,jk,ik->i", D, H, D) / (2 * delta))
+    P = V_c + D / r[:, None] * rng.uniform(0, 1, (20_000, 1))
+    Y = P @ S.T + off
+    assert np.all(Y >= lo - 1e-9) and np.all(Y <= hi + 1e-9)
+    # and the box is tight: the extremes are attained on the boundary
+    for i in range(3):
+        g = np.linalg.solve(H, S[i])
+        v_max = V_c + g * np.sqrt(2 * delta / (S[i] @ g))
+        assert np.isclose(S[i] @ v_max + off[i], hi[i])
+
+
+def test_intersect_is_valid_and_tighter(small_net):
+    s, net = small_net
+    a = fl.fbbt(net, s.lo, s.hi)
+    b = lp_bounds(net, s.lo, s.hi)
+    c = intersect(a, b)
+    assert _not_looser(c, a) and _not_looser(c, b)
+    _, _, pre = _samples(net, s.lo, s.hi, n=20_000, seed=4)
+    assert _contains(c, pre)
