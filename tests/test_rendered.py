@@ -246,6 +246,17 @@ def test_no_raw_tex_in_static_text(html_dir):
     assert not problems, "\n".join(problems)
 
 
+def test_titles_have_no_math(html_dir):
+    # a heading's TeX ends up in <title> and in the navigation, where MathJax does not typeset it
+    problems = []
+    for page in _pages(html_dir):
+        m = re.search(r"<title>(.*?)</title>", page.read_text(encoding="utf-8"), re.S)
+        if m and re.search(r"\\\(|\\\[|\$", m.group(1)):
+            problems.append(f"{page.relative_to(html_dir)}: TeX in the page title {m.group(1)!r}; "
+                            "write the heading in plain text (Unicode symbols, *italics*)")
+    assert not problems, "\n".join(problems)
+
+
 # ----------------------------------------------------------------------------------
 # in a browser
 def _chromium() -> str | None:
