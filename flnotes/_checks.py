@@ -40,3 +40,15 @@ def check_box(lo: Any, hi: Any, n: int, lo_name: str = "lo", hi_name: str = "hi"
         raise ValueError(f"box is empty: {lo_name}[{i}] = {lo_a[i]} > {hi_name}[{i}] = {hi_a[i]}; "
                          f"every lower bound must be <= its upper bound")
     return lo_a, hi_a
+
+
+def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given."""
+    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
+    batch = lo_a.ndim == 2
+    lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
+    if lo2.shape != hi2.shape or lo2.shape[1] != n:
+        raise ValueError(f"lo and hi must have shape ({n},) or (T, {n}), got {np.shape(lo)} and {np.shape(hi)}")
+    for t in range(len(lo2)):
+        check_box(lo2[t], hi2[t], n)
+    return lo2, hi2, batch

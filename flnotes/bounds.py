@@ -17,7 +17,7 @@ from typing import Optional
 
 import numpy as np
 
-from ._checks import check_box
+from ._checks import check_box, check_boxes
 from .network import ReLUNet
 
 Array = np.ndarray
@@ -106,13 +106,7 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
         ``L``, ``U`` of shape (n_k,) (or (T, n_k)) per hidden layer, and the
         output bounds.
     """
-    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
-    batch = lo_a.ndim == 2
-    lo_a, hi_a = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
-    if lo_a.shape != hi_a.shape or lo_a.shape[1] != net.n_in:
-        raise ValueError(f"lo and hi must have shape ({net.n_in},) or (T, {net.n_in}), got {np.shape(lo)} and {np.shape(hi)}")
-    for t in range(len(lo_a)):
-        check_box(lo_a[t], hi_a[t], net.n_in)
+    lo_a, hi_a, batch = check_boxes(lo, hi, net.n_in)
     l, u = lo_a, hi_a
     Ls, Us = [], []
     for W, b in zip(net.W[:-1], net.b[:-1]):

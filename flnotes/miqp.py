@@ -39,6 +39,8 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
+from .systems import condense
+
 Array = np.ndarray
 
 #: Back-ends by name; ``"auto"`` is also accepted by :func:`make_solver`.
@@ -1156,6 +1158,10 @@ class HorizonMIQP:
       binary; with ``False`` every neuron keeps its binary (fixed by its bounds).
     * ``encode``: ``"needed"`` encodes the network only at steps whose output bounds do not
       already lie within ``[-u_max^eps, u_max^eps]`` over the step's box; ``"all"`` at every step.
+    * ``lazy``: constraint generation. Of the steps that need encoding, only those where the
+      QP plan (or the previous solve) violated the constraint are encoded; the optimum is checked
+      at every step with the forward pass and violated steps are added until it passes. Each
+      program is a relaxation of the restricted one, so a plan that passes is its optimum.
     * ``warm_start``: a feasible plan (the previous one shifted) is an incumbent: the branch and
       bound only explores nodes that can beat it, and the level set uses its cost.
 
@@ -1186,7 +1192,7 @@ class HorizonMIQP:
         ``u_max - eps`` (m,).
     backend
         Solver of the mixed-integer programs (:func:`make_solver`), default DAQP.
-    bounds, screening, eliminate_stable, encode, warm_start
+    bounds, screening, eliminate_stable, encode, warm_start, lazy
         The levers above.
     refine
         Rounds of level-set shrinking with the restricted program's own relaxation as the
@@ -1205,7 +1211,7 @@ class HorizonMIQP:
     def __init__(self, net, Ad: Array, Bd: Array, horizon: int, Q: Array, R: Array, P: Optional[Array] = None, *,
                  z_lo: Array, z_hi: Array, v_lo: Array, v_hi: Array, u_eps, backend: str = "daqp",
                  bounds: str = "levelset", screening: bool = True, eliminate_stable: bool = True,
-                 encode: str = "needed", warm_start: bool = True, refine: int = 2, root: bool = False,
+                 encode: str = "needed", warm_start: bool = True, lazy: bool = True, refine: int = 2, root: bool = False,
                  lp="auto", lp_threshold: int = 40, solver_options: Optional[dict] = None):
         from .bounds import fbbt
 
@@ -1234,6 +1240,8 @@ class HorizonMIQP:
             raise ValueError(f"u_eps = u_max - eps must be positive, got {self.u_eps}")
         self.backend, self.bounds, self.screening = backend, bounds, bool(screening)
         self.eliminate_stable, self.encode, self.warm_start = bool(eliminate_stable), encode, bool(warm_start)
+        self.lazy = bool(lazy)
+        self._active_prev: tuple = ()  # steps encoded in the last solve (shifted by one for the next)
         if lp not in (True, False, "auto"):
             raise ValueError(f"lp must be True, False or 'auto', got {lp!r}")
         self.refine, self.root, self.lp, self.lp_threshold = int(refine), bool(root), lp, int(lp_threshold)
@@ -1241,17 +1249,9 @@ class HorizonMIQP:
         self._nb_override = None
         self.solver_options = dict(solver_options or {})
         N = self.N
-        Sx = np.zeros((N + 1, nz, nz))
-        Su = np.zeros((N + 1, nz, N * m))
-        Sx[0] = np.eye(nz)
-        for k in range(N):
-            Sx[k + 1] = self.Ad @ Sx[k]
-            Su[k + 1] = self.Ad @ Su[k]
-            Su[k + 1][:, k * m:(k + 1) * m] = self.Bd
-        self.Sx, self.Su = Sx, Su
+        self.Sx, self.Su, self.H = condense(self.Ad, self.Bd, N, self.Q, self.R, self.P)
+        Su = self.Su
         self.Wk = [self.Q] * N + [self.P]
-        H = 2 * (sum(Su[k].T @ self.Wk[k] @ Su[k] for k in range(N + 1)) + np.kron(np.eye(N), self.R))
-        self.H = 0.5 * (H + H.T)
         self.H_inv = np.linalg.inv(self.H)
         # rows mapping V to the network input [z(k); v(k)] of every step: (N, n_in, N m)
         T = np.zeros((N, nz + m, N * m))
@@ -1501,11 +1501,14 @@ class HorizonMIQP:
                 return done("infeasible", None, np.inf, "the QP without the network constraint is infeasible")
             V_c, J_c = V_q, fq + c0
             if self.screening and self.feasible(z0, V_q):
+                self._active_prev = ()
                 return done("optimal", V_q, J_c, "screened: the QP optimum meets the network constraint", True)
         try:
             lo_h, hi_h = self._boxes(z0)
         except EmptyBoxError as exc:
             return done("infeasible", None, np.inf, f"infeasible: {exc}")
+        active = set(self._violated(z0, V_c)) if V_c is not None else set()
+        active |= {k - 1 for k in self._active_prev if k >= 1}
 
         def remaining():
             return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
@@ -1535,14 +1538,18 @@ class HorizonMIQP:
                 return done("time_limit", None, J_c, "time limit without a feasible plan", **last)
             lo, hi = lo_h, hi_h
             J_up = np.inf
+            full = self.bounds != "levelset"  # the program solved below is the whole program
             if self.bounds == "levelset":
                 if delta is None:
                     delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4)
                 J_up = min(inc_J, J_c + delta)
+                if not np.isfinite(J_up) or delta > 1e12 * max(1.0, abs(J_c)):
+                    # the level set no longer restricts anything: solve the whole program
+                    J_up, full, delta = np.inf, True, np.inf
                 # shrink the boxes with the level set, refine the center with the program's relaxation
                 empty = False
                 cen_V, cen_J = V_c, J_c
-                for r in range(1 + self.refine):
+                for r in range(0 if full else 1 + self.refine):
                     lo, hi = self._level_boxes(z0, cen_V, max(J_up - cen_J, 0.0), lo, hi)
                     if np.any(lo > hi + 1e-12):
                         empty = True
@@ -1572,6 +1579,8 @@ class HorizonMIQP:
                     if cen_J > J_up:
                         empty = True
                         break
+                if not full:
+                    full = bool(np.all(lo <= lo_h) and np.all(hi >= hi_h))  # the level set cut nothing
                 if not empty and self.lp is not False:
                     # many binaries left: LP bounds (with |Phi_NN| <= u_max^eps) once, their relaxation as a
                     # last center, and FBBT on the shrunk boxes intersected with those LP bounds
@@ -1600,7 +1609,10 @@ class HorizonMIQP:
                             self._nb_override = pre_lp
                 if empty:  # nothing cheaper than J_up
                     self._nb_override = None
-                    if J_up >= inc_J:
+                    if full and inc_V is None:
+                        return done("infeasible", None, np.inf, "no admissible plan: the node bounds exclude "
+                                    "|Phi_NN| <= u_max^eps over the reachable boxes", **last)
+                    if J_up >= inc_J or full:
                         return done("optimal", inc_V, inc_J, "the warm start is optimal (level set empty)", **last)
                     delta *= 4.0
                     continue
@@ -1608,35 +1620,46 @@ class HorizonMIQP:
             self._nb_override = None
             steps = self._steps(nb) if nb is not None else None
             if steps is None:
-                if self.bounds != "levelset":
+                if full and inc_V is None:
                     return done("infeasible", None, np.inf, "a step's output bounds exclude the admissible range")
-                if J_up >= inc_J:
+                if J_up >= inc_J or full:
                     return done("optimal", inc_V, inc_J, "the warm start is optimal (no admissible output)", **last)
                 delta *= 4.0
                 continue
             restrict = self.bounds == "levelset"
-            prob, _ = self.program(z0, f, c0, nb, steps, lo if restrict else None, hi if restrict else None)
-            n_bin = prob.n_integer
-            last = dict(n_bin=n_bin, steps=steps)
-            if self.verbose:
-                print(f"  round: J_up {J_up:.6g} J_c {J_c:.6g} delta {delta} binaries {n_bin} steps {steps}")
-            solver = make_solver(prob, self.backend, **self.solver_options)
-            w0 = self.vector(z0, inc_V, nb, steps, prob) if inc_V is not None else None
-            res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
-            stats["nodes"] += res.nodes
-            stats["rounds"] += 1
+            # constraint generation: encode only the needed steps found active so far, add violated ones
+            enc = sorted(set(steps) & active) if self.lazy else list(steps)
+            while True:
+                prob, _ = self.program(z0, f, c0, nb, enc, lo if restrict else None, hi if restrict else None)
+                n_bin = prob.n_integer
+                last = dict(n_bin=n_bin, steps=enc)
+                if self.verbose:
+                    print(f"  round: J_up {J_up:.6g} J_c {J_c:.6g} delta {delta} binaries {n_bin} steps {enc}")
+                solver = make_solver(prob, self.backend, **self.solver_options)
+                w0 = self.vector(z0, inc_V, nb, enc, prob) if inc_V is not None else None
+                res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
+                stats["nodes"] += res.nodes
+                stats["rounds"] += 1
+                if res.status != "optimal" or not self.lazy:
+                    break
+                new = sorted(set(self._violated(z0, res.w[: N * m])) - set(enc))
+                if not new:
+                    break
+                enc = sorted(set(enc) | set(new))
+                active |= set(new)
             if res.status == "optimal":
                 V = res.w[: N * m]
                 J = self.cost(V, f, c0)
                 if not self.feasible(z0, V, tol=1e-6):
                     return done("error", V, -np.inf, "the program's optimum fails the forward-pass check", **last)
-                if J <= J_up + 1e-9 * max(1.0, abs(J_up)) or self.bounds != "levelset":
+                self._active_prev = tuple(enc)
+                if full or J <= J_up + 1e-9 * max(1.0, abs(J_up)):
                     bound = res.bound if np.isfinite(res.bound) else J
                     return done("optimal", V, bound, f"{res.backend}: {res.message}", **last)
-                if J < inc_J:  # feasible (the restricted program only holds feasible plans): a new incumbent
+                if J < inc_J:  # feasible (checked above): a new incumbent
                     inc_V, inc_J = V, J
             elif res.status == "infeasible":
-                if self.bounds != "levelset":
+                if full and inc_V is None:
                     return done("infeasible", None, np.inf, "the program is infeasible", **last)
             elif res.status == "time_limit":
                 cand = res.w[: N * m] if res.w is not None else None
@@ -1646,9 +1669,16 @@ class HorizonMIQP:
             else:
                 return done("error", inc_V, -np.inf, f"{res.backend}: {res.status} {res.message}", **last)
             # nothing below J_up in the restricted program
-            if J_up >= inc_J:
+            if J_up >= inc_J or full:
                 return done("optimal", inc_V, inc_J, "the warm start is optimal (nothing cheaper)", **last)
             delta *= 4.0
+
+    def _violated(self, z0: Array, V: Array, tol: float = 1e-6) -> list:
+        """Predicted steps ``k`` where the plan ``V`` breaks ``|Phi_NN(z(k), v(k))| <= u_max^eps``."""
+        V = np.asarray(V, float).reshape(self.N, self.m)
+        Z = self.predict(z0, V)
+        out = np.abs(self.net(np.hstack([Z[: self.N], V])))
+        return np.flatnonzero(np.any(out > self.u_eps + tol, axis=1)).tolist()
 
     def _steps(self, nb):
         """Steps whose network constraint must be encoded; ``None`` when a step cannot meet it at all."""

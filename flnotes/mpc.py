@@ -29,6 +29,14 @@ measured. All of them are exact: they never change the optimum.
   straddle zero lose their binary. ``bounds="box"`` uses the domain box at
   every step (the paper's setting); ``bounds="lp"`` adds LP-based tightening
   restricted to ``|Phi_NN| <= u_max^eps`` (:func:`flnotes.tightening.lp_bounds`).
+* ``bounds="levelset"`` (the default but with ``"cvxpy-scip"``): every plan cheaper than a level ``J_up``
+  lies in an ellipsoid around the optimum of a convex relaxation, whose
+  projection on each ``(z(k), v(k))`` is a small box; FBBT (and, when many
+  neurons remain unstable, LP tightening) on these boxes leaves few binaries,
+  and steps whose output provably meets the bound are not encoded at all.
+  ``J_up`` starts at the warm start's cost and is raised until the restricted
+  program's optimum lies below it, which makes it the global optimum
+  (:class:`flnotes.miqp.HorizonMIQP`, chapter "Making it real-time").
 * ``warm_start=True``: the previous plan shifted by one step (its last input
   repeated) is handed to the solver as a first incumbent when it is feasible.
 * ``screening=True``: the QP without the network constraint is solved first;
@@ -86,7 +94,7 @@ from .bounds import NodeBounds, fbbt
 from .encoding import bigm_form, encode
 from .network import ReLUNet
 from .simulate import StepResult
-from .systems import FLSystem
+from .systems import FLSystem, condense
 from .tightening import EmptyBoxError, horizon_boxes, lp_bounds
 
 Array = np.ndarray
@@ -540,9 +548,12 @@ class MPC:
         :func:`flnotes.miqp.make_solver`. ``"auto"`` is ``"daqp"``, the fastest
         exact back-end measured on this program.
     bounds
-        ``"box"``, ``"horizon"`` or ``"lp"``: see the module docstring.
+        ``"levelset"``, ``"box"``, ``"horizon"`` or ``"lp"``: see the module
+        docstring. ``"auto"`` is ``"levelset"`` (the fastest measured), or ``"lp"``
+        with ``backend="cvxpy-scip"``.
     warm_start, screening, lazy
-        The exact levers described in the module docstring.
+        The exact levers described in the module docstring (``formulation`` does
+        not apply to ``bounds="levelset"``, which builds its programs itself).
     formulation
         ``"sparse"``, ``"condensed"`` or ``"auto"`` (condensed for DAQP, sparse otherwise).
     time_limit
@@ -568,7 +579,7 @@ class MPC:
     """
 
     def __init__(self, system: FLSystem, net: ReLUNet, eps, horizon: int = 10, ts: float = 0.1,
-                 Q=None, R=None, P=None, *, backend: str = "auto", bounds: str = "lp",
+                 Q=None, R=None, P=None, *, backend: str = "auto", bounds: str = "auto",
                  warm_start: bool = True, screening: bool = True, lazy: bool = True, formulation: str = "auto",
                  time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
                  v_box: Optional[tuple] = None, solver_options: Optional[dict] = None):
@@ -583,8 +594,13 @@ class MPC:
             raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if bounds not in ("box", "horizon", "lp"):
-            raise ValueError(f"bounds must be 'box', 'horizon' or 'lp', got {bounds!r}")
+        if bounds not in ("auto", "box", "horizon", "lp", "levelset"):
+            raise ValueError(f"bounds must be 'auto', 'box', 'horizon', 'lp' or 'levelset', got {bounds!r}")
+        if bounds == "auto":
+            bounds = "lp" if backend == "cvxpy-scip" else "levelset"
+        if bounds == "levelset" and backend == "cvxpy-scip":
+            raise ValueError("bounds='levelset' needs a persistent back-end ('daqp', 'scip', 'highs', 'gurobi', "
+                             "'cplex'); 'cvxpy-scip' is the reference and encodes every step on the domain box")
         if formulation not in ("auto", "sparse", "condensed", "compact"):
             raise ValueError(f"formulation must be 'auto', 'sparse', 'condensed' or 'compact', got {formulation!r}")
         if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
@@ -617,6 +633,14 @@ class MPC:
         self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
         self._form = bigm_form(net, self.box_bounds)
         self._build_condensed()
+        self._hz = None
+        if bounds == "levelset":
+            from .miqp import HorizonMIQP
+
+            self._hz = HorizonMIQP(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo,
+                                   z_hi=self.z_hi, v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps,
+                                   backend=self.backend, bounds="levelset", screening=self.screening,
+                                   warm_start=self.warm_start, lazy=self.lazy, solver_options=self.solver_options)
         self.history: list[MPCStep] = []
         self._plan: Optional[tuple[Array, Array]] = None
         self._active_prev: tuple = ()
@@ -642,6 +666,8 @@ class MPC:
         self.history = []
         self._plan = None
         self._active_prev = ()
+        if self._hz is not None:
+            self._hz._active_prev = ()
 
     def set_previous_plan(self, plan: Optional[tuple[Array, Array]]) -> None:
         """Set (or clear, with ``None``) the plan ``(z_pred, v_pred)`` that the next call shifts for its warm start."""
@@ -661,18 +687,8 @@ class MPC:
     # ------------------------------------------------------------------ prediction model
     def _build_condensed(self) -> None:
         """``z(k) = Sx[k] z0 + Su[k] V`` with ``V = [v(0); ...; v(N_p-1)]``, and the QP Hessian in ``V``."""
-        N, nz, m = self.N, self.n_z, self.m
-        Sx = np.zeros((N + 1, nz, nz))
-        Su = np.zeros((N + 1, nz, N * m))
-        Sx[0] = np.eye(nz)
-        for k in range(N):
-            Sx[k + 1] = self.Ad @ Sx[k]
-            Su[k + 1] = self.Ad @ Su[k]
-            Su[k + 1][:, k * m:(k + 1) * m] = self.Bd
-        self.Sx, self.Su = Sx, Su
-        self._Wk = [self.Q] * N + [self.P]
-        H = 2 * (sum(Su[k].T @ self._Wk[k] @ Su[k] for k in range(N + 1)) + np.kron(np.eye(N), self.R))
-        self._Hqp = 0.5 * (H + H.T)
+        self.Sx, self.Su, self._Hqp = condense(self.Ad, self.Bd, self.N, self.Q, self.R, self.P)
+        self._Wk = [self.Q] * self.N + [self.P]
 
     def predict(self, z: Array, v_pred: Array) -> Array:
         """Predicted states ``z(0..N_p)`` of eq. (MPC_form_miqp_c) for inputs ``v_pred`` of shape (N_p, m)."""
@@ -898,6 +914,8 @@ class MPC:
         self._R = R
         if self.backend == "cvxpy-scip":
             step = self._solve_cvxpy(z, R)
+        elif self._hz is not None:
+            step = self._solve_levelset(z, R)
         else:
             step = self._solve_persistent(z, R)
         step.wall_time = time.perf_counter() - t_start
@@ -927,6 +945,22 @@ class MPC:
             base["objective"] = self.cost(sh[0], sh[1], self._R)
             return self._result(*sh, status=status, fallback=True, **base)
         return MPCStep(v=None, z_pred=None, v_pred=None, u_nn_pred=None, status=status, **base)
+
+    def _solve_levelset(self, z: Array, R: Array) -> MPCStep:
+        """``bounds="levelset"``: :meth:`flnotes.miqp.HorizonMIQP.solve`, warm-started with the shifted plan."""
+        shifted = self.shifted_plan(z) if self.warm_start else None
+        ws = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
+        r = self._hz.solve(z, R, warm_start=ws, time_limit=self.time_limit, gap=self.gap)
+        base = dict(solve_time=r.time, nodes=int(r.nodes), rounds=int(r.rounds), warm_started=ws is not None,
+                    n_binaries=int(r.n_binaries), encoded_steps=tuple(r.encoded_steps),
+                    backend="qp-screening" if r.screened else self.backend, message=r.message)
+        if r.v_pred is None or r.status not in ("optimal", "time_limit"):
+            # no plan: the shifted one, or (first step) zero inputs repaired step by step, see _fallback
+            self._candidate = self.repair_plan(z, np.zeros((self.N, self.m))) if self._plan is None else None
+            return self._fallback(z, r.status, base)
+        Z, V = self.predict(z, r.v_pred), np.asarray(r.v_pred, float).reshape(self.N, self.m)
+        return self._result(Z, V, r.status, objective=float(r.objective), bound=float(r.bound), gap=float(r.gap),
+                            screened=bool(r.screened), **base)
 
     def _solve_persistent(self, z: Array, R: Array) -> MPCStep:
         from .miqp import make_solver
@@ -1182,9 +1216,9 @@ class MPC:
         )
 
     def __repr__(self) -> str:
+        form = f"lazy={self.lazy}, " + ("" if self.bounds == "levelset" else f"formulation={self.formulation!r}, ")
         return (f"MPC({self.system.name}, N_p={self.N}, ts={self.ts}, backend={self.backend!r}, bounds={self.bounds!r}, "
-                f"warm_start={self.warm_start}, screening={self.screening}, lazy={self.lazy}, "
-                f"formulation={self.formulation!r}, time_limit={self.time_limit})")
+                f"warm_start={self.warm_start}, screening={self.screening}, {form}time_limit={self.time_limit})")
 
 
 def _objective(prog, w: Array) -> float:

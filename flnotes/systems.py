@@ -91,6 +91,37 @@ def discretize(A: Array, B: Array, ts: float, method: str = "exact") -> tuple[Ar
     raise ValueError(f"method must be 'exact' or 'rk4', got {method!r}")
 
 
+def condense(Ad: Array, Bd: Array, horizon: int, Q: Array, R: Array, P: Array) -> tuple[Array, Array, Array]:
+    """The prediction ``z(k) = Sx[k] z(0) + Su[k] V`` of eq. (MPC_form_miqp_c), ``V = [v(0); ...; v(N_p-1)]``.
+
+    Parameters
+    ----------
+    Ad, Bd
+        Discrete pair, shapes (n, n) and (n, m).
+    horizon
+        ``N_p``.
+    Q, R, P
+        Stage weights (n, n), (m, m) and terminal weight (n, n) of
+        ``sum_k ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2 + ||z(N_p) - z_ref(N_p)||_P^2``.
+
+    Returns
+    -------
+    Sx, Su, H
+        Shapes (N_p + 1, n, n), (N_p + 1, n, N_p m) and the symmetric Hessian (N_p m, N_p m)
+        of that cost in ``V`` (written ``0.5 V' H V + ...``).
+    """
+    N, (n, m) = int(horizon), np.shape(Bd)
+    Sx, Su = np.zeros((N + 1, n, n)), np.zeros((N + 1, n, N * m))
+    Sx[0] = np.eye(n)
+    for k in range(N):
+        Sx[k + 1] = Ad @ Sx[k]
+        Su[k + 1] = Ad @ Su[k]
+        Su[k + 1][:, k * m:(k + 1) * m] = Bd
+    Wk = [Q] * N + [P]
+    H = 2 * (sum(Su[k].T @ Wk[k] @ Su[k] for k in range(N + 1)) + np.kron(np.eye(N), R))
+    return Sx, Su, 0.5 * (H + H.T)
+
+
 @dataclass
 class FLSystem:
     """A feedback-linearizable system ``x' = f(x, u)``, ``|u| <= u_max``.

@@ -28,7 +28,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._checks import as_vector, check_box
+from ._checks import as_vector, check_box, check_boxes
 from .bounds import NodeBounds, fbbt, interval_affine
 from .network import ReLUNet
 
@@ -319,13 +319,7 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     EmptyBoxError
         When ``out_bounds`` cannot be met by any input of the box.
     """
-    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
-    batch = lo_a.ndim == 2
-    lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
-    if lo2.shape != hi2.shape or lo2.shape[1] != net.n_in:
-        raise ValueError(f"lo and hi must have shape ({net.n_in},) or (T, {net.n_in}), got {np.shape(lo)} and {np.shape(hi)}")
-    for t in range(len(lo2)):
-        check_box(lo2[t], hi2[t], net.n_in)
+    lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
     tightener = _tightener(net, out_bounds, tol)
     res = []
     for t in range(len(lo2)):

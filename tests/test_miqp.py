@@ -279,9 +279,9 @@ def test_every_lever_combination_returns_the_reference_optimum(horizon_setup):
     # the reference: no lever at all (domain-box bounds, every step encoded, no screening, every neuron a binary)
     ref = _hz(horizon_setup, bounds="box", encode="all", screening=False, eliminate_stable=False)
     scip = _hz(horizon_setup, backend="scip", bounds="horizon", encode="all", screening=False)
-    levers = [dict(bounds=b, encode=e, screening=sc, eliminate_stable=el)
+    levers = [dict(bounds=b, encode=e, screening=sc, eliminate_stable=el, lazy=lz)
               for b in ("box", "horizon", "lp", "levelset") for e in ("all", "needed")
-              for sc in (True, False) for el in (True, False)]
+              for sc in (True, False) for el in (True, False) for lz in (True, False)]
     daqp_hz = [_hz(horizon_setup, **lv) for lv in levers]
     hard = 0
     for i, (z0, zr) in enumerate(cases[:6]):

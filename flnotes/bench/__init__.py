@@ -14,6 +14,7 @@ Speed is measured here, never asserted in tests.
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import json
 import os
 import platform
@@ -42,10 +43,12 @@ def machine() -> dict:
     except OSError:
         pass
     versions = {}
-    for mod in ("numpy", "scipy", "sklearn", "cvxpy", "highspy", "pyscipopt", "daqp"):
+    dists = {"numpy": "numpy", "scipy": "scipy", "sklearn": "scikit-learn", "cvxpy": "cvxpy",
+             "highspy": "highspy", "pyscipopt": "PySCIPOpt", "daqp": "daqp"}
+    for mod, dist in dists.items():
         try:
-            versions[mod] = getattr(importlib.import_module(mod), "__version__", "?")
-        except Exception:
+            versions[mod] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
             versions[mod] = "not installed"
     return dict(cores=os.cpu_count(), cpu=cpu, python=platform.python_version(), platform=platform.platform(), versions=versions)
 

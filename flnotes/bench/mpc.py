@@ -26,16 +26,20 @@ TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
 #: "paper program" is eq. (MPC_form_miqp) as written: domain-box bounds, every neuron a binary,
 #: every step encoded, no screening, no warm start. Each next row adds one lever.
 CONFIGS = {
-    "paper program": dict(bounds="box", eliminate_stable=False, encode="all", screening=False, warm_start=False),
+    "paper program": dict(bounds="box", eliminate_stable=False, encode="all", screening=False, warm_start=False,
+                          lazy=False),
     "+ stable neurons eliminated": dict(bounds="box", eliminate_stable=True, encode="all", screening=False,
-                                        warm_start=False),
-    "+ horizon boxes (FBBT)": dict(bounds="horizon", encode="all", screening=False, warm_start=False, lp=False),
-    "+ screening QP": dict(bounds="horizon", encode="all", screening=True, warm_start=False, lp=False),
-    "+ only needed steps": dict(bounds="horizon", encode="needed", screening=True, warm_start=False, lp=False),
-    "+ LP bounds (per step)": dict(bounds="lp", encode="needed", screening=True, warm_start=False),
-    "+ warm start": dict(bounds="lp", encode="needed", screening=True, warm_start=True),
-    "level set (default)": dict(bounds="levelset", encode="needed", screening=True, warm_start=True),
-    "level set, cold": dict(bounds="levelset", encode="needed", screening=True, warm_start=False),
+                                        warm_start=False, lazy=False),
+    "+ horizon boxes (FBBT)": dict(bounds="horizon", encode="all", screening=False, warm_start=False, lp=False,
+                                   lazy=False),
+    "+ screening QP": dict(bounds="horizon", encode="all", screening=True, warm_start=False, lp=False, lazy=False),
+    "+ only needed steps": dict(bounds="horizon", encode="needed", screening=True, warm_start=False, lp=False,
+                                lazy=False),
+    "+ LP bounds (per step)": dict(bounds="lp", encode="needed", screening=True, warm_start=False, lazy=False),
+    "+ warm start": dict(bounds="lp", encode="needed", screening=True, warm_start=True, lazy=False),
+    "+ level set": dict(bounds="levelset", encode="needed", screening=True, warm_start=True, lazy=False),
+    "level set (default)": dict(bounds="levelset", encode="needed", screening=True, warm_start=True, lazy=True),
+    "level set, cold": dict(bounds="levelset", encode="needed", screening=True, warm_start=False, lazy=True),
 }
 
 
