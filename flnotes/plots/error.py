@@ -335,7 +335,8 @@ def explore_architecture(rows: Sequence[dict], title: str = "MSD"):
         a2.set_yscale("log")
         a2.set_title(f"{title}: accuracy vs MILP size, all nets", fontsize=9)
         fig.tight_layout()
-        plt.show()
+        display(fig)
+        plt.close(fig)
 
     sw = W.SelectionSlider(options=widths, value=widths[len(widths) // 2], description="width", continuous_update=False)
     sd = W.SelectionSlider(options=depths, value=depths[-1], description="depth", continuous_update=False)

@@ -13,7 +13,8 @@ from .style import COLORS, bound_lines, new_axes
 
 Array = np.ndarray
 
-__all__ = ["plot_mpc_tracking", "plot_mpc_input", "plot_horizon_sweep", "plot_intersample", "plot_step_times"]
+__all__ = ["plot_mpc_tracking", "plot_mpc_input", "plot_horizon_sweep", "plot_intersample", "plot_step_times",
+           "explore_horizon"]
 
 _SWEEP_COLORS = ("#1b9e77", "#d95f02", "#7570b3", "#e7298a", "#66a61e", "#e6ab02")
 
@@ -199,3 +200,77 @@ def plot_step_times(rows: Sequence[Mapping], key: str = "ms", label_key: str = "
     if title:
         ax.set_title(title)
     return fig
+
+
+def explore_horizon(runs: Mapping[int, object], rows: Sequence[dict],
+                    reference: Optional[Callable[[Array], Array]] = None, u_max: Optional[float] = None,
+                    eps: Optional[float] = None):
+    """A slider over the prediction horizon ``N_p`` of a precomputed sweep: tracking, input and time per step.
+
+    Parameters
+    ----------
+    runs, rows
+        What :func:`flnotes.mpc.horizon_sweep` returns: ``{N_p: SimLog}`` and one
+        row of statistics per horizon.
+    reference
+        ``t -> z_ref(t)``; its first component is drawn in grey.
+    u_max, eps
+        Bounds drawn on the input panel (``+-u_max`` and ``+-u_max^eps``).
+
+    The chosen horizon is drawn in color over the others in light grey: the
+    displacement ``x(t)``, the true input ``u`` at the samples and the
+    controller's time per step. A static default figure (the middle horizon)
+    is drawn first; the slider (``continuous_update=False``) only indexes the
+    precomputed runs.
+    """
+    import ipywidgets as W
+    import matplotlib.pyplot as plt
+    from IPython.display import display
+
+    horizons = sorted(int(n) for n in runs)
+    by_n = {int(r["N_p"]): r for r in rows}
+    out = W.Output()
+
+    def draw(Np: int) -> None:
+        fig, axes = new_axes(3, 1, figsize=(7.5, 6.4), sharex=True)
+        ax1, ax2, ax3 = np.asarray(axes).ravel()
+        for n in horizons:
+            log = runs[n]
+            sel = n == Np
+            kw = dict(color=COLORS["nn"] if sel else "0.8", lw=1.5 if sel else 0.8, zorder=3 if sel else 1)
+            ax1.plot(log.t, log.z[:, 0], label=fr"$N_p = {n}$" if sel else None, **kw)
+            ax2.step(log.t[:-1], log.u[:, 0], where="post", **kw)
+            ax3.semilogy(log.t[:-1], np.maximum(log.solve_time * 1e3, 1e-3), ".-" if sel else "-", ms=2.5, **kw)
+        log = runs[Np]
+        if reference is not None:
+            tt = np.linspace(log.t[0], log.t[-1], 400)
+            ax1.plot(tt, _ref_on(reference, tt)[:, 0], color=COLORS["ref"], lw=2.4, zorder=0, label="reference")
+        if u_max is not None:
+            bound_lines(ax2, u_max, eps)
+        r = by_n.get(Np, {})
+        ax1.set_title(fr"$N_p = {Np}$: RMS x-error (2nd half) {r.get('rms_x_error_second_half', np.nan):.3f} m, "
+                      f"{r.get('binaries', 0)} binaries before elimination", fontsize=9)
+        ax1.set_ylabel("x [m]")
+        ax1.legend(loc="upper right", fontsize=8)
+        ax2.set_ylabel("true u [rad]")
+        ax3.set_ylabel("time per step [ms]")
+        ax3.set_xlabel("t [s]")
+        ax3.set_title(f"median {r.get('median_ms', np.nan):.1f} ms, max {r.get('max_ms', np.nan):.0f} ms per step",
+                      fontsize=9)
+        fig.tight_layout()
+        display(fig)
+        plt.close(fig)
+
+    slider = W.SelectionSlider(options=horizons, value=horizons[len(horizons) // 2], description="N_p",
+                               continuous_update=False)
+
+    def update(_=None) -> None:
+        out.clear_output(wait=True)
+        with out:
+            draw(slider.value)
+
+    slider.observe(update, names="value")
+    draw(slider.value)  # the static default figure (what a rendered page shows)
+    box = W.VBox([slider, out])
+    display(box)
+    return box
