@@ -9,7 +9,7 @@ eq. (coor_Phi), the domain box over the stacked ``(z, v)``, the input bound
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 from scipy.linalg import expm
@@ -19,7 +19,7 @@ from ._checks import as_batch, as_vector, check_box
 Array = np.ndarray
 
 
-def brunovsky(orders: Sequence[int]) -> tuple[Array, Array]:
+def brunovsky(orders: Union[int, Sequence[int]]) -> tuple[Array, Array]:
     """Continuous Brunovsky pair for chains of integrators.
 
     Parameters
@@ -27,7 +27,7 @@ def brunovsky(orders: Sequence[int]) -> tuple[Array, Array]:
     orders
         Length of each chain, one per input (the relative degrees), e.g.
         ``(2,)`` for a double integrator, ``(3,)`` for a triple integrator,
-        ``(2, 2)`` for two decoupled double integrators.
+        ``(2, 2)`` for two decoupled double integrators; a bare integer is one chain.
 
     Returns
     -------
@@ -36,7 +36,7 @@ def brunovsky(orders: Sequence[int]) -> tuple[Array, Array]:
         ``n_z = sum(orders)`` and ``m = len(orders)`` such that each chain reads
         ``z_1' = z_2, ..., z_r' = v``.
     """
-    orders = [int(r) for r in orders]
+    orders = [int(orders)] if np.ndim(orders) == 0 else [int(r) for r in orders]
     if not orders or min(orders) < 1:
         raise ValueError(f"orders must be a non-empty list of positive chain lengths, got {orders!r}")
     n_z, m = sum(orders), len(orders)
