@@ -768,8 +768,9 @@ class _CvxpyBackend:
     def _opts(self) -> dict:
         tl = self.c.time_limit
         if self.solver == "HIGHS":
+            # presolve off: see flnotes.miqp.HighsSolver (HiGHS's MIP presolve can return sub-optimal points)
             o = dict(mip_rel_gap=1e-9, mip_abs_gap=1e-10, mip_feasibility_tolerance=1e-9,
-                     primal_feasibility_tolerance=1e-9)
+                     primal_feasibility_tolerance=1e-9, presolve="off")
             if tl is not None:
                 o["time_limit"] = float(tl)
             return o

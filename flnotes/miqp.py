@@ -457,6 +457,11 @@ class HighsSolver(Solver):
         h = hp.Highs()
         h.setOptionValue("output_flag", False)
         h.setOptionValue("threads", int(self.options.get("threads", 1)))
+        if p.is_mip:
+            # HiGHS's MIP presolve has returned sub-optimal points as "optimal" on small big-M programs
+            # (HiGHS issues #3073, #3094; seen here on a CLF-CBF Lcost program, checked against SCIP and the
+            # exact 1-D method). The programs of this package are small: presolve is off unless asked for.
+            h.setOptionValue("presolve", "off")
         for k, v in self.options.get("params", {}).items():
             h.setOptionValue(k, v)
         lp = hp.HighsLp()

@@ -112,6 +112,23 @@ def test_mip_backends_match_the_exact_enumeration(msd, cost, backend):
             assert r.info["delta"] >= d["aV"] @ r.v + d["bV"] - 1e-6 and r.info["delta"] >= -1e-9
 
 
+@pytest.mark.parametrize("backend, n", [("highs", 400), ("scip", 60)])
+def test_mip_optimum_matches_the_exact_enumeration_on_many_states(msd, backend, n):
+    """The MILP optimum is the global one: no state of a random sample where the exact 1-D method does better."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend=backend)
+    ex = ctrl.with_backend("exact")
+    rng = np.random.default_rng(3)
+    states = np.vstack([rng.uniform(-0.5, 0.5, (n // 2, 2)), rng.uniform(-3.0, 3.0, (n - n // 2, 2))])
+    worst = 0.0
+    for z in states:
+        r, rx = ctrl.step(z), ex.step(z)
+        assert r.status == rx.status, (z, r.status, rx.status)
+        worst = max(worst, rel(r.info["objective"], rx.info["objective"]))
+        assert worst <= 1e-6, (z, r.v, rx.v, r.info["objective"], rx.info["objective"])
+
+
 def test_persistent_model_matches_bigm_form_update(msd):
     """The fast in-place write of the big-M coefficients equals BigMForm.update on the same bounds."""
     sysm, net = msd

@@ -71,15 +71,34 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _section_md(sec: dict) -> str:
+    return (f"\n## {sec['title']}\n\n" + markdown_table(sec["rows"]) + "".join(f"\n- {n}" for n in sec.get("notes", []))
+            + "".join(f"\n\n![{Path(f).stem}]({Path(f).name})" for f in sec.get("figures", [])) + "\n")
+
+
 def main(argv: Optional[list[str]] = None) -> int:
+    """``python -m flnotes.bench [--fast] [section ...]``: run the sections (default all) and write the results.
+
+    Sections not run this time keep their previous results in ``results.json`` (each
+    section records the machine and the mode it ran in), so one section can be re-run alone.
+    """
     argv = sys.argv[1:] if argv is None else argv
     fast = "--fast" in argv or os.environ.get("FLNOTES_FAST") == "1"
     only = [a for a in argv if not a.startswith("--")] or list(SECTIONS)
+    unknown = [a for a in only if a not in SECTIONS]
+    if unknown:
+        print(f"unknown section(s) {unknown}; choose from {list(SECTIONS)}", file=sys.stderr)
+        return 2
     info = machine()
     print(f"machine: {info['cores']} cores, {info['cpu']}, Python {info['python']}", flush=True)
+    out = out_dir()
     results = dict(machine=info, fast=fast, sections={})
-    md = [f"# flnotes benchmarks\n\nMachine: {info['cores']} cores, {info['cpu']}, Python {info['python']}; "
-          + ", ".join(f"{k} {v}" for k, v in info["versions"].items()) + ("\n\n(fast mode)\n" if fast else "\n")]
+    old = out / "results.json"
+    if old.is_file() and set(only) != set(SECTIONS):
+        try:
+            results["sections"] = json.loads(old.read_text()).get("sections", {})
+        except (OSError, ValueError):
+            pass
     status = 0
     for name in only:
         t0 = time.perf_counter()
@@ -92,13 +111,14 @@ def main(argv: Optional[list[str]] = None) -> int:
             sec = dict(title=name, rows=[], notes=[f"FAILED: {type(exc).__name__}: {exc}"], figures=[])
             status = 1
         sec["seconds"] = time.perf_counter() - t0
+        sec["machine"], sec["fast"] = info, fast
         results["sections"][name] = sec
-        md.append(f"\n## {sec['title']}\n\n" + markdown_table(sec["rows"]) + "".join(f"\n- {n}" for n in sec.get("notes", []))
-                  + "".join(f"\n\n![{Path(f).stem}]({Path(f).name})" for f in sec.get("figures", [])) + "\n")
         print(markdown_table(sec["rows"]), flush=True)
         for n in sec.get("notes", []):
             print("-", n)
-    out = out_dir()
+    md = [f"# flnotes benchmarks\n\nMachine: {info['cores']} cores, {info['cpu']}, Python {info['python']}; "
+          + ", ".join(f"{k} {v}" for k, v in info["versions"].items()) + ("\n\n(fast mode)\n" if fast else "\n")]
+    md += [_section_md(results["sections"][n]) for n in SECTIONS if n in results["sections"]]
     (out / "results.json").write_text(json.dumps(results, indent=2, default=lambda o: getattr(o, "tolist", lambda: str(o))()))
     (out / "results.md").write_text("\n".join(md))
     print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
