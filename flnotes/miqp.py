@@ -462,6 +462,10 @@ class HighsSolver(Solver):
             # (HiGHS issues #3073, #3094; seen here on a CLF-CBF Lcost program, checked against SCIP and the
             # exact 1-D method). The programs of this package are small: presolve is off unless asked for.
             h.setOptionValue("presolve", "off")
+            # big-M rows amplify integrality slack (alpha = 1e-6 lets y move by 1e-6 * U): tighter tolerances
+            # (1e-9 was measured to make HiGHS declare feasible programs infeasible; 1e-8 was not)
+            h.setOptionValue("mip_feasibility_tolerance", 1e-8)
+            h.setOptionValue("primal_feasibility_tolerance", 1e-8)
         for k, v in self.options.get("params", {}).items():
             h.setOptionValue(k, v)
         lp = hp.HighsLp()
