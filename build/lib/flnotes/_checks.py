@@ -1,0 +1,54 @@
+"""Argument checks with messages that say what to change."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def as_vector(x: Any, n: int, name: str) -> np.ndarray:
+    """``x`` as a float vector of length ``n`` (a scalar is broadcast)."""
+    a = np.asarray(x, float)
+    if a.ndim == 0:
+        a = np.full(n, float(a))
+    a = a.reshape(-1) if a.ndim == 2 and 1 in a.shape else a
+    if a.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {np.shape(x)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf: {a}")
+    return a
+
+
+def as_batch(x: Any, n: int, name: str) -> np.ndarray:
+    """``x`` as an (N, n) float array; a single point of shape (n,) becomes (1, n)."""
+    a = np.asarray(x, float)
+    if a.ndim == 1 and a.shape[0] == n:
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != n:
+        raise ValueError(f"{name} must have shape (N, {n}) or ({n},), got {np.shape(x)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return a
+
+
+def check_box(lo: Any, hi: Any, n: int, lo_name: str = "lo", hi_name: str = "hi") -> tuple[np.ndarray, np.ndarray]:
+    """Validate a box ``lo <= hi`` of dimension ``n``."""
+    lo_a, hi_a = as_vector(lo, n, lo_name), as_vector(hi, n, hi_name)
+    bad = np.flatnonzero(lo_a > hi_a)
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"box is empty: {lo_name}[{i}] = {lo_a[i]} > {hi_name}[{i}] = {hi_a[i]}; "
+                         f"every lower bound must be <= its upper bound")
+    return lo_a, hi_a
+
+
+def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given."""
+    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
+    batch = lo_a.ndim == 2
+    lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
+    if lo2.shape != hi2.shape or lo2.shape[1] != n:
+        raise ValueError(f"lo and hi must have shape ({n},) or (T, {n}), got {np.shape(lo)} and {np.shape(hi)}")
+    for t in range(len(lo2)):
+        check_box(lo2[t], hi2[t], n)
+    return lo2, hi2, batch

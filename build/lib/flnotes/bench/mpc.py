@@ -1,0 +1,405 @@
+"""Benchmark: per-step solve time of the Quad-1D MPC, eq. (MPC_form_miqp), and what each lever buys.
+
+The book's run (Sec. IV-B: ``N_p = 10``, ``t_s = 0.1`` s, ``x_ref = 1.5 sin t``, which makes the
+input bound active at many steps) is recorded once with the fast exact solver
+(:class:`flnotes.miqp.HorizonMIQP`, all levers on). Every configuration is then timed on the
+same recorded states (and the same warm starts: the recorded plan of the previous step, shifted),
+and every returned optimum is compared with a slow reference solve by SCIP (every step encoded,
+no screening, no level set, gap 1e-8). Scaling with ``N_p`` and with the width of the network
+closes the section. Speed is measured here, never asserted in tests; the machine is shared, so
+single timings are noisy.
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from .. import paper
+from ..miqp import HorizonMIQP, available_backends
+from ..simulate import StepResult, simulate
+
+TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
+
+#: The lever configurations compared on the recorded states: name -> HorizonMIQP switches.
+#: "paper program" is eq. (MPC_form_miqp) as written: domain-box bounds, every neuron a binary,
+#: every step encoded, no screening, no warm start. Each next row adds one lever.
+CONFIGS = {
+    "paper program": dict(bounds="box", eliminate_stable=False, encode="all", screening=False, warm_start=False,
+                          lazy=False),
+    "+ stable neurons eliminated": dict(bounds="box", eliminate_stable=True, encode="all", screening=False,
+                                        warm_start=False, lazy=False),
+    "+ horizon boxes (FBBT)": dict(bounds="horizon", encode="all", screening=False, warm_start=False, lp=False,
+                                   lazy=False),
+    "+ screening QP": dict(bounds="horizon", encode="all", screening=True, warm_start=False, lp=False, lazy=False),
+    "+ only needed steps": dict(bounds="horizon", encode="needed", screening=True, warm_start=False, lp=False,
+                                lazy=False),
+    "+ LP bounds (per step)": dict(bounds="lp", encode="needed", screening=True, warm_start=False, lazy=False),
+    "+ warm start": dict(bounds="lp", encode="needed", screening=True, warm_start=True, lazy=False),
+    "+ level set": dict(bounds="levelset", encode="needed", screening=True, warm_start=True, lazy=False),
+    "level set (default)": dict(bounds="levelset", encode="needed", screening=True, warm_start=True, lazy=True),
+    "level set, cold": dict(bounds="levelset", encode="needed", screening=True, warm_start=False, lazy=True),
+}
+
+
+# ----------------------------------------------------------------------------------- setup
+def quad_setup(horizon: Optional[int] = None, net=None, eps: Optional[float] = None) -> dict:
+    """The Quad-1D MPC of Sec. IV-B: system, network, eps, discrete model, weights, reference."""
+    from ..mpc import sine_reference
+
+    S = paper.QUAD_SETTING
+    sysm = paper.system("Quad-1D")
+    eps_note = ""
+    if net is None:
+        net, _ = paper.paper_net("Quad-1D")
+        if eps is None:
+            try:
+                eps = float(np.max(paper.paper_eps("Quad-1D").upper))
+                eps_note = "eps = certified upper bound of the book's network (paper_eps)"
+            except Exception as exc:  # pragma: no cover - depends on the cache
+                eps, eps_note = paper.TABLE1["Quad-1D"]["eps"], f"eps = the paper's 0.0322 ({exc})"
+    if eps is None:
+        eps, eps_note = paper.TABLE1["Quad-1D"]["eps"], "eps = the paper's 0.0322"
+    ts, N = S["ts"], int(horizon or S["horizon"])
+    Ad, Bd = sysm.discretize(ts, "rk4")
+    return dict(system=sysm, net=net, eps=float(eps), eps_note=eps_note, ts=ts, N=N, Ad=Ad, Bd=Bd,
+                Q=S["Q"], R=S["R"], z0=S["z0"], u_eps=float(sysm.u_max[0] - eps), reference=sine_reference(1.5))
+
+
+def make_solver(setup: dict, backend: str = "daqp", **levers) -> HorizonMIQP:
+    """:class:`HorizonMIQP` for the setup with the given levers (see :data:`CONFIGS`)."""
+    s = setup["system"]
+    return HorizonMIQP(setup["net"], setup["Ad"], setup["Bd"], setup["N"], setup["Q"], setup["R"],
+                       z_lo=s.lo[:3], z_hi=s.hi[:3], v_lo=s.lo[3:], v_hi=s.hi[3:], u_eps=setup["u_eps"],
+                       backend=backend, **levers)
+
+
+class _Loop:
+    """Closed-loop adapter: :class:`HorizonMIQP` at every sampling instant, warm-started with the shifted plan."""
+
+    def __init__(self, hz: HorizonMIQP, setup: dict, time_limit: Optional[float] = None):
+        self.hz, self.setup, self.time_limit = hz, setup, time_limit
+        self.V = None
+        self.records: list = []
+
+    def reset(self) -> None:
+        self.V, self.records = None, []
+
+    def step(self, z, t, reference=None) -> StepResult:
+        N, ts = self.setup["N"], self.setup["ts"]
+        R = np.asarray(reference(t + ts * np.arange(N + 1)), float)
+        ws = None if self.V is None else np.vstack([self.V[1:], self.V[-1:]])
+        t0 = time.perf_counter()
+        r = self.hz.solve(z, R, warm_start=ws, time_limit=self.time_limit)
+        dt = time.perf_counter() - t0
+        fallback = r.v_pred is None or r.status not in ("optimal", "time_limit")
+        if fallback:
+            V = ws if ws is not None else np.zeros((N, 1))
+        else:
+            V = r.v_pred
+        self.records.append(dict(t=t, z=np.asarray(z, float).copy(), R=R, ws=ws, V=np.asarray(V).copy(), result=r))
+        self.V = V
+        return StepResult(v=V[0].copy(), status=r.status, solve_time=dt, fallback=fallback,
+                          info=dict(nodes=r.nodes, n_binaries=r.n_binaries, objective=r.objective))
+
+
+def record_run(setup: dict, t_final: float, hz: Optional[HorizonMIQP] = None, time_limit: Optional[float] = None) -> dict:
+    """The closed loop on the true plant with the fast solver; returns the states, references and plans per step."""
+    hz = hz or make_solver(setup, **CONFIGS["level set (default)"])
+    loop = _Loop(hz, setup, time_limit)
+    log = simulate(setup["system"], loop, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
+                   reference=setup["reference"], progress=False)
+    rec = loop.records
+    return dict(t=np.array([r["t"] for r in rec]), z=np.array([r["z"] for r in rec]), R=np.array([r["R"] for r in rec]),
+                V=np.array([r["V"] for r in rec]), ws=[r["ws"] for r in rec],
+                ms=np.array([r["result"].time for r in rec]) * 1e3, status=[r["result"].status for r in rec],
+                screened=np.array([r["result"].screened for r in rec]), results=[r["result"] for r in rec], log=log)
+
+
+# ----------------------------------------------------------------------------------- timing
+def replay(hz: HorizonMIQP, rec: dict, idx, time_limit: Optional[float] = None, gap: float = 1e-6) -> list:
+    """Solve the recorded states ``idx`` with ``hz`` (warm start: the recorded previous plan, shifted)."""
+    out = []
+    for i in idx:
+        ws = rec["ws"][i] if hz.warm_start else None
+        r = hz.solve(rec["z"][i], rec["R"][i], warm_start=ws, time_limit=time_limit, gap=gap)
+        out.append(r)
+    return out
+
+
+def pick_states(rec: dict, n_hard: int, n_easy: int) -> np.ndarray:
+    """Recorded states for the comparisons: up to ``n_hard`` where the screening QP was not optimal
+    (evenly spread over the run) and ``n_easy`` screened ones."""
+    hard = np.flatnonzero(~rec["screened"])
+    easy = np.flatnonzero(rec["screened"])
+    pick = lambda a, k: a[np.unique(np.linspace(0, len(a) - 1, min(k, len(a))).round().astype(int))] if len(a) else a
+    return np.sort(np.r_[pick(hard, n_hard), pick(easy, n_easy)]).astype(int)
+
+
+def reference(setup: dict, rec: dict, idx, time_limit: float = 600.0) -> np.ndarray:
+    """Slow reference optimum at the recorded states: SCIP, every step encoded, FBBT horizon bounds, gap 1e-8."""
+    hz = make_solver(setup, backend="scip", bounds="horizon", encode="all", screening=False, warm_start=False)
+    res = replay(hz, rec, idx, time_limit=time_limit, gap=1e-8)
+    return np.array([r.objective if r.status == "optimal" else np.nan for r in res]), res
+
+
+def summarize(name: str, backend: str, res: list, ref_obj: np.ndarray, **extra) -> dict:
+    """One table row: min/median/max/mean ms per step, nodes, binaries, statuses and the gap to the reference."""
+    ms = np.array([r.time for r in res]) * 1e3
+    obj = np.array([r.objective for r in res])
+    opt = np.array([r.status == "optimal" for r in res])
+    ok = np.isfinite(ref_obj) & np.isfinite(obj) & opt  # the gap of the steps the solver calls optimal
+    rel = np.abs(obj[ok] - ref_obj[ok]) / np.maximum(1.0, np.abs(ref_obj[ok]))
+    below = np.isfinite(ref_obj) & np.isfinite(obj) & (obj < ref_obj - 1e-6 * np.maximum(1, np.abs(ref_obj)))
+    return dict(config=name, backend=backend, states=len(res), ms_min=float(ms.min()), ms_median=float(np.median(ms)),
+                ms_max=float(ms.max()), ms_mean=float(ms.mean()), nodes_mean=float(np.mean([r.nodes for r in res])),
+                binaries_max=int(max(r.n_binaries for r in res)),
+                non_optimal=int(sum(r.status != "optimal" for r in res)),
+                max_rel_gap_vs_ref=float(rel.max()) if rel.size else np.nan,
+                below_ref=int(below.sum()), source="flnotes", **extra)
+
+
+def lever_table(setup: dict, rec: dict, idx, ref_obj: np.ndarray, configs: Optional[dict] = None,
+                backend: str = "daqp", time_limit: Optional[float] = 30.0, slow_idx=None) -> list:
+    """Rows for each lever configuration on the recorded states ``idx``.
+
+    Configurations without the bound levers are slow: they run on ``slow_idx`` (a subset,
+    default ``idx``) with ``time_limit`` seconds per state; a state that hits the limit counts
+    as not optimal and its time is the limit.
+    """
+    rows = []
+    configs = configs or CONFIGS
+    pos = {int(i): j for j, i in enumerate(idx)}
+    for name, lv in configs.items():
+        slow = lv.get("bounds") in ("box",) or (lv.get("bounds") == "horizon" and lv.get("encode") == "all")
+        use = list(slow_idx) if (slow and slow_idx is not None) else list(idx)
+        hz = make_solver(setup, backend=backend, **lv)
+        res = replay(hz, rec, use, time_limit=time_limit)
+        rows.append(summarize(name, backend, res, ref_obj[[pos[int(i)] for i in use]],
+                              levers=", ".join(f"{k}={v}" for k, v in lv.items())))
+    return rows
+
+
+def paper_row() -> dict:
+    t = paper.TABLE2_MS[("Quad-1D", "MPC (N_p=10)")]
+    return dict(config="paper (CPLEX via YALMIP, Table 2)", backend="cplex", states=np.nan, ms_min=t["min"],
+                ms_median=np.nan, ms_max=t["max"], ms_mean=t["mean"], source="paper")
+
+
+# ----------------------------------------------------------------------------------- scaling
+def scaling_horizon(horizons, t_final: float, time_limit: Optional[float] = 30.0) -> list:
+    """Closed-loop per-step times of the default configuration for each ``N_p``."""
+    rows = []
+    base = quad_setup()
+    for N in horizons:
+        setup = quad_setup(horizon=N, net=base["net"], eps=base["eps"])
+        rec = record_run(setup, t_final, time_limit=time_limit)
+        ms = rec["ms"]
+        rows.append(dict(N_p=int(N), binaries_full=int(N * setup["net"].n_hidden), steps=len(ms),
+                         ms_median=float(np.median(ms)), ms_p95=float(np.percentile(ms, 95)), ms_max=float(ms.max()),
+                         ms_mean=float(ms.mean()), screened=int(rec["screened"].sum()),
+                         infeasible=int(sum(s == "infeasible" for s in rec["status"])),
+                         non_optimal=int(sum(s != "optimal" for s in rec["status"]))))
+    return rows
+
+
+def scaling_width(widths, t_final: float, n_per_axis: int = 12, max_iter: int = 600,
+                  time_limit: Optional[float] = 30.0) -> list:
+    """Closed-loop per-step times for networks of three hidden layers of each width (coarse training).
+
+    ``eps`` for these networks is their largest error on the training grid (an estimate, not a
+    certificate): enough to time the solver on a realistic constraint.
+    """
+    from ..network import fit_relu
+
+    rows = []
+    s = paper.system("Quad-1D")
+    for w in widths:
+        t0 = time.perf_counter()
+        net, rep = fit_relu(s.phi_stacked, s.lo, s.hi, widths=(w, w, w), n_per_axis=n_per_axis,
+                            max_train=20_000, max_iter=max_iter, seed=0)
+        t_train = time.perf_counter() - t0
+        eps = float(np.max(rep.grid_max_error))
+        setup = quad_setup(net=net, eps=eps)
+        if setup["u_eps"] <= 0.02:
+            rows.append(dict(width=int(w), note=f"eps = {eps:.3f} leaves no admissible input"))
+            continue
+        rec = record_run(setup, t_final, time_limit=time_limit)
+        ms = rec["ms"]
+        rows.append(dict(width=int(w), binaries_full=int(setup["N"] * net.n_hidden), eps_grid=eps,
+                         train_s=t_train, steps=len(ms), ms_median=float(np.median(ms)),
+                         ms_p95=float(np.percentile(ms, 95)), ms_max=float(ms.max()), ms_mean=float(ms.mean()),
+                         non_optimal=int(sum(st != "optimal" for st in rec["status"]))))
+    return rows
+
+
+def growth_note(x, y, what: str) -> str:
+    """A fitted power law ``y ~ x^p`` (least squares on logs), stated in words."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = (x > 0) & (y > 0) & np.isfinite(y)
+    if ok.sum() < 2:
+        return f"{what}: too few points to fit a growth law"
+    p = np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)[0]
+    return f"{what} grows roughly like x^{p:.2f} over the measured range"
+
+
+# ----------------------------------------------------------------------------------- the section
+def run(fast: bool) -> dict:
+    from ..plots import realtime as rp
+    from . import out_dir
+
+    setup = quad_setup()
+    t_final = 4.0 if fast else 20.0
+    rows, notes, figures = [paper_row()], [], []
+    notes.append(f"Quad-1D, N_p = {setup['N']}, t_s = {setup['ts']} s, x_ref = 1.5 sin t, {setup['eps_note']} "
+                 f"(eps = {setup['eps']:.4f}); t_final = {t_final} s.")
+    rec = record_run(setup, t_final)
+    n = len(rec["z"])
+    ref_idx = pick_states(rec, n_hard=12 if fast else 40, n_easy=2 if fast else 6)
+    t0 = time.perf_counter()
+    ref_obj, ref_res = reference(setup, rec, ref_idx)
+    notes.append(f"reference: SCIP on {len(ref_idx)} recorded states in {time.perf_counter() - t0:.0f} s "
+                 f"({sum(r.status != 'optimal' for r in ref_res)} not proven optimal)")
+    rows.append(summarize("recorded closed loop (level set, default)", "daqp", rec["results"], np.full(n, np.nan)))
+    # lever table on the states with a reference
+    hard = [i for i in ref_idx if not rec["screened"][i]]
+    slow_idx = np.array(hard[:: max(1, len(hard) // (3 if fast else 6))])
+    notes.append(f"lever rows: {len(ref_idx)} recorded states ({len(hard)} where the screening QP violates the "
+                 f"network constraint); configurations without bound levers on {len(slow_idx)} of the hard ones, "
+                 f"{5 if fast else 10} s limit per state")
+    rows += lever_table(setup, rec, ref_idx, ref_obj, slow_idx=slow_idx, time_limit=5.0 if fast else 10.0)
+    # other back-ends for the default configuration
+    for be in ("scip", "gurobi", "cplex"):
+        if be in available_backends():
+            sub = ref_idx[:: max(1, len(ref_idx) // 8)]
+            try:
+                hz = make_solver(setup, backend=be, **CONFIGS["level set (default)"])
+                res = replay(hz, rec, sub, time_limit=30.0)
+                rows.append(summarize("level set (default)", be, res, ref_obj[np.searchsorted(ref_idx, sub)]))
+            except Exception as exc:  # an installed commercial solver without a license
+                notes.append(f"backend {be} skipped: {type(exc).__name__}: {exc}")
+    # cross-check with the MPC class's own (sparse, persistent) form of the paper's program, solved by SCIP
+    try:
+        from ..mpc import MPC
+
+        sub = np.array(hard[:: max(1, len(hard) // (2 if fast else 4))][: 2 if fast else 4])
+        mpc = MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
+                  R=setup["R"], backend="scip", formulation="sparse", bounds="horizon", lazy=False, screening=False,
+                  warm_start=False, time_limit=120.0)
+        res = []
+        for i in sub:
+            mpc.reset()
+            st = mpc(rec["z"][i], rec["R"][i])
+            res.append(type("R", (), dict(time=st.wall_time, status=st.status, objective=st.objective,
+                                          nodes=st.nodes, n_binaries=st.n_binaries))())
+        rows.append(summarize("fl.MPC sparse program (cross-check)", "scip", res, ref_obj[np.searchsorted(ref_idx, sub)]))
+    except Exception as exc:  # the MPC class is developed alongside; its absence must not stop the bench
+        notes.append(f"fl.MPC cross-check skipped: {type(exc).__name__}: {exc}")
+    # targets
+    default = [r for r in rows if r.get("config") == "level set (default)" and r.get("backend") == "daqp"][0]
+    notes.append(f"targets: max {TARGET_MAX_MS:.0f} ms, median {TARGET_MEDIAN_MS:.0f} ms, gap {TARGET_GAP:g}; "
+                 f"default configuration on {default['states']} states: max {default['ms_max']:.1f} ms "
+                 f"({default['ms_max'] / TARGET_MAX_MS:.2f} x target), median {default['ms_median']:.2f} ms, "
+                 f"max rel. gap {default['max_rel_gap_vs_ref']:.1e}, not optimal {default['non_optimal']}.")
+    figures.append(str(rp.step_times(rec, path=out_dir() / "mpc_step_times.png")))
+    # scaling
+    horizons = (2, 5, 10) if fast else (2, 4, 6, 8, 10, 15, 20)
+    sh = scaling_horizon(horizons, t_final=2.0 if fast else 6.0)
+    for r in sh:
+        rows.append(dict(config=f"scaling N_p = {r['N_p']}", backend="daqp", **{k: v for k, v in r.items() if k != "N_p"}))
+    for r in sh:
+        if r["infeasible"]:
+            notes.append(f"N_p = {r['N_p']}: {r['infeasible']} of {r['steps']} steps infeasible: the closed loop left "
+                         f"the state box (without a terminal cost this short horizon does not stabilize the loop), "
+                         f"a property of the controller, not of the solver; they count as non_optimal")
+        other = r["non_optimal"] - r["infeasible"]
+        if other:
+            notes.append(f"N_p = {r['N_p']}: {other} steps stopped at the 30 s limit (time_limit) or failed")
+    notes.append(growth_note([r["N_p"] for r in sh], [r["ms_median"] for r in sh], "median time per step vs N_p"))
+    notes.append(growth_note([r["N_p"] for r in sh], [r["ms_max"] for r in sh], "max time per step vs N_p"))
+    widths = (5, 10) if fast else (5, 10, 15, 20)
+    sw = scaling_width(widths, t_final=2.0 if fast else 6.0, n_per_axis=9 if fast else 12,
+                       max_iter=300 if fast else 600)
+    for r in sw:
+        rows.append(dict(config=f"scaling width {r['width']}", backend="daqp", **{k: v for k, v in r.items() if k != "width"}))
+    ok = [r for r in sw if "ms_median" in r]
+    notes.append(growth_note([r["width"] for r in ok], [r["ms_median"] for r in ok], "median time per step vs width"))
+    figures.append(str(rp.scaling(sh, sw, path=out_dir() / "mpc_scaling.png")))
+    notes.append("MSD CLF-CBF per-step times: see the clfcbf section.")
+    return dict(title="Quad-1D MPC: real-time levers (eq. MPC_form_miqp)", rows=rows, notes=notes, figures=figures)
+
+
+# ----------------------------------------------------------------------------------- for the chapter
+def binary_counts(setup: dict, z0, z_ref, warm_start=None) -> dict:
+    """Binaries of eq. (MPC_form_miqp) at one state under each bounds lever (every step encoded).
+
+    ``"paper"`` is ``N_p * sum_k n_k``; the others count the neurons left unstable by FBBT on the
+    domain box, FBBT on the reachable boxes, LP-tightened reachable boxes, and the level set of
+    the default solver (which also drops the steps that need no encoding).
+    """
+    from ..bounds import fbbt
+
+    net, N = setup["net"], setup["N"]
+    out = {"paper: every neuron a binary": N * net.n_hidden}
+    for name, lv in (("domain box, FBBT", dict(bounds="box")), ("reachable boxes, FBBT", dict(bounds="horizon", lp=False)),
+                     ("reachable boxes, LP with |Phi_NN| <= u_max^eps", dict(bounds="lp"))):
+        hz = make_solver(setup, encode="all", **lv)
+        lo, hi = hz._boxes(np.asarray(z0, float))
+        nb = hz._node_bounds(lo, hi)
+        out[name] = int(nb.n_unstable) if nb is not None else 0
+    hz = make_solver(setup, **CONFIGS["level set (default)"])
+    r = hz.solve(z0, z_ref, warm_start=warm_start)
+    out["level set (default solver)"] = int(r.n_binaries)
+    return out
+
+
+def backend_overheads(n_repeat: int = 20) -> list:
+    """Per-solve time of every installed back-end on one small mixed-binary QP and LP (data changed each time)."""
+    import scipy.sparse as sp
+
+    from ..miqp import MIQP, make_solver as _make
+
+    rng = np.random.default_rng(0)
+    n_c, n_b = 5, 4
+    F = rng.normal(size=(3, n_c + n_b)); F[:, n_c - 1:] = 0.0
+    A = rng.normal(size=(6, n_c + n_b)); A[:, n_c] += 2.0
+    w = np.r_[rng.uniform(-1, 1, n_c), rng.integers(0, 2, n_b)]
+    rows = []
+    for kind, H in (("MIQP", sp.csc_matrix(F.T @ F)), ("MILP", None)):
+        p = MIQP(H, rng.normal(size=n_c + n_b), 0.0, sp.csr_matrix(A), A @ w - 1.0, A @ w + 1.0,
+                 np.r_[-2 * np.ones(n_c), np.zeros(n_b)], np.r_[2 * np.ones(n_c), np.ones(n_b)],
+                 np.r_[np.zeros(n_c, int), np.ones(n_b, int)])
+        for be in available_backends():
+            if be in ("gurobi", "cplex") or (be == "highs" and H is not None):
+                continue
+            s = _make(p, be)
+            ts = []
+            for k in range(n_repeat):
+                s.update(c=p.c * (1 + 0.05 * np.sin(k)))
+                ts.append(s.solve().time * 1e3)
+            rows.append(dict(program=kind, backend=be, n=p.n, binaries=n_b, ms_median=float(np.median(ts)),
+                             ms_min=float(np.min(ts))))
+    return rows
+
+
+def table(rows, cols=None):
+    """Rows of dicts as an HTML table for a notebook (floats with 4 significant digits)."""
+    from html import escape
+
+    from IPython.display import HTML
+
+    rows = list(rows)
+    if cols is None:
+        cols = []
+        for r in rows:
+            cols += [c for c in r if c not in cols]
+
+    def fmt(v) -> str:
+        if isinstance(v, (float, np.floating)):
+            return "" if not np.isfinite(v) else f"{v:.4g}"
+        return "" if v is None else escape(str(v))
+
+    head = "".join(f"<th>{escape(str(c))}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in rows)
+    return HTML(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")

@@ -1,0 +1,129 @@
+"""Node bounds ``L^k_j <= W^k y^{k-1} + b^k <= U^k_j`` for the big-M constants of eq. (MIP_general_c).
+
+Feasibility-based bound tightening (FBBT) propagates an input box through the
+network with interval arithmetic (Grimstad & Andersson 2019, Sec. 4.3): for
+layer ``k`` with the box ``[l^{k-1}, u^{k-1}]`` of ``y^{k-1}``,
+
+    L^k = W^k_+ l^{k-1} + W^k_- u^{k-1} + b^k,   U^k = W^k_+ u^{k-1} + W^k_- l^{k-1} + b^k,
+    l^k = max(L^k, 0),                           u^k = max(U^k, 0),
+
+with ``W_+ = max(W, 0)`` and ``W_- = min(W, 0)``. A neuron with ``L >= 0`` is
+stably active, one with ``U <= 0`` stably inactive: neither needs a binary.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from ._checks import check_box, check_boxes
+from .network import ReLUNet
+
+Array = np.ndarray
+
+
+@dataclass
+class NodeBounds:
+    """Pre-activation bounds of every hidden neuron, one array per hidden layer.
+
+    Attributes
+    ----------
+    L, U
+        ``L[k-1]``, ``U[k-1]`` bound the pre-activations of hidden layer ``k``;
+        each of shape (n_k,), or (T, n_k) for a batch of T input boxes.
+    out_L, out_U
+        Bounds of the network output ``y^K``, shape (n_out,) or (T, n_out).
+    method
+        How they were computed (``"fbbt"``, ``"lp"``, ...).
+    """
+
+    L: list[Array]
+    U: list[Array]
+    out_L: Array
+    out_U: Array
+    method: str = "fbbt"
+
+    @property
+    def active(self) -> list[Array]:
+        """Stably active neurons (``L >= 0``): ``alpha = 1`` is forced."""
+        return [L >= 0 for L in self.L]
+
+    @property
+    def inactive(self) -> list[Array]:
+        """Stably inactive neurons (``U <= 0``): ``alpha = 0`` is forced."""
+        return [U <= 0 for U in self.U]
+
+    @property
+    def unstable(self) -> list[Array]:
+        """Neurons whose sign is not decided by the bounds: each needs a binary."""
+        return [(L < 0) & (U > 0) for L, U in zip(self.L, self.U)]
+
+    @property
+    def n_unstable(self) -> int:
+        """Number of binaries the encoding needs (summed over a batch)."""
+        return int(sum(u.sum() for u in self.unstable))
+
+    @property
+    def n_stable(self) -> int:
+        return int(sum(u.size - u.sum() for u in self.unstable))
+
+    def width(self) -> list[Array]:
+        """``U - L`` per layer: the big-M spread."""
+        return [U - L for L, U in zip(self.L, self.U)]
+
+    def contains(self, pre: list[Array], tol: float = 1e-9) -> bool:
+        """Do the bounds contain the given pre-activations (as from :meth:`ReLUNet.preactivations`)?"""
+        return all(np.all(a >= L - tol) and np.all(a <= U + tol) for a, L, U in zip(pre, self.L, self.U))
+
+    def summary(self) -> str:
+        per = [f"layer {k + 1}: {int(a.sum())} active, {int(i.sum())} inactive, {int(u.sum())} unstable"
+               for k, (a, i, u) in enumerate(zip(self.active, self.inactive, self.unstable))]
+        return f"{self.method} bounds: " + "; ".join(per)
+
+
+def interval_affine(W: Array, b: Array, l: Array, u: Array) -> tuple[Array, Array]:
+    """Exact range of ``W y + b`` over the box ``l <= y <= u`` (rows of l, u are boxes)."""
+    Wp, Wm = np.maximum(W, 0.0), np.minimum(W, 0.0)
+    return l @ Wp.T + u @ Wm.T + b, u @ Wp.T + l @ Wm.T + b
+
+
+def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
+    """Node bounds by interval propagation (FBBT, Grimstad & Andersson 2019, Sec. 4.3).
+
+    Parameters
+    ----------
+    net
+        The network.
+    lo, hi
+        Input box over ``y^0 = [z, v]``: shape (n_in,), or (T, n_in) for T
+        boxes at once (e.g. the reachable boxes along an MPC horizon). A
+        coordinate with ``lo == hi`` is fixed (a measured state).
+
+    Returns
+    -------
+    NodeBounds
+        ``L``, ``U`` of shape (n_k,) (or (T, n_k)) per hidden layer, and the
+        output bounds.
+    """
+    lo_a, hi_a, batch = check_boxes(lo, hi, net.n_in)
+    l, u = lo_a, hi_a
+    Ls, Us = [], []
+    for W, b in zip(net.W[:-1], net.b[:-1]):
+        L, U = interval_affine(W, b, l, u)
+        Ls.append(L), Us.append(U)
+        l, u = np.maximum(L, 0.0), np.maximum(U, 0.0)
+    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u)
+    if not batch:
+        Ls, Us, oL, oU = [a[0] for a in Ls], [a[0] for a in Us], oL[0], oU[0]
+    return NodeBounds(Ls, Us, oL, oU, method="fbbt")
+
+
+def sample_preactivations(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000, seed: int = 0) -> list[Array]:
+    """Pre-activations at ``n`` uniform samples of the box plus its corners (to check bounds)."""
+    lo, hi = check_box(lo, hi, net.n_in)
+    X = np.random.default_rng(seed).uniform(lo, hi, (n, net.n_in))
+    if net.n_in <= 12:
+        corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(lo, hi)], indexing="ij")).reshape(net.n_in, -1).T
+        X = np.vstack([X, corners])
+    return net.preactivations(X)

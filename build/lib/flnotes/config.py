@@ -1,0 +1,43 @@
+"""Run-time switches shared by the book, the tests and the benchmarks.
+
+``FLNOTES_FAST=1`` in the environment makes the notebooks do less (shorter
+simulations, coarser grids, fewer samples) so that the test suite runs in
+minutes; ``make book`` leaves it unset and runs everything at full scale.
+Tests still check the real properties, only on less data.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
+
+#: True when the environment variable ``FLNOTES_FAST`` is set to a true value.
+FAST: bool = os.environ.get("FLNOTES_FAST", "").strip().lower() in {"1", "true", "yes", "on"}
+
+
+def scale(full: T, fast: T) -> T:
+    """Return ``fast`` under ``FLNOTES_FAST=1`` and ``full`` otherwise.
+
+    Examples
+    --------
+    >>> t_final = scale(full=20.0, fast=3.0)
+    """
+    return fast if FAST else full
+
+
+def cache_dir() -> Path:
+    """Folder where trained networks and certified bounds are cached.
+
+    ``FLNOTES_CACHE`` overrides it; the default is ``_build/flnotes-cache``
+    beside the book when run from a checkout, else ``~/.cache/flnotes``.
+    """
+    env = os.environ.get("FLNOTES_CACHE")
+    if env:
+        path = Path(env)
+    else:
+        repo = Path(__file__).resolve().parent.parent
+        path = repo / "_build" / "flnotes-cache" if (repo / "_toc.yml").exists() else Path.home() / ".cache" / "flnotes"
+    path.mkdir(parents=True, exist_ok=True)
+    return path

@@ -1,0 +1,1064 @@
+"""CLF-CBF control with the network's input constraint, eq. (CLF_CBF).
+
+At each state ``z`` the controller solves
+
+    min_{v, delta}  J(v, z) + delta
+    s.t.  |Phi_NN(z, v)| <= u_max^eps = u_max - eps              (CLF_CBF_b), via eq. (MIP_general)
+          grad V(z)^T (A z + B v) <= -beta V(z) + delta, delta >= 0  (CLF_CBF_c)
+          grad H(z)^T (A z + B v) >= -kappa H(z)                      (CLF_CBF_d)
+          v_lo <= v <= v_hi                                           (the network's domain)
+
+with the linear cost ``J = grad V(z)^T (A z + B v)`` (eq. LP_cost, a MILP:
+"Lcost") or the quadratic cost ``J = ||v - k(z)||^2`` (eq. QP_cost, a MIQP:
+"Qcost"). With ``z`` fixed every constraint is affine in ``v``; only the
+network constraint needs binaries, and only for the neurons that interval
+bounds (FBBT with ``z`` fixed) cannot decide.
+
+Backends (all solve the same program exactly; they differ in speed):
+
+* ``"cvxpy"``: the teaching form, written with :func:`flnotes.encode` on
+  ``x = [z; v]`` with ``z`` and every ``z``-dependent coefficient a cvxpy
+  ``Parameter``; built once, re-solved each step (HiGHS for the MILP, SCIP for
+  the MIQP). cvxpy's per-solve overhead is several milliseconds.
+* ``"highs"``, ``"scip"``, ...: a persistent solver model through
+  :mod:`flnotes.miqp`, built once from :func:`flnotes.bigm_form`, whose
+  big-M coefficients and bounds are updated in place each step.
+* ``"exact"`` (single input only): for a fixed ``z``, ``Phi_NN(z, .)`` is
+  piecewise affine in the scalar ``v``; its breakpoints are listed exactly
+  (:func:`network_pieces_1d`), the feasible set is a union of intervals
+  (:func:`exact_1d_feasible_set`) and the cost is minimized on each interval
+  in closed form.
+
+Infeasibility and the fallback
+------------------------------
+When the program is infeasible (e.g. the CBF condition and the input bound
+conflict, or no ``v`` satisfies the input bound at this ``z``) the step
+reports ``status="infeasible"``, ``fallback=True`` and applies the optimum of
+the *softened* program: (CLF_CBF_b) and (CLF_CBF_d) get nonnegative slacks
+``s_u``, ``s_H`` penalized in the cost with weights ``rho_u >> rho_H``
+(default ``1e6`` and ``1e4``). The input bound, a physical limit, is thus
+given up last, safety second, convergence (``delta``) first. When a solver
+fails (error, time limit without a solution) the step reports that status
+and applies the softened optimum if it can be computed, else ``k(z)``
+clipped to ``[v_lo, v_hi]``; it never raises from inside a simulation.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Union
+
+import numpy as np
+import scipy.sparse as sp
+
+from ._checks import as_vector
+from .bounds import NodeBounds, fbbt
+from .network import ReLUNet
+from .simulate import SimLog, StepResult
+from .systems import FLSystem
+
+Array = np.ndarray
+
+__all__ = [
+    "Certificate", "QuadraticCLF", "DistanceCBF", "as_certificate",
+    "PiecewiseAffine1D", "network_pieces_1d", "exact_1d_feasible_set", "solve_exact_1d",
+    "ClfCbfController", "clf_cbf_checks", "cross_check_exact", "chapter_eps", "solve_time_table", "TableRows",
+]
+
+#: Backends of :class:`ClfCbfController`; the persistent ones need :mod:`flnotes.miqp`.
+BACKENDS = ("auto", "exact", "cvxpy", "highs", "scip", "gurobi", "daqp")
+
+
+# ---------------------------------------------------------------------------
+# CLF and CBF: functions with gradients
+# ---------------------------------------------------------------------------
+class Certificate:
+    """A scalar function of ``z`` with its gradient: a CLF ``V`` or a CBF ``H``.
+
+    Subclasses implement :meth:`value` (vectorized: (N, n_z) -> (N,)) and
+    :meth:`grad` ((n_z,) -> (n_z,)). Calling the object evaluates it on one
+    point (a float) or on a batch (an array).
+    """
+
+    name: str = "certificate"
+
+    def value(self, Z: Array) -> Array:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def grad(self, z: Array) -> Array:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def __call__(self, z: Array) -> Union[float, Array]:
+        z = np.asarray(z, float)
+        out = np.asarray(self.value(np.atleast_2d(z)), float).reshape(-1)
+        return float(out[0]) if z.ndim == 1 else out
+
+
+class QuadraticCLF(Certificate):
+    """The quadratic CLF ``V(z) = z^T P z`` of Sec. IV-A, ``grad V(z) = 2 P z``.
+
+    Parameters
+    ----------
+    P
+        Symmetric positive definite matrix, shape (n_z, n_z).
+    """
+
+    name = "V"
+
+    def __init__(self, P: Array):
+        P = np.atleast_2d(np.asarray(P, float))
+        if P.ndim != 2 or P.shape[0] != P.shape[1]:
+            raise ValueError(f"P must be a square matrix, got shape {P.shape}")
+        if not np.allclose(P, P.T):
+            raise ValueError("P must be symmetric: pass (P + P.T) / 2")
+        if np.linalg.eigvalsh(P).min() <= 0:
+            raise ValueError(f"P must be positive definite, its eigenvalues are {np.linalg.eigvalsh(P)}")
+        self.P = P
+
+    def value(self, Z: Array) -> Array:
+        return np.einsum("ni,ij,nj->n", Z, self.P, Z)
+
+    def grad(self, z: Array) -> Array:
+        return 2.0 * self.P @ z
+
+    def __repr__(self) -> str:
+        return f"QuadraticCLF(P={self.P.tolist()})"
+
+
+class DistanceCBF(Certificate):
+    """The CBF ``H(z) = ||z - z_o|| - r_o`` of Sec. IV-A: negative inside the unsafe disc.
+
+    ``grad H(z) = (z - z_o) / ||z - z_o||`` (set to zero at the centre, where
+    it is undefined; there ``H = -r_o < 0`` anyway).
+
+    Parameters
+    ----------
+    z_o
+        Centre of the unsafe ball, shape (n_z,).
+    r_o
+        Its radius, > 0.
+    """
+
+    name = "H"
+
+    def __init__(self, z_o: Array, r_o: float):
+        self.z_o = np.asarray(z_o, float).reshape(-1)
+        if not (np.isfinite(r_o) and r_o > 0):
+            raise ValueError(f"r_o must be a positive radius, got {r_o!r}")
+        self.r_o = float(r_o)
+
+    def value(self, Z: Array) -> Array:
+        if Z.shape[1] != len(self.z_o):
+            raise ValueError(f"z must have {len(self.z_o)} entries like z_o, got shape {Z.shape}")
+        return np.linalg.norm(Z - self.z_o, axis=1) - self.r_o
+
+    def grad(self, z: Array) -> Array:
+        d = np.asarray(z, float) - self.z_o
+        n = np.linalg.norm(d)
+        return d / n if n > 0 else np.zeros_like(d)
+
+    def __repr__(self) -> str:
+        return f"DistanceCBF(z_o={self.z_o.tolist()}, r_o={self.r_o})"
+
+
+class _FunctionCertificate(Certificate):
+    def __init__(self, fn: Callable[[Array], float], grad: Callable[[Array], Array], name: str):
+        self.fn, self._grad, self.name = fn, grad, name
+
+    def value(self, Z: Array) -> Array:
+        return np.array([float(self.fn(z)) for z in Z])
+
+    def grad(self, z: Array) -> Array:
+        return np.asarray(self._grad(z), float).reshape(-1)
+
+
+def as_certificate(obj: Any, name: str = "certificate") -> Certificate:
+    """A :class:`Certificate` from one, from any object with ``__call__`` and ``grad``, or from ``(fn, grad)``."""
+    if isinstance(obj, Certificate):
+        return obj
+    if isinstance(obj, tuple) and len(obj) == 2 and all(callable(f) for f in obj):
+        return _FunctionCertificate(obj[0], obj[1], name)
+    if callable(obj) and callable(getattr(obj, "grad", None)):
+        return _FunctionCertificate(obj, obj.grad, name)
+    raise ValueError(f"{name} must be a Certificate (e.g. QuadraticCLF, DistanceCBF), an object with __call__ "
+                     f"and .grad, or a pair (fn, grad_fn); got {type(obj).__name__}")
+
+
+def _cbf_list(H: Any) -> list[Certificate]:
+    """None, one CBF (any form accepted by :func:`as_certificate`) or a list of them -> a list."""
+    if H is None:
+        return []
+    is_pair = (isinstance(H, tuple) and len(H) == 2 and all(callable(f) for f in H)
+               and not any(isinstance(f, Certificate) or hasattr(f, "grad") for f in H))
+    if isinstance(H, (list, tuple)) and not is_pair:
+        return [as_certificate(h, f"H[{i}]") for i, h in enumerate(H)]
+    return [as_certificate(H, "H")]
+
+
+# ---------------------------------------------------------------------------
+# The exact 1-D method: Phi_NN(z, .) is piecewise affine in a scalar v
+# ---------------------------------------------------------------------------
+@dataclass
+class PiecewiseAffine1D:
+    """``Phi_NN(z, v)`` for fixed ``z`` as a continuous piecewise-affine function of the scalar ``v``.
+
+    On ``[knots[i], knots[i+1]]`` it equals ``values[i] + slope[i] (v - knots[i])``.
+
+    Attributes
+    ----------
+    knots
+        Sorted breakpoints (shape (n+1,)), including the ends ``v_lo`` and ``v_hi``.
+    values
+        ``Phi_NN(z, knots)``, shape (n+1,).
+    slope
+        Slope of each piece, shape (n,).
+    """
+
+    knots: Array
+    values: Array
+    slope: Array
+
+    @property
+    def n_pieces(self) -> int:
+        return len(self.slope)
+
+    def __call__(self, v: Array) -> Array:
+        """Evaluate by linear interpolation between knots (exact, the function is affine there)."""
+        return np.interp(v, self.knots, self.values)
+
+
+def _net_input_line(net: ReLUNet, z: Array, v: Array) -> Array:
+    return np.hstack([np.broadcast_to(z, (len(v), len(z))), v[:, None]])
+
+
+def network_pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> PiecewiseAffine1D:
+    """All affine pieces of ``v -> Phi_NN(z, v)`` on ``[v_lo, v_hi]`` for a fixed ``z`` (single input).
+
+    Walks the activation regions along the segment ``y^0 = [z, v]`` layer by
+    layer: the pre-activations of layer 1 are affine in ``v``; once the knots
+    hold every breakpoint of layers ``< k``, each pre-activation of layer ``k``
+    is affine between consecutive knots, so its zero crossings are found exactly
+    by linear interpolation and added to the knots (with the layer's values
+    there, interpolated just as exactly). After the last hidden layer the
+    output is affine between knots.
+
+    Parameters
+    ----------
+    net
+        A network with input ``[z, v]``, ``v`` scalar (``n_in = len(z) + 1``) and one output.
+    z
+        The fixed state, shape (n_in - 1,).
+    v_lo, v_hi
+        The segment of ``v``.
+
+    Returns
+    -------
+    PiecewiseAffine1D
+    """
+    z = np.asarray(z, float).reshape(-1)
+    if net.n_in != len(z) + 1 or net.n_out != 1:
+        raise ValueError(f"the exact 1-D method needs a single input v and a single output: the network has "
+                         f"n_in = {net.n_in}, n_out = {net.n_out} and z has {len(z)} entries; use a MILP/MIQP backend")
+    if not (np.isfinite(v_lo) and np.isfinite(v_hi) and v_lo < v_hi):
+        raise ValueError(f"need finite v_lo < v_hi, got {v_lo!r}, {v_hi!r}")
+    tol = 1e-12 * max(1.0, abs(v_hi - v_lo))
+    knots = np.array([v_lo, v_hi], float)
+    W1 = net.W[0]
+    pre = (W1[:, :-1] @ z + net.b[0])[None, :] + knots[:, None] * W1[None, :, -1]   # layer 1, affine in v
+    for k in range(1, net.K):
+        # pre (n_knots, n_k) is affine between consecutive knots: its zero crossings are exact roots
+        a0, a1 = pre[:-1], pre[1:]
+        i, j = np.nonzero(a0 * a1 < 0)
+        if len(i):
+            t = a0[i, j] / (a0[i, j] - a1[i, j])
+            roots = knots[i] + t * (knots[i + 1] - knots[i])
+            at_roots = pre[i] + t[:, None] * (pre[i + 1] - pre[i])   # exact: affine between the two knots
+            at_roots[np.arange(len(i)), j] = 0.0
+            knots, pre = np.concatenate([knots, roots]), np.vstack([pre, at_roots])
+            order = np.argsort(knots, kind="stable")
+            knots, pre = knots[order], pre[order]
+            keep = np.concatenate([[True], np.diff(knots) > tol])   # one knot per breakpoint
+            knots, pre = knots[keep], pre[keep]
+            knots[0], knots[-1] = v_lo, v_hi
+        pre = np.maximum(pre, 0.0) @ net.W[k].T + net.b[k]
+    values = pre[:, 0]
+    slope = np.diff(values) / np.diff(knots)
+    return PiecewiseAffine1D(knots=knots, values=values, slope=slope)
+
+
+def _merge(intervals: Array, tol: float = 0.0) -> Array:
+    if len(intervals) == 0:
+        return np.zeros((0, 2))
+    iv = intervals[np.argsort(intervals[:, 0])]
+    out = [iv[0].copy()]
+    for a, b in iv[1:]:
+        if a <= out[-1][1] + tol:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append(np.array([a, b]))
+    return np.array(out)
+
+
+def _pieces_within(pw: PiecewiseAffine1D, bound: float) -> Array:
+    """Per piece, the sub-interval where ``|Phi_NN| <= bound`` (rows may be empty: lo > hi)."""
+    v0, v1, y0, s = pw.knots[:-1], pw.knots[1:], pw.values[:-1], pw.slope
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ra = v0 + (-bound - y0) / s
+        rb = v0 + (bound - y0) / s
+    lo = np.where(s > 0, ra, np.where(s < 0, rb, np.where(np.abs(y0) <= bound, -np.inf, np.inf)))
+    hi = np.where(s > 0, rb, np.where(s < 0, ra, np.where(np.abs(y0) <= bound, np.inf, -np.inf)))
+    return np.column_stack([np.maximum(lo, v0), np.minimum(hi, v1)])
+
+
+def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, bound: float,
+                          pieces: Optional[PiecewiseAffine1D] = None) -> Array:
+    """The exact set ``{v in [v_lo, v_hi] : |Phi_NN(z, v)| <= bound}`` as disjoint closed intervals.
+
+    This is eq. (Phi_NN_ep) at a fixed state for a single input: on each
+    affine piece of ``Phi_NN(z, .)`` (see :func:`network_pieces_1d`) the
+    condition is an interval; touching intervals are merged.
+
+    Parameters
+    ----------
+    net, z, v_lo, v_hi
+        As in :func:`network_pieces_1d`.
+    bound
+        ``u_max^eps = u_max - eps``, > 0.
+    pieces
+        The result of :func:`network_pieces_1d` if already computed.
+
+    Returns
+    -------
+    Array
+        Shape (p, 2): rows ``[a_i, b_i]`` sorted, disjoint; (0, 2) when empty.
+    """
+    pw = network_pieces_1d(net, z, v_lo, v_hi) if pieces is None else pieces
+    iv = _pieces_within(pw, float(bound))
+    iv = iv[iv[:, 0] <= iv[:, 1]]
+    return _merge(iv, tol=1e-12)
+
+
+def _halfline(a: Array, b: Array) -> tuple[float, float]:
+    """``{v : a_j v + b_j >= 0 for all j}`` as ``[lo, hi]`` (``lo > hi`` when empty)."""
+    lo, hi = -np.inf, np.inf
+    for aj, bj in zip(np.atleast_1d(a), np.atleast_1d(b)):
+        if aj > 0:
+            lo = max(lo, -bj / aj)
+        elif aj < 0:
+            hi = min(hi, -bj / aj)
+        elif bj < 0:
+            return np.inf, -np.inf
+    return lo, hi
+
+
+def _objective_1d(v: Array, d: dict, cost: str, pw: Optional[PiecewiseAffine1D] = None,
+                  bound: float = 0.0, rho: tuple[float, float] = (0.0, 0.0)) -> tuple[Array, Array]:
+    """``J(v) + delta*(v)`` (+ penalties of the softened program) at many scalar ``v``; also ``delta*``."""
+    aV, bV = d["aV"][0], d["bV"]
+    delta = np.maximum(0.0, aV * v + bV)
+    J = aV * v + d["Jc"] if cost == "linear" else (v - d["k"][0]) ** 2
+    f = J + delta
+    if pw is not None:
+        f = f + rho[0] * np.maximum(0.0, np.abs(pw(v)) - bound)
+        if len(d["bH"]):
+            f = f + rho[1] * np.maximum(0.0, -(np.outer(v, d["aH"][:, 0]) + d["bH"])).sum(axis=1)
+    return f, delta
+
+
+def solve_exact_1d(pw: PiecewiseAffine1D, d: dict, cost: str, bound: float, soft: bool = False,
+                   rho: tuple[float, float] = (1e6, 1e4)) -> Optional[tuple[float, float, float]]:
+    """Minimize the cost of eq. (CLF_CBF) over ``v`` exactly, for a single input.
+
+    ``d`` holds the data of the program at the current ``z`` (see
+    :meth:`ClfCbfController.program_data`). The objective ``J(v) + delta*(v)``
+    with ``delta*(v) = max(0, a_V v + b_V)`` is convex and piecewise linear
+    (Lcost) or piecewise quadratic (Qcost) on each feasible interval, so its
+    minimum is at an interval end, at the kink of ``delta*`` or at a vertex of
+    a quadratic piece: all candidates are evaluated, the best kept.
+
+    With ``soft=True`` the softened program of the fallback is solved instead
+    (penalties ``rho = (rho_u, rho_H)`` on the violations of the input bound
+    and of the CBF condition), over every piece.
+
+    Returns
+    -------
+    (v, delta, objective), or None when the program is infeasible.
+    """
+    aV, bV = d["aV"][0], d["bV"]
+    if not soft:
+        iv = _pieces_within(pw, bound)
+        iv = iv[iv[:, 0] <= iv[:, 1]]
+        lo, hi = _halfline(d["aH"][:, 0], d["bH"])
+        iv = np.column_stack([np.maximum(iv[:, 0], lo), np.minimum(iv[:, 1], hi)]) if len(iv) else iv
+        iv = iv[iv[:, 0] <= iv[:, 1]]
+        if len(iv) == 0:
+            return None
+        pts = [iv[:, :1], iv[:, 1:]]
+        extra = [-bV / aV] if aV != 0 else []
+        if cost == "quadratic":
+            extra += [d["k"][0], d["k"][0] - aV / 2]
+        if extra:
+            pts.append(np.clip(np.array(extra)[None, :], iv[:, :1], iv[:, 1:]))
+        cand = np.concatenate(pts, axis=1).ravel()
+        f, delta = _objective_1d(cand, d, cost)
+    else:
+        v0, v1, y0, s = pw.knots[:-1, None], pw.knots[1:, None], pw.values[:-1, None], pw.slope[:, None]
+        rho_u, rho_H = rho
+        aH, bH = d["aH"][:, 0], d["bH"]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            kinks = [v0 + (bound - y0) / s, v0 + (-bound - y0) / s]
+        glob = ([-bV / aV] if aV != 0 else []) + [-bj / aj for aj, bj in zip(aH, bH) if aj != 0]
+        pts = [v0, v1] + kinks + ([np.full_like(v0, g) for g in glob])
+        if cost == "quadratic":
+            # stationary points of every quadratic piece: k - (sum of the active slopes) / 2
+            slopes = np.array([0.0, aV])[:, None]
+            for aj in aH:
+                slopes = (slopes[:, None] + np.array([0.0, -rho_H * aj])[None, :]).reshape(-1, 1)
+            g = slopes.ravel()[None, :] + np.column_stack([0 * s[:, 0], rho_u * s[:, 0], -rho_u * s[:, 0]])[:, :, None]
+            pts.append(d["k"][0] - g.reshape(len(s), -1) / 2)
+        P = np.concatenate([np.broadcast_to(p, (len(v0), p.shape[1])) for p in pts], axis=1)
+        P = np.where(np.isfinite(P), P, v0)
+        cand = np.clip(P, v0, v1).ravel()
+        f, delta = _objective_1d(cand, d, cost, pw=pw, bound=bound, rho=rho)
+    i = int(np.argmin(f))
+    return float(cand[i]), float(delta[i]), float(f[i])
+
+
+# ---------------------------------------------------------------------------
+# The controller
+# ---------------------------------------------------------------------------
+@dataclass
+class _Solution:
+    status: str            # "optimal", "infeasible", "time_limit", "error: ..."
+    v: Optional[Array] = None
+    delta: float = np.nan
+    objective: float = np.nan
+    solver_time: float = np.nan
+    slack_u: Optional[Array] = None
+    slack_H: Optional[Array] = None
+    detail: str = ""
+    nodes: Optional[int] = None
+
+
+class ClfCbfController:
+    """The CLF-CBF controller of eq. (CLF_CBF) with the network constraint (CLF_CBF_b).
+
+    Parameters
+    ----------
+    system
+        The feedback-linearized system (its ``A``, ``B``, ``u_max`` and the domain box).
+    net
+        ``Phi_NN``, a ReLU network on the stacked input ``[z, v]``.
+    eps
+        The approximation error bound of eq. (approx_err), scalar or shape (m,);
+        the network's output is bounded by ``u_max^eps = u_max - eps``.
+    V
+        The CLF: a :class:`Certificate` (e.g. :class:`QuadraticCLF`), an object
+        with ``__call__`` and ``grad``, or a pair ``(V, grad_V)``.
+    H
+        The CBF (same forms), a list of them (one condition (CLF_CBF_d) each), or None.
+    k
+        The nominal law ``k(z) -> v`` (eq. QP_cost); optional for the linear cost.
+    cost
+        ``"linear"`` (eq. LP_cost, Lcost, a MILP) or ``"quadratic"`` (eq. QP_cost, Qcost, a MIQP).
+    beta, kappa
+        The CLF decay rate and the CBF class-K gain (Table 1: 0.001 and 4).
+    backend
+        ``"exact"`` (single input), ``"cvxpy"``, or a persistent solver through
+        :mod:`flnotes.miqp` (``"highs"`` for the MILP; ``"scip"``, ``"gurobi"``
+        for both; ``"daqp"`` is accepted, but on these programs it was measured
+        to return wrong optima or fail, see ``make bench``). ``"auto"``
+        (default) takes ``"exact"`` for a single input (the fastest exact
+        method, measured) and otherwise the persistent solver (HiGHS for Lcost,
+        SCIP for Qcost).
+    solver
+        For ``backend="cvxpy"``: the cvxpy solver name (default HIGHS for Lcost, SCIP for Qcost).
+    v_lo, v_hi
+        Box on ``v``; default: the system's domain box (where ``eps`` holds).
+    penalty
+        ``(rho_u, rho_H)``: weights of the slacks of the softened program used
+        as the fallback (see the module docstring).
+    time_limit
+        Seconds per solve (None: no limit).
+    gap
+        Optimality gap ``|obj - bound| / max(1, |obj|)`` at which branch and
+        bound stops (persistent backends; default 1e-6).
+    solver_options
+        Options for :func:`flnotes.miqp.make_solver` (e.g. ``params`` of the
+        back-end); the HiGHS default switches off symmetry detection and the
+        feasibility-jump heuristic, which only cost time on these small programs.
+    name
+        Label for plots and tables; default ``"Lcost"`` or ``"Qcost"``.
+
+    Notes
+    -----
+    Call ``ctrl(z)`` for ``v`` alone, or ``ctrl.step(z, t)`` for a
+    :class:`flnotes.StepResult` with the status, the wall-clock time of the
+    whole step (bounds, update and solve) and ``info`` (objective, ``delta``,
+    ``Phi_NN(z, v)``, number of binaries, the solver's own time, slacks).
+    ``ctrl.history`` keeps every step since :meth:`reset`.
+    """
+
+    def __init__(self, system: FLSystem, net: ReLUNet, eps: Union[float, Array], V: Any, H: Any = None,
+                 k: Optional[Callable[[Array], Array]] = None, cost: str = "linear", beta: float = 0.001,
+                 kappa: float = 4.0, backend: str = "auto", solver: Optional[str] = None,
+                 v_lo: Optional[Array] = None, v_hi: Optional[Array] = None,
+                 penalty: tuple[float, float] = (1e6, 1e4), time_limit: Optional[float] = None,
+                 gap: float = 1e-6, solver_options: Optional[dict] = None, name: Optional[str] = None):
+        self._kwargs = dict(system=system, net=net, eps=eps, V=V, H=H, k=k, cost=cost, beta=beta, kappa=kappa,
+                            backend=backend, solver=solver, v_lo=v_lo, v_hi=v_hi, penalty=penalty,
+                            time_limit=time_limit, gap=gap, solver_options=solver_options, name=name)
+        cost = {"lcost": "linear", "qcost": "quadratic"}.get(str(cost).lower(), str(cost).lower())
+        if cost not in ("linear", "quadratic"):
+            raise ValueError(f"cost must be 'linear' (eq. LP_cost) or 'quadratic' (eq. QP_cost), got {cost!r}")
+        if cost == "quadratic" and k is None:
+            raise ValueError("the quadratic cost ||v - k(z)||^2 needs the nominal law k: pass k=lambda z: -K @ z")
+        if net.n_in != system.n_in or net.n_out != system.m:
+            raise ValueError(f"net must map [z, v] ({system.n_in} inputs) to u ({system.m} outputs); "
+                             f"it has n_in = {net.n_in}, n_out = {net.n_out}")
+        self.system, self.net, self.cost = system, net, cost
+        n_z, m = system.n_z, system.m
+        self.eps = as_vector(eps, m, "eps")
+        self.u_eps = system.u_max - self.eps
+        if np.any(self.eps < 0) or np.any(self.u_eps <= 0):
+            raise ValueError(f"need 0 <= eps < u_max, got eps = {self.eps}, u_max = {system.u_max}: "
+                             f"the network's output bound u_max - eps must stay positive")
+        self.V = as_certificate(V, "V")
+        self.H = _cbf_list(H)
+        self.k = k
+        if not (beta > 0 and kappa > 0):
+            raise ValueError(f"beta and kappa must be positive, got beta={beta!r}, kappa={kappa!r}")
+        self.beta, self.kappa = float(beta), float(kappa)
+        self.v_lo = as_vector(system.lo[n_z:] if v_lo is None else v_lo, m, "v_lo")
+        self.v_hi = as_vector(system.hi[n_z:] if v_hi is None else v_hi, m, "v_hi")
+        if np.any(self.v_lo >= self.v_hi):
+            raise ValueError(f"need v_lo < v_hi, got {self.v_lo} and {self.v_hi}")
+        self.penalty = (float(penalty[0]), float(penalty[1]))
+        self.time_limit, self.gap = time_limit, float(gap)
+        self.name = name or ("Lcost" if cost == "linear" else "Qcost")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if backend == "auto":
+            backend = "exact" if m == 1 else ("highs" if cost == "linear" else "scip")
+        self.backend = backend
+        self.solver_options = dict(solver_options or {})
+        if backend == "highs" and not self.solver_options:
+            # measured on the MSD programs: these two HiGHS features cost more than they save on
+            # programs with about ten free binaries
+            self.solver_options = dict(params=dict(mip_detect_symmetry=False,
+                                                   mip_heuristic_run_feasibility_jump=False))
+        if backend == "highs" and cost == "quadratic":
+            raise ValueError("HiGHS has no mixed-integer QP solver: for cost='quadratic' (Qcost) use "
+                             "backend='scip', 'exact' (single input) or 'cvxpy'")
+        if backend == "exact":
+            if m != 1:
+                raise ValueError(f"backend='exact' lists the pieces of Phi_NN(z, .) along a scalar v; this system "
+                                 f"has m = {m} inputs: use backend='highs', 'scip' or 'cvxpy'")
+            self._impl = _ExactBackend(self)
+        elif backend == "cvxpy":
+            self._impl = _CvxpyBackend(self, solver)
+        else:
+            self._impl = _MiqpBackend(self, backend)
+        self.history: list[StepResult] = []
+
+    # ------------------------------------------------------------- the data
+    @property
+    def p(self) -> int:
+        """Number of CBF conditions."""
+        return len(self.H)
+
+    def program_data(self, z: Array) -> dict:
+        """The ``z``-dependent coefficients of eq. (CLF_CBF), all affine in ``v``.
+
+        ``a_V^T v + b_V <= delta`` is (CLF_CBF_c) with ``a_V = B^T grad V(z)``,
+        ``b_V = grad V(z)^T A z + beta V(z)``; ``a_H v + b_H >= 0`` is
+        (CLF_CBF_d) with rows ``B^T grad H_j(z)`` and ``grad H_j(z)^T A z +
+        kappa H_j(z)``; the linear cost is ``a_V^T v + J_c`` with
+        ``J_c = grad V(z)^T A z``.
+        """
+        A, B = self.system.A, self.system.B
+        Az = A @ z
+        gV = self.V.grad(z)
+        Vz = self.V(z)
+        d = dict(V=Vz, aV=B.T @ gV, Jc=float(gV @ Az), bV=float(gV @ Az + self.beta * Vz))
+        if self.H:
+            gH = np.array([h.grad(z) for h in self.H])
+            Hz = np.array([h(z) for h in self.H])
+        else:
+            gH, Hz = np.zeros((0, len(z))), np.zeros(0)
+        d.update(H=Hz, aH=gH @ B, bH=gH @ Az + self.kappa * Hz)
+        d["k"] = (as_vector(self.k(z), self.system.m, "k(z)") if self.k is not None
+                  else np.zeros(self.system.m))
+        return d
+
+    def node_bounds(self, z: Array) -> NodeBounds:
+        """FBBT bounds with ``z`` fixed and ``v`` in its box: most neurons become stable."""
+        return fbbt(self.net, np.concatenate([z, self.v_lo]), np.concatenate([z, self.v_hi]))
+
+    # ------------------------------------------------------------ stepping
+    def reset(self) -> None:
+        """Forget the history (called by :func:`flnotes.simulate` at the start of a run)."""
+        self.history = []
+        if hasattr(self._impl, "reset"):
+            self._impl.reset()
+
+    def __call__(self, z: Array) -> Array:
+        """``v*(z)`` of eq. (CLF_CBF) (or the fallback); statistics in ``self.history[-1]``."""
+        return self.step(z, 0.0).v
+
+    def step(self, z: Array, t: float = 0.0, reference=None) -> StepResult:
+        """Solve eq. (CLF_CBF) at ``z``; see the class docstring for the result.
+
+        ``status`` is ``"optimal"``, ``"time_limit"`` (the solver's incumbent is
+        applied), ``"infeasible"`` or ``"error: ..."``; in the last two cases
+        ``fallback`` is True and ``info["fallback_rule"]`` says which rule gave
+        ``v``: ``"softened program"`` or ``"k(z) clipped to the v box"``.
+        """
+        t0, c0 = time.perf_counter(), time.thread_time()
+        z = as_vector(z, self.system.n_z, "z")
+        d = self.program_data(z)
+        try:
+            sol = self._impl.solve(z, d, soft=False)
+        except Exception as exc:  # a solver failure must not end a simulation
+            sol = _Solution(status=f"error: {type(exc).__name__}: {exc}")
+        status, fallback, rule, first = sol.status, False, None, sol
+        if sol.v is None or sol.status == "infeasible":
+            fallback, rule = True, "softened program"
+            try:
+                sol = self._impl.solve(z, d, soft=True)
+            except Exception as exc:
+                sol = _Solution(status=f"error: {type(exc).__name__}: {exc}")
+            if sol.v is None:
+                rule = "k(z) clipped to the v box"
+                sol = _Solution(status=sol.status, v=np.clip(d["k"], self.v_lo, self.v_hi), detail=sol.detail)
+        v = np.asarray(sol.v, float).reshape(self.system.m)
+        info = dict(backend=self.backend, objective=sol.objective, delta=sol.delta,
+                    phi_nn=self.net(np.concatenate([z, v])), V=d["V"], H=d["H"], solver_time=sol.solver_time,
+                    n_binaries=getattr(self._impl, "n_binaries", None), nodes=sol.nodes,
+                    slack_u=sol.slack_u, slack_H=sol.slack_H, detail=first.detail,
+                    z_in_domain=bool(self.system.in_domain(z)[0]))
+        if fallback:
+            info.update(fallback_rule=rule, fallback_detail=sol.detail)
+        info["cpu_time"] = time.thread_time() - c0
+        res = StepResult(v=v, status=status, solve_time=time.perf_counter() - t0, fallback=fallback, info=info)
+        self.history.append(res)
+        return res
+
+    def describe(self) -> str:
+        """A few lines on the program this controller solves and how it is held in memory."""
+        lines = [repr(self), f"  v in [{self.v_lo}, {self.v_hi}], |Phi_NN(z, v)| <= u_max^eps = {self.u_eps}"]
+        impl = self._impl
+        if isinstance(impl, _CvxpyBackend):
+            pr = impl.problem
+            nv = sum(int(np.prod(x.shape)) for x in pr.variables())
+            nb = sum(int(np.prod(x.shape)) for x in pr.variables() if x.attributes.get("boolean"))
+            lines.append(f"  cvxpy problem built once: {nv} scalar variables ({nb} binaries), "
+                         f"{len(pr.constraints)} constraint blocks, {len(pr.parameters())} parameters "
+                         f"({', '.join(sorted(p.name() for p in pr.parameters()))}); DPP: {pr.is_dpp()}; "
+                         f"solver {impl.solver}")
+        elif isinstance(impl, _MiqpBackend):
+            P = impl.problem
+            lines.append(f"  persistent {impl.backend} model: {P.n} variables ({int(P.integrality.sum())} binaries, "
+                         f"those of stable neurons fixed each step), {P.m} rows; updated in place each step")
+        else:
+            lines.append("  no model: the pieces of Phi_NN(z, .) are listed at each z and the cost minimized per interval")
+        return "\n".join(lines)
+
+    def with_backend(self, backend: str, **changes) -> "ClfCbfController":
+        """The same controller (same program) with another backend or other settings."""
+        kw = dict(self._kwargs, backend=backend, **changes)
+        if backend != self._kwargs["backend"] and "solver_options" not in changes:
+            kw["solver_options"] = None
+        return ClfCbfController(**kw)
+
+    def stats(self) -> dict:
+        """Counts and solve times (ms) over :attr:`history`."""
+        st = np.array([r.solve_time for r in self.history]) * 1e3
+        if not len(st):
+            return dict(steps=0)
+        return dict(steps=len(st), backend=self.backend,
+                    non_optimal=int(sum(r.status != "optimal" for r in self.history)),
+                    fallback=int(sum(r.fallback for r in self.history)),
+                    ms_min=float(st.min()), ms_median=float(np.median(st)), ms_max=float(st.max()),
+                    ms_mean=float(st.mean()))
+
+    def __repr__(self) -> str:
+        return (f"ClfCbfController({self.name}: cost={self.cost!r}, backend={self.backend!r}, "
+                f"eps={self.eps.tolist()}, beta={self.beta}, kappa={self.kappa}, {self.p} CBF)")
+
+
+# ---------------------------------------------------------------------------
+# Backends
+# ---------------------------------------------------------------------------
+class _ExactBackend:
+    """Single input: list the pieces of Phi_NN(z, .) and minimize in closed form."""
+
+    n_binaries = 0
+
+    def __init__(self, c: ClfCbfController):
+        self.c = c
+
+    def solve(self, z: Array, d: dict, soft: bool) -> _Solution:
+        c = self.c
+        t0 = time.perf_counter()
+        pw = network_pieces_1d(c.net, z, c.v_lo[0], c.v_hi[0])
+        out = solve_exact_1d(pw, d, c.cost, float(c.u_eps[0]), soft=soft, rho=c.penalty)
+        dt = time.perf_counter() - t0
+        if out is None:
+            return _Solution(status="infeasible", solver_time=dt, detail=f"{pw.n_pieces} pieces, empty feasible set")
+        v, delta, obj = out
+        sol = _Solution(status="optimal", v=np.array([v]), delta=delta, objective=obj, solver_time=dt,
+                        detail=f"{pw.n_pieces} pieces")
+        if soft:
+            sol.slack_u = np.maximum(0.0, np.abs(pw(np.array([v]))) - c.u_eps)
+            sol.slack_H = np.maximum(0.0, -(d["aH"][:, 0] * v + d["bH"]))
+        return sol
+
+
+_CVXPY_STATUS = {"optimal": "optimal", "optimal_inaccurate": "optimal", "infeasible": "infeasible",
+                 "infeasible_inaccurate": "infeasible", "user_limit": "time_limit",
+                 "unbounded": "error: unbounded", "infeasible_or_unbounded": "infeasible"}
+
+
+class _CvxpyBackend:
+    """The teaching form: cvxpy with Parameters, built once (DPP), re-solved each step."""
+
+    def __init__(self, c: ClfCbfController, solver: Optional[str] = None):
+        import cvxpy as cp
+
+        self.c = c
+        sysm, net = c.system, c.net
+        n_z, m, p = sysm.n_z, sysm.m, c.p
+        from .encoding import encode
+
+        self.z = cp.Parameter(n_z, name="z")
+        self.aV = cp.Parameter(m, name="a_V")
+        self.bV = cp.Parameter(name="b_V")
+        self.Jc = cp.Parameter(name="J_c")
+        self.kz = cp.Parameter(m, name="k_z")
+        self.L = [cp.Parameter(n, name=f"L{i + 1}") for i, n in enumerate(net.widths)]
+        self.U = [cp.Parameter(n, name=f"U{i + 1}") for i, n in enumerate(net.widths)]
+        self.cap_u = cp.Parameter(m, nonneg=True, name="cap_u")
+        self.v = cp.Variable(m, name="v")
+        self.delta = cp.Variable(nonneg=True, name="delta")
+        self.s_u = cp.Variable(m, nonneg=True, name="s_u")
+        self.enc = encode(net, cp.hstack([self.z, self.v]), L=self.L, U=self.U)
+        y = self.enc.output
+        cons = list(self.enc.constraints) + [
+            y <= c.u_eps + self.s_u, -y <= c.u_eps + self.s_u, self.s_u <= self.cap_u,   # (CLF_CBF_b)
+            self.v >= c.v_lo, self.v <= c.v_hi,
+            self.aV @ self.v + self.bV <= self.delta,                                  # (CLF_CBF_c)
+        ]
+        obj = self.delta + c.penalty[0] * cp.sum(self.s_u)
+        if p:
+            self.aH = cp.Parameter((p, m), name="a_H")
+            self.bH = cp.Parameter(p, name="b_H")
+            self.cap_H = cp.Parameter(p, nonneg=True, name="cap_H")
+            self.s_H = cp.Variable(p, nonneg=True, name="s_H")
+            cons += [self.aH @ self.v + self.bH + self.s_H >= 0, self.s_H <= self.cap_H]  # (CLF_CBF_d)
+            obj = obj + c.penalty[1] * cp.sum(self.s_H)
+        J = self.aV @ self.v + self.Jc if c.cost == "linear" else cp.sum_squares(self.v - self.kz)
+        self.problem = cp.Problem(cp.Minimize(J + obj), cons)
+        if not self.problem.is_dpp():
+            raise RuntimeError("the CLF-CBF program is not DPP: cvxpy would recompile it each step")
+        self.solver = solver or ("HIGHS" if c.cost == "linear" else "SCIP")
+        self.n_binaries = self.enc.n_binaries
+        self.big = 1e4
+
+    def _opts(self) -> dict:
+        tl = self.c.time_limit
+        if self.solver == "HIGHS":
+            # presolve off: see flnotes.miqp.HighsSolver (HiGHS's MIP presolve can return sub-optimal points)
+            o = dict(mip_rel_gap=1e-9, mip_abs_gap=1e-10, mip_feasibility_tolerance=1e-9,
+                     primal_feasibility_tolerance=1e-9, presolve="off")
+            if tl is not None:
+                o["time_limit"] = float(tl)
+            return o
+        if self.solver == "SCIP":
+            sp = {"limits/gap": 1e-9, "limits/absgap": 1e-10, "numerics/feastol": 1e-9}
+            if tl is not None:
+                sp["limits/time"] = float(tl)
+            return dict(scip_params=sp)
+        return {}
+
+    def solve(self, z: Array, d: dict, soft: bool) -> _Solution:
+        c = self.c
+        b = c.node_bounds(z)
+        self.z.value = z
+        for P, a in zip(self.L, b.L):
+            P.value = a
+        for P, a in zip(self.U, b.U):
+            P.value = a
+        self.aV.value, self.bV.value, self.Jc.value, self.kz.value = d["aV"], d["bV"], d["Jc"], d["k"]
+        self.cap_u.value = np.full(c.system.m, self.big if soft else 0.0)
+        if c.p:
+            self.aH.value, self.bH.value = d["aH"], d["bH"]
+            self.cap_H.value = np.full(c.p, self.big if soft else 0.0)
+        self.problem.solve(solver=self.solver, **self._opts())
+        raw = self.problem.status
+        st = _CVXPY_STATUS.get(raw, f"error: {raw}")
+        stats = self.problem.solver_stats
+        sol = _Solution(status=st, solver_time=float(stats.solve_time or np.nan), detail=f"cvxpy/{self.solver}: {raw}")
+        if self.v.value is not None and st in ("optimal", "time_limit"):
+            sol.v, sol.delta = np.array(self.v.value, float), float(self.delta.value)
+            sol.objective = float(self.problem.value)
+            sol.slack_u = np.array(self.s_u.value, float)
+            sol.slack_H = np.array(self.s_H.value, float) if c.p else np.zeros(0)
+        return sol
+
+
+class _MiqpBackend:
+    """A persistent solver model through :mod:`flnotes.miqp`, built once, updated in place each step.
+
+    Variables ``w = [BigMForm's w (x = [z, v], ybar, yund, alpha, ..., y^K) | delta | s_u (m) | s_H (p)]``.
+    Rows: eq. (MIP_general) from :func:`flnotes.bigm_form`, ``+-y^K - s_u <= u_max^eps``
+    (CLF_CBF_b), ``a_V^T v - delta <= -b_V`` (CLF_CBF_c), ``-a_H v - s_H <= b_H`` (CLF_CBF_d).
+    ``z`` enters through ``lb = ub``; the slacks are fixed to 0 except in the softened program.
+
+    Each step the big-M coefficients are rewritten from FBBT bounds with ``z`` fixed, exactly as
+    :meth:`flnotes.BigMForm.update` does (``-max(U, 0)`` and ``-min(L, 0)`` on ``alpha``, the
+    bounds of ``ybar``, ``yund``, and ``alpha`` fixed for stable neurons, so they cost no
+    branching), but written straight into the constraint matrix's data array at precomputed
+    positions: the model's sparsity never changes.
+    """
+
+    def __init__(self, c: ClfCbfController, backend: str):
+        from .encoding import bigm_form
+        from .miqp import MIQP, make_solver
+
+        self.c = c
+        net, m, p = c.net, c.system.m, c.p
+        n_z = c.system.n_z
+        # the structure, with every big-M coefficient present (placeholder bounds -1 <= pre <= 1)
+        ones = [np.ones(n) for n in net.widths]
+        self.form = F = bigm_form(net, NodeBounds([-o for o in ones], ones, np.zeros(net.n_out), np.zeros(net.n_out)))
+        nf = F.n
+        self.i_delta = nf
+        self.i_su = nf + 1 + np.arange(m)
+        self.i_sH = nf + 1 + m + np.arange(p)
+        self.i_z, self.i_v = F.x[:n_z], F.x[n_z:]
+        n = nf + 1 + m + p
+        pad = lambda M: sp.hstack([sp.csr_matrix(M), sp.csr_matrix((M.shape[0], n - nf))], format="csr")
+        out_rows = sp.lil_matrix((2 * m, n))
+        for i in range(m):
+            out_rows[i, F.out[i]], out_rows[i, self.i_su[i]] = 1.0, -1.0
+            out_rows[m + i, F.out[i]], out_rows[m + i, self.i_su[i]] = -1.0, -1.0
+        dyn = sp.lil_matrix((1 + p, n))
+        dyn[0, self.i_v] = 1.0          # placeholders: a_V and a_H change with z
+        dyn[0, self.i_delta] = -1.0
+        for j in range(p):
+            dyn[1 + j, self.i_v] = 1.0
+            dyn[1 + j, self.i_sH[j]] = -1.0
+        A = sp.vstack([pad(F.A_eq), pad(F.A_ub), out_rows.tocsr(), dyn.tocsr()], format="csr")
+        A.sort_indices()
+        n_eq, n_ub = F.A_eq.shape[0], F.A_ub.shape[0]
+        r_ub = n_eq + np.arange(n_ub)
+        self.r_clf = n_eq + n_ub + 2 * m
+        self.r_cbf = self.r_clf + 1 + np.arange(p)
+
+        def pos(rows, cols):
+            rows, cols = np.broadcast_arrays(np.asarray(rows), np.asarray(cols))
+            out = np.empty(rows.shape, int)
+            for idx, (r, col) in enumerate(zip(rows.ravel(), cols.ravel())):
+                s0, s1 = A.indptr[r], A.indptr[r + 1]
+                k = s0 + int(np.searchsorted(A.indices[s0:s1], col))
+                if k >= s1 or A.indices[k] != col:
+                    raise RuntimeError("internal: entry missing from the model's sparsity pattern")
+                out.flat[idx] = k
+            return out
+
+        alpha = np.concatenate(F.alpha)
+        self.rU = r_ub[np.concatenate(F.ub_rows_U)]
+        self.rL = r_ub[np.concatenate(F.ub_rows_L)]
+        self.pU, self.pL = pos(self.rU, alpha), pos(self.rL, alpha)
+        self.p_clf = pos(np.full(m, self.r_clf), self.i_v)
+        self.p_cbf = pos(np.repeat(self.r_cbf, m), np.tile(self.i_v, p)).reshape(p, m)
+        self.i_alpha, self.i_ybar, self.i_yund = alpha, np.concatenate(F.ybar), np.concatenate(F.yund)
+        self._A = A
+        rl = np.concatenate([F.b_eq, np.full(n_ub + 2 * m + 1 + p, -np.inf)])
+        self.ru = np.concatenate([F.b_eq, F.b_ub, np.tile(c.u_eps, 2), [0.0], np.zeros(p)])
+        self.lb = np.concatenate([F.lb, [0.0], np.zeros(m + p)])
+        self.ub = np.concatenate([F.ub, [np.inf], np.zeros(m + p)])
+        self.lb[self.i_z], self.ub[self.i_z] = 0.0, 0.0
+        self.lb[self.i_v], self.ub[self.i_v] = c.v_lo, c.v_hi
+        integ = np.concatenate([F.integrality, np.zeros(1 + m + p, int)])
+        self.cvec = np.zeros(n)
+        self.cvec[self.i_delta] = 1.0
+        self.cvec[self.i_su], self.cvec[self.i_sH] = c.penalty[0], c.penalty[1]
+        Hq = None
+        if c.cost == "quadratic":
+            Hq = sp.csc_matrix((np.full(m, 2.0), (self.i_v, self.i_v)), shape=(n, n))
+        self.problem = MIQP(Hq, self.cvec, 0.0, A, rl, self.ru, self.lb, self.ub, integ)
+        self.backend = backend
+        self.solver = make_solver(self.problem, backend=backend, **c.solver_options)
+        self.n_binaries = None
+
+    def write(self, z: Array, d: dict, bounds: NodeBounds, soft: bool) -> dict:
+        """The new numbers of the program at ``z`` (keyword arguments of ``Solver.update``)."""
+        c = self.c
+        L = np.concatenate([np.asarray(a, float) for a in bounds.L])
+        U = np.concatenate([np.asarray(a, float) for a in bounds.U])
+        Up, Lm = np.maximum(U, 0.0), np.minimum(L, 0.0)
+        data = self._A.data.copy()
+        data[self.pU], data[self.pL] = -Up, -Lm           # ybar - U alpha <= 0,  yund - L alpha <= -L
+        data[self.p_clf] = d["aV"]                          # a_V^T v - delta <= -b_V
+        data[self.p_cbf] = -d["aH"]                         # -a_H v - s_H <= b_H
+        A = sp.csr_matrix((data, self._A.indices, self._A.indptr), shape=self._A.shape)
+        ru, lb, ub = self.ru.copy(), self.lb.copy(), self.ub.copy()
+        ru[self.rL] = -Lm
+        ru[self.r_clf] = -d["bV"]
+        ru[self.r_cbf] = d["bH"]
+        ub[self.i_ybar], ub[self.i_yund] = Up, -Lm
+        lb[self.i_alpha], ub[self.i_alpha] = np.where(L >= 0, 1.0, 0.0), np.where(U <= 0, 0.0, 1.0)
+        lb[self.i_z], ub[self.i_z] = z, z
+        cap = np.inf if soft else 0.0
+        ub[self.i_su], ub[self.i_sH] = cap, cap
+        cvec = self.cvec.copy()
+        if c.cost == "linear":
+            cvec[self.i_v], c0 = d["aV"], d["Jc"]
+        else:
+            cvec[self.i_v], c0 = -2.0 * d["k"], float(d["k"] @ d["k"])
+        self.n_binaries = int(np.sum((L < 0) & (U > 0)))
+        return dict(c=cvec, c0=c0, ru=ru, lb=lb, ub=ub, A=A)
+
+    def solve(self, z: Array, d: dict, soft: bool) -> _Solution:
+        c = self.c
+        self.solver.update(**self.write(z, d, c.node_bounds(z), soft))
+        r = self.solver.solve(time_limit=c.time_limit, gap=c.gap)
+        st = r.status if r.status != "error" else f"error: {r.backend}: {r.message}"
+        sol = _Solution(status=st, solver_time=r.time, detail=f"{r.backend}: {r.message}", nodes=r.nodes)
+        if r.w is not None and r.status in ("optimal", "time_limit"):
+            w = r.w
+            sol.v, sol.delta, sol.objective = w[self.i_v].copy(), float(w[self.i_delta]), float(r.objective)
+            sol.slack_u, sol.slack_H = w[self.i_su].copy(), w[self.i_sH].copy()
+        return sol
+
+
+# ---------------------------------------------------------------------------
+# Checks and tables from a run
+# ---------------------------------------------------------------------------
+def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
+    """The chapter's checks, computed from a closed-loop run.
+
+    Parameters
+    ----------
+    log
+        A run of :func:`flnotes.simulate`.
+    H
+        The CBF (or list of CBFs) whose minimum along the run is reported.
+
+    Returns
+    -------
+    dict
+        ``max_abs_u`` (true plant, at samples and between them) vs ``u_max``,
+        ``max_abs_u_nn`` vs ``u_max^eps`` when logged, ``min_H`` at samples and
+        along the integrated trajectory, the final ``||z||``, and the counts of
+        non-optimal and fallback steps.
+    """
+    s = log.summary()
+    out = dict(steps=s["steps"], u_max=s["u_max"][0] if len(s["u_max"]) == 1 else s["u_max"],
+               max_abs_u=max(s["max_abs_u_samples"]) if s["steps"] else np.nan,
+               max_abs_u_between=max(s["max_abs_u_between"]) if s["steps"] else np.nan,
+               final_norm_z=s["final_norm_z"], non_optimal_steps=s["non_optimal_steps"],
+               fallback_steps=s["fallback_steps"], left_domain_steps=s["left_domain_steps"], message=s["message"])
+    if log.u_nn is not None and s["steps"]:
+        out["max_abs_u_nn"] = float(np.abs(log.u_nn).max())
+    if H is not None:
+        Hs = _cbf_list(H)
+        Z = log.z
+        Zf = np.vstack([log.z_fine, log.z[-1:]]) if len(log.z_fine) else Z
+        out["min_H"] = float(min(np.min(h(Z)) for h in Hs))
+        out["min_H_between"] = float(min(np.min(h(Zf)) for h in Hs))
+    return out
+
+
+def chapter_eps(name: str = "MSD") -> tuple[Array, str]:
+    """The error bound ``eps`` of eq. (approx_err) that the controller uses, and where it comes from.
+
+    The certified upper bound ``flnotes.paper.paper_eps(name).upper`` when the
+    certification is available, else the value of the paper's Table 1.
+    """
+    from . import paper
+
+    if hasattr(paper, "paper_eps"):
+        return np.atleast_1d(np.asarray(paper.paper_eps(name).upper, float)), "certified upper bound"
+    return np.atleast_1d(float(paper.TABLE1[name]["eps"])), "the paper's Table 1"
+
+
+def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
+    """Re-solve the program at every sampled state of a run with the exact 1-D method and compare.
+
+    Parameters
+    ----------
+    controller
+        The controller that produced ``log`` (single input).
+    log
+        Its run; ``log.steps[i].info["objective"]`` is compared with the exact
+        optimum at ``log.z[i]`` (of the softened program at fallback steps,
+        which both methods solve alike).
+
+    Returns
+    -------
+    dict
+        ``max_abs_diff`` and ``max_rel_diff`` (``|J - J_exact| / max(1, |J_exact|)``)
+        of the optimal values, ``max_v_diff``, ``steps``, and the exact
+        method's per-step times (ms) ``exact_ms_min/median/max/mean``.
+    """
+    ex = controller.with_backend("exact")
+    J, Jx, v, vx, t = [], [], [], [], []
+    for z, r in zip(log.z[:-1], log.steps):
+        if "objective" not in r.info or not np.isfinite(r.info["objective"]):
+            continue
+        rx = ex.step(z)
+        J.append(r.info["objective"]), Jx.append(rx.info["objective"])
+        v.append(r.v), vx.append(rx.v), t.append(rx.solve_time)
+    J, Jx, t = np.array(J), np.array(Jx), np.array(t) * 1e3
+    d = np.abs(J - Jx)
+    return dict(steps=len(J), max_abs_diff=float(d.max()) if len(d) else np.nan,
+                max_rel_diff=float((d / np.maximum(1.0, np.abs(Jx))).max()) if len(d) else np.nan,
+                max_v_diff=float(np.abs(np.array(v) - np.array(vx)).max()) if len(d) else np.nan,
+                exact_ms_min=float(t.min()), exact_ms_median=float(np.median(t)),
+                exact_ms_max=float(t.max()), exact_ms_mean=float(t.mean()))
+
+
+class TableRows(list):
+    """A list of row dicts that Jupyter shows as an HTML table (numbers to 4 significant digits)."""
+
+    def _repr_html_(self) -> str:
+        cols: list[str] = []
+        for r in self:
+            cols += [c for c in r if c not in cols]
+
+        def fmt(x) -> str:
+            if x is None or (isinstance(x, float) and not np.isfinite(x)):
+                return ""
+            return f"{x:.4g}" if isinstance(x, (float, np.floating)) else str(x)
+
+        head = "".join(f"<th>{c}</th>" for c in cols)
+        body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in self)
+        return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def solve_time_table(logs: dict, system: str = "MSD") -> "TableRows":
+    """Table 2's rows: min / median / max / mean solve time (ms) per controller, beside the paper's.
+
+    Parameters
+    ----------
+    logs
+        ``{controller name: SimLog}``, e.g. ``{"Lcost": ..., "Qcost": ..., "k(z)": ...}``.
+    system
+        The paper's system name for the reference rows of ``flnotes.paper.TABLE2_MS``.
+    """
+    from .paper import TABLE2_MS
+
+    rows = TableRows()
+    for name, log in logs.items():
+        st = log.solve_time[np.isfinite(log.solve_time)] * 1e3
+        cpu = np.array([r.info.get("cpu_time", np.nan) for r in log.steps], float) * 1e3
+        ref = TABLE2_MS.get((system, name), {})
+        backend = log.steps[0].info.get("backend", "numpy") if log.steps else ""
+        rows.append(dict(controller=name, backend=backend, steps=len(log.solve_time),
+                         min=float(st.min()), median=float(np.median(st)), max=float(st.max()), mean=float(st.mean()),
+                         cpu_median=float(np.nanmedian(cpu)) if np.isfinite(cpu).any() else None,
+                         paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
+    return rows

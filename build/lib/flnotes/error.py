@@ -1,0 +1,859 @@
+"""The approximation error bound ``eps`` of eq. (approx_err): estimate it, then certify it.
+
+Proposition 1 of the paper guarantees ``|Phi(z, v)| <= u_max`` from
+``|Phi_NN(z, v)| <= u_max^eps = u_max - eps`` only if
+
+    eps_i >= max_{(z, v) in Z} |Phi_i(z, v) - Phi_NN,i(z, v)|        (eq. epsilon_find)
+
+holds over the whole domain ``Z``. Two kinds of tools live here:
+
+* **estimates** (lower bounds on the maximum): the paper's particle swarm
+  search :func:`pso_max_error`, and for comparison a dense grid
+  (:func:`grid_max_error`), uniform random samples (:func:`sample_max_error`)
+  and SciPy's differential evolution (:func:`de_max_error`). Each returns an
+  :class:`ErrorEstimate`: a point where the error is large, hence a value the
+  true maximum is *at least*;
+* **a certificate** (an upper bound): :func:`certify_error` runs branch and
+  bound over sub-boxes with rigorous, outward-rounded interval enclosures
+  (:mod:`flnotes.interval`) and returns an :class:`ErrorBracket`
+  ``lower <= max |Phi - Phi_NN| <= upper``. The book uses ``upper`` as ``eps``
+  in ``u_max^eps = u_max - eps`` everywhere downstream.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional, Sequence, Union
+
+import numpy as np
+
+from . import interval as iv
+from ._checks import as_batch, check_box
+from .interval import Interval, NotCertifiable
+from .network import ReLUNet, uniform_grid
+from .systems import FLSystem
+
+Array = np.ndarray
+
+__all__ = ["ErrorEstimate", "ErrorBracket", "NotCertifiable", "pso_max_error", "sample_max_error",
+           "grid_max_error", "de_max_error", "certify_error", "error_function", "worst_violation", "local_max_error",
+           "table1_rows", "architecture_sweep", "estimates_table", "enclosure_widths"]
+
+
+# ============================================================================ results
+@dataclass
+class ErrorEstimate:
+    """A point estimate of ``eps_i = max |Phi_i - Phi_NN,i|`` (eq. epsilon_find): a lower bound.
+
+    Attributes
+    ----------
+    method
+        ``"pso"``, ``"grid"``, ``"sample"``, ``"de"`` or ``"local"``.
+    eps
+        Largest error found per output, shape (m,).
+    argmax
+        Where it was found, shape (m, n_in) (row i for output i).
+    n_evals
+        Number of evaluations of ``Phi`` and the network.
+    time_s
+        Wall-clock time.
+    history
+        Best error after each iteration, shape (m, n_iter) (PSO, DE), or ``None``.
+    settings
+        The parameters used.
+    swarm, swarm_best
+        PSO with ``record=True``: particle positions per iteration for output
+        0, shape (n_iter + 1, n_particles, n_in), and the swarm's best point
+        per iteration, (n_iter + 1, n_in).
+    """
+
+    method: str
+    eps: Array
+    argmax: Array
+    n_evals: int
+    time_s: float
+    history: Optional[Array] = None
+    settings: dict = field(default_factory=dict)
+    swarm: Optional[Array] = None
+    swarm_best: Optional[Array] = None
+
+    def __str__(self) -> str:
+        return (f"{self.method}: max |Phi - Phi_NN| >= {np.array2string(self.eps, precision=4)} "
+                f"({self.n_evals:,} evaluations, {self.time_s:.2f} s)")
+
+
+@dataclass
+class ErrorBracket:
+    """A certified bracket ``lower <= max_Z |Phi_i - Phi_NN,i| <= upper`` per output.
+
+    Attributes
+    ----------
+    lower
+        Rigorous lower bound, shape (m,): ``|Phi - Phi_NN|`` at ``argmax``
+        (evaluated with interval arithmetic, so rounding cannot inflate it).
+    upper
+        Rigorous upper bound, shape (m,): use it as ``eps`` in
+        ``u_max^eps = u_max - eps`` (eq. Phi_NN_ep).
+    argmax
+        Point attaining ``lower``, shape (m, n_in).
+    n_boxes
+        Sub-boxes evaluated per output, shape (m,).
+    converged
+        Whether ``upper - lower`` reached the requested width, shape (m,).
+    time_s
+        Wall-clock time per output, shape (m,).
+    rtol, atol
+        Requested width: ``upper - lower <= max(atol, rtol * lower)``.
+    method
+        How ``Phi`` was enclosed (``"interval"`` or ``"lipschitz"``).
+    partition
+        Optional final partition per output: a dict of arrays ``lo``, ``hi``
+        (n_leaves, n_in) and ``ub`` (the leaf's upper bound), kept with
+        ``keep_partition=True`` for plots.
+    history
+        Per output, an array of rows ``(boxes evaluated, lower, upper)`` after
+        each branch-and-bound round.
+    """
+
+    lower: Array
+    upper: Array
+    argmax: Array
+    n_boxes: Array
+    converged: Array
+    time_s: Array
+    rtol: float
+    atol: float
+    method: str = "interval"
+    partition: Optional[list] = None
+    history: Optional[list] = None
+
+    @property
+    def eps(self) -> Array:
+        """The certified error bound to use downstream: ``upper``."""
+        return self.upper
+
+    @property
+    def width(self) -> Array:
+        """``upper - lower``, shape (m,)."""
+        return self.upper - self.lower
+
+    def __str__(self) -> str:
+        rows = [f"output {i}: {lo:.5f} <= max |Phi - Phi_NN| <= {up:.5f} (width {up - lo:.2g}, "
+                f"{n:,} boxes, {t:.1f} s{'' if c else ', NOT converged'})"
+                for i, (lo, up, n, t, c) in enumerate(zip(self.lower, self.upper, self.n_boxes, self.time_s, self.converged))]
+        return "certified bracket (" + self.method + "):\n  " + "\n  ".join(rows)
+
+
+# ============================================================================ input handling
+def _resolve(f, net: ReLUNet, lo, hi) -> tuple[Callable[[Array], Array], Array, Array]:
+    """``f`` on stacked inputs with shape checks, and the checked box."""
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if isinstance(f, FLSystem):
+        lo = f.lo if lo is None else lo
+        hi = f.hi if hi is None else hi
+        raw = f.phi_stacked
+        name = f"{f.name}.Phi"
+    elif callable(f):
+        raw, name = f, getattr(f, "__name__", "f")
+    else:
+        raise TypeError(f"f must be a callable (N, n_in) -> (N, m) or an FLSystem, got {type(f).__name__}")
+    if lo is None or hi is None:
+        raise ValueError("give the box lo, hi (shape (n_in,)) over which to bound the error")
+    lo, hi = check_box(lo, hi, net.n_in, "lo", "hi")
+    m = net.n_out
+
+    def fun(X: Array) -> Array:
+        Y = np.asarray(raw(X), float)
+        if Y.ndim == 1 and m == 1 and Y.shape[0] == len(X):
+            Y = Y[:, None]
+        if Y.shape != (len(X), m):
+            raise ValueError(f"{name} returned shape {Y.shape} for {len(X)} input points; expected ({len(X)}, {m}) "
+                             f"(one row per point, one column per network output)")
+        return Y
+
+    return fun, lo, hi
+
+
+def error_function(f, net: ReLUNet, lo=None, hi=None) -> Callable[[Array], Array]:
+    """The cost of eq. (epsilon_find): ``X (N, n_in) -> |Phi(X) - Phi_NN(X)|`` of shape (N, m)."""
+    fun, _, _ = _resolve(f, net, lo, hi)
+    return lambda X: np.abs(fun(X) - net(X))
+
+
+def _best(X: Array, E: Array) -> tuple[Array, Array]:
+    k = E.argmax(0)
+    return E[k, np.arange(E.shape[1])], X[k]
+
+
+# ============================================================================ estimates
+def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n_particles: int = 100,
+                  n_iter: int = 300, seed: int = 0, inertia: float = 0.7298, c_cognitive: float = 1.49618,
+                  c_social: float = 1.49618, v_max: float = 0.2, record: bool = False) -> ErrorEstimate:
+    """Particle swarm search for ``max |Phi_i - Phi_NN,i|`` over a box (Sec. III-A.3, eq. epsilon_find).
+
+    The paper's derivative-free estimator (Kennedy & Eberhart 1995): a swarm
+    of candidate points moves through the box; each particle is pulled toward
+    the best point it has seen itself and the best point any particle has
+    seen, so the swarm explores first and then contracts around a large error.
+    The result is a point where the error is large: a *lower* bound on the
+    true maximum, not a guarantee (see :func:`certify_error`).
+
+    Parameters
+    ----------
+    f
+        ``Phi`` on stacked inputs, (N, n_in) -> (N, m), or an :class:`FLSystem`
+        (then ``lo``, ``hi`` default to its domain box).
+    net
+        The network ``Phi_NN``.
+    lo, hi
+        The box ``Z``, shape (n_in,).
+    n_particles, n_iter
+        Swarm size and number of moves.
+    seed
+        Seed of the initial swarm and of the random pulls.
+    inertia, c_cognitive, c_social
+        The velocity update ``w v + c1 r1 (p_best - x) + c2 r2 (g_best - x)``;
+        the defaults are Clerc's constriction values, a standard stable choice.
+    v_max
+        Largest step per move, as a fraction of the box size.
+    record
+        Keep the particle positions of every iteration (for output 0), for
+        :func:`flnotes.plots.pso_swarm`.
+
+    Returns
+    -------
+    ErrorEstimate
+        ``eps`` (m,), ``argmax`` (m, n_in) and the best value per iteration in
+        ``history`` (m, n_iter + 1).
+    """
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    if n_particles < 2 or n_iter < 1:
+        raise ValueError(f"need n_particles >= 2 and n_iter >= 1, got {n_particles} and {n_iter}")
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    n, m = net.n_in, net.n_out
+    step_max = v_max * (hi - lo)
+    eps, argmax, history = np.zeros(m), np.zeros((m, n)), np.zeros((m, n_iter + 1))
+    for i in range(m):  # one swarm per output: eq. (epsilon_find) is a separate maximization for each i
+
+        def cost(X: Array) -> Array:
+            return np.abs(fun(X)[:, i] - net(X)[:, i])
+
+        x = rng.uniform(lo, hi, (n_particles, n))                   # positions
+        vel = rng.uniform(-1.0, 1.0, (n_particles, n)) * step_max   # velocities
+        p_best, p_cost = x.copy(), cost(x)                          # each particle's best so far
+        g = p_cost.argmax()
+        g_best, g_cost = p_best[g].copy(), p_cost[g]                # the swarm's best so far
+        history[i, 0] = g_cost
+        trail = [(x.copy(), g_best.copy())] if (record and i == 0) else None
+        for k in range(n_iter):
+            r1, r2 = rng.random((2, n_particles, n))
+            vel = inertia * vel + c_cognitive * r1 * (p_best - x) + c_social * r2 * (g_best - x)
+            vel = np.clip(vel, -step_max, step_max)
+            x = np.clip(x + vel, lo, hi)                            # stay inside the box Z
+            c = cost(x)
+            better = c > p_cost
+            p_best[better], p_cost[better] = x[better], c[better]
+            g = p_cost.argmax()
+            if p_cost[g] > g_cost:
+                g_best, g_cost = p_best[g].copy(), p_cost[g]
+            history[i, k + 1] = g_cost
+            if trail is not None:
+                trail.append((x.copy(), g_best.copy()))
+        eps[i], argmax[i] = g_cost, g_best
+        if trail is not None:
+            swarm, swarm_best = np.array([t[0] for t in trail]), np.array([t[1] for t in trail])
+    return ErrorEstimate("pso", eps, argmax, m * n_particles * (n_iter + 1), time.perf_counter() - t0, history,
+                         dict(n_particles=n_particles, n_iter=n_iter, seed=seed, inertia=inertia,
+                              c_cognitive=c_cognitive, c_social=c_social, v_max=v_max),
+                         swarm if record else None, swarm_best if record else None)
+
+
+def sample_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n: int = 100_000,
+                     seed: int = 0, chunk: int = 200_000) -> ErrorEstimate:
+    """Largest error over ``n`` uniform random points of the box (a lower bound on eq. epsilon_find)."""
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    eps, argmax = np.full(net.n_out, -np.inf), np.zeros((net.n_out, net.n_in))
+    for start in range(0, n, chunk):
+        X = rng.uniform(lo, hi, (min(chunk, n - start), net.n_in))
+        e, a = _best(X, np.abs(fun(X) - net(X)))
+        upd = e > eps
+        eps[upd], argmax[upd] = e[upd], a[upd]
+    return ErrorEstimate("sample", eps, argmax, n, time.perf_counter() - t0, settings=dict(n=n, seed=seed))
+
+
+def grid_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None,
+                   n_per_axis: Union[int, tuple] = 41, chunk: int = 200_000) -> ErrorEstimate:
+    """Largest error on a uniform grid with ``n_per_axis`` points per axis (a lower bound on eq. epsilon_find)."""
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    t0 = time.perf_counter()
+    X = uniform_grid(lo, hi, n_per_axis)
+    eps, argmax = np.full(net.n_out, -np.inf), np.zeros((net.n_out, net.n_in))
+    for start in range(0, len(X), chunk):
+        e, a = _best(X[start:start + chunk], np.abs(fun(X[start:start + chunk]) - net(X[start:start + chunk])))
+        upd = e > eps
+        eps[upd], argmax[upd] = e[upd], a[upd]
+    return ErrorEstimate("grid", eps, argmax, len(X), time.perf_counter() - t0, settings=dict(n_per_axis=n_per_axis))
+
+
+def de_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, seed: int = 0,
+                 maxiter: int = 300, popsize: int = 30, tol: float = 1e-10) -> ErrorEstimate:
+    """SciPy's differential evolution on ``-|Phi_i - Phi_NN,i|`` (a cross-check of :func:`pso_max_error`).
+
+    Vectorized population evaluation, no gradient polishing (the cost is not
+    differentiable at the network's kinks).
+    """
+    from scipy.optimize import differential_evolution
+
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    t0 = time.perf_counter()
+    m = net.n_out
+    eps, argmax, hist, count = np.zeros(m), np.zeros((m, net.n_in)), [], [0]
+    for i in range(m):
+        best = []
+
+        def neg(Xt: Array) -> Array:  # DE passes candidates as columns: (n_in, S)
+            X = np.atleast_2d(Xt.T)
+            count[0] += len(X)
+            return -np.abs(fun(X)[:, i] - net(X)[:, i])
+
+        res = differential_evolution(neg, list(zip(lo, hi)), seed=seed, maxiter=maxiter, popsize=popsize, tol=tol,
+                                     polish=False, vectorized=True, updating="deferred",
+                                     callback=lambda intermediate_result: best.append(-intermediate_result.fun))
+        eps[i], argmax[i] = -res.fun, res.x
+        hist.append(best)
+    L = max(len(h) for h in hist)
+    history = np.array([h + [h[-1]] * (L - len(h)) if h else [np.nan] * L for h in hist])
+    return ErrorEstimate("de", eps, argmax, count[0], time.perf_counter() - t0, history,
+                         dict(seed=seed, maxiter=maxiter, popsize=popsize, tol=tol))
+
+
+def local_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n_starts: int = 20,
+                    seed: int = 0, output: int = 0) -> ErrorEstimate:
+    """Gradient-based local ascent of ``|Phi_i - Phi_NN,i|`` (L-BFGS-B) from random starts.
+
+    Shows why the paper avoids gradient methods for eq. (epsilon_find): the
+    cost is not differentiable at the network's kinks and has many local
+    maxima, so each start stops somewhere else. ``history`` holds the final
+    value of every start (shape (1, n_starts), sorted, for ``output``).
+    """
+    from scipy.optimize import minimize
+
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    n_evals, finals, points = 0, [], []
+
+    def neg(x: Array) -> float:
+        X = x[None, :]
+        return -float(np.abs(fun(X)[0, output] - net(X)[0, output]))
+
+    for x0 in rng.uniform(lo, hi, (n_starts, net.n_in)):
+        res = minimize(neg, x0, method="L-BFGS-B", bounds=list(zip(lo, hi)))
+        finals.append(-res.fun)
+        points.append(res.x)
+        n_evals += res.nfev
+    k = int(np.argmax(finals))
+    return ErrorEstimate("local", np.array([finals[k]]), np.array([points[k]]), n_evals, time.perf_counter() - t0,
+                         np.sort(np.array(finals))[None, :], dict(n_starts=n_starts, seed=seed, output=output))
+
+
+# ============================================================================ certification
+def _interval_f(f, net: ReLUNet, f_interval, lipschitz, fun) -> tuple[Callable[[Interval], Interval], str]:
+    """An enclosure of ``Phi`` on stacked Interval inputs (T, n_in) -> (T, m)."""
+    n, m = net.n_in, net.n_out
+    if f_interval is None and isinstance(f, FLSystem) and f.phi_interval is not None:
+        pz = f.phi_interval
+        n_z = f.n_z
+
+        def f_interval(X: Interval) -> Interval:  # noqa: F811
+            return pz(X[:, :n_z], X[:, n_z:])
+    if f_interval is not None:
+        if lipschitz is not None:
+            raise ValueError("give either f_interval or lipschitz, not both")
+
+        def enc(X: Interval) -> Interval:
+            try:
+                Y = f_interval(X)
+            except NotCertifiable:
+                raise
+            except (TypeError, AttributeError) as exc:
+                raise NotCertifiable(
+                    f"f_interval failed on Interval inputs ({type(exc).__name__}: {exc}); write it with the "
+                    f"operations of flnotes.interval (+ - * /, iv.exp, iv.tanh, iv.sqrt, iv.abs, iv.arcsin, ...), "
+                    f"not numpy functions") from exc
+            if not isinstance(Y, Interval):
+                raise NotCertifiable(f"f_interval must return an flnotes.interval.Interval, got {type(Y).__name__}")
+            if Y.shape != (len(X), m):
+                raise ValueError(f"f_interval returned shape {Y.shape} for {len(X)} boxes; expected ({len(X)}, {m})")
+            if X.has_grad and not Y.has_grad:
+                raise NotCertifiable("f_interval dropped the gradient: build it only from flnotes.interval operations")
+            return Y
+
+        return enc, "interval"
+    if lipschitz is None:
+        name = f.name if isinstance(f, FLSystem) else getattr(f, "__name__", "f")
+        raise NotCertifiable(
+            f"cannot certify the error of {name!r}: a rigorous bound needs either f_interval (an interval version "
+            f"of Phi written with flnotes.interval, e.g. FLSystem(phi_interval=...)) or lipschitz (constants L with "
+            f"|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j| on the box). Sampling or PSO alone only give a lower bound.")
+    L = np.asarray(lipschitz, float)
+    if L.shape not in ((), (n,), (m, n)) or not np.all(np.isfinite(L)) or np.any(L < 0):
+        raise ValueError(f"lipschitz must be a finite non-negative scalar, or of shape ({n},) (per input) or "
+                         f"({m}, {n}) (per output and input); got shape {L.shape}")
+    L = np.broadcast_to(L, (m, n)).copy()
+
+    def enc_lip(X: Interval) -> Interval:
+        # f(x) for x in the box lies in f(m) +- sum_j L_ij r_j; f(m) itself is trusted to FTOL relative accuracy
+        mid = 0.5 * (X.lo + X.hi)
+        y = fun(mid)
+        tol = _FTOL * (1.0 + np.abs(y))
+        r = iv.up(np.maximum(X.hi - mid, mid - X.lo))
+        S = iv.up((r[:, None, :] * L[None]).sum(-1) * (1 + 2 * iv.gamma(n + 2)) + iv.TINY)
+        lo_, hi_ = iv.down(y - tol - S), iv.up(y + tol + S)
+        if X.has_grad:
+            G = np.broadcast_to(L, (len(mid), m, n))
+            return Interval(lo_, hi_, -G, G, check=False)
+        return Interval(lo_, hi_, check=False)
+
+    return enc_lip, "lipschitz"
+
+
+#: Relative accuracy assumed for a plain floating-point evaluation of Phi (Lipschitz mode only).
+_FTOL = 1e-12
+
+
+class _Evaluator:
+    """Bounds of ``|g_i|``, ``g = Phi - Phi_NN``, over batches of boxes."""
+
+    def __init__(self, f_enc, net: ReLUNet, i: int, scale: Array):
+        self.f_enc, self.net, self.i, self.scale = f_enc, net, i, scale
+
+    def g(self, X: Interval) -> Interval:
+        return self.f_enc(X) - iv.net_interval(self.net, X)
+
+    def point_lower(self, P: Array) -> Array:
+        """Rigorous lower bound of ``|g_i|`` at the points ``P`` (N, n)."""
+        G = self.g(Interval(P, P, check=False))
+        return np.maximum(np.maximum(G.lo[:, self.i], -G.hi[:, self.i]), 0.0)
+
+    def boxes(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
+        """For T boxes: upper bound of ``|g_i|``, best rigorous lower value, its point, and the split axis."""
+        i, T, net = self.i, len(lo), self.net
+        F = self.f_enc(Interval.variables(lo, hi))                  # Phi(B) and grad Phi(B)
+        Xb = Interval(lo, hi, check=False)
+        pre = iv.net_preactivations(net, Xb)                        # rigorous [L^k, U^k] on each box
+        Nb = iv.affine(net.W[-1], net.b[-1], iv.relu(pre[-1]))      # natural enclosure of Phi_NN(B)
+        mid = 0.5 * (lo + hi)
+        r = iv.up(np.maximum(hi - mid, mid - lo))
+        df = Interval(F.dlo[:, i, :], F.dhi[:, i, :], check=False)
+        ups, guesses, spread = [], [], 0.0
+        for s in (1.0, -1.0):
+            # s Phi_NN,i(x) >= a.x + c on B, so  s g(x) <= h(x) - c  with  h(x) = s Phi_i(x) - a.x,
+            # and by the mean-value theorem  h(x) <= h(m) + sum_j r_j max|s dPhi_i/dx_j(B) - a_j|
+            a, c = iv.net_linear_bound(net, pre, Xb, i, s)
+            dh = (df if s > 0 else -df) - a
+            S = iv.up((r * dh.mag()).sum(1) * (1.0 + 2.0 * iv.gamma(lo.shape[1] + 2)) + iv.TINY)
+            ups.append((a, c, S))
+            guesses.append(np.clip(mid + r * np.sign(dh.lo + dh.hi), lo, hi))
+            spread = spread + np.abs(a)
+        P = np.vstack([mid] + guesses)
+        GP = self.g(Interval(P, P, check=False))                    # g at the centre and two vertex guesses
+        Fm = self.f_enc(Interval(mid, mid, check=False))
+        ub = np.empty((2, T))
+        for k, (s, (a, c, S)) in enumerate(zip((1.0, -1.0), ups)):
+            hm = (Fm.hi[:, i] if s > 0 else -Fm.lo[:, i])
+            _, am_lo = None, iv.dot_bounds(a, mid)[0]
+            mv = iv.up(iv.up(iv.up(hm - am_lo) + S) - c)
+            nat = iv.up(F.hi[:, i] - Nb.lo[:, i]) if s > 0 else iv.up(Nb.hi[:, i] - F.lo[:, i])
+            ub[k] = np.minimum(mv, nat)
+        ub = ub.max(0)
+        low = np.maximum(np.maximum(GP.lo[:, i], -GP.hi[:, i]), 0.0).reshape(3, T)
+        k = low.argmax(0)
+        best = low[k, np.arange(T)]
+        pts = P.reshape(3, T, -1)[k, np.arange(T)]
+        # split where Phi's gradient is least known or, on boxes where the network is not affine, where it varies most
+        affine = np.all([((p.lo >= 0) | (p.hi <= 0)).all(1) for p in pre], axis=0)
+        score = r * ((df.hi - df.lo) + np.where(affine[:, None], 0.0, spread))
+        score = np.where(score.max(1, keepdims=True) > 0, score, r / self.scale)
+        return ub, best, pts, score.argmax(1)
+
+
+def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, *,
+                  f_interval: Optional[Callable[[Interval], Interval]] = None,
+                  lipschitz: Optional[Union[float, Array]] = None, rtol: float = 0.05, atol: float = 0.0,
+                  seeds: Optional[Union[Array, ErrorEstimate]] = None, n_samples: int = 10_000, seed: int = 0,
+                  batch: int = 4096, initial_per_axis: int = 4, max_boxes: int = 20_000_000,
+                  max_time: Optional[float] = None, keep_partition: bool = False) -> ErrorBracket:
+    """A certified bracket ``lower <= max_Z |Phi_i - Phi_NN,i| <= upper`` (eq. epsilon_find), per output.
+
+    Branch and bound over sub-boxes of ``Z = [lo, hi]``. For each box ``B`` an
+    upper bound of ``|g_i|``, ``g = Phi - Phi_NN``, comes from two rigorous
+    enclosures, whichever is tighter:
+
+    * the natural interval extension ``Phi(B) - Phi_NN(B)``;
+    * for each sign ``s = +-1``, a linear relaxation of the network,
+      ``s Phi_NN,i(x) >= a_s . x + c_s`` on ``B``
+      (:func:`flnotes.interval.net_linear_bound`; exact where all neurons
+      are stable on ``B``, since the network is affine there), against the
+      mean-value form of ``Phi``:
+      ``max_B s g_i <= s Phi_i(m) - a_s . m - c_s + sum_j r_j max|s dPhi_i/dx_j(B) - a_s,j|``
+      with ``m`` the centre and ``r`` the half-widths of ``B``; ``dPhi(B)``
+      comes from forward-mode interval differentiation of ``f_interval``.
+
+    The centre and two vertex guesses give rigorous lower values. Boxes whose
+    upper bound cannot beat the best lower value by more than the tolerance
+    are discarded; the others are bisected (best first, ``batch`` boxes per
+    vectorized round) along the axis where the gradient is least known. All
+    arithmetic is outward-rounded (:mod:`flnotes.interval`), so floating point
+    cannot make ``upper`` too small.
+
+    Parameters
+    ----------
+    f
+        ``Phi`` on stacked inputs (N, n_in) -> (N, m), or an :class:`FLSystem`
+        (then ``lo``, ``hi`` default to its box and ``f_interval`` to its
+        ``phi_interval``).
+    net
+        The network ``Phi_NN``.
+    lo, hi
+        The box ``Z``, shape (n_in,).
+    f_interval
+        **What certification needs from Phi** (one of the two):
+        an interval version of ``Phi``, a function of an
+        :class:`flnotes.interval.Interval` ``X`` of shape (T, n_in) returning
+        an Interval of shape (T, m), written with the operations of
+        :mod:`flnotes.interval` (``+ - * /``, ``iv.exp``, ``iv.tanh``,
+        ``iv.sqrt``, ``iv.abs``, ``iv.arcsin``, ``iv.sqr``, ``iv.hstack``,
+        slicing ``X[:, j:j+1]``) so that it also carries gradients; for an
+        :class:`FLSystem` it is ``phi_interval(z, v)``. It must be defined
+        (no singularity) on the whole box.
+    lipschitz
+        ... or Lipschitz constants ``L`` with
+        ``|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j|`` on the box (scalar,
+        (n_in,) or (m, n_in)). Then ``Phi`` is only evaluated at points, and its
+        floating-point value is trusted to a relative accuracy of 1e-12. Much
+        slower to converge than ``f_interval``: the enclosure is first order
+        (it cannot see ``Phi`` and ``Phi_NN`` cancel), so sub-boxes must shrink
+        to about ``tolerance / L``; practical in one or two dimensions or for
+        coarse tolerances only.
+    rtol, atol
+        Stop when ``upper - lower <= max(atol, rtol * lower)``.
+    seeds
+        Points (N, n_in) where the error is believed large, or an
+        :class:`ErrorEstimate` (e.g. from :func:`pso_max_error`), used as first
+        lower bounds.
+    n_samples, seed
+        Uniform random points evaluated first for a starting lower bound.
+    batch
+        Boxes bisected per vectorized round.
+    initial_per_axis
+        The box is first cut into this many slices per axis.
+    max_boxes, max_time
+        Budget per output; if exhausted the bracket is still sound but wider
+        than requested (``converged`` is False).
+    keep_partition
+        Keep the final sub-boxes (for :func:`flnotes.plots.partition_slice`).
+
+    Returns
+    -------
+    ErrorBracket
+
+    Raises
+    ------
+    NotCertifiable
+        If neither ``f_interval`` nor ``lipschitz`` is available, or ``Phi``'s
+        interval version is undefined somewhere on the box.
+    ValueError
+        For an empty box (``lo > hi``) or a function returning the wrong shape.
+    """
+    fun, lo, hi = _resolve(f, net, lo, hi)
+    if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
+        raise ValueError(f"need rtol >= 0, atol >= 0 and at least one positive, got rtol={rtol}, atol={atol}")
+    if batch < 1 or initial_per_axis < 1:
+        raise ValueError("batch and initial_per_axis must be >= 1")
+    f_enc, method = _interval_f(f, net, f_interval, lipschitz, fun)
+    n, m = net.n_in, net.n_out
+    whole = f_enc(Interval(lo[None], hi[None], check=False))  # fails early (NotCertifiable) if Phi is undefined somewhere
+    if not (np.all(np.isfinite(whole.lo)) and np.all(np.isfinite(whole.hi))):
+        raise NotCertifiable("the interval version of Phi is unbounded on the box")
+    degenerate = hi <= lo
+    # starting lower bounds: random samples plus the given seeds
+    rng = np.random.default_rng(seed)
+    X0 = rng.uniform(lo, hi, (max(n_samples, 1), n))
+    if seeds is not None:
+        S = seeds.argmax if isinstance(seeds, ErrorEstimate) else as_batch(seeds, n, "seeds")
+        X0 = np.vstack([np.clip(S, lo, hi), X0])
+    E0 = np.abs(fun(X0) - net(X0))
+    # initial partition
+    edges = [np.linspace(l, h, 1 if d else initial_per_axis + 1) for l, h, d in zip(lo, hi, degenerate)]
+    cells = np.stack(np.meshgrid(*[np.arange(max(len(e) - 1, 1)) for e in edges], indexing="ij"), -1).reshape(-1, n)
+    lo0 = np.stack([edges[j][np.minimum(cells[:, j], len(edges[j]) - 1)] for j in range(n)], 1)
+    hi0 = np.stack([edges[j][np.minimum(cells[:, j] + 1, len(edges[j]) - 1)] for j in range(n)], 1)
+    lo0[:, degenerate], hi0[:, degenerate] = lo[degenerate], hi[degenerate]
+
+    lower, upper, argmax = np.zeros(m), np.zeros(m), np.zeros((m, n))
+    n_boxes, conv, times = np.zeros(m, int), np.zeros(m, bool), np.zeros(m)
+    parts, hists = [], []
+    for i in range(m):
+        t0 = time.perf_counter()
+        ev = _Evaluator(f_enc, net, i, np.where(hi > lo, hi - lo, 1.0))
+        top = np.argsort(E0[:, i])[::-1][:16]
+        low0 = ev.point_lower(X0[top])
+        k = low0.argmax()
+        LB, best_x = low0[k], X0[top][k].copy()
+        res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition)
+        lower[i], upper[i], argmax[i], n_boxes[i], conv[i], part, hist = res
+        times[i] = time.perf_counter() - t0
+        parts.append(part)
+        hists.append(hist)
+    return ErrorBracket(lower, upper, argmax, n_boxes, conv, times, rtol, atol, method,
+                        parts if keep_partition else None, hists)
+
+
+def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x: Array, rtol: float, atol: float,
+                      batch: int, max_boxes: int, max_time: Optional[float], keep: bool):
+    t0 = time.perf_counter()
+    ub, low, pts, axis = ev.boxes(lo0, hi0)
+    n_eval = len(lo0)
+    olo, ohi, oub, oax = lo0, hi0, ub, axis
+    pruned_max = -np.inf
+    kept_lo, kept_hi, kept_ub = [], [], []
+    hist = []
+    converged = False
+    while True:
+        j = low.argmax() if len(low) else None
+        if j is not None and low[j] > LB:
+            LB, best_x = low[j], pts[j].copy()
+        thr = LB + max(atol, rtol * LB)
+        done = oub <= thr
+        if done.any():
+            pruned_max = max(pruned_max, float(oub[done].max()))
+            if keep:
+                kept_lo.append(olo[done]), kept_hi.append(ohi[done]), kept_ub.append(oub[done])
+            keep_open = ~done
+            olo, ohi, oub, oax = olo[keep_open], ohi[keep_open], oub[keep_open], oax[keep_open]
+        cur_upper = max(pruned_max, float(oub.max()) if len(oub) else -np.inf)
+        hist.append((n_eval, LB, cur_upper))
+        if not len(oub):
+            converged = True
+            break
+        if n_eval >= max_boxes or (max_time is not None and time.perf_counter() - t0 > max_time):
+            break
+        # bisect the `batch` open boxes with the largest upper bounds
+        if len(oub) > batch:
+            sel = np.argpartition(-oub, batch - 1)[:batch]
+            rest = np.ones(len(oub), bool)
+            rest[sel] = False
+        else:
+            sel, rest = np.arange(len(oub)), np.zeros(len(oub), bool)
+        slo, shi, sax = olo[sel], ohi[sel], oax[sel]
+        rows = np.arange(len(sel))
+        cut = 0.5 * (slo[rows, sax] + shi[rows, sax])
+        clo, chi = np.vstack([slo, slo]), np.vstack([shi, shi])
+        chi[rows, sax] = cut
+        clo[len(sel) + rows, sax] = cut
+        ub, low, pts, ax = ev.boxes(clo, chi)
+        n_eval += len(clo)
+        olo, ohi = np.vstack([olo[rest], clo]), np.vstack([ohi[rest], chi])
+        oub, oax = np.concatenate([oub[rest], ub]), np.concatenate([oax[rest], ax])
+    upper = max(pruned_max, float(oub.max()) if len(oub) else -np.inf)
+    part = None
+    if keep:
+        kept_lo.append(olo), kept_hi.append(ohi), kept_ub.append(oub)
+        part = dict(lo=np.vstack(kept_lo), hi=np.vstack(kept_hi), ub=np.concatenate(kept_ub))
+    return LB, upper, best_x, n_eval, converged, part, np.array(hist)
+
+
+# ============================================================================ what eps is for
+def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_z: int = 3000, n_v: int = 2001,
+                    at: Optional[Array] = None, seed: int = 0, chunk: int = 400_000) -> dict:
+    """Search for a point that satisfies eq. (Phi_NN_ep) but violates the true input bound.
+
+    Among points with ``|Phi_NN(z, v)| <= u_max - eps`` (the constraint the
+    controllers impose), find the largest ``|Phi_i(z, v)| - u_max,i``. With a
+    certified ``eps`` it is <= 0 by Proposition 1; with an under-estimated
+    ``eps`` it can be positive: a feasible ``v`` that drives the real input
+    beyond its bound.
+
+    Parameters
+    ----------
+    system, net
+        The system (its box and ``u_max``) and the network.
+    eps
+        The error bound to test, scalar or (m,).
+    n_z, n_v
+        ``n_z`` random states ``z`` of the box, each with ``n_v`` inputs ``v``
+        (a uniform grid when m = 1, random otherwise): violations sit where
+        ``Phi_NN`` reaches ``u_max - eps``, which a scan over ``v`` finds.
+    at
+        Optional extra points (N, n_in) whose ``z`` is scanned too.
+    seed, chunk
+        Seed of the random states; evaluation chunk size.
+
+    Returns
+    -------
+    dict
+        ``violation`` (the largest ``|Phi| - u_max`` found among feasible
+        points, per output), ``point`` (where), ``n_feasible``, ``n_points``.
+    """
+    eps = np.broadcast_to(np.asarray(eps, float), (system.m,))
+    rng = np.random.default_rng(seed)
+    n_z_dim = system.n_z
+    Z = rng.uniform(system.lo[:n_z_dim], system.hi[:n_z_dim], (n_z, n_z_dim))
+    if at is not None:
+        Z = np.vstack([as_batch(at, system.n_in, "at")[:, :n_z_dim], Z])
+    vlo, vhi = system.lo[n_z_dim:], system.hi[n_z_dim:]
+    V = (np.linspace(vlo, vhi, n_v) if system.m == 1 else rng.uniform(vlo, vhi, (n_v, system.m))).reshape(n_v, -1)
+    best, point, n_feas = np.full(system.m, -np.inf), None, 0
+    per = max(1, chunk // n_v)
+    for k in range(0, len(Z), per):
+        Zk = Z[k:k + per]
+        X = np.hstack([np.repeat(Zk, n_v, 0), np.tile(V, (len(Zk), 1))])
+        feasible = np.all(np.abs(net(X)) <= system.u_max - eps, axis=1)
+        if not feasible.any():
+            continue
+        Xf = X[feasible]
+        n_feas += len(Xf)
+        viol = np.abs(system.phi_stacked(Xf)) - system.u_max
+        j = viol.max(1).argmax()
+        if viol[j].max() > best.max():
+            point = Xf[j]
+        best = np.maximum(best, viol.max(0))
+    return dict(violation=best, point=point, n_feasible=n_feas, n_points=len(Z) * n_v)
+
+
+# ============================================================================ the paper's Table 1 and sweeps
+def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
+    """The paper's Table 1 next to the book's networks: K, n_bar, eps, n_s, training time, certified eps.
+
+    For each system one row with the paper's numbers (``source = "paper"``)
+    and one with the book's: the network of :func:`flnotes.paper_net`, its
+    PSO estimate and its certified bracket (:func:`flnotes.paper.paper_eps`).
+    """
+    from . import paper
+
+    rows = []
+    for name in names:
+        t = paper.TABLE1[name]
+        rows.append({"system": name, "source": "paper", "K": t["K"], "n_bar": t["n_bar"], "n_s": str(t["n_s"]),
+                     "eps (PSO)": t["eps"], "eps certified": "", "training time (s)": t["train_time_s"]})
+        net, rep = paper.paper_net(name)
+        sysm = paper.system(name)
+        pso = pso_max_error(sysm, net, **paper.EPS_SETTINGS["pso"])
+        br = paper.paper_eps(name)
+        n_s = "x".join(str(k) for k in rep.n_per_axis) if len(set(rep.n_per_axis)) > 1 else str(rep.n_per_axis[0])
+        rows.append({"system": name, "source": "flnotes", "K": net.K, "n_bar": net.widths[0], "n_s": n_s,
+                     "eps (PSO)": round(float(pso.eps[0]), 5),
+                     "eps certified": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
+                     "training time (s)": round(rep.time_s, 1)})
+    return rows
+
+
+def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), depths: Sequence[int] = (1, 2, 3),
+                       n_per_axis: Sequence[int] = (10, 20, 30), max_iter: int = 300, max_train: Optional[int] = None,
+                       seed: int = 0,
+                       rtol: float = 0.05, max_time: float = 20.0, n_samples: int = 20_000,
+                       cache: bool = True, progress: bool = False) -> list[dict]:
+    """Train small networks over a grid of widths, depths and grid densities; estimate and certify each eps.
+
+    One row per network with ``width``, ``depth``, ``n_s``, ``n_binaries``
+    (``width * depth``, the binaries of one copy of eq. (MIP_general)),
+    ``eps_sample`` (max over ``n_samples`` random points), ``eps_pso``,
+    ``eps_certified`` (upper end of :func:`certify_error` with ``rtol``),
+    ``eps_lower``, ``train_time_s`` and ``certify_time_s``. ``max_train``
+    caps the training points per network (a random subset of the grid, as in
+    :func:`flnotes.fit_relu`; ``None``: the whole grid). The table is cached
+    on disk (keyed by all arguments), so a chapter computes it once.
+    """
+    import hashlib
+    import json
+
+    from .config import cache_dir
+    from .network import fit_relu
+
+    args = dict(system=system.name, lo=system.lo.tolist(), hi=system.hi.tolist(), widths=list(widths),
+                depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, max_train=max_train, seed=seed, rtol=rtol,
+                max_time=max_time, n_samples=n_samples, version=1)
+    path = cache_dir() / f"sweep-{system.name}-{hashlib.sha1(json.dumps(args, sort_keys=True).encode()).hexdigest()[:12]}.json"
+    if cache and path.exists():
+        return json.loads(path.read_text())
+    rows = []
+    for n_s in n_per_axis:
+        for depth in depths:
+            for width in widths:
+                net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(width,) * depth,
+                                    n_per_axis=n_s, max_train=max_train, max_iter=max_iter, seed=seed)
+                smp = sample_max_error(system, net, n=n_samples, seed=seed)
+                pso = pso_max_error(system, net, n_particles=50, n_iter=100, seed=seed)
+                br = certify_error(system, net, rtol=rtol, seeds=pso, n_samples=1000, max_time=max_time)
+                rows.append(dict(width=width, depth=depth, n_s=n_s, n_binaries=width * depth,
+                                 eps_sample=float(smp.eps[0]), eps_pso=float(pso.eps[0]),
+                                 eps_lower=float(br.lower[0]), eps_certified=float(br.upper[0]),
+                                 converged=bool(br.converged[0]), train_time_s=rep.time_s,
+                                 certify_time_s=float(br.time_s[0])))
+                if progress:
+                    print(rows[-1], flush=True)
+    if cache:
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(rows))
+        tmp.replace(path)
+    return rows
+
+
+# ============================================================================ teaching helpers
+def estimates_table(estimates: dict, brackets: Optional[dict] = None) -> list[dict]:
+    """Rows comparing estimates of eq. (epsilon_find): system, method, eps found, evaluations, time.
+
+    ``estimates`` maps a system name to a list of :class:`ErrorEstimate`;
+    ``brackets`` optionally maps it to an :class:`ErrorBracket`, added as a
+    last row and used to report each estimate relative to the certified lower bound.
+    """
+    names = {"pso": "particle swarm", "de": "differential evolution", "grid": "dense grid",
+             "sample": "random samples", "local": "L-BFGS-B, best of several starts"}
+    rows = []
+    for system, ests in estimates.items():
+        br = None if brackets is None else brackets.get(system)
+        for e in ests:
+            row = {"system": system, "method": names.get(e.method, e.method), "eps found": round(float(e.eps[0]), 5),
+                   "evaluations": f"{e.n_evals:,}", "time (s)": round(e.time_s, 2)}
+            if br is not None:
+                row["found / certified lower"] = round(float(e.eps[0] / br.lower[0]), 3)
+            rows.append(row)
+        if br is not None:
+            rows.append({"system": system, "method": "certified bracket",
+                         "eps found": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
+                         "evaluations": f"{int(br.n_boxes[0]):,} boxes", "time (s)": round(float(br.time_s[0]), 2),
+                         "found / certified lower": 1.0})
+    return rows
+
+
+def enclosure_widths(system: FLSystem, net: ReLUNet, x0: Array, radii: Sequence[float] = (1.0, 0.3, 0.1, 0.03, 0.01),
+                     n_samples: int = 20_000, seed: int = 0) -> list[dict]:
+    """How tight are the bounds of ``max |Phi - Phi_NN|`` on boxes ``x0 +- r``?
+
+    For each radius: the largest error on the box estimated by sampling (a
+    lower bound), the bound from the natural interval extension
+    ``Phi(B) - Phi_NN(B)`` (it ignores that the two nearly cancel and
+    overestimates by O(r)), and the bound :func:`certify_error` uses (mean-value
+    form of ``Phi`` against a linear relaxation of ``Phi_NN``; O(r^2) where the
+    network is affine on the box).
+    """
+    f_enc, _ = _interval_f(system, net, None, None, system.phi_stacked)
+    ev = _Evaluator(f_enc, net, 0, system.hi - system.lo)
+    x0 = np.asarray(x0, float)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for r in radii:
+        lo, hi = np.maximum(x0 - r, system.lo)[None], np.minimum(x0 + r, system.hi)[None]
+        X = Interval(lo, hi, check=False)
+        G = f_enc(X) - iv.net_interval(net, X)
+        ub = ev.boxes(lo, hi)[0][0]
+        P = rng.uniform(lo[0], hi[0], (n_samples, system.n_in))
+        rows.append({"radius r": r, "sampled max error": float(np.abs(system.phi_stacked(P) - net(P))[:, 0].max()),
+                     "natural interval bound": float(max(G.hi[0, 0], -G.lo[0, 0])),
+                     "certify_error's bound": float(ub)})
+    return rows

@@ -1,0 +1,265 @@
+"""ReLU networks: weights, biases and a forward pass (eq. recur), and their training.
+
+A network is just ``W^k``, ``b^k`` with the recursion
+
+    y^k = sigma(W^k y^{k-1} + b^k),  k = 1..K-1,     y^K = W^K y^{K-1} + b^K
+
+of eq. (recur). Nothing downstream depends on how it was trained.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional, Sequence, Union
+
+import numpy as np
+
+from ._checks import as_batch, check_box
+
+Array = np.ndarray
+
+
+class ReLUNet:
+    """A feed-forward ReLU network ``Phi_NN`` as in eq. (recur).
+
+    Parameters
+    ----------
+    weights
+        ``[W^1, ..., W^K]`` with ``W^k`` of shape (n_k, n_{k-1}) (the paper's
+        convention: rows are the neurons of layer k).
+    biases
+        ``[b^1, ..., b^K]`` with ``b^k`` of shape (n_k,).
+
+    Notes
+    -----
+    ``K = len(weights)`` layers: ``K - 1`` hidden ReLU layers and a linear
+    output layer, so the paper's "K = 4, n = 20" is ``widths == (20, 20, 20)``.
+    """
+
+    def __init__(self, weights: Sequence[Array], biases: Sequence[Array]):
+        if len(weights) != len(biases) or len(weights) < 1:
+            raise ValueError(f"need as many weight matrices as bias vectors (>= 1), got {len(weights)} and {len(biases)}")
+        self.W: list[Array] = []
+        self.b: list[Array] = []
+        for k, (W, b) in enumerate(zip(weights, biases), start=1):
+            W, b = np.array(W, float, ndmin=2), np.array(b, float).reshape(-1)
+            if W.shape[0] != b.shape[0]:
+                raise ValueError(f"layer {k}: W^{k} has {W.shape[0]} rows but b^{k} has {b.shape[0]} entries")
+            if self.W and W.shape[1] != self.W[-1].shape[0]:
+                raise ValueError(f"layer {k}: W^{k} has {W.shape[1]} columns but layer {k - 1} has {self.W[-1].shape[0]} neurons")
+            if not (np.all(np.isfinite(W)) and np.all(np.isfinite(b))):
+                raise ValueError(f"layer {k}: weights or biases contain NaN or inf")
+            self.W.append(W)
+            self.b.append(b)
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def K(self) -> int:
+        """Number of layers (the paper's K): K - 1 hidden layers plus the output layer."""
+        return len(self.W)
+
+    @property
+    def weights(self) -> list[Array]:
+        return self.W
+
+    @property
+    def biases(self) -> list[Array]:
+        return self.b
+
+    @property
+    def n_in(self) -> int:
+        return self.W[0].shape[1]
+
+    @property
+    def n_out(self) -> int:
+        return self.W[-1].shape[0]
+
+    @property
+    def widths(self) -> tuple[int, ...]:
+        """Hidden widths ``(n_1, ..., n_{K-1})``."""
+        return tuple(W.shape[0] for W in self.W[:-1])
+
+    @property
+    def n_hidden(self) -> int:
+        """Number of hidden neurons ``sum_k n_k``: the binaries of one copy of eq. (MIP_general)."""
+        return int(sum(self.widths))
+
+    # --------------------------------------------------------------- forward
+    def __call__(self, x: Array) -> Array:
+        """Evaluate the network: (N, n_in) -> (N, n_out); (n_in,) -> (n_out,)."""
+        single = np.ndim(x) == 1
+        y = self.forward(as_batch(x, self.n_in, "x"))[0]
+        return y[0] if single else y
+
+    def forward(self, X: Array) -> tuple[Array, list[Array]]:
+        """Output and the hidden pre-activations ``W^k y^{k-1} + b^k`` (each (N, n_k))."""
+        y, pre = X, []
+        for W, b in zip(self.W[:-1], self.b[:-1]):
+            a = y @ W.T + b
+            pre.append(a)
+            y = np.maximum(a, 0.0)
+        return y @ self.W[-1].T + self.b[-1], pre
+
+    def preactivations(self, x: Array) -> list[Array]:
+        """Hidden pre-activations for a batch, one (N, n_k) array per hidden layer."""
+        return self.forward(as_batch(x, self.n_in, "x"))[1]
+
+    def activation_pattern(self, x: Array) -> list[Array]:
+        """Which neurons are active (pre-activation > 0): the binaries ``alpha^k`` of eq. (MIP_general_c)."""
+        return [a > 0 for a in self.preactivations(x)]
+
+    # ------------------------------------------------------------ transforms
+    def affine_wrapped(self, x_offset: Array, x_scale: Array, y_offset: Array, y_scale: Array) -> "ReLUNet":
+        """Fold input/output scalings into the first and last layer.
+
+        Returns the network ``x -> y_offset + y_scale * net((x - x_offset) / x_scale)``,
+        which works on raw units.
+        """
+        xo, xs = np.asarray(x_offset, float), np.asarray(x_scale, float)
+        yo, ys = np.asarray(y_offset, float), np.asarray(y_scale, float)
+        W, b = [w.copy() for w in self.W], [c.copy() for c in self.b]
+        W[0] = self.W[0] / xs[None, :]
+        b[0] = self.b[0] - W[0] @ xo
+        W[-1] = ys[:, None] * W[-1] if len(W) > 1 else ys[:, None] * W[0]
+        b[-1] = ys * b[-1] + yo
+        return ReLUNet(W, b)
+
+    @classmethod
+    def from_sklearn(cls, model, x_offset: Optional[Array] = None, x_scale: Optional[Array] = None,
+                     y_offset: Optional[Array] = None, y_scale: Optional[Array] = None) -> "ReLUNet":
+        """Import a fitted :class:`sklearn.neural_network.MLPRegressor` with ReLU activation.
+
+        The optional affine maps are folded in (see :meth:`affine_wrapped`).
+        """
+        if getattr(model, "activation", None) != "relu":
+            raise ValueError(f"only ReLU networks can be encoded as MILPs; the model uses activation={getattr(model, 'activation', None)!r}")
+        if not hasattr(model, "coefs_"):
+            raise ValueError("the MLPRegressor is not fitted yet: call model.fit(X, y) first")
+        net = cls([c.T for c in model.coefs_], list(model.intercepts_))
+        if any(a is not None for a in (x_offset, x_scale, y_offset, y_scale)):
+            n_in, n_out = net.n_in, net.n_out
+            net = net.affine_wrapped(
+                np.zeros(n_in) if x_offset is None else x_offset, np.ones(n_in) if x_scale is None else x_scale,
+                np.zeros(n_out) if y_offset is None else y_offset, np.ones(n_out) if y_scale is None else y_scale)
+        return net
+
+    # ------------------------------------------------------------- save/load
+    def save(self, path: Union[str, Path]) -> None:
+        """Save to ``.npz`` (``W1..WK``, ``b1..bK``)."""
+        arrays = {f"W{k + 1}": W for k, W in enumerate(self.W)} | {f"b{k + 1}": b for k, b in enumerate(self.b)}
+        np.savez(path, K=self.K, **arrays)
+
+    @classmethod
+    def load(cls, path: Union[str, Path]) -> "ReLUNet":
+        """Load a network saved by :meth:`save`."""
+        with np.load(path) as d:
+            K = int(d["K"])
+            return cls([d[f"W{k}"] for k in range(1, K + 1)], [d[f"b{k}"] for k in range(1, K + 1)])
+
+    def __repr__(self) -> str:
+        return f"ReLUNet(n_in={self.n_in}, widths={self.widths}, n_out={self.n_out})"
+
+
+@dataclass
+class TrainingReport:
+    """What :func:`fit_relu` did and how well the result fits the grid."""
+
+    time_s: float
+    n_grid: int
+    n_train: int
+    n_iter: int
+    widths: tuple[int, ...]
+    n_per_axis: tuple[int, ...]
+    grid_max_error: Array
+    grid_rmse: Array
+    settings: dict = field(default_factory=dict)
+
+    def __str__(self) -> str:
+        return (f"trained {self.widths} on {self.n_train:,} of {self.n_grid:,} grid points in {self.time_s:.1f} s "
+                f"({self.n_iter} iterations); grid max |error| = {np.array2string(self.grid_max_error, precision=4)}, "
+                f"rmse = {np.array2string(self.grid_rmse, precision=4)}")
+
+
+def uniform_grid(lo: Array, hi: Array, n_per_axis: Union[int, Sequence[int]]) -> Array:
+    """All points of a uniform grid with ``n_per_axis`` points per axis over ``[lo, hi]``, (N, n)."""
+    lo, hi = check_box(lo, hi, len(np.atleast_1d(lo)))
+    n = np.broadcast_to(np.asarray(n_per_axis, int), lo.shape)
+    if np.any(n < 2):
+        raise ValueError(f"n_per_axis must be >= 2 on every axis, got {n}")
+    axes = [np.linspace(l, h, k) for l, h, k in zip(lo, hi, n)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(lo))
+
+
+def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence[int] = (20, 20, 20),
+             n_per_axis: Union[int, Sequence[int]] = 30, max_train: Optional[int] = 60_000,
+             max_iter: int = 3000, seed: int = 0, alpha: float = 0.0, tol: float = 1e-10,
+             ) -> tuple[ReLUNet, TrainingReport]:
+    """Train ``Phi_NN`` by regression on a uniform grid (the paper's Sec. III-A.1 and IV).
+
+    The scheme: sample ``f`` on the full grid of ``n_per_axis`` points per axis;
+    standardize inputs and outputs; fit a scikit-learn ``MLPRegressor`` with
+    ReLU hidden layers by full-batch L-BFGS (as MATLAB's ``fitrnet`` does) on
+    the grid, or on a random subset of ``max_train`` grid points when the grid
+    is larger (a 35^4 grid has 1.5 million points, far more than a 3x10 net
+    needs; full-batch L-BFGS on all of them would take many minutes); fold the
+    scaling back into the first and last layer; report the error on the whole
+    grid.
+
+    Parameters
+    ----------
+    f
+        Function to approximate on stacked inputs, (N, n_in) -> (N, m) (for a
+        system: ``system.phi_stacked``).
+    lo, hi
+        Training box ``T``, shape (n_in,).
+    widths
+        Hidden widths ``(n_1, ..., n_{K-1})``; the paper's Table 1 uses
+        ``(20, 20, 20)`` (MSD) and ``(10, 10, 10)`` (Quad-1D).
+    n_per_axis
+        Grid points per axis ``n_s`` (30 and 35 in Table 1).
+    max_train
+        Train on at most this many grid points (random subset, fixed seed);
+        ``None`` uses the whole grid.
+    max_iter, tol, alpha
+        L-BFGS iterations, tolerance, and L2 penalty (0: plain least squares).
+    seed
+        Seed of the initial weights and of the subset.
+
+    Returns
+    -------
+    net, report
+        The network on raw units and a :class:`TrainingReport`.
+    """
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.exceptions import ConvergenceWarning
+
+    lo, hi = check_box(lo, hi, len(np.atleast_1d(lo)))
+    widths = tuple(int(w) for w in widths)
+    if not widths or min(widths) < 1:
+        raise ValueError(f"widths must list at least one positive hidden width, got {widths}")
+    t0 = time.perf_counter()
+    X = uniform_grid(lo, hi, n_per_axis)
+    Y = np.asarray(f(X), float)
+    Y = Y.reshape(len(X), -1)
+    if not np.all(np.isfinite(Y)):
+        raise ValueError("f returned NaN or inf on the training grid: shrink the box away from singularities")
+    rng = np.random.default_rng(seed)
+    idx = np.arange(len(X)) if (max_train is None or len(X) <= max_train) else rng.choice(len(X), max_train, replace=False)
+    x_off, x_sc = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-12)
+    y_off, y_sc = Y.mean(0), np.maximum(Y.std(0), 1e-12)
+    model = MLPRegressor(hidden_layer_sizes=widths, activation="relu", solver="lbfgs", alpha=alpha,
+                         max_iter=max_iter, max_fun=10 * max_iter, tol=tol, random_state=seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        model.fit((X[idx] - x_off) / x_sc, ((Y[idx] - y_off) / y_sc).squeeze() if Y.shape[1] == 1 else (Y[idx] - y_off) / y_sc)
+    net = ReLUNet.from_sklearn(model, x_off, x_sc, y_off, y_sc)
+    err = np.abs(net(X) - Y)
+    report = TrainingReport(
+        time_s=time.perf_counter() - t0, n_grid=len(X), n_train=len(idx), n_iter=int(model.n_iter_),
+        widths=widths, n_per_axis=tuple(np.broadcast_to(np.asarray(n_per_axis, int), lo.shape).tolist()),
+        grid_max_error=err.max(0), grid_rmse=np.sqrt((err**2).mean(0)),
+        settings=dict(max_train=max_train, max_iter=max_iter, seed=seed, alpha=alpha, tol=tol),
+    )
+    return net, report

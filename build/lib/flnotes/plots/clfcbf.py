@@ -1,0 +1,185 @@
+"""Figures of the CLF-CBF chapter: the paper's Fig. 3, the exact 1-D picture, solve times."""
+from __future__ import annotations
+
+from typing import Any, Mapping, Optional, Sequence
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.patches import Circle
+
+from .style import COLORS, bound_lines, new_axes
+
+__all__ = ["clfcbf_phase_portrait", "clfcbf_signals", "clfcbf_figure3", "exact_1d_plot", "solve_time_plot"]
+
+_NAMED = {"lcost": COLORS["lcost"], "qcost": COLORS["qcost"], "k(z)": COLORS["nominal"], "nominal": COLORS["nominal"]}
+
+
+def _color(name: str, i: int) -> str:
+    return _NAMED.get(name.lower(), f"C{i}")
+
+
+def _style(name: str) -> dict:
+    return dict(ls="--", lw=1.3) if name.lower() in ("k(z)", "nominal") else dict(ls="-")
+
+
+def clfcbf_phase_portrait(logs: Mapping[str, Any], H: Any = None, ax=None, lim: Optional[Sequence[float]] = None):
+    """Phase portrait ``(z_1, z_2)``: the unsafe disc ``H(z) <= 0`` and each run's trajectory.
+
+    Parameters
+    ----------
+    logs
+        ``{name: SimLog}``; names ``"Lcost"``, ``"Qcost"``, ``"k(z)"`` get the book's colours.
+    H
+        A :class:`flnotes.control.DistanceCBF` (or a list of them) drawn as filled discs.
+    ax
+        Axes to draw on (a new figure otherwise).
+    lim
+        ``(z1_min, z1_max, z2_min, z2_max)``; default: fit the trajectories.
+    """
+    if ax is None:
+        fig, ax = new_axes(figsize=(4.6, 4.2))
+    Hs = [] if H is None else (list(H) if isinstance(H, (list, tuple)) else [H])
+    for j, h in enumerate(Hs):
+        ax.add_patch(Circle(h.z_o[:2], h.r_o, color=COLORS["unsafe"], alpha=0.25, lw=0,
+                            label=r"unsafe set $H(z)\leq 0$" if j == 0 else None))
+        ax.add_patch(Circle(h.z_o[:2], h.r_o, fill=False, color=COLORS["unsafe"], lw=1.2))
+    for i, (name, log) in enumerate(logs.items()):
+        Z = np.vstack([log.z_fine, log.z[-1:]]) if len(log.z_fine) else log.z
+        ax.plot(Z[:, 0], Z[:, 1], color=_color(name, i), label=name, **_style(name))
+    first = next(iter(logs.values()))
+    ax.plot(*first.z[0, :2], "ko", ms=5, label=r"$z(0)$")
+    ax.plot(0, 0, "k+", ms=9, mew=1.5)
+    ax.set_xlabel(r"$z_1$ (position)")
+    ax.set_ylabel(r"$z_2$ (velocity)")
+    ax.set_aspect("equal", adjustable="datalim")
+    if lim is not None:
+        ax.set_xlim(lim[0], lim[1]), ax.set_ylim(lim[2], lim[3])
+    ax.legend(loc="upper right")
+    ax.set_title("phase portrait")
+    return ax.figure
+
+
+def clfcbf_signals(logs: Mapping[str, Any], eps: float, axes=None, t_max: Optional[float] = None):
+    """States, ``v`` and the true ``u`` over time, with ``+-u_max`` and ``+-u_max^eps``.
+
+    ``u`` is drawn from ``log.u_fine`` (the input the true plant received,
+    resolved between samples); ``v`` as a staircase (it is held over each sample).
+    """
+    if axes is None:
+        fig, axes = new_axes(3, 1, figsize=(7.0, 6.4), sharex=True)
+        axes = np.ravel(axes)
+    ax_z, ax_v, ax_u = axes
+    u_max, lo, hi = None, 0.0, 0.0
+    for i, (name, log) in enumerate(logs.items()):
+        c, st = _color(name, i), _style(name)
+        ax_z.plot(log.t, log.z[:, 0], color=c, label=name, **st)
+        ax_z.plot(log.t, log.z[:, 1], color=c, alpha=0.6, lw=1.0, ls=":")
+        ax_v.step(log.t[:-1], log.v[:, 0], where="post", color=c, label=name, **st)
+        tf = np.append(log.t_fine, log.t[-1])
+        uf = np.append(log.u_fine[:, 0], log.u_fine[-1, 0])
+        ax_u.plot(tf, uf, color=c, **st)
+        lo, hi = min(lo, uf.min()), max(hi, uf.max())
+        u_max = float(log.system.u_max[0])
+    bound_lines(ax_u, u_max, float(np.ravel([eps])[0]))
+    ax_z.set_ylabel(r"$z_1$ (solid), $z_2$ (dotted)", fontsize=8.5)
+    ax_v.set_ylabel(r"$v$")
+    ax_u.set_ylabel(r"true $u$")
+    ax_u.set_xlabel("time (s)")
+    ax_z.legend(ncol=3, fontsize=7.5, loc="upper right")
+    ax_u.legend(ncol=2, fontsize=7.5, loc="lower right")
+    span = max(hi, u_max) - min(lo, -u_max)
+    ax_u.set_ylim(min(lo, -u_max) - 0.08 * span, max(hi, u_max) + 0.08 * span)
+    if t_max is not None:
+        ax_u.set_xlim(0, t_max)
+    return ax_z.figure
+
+
+def clfcbf_figure3(logs: Mapping[str, Any], H: Any, eps: float, t_max: Optional[float] = None):
+    """The paper's Fig. 3 reproduced: phase portrait (left), states, ``v`` and ``u`` over time (right)."""
+    fig = plt.figure(figsize=(10.5, 6.2))
+    gs = fig.add_gridspec(3, 2, width_ratios=[1.0, 1.35])
+    ax_p = fig.add_subplot(gs[:, 0])
+    axes = [fig.add_subplot(gs[0, 1])]
+    axes += [fig.add_subplot(gs[r, 1], sharex=axes[0]) for r in (1, 2)]
+    clfcbf_phase_portrait(logs, H, ax=ax_p)
+    clfcbf_signals(logs, eps, axes=axes, t_max=t_max)
+    for a in axes[:2]:
+        plt.setp(a.get_xticklabels(), visible=False)
+    return fig
+
+
+def exact_1d_plot(net, z: np.ndarray, bound: float, v_lo: float = -10.0, v_hi: float = 10.0,
+                  controllers: Sequence[Any] = (), ax=None):
+    """``v -> Phi_NN(z, v)`` at one state: its affine pieces, the feasible intervals and the optima.
+
+    Parameters
+    ----------
+    net
+        The network ``Phi_NN`` (single input ``v``).
+    z
+        The state.
+    bound
+        ``u_max^eps``.
+    v_lo, v_hi
+        The segment of ``v`` shown (the network's domain).
+    controllers
+        :class:`flnotes.ClfCbfController` objects: their CBF condition is
+        drawn as the excluded half-line and their optimum at ``z`` (exact
+        1-D method) is marked.
+    """
+    from ..control import exact_1d_feasible_set, network_pieces_1d
+
+    if ax is None:
+        fig, ax = new_axes(figsize=(7.0, 3.6))
+    z = np.asarray(z, float)
+    pw = network_pieces_1d(net, z, v_lo, v_hi)
+    iv = exact_1d_feasible_set(net, z, v_lo, v_hi, bound, pieces=pw)
+    ax.plot(pw.knots, pw.values, color=COLORS["nn"], lw=1.8, label=r"$\Phi_{NN}(z, v)$")
+    ax.plot(pw.knots, pw.values, "o", color=COLORS["nn"], ms=3.5, label=f"breakpoints ({len(pw.knots) - 2} inside)")
+    for s in (1, -1):
+        ax.axhline(s * bound, color=COLORS["u_max_eps"], ls=":", lw=1.2,
+                   label=r"$\pm u_{max}^{\epsilon}$" if s == 1 else None)
+    for j, (a, b) in enumerate(iv):
+        ax.axvspan(a, b, color=COLORS["u_max_eps"], alpha=0.15, lw=0,
+                   label=r"$|\Phi_{NN}| \leq u_{max}^{\epsilon}$" if j == 0 else None)
+    shown_cbf = False
+    for i, c in enumerate(controllers):
+        d = c.program_data(z)
+        if c.p and not shown_cbf:
+            a, b = d["aH"][0, 0], d["bH"][0]
+            if a != 0:
+                r = -b / a
+                lo, hi = (v_lo, min(r, v_hi)) if a > 0 else (max(r, v_lo), v_hi)
+                if lo < hi:
+                    ax.axvspan(lo, hi, color=COLORS["unsafe"], alpha=0.12, lw=0, hatch="//",
+                               label="CBF condition violated")
+            elif b < 0:
+                ax.axvspan(v_lo, v_hi, color=COLORS["unsafe"], alpha=0.12, lw=0, label="CBF condition violated")
+            shown_cbf = True
+        r = c.with_backend("exact").step(z)
+        ax.plot(r.v[0], r.info["phi_nn"][0], "*", ms=17 - 5 * min(i, 1), color=_color(c.name, i), mec="k", mew=0.6,
+                label=f"{c.name} optimum" + (" (fallback)" if r.fallback else ""), zorder=5)
+    ax.set_xlim(v_lo, v_hi)
+    ax.set_xlabel(r"$v$")
+    ax.set_ylabel(r"$\Phi_{NN}(z, v)$")
+    ax.set_title(f"z = [{', '.join(f'{x:.3g}' for x in z)}]: {pw.n_pieces} affine pieces")
+    ax.legend(fontsize=7.5, loc="upper left")
+    return ax.figure
+
+
+def solve_time_plot(logs: Mapping[str, Any], system: Optional[str] = "MSD", ax=None):
+    """Per-step solve time (ms, log scale) over the run, with the paper's mean (Table 2) as a dashed line."""
+    from ..paper import TABLE2_MS
+
+    paper = {name: ref for (sysname, name), ref in TABLE2_MS.items() if sysname == system}
+    if ax is None:
+        fig, ax = new_axes(figsize=(7.0, 3.2))
+    for i, (name, log) in enumerate(logs.items()):
+        c = _color(name, i)
+        ax.semilogy(log.t[:-1], log.solve_time * 1e3, ".", ms=3, color=c, label=name)
+        if name in paper:
+            ax.axhline(paper[name]["mean"], color=c, ls="--", lw=1, label=f"{name}, paper's mean")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("solve time per step (ms)")
+    ax.legend(ncol=3, fontsize=7.5)
+    return ax.figure

@@ -1,0 +1,461 @@
+"""Tighter node bounds: LP-based bound tightening and the reachable boxes of an MPC horizon.
+
+The big-M constants ``L^k_j``, ``U^k_j`` of eq. (MIP_general_c) decide how many
+binaries a program needs (a neuron whose bounds do not straddle zero needs
+none) and how weak its relaxation is. :func:`flnotes.fbbt` propagates a box
+with interval arithmetic. Two levers give tighter, still valid, bounds:
+
+* :func:`lp_bounds` (Grimstad & Andersson 2019, "relaxation-based" bound
+  tightening): one LP relaxation of eq. (MIP_general) (binaries relaxed to
+  ``[0, 1]``), and for every neuron in layer order the minimum and maximum
+  of its pre-activation over that LP, each new bound written into the LP's
+  big-M coefficients before the next neuron is processed. The LP contains
+  every feasible point of the mixed-integer program, so ``[L, U]`` contains
+  every feasible pre-activation. With ``out_bounds`` (``|y^K| <= u_max^eps`` of
+  eq. (Phi_NN_ep)) the LP only contains inputs the controller can accept,
+  which is where the bounds get much tighter.
+* :func:`horizon_boxes`: with ``z(0)`` measured, the predicted states of the
+  MPC (eq. MPC_form_miqp_c) can only reach a small box at each step; bounds
+  computed on these boxes (``fbbt(net, lo, hi)`` with ``lo, hi`` of shape
+  (N_p, n_in)) replace the bounds of the whole domain.
+
+All bounds here are valid for the points a controller can select: intersecting
+two valid bounds (:func:`intersect`) is valid too.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ._checks import as_vector, check_box, check_boxes
+from .bounds import NodeBounds, fbbt, interval_affine
+from .network import ReLUNet
+
+Array = np.ndarray
+
+__all__ = ["EmptyBoxError", "lp_bounds", "horizon_boxes", "intersect", "propagate", "LPTightener", "ellipsoid_box"]
+
+
+class EmptyBoxError(ValueError):
+    """No admissible point exists (the LP relaxation or a reachable box is empty)."""
+
+
+# ---------------------------------------------------------------------------
+# Helpers on NodeBounds
+# ---------------------------------------------------------------------------
+def intersect(a: NodeBounds, b: NodeBounds, method: Optional[str] = None) -> NodeBounds:
+    """Elementwise intersection of two valid bounds (valid, and at least as tight as either)."""
+    if len(a.L) != len(b.L):
+        raise ValueError(f"bounds have {len(a.L)} and {len(b.L)} hidden layers")
+    L = [np.maximum(x, y) for x, y in zip(a.L, b.L)]
+    U = [np.minimum(x, y) for x, y in zip(a.U, b.U)]
+    return NodeBounds(L, U, np.maximum(a.out_L, b.out_L), np.minimum(a.out_U, b.out_U),
+                      method=method or f"{a.method}&{b.method}")
+
+
+def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0) -> tuple[list[Array], list[Array], Array, Array]:
+    """Interval propagation from layer ``start`` on: layers after it get ``max(their bounds, interval bounds)``.
+
+    ``L[start]``, ``U[start]`` are kept; every later layer is intersected with
+    the interval image of the previous one (what FBBT does from the input).
+    """
+    L, U = [np.asarray(x, float).copy() for x in L], [np.asarray(x, float).copy() for x in U]
+    l, u = np.maximum(L[start], 0.0), np.maximum(U[start], 0.0)
+    for k in range(start + 1, net.K - 1):
+        Lk, Uk = interval_affine(net.W[k], net.b[k], l, u)
+        L[k], U[k] = np.maximum(L[k], Lk), np.minimum(U[k], Uk)
+        l, u = np.maximum(L[k], 0.0), np.maximum(U[k], 0.0)
+    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u)
+    return L, U, oL, oU
+
+
+# ---------------------------------------------------------------------------
+# LP-based bound tightening
+# ---------------------------------------------------------------------------
+class LPTightener:
+    """A persistent HiGHS LP of the relaxed eq. (MIP_general) for one network.
+
+    Variables ``w = [x | y^1, alpha^1 | ... | y^{K-1}, alpha^{K-1}]`` with, per
+    hidden neuron (pre-activation ``a = W_j y^{k-1} + b_j``),
+
+        y >= 0,  y >= a,  y <= U alpha,  y <= a - L (1 - alpha),  0 <= alpha <= 1,
+
+    which is eq. (MIP_general_b)-(MIP_general_c) with ``yund = y - a``
+    eliminated and ``alpha`` relaxed (projected on ``(a, y)`` it is the
+    triangle hull of the ReLU on ``[L, U]``). Optional output rows
+    ``out_lo <= W^K y^{K-1} + b^K <= out_hi``. The input box and the big-M
+    coefficients are changed in place; every LP is re-solved warm from the
+    previous basis.
+    """
+
+    def __init__(self, net: ReLUNet, out_bounds: Optional[tuple[Array, Array]] = None, tol: float = 1e-7):
+        import highspy
+
+        self.net, self.tol, self._hp = net, float(tol), highspy
+        n_in, widths = net.n_in, net.widths
+        self.x = np.arange(n_in)
+        self.y, self.alpha = [], []
+        idx = n_in
+        for n_k in widths:
+            self.y.append(np.arange(idx, idx + n_k)); idx += n_k
+            self.alpha.append(np.arange(idx, idx + n_k)); idx += n_k
+        self.n = idx
+        rows, cols, vals, rlo, rhi = [], [], [], [], []
+        self.row_ge, self.row_U, self.row_L = [], [], []
+        r = 0
+        prev = self.x
+        for k, (W, b) in enumerate(zip(net.W[:-1], net.b[:-1])):
+            n_k = W.shape[0]
+            yk, ak = self.y[k], self.alpha[k]
+            ge, rU, rL = [], [], []
+            for j in range(n_k):
+                nzw = np.flatnonzero(W[j])
+                # a - y <= -b   (y >= a)
+                rows += [r] * (len(nzw) + 1); cols += prev[nzw].tolist() + [yk[j]]; vals += W[j, nzw].tolist() + [-1.0]
+                rlo.append(-np.inf); rhi.append(-b[j]); ge.append(r); r += 1
+                # y - U alpha <= 0
+                rows += [r, r]; cols += [yk[j], ak[j]]; vals += [1.0, 0.0]
+                rlo.append(-np.inf); rhi.append(0.0); rU.append(r); r += 1
+                # y - a - L alpha <= -L   (y <= a - L (1 - alpha))
+                rows += [r] * (len(nzw) + 2); cols += prev[nzw].tolist() + [yk[j], ak[j]]
+                vals += (-W[j, nzw]).tolist() + [1.0, 0.0]
+                rlo.append(-np.inf); rhi.append(b[j]); rL.append(r); r += 1
+            self.row_ge.append(np.array(ge)); self.row_U.append(np.array(rU)); self.row_L.append(np.array(rL))
+            prev = yk
+        self.row_out = None
+        self.b_row_L = [np.asarray(b, float).copy() for b in net.b[:-1]]
+        if out_bounds is not None:
+            olo = as_vector(out_bounds[0], net.n_out, "out_bounds[0]") if np.all(np.isfinite(out_bounds[0])) else np.asarray(out_bounds[0], float)
+            ohi = np.asarray(out_bounds[1], float)
+            if olo.shape != (net.n_out,) or ohi.shape != (net.n_out,):
+                raise ValueError(f"out_bounds must be a pair of arrays of shape ({net.n_out},)")
+            if np.any(olo > ohi):
+                raise ValueError("out_bounds: lower bound above upper bound")
+            W, b = net.W[-1], net.b[-1]
+            ro = []
+            for i in range(net.n_out):
+                nzw = np.flatnonzero(W[i])
+                rows += [r] * len(nzw); cols += prev[nzw].tolist(); vals += W[i, nzw].tolist()
+                rlo.append(olo[i] - b[i]); rhi.append(ohi[i] - b[i]); ro.append(r); r += 1
+            self.row_out = np.array(ro)
+        self.m = r
+        import scipy.sparse as sp
+        Ac = sp.csc_matrix((vals, (rows, cols)), shape=(r, self.n))
+        Ac.sort_indices()
+        # remember where the big-M entries sit (explicit zeros are kept by building with coo -> csc)
+        inf = highspy.kHighsInf
+        lp = highspy.HighsLp()
+        lp.num_col_, lp.num_row_ = self.n, r
+        lp.col_cost_ = np.zeros(self.n)
+        lb, ub = np.full(self.n, -inf), np.full(self.n, inf)
+        for k in range(len(widths)):
+            lb[self.y[k]] = 0.0
+            lb[self.alpha[k]], ub[self.alpha[k]] = 0.0, 1.0
+        lp.col_lower_, lp.col_upper_ = lb, ub
+        lp.row_lower_ = np.where(np.isfinite(rlo), rlo, -inf)
+        lp.row_upper_ = np.where(np.isfinite(rhi), rhi, inf)
+        lp.a_matrix_.format_ = highspy.MatrixFormat.kColwise
+        lp.a_matrix_.start_, lp.a_matrix_.index_, lp.a_matrix_.value_ = Ac.indptr, Ac.indices, Ac.data
+        lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = self.n, r
+        h = highspy.Highs()
+        h.setOptionValue("output_flag", False)
+        h.setOptionValue("threads", 1)
+        h.setOptionValue("presolve", "off")  # tiny LPs re-solved warm: presolve only costs time
+        h.passModel(lp)
+        self.h = h
+        self._lb, self._ub = lb.copy(), ub.copy()
+        self._cost = np.zeros(self.n)
+        self._all = np.arange(self.n, dtype=np.int32)
+        self.n_lp = 0
+
+    # -- model changes -------------------------------------------------------------
+    def set_box(self, lo: Array, hi: Array) -> None:
+        """Bounds of the input ``x``."""
+        self._lb[self.x], self._ub[self.x] = lo, hi
+        self.h.changeColsBounds(len(self.x), self.x.astype(np.int32), np.asarray(lo, float), np.asarray(hi, float))
+
+    def set_neuron(self, k: int, j: int, L: float, U: float) -> None:
+        """Write the big-M constants of neuron ``j`` of hidden layer ``k`` (0-based) into the LP."""
+        h = self.h
+        Up, Lm = max(U, 0.0), min(L, 0.0)
+        ia = int(self.alpha[k][j])
+        h.changeCoeff(int(self.row_U[k][j]), ia, -Up)
+        h.changeCoeff(int(self.row_L[k][j]), ia, -Lm)
+        h.changeRowBounds(int(self.row_L[k][j]), -self._hp.kHighsInf, float(self.b_row_L[k][j] - Lm))
+        lo_a, hi_a = (1.0 if L >= 0 else 0.0), (0.0 if U <= 0 else 1.0)
+        h.changeColBounds(ia, lo_a, hi_a)
+        iy = int(self.y[k][j])
+        h.changeColBounds(iy, 0.0, Up)
+
+    def set_layer(self, k: int, L: Array, U: Array) -> None:
+        for j in range(len(L)):
+            self.set_neuron(k, j, float(L[j]), float(U[j]))
+
+    # -- LPs -----------------------------------------------------------------------
+    def _optimize(self, cols: Array, coef: Array, sense: float) -> Optional[float]:
+        """min (sense = 1) or max (sense = -1) of ``coef' w[cols]``; None if the LP is infeasible."""
+        hp, h = self._hp, self.h
+        cost = np.zeros(self.n)
+        cost[cols] = sense * coef
+        h.changeColsCost(self.n, self._all, cost)
+        h.run()
+        self.n_lp += 1
+        st = h.getModelStatus()
+        if st == hp.HighsModelStatus.kOptimal:
+            return sense * h.getInfo().objective_function_value
+        if st in (hp.HighsModelStatus.kInfeasible,):
+            return None
+        # numerical trouble: fall back to the valid bound we already have
+        return -np.inf if sense > 0 else np.inf
+
+    def preactivation_range(self, k: int, j: int) -> tuple[Optional[float], Optional[float]]:
+        """LP minimum and maximum of ``W^k_j y^{k-1} + b^k_j`` (None: the LP is infeasible)."""
+        W, b = self.net.W[k], self.net.b[k]
+        prev = self.x if k == 0 else self.y[k - 1]
+        lo = self._optimize(prev, W[j], 1.0)
+        if lo is None:
+            return None, None
+        hi = self._optimize(prev, W[j], -1.0)
+        if hi is None:
+            return None, None
+        return lo + b[j], hi + b[j]
+
+    def tighten(self, lo: Array, hi: Array, prior: Optional[NodeBounds] = None, output: bool = True,
+                skip_stable: bool = False) -> NodeBounds:
+        """Bounds for the input box ``[lo, hi]`` (one box), starting from FBBT (intersected with ``prior``).
+
+        ``skip_stable=True`` solves LPs only for neurons that are still unstable when their
+        layer is reached (a stable neuron needs no binary; its bounds only feed the interval
+        bounds of later layers): about half the LPs for the same binaries.
+        """
+        net = self.net
+        start = fbbt(net, lo, hi)
+        if prior is not None:
+            start = intersect(start, prior)
+        L, U = [a.copy() for a in start.L], [a.copy() for a in start.U]
+        self.set_box(lo, hi)
+        for k in range(net.K - 1):
+            self.set_layer(k, L[k], U[k])
+        for k in range(net.K - 1):
+            for j in range(len(L[k])):
+                if skip_stable and (L[k][j] >= 0 or U[k][j] <= 0):
+                    continue
+                a_lo, a_hi = self.preactivation_range(k, j)
+                if a_lo is None:
+                    raise EmptyBoxError("the LP relaxation is infeasible: no input in the box gives an output "
+                                        "within out_bounds")
+                slack_lo, slack_hi = self.tol * (1 + abs(a_lo)), self.tol * (1 + abs(a_hi))
+                L[k][j] = max(L[k][j], a_lo - slack_lo)
+                U[k][j] = min(U[k][j], a_hi + slack_hi)
+                if L[k][j] > U[k][j]:  # only by round-off: the LP was feasible
+                    L[k][j] = U[k][j] = 0.5 * (L[k][j] + U[k][j])
+                self.set_neuron(k, j, L[k][j], U[k][j])
+            # later layers: interval bounds from the tightened layer
+            L, U, oL, oU = propagate(net, L, U, start=k)
+            for kk in range(k + 1, net.K - 1):
+                self.set_layer(kk, L[kk], U[kk])
+        if output:
+            Wk, bk = net.W[-1], net.b[-1]
+            for i in range(net.n_out):
+                o_lo = self._optimize(self.y[-1], Wk[i], 1.0)
+                o_hi = self._optimize(self.y[-1], Wk[i], -1.0)
+                if o_lo is not None and np.isfinite(o_lo):
+                    oL[i] = max(oL[i], o_lo + bk[i] - self.tol * (1 + abs(o_lo)))
+                if o_hi is not None and np.isfinite(o_hi):
+                    oU[i] = min(oU[i], o_hi + bk[i] + self.tol * (1 + abs(o_hi)))
+        return NodeBounds(L, U, oL, oU, method="lp")
+
+
+_TIGHTENERS: dict = {}
+
+
+def _tightener(net: ReLUNet, out_bounds, tol: float) -> LPTightener:
+    """One persistent LP per (network, output bounds), reused across calls (the model is only updated)."""
+    key = (id(net), None if out_bounds is None else (tuple(np.asarray(out_bounds[0], float)),
+                                                      tuple(np.asarray(out_bounds[1], float))), float(tol))
+    t = _TIGHTENERS.get(key)
+    if t is None or t.net is not net:
+        if len(_TIGHTENERS) > 16:
+            _TIGHTENERS.clear()
+        t = _TIGHTENERS[key] = LPTightener(net, out_bounds=out_bounds, tol=tol)
+    return t
+
+
+def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Array, Array]] = None,
+              prior: Optional[NodeBounds] = None, tol: float = 1e-7, skip_stable: bool = False) -> NodeBounds:
+    """Node bounds by LP-based tightening (Grimstad & Andersson 2019), eq. (MIP_general) relaxed.
+
+    Parameters
+    ----------
+    net
+        The network.
+    lo, hi
+        Input box over ``y^0 = [z, v]``: shape (n_in,), or (T, n_in) for T
+        boxes (each tightened on its own; the LP is reused).
+    out_bounds
+        ``(out_lo, out_hi)``, each (n_out,): restrict the LP to inputs whose
+        output satisfies them, e.g. ``(-u_max_eps, u_max_eps)`` for
+        eq. (Phi_NN_ep). The bounds are then valid for every point of the
+        controller's feasible set (not for the whole box).
+    prior
+        Valid bounds to start from (intersected with FBBT), e.g. bounds of
+        the whole domain computed once offline.
+    tol
+        Relative safety margin added to every LP optimum (the LP solver's
+        tolerances must not make a bound invalid).
+    skip_stable
+        Solve LPs only for neurons still unstable when reached (faster, same
+        binaries; stable neurons keep their interval bounds).
+
+    Returns
+    -------
+    NodeBounds
+        ``method == "lp"`` (or ``"lp+out"`` with output bounds), never looser
+        than FBBT on the same box.
+
+    Raises
+    ------
+    EmptyBoxError
+        When ``out_bounds`` cannot be met by any input of the box.
+    """
+    lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
+    tightener = _tightener(net, out_bounds, tol)
+    res = []
+    for t in range(len(lo2)):
+        pr = None
+        if prior is not None:
+            pr = prior if np.ndim(prior.L[0]) == 1 else NodeBounds([a[t] for a in prior.L], [a[t] for a in prior.U],
+                                                                   prior.out_L[t], prior.out_U[t], prior.method)
+        res.append(tightener.tighten(lo2[t], hi2[t], prior=pr, skip_stable=skip_stable))
+    method = "lp+out" if out_bounds is not None else "lp"
+    if not batch:
+        b = res[0]
+        b.method = method
+        return b
+    return NodeBounds([np.stack([r.L[k] for r in res]) for k in range(net.K - 1)],
+                      [np.stack([r.U[k] for r in res]) for k in range(net.K - 1)],
+                      np.stack([r.out_L for r in res]), np.stack([r.out_U for r in res]), method=method)
+
+
+# ---------------------------------------------------------------------------
+# Reachable boxes along the horizon
+# ---------------------------------------------------------------------------
+def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_lo: Array, v_hi: Array,
+                  horizon: int) -> tuple[Array, Array]:
+    """Boxes containing ``[z(k), v(k)]``, k = 0..horizon-1, for every admissible input sequence.
+
+    With ``z(0) = z0`` fixed and ``z(k+1) = Ad z(k) + Bd v(k)`` (eq. MPC_form_miqp_c),
+    ``v(k)`` in ``[v_lo, v_hi]`` and ``z(k)`` in the state box ``[z_lo, z_hi]``
+    (eq. MPC_form_miqp_d), two valid boxes are intersected at every step:
+    the interval recursion ``Z(k+1) = (Ad Z(k) + Bd V) ∩ [z_lo, z_hi]`` (which
+    uses the state constraint) and the exact box of the unconstrained
+    convolution ``Ad^k z0 + sum_i Ad^(k-1-i) Bd V`` (which has no wrapping
+    effect).
+
+    Parameters
+    ----------
+    Ad, Bd
+        Discrete dynamics, (n_z, n_z) and (n_z, m).
+    z0
+        Measured state (n_z,).
+    z_lo, z_hi, v_lo, v_hi
+        State and input boxes.
+    horizon
+        ``N_p``.
+
+    Returns
+    -------
+    lo, hi
+        Arrays of shape (horizon, n_z + m): row ``k`` bounds ``[z(k), v(k)]``
+        (row 0 has ``z(0) = z0`` exactly). Pass them to ``fbbt(net, lo, hi)``
+        for per-step node bounds.
+
+    Raises
+    ------
+    EmptyBoxError
+        When ``z0`` lies outside the state box or no admissible input keeps
+        the state in the box.
+    """
+    Ad, Bd = np.atleast_2d(np.asarray(Ad, float)), np.atleast_2d(np.asarray(Bd, float))
+    n_z = Ad.shape[0]
+    if Ad.shape != (n_z, n_z):
+        raise ValueError(f"Ad must be square, got {Ad.shape}")
+    if Bd.ndim != 2 or Bd.shape[0] != n_z:
+        raise ValueError(f"Bd must have shape ({n_z}, m), got {Bd.shape}")
+    m = Bd.shape[1]
+    z0 = as_vector(z0, n_z, "z0")
+    z_lo, z_hi = check_box(z_lo, z_hi, n_z, "z_lo", "z_hi")
+    v_lo, v_hi = check_box(v_lo, v_hi, m, "v_lo", "v_hi")
+    if not int(horizon) == horizon or horizon < 1:
+        raise ValueError(f"horizon must be a positive integer, got {horizon}")
+    horizon = int(horizon)
+    if np.any(z0 < z_lo - 1e-12) or np.any(z0 > z_hi + 1e-12):
+        raise EmptyBoxError(f"z0 = {z0} lies outside the state box [{z_lo}, {z_hi}]")
+    lo, hi = np.empty((horizon, n_z + m)), np.empty((horizon, n_z + m))
+    lo[:, n_z:], hi[:, n_z:] = v_lo, v_hi
+    c_v, r_v = 0.5 * (v_hi + v_lo), 0.5 * (v_hi - v_lo)
+    Bl, Bu = interval_affine(Bd, np.zeros(n_z), v_lo, v_hi)   # the box of Bd v
+    center, radius = z0.copy(), np.zeros(n_z)                 # the convolution box: center +- radius
+    AjB = Bd.copy()                                           # Ad^j Bd for the newest input
+    zl, zu = z0.copy(), z0.copy()
+    for k in range(horizon):
+        lo[k, :n_z], hi[k, :n_z] = zl, zu
+        if k + 1 == horizon:
+            break
+        # interval recursion with the state constraint
+        nl, nu = interval_affine(Ad, np.zeros(n_z), zl, zu)
+        nl, nu = np.maximum(nl + Bl, z_lo), np.minimum(nu + Bu, z_hi)
+        # exact box of Ad^(k+1) z0 + sum_i Ad^(k-i) Bd v(i)
+        center = Ad @ center + Bd @ c_v
+        radius = np.abs(AjB) @ r_v + radius
+        AjB = Ad @ AjB
+        # (radius is accumulated in order of the input's age; both orders give the same sum)
+        zl, zu = np.maximum(nl, center - radius), np.minimum(nu, center + radius)
+        if np.any(zl > zu + 1e-9 * (1 + np.abs(zu))):
+            raise EmptyBoxError(f"no admissible input keeps the predicted state in the box at step {k + 1}")
+        zl, zu = np.minimum(zl, zu), np.maximum(zl, zu)
+    return lo, hi
+
+
+# ---------------------------------------------------------------------------
+# Optimality-based boxes: the level set of a convex relaxation
+# ---------------------------------------------------------------------------
+def ellipsoid_box(S: Array, H_inv: Array, V_c: Array, offset: Array, delta: float) -> tuple[Array, Array]:
+    """Box of ``S V + offset`` over the ellipsoid ``0.5 (V - V_c)' H (V - V_c) <= delta``.
+
+    With ``(V_c, J_c)`` the optimum of a convex QP relaxation ``min J(V)`` over a convex set
+    ``C`` (``J`` convex quadratic with Hessian ``H``), every ``V`` in ``C`` satisfies
+
+        J(V) >= J_c + 0.5 (V - V_c)' H (V - V_c)
+
+    (the first-order optimality of ``V_c`` plus the exact second-order term). So every
+    solution better than a level ``J_up`` lies in this ellipsoid with ``delta = J_up - J_c``,
+    and the ``i``-th row of ``S V`` ranges over ``S_i V_c +- sqrt(2 delta S_i H^-1 S_i')``.
+    These boxes, much smaller than the reachable boxes when the relaxation is tight, give
+    node bounds that are valid for every improving solution (the MPC's "level-set" lever).
+
+    Parameters
+    ----------
+    S
+        (r, n) rows of the linear map (e.g. ``z(k) = Sx[k] z0 + Su[k] V`` stacked with ``v(k)``).
+    H_inv
+        (n, n) inverse of the positive definite Hessian ``H``.
+    V_c
+        (n,) center (the relaxation's optimum).
+    offset
+        (r,) constant added to ``S V``.
+    delta
+        ``J_up - J_c >= 0``.
+
+    Returns
+    -------
+    lo, hi
+        Arrays of shape (r,).
+    """
+    S = np.atleast_2d(np.asarray(S, float))
+    if delta < 0:
+        raise ValueError(f"delta = J_up - J_c must be >= 0, got {delta}")
+    center = S @ np.asarray(V_c, float) + np.asarray(offset, float)
+    rad = np.sqrt(2.0 * delta * np.maximum(np.einsum("ij,jk,ik->i", S, H_inv, S), 0.0))
+    return center - rad, center + rad
