@@ -469,8 +469,10 @@ class ClfCbfController:
         for both; ``"daqp"`` is accepted, but on these programs it was measured
         to return wrong optima or fail, see ``make bench``). ``"auto"``
         (default) takes ``"exact"`` for a single input (the fastest exact
-        method, measured) and otherwise the persistent solver (HiGHS for Lcost,
-        SCIP for Qcost).
+        method, measured) and otherwise the persistent SCIP model for both
+        costs (on the MSD programs SCIP was faster than HiGHS and never wrong;
+        HiGHS returned a sub-optimal point as optimal at a few states, see
+        :class:`flnotes.miqp.HighsSolver`).
     solver
         For ``backend="cvxpy"``: the cvxpy solver name (default HIGHS for Lcost, SCIP for Qcost).
     v_lo, v_hi
@@ -539,7 +541,7 @@ class ClfCbfController:
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if backend == "auto":
-            backend = "exact" if m == 1 else ("highs" if cost == "linear" else "scip")
+            backend = "exact" if m == 1 else "scip"
         self.backend = backend
         self.solver_options = dict(solver_options or {})
         if backend == "highs" and not self.solver_options:

@@ -147,6 +147,25 @@ def test_persistent_model_matches_bigm_form_update(msd):
 
 
 # --------------------------------------------------------------------------- closed loop
+# States of the book's closed loops where HiGHS once returned a sub-optimal point as "optimal" (with its MIP
+# presolve on, resp. with feasibility tolerances of 1e-8), with the chapter's certified eps.
+HARD_STATES = np.array([[0.257, 0.0156], [0.47109655, -0.12717008]])
+
+
+@pytest.mark.parametrize("backend", ["highs", "scip", "cvxpy"])
+def test_mip_optimum_at_states_where_a_solver_was_wrong(msd, backend):
+    sysm, net = msd
+    V, H, k = parts()
+    eps = fl.paper.paper_eps("MSD").upper
+    ctrl = ClfCbfController(sysm, net, eps, V, H, k, cost="linear", backend=backend, beta=S["beta"], kappa=S["kappa"])
+    ex = ctrl.with_backend("exact")
+    for z in HARD_STATES:
+        r, rx = ctrl.step(z), ex.step(z)
+        assert r.status == rx.status == "optimal", (z, r.status, rx.status)
+        assert rel(r.info["objective"], rx.info["objective"]) <= 1e-6, (z, r.v, rx.v, r.info["objective"],
+                                                                          rx.info["objective"])
+
+
 @pytest.fixture(scope="module")
 def runs(msd):
     sysm, net = msd

@@ -186,7 +186,7 @@ def test_highs_refuses_a_mixed_integer_qp_and_auto_picks_one_that_can():
     with pytest.raises(ValueError, match="mixed-integer QP"):
         make_solver(p, "highs")
     assert make_solver(p, "auto").name in MIQP_BACKENDS
-    assert make_solver(random_program(0, quad=False), "auto").name == "highs"
+    assert make_solver(random_program(0, quad=False), "auto").name == "scip"
 
 
 def test_bad_shapes_name_the_argument():
