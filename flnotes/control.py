@@ -480,6 +480,14 @@ class ClfCbfController:
     penalty
         ``(rho_u, rho_H)``: weights of the slacks of the softened program used
         as the fallback (see the module docstring).
+    screening
+        Persistent back-ends only (default True): first solve the program
+        without the network constraint, a small LP (Lcost) or QP (Qcost) in
+        ``(v, delta)``. Its feasible set contains the program's, so if its
+        optimum ``v*`` satisfies ``|Phi_NN(z, v*)| <= u_max^eps`` it is the
+        program's optimum, and if it is infeasible so is the program; only
+        otherwise does the branch and bound run. Exact, and it skips the MIP
+        wherever the input bound is not active.
     time_limit
         Seconds per solve (None: no limit).
     gap
@@ -505,11 +513,13 @@ class ClfCbfController:
                  k: Optional[Callable[[Array], Array]] = None, cost: str = "linear", beta: float = 0.001,
                  kappa: float = 4.0, backend: str = "auto", solver: Optional[str] = None,
                  v_lo: Optional[Array] = None, v_hi: Optional[Array] = None,
-                 penalty: tuple[float, float] = (1e6, 1e4), time_limit: Optional[float] = None,
-                 gap: float = 1e-6, solver_options: Optional[dict] = None, name: Optional[str] = None):
+                 penalty: tuple[float, float] = (1e6, 1e4), screening: bool = True,
+                 time_limit: Optional[float] = None, gap: float = 1e-6, solver_options: Optional[dict] = None,
+                 name: Optional[str] = None):
         self._kwargs = dict(system=system, net=net, eps=eps, V=V, H=H, k=k, cost=cost, beta=beta, kappa=kappa,
                             backend=backend, solver=solver, v_lo=v_lo, v_hi=v_hi, penalty=penalty,
-                            time_limit=time_limit, gap=gap, solver_options=solver_options, name=name)
+                            screening=screening, time_limit=time_limit, gap=gap, solver_options=solver_options,
+                            name=name)
         cost = {"lcost": "linear", "qcost": "quadratic"}.get(str(cost).lower(), str(cost).lower())
         if cost not in ("linear", "quadratic"):
             raise ValueError(f"cost must be 'linear' (eq. LP_cost) or 'quadratic' (eq. QP_cost), got {cost!r}")
@@ -537,6 +547,7 @@ class ClfCbfController:
             raise ValueError(f"need v_lo < v_hi, got {self.v_lo} and {self.v_hi}")
         self.penalty = (float(penalty[0]), float(penalty[1]))
         self.time_limit, self.gap = time_limit, float(gap)
+        self.screening = bool(screening)
         self.name = name or ("Lcost" if cost == "linear" else "Qcost")
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -662,6 +673,9 @@ class ClfCbfController:
             P = impl.problem
             lines.append(f"  persistent {impl.backend} model: {P.n} variables ({int(P.integrality.sum())} binaries, "
                          f"those of stable neurons fixed each step), {P.m} rows; updated in place each step")
+            if self.screening:
+                lines.append("  screening: the program without the network constraint is solved first (HiGHS); "
+                             "the MIP runs only when its optimum violates |Phi_NN| <= u_max^eps")
         else:
             lines.append("  no model: the pieces of Phi_NN(z, .) are listed at each z and the cost minimized per interval")
         return "\n".join(lines)
@@ -894,6 +908,35 @@ class _MiqpBackend:
         self.backend = backend
         self.solver = make_solver(self.problem, backend=backend, **c.solver_options)
         self.n_binaries = None
+        # the screening program: eq. (CLF_CBF) without (CLF_CBF_b), in r = [v (m), delta]
+        rows = sp.csr_matrix(np.vstack([np.r_[np.ones(m), -1.0], np.c_[np.ones((p, m)), np.zeros(p)]]))
+        self._r_lb = np.r_[c.v_lo, 0.0]
+        self._r_ub = np.r_[c.v_hi, np.inf]
+        Hr = sp.csc_matrix((np.full(m, 2.0), (np.arange(m), np.arange(m))), shape=(m + 1, m + 1)) \
+            if c.cost == "quadratic" else None
+        self._relaxed = make_solver(MIQP(Hr, np.r_[np.zeros(m), 1.0], 0.0, rows, np.full(1 + p, -np.inf),
+                                         np.zeros(1 + p), self._r_lb, self._r_ub, np.zeros(m + 1, int)), "highs")
+
+    def screen(self, z: Array, d: dict) -> Optional[_Solution]:
+        """The screening step (see ``screening``): the exact answer, or None when the branch and bound must run."""
+        c, m, p = self.c, self.c.system.m, self.c.p
+        A = sp.csr_matrix(np.vstack([np.r_[d["aV"], -1.0], np.c_[-d["aH"], np.zeros(p)]]))
+        lin = np.r_[d["aV"], 1.0] if c.cost == "linear" else np.r_[-2.0 * d["k"], 1.0]
+        c0 = d["Jc"] if c.cost == "linear" else float(d["k"] @ d["k"])
+        self._relaxed.update(c=lin, c0=c0, A=A, ru=np.r_[-d["bV"], d["bH"]])
+        r = self._relaxed.solve()
+        if r.status == "infeasible":     # the program's feasible set is a subset of the empty set
+            return _Solution(status="infeasible", solver_time=r.time, nodes=0,
+                             detail="screening: infeasible without the network constraint")
+        if r.status != "optimal" or r.w is None:
+            return None
+        v = np.clip(r.w[:m], c.v_lo, c.v_hi)
+        if not np.all(np.abs(c.net(np.concatenate([z, v]))) <= c.u_eps):
+            return None
+        self.n_binaries = 0
+        return _Solution(status="optimal", v=v, delta=float(r.w[m]), objective=float(r.objective),
+                         solver_time=r.time, slack_u=np.zeros(m), slack_H=np.zeros(p), nodes=0,
+                         detail="screening: the optimum without the network constraint satisfies it")
 
     def write(self, z: Array, d: dict, bounds: NodeBounds, soft: bool) -> dict:
         """The new numbers of the program at ``z`` (keyword arguments of ``Solver.update``)."""
@@ -925,6 +968,10 @@ class _MiqpBackend:
 
     def solve(self, z: Array, d: dict, soft: bool) -> _Solution:
         c = self.c
+        if c.screening and not soft:
+            sol = self.screen(z, d)
+            if sol is not None:
+                return sol
         self.solver.update(**self.write(z, d, c.node_bounds(z), soft))
         r = self.solver.solve(time_limit=c.time_limit, gap=c.gap)
         st = r.status if r.status != "error" else f"error: {r.backend}: {r.message}"

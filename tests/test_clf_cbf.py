@@ -166,6 +166,24 @@ def test_mip_optimum_at_states_where_a_solver_was_wrong(msd, backend):
                                                                           rx.info["objective"])
 
 
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_screening_is_exact(msd, cost):
+    """Solving without the network constraint first never changes the optimum, and it is used both ways."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost=cost, backend="scip", screening=True)
+    ex = ctrl.with_backend("exact")
+    rng = np.random.default_rng(11)
+    states = np.vstack([rng.uniform(-0.5, 0.5, (15, 2)), rng.uniform(-3.0, 3.0, (15, 2)), [[0.5, 1.0]]])
+    screened = 0
+    for z in states:
+        r, rx = ctrl.step(z), ex.step(z)
+        assert r.status == rx.status, (z, r.status, rx.status)
+        assert rel(r.info["objective"], rx.info["objective"]) <= 1e-6, (z, r.v, rx.v)
+        screened += r.info["detail"].startswith("screening")
+    assert 0 < screened < len(states)
+
+
 @pytest.fixture(scope="module")
 def runs(msd):
     sysm, net = msd
