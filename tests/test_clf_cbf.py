@@ -287,8 +287,11 @@ def test_closed_loop_with_too_small_u_max_reports_infeasibility_and_never_crashe
     assert r.fallback and r.status.startswith("error: RuntimeError") and r.info["fallback_rule"].startswith("k(z)")
 
 
-def test_multi_input_system_works_with_the_milp(msd):
-    """Two decoupled double integrators with a random network: the MILP backend handles m = 2."""
+@pytest.mark.parametrize("cost, backend, screening", [("linear", "highs", True), ("linear", "auto", True),
+                                                      ("linear", "scip", False), ("quadratic", "auto", True),
+                                                      ("quadratic", "scip", False)])
+def test_multi_input_system_works_with_the_milp(msd, cost, backend, screening):
+    """Two decoupled double integrators with a random network: the persistent backends handle m = 2."""
     A, B = fl.brunovsky([2, 2])
     rng = np.random.default_rng(3)
     W1, W2 = rng.normal(size=(8, 6)) * 0.5, rng.normal(size=(2, 8)) * 0.5
@@ -297,9 +300,12 @@ def test_multi_input_system_works_with_the_milp(msd):
                        u_max=[5, 5], f=lambda x, u: A @ x + B @ u, to_z=lambda x: x, to_x=lambda z: z)
     P = np.kron(np.eye(2), S["P"])
     ctrl = ClfCbfController(sysm, net, 0.1, QuadraticCLF(P), DistanceCBF([1.5, 1.0, 0.0, 0.0], 0.8),
-                            lambda z: -np.kron(np.eye(2), S["K_nominal"]) @ z, cost="linear", backend="highs")
+                            lambda z: -np.kron(np.eye(2), S["K_nominal"]) @ z, cost=cost, backend=backend,
+                            screening=screening)
+    assert ctrl.backend == (backend if backend != "auto" else "scip")
     ref = ctrl.with_backend("cvxpy")
-    for z in [np.array([0.0, 4.0, 1.0, -1.0]), np.array([2.0, 0.0, 0.0, 2.0])]:
+    states = np.vstack([[0.0, 4.0, 1.0, -1.0], [2.0, 0.0, 0.0, 2.0], rng.uniform(-3.0, 3.0, (6, 4))])
+    for z in states:
         r, rr = ctrl.step(z), ref.step(z)
         assert r.v.shape == (2,) and r.status == rr.status
         assert rel(r.info["objective"], rr.info["objective"]) <= 1e-6
