@@ -438,6 +438,7 @@ class _Solution:
     slack_H: Optional[Array] = None
     detail: str = ""
     nodes: Optional[int] = None
+    screened: bool = False  # settled by the screening program, no MIP solved
 
 
 class ClfCbfController:
@@ -467,7 +468,7 @@ class ClfCbfController:
         ``"exact"`` (single input), ``"cvxpy"``, or a persistent solver through
         :mod:`flnotes.miqp` (``"highs"`` for the MILP; ``"scip"``, ``"gurobi"``
         for both; ``"daqp"`` is accepted, but on these programs it was measured
-        to return wrong optima or fail, see ``make bench``). ``"auto"``
+        slower than SCIP, see ``make bench``). ``"auto"``
         (default) takes ``"exact"`` for a single input (the fastest exact
         method, measured) and otherwise the persistent SCIP model for both
         costs (on the MSD programs SCIP was faster than HiGHS and never wrong;
@@ -648,7 +649,7 @@ class ClfCbfController:
         info = dict(backend=self.backend, objective=sol.objective, delta=sol.delta,
                     phi_nn=self.net(np.concatenate([z, v])), V=d["V"], H=d["H"], solver_time=sol.solver_time,
                     n_binaries=getattr(self._impl, "n_binaries", None), nodes=sol.nodes,
-                    slack_u=sol.slack_u, slack_H=sol.slack_H, detail=first.detail,
+                    slack_u=sol.slack_u, slack_H=sol.slack_H, detail=first.detail, screened=first.screened,
                     z_in_domain=bool(self.system.in_domain(z)[0]))
         if fallback:
             info.update(fallback_rule=rule, fallback_detail=sol.detail)
@@ -909,13 +910,12 @@ class _MiqpBackend:
         self.solver = make_solver(self.problem, backend=backend, **c.solver_options)
         self.n_binaries = None
         # the screening program: eq. (CLF_CBF) without (CLF_CBF_b), in r = [v (m), delta]
+        # (rows: the CLF row [a_V, -1] and the CBF rows [-a_H, 0], placeholders until screen() writes them)
         rows = sp.csr_matrix(np.vstack([np.r_[np.ones(m), -1.0], np.c_[np.ones((p, m)), np.zeros(p)]]))
-        self._r_lb = np.r_[c.v_lo, 0.0]
-        self._r_ub = np.r_[c.v_hi, np.inf]
-        Hr = sp.csc_matrix((np.full(m, 2.0), (np.arange(m), np.arange(m))), shape=(m + 1, m + 1)) \
-            if c.cost == "quadratic" else None
+        Hr = sp.diags(np.r_[np.full(m, 2.0), 0.0], format="csc") if c.cost == "quadratic" else None
         self._relaxed = make_solver(MIQP(Hr, np.r_[np.zeros(m), 1.0], 0.0, rows, np.full(1 + p, -np.inf),
-                                         np.zeros(1 + p), self._r_lb, self._r_ub, np.zeros(m + 1, int)), "highs")
+                                         np.zeros(1 + p), np.r_[c.v_lo, 0.0], np.r_[c.v_hi, np.inf],
+                                         np.zeros(m + 1, int)), "highs")
 
     def screen(self, z: Array, d: dict) -> Optional[_Solution]:
         """The screening step (see ``screening``): the exact answer, or None when the branch and bound must run."""
@@ -925,8 +925,8 @@ class _MiqpBackend:
         c0 = d["Jc"] if c.cost == "linear" else float(d["k"] @ d["k"])
         self._relaxed.update(c=lin, c0=c0, A=A, ru=np.r_[-d["bV"], d["bH"]])
         r = self._relaxed.solve()
-        if r.status == "infeasible":     # the program's feasible set is a subset of the empty set
-            return _Solution(status="infeasible", solver_time=r.time, nodes=0,
+        if r.status == "infeasible":     # the program's feasible set lies inside this empty one
+            return _Solution(status="infeasible", solver_time=r.time, nodes=0, screened=True,
                              detail="screening: infeasible without the network constraint")
         if r.status != "optimal" or r.w is None:
             return None
@@ -935,7 +935,7 @@ class _MiqpBackend:
             return None
         self.n_binaries = 0
         return _Solution(status="optimal", v=v, delta=float(r.w[m]), objective=float(r.objective),
-                         solver_time=r.time, slack_u=np.zeros(m), slack_H=np.zeros(p), nodes=0,
+                         solver_time=r.time, slack_u=np.zeros(m), slack_H=np.zeros(p), nodes=0, screened=True,
                          detail="screening: the optimum without the network constraint satisfies it")
 
     def write(self, z: Array, d: dict, bounds: NodeBounds, soft: bool) -> dict:

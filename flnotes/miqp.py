@@ -27,9 +27,10 @@ between calls:
 measured faster than HiGHS and never wrong, while HiGHS returned sub-optimal
 points as optimal at a few states, see :class:`HighsSolver`), HiGHS for a
 continuous program and DAQP for a mixed-integer QP (the fastest exact back-end
-measured on the MPC programs, see the chapter "Making it real-time"). Every back-end reports the same :class:`MIQPResult`, with the
-objective re-evaluated from the returned ``w`` (constants included) so that
-back-ends can be compared number for number.
+measured on the MPC programs, see the chapter "Making it real-time"). Every
+back-end reports the same :class:`MIQPResult`, with the objective re-evaluated
+from the returned ``w`` (constants included) so that back-ends can be compared
+number for number.
 """
 from __future__ import annotations
 
@@ -639,6 +640,7 @@ class ScipSolver(Solver):
                                  for i, j, v in zip(Hu.row, Hu.col, Hu.data))
             m.addCons(quad - self._t <= 0, name="epigraph")
         self._m, self._scip = m, scip
+        self._polisher = None  # a HiGHS QP with the integers fixed, built at the first polish
         self._set_objective()
 
     def _s(self, v: float):
@@ -724,7 +726,6 @@ class ScipSolver(Solver):
             return _result(p, "time_limit", w, bound, nodes, t0, self.name, st)
         return _result(p, "error", w, bound, nodes, t0, self.name, st)
 
-
     def _polish(self, w: Array) -> Array:
         """The QP optimum with the integers fixed at ``w``'s (HiGHS), when it is better than ``w``.
 
@@ -738,7 +739,7 @@ class ScipSolver(Solver):
         lb, ub = p.lb.copy(), p.ub.copy()
         lb[ints] = ub[ints] = np.clip(np.round(w[ints]), p.lb[ints], p.ub[ints])
         try:
-            if getattr(self, "_polisher", None) is None:
+            if self._polisher is None:
                 self._polisher = make_solver(MIQP(p.H, p.c, p.c0, p.A, p.rl, p.ru, lb, ub,
                                                   np.zeros(p.n, int)), "highs")
             else:
