@@ -14,7 +14,7 @@ from .network import ReLUNet, TrainingReport, fit_relu, uniform_grid
 from .bounds import NodeBounds, fbbt, interval_affine, sample_preactivations
 from .encoding import BigMForm, Encoding, bigm_form, encode, forward_milp
 from .simulate import Controller, FeedbackLaw, SimLog, StepResult, simulate
-from . import interval, plots, widgets
+from . import interval, plots, reference, widgets
 from .error import *  # noqa: F401,F403  pso_max_error, certify_error, ErrorBracket, ...
 from .miqp import BACKENDS, MIQP, HorizonMIQP, HorizonResult, MIQPResult, Solver, available_backends, make_solver
 from .tightening import *  # noqa: F401,F403  lp_bounds, horizon_boxes, ...

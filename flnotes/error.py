@@ -757,7 +757,8 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
                        n_per_axis: Sequence[int] = (10, 20, 30), max_iter: int = 300, max_train: Optional[int] = None,
                        seed: int = 0,
                        rtol: float = 0.05, max_time: float = 20.0, n_samples: int = 20_000,
-                       cache: bool = True, progress: bool = False) -> list[dict]:
+                       cache: bool = True, progress: bool = False, recompute: bool = False,
+                       ship_to: Optional[str] = None) -> list[dict]:
     """Train small networks over a grid of widths, depths and grid densities; estimate and certify each eps.
 
     One row per network with ``width``, ``depth``, ``n_s``, ``n_binaries``
@@ -766,20 +767,32 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
     ``eps_certified`` (upper end of :func:`certify_error` with ``rtol``),
     ``eps_lower``, ``train_time_s`` and ``certify_time_s``. ``max_train``
     caps the training points per network (a random subset of the grid, as in
-    :func:`flnotes.fit_relu`; ``None``: the whole grid). The table is cached
-    on disk (keyed by all arguments), so a chapter computes it once.
+    :func:`flnotes.fit_relu`; ``None``: the whole grid).
+
+    Training many networks takes minutes and its result depends on the
+    machine (see :mod:`flnotes.reference`), so the table chapter 5 draws is
+    shipped with the package and returned as it is when the arguments match
+    it exactly; ``recompute=True`` trains everything anew on this machine.
+    Other arguments are computed and cached on disk (keyed by all arguments,
+    ``cache=False`` skips the disk). ``ship_to`` (a folder) writes the
+    computed table there as the shipped one (see
+    :func:`flnotes.paper.write_sweep`).
     """
     import hashlib
     import json
 
     from .config import cache_dir
     from .network import fit_relu
+    from .reference import load_table, save_table
 
     args = dict(system=system.name, lo=system.lo.tolist(), hi=system.hi.tolist(), widths=list(widths),
                 depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, max_train=max_train, seed=seed, rtol=rtol,
                 max_time=max_time, n_samples=n_samples, version=1)
+    shipped = None if recompute else load_table(f"sweep-{system.name}", args)
+    if shipped is not None:
+        return shipped
     path = cache_dir() / f"sweep-{system.name}-{hashlib.sha1(json.dumps(args, sort_keys=True).encode()).hexdigest()[:12]}.json"
-    if cache and path.exists():
+    if cache and not recompute and path.exists():
         return json.loads(path.read_text())
     rows = []
     for n_s in n_per_axis:
@@ -801,6 +814,8 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(rows))
         tmp.replace(path)
+    if ship_to is not None:
+        save_table(f"sweep-{system.name}", args, rows, folder=ship_to)
     return rows
 
 

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-SECTIONS = ("error", "clfcbf", "mpc")
+SECTIONS = ("training", "error", "clfcbf", "mpc")
 
 
 def out_dir() -> Path:
