@@ -31,7 +31,7 @@ What stops a run, and what does not
 """
 from __future__ import annotations
 
-import sys
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
@@ -359,10 +359,9 @@ def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fall
                         f"lambda z: -K @ z")
     if hold not in ("v", "u"):
         raise ValueError(f"hold must be 'v' (hold v, u = Phi(z(t), v)) or 'u' (hold u), got {hold!r}")
-    try:
-        ts_f, tf_f = float(ts), float(t_final)
-    except (TypeError, ValueError):
-        raise TypeError(f"ts and t_final must be numbers (seconds), got ts={ts!r}, t_final={t_final!r}") from None
+    if not all(isinstance(a, numbers.Real) and not isinstance(a, bool) for a in (ts, t_final)):
+        raise TypeError(f"ts and t_final must be numbers (seconds), got ts={ts!r}, t_final={t_final!r}")
+    ts_f, tf_f = float(ts), float(t_final)
     if not (np.isfinite(ts_f) and ts_f > 0 and np.isfinite(tf_f) and tf_f >= ts_f):
         raise ValueError(f"need 0 < ts <= t_final, got ts={ts!r}, t_final={t_final!r}")
     if (x0 is None) == (z0 is None):
