@@ -94,8 +94,8 @@ def _check_net_box(net: ReLUNet, lo, hi) -> None:
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
     d = np.shape(lo)[-1] if np.ndim(lo) else None
     if d is not None and d != net.n_in and np.shape(lo) == np.shape(hi):
-        raise ValueError(f"net has {net.n_in} inputs but the box lo, hi has {d} dimensions: give a box over the "
-                         f"network's input (z, v), shape ({net.n_in},) or (T, {net.n_in})")
+        raise ValueError(f"net has {net.n_in} inputs but the box lo, hi has {d} dimensions: lo and hi must have "
+                         f"shape ({net.n_in},) or (T, {net.n_in}), a box over the network's input (z, v)")
 
 
 def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:

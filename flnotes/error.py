@@ -164,10 +164,11 @@ def _resolve(f, net: ReLUNet, lo, hi) -> tuple[Callable[[Array], Array], Array, 
         raise TypeError(f"f must be a callable (N, n_in) -> (N, m) or an FLSystem, got {type(f).__name__}")
     if lo is None or hi is None:
         raise ValueError("give the box lo, hi (shape (n_in,)) over which to bound the error")
-    for b in (lo, hi):
+    for b, bname in ((lo, "lo"), (hi, "hi")):
         if np.ndim(b) == 1 and np.shape(b)[0] != net.n_in:
             raise ValueError(f"net has {net.n_in} inputs, the box lo = {np.asarray(lo)}, hi = {np.asarray(hi)} has "
-                             f"{np.shape(b)[0]} dimensions: the box is over the network's input")
+                             f"{np.shape(b)[0]} dimensions: {bname} must have shape ({net.n_in},), a box over the "
+                             f"network's input")
     lo, hi = check_box(lo, hi, net.n_in, "lo", "hi")
     m = net.n_out
 
@@ -391,7 +392,8 @@ def _interval_f(f, net: ReLUNet, f_interval, lipschitz, fun) -> tuple[Callable[[
             except (TypeError, AttributeError) as exc:
                 raise NotCertifiable(
                     f"f_interval failed on Interval inputs ({type(exc).__name__}: {exc}); write it with the "
-                    f"operations of flnotes.interval (+ - * /, iv.exp, iv.tanh, iv.sqrt, iv.abs, iv.arcsin, ...), "
+                    f"operations of flnotes.interval (+ - * / **, iv.sin, iv.cos, iv.tan, iv.arctan, iv.exp, iv.log, "
+                    f"iv.sqrt, iv.tanh, iv.abs, iv.arcsin, ...), "
                     f"not numpy functions") from exc
             if not isinstance(Y, Interval):
                 raise NotCertifiable(f"f_interval must return an flnotes.interval.Interval, got {type(Y).__name__}")
@@ -598,16 +600,21 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         an interval version of ``Phi``, a function of an
         :class:`flnotes.interval.Interval` ``X`` of shape (T, n_in) returning
         an Interval of shape (T, m), written with the operations of
-        :mod:`flnotes.interval` (``+ - * /``, ``iv.exp``, ``iv.tanh``,
-        ``iv.sqrt``, ``iv.abs``, ``iv.arcsin``, ``iv.sqr``, ``iv.hstack``,
-        slicing ``X[:, j:j+1]``) so that it also carries gradients; for an
-        :class:`FLSystem` it is ``phi_interval(z, v)``. It must be defined
-        (no singularity) on the whole box.
+        :mod:`flnotes.interval` (``+ - * /``, integer powers ``**``,
+        ``iv.sin``, ``iv.cos``, ``iv.tan``, ``iv.arctan``, ``iv.exp``,
+        ``iv.log``, ``iv.sqrt``, ``iv.tanh``, ``iv.abs``, ``iv.arcsin``,
+        ``iv.sqr``, ``iv.hstack``, slicing ``X[:, j:j+1]``) so that it also
+        carries gradients; for an :class:`FLSystem` it is
+        ``phi_interval(z, v)``. It must be defined (no singularity) on the
+        whole box, and it must enclose ``Phi``: before certifying, ``Phi`` at
+        the sample points and on small random boxes is checked against it,
+        and a mismatch (a typo) raises ``ValueError`` naming it.
     lipschitz
         ... or Lipschitz constants ``L`` with
         ``|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j|`` on the box (scalar,
         (n_in,) or (m, n_in)). Then ``Phi`` is only evaluated at points, and its
-        floating-point value is trusted to a relative accuracy of 1e-12. Much
+        floating-point value is trusted to a relative accuracy of 1e-12 (and
+        constants that pairs of nearby samples contradict are refused). Much
         slower to converge than ``f_interval``: the enclosure is first order
         (it cannot see ``Phi`` and ``Phi_NN`` cancel), so sub-boxes must shrink
         to about ``tolerance / L``; practical in one or two dimensions or for
@@ -640,7 +647,10 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         If neither ``f_interval`` nor ``lipschitz`` is available, or ``Phi``'s
         interval version is undefined somewhere on the box.
     ValueError
-        For an empty box (``lo > hi``) or a function returning the wrong shape.
+        For an empty box (``lo > hi``), a network whose input size is not the
+        box's, a function returning the wrong shape, an ``f_interval`` (or
+        ``phi_interval``) that does not enclose ``Phi``, or ``lipschitz``
+        constants that samples of ``Phi`` contradict.
     """
     fun, lo, hi = _resolve(f, net, lo, hi)
     if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):

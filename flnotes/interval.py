@@ -154,7 +154,10 @@ class Interval:
             if np.isnan(lo).any() or np.isnan(hi).any():
                 raise NotCertifiable("interval bound is NaN: the function left its domain on some box")
             if np.any(lo > hi):
-                raise ValueError("Interval: every lower bound must be <= its upper bound")
+                i = tuple(int(j) for j in np.argwhere(lo > hi)[0])
+                at = str(list(i)) if i else ""
+                raise ValueError(f"Interval: lo{at} = {lo[i]} > hi{at} = {hi[i]}; every lower bound must "
+                                 f"be <= its upper bound")
         self.lo, self.hi = lo, hi
         if (dlo is None) != (dhi is None):
             raise ValueError("Interval: give both dlo and dhi or neither")
