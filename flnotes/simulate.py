@@ -290,6 +290,14 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         v = as_vector(res.v, m, f"the controller's v at t = {t:.3f} s")
         try:
             u_k = system.Phi(z, v)
+        except _PROGRAMMING_ERRORS:
+            raise
+        except Exception as exc:
+            if k == 0:  # at the start, which the caller chose: a bad Phi or a bad start, not a place the plant went
+                raise
+            message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
+            break
+        try:
             if hold == "v":
                 rhs = lambda _t, xx: system.f(xx, system.Phi(np.asarray(system.to_z(xx), float), v))
             else:

@@ -97,3 +97,12 @@ def test_bad_arguments_raise_clear_errors(kw, match):
     args.update(kw)
     with pytest.raises(ValueError, match=match):
         fl.simulate(fl.msd(), lambda z: np.zeros(1), **args)
+
+
+def test_a_phi_of_the_wrong_shape_raises_at_the_start():
+    """Phi is evaluated at the start the caller chose: a wrong shape is raised there, not logged as a stop."""
+    import dataclasses
+
+    sysm = dataclasses.replace(fl.msd(), phi=lambda z, v: np.hstack([v, v]))
+    with pytest.raises(ValueError, match=r"phi returned shape \(1, 2\), expected \(1, 1\)"):
+        fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=0.1, z0=[0.0, 1.0])
