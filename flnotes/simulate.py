@@ -229,11 +229,14 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     ------
     ValueError
         For a bad argument (``z0``/``x0`` of the wrong shape or outside the
-        domain box, a reference of the wrong shape, ``ts``, ``hold``, ...) and
-        for any error of the controller other than :class:`flnotes.SolverFailure`.
+        domain box, a reference of the wrong shape, ``ts``, ``hold``, ...).
     TypeError
         For a ``system``, ``controller``, ``reference``, ``fallback`` or
-        ``net`` of the wrong kind.
+        ``net`` of the wrong kind, or a controller whose ``step`` does not
+        return a :class:`StepResult`.
+    Exception
+        Any exception of the controller other than
+        :class:`flnotes.SolverFailure`, as it was raised.
     """
     _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fallback, rtol, atol)
     ctrl = controller if isinstance(controller, Controller) else FeedbackLaw(controller)
