@@ -13,6 +13,7 @@ from .systems import FLSystem, brunovsky, discretize, msd, quad1d
 from .network import ReLUNet, TrainingReport, fit_relu, uniform_grid
 from .bounds import NodeBounds, fbbt, interval_affine, sample_preactivations
 from .encoding import BigMForm, Encoding, bigm_form, encode, forward_milp
+from .errors import SolverFailure
 from .simulate import Controller, FeedbackLaw, SimLog, StepResult, simulate
 from . import interval, plots, reference, widgets
 from .error import *  # noqa: F401,F403  pso_max_error, certify_error, ErrorBracket, ...

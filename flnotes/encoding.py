@@ -62,6 +62,15 @@ class Encoding:
 
 def _as_params_or_arrays(bounds: Optional[NodeBounds], L, U, net: ReLUNet, T: Optional[int]):
     if bounds is not None:
+        if not isinstance(bounds, NodeBounds):
+            raise TypeError(f"bounds must be a flnotes.NodeBounds, e.g. bounds=fl.fbbt(net, lo, hi) or "
+                            f"fl.lp_bounds(net, lo, hi), got {type(bounds).__name__}; to give the per-layer arrays "
+                            f"yourself pass L=[L^1, ..., L^(K-1)] and U=[U^1, ..., U^(K-1)] instead")
+        if L is not None or U is not None:
+            raise ValueError("give either bounds= or L= and U=, not both")
+        if len(bounds.L) != net.K - 1 or len(bounds.U) != net.K - 1:
+            raise ValueError(f"bounds hold {len(bounds.L)} layers but the network has {net.K - 1} hidden layers: "
+                             f"compute them for this network, bounds=fl.fbbt(net, lo, hi)")
         L, U = bounds.L, bounds.U
         if any(np.ndim(a) == 2 for a in L):
             # a batch from fbbt(net, lo, hi) with lo, hi of shape (T, n_in) stores (T, n_k) per layer;
@@ -75,6 +84,10 @@ def _as_params_or_arrays(bounds: Optional[NodeBounds], L, U, net: ReLUNet, T: Op
             L, U = [np.asarray(a).T for a in L], [np.asarray(a).T for a in U]
     if L is None or U is None:
         raise ValueError("encode needs node bounds: pass bounds=fbbt(net, lo, hi) (or L= and U= lists)")
+    for name, B in (("L", L), ("U", U)):
+        if not isinstance(B, (list, tuple)):
+            raise TypeError(f"{name} must be a list with one array (or cvxpy Parameter) per hidden layer, "
+                            f"got {type(B).__name__}")
     if len(L) != net.K - 1 or len(U) != net.K - 1:
         raise ValueError(f"need one L and one U per hidden layer ({net.K - 1}), got {len(L)} and {len(U)}")
     return list(L), list(U)
@@ -113,6 +126,12 @@ def encode(net: ReLUNet, x, bounds: Optional[NodeBounds] = None, L: Optional[Seq
     """
     import cvxpy as cp
 
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if not isinstance(x, cp.Expression):
+        raise TypeError(f"x must be a cvxpy expression of the network input (e.g. cp.Variable({net.n_in})), got "
+                        f"{type(x).__name__}; to evaluate the network at a numeric point call net(x), to solve the "
+                        f"encoding with the input fixed use fl.forward_milp(net, x)")
     shape = tuple(x.shape)
     if len(shape) == 1:
         T = None
@@ -267,6 +286,10 @@ def _write_layer(A_ub, b_ub, lb, ub, form: BigMForm, k: int, L: Array, U: Array)
 
 def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     """Eq. (MIP_general) for one point as a :class:`BigMForm` (see there for the layout)."""
+    if not isinstance(bounds, NodeBounds):
+        raise TypeError(f"bounds must be a flnotes.NodeBounds (e.g. fl.fbbt(net, lo, hi)), got {type(bounds).__name__}")
+    if len(bounds.L) != net.K - 1:
+        raise ValueError(f"bounds hold {len(bounds.L)} layers but the network has {net.K - 1} hidden layers")
     if np.ndim(bounds.L[0]) != 1:
         raise ValueError("bigm_form takes bounds for one input box (arrays of shape (n_k,)); stack copies for a horizon")
     n_in, n_out = net.n_in, net.n_out
