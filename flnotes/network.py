@@ -242,6 +242,9 @@ def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence
     from sklearn.neural_network import MLPRegressor
     from threadpoolctl import threadpool_limits
 
+    if not callable(f):
+        hint = " (for a system, pass system.phi_stacked)" if hasattr(f, "phi_stacked") else ""
+        raise TypeError(f"f must be a function (N, n_in) -> (N, m) to approximate, got {type(f).__name__}{hint}")
     lo, hi = check_box(lo, hi, len(np.atleast_1d(lo)))
     widths = tuple(int(w) for w in widths)
     if not widths or min(widths) < 1:

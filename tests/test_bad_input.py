@@ -300,3 +300,9 @@ def test_flsystem_names_a_field_that_is_not_a_function(field, match):
 def test_interval_domain_errors_are_clear(call, exc, match):
     with pytest.raises(exc, match=match):
         call()
+
+
+def test_fit_relu_with_a_system_instead_of_a_function_names_f():
+    s = fl.msd()
+    with pytest.raises(TypeError, match=r"f must be a function.*phi_stacked"):
+        fl.fit_relu(s, s.lo, s.hi, widths=(3,), n_per_axis=3)
