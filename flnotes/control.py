@@ -258,6 +258,40 @@ class ExponentialCBF(Certificate):
         return f"ExponentialCBF(h={self.h!r}, k1={self.k1})"
 
 
+def cbf_condition_fails(H: Certificate, Z: Array, A: Array, B: Array, kappa: float, tol: float = 1e-12) -> Array:
+    """Where no ``v`` at all satisfies the CBF condition (CLF_CBF_d), input bounds ignored.
+
+    The condition ``grad H(z)^T (A z + B v) >= -kappa H(z)`` is affine in
+    ``v``; if ``grad H(z)^T B != 0`` some ``v`` satisfies it. It fails for
+    every ``v`` exactly where ``|grad H(z)^T B| <= tol`` and
+    ``grad H(z)^T A z + kappa H(z) < 0``.
+
+    Parameters
+    ----------
+    H
+        The barrier function.
+    Z
+        States, shape (N, n_z).
+    A, B
+        The Brunovsky pair.
+    kappa
+        The CBF gain, > 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean mask, shape (N,).
+    """
+    Z = np.atleast_2d(np.asarray(Z, float))
+    if not kappa > 0:
+        raise ValueError(f"kappa must be positive, got {kappa!r}")
+    G = np.array([H.grad(z) for z in Z])
+    if G.shape != Z.shape:
+        raise ValueError(f"grad H must have shape {Z.shape[1:]} per state, got {G.shape[1:]}")
+    no_authority = np.all(np.abs(G @ np.asarray(B, float)) <= tol, axis=1)
+    return no_authority & (np.einsum("ni,ni->n", G, Z @ np.asarray(A, float).T) + kappa * H.value(Z) < 0)
+
+
 class _FunctionCertificate(Certificate):
     def __init__(self, fn: Callable[[Array], float], grad: Callable[[Array], Array], name: str):
         self.fn, self._grad, self.name = fn, grad, name
