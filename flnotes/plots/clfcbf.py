@@ -210,9 +210,8 @@ def cbf_failure_plot(H: Any, segment: np.ndarray, z_mark: Optional[np.ndarray] =
                 label="safe, but no $v$ satisfies the CBF condition")
     if z_mark is not None:
         ax.plot(*np.asarray(z_mark)[:2], "ko", ms=5, label=f"$z = [{z_mark[0]:g}, {z_mark[1]:g}]$")
-    zz = np.linspace(lim[0], lim[1], 13)
-    ax.quiver(zz, np.full_like(zz, H.z_o[1]), H.z_o[1] * np.ones_like(zz), 0 * zz, color="0.5", width=0.003,
-              scale=25, label=r"$\dot z_1 = z_2$ on the line")
+    for x0 in np.linspace(lim[0] + 0.2, H.z_o[0] - H.r_o - 0.5, 3):  # the flow on the line: z1' = z2 = z_o2 > 0
+        ax.annotate("", xy=(x0 + 0.3, H.z_o[1]), xytext=(x0, H.z_o[1]), arrowprops=dict(arrowstyle="->", color="0.3"))
     ax.set_xlim(lim[0], lim[1]), ax.set_ylim(lim[2], lim[3])
     ax.set_aspect("equal")
     ax.set_xlabel(r"$z_1$ (position)"), ax.set_ylabel(r"$z_2$ (velocity)")
