@@ -10,3 +10,4 @@ from .error import *  # noqa: F401,F403
 from .clfcbf import *  # noqa: F401,F403
 from .mpc import *  # noqa: F401,F403
 from .realtime import *  # noqa: F401,F403
+from .static import FramePlayer, frame_player

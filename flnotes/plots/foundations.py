@@ -8,6 +8,7 @@ those figures show, so a chapter can print or glue exactly what is drawn.
 """
 from __future__ import annotations
 
+import re
 from typing import Optional, Sequence
 
 import matplotlib.pyplot as plt
@@ -22,6 +23,7 @@ from .style import COLORS, bound_lines, new_axes
 Array = np.ndarray
 
 __all__ = [
+    "static_feasible_set",
     "fl_identity_residual", "plot_feasible_set", "plot_feasible_v", "explore_feasible_set", "plot_zeta",
     "plot_input_violation", "discretization_gap", "plot_discretization_gap",
     "plot_error_slice", "plot_line_cut", "sample_error", "Table", "width_experiment", "plot_width_experiment",
@@ -132,7 +134,7 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
         ax.contourf(Zg, Vg, ok.astype(float), levels=[0.5, 1.5], colors=[c], alpha=0.30)
         if ok.any() and not ok.all():
             ax.contour(Zg, Vg, ok.astype(float), levels=[0.5], colors=[c], linewidths=1.2)
-        lab = r"$|\Phi(z, v)| \leq u_{max}$" if fam_idx is None else f"$z_{fam_idx + 1} = {val:g}$"
+        lab = r"$|\Phi(z, v)| \leq u_{\max}$" if fam_idx is None else f"$z_{fam_idx + 1} = {val:g}$"
         handles.append(plt.Rectangle((0, 0), 1, 1, color=c, alpha=0.45, label=lab))
     for s in (system.lo[-1], system.hi[-1]):
         if vs[0] <= s <= vs[-1]:
@@ -180,7 +182,7 @@ def plot_feasible_v(system: FLSystem, z: Optional[Array] = None, net: Optional[R
         fig, ax = new_axes(figsize=(6.4, 3.6))
     else:
         fig = ax.figure
-    _shade_runs(ax, vs, np.abs(u) <= u_max, COLORS["u_max"], 0.18, r"$|\Phi| \leq u_{max}$")
+    _shade_runs(ax, vs, np.abs(u) <= u_max, COLORS["u_max"], 0.18, r"$|\Phi| \leq u_{\max}$")
     ax.plot(vs, u, color=COLORS["true"], label=r"$\Phi(z, v)$")
     title = f"{system.name} at z = {np.array2string(z, precision=2)}"
     if net is not None:
@@ -188,7 +190,7 @@ def plot_feasible_v(system: FLSystem, z: Optional[Array] = None, net: Optional[R
         ax.plot(vs, unn, color=COLORS["nn"], ls="--", label=r"$\Phi_{NN}(z, v)$")
         if eps is not None:
             _shade_runs(ax, vs, np.abs(unn) <= u_max - float(eps), COLORS["u_max_eps"], 0.25,
-                        r"$|\Phi_{NN}| \leq u_{max}^{\epsilon}$")
+                        r"$|\Phi_{NN}| \leq u_{\max}^{\varepsilon}$")
     bound_lines(ax, u_max, None if net is None else eps)
     ok = np.abs(u) <= u_max
     title += (f": admissible v in [{vs[ok].min():.2f}, {vs[ok].max():.2f}]" if ok.any()
@@ -208,10 +210,11 @@ def _shade_runs(ax, x: Array, mask: Array, color: str, alpha: float, label: str)
 def explore_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: Optional[float] = None):
     """Interactive: move the state ``z`` and watch the admissible set of ``v`` move.
 
-    Draws the static default figure (:func:`plot_feasible_v` at ``z = 0``)
-    first, so the page shows it without a running kernel, then returns one
-    slider per component of ``z`` (``continuous_update=False``) and an output
-    area that redraws the figure for the chosen state.
+    Shows :func:`static_feasible_set` first (precomputed frames behind a
+    slider that runs in the browser, so the built book moves without a
+    kernel), then returns one ipywidgets slider per component of ``z``
+    (``continuous_update=False``) and an output area that redraws the figure
+    for the chosen state in a running kernel.
 
     Parameters
     ----------
@@ -228,9 +231,7 @@ def explore_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: O
     from IPython.display import display
 
     _single_input(system, "explore_feasible_set")
-    fig = plot_feasible_v(system, np.zeros(system.n_z), net, eps)
-    display(fig)
-    plt.close(fig)
+    display(static_feasible_set(system, net, eps))  # works in the static book, without a kernel
     sliders = [widgets.FloatSlider(value=0.0, min=float(system.lo[i]), max=float(system.hi[i]),
                                    step=float(system.hi[i] - system.lo[i]) / 100, description=f"z{i + 1}",
                                    continuous_update=False, readout_format=".2f")
@@ -248,6 +249,44 @@ def explore_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: O
         s.observe(redraw, names="value")
     note = widgets.HTML("<i>Move a slider: the figure is redrawn below for the chosen state.</i>")
     return widgets.VBox([widgets.HBox(sliders), note, out])
+
+
+def static_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: Optional[float] = None,
+                        n_frames: Optional[int] = None):
+    """Kernel-free explorer: :func:`plot_feasible_v` precomputed along the last component of ``z``, the others zero.
+
+    Parameters
+    ----------
+    system
+        A single-input system.
+    net, eps
+        Optional network and error bound, drawn as in :func:`plot_feasible_v`.
+    n_frames
+        Number of values of ``z_{n_z}`` (odd, so that ``z = 0`` is one of them);
+        default 9, 5 in fast mode.
+
+    Returns
+    -------
+    flnotes.plots.static.FramePlayer
+    """
+    from ..config import FAST
+    from .static import frame_player
+
+    _single_input(system, "static_feasible_set")
+    n = (5 if FAST else 9) if n_frames is None else int(n_frames)
+    if n < 2:
+        raise ValueError(f"n_frames must be at least 2, got {n_frames!r}")
+    i = system.n_z - 1
+    values = np.round(np.linspace(system.lo[i], system.hi[i], n), 3)
+
+    def draw(zi: float):
+        z = np.zeros(system.n_z)
+        z[i] = zi
+        return plot_feasible_v(system, z, net, eps)
+
+    name = re.sub(r"[^A-Za-z0-9]", "", f"feasible{system.name}") + ("-net" if net is not None else "")
+    start = int(np.argmin(np.abs(values)))
+    return frame_player(draw, {f"z{i + 1}": values}, name=name, start=[start])
 
 
 def plot_zeta(system: FLSystem, extent: float = 15.0, n: int = 301):
