@@ -55,7 +55,7 @@ bench: venv
 # Rewrites flnotes/data/: the book's networks, their certified eps and chapter 5's sweep, trained on this
 # machine. Only to change them on purpose; commit the result.
 reference: venv
-	$(PY) -c "import flnotes.paper as p; print(*p.write_references(), sep='\n'); p.write_sweep()"
+	$(PY) -c "import flnotes.paper as p, flnotes.studies as s; print(*p.write_references(), sep='\n'); s.write_sweep()"
 
 assignments: venv
 	$(PY) -m flnotes.grading student book/assignments _build/assignments

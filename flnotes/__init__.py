@@ -9,6 +9,7 @@ The data flow, one direction::
 ``import flnotes as fl`` gives every public name below.
 """
 from .config import FAST, scale
+from .tables import Table, time_stats
 from .systems import FLSystem, brunovsky, discretize, msd, quad1d
 from .network import ReLUNet, TrainingReport, fit_relu, uniform_grid
 from .bounds import NodeBounds, fbbt, interval_affine, sample_preactivations
@@ -24,3 +25,4 @@ from .control import AffineCBF, ExponentialCBF, cbf_condition_fails
 from .mpc import *  # noqa: F401,F403  MPC, sine_reference, ...
 from . import paper
 from .paper import paper_net, paper_eps
+from . import studies

@@ -85,7 +85,7 @@ def _normalized(settings: dict) -> dict:
     return json.loads(json.dumps({k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.items()}))
 
 
-def _shipped(name: str, settings: dict) -> Optional[str]:
+def shipped_name(name: str, settings: dict) -> Optional[str]:
     """The shipped reference trained on system ``name`` with exactly ``settings``, if there is one."""
     want = _normalized(settings)
     for ref, (sys_name, ref_settings) in REFERENCES.items():
@@ -114,7 +114,7 @@ def paper_net(name: str, refresh: bool = False, **overrides) -> tuple[ReLUNet, T
     """
     sysm = system(name)
     settings = {**NET_SETTINGS[name], **overrides}
-    ref = _shipped(name, settings)
+    ref = shipped_name(name, settings)
     if ref is not None and not refresh:
         r = load_reference(ref)
         return r.net, r.report
@@ -141,7 +141,8 @@ EPS_SETTINGS = dict(rtol=1e-3, atol=0.0, pso=dict(n_particles=100, n_iter=300, s
 _EPS_VERSION = "certify-v1"  # bump when the certification algorithm changes, to refresh cached brackets
 
 
-def _certify(name: str, net: ReLUNet):
+def certify_book_eps(name: str, net: ReLUNet):
+    """Certify ``eps`` of eq. (approx_err) for ``net`` on system ``name``'s box with :data:`EPS_SETTINGS`."""
     from .error import certify_error, pso_max_error
 
     sysm = system(name)
@@ -168,7 +169,7 @@ def paper_eps(name: str, refresh: bool = False, **overrides):
     from .error import ErrorBracket
 
     net_settings = {**NET_SETTINGS[name], **overrides}
-    ref = _shipped(name, net_settings)
+    ref = shipped_name(name, net_settings)
     if ref is not None and not refresh:
         r = load_reference(ref)
         if r.bracket is None or r.meta.get("eps_settings") != _normalized(dict(EPS_SETTINGS, version=_EPS_VERSION)):
@@ -184,7 +185,7 @@ def paper_eps(name: str, refresh: bool = False, **overrides):
         d = json.loads(path.read_text())
         d = {k: (np.array(v) if isinstance(v, list) else v) for k, v in d.items()}
         return ErrorBracket(**d)
-    br = _certify(name, net)
+    br = certify_book_eps(name, net)
     d = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in br.__dict__.items()
          if k not in ("partition", "history")}
     tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.json")
@@ -209,55 +210,11 @@ def write_references(names: Optional[Sequence[str]] = None, folder=None) -> list
         sys_name, settings = REFERENCES[ref]
         sysm = system(sys_name)
         net, rep = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **settings)
-        br = _certify(sys_name, net)
+        br = certify_book_eps(sys_name, net)
         out.append(str(save_reference(ref, net, rep, dict(system=sys_name, **settings), bracket=br,
                                       eps_settings=dict(EPS_SETTINGS, version=_EPS_VERSION), folder=folder)))
     return out
 
 
-#: Chapter 5's architecture sweep for the MSD (:func:`flnotes.error.architecture_sweep`): its table is shipped.
+#: Chapter 5's architecture sweep for the MSD (:func:`flnotes.studies.book_sweep`); its table is shipped.
 SWEEP_SETTINGS = dict(widths=(5, 10, 20), depths=(1, 2, 3), n_per_axis=(10, 20, 30), max_iter=300)
-
-
-def architecture_sweep(name: str = "MSD", recompute: bool = False) -> list[dict]:
-    """Chapter 5's sweep over widths, depths and grid densities with :data:`SWEEP_SETTINGS` (shipped table).
-
-    ``recompute=True`` retrains its networks on this machine (minutes).
-    """
-    from .error import architecture_sweep as sweep
-
-    return sweep(system(name), **SWEEP_SETTINGS, recompute=recompute)
-
-
-def write_sweep(name: str = "MSD", folder=None) -> None:
-    """Recompute chapter 5's sweep on this machine and write it as the shipped table (``make reference``)."""
-    from .error import architecture_sweep as sweep
-    from .reference import DATA_DIR
-
-    sweep(system(name), **SWEEP_SETTINGS, cache=False, recompute=True, ship_to=DATA_DIR if folder is None else folder)
-
-
-def fresh_vs_shipped(names: Sequence[str] = ("MSD", "Quad-1D"), **overrides) -> list[dict]:
-    """Train the book's networks anew on this machine and compare them with the shipped ones (chapter 2).
-
-    For each system one row for the shipped reference and one for a network
-    trained now with the same settings (``overrides`` change them, e.g. fewer
-    iterations), each with its grid error, certified bracket of ``eps``
-    (eq. approx_err, :data:`EPS_SETTINGS`), training time and weights
-    checksum, and whether the two networks are identical.
-    """
-    rows = []
-    for name in names:
-        ref = load_reference(_shipped(name, NET_SETTINGS[name]))
-        sysm = system(name)
-        settings = {**NET_SETTINGS[name], **overrides}
-        net, rep = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **settings)
-        br = _certify(name, net)
-        same = (net.widths == ref.net.widths and all(np.array_equal(a, b) for a, b in zip(net.W + net.b, ref.net.W + ref.net.b)))
-        for source, n, r, lower, upper in (("shipped", ref.net, ref.report, ref.bracket["lower"][0], ref.bracket["upper"][0]),
-                                           ("trained now", net, rep, br.lower[0], br.upper[0])):
-            rows.append({"system": name, "network": source, "widths": str(n.widths), "L-BFGS iterations": r.n_iter,
-                         "train time [s]": round(r.time_s, 1), "grid max error": float(r.grid_max_error[0]),
-                         "eps certified": f"[{lower:.5f}, {upper:.5f}]", "eps": float(upper),
-                         "weights sha256": weights_sha256(n)[:12], "identical to shipped": bool(same)})
-    return rows

@@ -84,13 +84,13 @@ def test_damaged_reference_is_refused(tmp_path):
 def test_shipped_sweep_table_and_a_small_recomputed_sweep(tmp_path, monkeypatch):
     """Chapter 5's shipped sweep covers its grid and each row's certified eps bounds its sampled errors;
     the same code recomputes a small sweep on this machine."""
-    rows = fl.paper.architecture_sweep("MSD")
+    rows = fl.studies.book_sweep("MSD")
     st = fl.paper.SWEEP_SETTINGS
     assert len(rows) == len(st["widths"]) * len(st["depths"]) * len(st["n_per_axis"])
     for r in rows:
         assert r["eps_lower"] <= r["eps_certified"] and max(r["eps_sample"], r["eps_pso"]) <= r["eps_certified"] + 1e-12
     monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
-    small = fl.error.architecture_sweep(fl.msd(), widths=(4,), depths=(1,), n_per_axis=(6,), max_iter=30,
+    small = fl.studies.architecture_sweep(fl.msd(), widths=(4,), depths=(1,), n_per_axis=(6,), max_iter=30,
                                         n_samples=2000, max_time=5.0)
     (r,) = small
     assert r["width"] == 4 and r["eps_lower"] <= r["eps_certified"] and r["eps_sample"] <= r["eps_certified"] + 1e-12

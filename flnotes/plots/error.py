@@ -15,7 +15,7 @@ from matplotlib.patches import Rectangle
 from .style import COLORS, new_axes
 
 __all__ = ["static_architecture", "error_slice", "pso_swarm", "estimator_convergence", "certification_progress", "partition_slice",
-           "eps_sweep", "violation_line", "show_table", "show_source", "explore_architecture"]
+           "eps_sweep", "violation_line", "show_source", "explore_architecture"]
 
 _METHOD_STYLE = {
     "pso": dict(color="#d95f02", marker="*", label="PSO"),
@@ -281,15 +281,6 @@ def show_source(func, skip_docstring: bool = True):
         if i >= 0 and j > i:
             src = src[:i].rstrip() + "\n" + src[j + 3:].lstrip("\n")
     return Markdown("```python\n" + src.rstrip() + "\n```")
-
-
-def show_table(rows: Sequence[dict]):
-    """Rows of dicts as a rendered Markdown table (notebook display)."""
-    from IPython.display import Markdown
-
-    from ..bench import markdown_table
-
-    return Markdown(markdown_table(list(rows)))
 
 
 def _architecture_figure(rows: Sequence[dict], width: int, depth: int, n_s: int, title: str):

@@ -16,7 +16,7 @@ import numpy as np
 
 from .._checks import as_vector, check_box
 from ..bounds import fbbt, sample_preactivations
-from ..network import ReLUNet, fit_relu
+from ..network import ReLUNet
 from ..systems import FLSystem, brunovsky, discretize
 from .style import COLORS, bound_lines, new_axes
 
@@ -26,7 +26,7 @@ __all__ = [
     "static_feasible_set",
     "fl_identity_residual", "plot_feasible_set", "plot_feasible_v", "explore_feasible_set", "plot_zeta",
     "plot_input_violation", "discretization_gap", "plot_discretization_gap",
-    "plot_error_slice", "plot_line_cut", "sample_error", "Table", "width_experiment", "plot_width_experiment",
+    "plot_error_slice", "plot_line_cut", "plot_width_experiment",
     "plot_relu_bigm", "bounds_looseness", "plot_bounds_vs_samples", "unstable_fixed_z", "plot_unstable_fixed_z",
     "unstable_vs_box_size", "plot_unstable_vs_box_size",
 ]
@@ -382,16 +382,6 @@ def plot_discretization_gap(ts_values: Sequence[float] = (0.01, 0.1, 0.5),
 # --------------------------------------------------------------------------
 # Chapter 2: ReLU networks
 # --------------------------------------------------------------------------
-def sample_error(system: FLSystem, net: ReLUNet, n: int = 200_000, seed: int = 0) -> Array:
-    """Largest ``|Phi - Phi_NN|`` over ``n`` uniform random samples of the domain box, shape (m,).
-
-    A lower estimate of the true ``eps`` of eq. (epsilon_find): random points
-    miss the worst case, which chapter 5 certifies.
-    """
-    X = np.random.default_rng(seed).uniform(system.lo, system.hi, (int(n), system.n_in))
-    return np.abs(net(X) - system.phi_stacked(X)).max(0)
-
-
 def _slice_points(system: FLSystem, axes: tuple[int, int], x_fixed: Optional[Array], n: int):
     x0 = (system.lo + system.hi) / 2 if x_fixed is None else as_vector(x_fixed, system.n_in, "x_fixed")
     a = np.linspace(system.lo[axes[0]], system.hi[axes[0]], int(n))
@@ -456,79 +446,6 @@ def plot_line_cut(system: FLSystem, net: ReLUNet, axis: int = 1, x_fixed: Option
     a2.plot(s, unn - u, color=COLORS["nn"])
     a2.set(xlabel=_name(system, axis), ylabel=r"$\Phi_{NN} - \Phi$")
     return fig
-
-
-class Table:
-    """A small table that renders as HTML in a notebook and as text elsewhere.
-
-    Parameters
-    ----------
-    rows
-        One dict per row; the keys of the first row are the columns.
-    floatfmt
-        Format of float cells.
-    """
-
-    def __init__(self, rows: Sequence[dict], floatfmt: str = ".4g"):
-        self.rows = [dict(r) for r in rows]
-        self.columns = list(self.rows[0]) if self.rows else []
-        self.floatfmt = floatfmt
-
-    def _cell(self, v) -> str:
-        if v is None:
-            return "-"
-        if isinstance(v, (float, np.floating)):
-            return format(float(v), self.floatfmt)
-        if isinstance(v, np.ndarray):
-            return ", ".join(self._cell(x) for x in v.ravel())
-        return str(v)
-
-    def _repr_html_(self) -> str:
-        head = "".join(f"<th>{c}</th>" for c in self.columns)
-        body = "".join("<tr>" + "".join(f"<td>{self._cell(r.get(c))}</td>" for c in self.columns) + "</tr>"
-                       for r in self.rows)
-        return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-    def __repr__(self) -> str:
-        cells = [[str(c) for c in self.columns]] + [[self._cell(r.get(c)) for c in self.columns] for r in self.rows]
-        w = [max(len(row[i]) for row in cells) for i in range(len(self.columns))]
-        return "\n".join("  ".join(x.rjust(wi) for x, wi in zip(row, w)) for row in cells)
-
-
-def width_experiment(system: FLSystem, n_bars: Sequence[int] = (5, 10, 20, 30), depth: int = 3,
-                     n_per_axis: int = 15, max_iter: int = 1000, n_test: int = 100_000,
-                     seed: int = 0) -> list[dict]:
-    """Train ``depth`` hidden layers of ``n_bar`` neurons each on a coarse grid, for several widths.
-
-    Parameters
-    ----------
-    system
-        The system whose ``Phi`` is fitted on its domain box.
-    n_bars
-        Hidden widths ``n_bar`` to try (the paper's K - 1 = ``depth`` layers each).
-    depth
-        Number of hidden layers.
-    n_per_axis, max_iter, seed
-        Passed to :func:`flnotes.fit_relu`.
-    n_test
-        Random test points for the off-grid error (:func:`sample_error`).
-
-    Returns
-    -------
-    list of dict
-        One row per width: ``n_bar``, ``n_hidden``, ``params``, ``grid_max_error``,
-        ``grid_rmse``, ``sample_max_error`` (first input), ``time_s``.
-    """
-    rows = []
-    for nb in n_bars:
-        net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(int(nb),) * depth,
-                            n_per_axis=n_per_axis, max_train=None, max_iter=max_iter, seed=seed)
-        rows.append(dict(n_bar=int(nb), n_hidden=net.n_hidden,
-                         params=int(sum(W.size + b.size for W, b in zip(net.W, net.b))),
-                         grid_max_error=float(rep.grid_max_error[0]), grid_rmse=float(rep.grid_rmse[0]),
-                         sample_max_error=float(sample_error(system, net, n_test, seed + 1)[0]),
-                         time_s=rep.time_s))
-    return rows
 
 
 def plot_width_experiment(rows: Sequence[dict], title: str = ""):
