@@ -13,7 +13,6 @@ stably active, one with ``U <= 0`` stably inactive: neither needs a binary.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 

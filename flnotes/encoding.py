@@ -21,7 +21,7 @@ Two forms are offered:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Sequence, Union
+from typing import Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -298,10 +298,14 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     ybars, yunds, alphas = [], [], []
     for W in net.W[:-1]:
         n_k = W.shape[0]
-        ybars.append(np.arange(idx, idx + n_k)); idx += n_k
-        yunds.append(np.arange(idx, idx + n_k)); idx += n_k
-        alphas.append(np.arange(idx, idx + n_k)); idx += n_k
-    out = np.arange(idx, idx + n_out); idx += n_out
+        ybars.append(np.arange(idx, idx + n_k))
+        idx += n_k
+        yunds.append(np.arange(idx, idx + n_k))
+        idx += n_k
+        alphas.append(np.arange(idx, idx + n_k))
+        idx += n_k
+    out = np.arange(idx, idx + n_out)
+    idx += n_out
     n = idx
 
     eq_r, eq_c, eq_v, b_eq = [], [], [], []
@@ -310,7 +314,9 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     for k, (W, b) in enumerate(zip(net.W[:-1], net.b[:-1])):
         n_k = W.shape[0]
         Wc = sp.coo_matrix(W)
-        eq_r += (row + Wc.row).tolist(); eq_c += prev[Wc.col].tolist(); eq_v += Wc.data.tolist()
+        eq_r += (row + Wc.row).tolist()
+        eq_c += prev[Wc.col].tolist()
+        eq_v += Wc.data.tolist()
         eq_r += list(range(row, row + n_k)) * 2
         eq_c += ybars[k].tolist() + yunds[k].tolist()
         eq_v += [-1.0] * n_k + [1.0] * n_k
@@ -318,8 +324,12 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
         row += n_k
         prev = ybars[k]
     Wc = sp.coo_matrix(net.W[-1])
-    eq_r += (row + Wc.row).tolist(); eq_c += prev[Wc.col].tolist(); eq_v += Wc.data.tolist()
-    eq_r += list(range(row, row + n_out)); eq_c += out.tolist(); eq_v += [-1.0] * n_out
+    eq_r += (row + Wc.row).tolist()
+    eq_c += prev[Wc.col].tolist()
+    eq_v += Wc.data.tolist()
+    eq_r += list(range(row, row + n_out))
+    eq_c += out.tolist()
+    eq_v += [-1.0] * n_out
     b_eq += (-net.b[-1]).tolist()
     row += n_out
     A_eq = sp.csr_matrix((eq_v, (eq_r, eq_c)), shape=(row, n))
@@ -331,15 +341,20 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
         n_k = len(ybars[k])
         rU, rL = np.arange(r, r + n_k), np.arange(r + n_k, r + 2 * n_k)
         rows_U.append(rU), rows_L.append(rL)
-        ub_r += rU.tolist() * 2; ub_c += ybars[k].tolist() + alphas[k].tolist(); ub_v += [1.0] * n_k + [-1.0] * n_k
-        ub_r += rL.tolist() * 2; ub_c += yunds[k].tolist() + alphas[k].tolist(); ub_v += [1.0] * n_k + [-1.0] * n_k
+        ub_r += rU.tolist() * 2
+        ub_c += ybars[k].tolist() + alphas[k].tolist()
+        ub_v += [1.0] * n_k + [-1.0] * n_k
+        ub_r += rL.tolist() * 2
+        ub_c += yunds[k].tolist() + alphas[k].tolist()
+        ub_v += [1.0] * n_k + [-1.0] * n_k
         r += 2 * n_k
     A_ub = sp.lil_matrix(sp.csr_matrix((ub_v, (ub_r, ub_c)), shape=(r, n)))
     b_ub = np.zeros(r)
     lb, ub = np.full(n, -np.inf), np.full(n, np.inf)
     integrality = np.zeros(n, dtype=int)
     for k in range(net.K - 1):
-        lb[ybars[k]] = 0.0; lb[yunds[k]] = 0.0
+        lb[ybars[k]] = 0.0
+        lb[yunds[k]] = 0.0
         integrality[alphas[k]] = 1
     form = BigMForm(n=n, A_eq=A_eq, b_eq=np.asarray(b_eq), A_ub=A_ub.tocsr(), b_ub=b_ub, lb=lb, ub=ub,
                     integrality=integrality, x=x, out=out, ybar=ybars, yund=yunds, alpha=alphas,

@@ -861,5 +861,6 @@ def make_quad1d_phi(Gamma: float, gamma_: float, tau: float):
 
 
 __all__ = ["Interval", "NotCertifiable", "LIBM_ULPS", "TINY", "down", "up", "gamma", "sqr", "exp", "log", "tanh",
-           "sqrt", "arcsin", "asin", "sin", "cos", "tan", "arctan", "atan", "power", "abs_", "relu", "hstack", "affine", "net_interval", "net_preactivations", "net_linear_bound", "dot_bounds",
+           "sqrt", "arcsin", "asin", "sin", "cos", "tan", "arctan", "atan", "power", "abs_", "relu", "hstack", "affine",
+           "net_interval", "net_preactivations", "net_linear_bound", "dot_bounds",
            "mean_value_bound", "intersect", "stribeck", "msd_phi", "make_quad1d_phi"]

@@ -134,7 +134,8 @@ class ReLUNet:
         The optional affine maps are folded in (see :meth:`affine_wrapped`).
         """
         if getattr(model, "activation", None) != "relu":
-            raise ValueError(f"only ReLU networks can be encoded as MILPs; the model uses activation={getattr(model, 'activation', None)!r}")
+            raise ValueError("only ReLU networks can be encoded as MILPs; the model uses "
+                             f"activation={getattr(model, 'activation', None)!r}")
         if not hasattr(model, "coefs_"):
             raise ValueError("the MLPRegressor is not fitted yet: call model.fit(X, y) first")
         net = cls([c.T for c in model.coefs_], list(model.intercepts_))

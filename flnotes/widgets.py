@@ -11,6 +11,10 @@ halves (``static_*``).
 """
 from __future__ import annotations
 
-from .plots import *  # noqa: F401,F403  (explore_* functions are defined in the plots submodules)
+from .plots import (static_feasible_set, explore_feasible_set, static_architecture, explore_architecture, explore_horizon,
+    frame_player, FramePlayer)
 
-__all__ = [name for name in dir() if name.startswith(("explore_", "static_"))] + ["frame_player", "FramePlayer"]
+__all__ = [
+    'static_feasible_set', 'explore_feasible_set', 'static_architecture', 'explore_architecture',
+    'explore_horizon', 'frame_player', 'FramePlayer'
+]

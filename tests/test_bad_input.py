@@ -230,7 +230,8 @@ def test_certify_error_names_a_network_of_the_wrong_input_size():
         fl.certify_error(sysm, _random_net(3))
     with pytest.raises(ValueError, match=r"net has 3 inputs, the box .* has 4 dimensions"):
         fl.certify_error(lambda X: X[:, :1], _random_net(3), np.zeros(4), np.ones(4))
-    with pytest.raises(ValueError, match=r"net has 3 inputs but the box lo, hi has 4 dimensions: lo and hi must have shape \(3,\)"):
+    with pytest.raises(ValueError,
+                       match=r"net has 3 inputs but the box lo, hi has 4 dimensions: lo and hi must have shape \(3,\)"):
         fl.fbbt(_random_net(3), np.zeros(4), np.ones(4))
 
 

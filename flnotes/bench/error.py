@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 
 from .. import paper
 from ..error import certify_error, pso_max_error

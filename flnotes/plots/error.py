@@ -14,7 +14,8 @@ from matplotlib.patches import Rectangle
 
 from .style import COLORS, new_axes
 
-__all__ = ["static_architecture", "error_slice", "pso_swarm", "estimator_convergence", "certification_progress", "partition_slice",
+__all__ = ["static_architecture", "error_slice", "pso_swarm",
+           "estimator_convergence", "certification_progress", "partition_slice",
            "eps_sweep", "violation_line", "show_source", "explore_architecture"]
 
 _METHOD_STYLE = {

@@ -5,7 +5,6 @@ from typing import Optional, Sequence
 
 import matplotlib as mpl
 import matplotlib.pyplot as plt
-import numpy as np
 
 #: Colours used consistently: the true input, the network, bounds, references, the three controllers.
 COLORS = dict(
