@@ -1,0 +1,245 @@
+"""A two-input system: the two-link planar arm with torque limits (computed torque).
+
+Why this system
+---------------
+The course's systems have one input, so the set ``V(z) = {v : |Phi(z, v)| <= u_max}``
+of eq. (contraint_new_set) is an interval. A system with two inputs makes it a
+set in the ``v``-plane, and the arm makes it a *genuinely* two-dimensional one:
+
+* computed torque ``tau = Phi(z, v) = M(q) v + C(q, q') q' + g(q)`` is affine in
+  ``v`` for a fixed ``z``, so ``V(z)`` is the parallelogram
+  ``{v : -u_max <= M(q) v + h(q, q') <= u_max}`` (``h = C q' + g``) cut by the
+  ``v``-box. The inertia matrix ``M(q)`` is full (``M_12 != 0``): each torque
+  limit constrains *both* accelerations, the inputs are coupled, and the
+  parallelogram's sides turn with the elbow angle ``q_2`` while its centre
+  ``-M^{-1} h`` moves with gravity and the Coriolis/centrifugal terms;
+* ``M(q)`` is positive definite for every ``q``, so ``Phi`` is smooth and
+  bounded on any box: the network is trained, and ``eps`` certified, on a
+  plain box over ``(z, v)``.
+
+The dynamically extended unicycle (flat outputs ``x, y``) was the other
+candidate. Its ``V(z)`` is a rectangle in the frame of the heading, scaled by
+the speed ``s``; but ``Phi`` has the singularity ``omega = (...)/s`` at
+``s = 0``, so a training box over ``z`` must exclude a neighbourhood of the
+speed's zero: an annulus in ``(x', y')``, not a box, so it fits neither
+:func:`flnotes.fit_relu` nor :func:`flnotes.certify_error` without Remark 1's
+extra constraint doing the real work. The arm has no such singularity.
+
+Coordinates
+-----------
+The plant state is ``x = (q_1, q_2, q_1', q_2')`` (joint angles measured from the
+downward vertical, the arm moves in a vertical plane), the input ``u = tau``
+(joint torques, N m). ``fl.brunovsky((2, 2))`` orders the linearizing state as
+two chains: ``z = (q_1, q_1', q_2, q_2')`` and ``z'' = v`` per chain, i.e.
+``v = (q_1'', q_2'')``.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from . import interval as iv
+from ._checks import as_batch, as_vector
+from .systems import FLSystem, brunovsky
+
+Array = np.ndarray
+
+__all__ = ["two_link_arm", "arm_parameters", "arm_mass_matrix", "arm_bias", "arm_net", "make_arm_reference",
+           "ARM_REFERENCE", "ARM_SETTINGS", "ARM_EPS_SETTINGS",
+           "arm_joint_positions"]
+
+#: Name of the shipped reference network of :func:`two_link_arm` (see :func:`arm_net`).
+ARM_REFERENCE = "Arm2"
+
+#: Default physical parameters: two uniform links of 0.5 m and 1 kg.
+_DEFAULTS = dict(l1=0.5, l2=0.5, m1=1.0, m2=1.0, g=9.81)
+
+
+def arm_parameters(l1: float = 0.5, l2: float = 0.5, m1: float = 1.0, m2: float = 1.0, g: float = 9.81) -> dict:
+    """The lumped constants of the arm's dynamics, for two uniform links (rods).
+
+    With ``l_ci = l_i / 2`` and ``I_i = m_i l_i^2 / 12`` (rod about its centre):
+    ``a_1 = I_1 + I_2 + m_1 l_c1^2 + m_2 (l_1^2 + l_c2^2)``, ``a_2 = m_2 l_1 l_c2``,
+    ``a_3 = I_2 + m_2 l_c2^2``, ``b_1 = (m_1 l_c1 + m_2 l_1) g``, ``b_2 = m_2 l_c2 g``, so that
+
+    ``M(q) = [[a_1 + 2 a_2 cos q_2, a_3 + a_2 cos q_2], [a_3 + a_2 cos q_2, a_3]]``,
+    ``C(q, q') q' = a_2 sin q_2 [-(2 q_1' q_2' + q_2'^2), q_1'^2]``,
+    ``g(q) = [b_1 sin q_1 + b_2 sin(q_1 + q_2), b_2 sin(q_1 + q_2)]``.
+    """
+    vals = dict(l1=l1, l2=l2, m1=m1, m2=m2, g=g)
+    for k, x in vals.items():
+        if not (np.isfinite(x) and x > 0):
+            raise ValueError(f"{k} must be a positive number, got {x!r}")
+    lc1, lc2 = l1 / 2, l2 / 2
+    I1, I2 = m1 * l1**2 / 12, m2 * l2**2 / 12
+    return dict(vals, a1=I1 + I2 + m1 * lc1**2 + m2 * (l1**2 + lc2**2), a2=m2 * l1 * lc2, a3=I2 + m2 * lc2**2,
+                b1=(m1 * lc1 + m2 * l1) * g, b2=m2 * lc2 * g)
+
+
+def arm_mass_matrix(z: Array, p: Optional[dict] = None) -> Array:
+    """``M(q)`` at states ``z = (q_1, q_1', q_2, q_2')`` of shape (N, 4) -> (N, 2, 2)."""
+    p = arm_parameters(**_DEFAULTS) if p is None else p
+    Z = as_batch(z, 4, "z")
+    c2 = np.cos(Z[:, 2])
+    M = np.empty((len(Z), 2, 2))
+    M[:, 0, 0] = p["a1"] + 2 * p["a2"] * c2
+    M[:, 0, 1] = M[:, 1, 0] = p["a3"] + p["a2"] * c2
+    M[:, 1, 1] = p["a3"]
+    return M
+
+
+def arm_bias(z: Array, p: Optional[dict] = None) -> Array:
+    """``h(q, q') = C(q, q') q' + g(q)`` at states ``z`` of shape (N, 4) -> (N, 2)."""
+    p = arm_parameters(**_DEFAULTS) if p is None else p
+    Z = as_batch(z, 4, "z")
+    q1, w1, q2, w2 = Z.T
+    s2, s12 = np.sin(q2), np.sin(q1 + q2)
+    return np.column_stack([-p["a2"] * s2 * (2 * w1 * w2 + w2**2) + p["b1"] * np.sin(q1) + p["b2"] * s12,
+                            p["a2"] * s2 * w1**2 + p["b2"] * s12])
+
+
+def arm_joint_positions(q: Array, p: Optional[dict] = None) -> tuple[Array, Array]:
+    """Elbow and hand positions (m) for joint angles ``q`` of shape (N, 2): two (N, 2) arrays.
+
+    Angles from the downward vertical: the elbow is at ``l_1 (sin q_1, -cos q_1)``.
+    """
+    p = arm_parameters(**_DEFAULTS) if p is None else p
+    Q = as_batch(q, 2, "q")
+    elbow = p["l1"] * np.column_stack([np.sin(Q[:, 0]), -np.cos(Q[:, 0])])
+    s = Q[:, 0] + Q[:, 1]
+    return elbow, elbow + p["l2"] * np.column_stack([np.sin(s), -np.cos(s)])
+
+
+def two_link_arm(tau_max=(8.0, 2.0), q1_box: float = 1.5, q2_box: float = 2.0, w_box: float = 2.0,
+                 v_box: float = 10.0, l1: float = 0.5, l2: float = 0.5, m1: float = 1.0, m2: float = 1.0,
+                 g: float = 9.81) -> FLSystem:
+    """The two-link planar arm in a vertical plane with torque limits ``|tau_i| <= tau_max,i``.
+
+    Computed torque: ``u = tau = Phi(z, v) = M(q) v + C(q, q') q' + g(q)`` makes
+    ``q'' = v`` (eq. coor_Phi with the Brunovsky pair ``fl.brunovsky((2, 2))``),
+    ``z = (q_1, q_1', q_2, q_2')``; see :func:`arm_parameters` for ``M``, ``C``, ``g``.
+    The input bound of eq. (constraintU) is ``|tau_i| <= tau_max,i``. With the
+    defaults gravity alone asks up to about 9.8 N m of the shoulder (bound 8 N m)
+    and 2.5 N m of the elbow (bound 2 N m): both strips ``|tau_i| <= tau_max,i``
+    cut the ``v``-box at almost every state, so ``V(z)`` is a polygon with up
+    to eight sides that turns and moves with ``z``; the bound is violated on about
+    half of the ``(z, v)`` box.
+
+    Parameters
+    ----------
+    tau_max
+        Torque limits ``u_max`` (N m), shape (2,).
+    q1_box, q2_box, w_box, v_box
+        Half-widths of the domain box: ``|q_1| <= q1_box``, ``|q_2| <= q2_box`` (rad),
+        ``|q_i'| <= w_box`` (rad/s), ``|v_i| <= v_box`` (rad/s^2).
+    l1, l2, m1, m2, g
+        Link lengths (m), masses (kg), gravity (m/s^2); uniform links.
+
+    Returns
+    -------
+    FLSystem
+        ``phi`` vectorized ((N, 4), (N, 2)) -> (N, 2), with ``phi_interval`` for
+        :func:`flnotes.certify_error`; extra attributes ``mass_matrix(z)`` and
+        ``bias(z)`` (``M`` and ``h = C q' + g``, so ``Phi = M v + h``).
+    """
+    p = arm_parameters(l1, l2, m1, m2, g)
+    u_max = as_vector(tau_max, 2, "tau_max")
+    for name, x in dict(q1_box=q1_box, q2_box=q2_box, w_box=w_box, v_box=v_box).items():
+        if not (np.isfinite(x) and x > 0):
+            raise ValueError(f"{name} must be a positive half-width, got {x!r}")
+    A, B = brunovsky((2, 2))
+    a1, a2, a3, b1, b2 = (p[k] for k in ("a1", "a2", "a3", "b1", "b2"))
+
+    def phi(z: Array, v: Array) -> Array:
+        q1, w1, q2, w2 = z[:, 0:1], z[:, 1:2], z[:, 2:3], z[:, 3:4]
+        v1, v2 = v[:, 0:1], v[:, 1:2]
+        c2, s2, s12 = np.cos(q2), np.sin(q2), np.sin(q1 + q2)
+        t1 = (a1 + 2 * a2 * c2) * v1 + (a3 + a2 * c2) * v2 - a2 * s2 * (2 * w1 * w2 + w2**2) \
+            + b1 * np.sin(q1) + b2 * s12
+        t2 = (a3 + a2 * c2) * v1 + a3 * v2 + a2 * s2 * w1**2 + b2 * s12
+        return np.hstack([t1, t2])
+
+    def phi_interval(z: iv.Interval, v: iv.Interval) -> iv.Interval:
+        q1, w1, q2, w2 = z[:, 0:1], z[:, 1:2], z[:, 2:3], z[:, 3:4]
+        v1, v2 = v[:, 0:1], v[:, 1:2]
+        c2, s2, s12 = iv.cos(q2), iv.sin(q2), iv.sin(q1 + q2)
+        t1 = (a1 + 2 * a2 * c2) * v1 + (a3 + a2 * c2) * v2 - a2 * s2 * (2.0 * w1 * w2 + iv.sqr(w2)) \
+            + b1 * iv.sin(q1) + b2 * s12
+        t2 = (a3 + a2 * c2) * v1 + a3 * v2 + a2 * s2 * iv.sqr(w1) + b2 * s12
+        return iv.hstack([t1, t2])
+
+    def f(x: Array, u: Array) -> Array:
+        x = np.asarray(x, float)
+        z = np.array([[x[0], x[2], x[1], x[3]]])
+        qdd = np.linalg.solve(arm_mass_matrix(z, p)[0], np.asarray(u, float).reshape(2) - arm_bias(z, p)[0])
+        return np.array([x[2], x[3], qdd[0], qdd[1]])
+
+    def to_z(x: Array) -> Array:
+        x = np.asarray(x, float)
+        return np.array([x[0], x[2], x[1], x[3]])
+
+    def to_x(z: Array) -> Array:
+        z = np.asarray(z, float)
+        return np.array([z[0], z[2], z[1], z[3]])
+
+    zb = np.array([q1_box, w_box, q2_box, w_box])
+    sysm = FLSystem(
+        name="Arm", A=A, B=B, phi=phi,
+        lo=np.r_[-zb, -v_box, -v_box], hi=np.r_[zb, v_box, v_box], u_max=u_max,
+        f=f, to_z=to_z, to_x=to_x, phi_interval=phi_interval,
+        state_names=("q1", "q1'", "q2", "q2'"), input_names=("v1 = q1''", "v2 = q2''"),
+        params=dict(p, tau_max=u_max.tolist(), q1_box=q1_box, q2_box=q2_box, w_box=w_box, v_box=v_box),
+    )
+    sysm.mass_matrix = lambda z: arm_mass_matrix(z, p)  # type: ignore[attr-defined]
+    sysm.bias = lambda z: arm_bias(z, p)  # type: ignore[attr-defined]
+    return sysm
+
+
+# ---------------------------------------------------------------------------
+# The shipped network
+# ---------------------------------------------------------------------------
+#: How the shipped network of :func:`two_link_arm` (defaults) was trained (arguments of :func:`flnotes.fit_relu`).
+ARM_SETTINGS = dict(widths=(32, 32), n_per_axis=8, seed=0, max_iter=3000, max_train=60_000)
+#: How its error bound was certified (arguments of :func:`flnotes.certify_error`).
+ARM_EPS_SETTINGS = dict(rtol=0.01, n_samples=10_000, seed=0)
+
+
+def make_arm_reference(folder=None):
+    """Train the arm's network with :data:`ARM_SETTINGS`, certify ``eps`` per output and write the reference.
+
+    Minutes of CPU: only to change the shipped network on purpose. Returns the
+    path of the JSON file written (see :func:`flnotes.reference.save_reference`).
+    """
+    from .error import certify_error
+    from .network import fit_relu
+    from .reference import save_reference
+
+    sysm = two_link_arm()
+    net, report = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **ARM_SETTINGS)
+    bracket = certify_error(sysm, net, **ARM_EPS_SETTINGS)
+    return save_reference(ARM_REFERENCE, net, report, dict(ARM_SETTINGS, system="Arm"), bracket=bracket,
+                          eps_settings=ARM_EPS_SETTINGS, folder=folder)
+
+
+def arm_net():
+    """The shipped network ``Phi_NN`` of :func:`two_link_arm` and its certified error bound.
+
+    The same weights on every machine (:mod:`flnotes.reference`, name
+    :data:`ARM_REFERENCE`), trained with :data:`ARM_SETTINGS` on the default
+    box, with ``eps`` of eq. (approx_err) certified per output by
+    :func:`flnotes.certify_error` (:data:`ARM_EPS_SETTINGS`).
+
+    Returns
+    -------
+    net, eps, ref
+        The network, ``eps`` (the bracket's upper ends, shape (2,)) and the
+        :class:`flnotes.reference.Reference` (training report, bracket, settings).
+    """
+    from .reference import load_reference
+
+    ref = load_reference(ARM_REFERENCE)
+    if ref.bracket is None:
+        raise ValueError(f"the shipped reference {ARM_REFERENCE!r} has no certified bracket; rewrite it "
+                         f"with flnotes.arm.make_arm_reference()")
+    return ref.net, np.asarray(ref.bracket["upper"], float), ref

@@ -1,0 +1,670 @@
+"""Two inputs, exactly: the linear regions of ``v -> Phi_NN(z, v)`` in the ``v``-plane.
+
+With ``z`` fixed the network ``Phi_NN(z, .)`` is continuous and piecewise affine
+in ``v``: on each *linear region* ``R_r`` (a convex polygon of the ``v``-box,
+where the activation pattern of every hidden neuron is constant) it equals
+``A_r v + c_r``. For two inputs this module
+
+* lists those regions (:func:`network_regions`): starting from the ``v``-box,
+  layer by layer, each region is cut by the lines ``P_j v + p_j = 0`` of the
+  neurons of the next layer whose pre-activation changes sign on it (the
+  pre-activations of layer ``k`` are affine on a region of layers ``< k``);
+  neurons that keep one sign on a region (almost all: a region is small) cost
+  one evaluation at its vertices;
+* gives the input sets of eq. (contraint_new_set) as polygons: the true
+  ``V(z) = {v in box : |Phi(z, v)| <= u_max}`` when ``Phi`` is affine in ``v``
+  (any input-affine plant, e.g. computed torque: :func:`admissible_polygon`),
+  and the network's ``{v in box : |Phi_NN(z, v)| <= u_max^eps}`` of eq.
+  (Phi_NN_ep), a union of convex polygons (:func:`network_polygons`);
+* solves the CLF-CBF program of eq. (CLF_CBF) exactly
+  (:func:`solve_exact_2d`): on each region the network constraint
+  (CLF_CBF_b) is the four half-planes ``|A_r v + c_r| <= u_max^eps``, the CBF
+  rows (CLF_CBF_d) more half-planes, so the feasible set is a union of
+  convex polygons; the objective ``J(v) + max(0, a_V^T v + b_V)`` (the
+  optimal ``delta`` of (CLF_CBF_c)) is minimized on each in closed form (a
+  vertex for the linear cost, eq. LP_cost; a projection for the quadratic
+  cost, eq. QP_cost), and the best is kept. This is the two-input analogue of
+  :func:`flnotes.solve_exact_1d`; :class:`ExactPiecesBackend` plugs it into
+  :class:`flnotes.ClfCbfController` (see :func:`exact_pieces_controller`).
+
+Polygons are arrays of vertices (k, 2) in counter-clockwise order.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+from ._checks import as_vector
+from .network import ReLUNet
+from .systems import FLSystem
+
+Array = np.ndarray
+
+__all__ = ["LinearRegions", "network_regions", "admissible_polygon", "network_polygons", "affine_in_v",
+           "clip_polygon", "polygon_area", "solve_exact_2d", "ExactPiecesBackend", "exact_pieces_controller",
+           "compare_exact_mip"]
+
+_TOL = 1e-11
+
+
+# ---------------------------------------------------------------------------
+# Convex polygons
+# ---------------------------------------------------------------------------
+def _box_polygon(v_lo: Array, v_hi: Array) -> Array:
+    (a, b), (c, d) = v_lo, v_hi
+    return np.array([[a, b], [c, b], [c, d], [a, d]], float)
+
+
+def _cut(V: Array, s: Array) -> tuple[Array, Array]:
+    """Split the convex polygon ``V`` by the affine function with values ``s`` at its vertices.
+
+    Returns the parts where ``s <= 0`` and ``s >= 0`` (each (k, 2), possibly empty),
+    both counter-clockwise like ``V``; the new vertices lie on the line ``s = 0``.
+    """
+    sn = np.roll(s, -1)
+    cross = s * sn < 0
+    Vn = np.roll(V, -1, axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(cross, s / (s - sn), 0.0)
+    X = V + t[:, None] * (Vn - V)
+    seq = np.stack([V, X], axis=1).reshape(-1, 2)
+    neg = np.stack([s <= 0, cross], axis=1).ravel()
+    pos = np.stack([s >= 0, cross], axis=1).ravel()
+    return seq[neg], seq[pos]
+
+
+def _snap(s: Array, scale: float) -> Array:
+    """Values within rounding of zero are zero: no sliver polygons along a line through a vertex."""
+    return np.where(np.abs(s) <= _TOL * scale, 0.0, s)
+
+
+def clip_polygon(V: Array, a: Array, b: float) -> Array:
+    """The part of the convex polygon ``V`` (k, 2) where ``a^T v + b <= 0``; (0, 2) when empty."""
+    V = np.asarray(V, float).reshape(-1, 2)
+    if not len(V):
+        return V
+    a = np.asarray(a, float).reshape(2)
+    s = V @ a + b
+    s = _snap(s, max(1.0, float(np.abs(V).max() * np.abs(a).sum() + abs(b))))
+    if np.all(s <= 0):
+        return V
+    if np.all(s > 0):
+        return np.zeros((0, 2))
+    return _cut(V, s)[0]
+
+
+def polygon_area(V: Array) -> float:
+    """Area of a polygon (k, 2) by the shoelace formula (positive for counter-clockwise)."""
+    V = np.asarray(V, float).reshape(-1, 2)
+    if len(V) < 3:
+        return 0.0
+    x, y = V[:, 0], V[:, 1]
+    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+
+
+def _clip_all(V: Array, G: Array, h: Array) -> Array:
+    """``V`` cut by every half-plane ``G_j v + h_j <= 0``."""
+    for a, b in zip(G, h):
+        V = clip_polygon(V, a, b)
+        if not len(V):
+            break
+    return V
+
+
+def _project(V: Array, c: Array) -> Array:
+    """The point of the convex polygon ``V`` nearest to ``c`` (``V`` may be degenerate: a segment or a point)."""
+    E = np.roll(V, -1, axis=0) - V
+    D = c - V
+    if len(V) >= 3 and polygon_area(V) > 1e-14 and np.all(E[:, 0] * D[:, 1] - E[:, 1] * D[:, 0] >= 0):
+        return c.copy()
+    L2 = np.einsum("ij,ij->i", E, E)
+    t = np.clip(np.einsum("ij,ij->i", D, E) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+    Q = V + t[:, None] * E
+    return Q[np.argmin(np.einsum("ij,ij->i", Q - c, Q - c))]
+
+
+# ---------------------------------------------------------------------------
+# Linear regions of the network in v
+# ---------------------------------------------------------------------------
+@dataclass
+class LinearRegions:
+    """``Phi_NN(z, v) = A[r] v + c[r]`` on the convex polygon ``polygons[r]`` (fixed ``z``, two inputs).
+
+    Attributes
+    ----------
+    polygons
+        The regions, a list of (k_r, 2) vertex arrays, counter-clockwise; they tile
+        the (possibly clipped) ``v``-box.
+    A, c
+        The affine map on each region: shapes (R, n_out, 2) and (R, n_out).
+    """
+
+    polygons: list
+    A: Array
+    c: Array
+
+    @property
+    def n_regions(self) -> int:
+        return len(self.polygons)
+
+    def __len__(self) -> int:
+        return len(self.polygons)
+
+
+def network_regions(net: ReLUNet, z: Array, v_lo: Array, v_hi: Array,
+                    G: Optional[Array] = None, h: Optional[Array] = None) -> LinearRegions:
+    """All linear regions of ``v -> Phi_NN(z, v)`` on the box ``[v_lo, v_hi]`` for a fixed ``z`` (two inputs).
+
+    The network input is ``y^0 = [z, v]`` (eq. MIP_general_a). The
+    pre-activations of the first layer, ``W^1 y^0 + b^1``, are affine in
+    ``v``: ``P v + p``. On a region where the activation pattern of layers
+    ``< k`` is fixed (``D = diag(pattern)``), layer ``k``'s pre-activations are
+    affine too (``W^k D (P v + p) + b^k``), so each region is cut along the
+    lines of the neurons of layer ``k`` whose pre-activation takes both signs
+    at its vertices (exact: it is affine there); the others keep their sign on
+    the whole region. After the last hidden layer the output is affine on
+    each region.
+
+    Parameters
+    ----------
+    net
+        A network with input ``[z, v]``, ``v`` of two entries (``n_in = len(z) + 2``).
+    z
+        The fixed state, shape (n_in - 2,).
+    v_lo, v_hi
+        The ``v``-box, shape (2,).
+    G, h
+        Optional half-planes ``G v + h <= 0`` (shapes (q, 2), (q,)) that cut the
+        box first (e.g. the CBF rows, which do not depend on the network):
+        only regions meeting them are listed.
+
+    Returns
+    -------
+    LinearRegions
+    """
+    z = np.asarray(z, float).reshape(-1)
+    if net.n_in != len(z) + 2:
+        raise ValueError(f"network_regions lists regions in a plane of two inputs v: the network has n_in = "
+                         f"{net.n_in} inputs and z has {len(z)} entries (need n_in = len(z) + 2)")
+    v_lo, v_hi = as_vector(v_lo, 2, "v_lo"), as_vector(v_hi, 2, "v_hi")
+    if np.any(v_lo >= v_hi):
+        raise ValueError(f"need v_lo < v_hi, got {v_lo} and {v_hi}")
+    V0 = _box_polygon(v_lo, v_hi)
+    if G is not None:
+        G = np.asarray(G, float).reshape(-1, 2)
+        h = np.asarray(h, float).reshape(-1)
+        if len(h) != len(G):
+            raise ValueError(f"G (q, 2) and h (q,) must have as many rows, got {G.shape} and {h.shape}")
+        V0 = _clip_all(V0, G, h)
+    n_out = net.n_out
+    if not len(V0):
+        return LinearRegions([], np.zeros((0, n_out, 2)), np.zeros((0, n_out)))
+    W1 = net.W[0]
+    regions = [(V0, W1[:, -2:], W1[:, :-2] @ z + net.b[0])]
+    scale = max(1.0, float(np.abs(v_hi - v_lo).max()))
+    for k in range(1, net.K):
+        Wk, bk = net.W[k], net.b[k]
+        new = []
+        for V, P, p in regions:
+            S = V @ P.T + p
+            sc = scale * (np.abs(P).sum(1) + np.abs(p) + 1.0)
+            S = np.where(np.abs(S) <= _TOL * sc, 0.0, S)
+            js = np.flatnonzero((S.min(0) < 0) & (S.max(0) > 0))
+            parts = [V]
+            for j in js:
+                nxt = []
+                for Q in parts:
+                    s = Q @ P[j] + p[j]
+                    s = np.where(np.abs(s) <= _TOL * sc[j], 0.0, s)
+                    if s.min() < 0 < s.max():
+                        a, b = _cut(Q, s)
+                        nxt.append(a), nxt.append(b)
+                    else:
+                        nxt.append(Q)
+                parts = nxt
+            for Q in parts:
+                on = (Q.mean(0) @ P.T + p) > 0
+                DP, Dp = P * on[:, None], p * on
+                new.append((Q, Wk @ DP, Wk @ Dp + bk))
+        regions = new
+    return LinearRegions([r[0] for r in regions], np.array([r[1] for r in regions]),
+                         np.array([r[2] for r in regions]))
+
+
+# ---------------------------------------------------------------------------
+# The input sets as polygons
+# ---------------------------------------------------------------------------
+def affine_in_v(system: FLSystem, z: Array, rtol: float = 1e-9) -> tuple[Array, Array]:
+    """``Phi(z, v) = beta(z) v + alpha(z)``: the matrix ``beta`` (m, m) and ``alpha`` (m,) at one ``z``.
+
+    Exact for any plant affine in its input (``x' = f_0(x) + g(x) u``), whose
+    linearizing map is affine in ``v``. Checked at random points of the ``v``-box:
+    a map that is not affine in ``v`` raises ``ValueError``.
+    """
+    z = as_vector(z, system.n_z, "z")
+    m = system.m
+    I = np.vstack([np.zeros(m), np.eye(m)])
+    U = system.Phi(np.repeat(z[None], m + 1, axis=0), I)
+    alpha, beta = U[0], (U[1:] - U[0]).T
+    rng = np.random.default_rng(0)
+    Vt = rng.uniform(system.lo[system.n_z:], system.hi[system.n_z:], (8, m))
+    Ut = system.Phi(np.repeat(z[None], 8, axis=0), Vt)
+    err = np.abs(Ut - (Vt @ beta.T + alpha))
+    if np.any(err > rtol * (1.0 + np.abs(Ut))):
+        raise ValueError(f"Phi of {system.name} is not affine in v at z = {z.tolist()} (deviation "
+                         f"{err.max():.3g}): its input set is not a polygon; use network_polygons for the network's")
+    return beta, alpha
+
+
+def admissible_polygon(system: FLSystem, z: Array, u_bound: Optional[Array] = None) -> Array:
+    """``V(z) = {v in v-box : |Phi(z, v)| <= u_max}`` of eq. (contraint_new_set) as a convex polygon.
+
+    For a map affine in ``v`` (see :func:`affine_in_v`) each bound
+    ``|beta_i v + alpha_i| <= u_max,i`` is a strip; ``V(z)`` is the ``v``-box cut
+    by the ``2 m`` half-planes. Two inputs only.
+
+    Parameters
+    ----------
+    system
+        A system with ``m = 2`` whose ``Phi`` is affine in ``v``.
+    z
+        The state, shape (n_z,).
+    u_bound
+        The bound (default ``system.u_max``), shape (2,).
+
+    Returns
+    -------
+    Array
+        Vertices (k, 2), counter-clockwise; (0, 2) when ``V(z)`` is empty.
+    """
+    if system.m != 2:
+        raise ValueError(f"admissible_polygon draws V(z) in the plane of two inputs; {system.name} has m = {system.m}")
+    u = system.u_max if u_bound is None else as_vector(u_bound, 2, "u_bound")
+    beta, alpha = affine_in_v(system, z)
+    n_z = system.n_z
+    V = _box_polygon(system.lo[n_z:], system.hi[n_z:])
+    return _clip_all(V, np.vstack([beta, -beta]), np.r_[alpha - u, -alpha - u])
+
+
+def network_polygons(net: ReLUNet, z: Array, v_lo: Array, v_hi: Array, bound: Array,
+                     regions: Optional[LinearRegions] = None) -> list:
+    """``{v in box : |Phi_NN(z, v)| <= u_max^eps}`` of eq. (Phi_NN_ep) at one ``z``: a list of convex polygons.
+
+    On each linear region (:func:`network_regions`) the bound is ``2 n_out``
+    half-planes; the non-empty pieces are returned (they may touch).
+
+    Parameters
+    ----------
+    net, z, v_lo, v_hi
+        As in :func:`network_regions`.
+    bound
+        ``u_max^eps = u_max - eps``, shape (n_out,).
+    regions
+        The result of :func:`network_regions`, if already computed.
+    """
+    R = network_regions(net, z, v_lo, v_hi) if regions is None else regions
+    b = as_vector(bound, net.n_out, "bound")
+    out = []
+    for V, A, c in zip(R.polygons, R.A, R.c):
+        Q = _clip_all(V, np.vstack([A, -A]), np.r_[c - b, -c - b])
+        if len(Q):
+            out.append(Q)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# The exact CLF-CBF solve for two inputs
+# ---------------------------------------------------------------------------
+def _objective(v: Array, d: dict, cost: str) -> tuple[float, float]:
+    """``J(v) + delta*(v)`` and ``delta*(v) = max(0, a_V^T v + b_V)``."""
+    delta = max(0.0, float(d["aV"] @ v + d["bV"]))
+    J = float(d["aV"] @ v + d["Jc"]) if cost == "linear" else float((v - d["k"]) @ (v - d["k"]))
+    return J + delta, delta
+
+
+def _best_on_polygon(F: Array, d: dict, cost: str) -> Array:
+    """Minimizer of ``J(v) + max(0, a_V^T v + b_V)`` over the convex polygon ``F`` (closed form)."""
+    aV = d["aV"]
+    if cost == "linear":
+        # J + delta* = a_V^T v + J_c + max(0, a_V^T v + b_V) is non-decreasing in a_V^T v: a vertex minimizes it
+        return F[np.argmin(F @ aV)]
+    # Qcost: ||v - k||^2 on {a_V^T v + b_V <= 0}, ||v - (k - a_V/2)||^2 + const on the other side
+    s = F @ aV + d["bV"]
+    s = np.where(np.abs(s) <= _TOL * (1.0 + np.abs(F).max() * np.abs(aV).sum() + abs(d["bV"])), 0.0, s)
+    F0, F1 = _cut(F, s) if s.min() < 0 < s.max() else ((F, F[:0]) if s.max() <= 0 else (F[:0], F))
+    cand = []
+    if len(F0):
+        cand.append(_project(F0, d["k"]))
+    if len(F1):
+        cand.append(_project(F1, d["k"] - aV / 2))
+    vals = [_objective(v, d, cost)[0] for v in cand]
+    return cand[int(np.argmin(vals))]
+
+
+def _soft_objective(v: Array, A: Array, c: Array, d: dict, cost: str, bound: Array,
+                    rho: tuple[float, float]) -> float:
+    f, _ = _objective(v, d, cost)
+    f += rho[0] * float(np.maximum(0.0, np.abs(A @ v + c) - bound).sum())
+    if len(d["bH"]):
+        f += rho[1] * float(np.maximum(0.0, -(d["aH"] @ v + d["bH"])).sum())
+    return f
+
+
+def _best_soft(V: Array, A: Array, c: Array, d: dict, cost: str, bound: Array, rho: tuple[float, float]) -> Array:
+    """Minimizer of the softened objective on one linear region ``V`` where ``Phi_NN = A v + c``.
+
+    The objective is ``J(v)`` plus weighted hinges ``w max(0, g^T v + e)``: the CLF
+    row (weight 1), the input bound ``+-(A_i v + c_i) - u_max^eps_i`` (``rho_u``) and
+    the CBF rows ``-(a_H v + b_H)`` (``rho_H``). The region is cut along every hinge's
+    line; on each cell the objective is ``J`` plus an affine function, minimized at a
+    vertex (linear ``J``) or by a projection (``J = ||v - k||^2``).
+    """
+    Gs = [d["aV"][None]] + [A, -A] + ([-d["aH"]] if len(d["bH"]) else [])
+    es = [np.array([d["bV"]]), c - bound, -c - bound] + ([-d["bH"]] if len(d["bH"]) else [])
+    ws = [np.ones(1), np.full(len(c), rho[0]), np.full(len(c), rho[0])] + ([np.full(len(d["bH"]), rho[1])]
+                                                                            if len(d["bH"]) else [])
+    G, e, w = np.vstack(Gs), np.concatenate(es), np.concatenate(ws)
+    cells = [V]
+    for g, ej in zip(G, e):
+        nxt = []
+        for Q in cells:
+            s = Q @ g + ej
+            s = np.where(np.abs(s) <= _TOL * (1.0 + np.abs(Q).max() * np.abs(g).sum() + abs(ej)), 0.0, s)
+            if s.min() < 0 < s.max():
+                a, b = _cut(Q, s)
+                nxt.append(a), nxt.append(b)
+            else:
+                nxt.append(Q)
+        cells = nxt
+    best, fbest = None, np.inf
+    for Q in cells:
+        on = (G @ Q.mean(0) + e) > 0
+        g = (w[on, None] * G[on]).sum(0)
+        if cost == "linear":
+            v = Q[np.argmin(Q @ (d["aV"] + g))]   # J + hinges = (a_V + g)^T v + const on this cell
+        else:
+            v = _project(Q, d["k"] - g / 2)       # ||v - k||^2 + g^T v = ||v - (k - g/2)||^2 + const
+        f = _soft_objective(v, A, c, d, cost, bound, rho)
+        if f < fbest:
+            best, fbest = v, f
+    return best
+
+
+def _tail_bounds(net: ReLUNet, k: int, lo: Array, hi: Array) -> tuple[Array, Array]:
+    """Interval bounds of the output from the pre-activation box ``[lo, hi]`` of hidden layer ``k`` (0-based)."""
+    lo, hi = np.maximum(lo, 0.0), np.maximum(hi, 0.0)
+    for W, b in zip(net.W[k + 1:], net.b[k + 1:]):
+        Wp, Wn = np.maximum(W, 0.0), np.minimum(W, 0.0)
+        lo, hi = Wp @ lo + Wn @ hi + b, Wp @ hi + Wn @ lo + b
+        if W is not net.W[-1]:
+            lo, hi = np.maximum(lo, 0.0), np.maximum(hi, 0.0)
+    return lo, hi
+
+
+def _lower_bound(V: Array, d: dict, cost: str) -> float:
+    """A lower bound of ``J(v) + max(0, a_V^T v + b_V)`` on the polygon ``V`` (exact for the linear cost)."""
+    s = V @ d["aV"]
+    if cost == "linear":
+        t = s.min()
+        return float(t + d["Jc"] + max(0.0, t + d["bV"]))
+    gap = np.maximum(0.0, np.maximum(V.min(0) - d["k"], d["k"] - V.max(0)))
+    return float(gap @ gap + max(0.0, s.min() + d["bV"]))
+
+
+def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_lo: Array, v_hi: Array,
+                   soft: bool = False, rho: tuple[float, float] = (1e6, 1e4),
+                   stats: Optional[dict] = None) -> Optional[tuple[Array, float, float]]:
+    """Minimize the cost of eq. (CLF_CBF) over ``v`` exactly, for two inputs.
+
+    ``d`` holds the data of the program at the current ``z``
+    (:meth:`flnotes.ClfCbfController.program_data`: ``aV``, ``bV``, ``Jc``,
+    ``aH``, ``bH``, ``k``). On a linear region ``R_r`` of ``Phi_NN(z, .)``
+    (see :func:`network_regions`) the feasible set is the convex polygon
+    ``R_r`` cut by ``|A_r v + c_r| <= u_max^eps`` (CLF_CBF_b) and
+    ``a_H v + b_H >= 0`` (CLF_CBF_d); there ``J(v) + delta*(v)`` with
+    ``delta*(v) = max(0, a_V^T v + b_V)`` (the least ``delta`` of (CLF_CBF_c)) is
+    convex and minimized in closed form: for the linear cost (eq. LP_cost) at
+    the vertex minimizing ``a_V^T v``; for the quadratic cost (eq. QP_cost) by
+    projecting ``k(z)`` onto the part where ``a_V^T v + b_V <= 0`` and
+    ``k(z) - a_V / 2`` onto the other part. The best region wins.
+
+    The regions are not all listed: they are found by a depth-first branch and
+    bound over the cuts of :func:`network_regions` (the ``v``-box first cut by
+    the CBF rows, which do not depend on the network). A partial region is
+    dropped when the interval bounds of the network's output, propagated from
+    its exact pre-activation ranges (an affine function's extremes on a
+    polygon are at its vertices), exclude ``|Phi_NN| <= u_max^eps``, or when a
+    lower bound of the cost on it cannot beat the best point found. Before any
+    of this, the program without (CLF_CBF_b) is solved on the cut box: if its
+    optimum satisfies the network bound it is the answer (screening).
+
+    With ``soft=True`` the softened program of the fallback is solved instead
+    (penalties ``rho = (rho_u, rho_H)`` on the violations of the input bound and
+    of the CBF rows): the whole box, each region's objective minimized by
+    :func:`_best_soft`, regions dropped by the same kind of lower bound.
+
+    Parameters
+    ----------
+    net, z
+        The network on ``[z, v]`` with two inputs ``v`` and the fixed state.
+    d
+        The program data.
+    cost
+        ``"linear"`` or ``"quadratic"``.
+    bound
+        ``u_max^eps``, shape (n_out,).
+    v_lo, v_hi
+        The ``v``-box, shape (2,).
+    soft, rho
+        The softened program and its penalty weights.
+    stats
+        If a dict is given, the counts ``regions`` (leaves solved), ``nodes``
+        (partial regions visited) and ``screened`` are written into it.
+
+    Returns
+    -------
+    (v, delta, objective), or None when the program is infeasible.
+    """
+    z = np.asarray(z, float).reshape(-1)
+    if net.n_in != len(z) + 2:
+        raise ValueError(f"solve_exact_2d needs two inputs v: the network has n_in = {net.n_in} and z has "
+                         f"{len(z)} entries (need n_in = len(z) + 2)")
+    if cost not in ("linear", "quadratic"):
+        raise ValueError(f"cost must be 'linear' or 'quadratic', got {cost!r}")
+    bound = as_vector(bound, net.n_out, "bound")
+    v_lo, v_hi = as_vector(v_lo, 2, "v_lo"), as_vector(v_hi, 2, "v_hi")
+    st = dict(regions=0, nodes=0, screened=False)
+    p = len(d["bH"])
+    V0 = _box_polygon(v_lo, v_hi)
+    if not soft and p:
+        V0 = _clip_all(V0, -d["aH"], -d["bH"])
+    if not len(V0):
+        if stats is not None:
+            stats.update(st)
+        return None
+    if not soft:   # screening: the program without the network constraint, on the cut box
+        v = _best_on_polygon(V0, d, cost)
+        if np.all(np.abs(net(np.concatenate([z, v]))) <= bound):
+            st["screened"] = True
+            if stats is not None:
+                stats.update(st)
+            f, delta = _objective(v, d, cost)
+            return v, delta, f
+    scale = max(1.0, float(np.abs(v_hi - v_lo).max()))
+    ftol = 1e-9 * np.maximum(1.0, bound)
+    best = [None, np.inf]
+    W1 = net.W[0]
+
+    def leaf(V: Array, A: Array, c: Array) -> None:
+        st["regions"] += 1
+        if soft:
+            v = _best_soft(V, A, c, d, cost, bound, rho)
+            f = _soft_objective(v, A, c, d, cost, bound, rho)
+        else:
+            F = _clip_all(V, np.vstack([A, -A]), np.r_[c - bound, -c - bound])
+            if not len(F):
+                return
+            v = _best_on_polygon(F, d, cost)
+            f = _objective(v, d, cost)[0]
+        if f < best[1]:
+            best[0], best[1] = v, f
+
+    def lower(V: Array, olo: Array, ohi: Array) -> float:
+        lb = _lower_bound(V, d, cost)
+        if soft:
+            lb += rho[0] * float(np.maximum(0.0, np.maximum(olo - bound, -ohi - bound)).sum())
+            if p:
+                lb += rho[1] * float(np.maximum(0.0, -(V @ d["aH"].T + d["bH"]).max(0)).sum())
+        return lb
+
+    def visit(V: Array, k: int, P: Array, p_: Array) -> None:
+        st["nodes"] += 1
+        S = V @ P.T + p_
+        sc = scale * (np.abs(P).sum(1) + np.abs(p_) + 1.0)
+        S = np.where(np.abs(S) <= _TOL * sc, 0.0, S)
+        lo, hi = S.min(0), S.max(0)
+        olo, ohi = _tail_bounds(net, k, lo, hi)
+        if not soft and np.any((olo > bound + ftol) | (ohi < -bound - ftol)):
+            return                                    # no point of V meets |Phi_NN| <= u_max^eps
+        if lower(V, olo, ohi) >= best[1]:
+            return                                    # cannot beat the best point found
+        js = np.flatnonzero((lo < 0) & (hi > 0))
+        if len(js):
+            j = js[np.argmax(np.minimum(-lo[js], hi[js]) / (hi[js] - lo[js]))]   # the most balanced cut
+            a, b = _cut(V, S[:, j])
+            kids = [Q for Q in (a, b) if len(Q) >= 3]
+            kids.sort(key=lambda Q: _lower_bound(Q, d, cost))
+            for Q in kids:
+                visit(Q, k, P, p_)
+            return
+        on = (V.mean(0) @ P.T + p_) > 0
+        Wn, bn = net.W[k + 1], net.b[k + 1]
+        P2, p2 = Wn @ (P * on[:, None]), Wn @ (p_ * on) + bn
+        if k + 1 == net.K - 1:
+            leaf(V, P2, p2)
+        else:
+            visit(V, k + 1, P2, p2)
+
+    visit(V0, 0, W1[:, -2:], W1[:, :-2] @ z + net.b[0])
+    if stats is not None:
+        stats.update(st)
+    if best[0] is None:
+        return None
+    v = best[0]
+    return v, _objective(v, d, cost)[1], best[1]
+
+
+# ---------------------------------------------------------------------------
+# The back-end for ClfCbfController
+# ---------------------------------------------------------------------------
+class ExactPiecesBackend:
+    """Two inputs: list the linear regions of ``Phi_NN(z, .)`` and minimize on each in closed form.
+
+    The interface of the controller's back-ends: ``solve(z, d, soft)`` returns
+    the controller's solution record (status, ``v``, ``delta``, objective,
+    time, slacks), exactly like the single-input ``"exact"`` back-end of
+    :class:`flnotes.ClfCbfController`.
+    """
+
+    n_binaries = 0
+
+    def __init__(self, c: Any):
+        if c.system.m != 2:
+            raise ValueError(f"the exact region method works in the plane of two inputs; this system has "
+                             f"m = {c.system.m}: use backend='exact' (m = 1) or a MILP/MIQP backend")
+        self.c = c
+
+    def solve(self, z: Array, d: dict, soft: bool):
+        from .control import _Solution
+
+        c = self.c
+        t0 = time.perf_counter()
+        st: dict = {}
+        out = solve_exact_2d(c.net, z, d, c.cost, c.u_eps, c.v_lo, c.v_hi, soft=soft, rho=c.penalty, stats=st)
+        dt = time.perf_counter() - t0
+        what = ("screening: the optimum without the network constraint satisfies it" if st["screened"] else
+                f"{st['regions']} regions solved, {st['nodes']} partial regions visited")
+        if out is None:
+            return _Solution(status="infeasible", solver_time=dt, detail=f"{what}; empty feasible set")
+        v, delta, obj = out
+        sol = _Solution(status="optimal", v=np.asarray(v, float), delta=delta, objective=obj, solver_time=dt,
+                        detail=what, screened=st["screened"], nodes=st["nodes"])
+        if soft:
+            sol.slack_u = np.maximum(0.0, np.abs(c.net(np.concatenate([z, v]))) - c.u_eps)
+            sol.slack_H = np.maximum(0.0, -(d["aH"] @ v + d["bH"]))
+        else:
+            sol.slack_u, sol.slack_H = np.zeros(c.system.m), np.zeros(c.p)
+        return sol
+
+
+def exact_pieces_controller(system: FLSystem, net: ReLUNet, eps, V: Any, H: Any = None, **kwargs):
+    """A :class:`flnotes.ClfCbfController` for two inputs whose solves use :class:`ExactPiecesBackend`.
+
+    Same arguments as the controller (``backend`` excepted): the program, its
+    data and its fallback are the controller's; only the solve is replaced by
+    the exact region method. ``ctrl.with_backend("scip")`` gives the same
+    program solved by SCIP, for comparison.
+    """
+    from .control import ClfCbfController
+
+    if "backend" in kwargs:
+        raise TypeError("exact_pieces_controller chooses its own solve; for another backend use ClfCbfController")
+    if system.m != 2:
+        raise ValueError(f"the exact region method works in the plane of two inputs; {system.name} has m = {system.m}")
+    ctrl = ClfCbfController(system, net, eps, V, H, backend="scip", **kwargs)
+    ctrl._impl = ExactPiecesBackend(ctrl)
+    ctrl.backend = "exact"
+    return ctrl
+
+
+def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7) -> dict:
+    """Solve eq. (CLF_CBF) at every state of ``Z`` with two controllers of the same program and compare.
+
+    Parameters
+    ----------
+    exact, mip
+        Two :class:`flnotes.ClfCbfController` for the same program (e.g.
+        :func:`exact_pieces_controller` and its ``with_backend("scip")``).
+    Z
+        States, shape (N, n_z).
+    boundary_tol
+        An optimum counts as on the network's bound when ``min_i | |Phi_NN,i| - u_max^eps_i | <= boundary_tol``.
+
+    Returns
+    -------
+    dict
+        ``states``, ``max_rel_objective_gap`` (``|J_a - J_b| / max(1, |J_b|)``),
+        ``same_status`` (count), ``fallback`` (count, first controller),
+        ``boundary_optima`` (count), and per controller the wall-clock and CPU
+        times per step in ms (``{name}_ms_min``, ``_median``, ``_max``,
+        ``{name}_cpu_ms_max``).
+    """
+    Z = np.atleast_2d(np.asarray(Z, float))
+    if Z.shape[1] != exact.system.n_z:
+        raise ValueError(f"Z must have shape (N, {exact.system.n_z}), got {Z.shape}")
+    gaps, same, fb, bnd = [], 0, 0, 0
+    t = {"exact": [], "mip": []}
+    cpu = {"exact": [], "mip": []}
+    for z in Z:
+        a, b = exact.step(z), mip.step(z)
+        for name, r in (("exact", a), ("mip", b)):
+            t[name].append(r.solve_time * 1e3)
+            cpu[name].append(r.info["cpu_time"] * 1e3)
+        oa, ob = a.info["objective"], b.info["objective"]
+        gaps.append(abs(oa - ob) / max(1.0, abs(ob)))
+        same += a.status == b.status
+        fb += bool(a.fallback)
+        if not a.fallback:
+            y = np.abs(exact.net(np.concatenate([z, a.v])))
+            bnd += bool(np.min(np.abs(y - exact.u_eps)) <= boundary_tol)
+    out = dict(states=len(Z), max_rel_objective_gap=float(np.max(gaps)), same_status=same, fallback=fb,
+               boundary_optima=bnd)
+    for name in ("exact", "mip"):
+        ms, c = np.array(t[name]), np.array(cpu[name])
+        out.update({f"{name}_ms_min": float(ms.min()), f"{name}_ms_median": float(np.median(ms)),
+                    f"{name}_ms_max": float(ms.max()), f"{name}_cpu_ms_median": float(np.median(c)),
+                    f"{name}_cpu_ms_max": float(c.max())})
+    return out
