@@ -202,7 +202,7 @@ def two_link_arm(tau_max=(8.0, 2.0), q1_box: float = 1.5, q2_box: float = 2.0, w
 #: How the shipped network of :func:`two_link_arm` (defaults) was trained (arguments of :func:`flnotes.fit_relu`).
 ARM_SETTINGS = dict(widths=(32, 32), n_per_axis=8, seed=0, max_iter=3000, max_train=60_000)
 #: How its error bound was certified (arguments of :func:`flnotes.certify_error`).
-ARM_EPS_SETTINGS = dict(rtol=0.01, n_samples=10_000, seed=0)
+ARM_EPS_SETTINGS = dict(rtol=0.05, n_samples=10_000, seed=0)
 
 
 def make_arm_reference(folder=None):

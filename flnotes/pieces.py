@@ -535,7 +535,7 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
         if len(js):
             j = js[np.argmax(np.minimum(-lo[js], hi[js]) / (hi[js] - lo[js]))]   # the most balanced cut
             a, b = _cut(V, S[:, j])
-            kids = [Q for Q in (a, b) if len(Q) >= 3]
+            kids = [Q for Q in (a, b) if len(Q)]
             kids.sort(key=lambda Q: _lower_bound(Q, d, cost))
             for Q in kids:
                 visit(Q, k, P, p_)

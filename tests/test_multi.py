@@ -1,0 +1,252 @@
+"""Two inputs through the pipeline: the two-link arm, its input sets as polygons, the exact region method."""
+import numpy as np
+import pytest
+from matplotlib.path import Path
+
+import flnotes as fl
+from flnotes import interval as iv
+from flnotes import pieces as pc
+from flnotes.arm import arm_net, two_link_arm
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return two_link_arm()
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    net, eps, ref = arm_net()
+    return net, eps, ref
+
+
+def _states(sysm, n, seed):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(sysm.lo[: sysm.n_z], sysm.hi[: sysm.n_z], (n, sysm.n_z))
+
+
+# ------------------------------------------------------------------ the system
+def test_feedback_linearization_identity(arm):
+    """f(x, Phi(z, v)) read in z-coordinates is the Brunovsky chain A z + B v."""
+    rng = np.random.default_rng(0)
+    X = rng.uniform(arm.lo[:4], arm.hi[:4], (200, 4))[:, [0, 2, 1, 3]]    # plant order (q1, q2, q1', q2')
+    V = rng.uniform(arm.lo[4:], arm.hi[4:], (200, 2))
+    for x, v in zip(X, V):
+        z = arm.to_z(x)
+        np.testing.assert_allclose(arm.to_x(z), x, atol=0)
+        xdot = arm.f(x, arm.Phi(z, v))
+        zdot = arm.to_z(xdot)      # to_z is a permutation, hence linear: d/dt to_z(x) = to_z(x')
+        np.testing.assert_allclose(zdot, arm.A @ z + arm.B @ v, rtol=1e-11, atol=1e-11)
+
+
+def test_phi_is_mass_matrix_times_v_plus_bias(arm):
+    rng = np.random.default_rng(1)
+    Z = rng.uniform(arm.lo[:4], arm.hi[:4], (100, 4))
+    V = rng.uniform(arm.lo[4:], arm.hi[4:], (100, 2))
+    M, h = arm.mass_matrix(Z), arm.bias(Z)
+    np.testing.assert_allclose(arm.Phi(Z, V), np.einsum("nij,nj->ni", M, V) + h, rtol=1e-12, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(M) > 0), "M(q) must be positive definite"
+    assert np.all(np.abs(M[:, 0, 1]) > 0), "the inputs are coupled through M_12"
+
+
+def test_torque_bound_is_active_on_part_of_the_box(arm):
+    X = arm.grid(5)
+    viol = np.any(np.abs(arm.phi_stacked(X)) > arm.u_max, axis=1)
+    assert 0.1 < viol.mean() < 0.9, f"the torque bound should bind on a good part of the box, got {viol.mean():.2f}"
+
+
+def test_phi_interval_encloses_phi(arm):
+    rng = np.random.default_rng(2)
+    c = rng.uniform(arm.lo, arm.hi, (300, 6))
+    r = rng.uniform(0, 0.3, (300, 6)) * (arm.hi - arm.lo)
+    lo, hi = c - r, c + r
+    Y = arm.phi_interval(iv.Interval(lo[:, :4], hi[:, :4]), iv.Interval(lo[:, 4:], hi[:, 4:]))
+    for t in range(8):
+        P = rng.uniform(lo, hi)
+        U = arm.phi_stacked(P)
+        assert np.all(Y.lo <= U) and np.all(U <= Y.hi)
+
+
+def test_bad_arguments(arm):
+    with pytest.raises(ValueError, match="tau_max"):
+        two_link_arm(tau_max=(1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match="v_box"):
+        two_link_arm(v_box=-1.0)
+    with pytest.raises(ValueError, match="m1"):
+        two_link_arm(m1=0.0)
+
+
+# ------------------------------------------------------------------ network and eps
+def test_shipped_network_and_certified_eps(arm, shipped):
+    net, eps, ref = shipped
+    assert net.n_in == 6 and net.n_out == 2
+    assert np.all(np.asarray(ref.bracket["lower"]) <= eps)
+    assert np.all(ref.bracket["converged"])
+    X = np.random.default_rng(3).uniform(arm.lo, arm.hi, (200_000, 6))
+    X = np.vstack([X, arm.grid(5), np.asarray(ref.bracket["argmax"])])
+    E = np.abs(arm.phi_stacked(X) - net(X)).max(0)
+    assert np.all(E <= eps), f"sampled error {E} exceeds the certified eps {eps}"
+    assert np.all(eps < arm.u_max)
+
+
+def test_certify_on_a_sub_box_bounds_sampled_error(arm, shipped):
+    """certify_error on a 6-D sub-box of the arm: the bracket contains the sampled maximum."""
+    net, _, _ = shipped
+    c = np.array([0.4, -0.5, 0.8, 0.3, 2.0, -3.0])
+    lo, hi = c - 0.05 * (arm.hi - arm.lo), c + 0.05 * (arm.hi - arm.lo)
+    br = fl.certify_error(arm, net, lo, hi, rtol=0.1, n_samples=2000)
+    X = np.random.default_rng(4).uniform(lo, hi, (50_000, 6))
+    E = np.abs(arm.phi_stacked(X) - net(X)).max(0)
+    assert np.all(E <= br.upper) and np.all(br.lower <= br.upper)
+
+
+# ------------------------------------------------------------------ polygons
+def _inside(P, V):
+    return Path(P).contains_points(V, radius=0.0) if len(P) else np.zeros(len(V), bool)
+
+
+def test_admissible_polygon_is_the_admissible_set(arm):
+    rng = np.random.default_rng(5)
+    V = rng.uniform(arm.lo[4:], arm.hi[4:], (4000, 2))
+    n_nonempty = 0
+    for z in _states(arm, 12, 6):
+        P = pc.admissible_polygon(arm, z)
+        U = arm.Phi(np.repeat(z[None], len(V), 0), V)
+        margin = np.abs(np.abs(U) - arm.u_max).min(1)
+        ok = np.all(np.abs(U) <= arm.u_max, axis=1)
+        far = margin > 1e-6
+        assert np.array_equal(_inside(P, V)[far], ok[far])
+        n_nonempty += len(P) > 0
+        if len(P):
+            Ub = arm.Phi(np.repeat(z[None], len(P), 0), P)
+            assert np.all(np.abs(Ub) <= arm.u_max + 1e-9), "vertices of V(z) must be admissible"
+    assert n_nonempty >= 6
+
+
+def test_regions_reproduce_the_network(arm, shipped):
+    net, eps, _ = shipped
+    rng = np.random.default_rng(7)
+    V = rng.uniform(arm.lo[4:], arm.hi[4:], (3000, 2))
+    box_area = float(np.prod(arm.hi[4:] - arm.lo[4:]))
+    for z in _states(arm, 5, 8):
+        R = pc.network_regions(net, z, arm.lo[4:], arm.hi[4:])
+        assert abs(sum(pc.polygon_area(Q) for Q in R.polygons) - box_area) < 1e-9 * box_area
+        Y = net(np.hstack([np.repeat(z[None], len(V), 0), V]))
+        hit = np.zeros(len(V), int)
+        for Q, A, c in zip(R.polygons, R.A, R.c):
+            m = _inside(Q, V)
+            hit += m
+            np.testing.assert_allclose(V[m] @ A.T + c, Y[m], atol=1e-9)
+        assert np.all(hit >= 1)
+        # the network's input set, eq. (Phi_NN_ep)
+        bound = arm.u_max - eps
+        polys = pc.network_polygons(net, z, arm.lo[4:], arm.hi[4:], bound, regions=R)
+        inside = np.zeros(len(V), bool)
+        for Q in polys:
+            inside |= _inside(Q, V)
+        far = np.abs(np.abs(Y) - bound).min(1) > 1e-6
+        assert np.array_equal(inside[far], np.all(np.abs(Y) <= bound, axis=1)[far])
+
+
+def test_regions_reject_wrong_sizes(arm, shipped):
+    net, _, _ = shipped
+    with pytest.raises(ValueError, match="two inputs"):
+        pc.network_regions(net, np.zeros(3), arm.lo[4:], arm.hi[4:])
+    with pytest.raises(ValueError, match="v_lo < v_hi"):
+        pc.network_regions(net, np.zeros(4), [1.0, 1.0], [0.0, 2.0])
+
+
+# ------------------------------------------------------------------ the exact method vs the MIP
+P_CLF = np.diag([2.0, 0.5, 2.0, 0.5]) + np.diag([0.4, 0, 0.4], 1) + np.diag([0.4, 0, 0.4], -1)
+K_NOM = np.array([[6.0, 4.0, 0.0, 0.0], [0.0, 0.0, 6.0, 4.0]])
+
+
+def _controllers(arm, net, eps, cost):
+    H = fl.DistanceCBF(np.array([0.8, 0.0, -0.6, 0.0]), 0.5)
+    kw = dict(k=lambda z: -K_NOM @ z, cost=cost)
+    ex = pc.exact_pieces_controller(arm, net, eps, fl.QuadraticCLF(P_CLF), H, **kw)
+    return ex, ex.with_backend("scip")
+
+
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_exact_method_equals_mip(arm, shipped, cost):
+    net, eps, _ = shipped
+    ex, mip = _controllers(arm, net, eps, cost)
+    u_eps = arm.u_max - eps
+    on_boundary = 0
+    # 12 states at random, 12 where the nominal k(z) violates the network's bound (the hard case) and
+    # 6 where the CLF condition (CLF_CBF_c) is relaxed at the optimum (delta > 0)
+    pool = _states(arm, 400, 9 if cost == "linear" else 10)
+    vk = np.clip(-pool @ K_NOM.T, arm.lo[4:], arm.hi[4:])
+    hard = np.any(np.abs(net(np.hstack([pool, vk]))) > u_eps, axis=1)
+    relaxed = np.array([ex.step(z).info["delta"] > 1e-6 for z in pool])
+    Z = np.vstack([pool[~hard & ~relaxed][:12], pool[hard & ~relaxed][:12], pool[relaxed][:6]])
+    n_delta = 0
+    for z in Z:
+        a, b = ex.step(z), mip.step(z)
+        assert a.status == b.status, (z, a.status, b.status)
+        assert a.fallback == b.fallback
+        oa, ob = a.info["objective"], b.info["objective"]
+        assert abs(oa - ob) <= 1e-6 * max(1.0, abs(ob)), (z, oa, ob, a.v, b.v)
+        y = net(np.concatenate([z, a.v]))
+        if not a.fallback:
+            assert np.all(np.abs(y) <= u_eps + 1e-9)
+            on_boundary += bool(np.any(np.abs(np.abs(y) - u_eps) <= 1e-7))
+        n_delta += b.info["delta"] > 1e-6
+    # the premises: some optima lie on the network's bound |Phi_NN| = u_max^eps (the hard case), and
+    # some relax the CLF condition (by the MIP's own solution)
+    assert on_boundary >= 8, f"only {on_boundary} boundary optima among {len(Z)} states"
+    assert n_delta >= 3, f"only {n_delta} of {len(Z)} MIP optima have delta > 0"
+
+
+def _soft_value(ctrl, z, v):
+    """The softened objective J(v) + delta*(v) + rho_u sum s_u + rho_H sum s_H at (z, v), evaluated exactly."""
+    d = ctrl.program_data(z)
+    J = d["aV"] @ v + d["Jc"] if ctrl.cost == "linear" else (v - d["k"]) @ (v - d["k"])
+    s_u = np.maximum(0.0, np.abs(ctrl.net(np.concatenate([z, v]))) - ctrl.u_eps)
+    s_H = np.maximum(0.0, -(d["aH"] @ v + d["bH"]))
+    return float(J + max(0.0, d["aV"] @ v + d["bV"]) + ctrl.penalty[0] * s_u.sum() + ctrl.penalty[1] * s_H.sum())
+
+
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_softened_program_equals_mip(arm, shipped, cost):
+    """Where no v satisfies every constraint both fall back to the softened program: same optimum."""
+    net, eps, _ = shipped
+    ex, mip = _controllers(arm, net, eps, cost)
+    # inside the unsafe ball of the CBF, almost at rest: grad H^T (A z + B v) cannot reach -kappa H(z) > 0
+    rng = np.random.default_rng(11)
+    r = rng.uniform(0.2, 0.45, 6)
+    th = rng.uniform(0, 2 * np.pi, 6)
+    Z = np.column_stack([0.8 + r * np.cos(th), rng.uniform(-0.01, 0.01, 6), -0.6 + r * np.sin(th),
+                         rng.uniform(-0.01, 0.01, 6)])
+    for z in Z:
+        a, b = ex.step(z), mip.step(z)
+        assert a.fallback and b.fallback, (z, a.status, b.status)
+        assert a.info["fallback_rule"] == b.info["fallback_rule"] == "softened program"
+        # SCIP meets the slack rows to its feasibility tolerance only, which the weights rho (1e6, 1e4)
+        # magnify in its reported objective: compare the softened objective evaluated exactly at both points
+        fa, fb = _soft_value(ex, z, a.v), _soft_value(ex, z, b.v)
+        assert abs(a.info["objective"] - fa) <= 1e-9 * max(1.0, abs(fa))
+        assert fa <= fb + 1e-9 * max(1.0, abs(fb)), (z, fa, fb)
+        assert abs(fa - fb) <= 1e-6 * max(1.0, abs(fb)), (z, fa, fb, a.v, b.v)
+        # the input bound is given up last: the network's output still meets it
+        assert np.all(np.abs(net(np.concatenate([z, a.v]))) <= arm.u_max - eps + 1e-9)
+
+
+def test_exact_controller_rejects_one_input():
+    sysm = fl.msd()
+    net = fl.ReLUNet([np.ones((2, 3)), np.ones((1, 2))], [np.zeros(2), np.zeros(1)])
+    with pytest.raises(ValueError, match="two inputs"):
+        pc.exact_pieces_controller(sysm, net, 0.1, fl.QuadraticCLF(np.eye(2)))
+
+
+def test_closed_loop_keeps_true_torques_bounded(arm, shipped):
+    net, eps, _ = shipped
+    ctrl, _ = _controllers(arm, net, eps, "quadratic")
+    z0 = np.array([-0.9, 0.0, 1.0, 0.0])
+    log = fl.simulate(arm, ctrl, t_final=1.0 if fl.FAST else 3.0, ts=0.02, z0=z0, net=net)
+    s = log.summary()
+    assert s["u_within_bound_at_samples"], s["max_abs_u_samples"]
+    assert np.all(np.abs(log.u) <= arm.u_max + 1e-9)
+    assert s["fallback_steps"] == 0
+    assert np.linalg.norm(log.z[-1]) < np.linalg.norm(z0)
