@@ -189,6 +189,8 @@ def network_regions(net: ReLUNet, z: Array, v_lo: Array, v_hi: Array,
     if net.n_in != len(z) + 2:
         raise ValueError(f"network_regions lists regions in a plane of two inputs v: the network has n_in = "
                          f"{net.n_in} inputs and z has {len(z)} entries (need n_in = len(z) + 2)")
+    if net.K < 2:
+        raise ValueError("network_regions needs a network with at least one hidden layer (an affine map has one region)")
     v_lo, v_hi = as_vector(v_lo, 2, "v_lo"), as_vector(v_hi, 2, "v_hi")
     if np.any(v_lo >= v_hi):
         raise ValueError(f"need v_lo < v_hi, got {v_lo} and {v_hi}")
@@ -472,10 +474,14 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
     if net.n_in != len(z) + 2:
         raise ValueError(f"solve_exact_2d needs two inputs v: the network has n_in = {net.n_in} and z has "
                          f"{len(z)} entries (need n_in = len(z) + 2)")
+    if net.K < 2:
+        raise ValueError("solve_exact_2d needs a network with at least one hidden layer")
     if cost not in ("linear", "quadratic"):
         raise ValueError(f"cost must be 'linear' or 'quadratic', got {cost!r}")
     bound = as_vector(bound, net.n_out, "bound")
     v_lo, v_hi = as_vector(v_lo, 2, "v_lo"), as_vector(v_hi, 2, "v_hi")
+    if np.any(v_lo >= v_hi):
+        raise ValueError(f"need v_lo < v_hi, got {v_lo} and {v_hi}")
     st = dict(regions=0, nodes=0, screened=False)
     p = len(d["bH"])
     V0 = _box_polygon(v_lo, v_hi)

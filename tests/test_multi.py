@@ -154,6 +154,11 @@ def test_regions_reject_wrong_sizes(arm, shipped):
         pc.network_regions(net, np.zeros(3), arm.lo[4:], arm.hi[4:])
     with pytest.raises(ValueError, match="v_lo < v_hi"):
         pc.network_regions(net, np.zeros(4), [1.0, 1.0], [0.0, 2.0])
+    d = dict(aV=np.zeros(2), bV=0.0, Jc=0.0, aH=np.zeros((0, 2)), bH=np.zeros(0), k=np.zeros(2))
+    with pytest.raises(ValueError, match="cost"):
+        pc.solve_exact_2d(net, np.zeros(4), d, "cubic", [1.0, 1.0], arm.lo[4:], arm.hi[4:])
+    with pytest.raises(ValueError, match="two inputs"):
+        pc.solve_exact_2d(net, np.zeros(5), d, "linear", [1.0, 1.0], arm.lo[4:], arm.hi[4:])
 
 
 # ------------------------------------------------------------------ the exact method vs the MIP
@@ -240,13 +245,21 @@ def test_exact_controller_rejects_one_input():
         pc.exact_pieces_controller(sysm, net, 0.1, fl.QuadraticCLF(np.eye(2)))
 
 
-def test_closed_loop_keeps_true_torques_bounded(arm, shipped):
+@pytest.mark.parametrize("cost", ["quadratic", "linear"])
+def test_closed_loop_avoids_obstacle_with_true_torques_bounded(arm, shipped, cost):
+    """On the true plant: every true |tau_i| <= tau_max,i, H(z) >= 0, and the exact method's run is SCIP's run."""
     net, eps, _ = shipped
-    ctrl, _ = _controllers(arm, net, eps, "quadratic")
-    z0 = np.array([-0.9, 0.0, 1.0, 0.0])
-    log = fl.simulate(arm, ctrl, t_final=1.0 if fl.FAST else 3.0, ts=0.02, z0=z0, net=net)
-    s = log.summary()
-    assert s["u_within_bound_at_samples"], s["max_abs_u_samples"]
-    assert np.all(np.abs(log.u) <= arm.u_max + 1e-9)
-    assert s["fallback_steps"] == 0
-    assert np.linalg.norm(log.z[-1]) < np.linalg.norm(z0)
+    z0 = np.array([1.4, 0.0, -1.2, 0.0])
+    H = fl.DistanceCBF(np.array([0.85, -1.44, -0.73, 1.23]), 0.3)   # on the nominal law's path
+    nominal = fl.simulate(arm, lambda z: np.clip(-K_NOM @ z, arm.lo[4:], arm.hi[4:]), t_final=1.5, ts=0.02, z0=z0)
+    assert H(nominal.z).min() < 0, "premise: without the CBF the nominal law enters the unsafe set"
+    ex = pc.exact_pieces_controller(arm, net, eps, fl.QuadraticCLF(P_CLF), H, k=lambda z: -K_NOM @ z, cost=cost)
+    t_final = 0.8 if fl.FAST else 1.5
+    logs = [fl.simulate(arm, c, t_final=t_final, ts=0.02, z0=z0, net=net) for c in (ex, ex.with_backend("scip"))]
+    for log in logs:
+        s = log.summary()
+        assert np.all(np.abs(log.u) <= arm.u_max + 1e-9), s["max_abs_u_samples"]
+        assert s["u_within_bound_between"], s["max_abs_u_between"]
+        assert s["fallback_steps"] == 0 and s["left_domain_steps"] == 0
+        assert H(log.z).min() >= 0
+    np.testing.assert_allclose(logs[0].z, logs[1].z, atol=1e-6)
