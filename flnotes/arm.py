@@ -32,6 +32,15 @@ downward vertical, the arm moves in a vertical plane), the input ``u = tau``
 (joint torques, N m). ``fl.brunovsky((2, 2))`` orders the linearizing state as
 two chains: ``z = (q_1, q_1', q_2, q_2')`` and ``z'' = v`` per chain, i.e.
 ``v = (q_1'', q_2'')``.
+
+The network
+-----------
+:func:`arm_net` loads the network ``Phi_NN`` with two outputs shipped with the
+package (reference ``"Arm2"``, :mod:`flnotes.reference`) and its error bound
+``eps`` certified per output by :func:`flnotes.certify_error` on the whole
+six-dimensional box; :func:`make_arm_reference` trains and certifies it anew.
+:mod:`flnotes.pieces` draws the input sets as polygons and solves the
+CLF-CBF program exactly for two inputs.
 """
 from __future__ import annotations
 
