@@ -43,7 +43,7 @@ from .systems import FLSystem
 
 Array = np.ndarray
 
-__all__ = ["LinearRegions", "network_regions", "admissible_polygon", "network_polygons", "affine_in_v",
+__all__ = ["LinearRegions", "network_regions", "admissible_polygon", "network_polygons", "input_sets", "affine_in_v",
            "clip_polygon", "polygon_area", "solve_exact_2d", "ExactPiecesBackend", "exact_pieces_controller",
            "compare_exact_mip"]
 
@@ -314,6 +314,42 @@ def network_polygons(net: ReLUNet, z: Array, v_lo: Array, v_hi: Array, bound: Ar
         Q = _clip_all(V, np.vstack([A, -A]), np.r_[c - b, -c - b])
         if len(Q):
             out.append(Q)
+    return out
+
+
+def input_sets(system: FLSystem, net: ReLUNet, eps: Any, states: Sequence[Array]) -> list:
+    """The input sets of a two-input system at a few states, for drawing (:func:`flnotes.plots.multi.input_sets_plot`).
+
+    Parameters
+    ----------
+    system
+        A two-input :class:`flnotes.FLSystem` whose ``Phi`` is affine in ``v``.
+    net, eps
+        ``Phi_NN`` and its error bound (scalar or shape (2,)).
+    states
+        The states ``z``, each of shape (n_z,).
+
+    Returns
+    -------
+    list of dict
+        One per state: ``z``; ``true``, the polygon ``V(z)`` of eq. (contraint_new_set)
+        (:func:`admissible_polygon`); ``network``, the convex pieces of
+        ``{v : |Phi_NN(z, v)| <= u_max - eps}`` (:func:`network_polygons`);
+        ``regions``, the linear regions of ``Phi_NN(z, .)`` (:func:`network_regions`);
+        ``v_lo``, ``v_hi``, the ``v``-box.
+    """
+    if system.m != 2:
+        raise ValueError(f"input_sets works in the plane of two inputs; {system.name} has m = {system.m}")
+    eps = np.broadcast_to(np.asarray(eps, float), (2,))
+    n_z = system.n_z
+    v_lo, v_hi = system.lo[n_z:], system.hi[n_z:]
+    out = []
+    for z in states:
+        z = as_vector(z, n_z, "z")
+        R = network_regions(net, z, v_lo, v_hi)
+        out.append(dict(z=z, true=admissible_polygon(system, z),
+                        network=network_polygons(net, z, v_lo, v_hi, system.u_max - eps, regions=R),
+                        regions=R, v_lo=v_lo.copy(), v_hi=v_hi.copy()))
     return out
 
 

@@ -263,3 +263,16 @@ def test_closed_loop_avoids_obstacle_with_true_torques_bounded(arm, shipped, cos
         assert s["fallback_steps"] == 0 and s["left_domain_steps"] == 0
         assert H(log.z).min() >= 0
     np.testing.assert_allclose(logs[0].z, logs[1].z, atol=1e-6)
+
+
+def test_input_sets_figure_draws_every_polygon(arm, shipped):
+    from flnotes.plots.multi import input_sets_plot
+
+    net, eps, _ = shipped
+    sets = pc.input_sets(arm, net, eps, _states(arm, 3, 12))
+    fig, axes = input_sets_plot(sets, input_names=("v_1", "v_2"))
+    for S, ax in zip(sets, axes):
+        assert len(S["network"]) >= 1 and len(S["true"]) >= 3
+        assert len(ax.patches) == S["regions"].n_regions + len(S["network"]) + 1
+    with pytest.raises(ValueError, match="two inputs"):
+        pc.input_sets(fl.msd(), net, eps, [np.zeros(2)])
