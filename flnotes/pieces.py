@@ -23,9 +23,15 @@ where the activation pattern of every hidden neuron is constant) it equals
   convex polygons; the objective ``J(v) + max(0, a_V^T v + b_V)`` (the
   optimal ``delta`` of (CLF_CBF_c)) is minimized on each in closed form (a
   vertex for the linear cost, eq. LP_cost; a projection for the quadratic
-  cost, eq. QP_cost), and the best is kept. This is the two-input analogue of
-  :func:`flnotes.solve_exact_1d`; :class:`ExactPiecesBackend` plugs it into
-  :class:`flnotes.ClfCbfController` (see :func:`exact_pieces_controller`).
+  cost, eq. QP_cost), and the best is kept. The regions are visited depth
+  first and dropped as soon as interval bounds of the output or a lower bound
+  of the cost rule them out, so only a few are ever solved. This is the
+  two-input analogue of :func:`flnotes.solve_exact_1d`;
+  :class:`ExactPiecesBackend` plugs it into :class:`flnotes.ClfCbfController`
+  (see :func:`exact_pieces_controller`), and :func:`compare_exact_mip` checks it
+  against a MIP back-end state by state.
+
+Three or more inputs would make the regions polytopes; this module is for two.
 
 Polygons are arrays of vertices (k, 2) in counter-clockwise order.
 """
