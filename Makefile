@@ -56,6 +56,7 @@ bench: venv
 # machine. Only to change them on purpose; commit the result.
 reference: venv
 	$(PY) -c "import flnotes.paper as p, flnotes.studies as s; print(*p.write_references(), sep='\n'); s.write_sweep()"
+	$(PY) -c "from flnotes.arm import make_arm_reference; print(make_arm_reference())"
 
 assignments: venv
 	$(PY) -m flnotes.grading student book/assignments _build/assignments

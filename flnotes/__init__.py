@@ -28,4 +28,3 @@ from .paper import paper_net, paper_eps
 from . import studies
 from .arm import two_link_arm, arm_net
 from . import arm, pieces
-from .plots import multi as _plots_multi  # noqa: F401  (fl.plots.multi: figures of two-input systems)

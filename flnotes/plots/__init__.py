@@ -17,6 +17,7 @@ from .clfcbf import (clfcbf_phase_portrait, clfcbf_signals, clfcbf_figure3, exac
 from .mpc import plot_mpc_tracking, plot_mpc_input, plot_horizon_sweep, plot_intersample, plot_step_times, explore_horizon
 from .realtime import step_times, scaling, lever_bars
 from .static import FramePlayer, frame_player
+from .multi import input_sets_plot
 
 __all__ = [
     'COLORS', 'new_axes', 'bound_lines', 'use_book_style', 'static_feasible_set', 'fl_identity_residual',
@@ -28,5 +29,5 @@ __all__ = [
     'show_source', 'explore_architecture', 'clfcbf_phase_portrait', 'clfcbf_signals', 'clfcbf_figure3',
     'exact_1d_plot', 'solve_time_plot', 'cbf_failure_plot', 'wall_runs_plot', 'plot_mpc_tracking',
     'plot_mpc_input', 'plot_horizon_sweep', 'plot_intersample', 'plot_step_times', 'explore_horizon',
-    'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player'
+    'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player', 'input_sets_plot'
 ]
