@@ -51,8 +51,20 @@ test: venv
 bench: venv
 	$(PY) -m flnotes.bench
 
+# Students' notebooks, autograder bundles and reference solutions of the otter-grader
+# master notebooks (book/assignments/master) into _build/assignments; refreshes the
+# students' pages of the book (book/assignments/a*.ipynb). Grade one submission with
+#   $(PY) -m flnotes.grading grade -a _build/assignments/autograder/<name>-autograder.zip <submission.ipynb>
 assignments: venv
-	$(PY) -m flnotes.grading student book/assignments _build/assignments
+	$(PY) -m flnotes.grading assign book/assignments/master _build/assignments --book-dir book/assignments
+
+# Instructor edition of the book: the assignments' master notebooks (reference solutions,
+# all tests, rubrics) instead of the students' pages, into _build/instructor/_build/html.
+book-instructor: venv
+	$(PY) -m flnotes.grading instructor-toc _toc.yml _build/instructor_toc.yml
+	env -u FLNOTES_FAST -u MPLBACKEND $(JB) build . --all -W -n --keep-going \
+	  --toc _build/instructor_toc.yml --path-output _build/instructor
+	@echo "instructor edition written to _build/instructor/_build/html/index.html"
 
 clean:
 	rm -rf _build .pytest_cache
