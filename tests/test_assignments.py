@@ -359,3 +359,30 @@ def test_a_cell_that_raises_costs_the_points_it_affects(built, tmp_path):
     assert any("RuntimeError" in e for e in report.cell_errors), report.table()
     scores = report.scores()
     assert scores["q3"][0] == 0 and scores["q1"][0] == scores["q1"][1] > 0, report.table()
+
+
+def test_cheat_estimates_instead_of_certificates(built, tmp_path):
+    """Enclosures from samples of each box, ε from samples: both miss the worst point."""
+    student, bundle, solution = built["a4_certify_eps"]
+    nb = _nb(solution)
+    sampled_enclosure = ("def phi_enclosure(lo, hi):\n"
+                         "    lo, hi = np.asarray(lo, float), np.asarray(hi, float)\n"
+                         "    pts = lo[:, None, :] + np.random.default_rng(0).uniform(size=(len(lo), 200, 3)) * (hi - lo)[:, None, :]\n"
+                         "    vals = phi(pts.reshape(-1, 3)).reshape(len(lo), 200)\n"
+                         "    return vals.min(axis=1, keepdims=True), vals.max(axis=1, keepdims=True)")
+    sampled_eps = ("def certified_eps(weights, biases):\n"
+                   "    net = fl.ReLUNet([np.asarray(w, float) for w in weights], [np.asarray(b, float) for b in biases])\n"
+                   "    X = np.random.default_rng(0).uniform(LO, HI, size=(20000, 3))\n"
+                   "    e = float(np.max(np.abs(phi(X) - net(X))))\n"
+                   "    return e, e")
+    for cell in nb.cells:
+        if cell.cell_type == "code" and cell.source.startswith("def phi_interval(X):"):
+            cell.source = cell.source.split("def phi_enclosure")[0] + sampled_enclosure
+        elif cell.cell_type == "code" and cell.source.startswith("def certified_eps("):
+            cell.source = sampled_eps + "\n" + cell.source.split("# END SOLUTION", 1)[1]
+    sub = tmp_path / solution.name
+    nbformat.write(nb, sub)
+    report = _grade(bundle, sub)
+    scores = report.scores()
+    assert scores["q2"][0] == 0 and scores["q3"][0] == 0, report.table()
+    assert scores["q1"][0] == scores["q1"][1], "the honest part keeps its points"
