@@ -41,6 +41,7 @@ import importlib
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import subprocess
@@ -348,7 +349,9 @@ class _Kernel:
 
     def __enter__(self):
         self.client.create_kernel_manager()
-        self.client.start_new_kernel()
+        # one thread per numerical library: grading time does not depend on the machine's load
+        env = dict(os.environ, **{k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")})
+        self.client.start_new_kernel(env=env)
         self.client.start_new_kernel_client()
         self._limit_memory()
         return self
@@ -494,7 +497,8 @@ class GradeReport:
                     if not r.passed:
                         kind = "hidden" if r.test_case.hidden else "public"
                         msg = [m.strip() for m in r.message.splitlines() if m.strip()]
-                        tail = (msg[-1] if msg else "failed")[:300]
+                        errs = [m for m in msg if re.match(r"^[A-Za-z_.]*(Error|Exception)\b", m)]
+                        tail = (errs[-1] if errs else msg[-1] if msg else "failed")[:300]
                         lines.append(f"{'':<{width}}    {kind} test ({r.test_case.name}): {tail}")
         lines.append(f"score: {self.score:g}/{self.possible:g}")
         return "\n".join(lines)
@@ -542,7 +546,8 @@ def grade(autograder: str | Path, submission: str | Path, *, cell_timeout: int =
         # the submission alone, under its own name (otter's init cell reads it for the public tests)
         shutil.copy2(sub, Path(tmp) / sub.name)
         with _Kernel(nb, tmp, cell_timeout, memory_mb) as kernel:
-            report.limits = kernel.limits + [f"{cell_timeout} s per cell, {total_timeout} s for the notebook"]
+            report.limits = kernel.limits + [f"{cell_timeout} s per cell, {total_timeout} s for the notebook, "
+                                             "one thread per numerical library"]
             kernel.run_notebook(time.monotonic() + total_timeout)
             report.cell_errors = kernel.cell_errors
             if kernel.dead:

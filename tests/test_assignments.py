@@ -386,3 +386,29 @@ def test_cheat_estimates_instead_of_certificates(built, tmp_path):
     scores = report.scores()
     assert scores["q2"][0] == 0 and scores["q3"][0] == 0, report.table()
     assert scores["q1"][0] == scores["q1"][1], "the honest part keeps its points"
+
+
+def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
+    """A controller that ignores the wall: its trajectory is the plant's, but not safe."""
+    _, bundle, solution = built["a5_clf_cbf_wall"]
+    nominal = ("def closed_loop(z0):\n"
+               "    log = fl.simulate(cart, lambda z: np.array([-z[0] - z[1]]), t_final=T_FINAL, ts=TS, z0=z0)\n"
+               "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
+    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[nominal]))
+    assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
+
+
+def test_cheat_the_horizon_program_without_the_network_constraint(built, tmp_path):
+    """The QP of the double integrator alone: optimal where the network constraint is inactive, not elsewhere."""
+    _, bundle, solution = built["a6_mpc_horizon"]
+    qp = ("def mpc_plan(weights, biases, eps, z0):\n"
+          "    Ad, Bd = np.array([[1.0, TS], [0.0, 1.0]]), np.array([[TS**2 / 2], [TS]])\n"
+          "    Z, V = cp.Variable((2, N_P + 1)), cp.Variable((1, N_P))\n"
+          "    X = cp.vstack([Z[:, :N_P], V])\n"
+          "    cons = [Z[:, 0] == np.asarray(z0, float), Z[:, 1:] == Ad @ Z[:, :N_P] + Bd @ V,\n"
+          "            X >= cart.lo[:, None], X <= cart.hi[:, None]]\n"
+          "    cost = sum(cp.quad_form(Z[:, k], Q) + cp.quad_form(V[:, k], R) for k in range(N_P))\n"
+          "    cp.Problem(cp.Minimize(cost), cons).solve()\n"
+          "    return dict(Z=Z.value.T, V=V.value.T)")
+    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[qp]))
+    assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
