@@ -60,6 +60,7 @@ __all__ = [
     "ROOT",
     "MASTER_DIR",
     "assign",
+    "assign_all",
     "student_page",
     "load_bundle_tests",
     "GradeReport",
