@@ -225,7 +225,8 @@ def __flnotes_grading__(request):
             return [dec(v) for v in x]
         if isinstance(x, dict):
             if "__nd__" in x:
-                return numpy.array(dec(x["__nd__"]), dtype={"b": bool, "i": int, "u": int, "f": float}[x["kind"]]).reshape(x["shape"])
+                kind = {"b": bool, "i": int, "u": int, "f": float}[x["kind"]]
+                return numpy.array(dec(x["__nd__"]), dtype=kind).reshape(x["shape"])
             if "__tuple__" in x:
                 return tuple(dec(v) for v in x["__tuple__"])
             if "__float__" in x:

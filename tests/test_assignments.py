@@ -260,8 +260,9 @@ def test_cheat_shadowing_builtins(built, tmp_path):
     student, bundle, _ = built["a2_encode_by_hand"]
     free_y = ("def bigm_milp(W1, b1, W2, b2, lo, hi):\n"
               "    n, k = len(lo), len(b1)\n"
-              "    return dict(A=np.zeros((1, n + 2 * k + 1)), row_lo=[0.0], row_hi=[0.0], var_lo=np.r_[lo, np.zeros(2 * k), -1.0],\n"
-              "                var_hi=np.r_[hi, np.ones(2 * k), 1.0], integrality=np.r_[np.zeros(n + k), np.ones(k), 0].astype(int))")
+              "    return dict(A=np.zeros((1, n + 2 * k + 1)), row_lo=[0.0], row_hi=[0.0],\n"
+              "                var_lo=np.r_[lo, np.zeros(2 * k), -1.0], var_hi=np.r_[hi, np.ones(2 * k), 1.0],\n"
+              "                integrality=np.r_[np.zeros(n + k), np.ones(k), 0].astype(int))")
     sub = _with_cells(student, tmp_path / "a2" / student.name, before_end=[SHADOW_BUILTINS],
                       replace={"def bigm_milp(W1, b1, W2, b2, lo, hi):": free_y})
     _zero(_grade(bundle, sub))
@@ -316,8 +317,9 @@ def test_cheat_copying_the_network_instead_of_solving_the_milp(built, tmp_path):
     no_program = ("def bigm_milp(W1, b1, W2, b2, lo, hi):\n"
                   "    n, k = len(lo), len(b1)\n"
                   "    N = n + 2 * k + 1\n"
-                  "    return dict(A=np.zeros((1, N)), row_lo=[0.0], row_hi=[0.0], var_lo=np.r_[lo, np.zeros(2 * k), -1e9],\n"
-                  "                var_hi=np.r_[hi, np.ones(2 * k), 1e9], integrality=np.r_[np.zeros(n + k), np.ones(k), 0].astype(int))")
+                  "    return dict(A=np.zeros((1, N)), row_lo=[0.0], row_hi=[0.0],\n"
+                  "                var_lo=np.r_[lo, np.zeros(2 * k), -1e9], var_hi=np.r_[hi, np.ones(2 * k), 1e9],\n"
+                  "                integrality=np.r_[np.zeros(n + k), np.ones(k), 0].astype(int))")
     for cheat in (grid, corner):
         report = _grade(bundle, _with_cells(student, tmp_path / "m" / student.name,
                                             replace={"def milp_max(W1, b1, W2, b2, lo, hi):": cheat}))
@@ -367,7 +369,8 @@ def test_cheat_estimates_instead_of_certificates(built, tmp_path):
     nb = _nb(solution)
     sampled_enclosure = ("def phi_enclosure(lo, hi):\n"
                          "    lo, hi = np.asarray(lo, float), np.asarray(hi, float)\n"
-                         "    pts = lo[:, None, :] + np.random.default_rng(0).uniform(size=(len(lo), 200, 3)) * (hi - lo)[:, None, :]\n"
+                         "    u = np.random.default_rng(0).uniform(size=(len(lo), 200, 3))\n"
+                         "    pts = lo[:, None, :] + u * (hi - lo)[:, None, :]\n"
                          "    vals = phi(pts.reshape(-1, 3)).reshape(len(lo), 200)\n"
                          "    return vals.min(axis=1, keepdims=True), vals.max(axis=1, keepdims=True)")
     sampled_eps = ("def certified_eps(weights, biases):\n"
