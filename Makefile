@@ -12,7 +12,7 @@ STAMP   := $(VENV)/.installed
 # seconds per notebook under nbmake (the fast mode is meant to take far less)
 NBMAKE_TIMEOUT ?= 900
 
-.PHONY: all venv book test bench assignments reference clean help
+.PHONY: all venv book book-instructor test bench assignments reference clean help
 
 all: book
 
@@ -20,7 +20,8 @@ help:
 	@echo "make book         build the book at full scale into _build/html (runs every notebook)"
 	@echo "make test         unit tests + every notebook through nbmake, FLNOTES_FAST=1"
 	@echo "make bench        solver benchmarks (python -m flnotes.bench)"
-	@echo "make assignments  students' versions of the assignments into _build/assignments"
+	@echo "make book-instructor  the instructor edition (reference solutions, all tests, rubrics) into _build/instructor"
+	@echo "make assignments  students' notebooks and autograder bundles (otter-grader) into _build/assignments"
 	@echo "make reference    retrain and recertify the shipped networks and sweep table (changes the book's numbers)"
 	@echo "make clean        remove _build and caches (keeps .venv)"
 
@@ -58,8 +59,20 @@ reference: venv
 	$(PY) -c "import flnotes.paper as p, flnotes.studies as s; print(*p.write_references(), sep='\n'); s.write_sweep()"
 	$(PY) -c "from flnotes.arm import make_arm_reference; print(make_arm_reference())"
 
+# Students' notebooks, autograder bundles and reference solutions of the otter-grader
+# master notebooks (book/assignments/master) into _build/assignments; refreshes the
+# students' pages of the book (book/assignments/a*.ipynb). Grade one submission with
+#   $(PY) -m flnotes.grading grade -a _build/assignments/autograder/<name>-autograder.zip <submission.ipynb>
 assignments: venv
-	$(PY) -m flnotes.grading student book/assignments _build/assignments
+	$(PY) -m flnotes.grading assign book/assignments/master _build/assignments --book-dir book/assignments
+
+# Instructor edition of the book: the assignments' master notebooks (reference solutions,
+# all tests, rubrics) instead of the students' pages, into _build/instructor/_build/html.
+book-instructor: venv
+	$(PY) -m flnotes.grading instructor-toc _toc.yml _build/instructor_toc.yml
+	env -u FLNOTES_FAST -u MPLBACKEND $(JB) build . --all -W -n --keep-going \
+	  --toc _build/instructor_toc.yml --path-output _build/instructor
+	@echo "instructor edition written to _build/instructor/_build/html/index.html"
 
 clean:
 	rm -rf _build .pytest_cache

@@ -1,108 +1,417 @@
-"""The assignments: reference solutions score full marks, students' versions score zero.
+"""The assignments and their grader.
 
-Also checks the grader itself: it survives notebooks whose cells raise, reports
-every check, and the notebooks' ``grade`` cells and the checks files agree.
+* ``otter assign`` turns every master notebook into a students' notebook and an
+  autograder bundle (it runs each master's own tests first);
+* each reference solution scores full marks, each students' version scores zero;
+* the students' files (notebooks, the book's pages, the students' edition of the
+  book as HTML) hold neither a reference solution nor a hidden test;
+* submissions that try to game the grader score no more than the honest blank
+  (zero): patching otter, numpy or the grader from a cell, shadowing built-ins,
+  hard-coded answers, a checks file next to the submission, copying the network
+  instead of solving the MILP, killing the kernel, looping forever.
 """
-import re
+from __future__ import annotations
+
+import json
+import os
+import shutil
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import nbformat
 import pytest
+import yaml
 
 from flnotes import grading
 
 ROOT = Path(__file__).resolve().parent.parent
 ADIR = ROOT / "book" / "assignments"
-ASSIGNMENTS = sorted(ADIR.glob("a*_*.ipynb"))
-IDS = [p.stem for p in ASSIGNMENTS]
+MASTERS = sorted(grading.MASTER_DIR.glob("a*.ipynb"))
+IDS = [p.stem for p in MASTERS]
+MARKER = "REFSOL"  # planted in every reference solution of the masters
 
 
-def test_at_least_three_assignments():
-    assert len(ASSIGNMENTS) >= 3, f"expected at least three assignments in {ADIR}, found {IDS}"
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """``{name: (student, bundle, solution)}`` written by ``otter assign`` (the masters' tests run first)."""
+    out = tmp_path_factory.mktemp("assignments")
+    written = grading.assign_all(grading.MASTER_DIR, out)
+    return {s.stem: (s, b, out / "solution" / s.name) for s, b in written}
 
 
-@pytest.mark.parametrize("nb_path", ASSIGNMENTS, ids=IDS)
-def test_checks_file_and_grade_cells_agree(nb_path):
-    tests_file = grading.tests_path_for(nb_path)
-    checks = grading.load_checks(tests_file)
-    assert all(pts > 0 for _, _, pts in checks)
-    names = {n for n, _, _ in checks}
-    nb = nbformat.read(nb_path, as_version=4)
-    tags = [set(c.metadata.get("tags", [])) for c in nb.cells]
-    assert any("solution" in t for t in tags), "no cell tagged 'solution'"
-    called = set()
-    for cell, t in zip(nb.cells, tags):
-        if "grade" in t:
-            found = re.findall(r"check\(\s*['\"](\w+)['\"]\s*,\s*['\"](\w+)['\"]", cell.source)
-            assert found, f"grade cell does not call check(...): {cell.source!r}"
-            for prefix, name in found:
-                assert prefix == nb_path.stem.split("_")[0], f"grade cell uses checks of {prefix}"
-                called.add(name)
-    assert called <= names, f"grade cells call unknown checks: {sorted(called - names)}"
-    assert names <= called, f"checks without a grade cell in the notebook: {sorted(names - called)}"
+def _nb(path) -> nbformat.NotebookNode:
+    return nbformat.read(path, as_version=4)
 
 
-@pytest.mark.parametrize("nb_path", ASSIGNMENTS, ids=IDS)
-def test_reference_solution_scores_full_marks(nb_path):
-    report = grading.grade(nb_path, verbose=False)
-    print(report.table())
-    assert not report.error, report.error
-    assert not report.cell_errors, report.cell_errors
-    assert report.total > 0
-    assert report.score == report.total, report.table()
+def _with_cells(student: Path, dst: Path, *, before_end: list[str] = (), replace: dict[str, str] = None) -> Path:
+    """A copy of a students' notebook with extra code cells at the end and some answers filled in.
 
-
-@pytest.mark.parametrize("nb_path", ASSIGNMENTS, ids=IDS)
-def test_student_version_scores_zero(nb_path, tmp_path):
-    student = grading.make_student_version(nb_path, tmp_path)
-    nb = nbformat.read(student, as_version=4)
+    ``replace`` maps the first line of an answer cell (``def phi(z, v):``) to new source.
+    """
+    nb = _nb(student)
     for cell in nb.cells:
-        tags = cell.metadata.get("tags", [])
-        assert "solution" not in tags, "a solution cell survived"
-        assert "solution-start" not in cell.source and "solution-end" not in cell.source
-        if cell.cell_type == "code":
-            assert cell.outputs == [] and cell.execution_count is None
-        if "answer" in tags:
-            assert cell.source == grading.STUDENT_STUB
-        if "grade" in tags:
-            assert cell.metadata.get("editable") is False and cell.metadata.get("deletable") is False
+        first = cell.source.splitlines()[0] if cell.source else ""
+        if replace and cell.cell_type == "code" and first in replace:
+            cell.source = replace[first]
+    nb.cells += [nbformat.v4.new_code_cell(src) for src in before_end]
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    nbformat.write(nb, dst)
+    return dst
 
-    report = grading.grade(student, tests=grading.tests_path_for(nb_path), verbose=False)
+
+def _strings(x) -> str:
+    """Every string held by a notebook (sources, metadata, outputs), joined."""
+    if isinstance(x, str):
+        return x
+    if isinstance(x, dict):
+        return "\n".join(_strings(v) for v in x.values())
+    if isinstance(x, list):
+        return "\n".join(_strings(v) for v in x)
+    return ""
+
+
+def _grade(bundle, sub, **kw) -> grading.GradeReport:
+    report = grading.grade(bundle, sub, verbose=False, **kw)
     print(report.table())
-    assert not report.error, f"the grader failed on the students' version: {report.error}"
-    expected = [n for n, _, _ in grading.load_checks(grading.tests_path_for(nb_path))]
-    assert [c.name for c in report.checks] == expected, "every check must be reported"
-    assert all(c.earned == 0 and not c.ok for c in report.checks), report.table()
-    assert any("NotImplementedError" in e for e in report.cell_errors)
-    assert report.table().splitlines()[-1] == f"score: 0/{report.total:g}"
+    return report
 
 
-def test_cli_grade_prints_score():
-    nb_path = ASSIGNMENTS[0]
-    out = subprocess.run(
-        [sys.executable, "-m", "flnotes.grading", "grade", str(nb_path)],
-        capture_output=True, text=True, timeout=600, check=True,
-    ).stdout
-    total = sum(p for _, _, p in grading.load_checks(grading.tests_path_for(nb_path)))
-    assert out.strip().splitlines()[-1] == f"score: {total:g}/{total:g}", out
+# ----------------------------------------------------------------------------------
+def test_at_least_three_assignments():
+    assert len(MASTERS) >= 3, f"expected at least three master notebooks in {grading.MASTER_DIR}, found {IDS}"
 
 
-def test_cli_student_writes_every_assignment(tmp_path):
-    subprocess.run(
-        [sys.executable, "-m", "flnotes.grading", "student", str(ADIR), str(tmp_path / "out")],
-        capture_output=True, text=True, timeout=120, check=True,
-    )
-    assert sorted(p.name for p in (tmp_path / "out").glob("*.ipynb")) == [p.name for p in ASSIGNMENTS]
+@pytest.mark.parametrize("name", IDS)
+def test_each_question_has_hidden_tests_and_a_marked_solution(name, built):
+    _, bundle, _ = built[name]
+    tests, config = grading.load_bundle_tests(bundle)
+    assert config.get("assignment_name") == name
+    for t in tests:
+        hidden = [c for c in t.test_cases if c.hidden]
+        public = [c for c in t.test_cases if not c.hidden]
+        assert hidden, f"{name} {t.name}: no hidden test"
+        assert sum(c.points for c in hidden) == t.possible > 0, f"{name} {t.name}: the hidden tests must carry the points"
+        assert all(c.points == 0 for c in public), f"{name} {t.name}: public tests are feedback, worth 0 points"
+    marker = f"{MARKER}-{name.split('_')[0]}"
+    inside, solution_cells, questions = False, 0, 0
+    for cell in _nb(grading.MASTER_DIR / f"{name}.ipynb").cells:
+        head = cell.source.strip().splitlines()[0] if cell.source.strip() else ""
+        if cell.cell_type == "raw":
+            questions += head == "# BEGIN QUESTION"
+            inside = {"# BEGIN SOLUTION": True, "# END SOLUTION": False}.get(head, inside)
+        elif inside:
+            solution_cells += 1
+            assert marker in cell.source, f"a reference solution of {name} lacks the marker {marker}: {cell.source[:80]!r}"
+    assert questions >= len(tests) and solution_cells >= questions
 
 
-def test_grader_survives_a_dead_notebook(tmp_path):
-    """A submission that kills its kernel still gets a report, scored zero."""
-    nb = nbformat.v4.new_notebook()
-    nb.cells = [nbformat.v4.new_code_cell("import os\nos._exit(1)")]
-    path = tmp_path / "a1_broken.ipynb"
-    nbformat.write(nb, path)
-    report = grading.grade(path, tests=grading.tests_path_for(ASSIGNMENTS[0]), verbose=False, timeout=60)
-    assert report.score == 0 and report.total > 0
-    assert report.error
+@pytest.mark.parametrize("name", IDS)
+def test_book_page_is_the_current_students_version(name, built, tmp_path):
+    student, _, _ = built[name]
+    expected = grading.student_page(student, tmp_path / f"{name}.ipynb").read_text(encoding="utf-8")
+    page = ADIR / f"{name}.ipynb"
+    assert page.is_file(), f"{page} is missing: run `make assignments`"
+    assert page.read_text(encoding="utf-8") == expected, f"{page} is out of date with its master: run `make assignments`"
+
+
+@pytest.mark.parametrize("name", IDS)
+def test_students_files_hold_no_solution_and_no_hidden_test(name, built):
+    student, bundle, _ = built[name]
+    tests, _ = grading.load_bundle_tests(bundle)
+    hidden_bodies = [c.body for t in tests for c in t.test_cases if c.hidden]
+    for path in (student, ADIR / f"{name}.ipynb"):
+        text = _strings(json.loads(path.read_text(encoding="utf-8")))
+        assert MARKER not in text, f"{path} holds a reference solution"
+        assert "BEGIN SOLUTION" not in text and "hidden: true" not in text
+        for body in hidden_bodies:
+            # the first line of code of a hidden test that is not an import
+            line = next(l for l in body.splitlines() if l.startswith(">>> ") and "import" not in l)[4:]
+            assert line not in text, f"{path} holds a hidden test ({line!r})"
+        meta = _nb(path).metadata["otter"]["tests"]
+        assert all(not c.get("hidden", False) for q in meta.values() for s in q["suites"] for c in s["cases"])
+
+
+@pytest.mark.parametrize("name", IDS)
+def test_reference_solution_scores_full_marks(name, built):
+    _, bundle, solution = built[name]
+    report = _grade(bundle, solution)
+    assert not report.error and not report.cell_errors, report.table()
+    assert report.possible > 0 and report.score == report.possible, report.table()
+
+
+@pytest.mark.parametrize("name", IDS)
+def test_students_version_scores_zero(name, built):
+    student, bundle, _ = built[name]
+    report = _grade(bundle, student)
+    tests, _ = grading.load_bundle_tests(bundle)
+    assert [t.name for t in report.tests] == [t.name for t in tests], "every question must be reported"
+    assert report.possible == sum(t.possible for t in tests) > 0
+    assert report.score == 0, report.table()
+    assert report.table().splitlines()[-1] == f"score: 0/{report.possible:g}"
+
+
+def test_cli_grade_prints_a_score_per_question(built):
+    _, bundle, solution = built[IDS[0]]
+    out = subprocess.run([sys.executable, "-m", "flnotes.grading", "grade", "-a", str(bundle), str(solution)],
+                         capture_output=True, text=True, timeout=600, check=True).stdout
+    tests, _ = grading.load_bundle_tests(bundle)
+    total = sum(t.possible for t in tests)
+    lines = out.strip().splitlines()
+    for t in tests:
+        assert f"{t.name}" in " ".join(lines) and any(l.split()[:2] == [t.name, f"{t.possible:g}/{t.possible:g}"]
+                                                       for l in lines if l.strip()), out
+    assert lines[-1] == f"score: {total:g}/{total:g}", out
+
+
+def test_instructor_toc_swaps_every_assignment(tmp_path):
+    out = grading.instructor_toc(ROOT / "_toc.yml", tmp_path / "toc.yml")
+    files = yaml.safe_dump(yaml.safe_load(out.read_text()))
+    for name in IDS:
+        assert f"book/assignments/master/{name}" in files
+        assert f"book/assignments/{name}\n" not in files
+    assert "book/assignments/master/index" in files
+
+
+# ----------------------------------------------------------------------------------
+# the students' edition of the book, as HTML
+def _student_toc(path: Path) -> Path:
+    """A table of contents with the "Course material" pages of the book's _toc.yml under book/assignments."""
+    toc = yaml.safe_load((ROOT / "_toc.yml").read_text())
+    pages = []
+
+    def walk(entries):
+        for e in entries or []:
+            if e.get("file", "").startswith("book/assignments/"):
+                pages.append(e["file"])
+            walk(e.get("sections"))
+
+    for part in toc["parts"]:
+        walk(part.get("chapters"))
+    assert "book/assignments/index" in pages and all(f"book/assignments/{n}" in pages for n in IDS)
+    path.write_text(yaml.safe_dump({"format": "jb-book", "root": pages[0],
+                                    "chapters": [{"file": p} for p in pages[1:]]}))
+    return path
+
+
+def test_students_edition_html_holds_no_solution(tmp_path):
+    """Build the book's assignment pages as `make book` does and search every file it writes."""
+    exe = Path(sys.executable).parent / "jupyter-book"
+    toc = _student_toc(tmp_path / "toc.yml")
+    out = tmp_path / "site"
+    proc = subprocess.run([str(exe), "build", str(ROOT), "--toc", str(toc), "--path-output", str(out), "--all",
+                           "-W", "-n", "--keep-going"], cwd=ROOT, capture_output=True, text=True, timeout=900,
+                          env=dict(os.environ, FLNOTES_FAST="1"))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    html = out / "_build" / "html"
+    sites = [html]
+    fast_build = ROOT / "_build" / "test_html" / "_build" / "html"  # tests/test_rendered.py's build, if there
+    if (fast_build / "index.html").is_file():
+        sites.append(fast_build)
+    for site in sites:
+        pages = [site / "book" / "assignments" / f"{n}.html" for n in IDS]
+        assert all(p.is_file() for p in pages), f"students' pages missing in {site}"
+        leaks = [p for p in site.rglob("*") if p.is_file() and p.suffix in (".html", ".ipynb", ".md", ".txt", ".js")
+                 and MARKER in p.read_text(encoding="utf-8", errors="replace")]
+        assert not leaks, f"reference solutions in the students' edition: {leaks}"
+        assert not list(site.rglob("master")), "the master notebooks must not be part of the students' edition"
+
+
+# ----------------------------------------------------------------------------------
+# submissions that try to game the grader: none may score more than the blank (0)
+PATCH_EVERYTHING = r'''
+import builtins, numpy, otter, otter.execute, otter.test_files
+import flnotes.grading
+numpy.allclose = lambda *a, **k: True
+numpy.isclose = lambda *a, **k: numpy.True_
+otter.execute.Checker.check = classmethod(lambda cls, *a, **k: None)
+otter.test_files.TestFile.score = property(lambda self: self.possible)
+flnotes.grading.grade = lambda *a, **k: None
+flnotes.grading.GradeReport.score = property(lambda self: self.possible)
+builtins.abs = lambda x: 0.0
+AssertionError = type("AssertionError", (Exception,), {})
+'''
+
+SHADOW_BUILTINS = r'''
+def abs(x):
+    return 0.0
+def float(x):
+    return 0.0
+def isinstance(a, b):
+    return True
+def len(x):
+    return 0
+'''
+
+
+def _zero(report: grading.GradeReport):
+    assert report.possible > 0 and report.score == 0, report.table()
+
+
+def test_cheat_patching_otter_numpy_and_the_grader_from_a_cell(built, tmp_path):
+    for name in IDS:
+        student, bundle, _ = built[name]
+        _zero(_grade(bundle, _with_cells(student, tmp_path / name / student.name, before_end=[PATCH_EVERYTHING])))
+
+
+def test_cheat_shadowing_builtins(built, tmp_path):
+    """Tests compare with abs(...) <= tol: a student's `abs` returning 0 must not be the one they call."""
+    student, bundle, _ = built["a2_encode_by_hand"]
+    free_y = ("def bigm_milp(W1, b1, W2, b2, lo, hi):\n"
+              "    n, k = len(lo), len(b1)\n"
+              "    return dict(A=np.zeros((1, n + 2 * k + 1)), row_lo=[0.0], row_hi=[0.0],\n"
+              "                var_lo=np.r_[lo, np.zeros(2 * k), -1.0], var_hi=np.r_[hi, np.ones(2 * k), 1.0],\n"
+              "                integrality=np.r_[np.zeros(n + k), np.ones(k), 0].astype(int))")
+    sub = _with_cells(student, tmp_path / "a2" / student.name, before_end=[SHADOW_BUILTINS],
+                      replace={"def bigm_milp(W1, b1, W2, b2, lo, hi):": free_y})
+    _zero(_grade(bundle, sub))
+    student, bundle, _ = built["a3_tune_gain"]
+    sub = _with_cells(student, tmp_path / "a3" / student.name, before_end=[SHADOW_BUILTINS],
+                      replace={"def max_abs_u(lam, z0):": "def max_abs_u(lam, z0):\n    return 0.0"})
+    _zero(_grade(bundle, sub))
+
+
+def test_cheat_a_checks_file_next_to_the_submission(built, tmp_path):
+    student, bundle, _ = built["a1_derive_phi"]
+    sub = _with_cells(student, tmp_path / "sub" / student.name)
+    tests = sub.parent / "tests"
+    tests.mkdir()
+    for q in ("q1", "q2", "q3"):
+        (tests / f"{q}.py").write_text(f"OK_FORMAT = True\ntest = {{'name': '{q}', 'points': 3, 'suites': "
+                                       "[{'cases': [{'code': '>>> True\\nTrue', 'hidden': False}], "
+                                       "'scored': True, 'setup': '', 'teardown': '', 'type': 'doctest'}]}\n")
+    shutil.copy(tests / "q1.py", sub.parent / "a1_tests.py")
+    with zipfile.ZipFile(sub.parent / "a1_derive_phi-autograder.zip", "w") as zf:  # a fake bundle beside it, too
+        for q in ("q1", "q2", "q3"):
+            zf.write(tests / f"{q}.py", f"tests/{q}.py")
+    _zero(_grade(bundle, sub))
+
+
+def test_cheat_hard_coded_answers(built, tmp_path):
+    """The values of the notebook's example, hard-coded: public tests pass, hidden ones do not."""
+    student, bundle, solution = built["a3_tune_gain"]
+    ref = _grade(bundle, solution)
+    assert ref.score == ref.possible
+    sub = _with_cells(student, tmp_path / student.name, replace={
+        "def admissible_gains(z0, u_max):": "def admissible_gains(z0, u_max):\n    return 0.2890, 1.3260",
+        "def max_abs_u(lam, z0):": "def max_abs_u(lam, z0):\n    return float(np.max(np.abs(u_true(lam, t, Z0))))",
+    })
+    report = _grade(bundle, sub)
+    assert report.scores()["q3"][0] == 0 and report.scores()["q2"][0] == 0, report.table()
+    _zero(report)
+
+
+def test_cheat_copying_the_network_instead_of_solving_the_milp(built, tmp_path):
+    """milp_max by evaluating the network on a grid or at the box's corners; a program that pins y to nothing."""
+    student, bundle, _ = built["a2_encode_by_hand"]
+    grid = ("def milp_max(W1, b1, W2, b2, lo, hi):\n"
+            "    g = np.stack(np.meshgrid(*[np.linspace(l, h, 301) for l, h in zip(lo, hi)]), -1).reshape(-1, len(lo))\n"
+            "    y = forward(W1, b1, W2, b2, g)\n"
+            "    return float(y.max()), g[np.argmax(y)]")
+    corner = ("def milp_max(W1, b1, W2, b2, lo, hi):\n"
+              "    import itertools\n"
+              "    c = np.array(list(itertools.product(*zip(lo, hi))))\n"
+              "    y = forward(W1, b1, W2, b2, c)\n"
+              "    return float(y.max()), c[np.argmax(y)]")
+    no_program = ("def bigm_milp(W1, b1, W2, b2, lo, hi):\n"
+                  "    n, k = len(lo), len(b1)\n"
+                  "    N = n + 2 * k + 1\n"
+                  "    return dict(A=np.zeros((1, N)), row_lo=[0.0], row_hi=[0.0],\n"
+                  "                var_lo=np.r_[lo, np.zeros(2 * k), -1e9], var_hi=np.r_[hi, np.ones(2 * k), 1e9],\n"
+                  "                integrality=np.r_[np.zeros(n + k), np.ones(k), 0].astype(int))")
+    for cheat in (grid, corner):
+        report = _grade(bundle, _with_cells(student, tmp_path / "m" / student.name,
+                                            replace={"def milp_max(W1, b1, W2, b2, lo, hi):": cheat}))
+        assert report.scores()["q3"][0] == 0, report.table()
+        _zero(report)
+    _zero(_grade(bundle, _with_cells(student, tmp_path / "p" / student.name,
+                                     replace={"def bigm_milp(W1, b1, W2, b2, lo, hi):": no_program})))
+
+
+def test_cheat_returning_objects_that_equal_anything(built, tmp_path):
+    student, bundle, _ = built["a1_derive_phi"]
+    anything = ("class Anything(np.ndarray):\n"
+                "    def __eq__(self, other):\n        return True\n"
+                "def phi(z, v):\n    return np.zeros(np.shape(v)).view(Anything)")
+    _zero(_grade(bundle, _with_cells(student, tmp_path / student.name, replace={"def phi(z, v):": anything})))
+
+
+def test_killing_the_kernel_or_looping_forever_scores_zero(built, tmp_path):
+    student, bundle, _ = built["a1_derive_phi"]
+    dead = _grade(bundle, _with_cells(student, tmp_path / "d" / student.name, before_end=["import os\nos._exit(1)"]))
+    _zero(dead)
+    assert dead.error
+    loop = _grade(bundle, _with_cells(student, tmp_path / "l" / student.name, before_end=["while True:\n    pass"]),
+                  cell_timeout=3, total_timeout=60)
+    _zero(loop)
+    assert any("Timeout" in e for e in loop.cell_errors), loop.table()
+
+
+def test_a_cell_that_raises_costs_the_points_it_affects(built, tmp_path):
+    """The reference solution with one answer cell raising: that question fails, the others score."""
+    _, bundle, solution = built["a1_derive_phi"]
+    nb = _nb(solution)
+    for cell in nb.cells:
+        if cell.cell_type == "code" and cell.source.startswith("def v_interval(z):"):
+            cell.source = "raise RuntimeError('unfinished')\n" + cell.source
+    sub = tmp_path / solution.name
+    nbformat.write(nb, sub)
+    report = _grade(bundle, sub)
+    assert any("RuntimeError" in e for e in report.cell_errors), report.table()
+    scores = report.scores()
+    assert scores["q3"][0] == 0 and scores["q1"][0] == scores["q1"][1] > 0, report.table()
+
+
+def test_cheat_estimates_instead_of_certificates(built, tmp_path):
+    """Enclosures from samples of each box, ε from samples: both miss the worst point."""
+    student, bundle, solution = built["a4_certify_eps"]
+    nb = _nb(solution)
+    sampled_enclosure = ("def phi_enclosure(lo, hi):\n"
+                         "    lo, hi = np.asarray(lo, float), np.asarray(hi, float)\n"
+                         "    u = np.random.default_rng(0).uniform(size=(len(lo), 200, 3))\n"
+                         "    pts = lo[:, None, :] + u * (hi - lo)[:, None, :]\n"
+                         "    vals = phi(pts.reshape(-1, 3)).reshape(len(lo), 200)\n"
+                         "    return vals.min(axis=1, keepdims=True), vals.max(axis=1, keepdims=True)")
+    sampled_eps = ("def certified_eps(weights, biases):\n"
+                   "    net = fl.ReLUNet([np.asarray(w, float) for w in weights], [np.asarray(b, float) for b in biases])\n"
+                   "    X = np.random.default_rng(0).uniform(LO, HI, size=(20000, 3))\n"
+                   "    e = float(np.max(np.abs(phi(X) - net(X))))\n"
+                   "    return e, e")
+    for cell in nb.cells:
+        if cell.cell_type == "code" and cell.source.startswith("def phi_interval(X):"):
+            cell.source = cell.source.split("def phi_enclosure")[0] + sampled_enclosure
+        elif cell.cell_type == "code" and cell.source.startswith("def certified_eps("):
+            cell.source = sampled_eps + "\n" + cell.source.split("# END SOLUTION", 1)[1]
+    sub = tmp_path / solution.name
+    nbformat.write(nb, sub)
+    report = _grade(bundle, sub)
+    scores = report.scores()
+    assert scores["q2"][0] == 0 and scores["q3"][0] == 0, report.table()
+    assert scores["q1"][0] == scores["q1"][1], "the honest part keeps its points"
+
+
+def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
+    """A controller that ignores the wall: its trajectory is the plant's, but not safe."""
+    _, bundle, solution = built["a5_clf_cbf_wall"]
+    nominal = ("def closed_loop(z0):\n"
+               "    log = fl.simulate(cart, lambda z: np.array([-z[0] - z[1]]), t_final=T_FINAL, ts=TS, z0=z0)\n"
+               "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
+    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[nominal]))
+    assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
+
+
+def test_cheat_the_horizon_program_without_the_network_constraint(built, tmp_path):
+    """The QP of the double integrator alone: optimal where the network constraint is inactive, not elsewhere."""
+    _, bundle, solution = built["a6_mpc_horizon"]
+    qp = ("def mpc_plan(weights, biases, eps, z0):\n"
+          "    Ad, Bd = np.array([[1.0, TS], [0.0, 1.0]]), np.array([[TS**2 / 2], [TS]])\n"
+          "    Z, V = cp.Variable((2, N_P + 1)), cp.Variable((1, N_P))\n"
+          "    X = cp.vstack([Z[:, :N_P], V])\n"
+          "    cons = [Z[:, 0] == np.asarray(z0, float), Z[:, 1:] == Ad @ Z[:, :N_P] + Bd @ V,\n"
+          "            X >= cart.lo[:, None], X <= cart.hi[:, None]]\n"
+          "    cost = sum(cp.quad_form(Z[:, k], Q) + cp.quad_form(V[:, k], R) for k in range(N_P))\n"
+          "    cp.Problem(cp.Minimize(cost), cons).solve()\n"
+          "    return dict(Z=Z.value.T, V=V.value.T)")
+    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[qp]))
+    assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
