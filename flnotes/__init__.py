@@ -24,3 +24,6 @@ from .control import AffineCBF, ExponentialCBF, cbf_condition_fails
 from .mpc import *  # noqa: F401,F403  MPC, sine_reference, ...
 from . import paper
 from .paper import paper_net, paper_eps
+from . import intersample, terminal
+from .terminal import RegionOfAttraction, TerminalSet, region_of_attraction, terminal_set
+from .intersample import DriftBound, drift_curve, intersample_drift

@@ -122,6 +122,29 @@ def test_recursive_feasibility_by_shifted_plan():
             assert ok, f"infeasible at {Zc[0]} although the shifted plan is feasible"
             assert free.solve(Zc[0])[0]
             Zp, Vp = plan
+    # every state of Z_f is feasible with the terminal constraint (the terminal law is a feasible plan)
+    for z in T.sample(5, seed=5):
+        assert prog.solve(z)[0]
+
+
+def test_horizon_milp_agrees_with_candidates():
+    system = fl.quad1d()
+    net, _ = fl.paper_net("Quad-1D")
+    eps = fl.paper_eps("Quad-1D").upper
+    T = term.terminal_set(system, net, eps, TS, **SETTINGS["Quad-1D"])
+    N = 5
+    for terminal in (None, T.constraint()):
+        fast = term.HorizonFeasibility(system, net, eps, TS, N, terminal, gains=(T.K,))
+        milp_only = term.HorizonFeasibility(system, net, eps, TS, N, terminal, candidates=False)
+        for z in ([0.0, 0.0, 0.0], [0.5, -0.5, 0.0], [-4.0, -4.0, 0.0], [4.5, 4.5, 0.0], [1.0, 1.0, 0.0]):
+            ok_fast, _ = fast.solve(z)
+            ok_milp, plan = milp_only.solve(z)
+            assert ok_milp is not None
+            assert ok_fast == ok_milp, f"z0 = {z}: candidates/reach say {ok_fast}, the MILP says {ok_milp}"
+            if ok_milp:
+                # the MILP's plan meets every constraint (network by its forward pass), up to solver tolerances
+                assert milp_only.feasible_plan(*plan, tol=1e-6)
+                assert np.allclose(plan[0][0], z)
 
 
 def test_flow_is_the_exact_discretization():
