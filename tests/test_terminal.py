@@ -160,23 +160,33 @@ def test_flow_is_the_exact_discretization():
 def test_delta_bounds_sampled_drift(name):
     system = fl.paper.system(name)
     ts = 0.05
-    d = isb.intersample_drift(system, ts)
+    d_all = isb.intersample_drift(system, ts, admissible=False)
+    d_adm = isb.intersample_drift(system, ts)
     n, m = system.n_z, system.m
     rng = np.random.default_rng(4)
-    X = rng.uniform(system.lo, system.hi, (200_000, n + m))
+    X = rng.uniform(system.lo, system.hi, (400_000, n + m))
     X[:50_000] = np.where(rng.random((50_000, n + m)) < 0.5, system.lo, system.hi)  # corners of the box
     tau = rng.uniform(0, ts, len(X))
     tau[: len(X) // 2] = ts
     Z, V = X[:, :n], X[:, n:]
-    drift = np.abs(system.Phi(isb.flow(system, Z, V, tau), V) - system.Phi(Z, V)).max(0)
-    assert np.all(drift <= d.upper), f"{name}: sampled drift {drift} > certified delta {d.upper}"
-    assert np.all(d.lower <= d.upper) and np.all(d.lower > 0)
-    # the bracket's lower end is attained at a point of the box
-    za, va, ta = d.argmax[0, :n], d.argmax[0, n:n + m], d.argmax[0, -1]
-    at = np.abs(system.Phi(isb.flow(system, za[None], va[None], [ta]), va[None]) - system.Phi(za[None], va[None]))
-    assert at[0, 0] >= d.lower[0] * (1 - 1e-9)
-    # shorter holds drift less
-    assert np.all(isb.intersample_drift(system, ts / 2).upper <= d.upper)
+    drift = np.abs(system.Phi(isb.flow(system, Z, V, tau), V) - system.Phi(Z, V))
+    admissible = np.all(np.abs(system.Phi(Z, V)) <= system.u_max, axis=1)
+    assert admissible.sum() > 1000, "premise: many samples are admissible"
+    # the certified upper ends are never below the sampled drifts (whole box, admissible samples)
+    assert np.all(drift.max(0) <= d_all.upper), f"{name}: sampled drift {drift.max(0)} > certified {d_all.upper}"
+    assert np.all(drift[admissible].max(0) <= d_adm.upper), (
+        f"{name}: sampled admissible drift {drift[admissible].max(0)} > certified {d_adm.upper}")
+    assert np.all(d_adm.upper <= d_all.upper)
+    for d in (d_all, d_adm):
+        assert np.all(d.lower <= d.upper) and np.all(d.lower > 0)
+        # the lower end is attained at a point of the box (and of the admissible set when restricted)
+        za, va, ta = d.argmax[0, :n], d.argmax[0, n:n + m], d.argmax[0, -1]
+        assert np.all(za >= system.lo[:n]) and np.all(za <= system.hi[:n]) and 0 <= ta <= ts
+        at = np.abs(system.Phi(isb.flow(system, za[None], va[None], [ta]), va[None]) - system.Phi(za[None], va[None]))
+        assert at[0, 0] >= d.lower[0] * (1 - 1e-9)
+    assert np.all(np.abs(system.Phi(d_adm.argmax[:, :n], d_adm.argmax[:, n:n + m])) <= system.u_max)
+    # a shorter hold cannot drift more: the certified lower end at t_s / 2 stays below the upper end at t_s
+    assert np.all(isb.intersample_drift(system, ts / 2).lower <= d_adm.upper)
 
 
 def test_margin_refuses_an_empty_input_set():
@@ -185,7 +195,7 @@ def test_margin_refuses_an_empty_input_set():
         isb.margin(system, 0.1, 0.1)
 
 
-@pytest.mark.parametrize("name, ts, z0", [("MSD", 0.1, [2.0, 2.0]), ("Quad-1D", 0.02, [-0.5, -0.15, -0.2])])
+@pytest.mark.parametrize("name, ts, z0", [("MSD", 0.1, [2.0, 2.0]), ("Quad-1D", 0.05, [-0.5, -0.15, -0.2])])
 def test_true_input_within_bound_between_samples(name, ts, z0):
     system = fl.paper.system(name)
     net, _ = fl.paper_net(name)
