@@ -285,7 +285,7 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
             up_s = max(up_s, -float(res.fun))
             z_star = res.x[x_z]
             val = s * float(net(np.r_[z_star, K @ z_star][None])[0, i])
-            upper[i] = max(upper[i], up_s)
+            upper[i] = max(upper[i], up_s, val)
             if val > lower[i]:
                 lower[i], argmax[i] = val, z_star
     return NetworkMax(upper=upper, lower=lower, argmax=argmax, n_binaries=form.n_binaries,
@@ -314,12 +314,13 @@ class TerminalSet:
         The :class:`NetworkMax` at ``alpha``: ``upper <= u_eps`` is the proof.
     failed
         The :class:`NetworkMax` at the smallest level tried that failed
-        (``None`` when ``alpha = 1``): ``upper > u_eps`` there.
+        (``None`` when ``alpha = 1``): ``upper > u_eps`` for some output there.
     alpha_failed
         That level (``alpha < alpha_failed <= alpha (1 + tol)``), or ``None``.
     history
-        One row per MILP pair: ``(level, upper, lower, passed)`` (upper, lower: max over outputs of the
-        margin-free values, passed: upper <= u_eps for every output).
+        One row per level tried, in order: ``(level, upper, lower, passed)`` with ``upper``, ``lower`` the
+        largest over the outputs of :class:`NetworkMax`'s bounds on ``max |Phi_NN(z, K z)|`` over that
+        level's set, and ``passed`` whether ``upper <= u_eps`` for every output.
     t_star
         Determinedness index of ``O_inf``.
     Ad, Bd, Q, R, ts, z_lo, z_hi, v_lo, v_hi
@@ -376,7 +377,7 @@ class TerminalSet:
         return np.einsum("ij,jk,ik->i", Z, self.P, Z)
 
     def sample(self, n: int, seed: int = 0) -> Array:
-        """``n`` points of ``Z_f`` (rejection sampling in its bounding box, plus its vertices' neighbourhood)."""
+        """``n`` uniform points of ``Z_f`` (rejection sampling in its bounding box)."""
         lo, hi = _bounding_box(self.F, self.alpha * self.g)
         rng = np.random.default_rng(seed)
         out, got = [], 0

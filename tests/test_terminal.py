@@ -213,3 +213,29 @@ def test_true_input_within_bound_between_samples(name, ts, z0):
     # |u(t)| <= u_max at every instant of the fine grid (a tiny slack for the ODE solver's tolerance)
     assert np.all(np.abs(log.u_fine) <= system.u_max + 1e-7), (
         f"{name}: max |u| between samples {np.abs(log.u_fine).max()} > u_max {system.u_max}")
+
+
+def test_max_admissible_set_small_cases_and_bad_input():
+    # a contraction inside a symmetric interval: the constraint set itself is invariant (t* = 0)
+    F, g, t = term.max_admissible_set(np.array([[0.5]]), np.array([[1.0], [-1.0]]), np.array([1.0, 1.0]))
+    assert t == 0 and np.allclose(np.sort((g / F[:, 0]))[[0, -1]], [-1.0, 1.0])
+    # a rotation-contraction with a constraint on one coordinate only: later steps add faces, and the set is invariant
+    th, r = 0.6, 0.9
+    A = r * np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    C = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    F, g, t = term.max_admissible_set(A, C, np.array([1.0, 1.0, 2.0, 2.0]))
+    assert t >= 1
+    Z = np.random.default_rng(6).uniform(-2, 2, (20_000, 2))
+    inside = np.all(Z @ F.T <= g, axis=1)
+    assert inside.any() and np.all(np.all((Z[inside] @ A.T) @ F.T <= g + 1e-9, axis=1))
+    # maximal: the points of the set meet the constraints for the next 50 steps, the points outside it fail within them
+    Zk, ok = Z.copy(), np.ones(len(Z), bool)
+    for _ in range(50):
+        ok &= np.all(Zk @ C.T <= np.array([1.0, 1.0, 2.0, 2.0]) + 1e-9, axis=1)
+        Zk = Zk @ A.T
+    assert np.all(ok[inside])
+    assert not np.any(ok[~np.all(Z @ F.T <= g + 1e-7, axis=1)])
+    with pytest.raises(ValueError, match="Schur"):
+        term.max_admissible_set(np.array([[1.1]]), np.array([[1.0], [-1.0]]), np.array([1.0, 1.0]))
+    with pytest.raises(ValueError, match="eps"):
+        term.terminal_set(fl.msd(), fl.paper_net("MSD")[0], 5.0, TS, [10.0, 1.0], 0.1)
