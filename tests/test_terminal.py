@@ -239,3 +239,45 @@ def test_max_admissible_set_small_cases_and_bad_input():
         term.max_admissible_set(np.array([[1.1]]), np.array([[1.0], [-1.0]]), np.array([1.0, 1.0]))
     with pytest.raises(ValueError, match="eps"):
         term.terminal_set(fl.msd(), fl.paper_net("MSD")[0], 5.0, TS, [10.0, 1.0], 0.1)
+
+
+def test_shifted_plan_closes_the_loop_on_the_true_plant():
+    # the proof's candidate used as the control law on the true plant (v held, exact linearization): it stays
+    # admissible at every sample, enters Z_f after N_p steps and then converges under v = K z
+    system = fl.quad1d()
+    net, _ = fl.paper_net("Quad-1D")
+    eps = fl.paper_eps("Quad-1D").upper
+    T = term.terminal_set(system, net, eps, TS, **SETTINGS["Quad-1D"])
+    N = 5
+    prog = term.HorizonFeasibility(system, net, eps, TS, N, T.constraint(), gains=(T.K,))
+    roa = term.region_of_attraction(system, net, eps, T, horizon=N, n_grid=5, limits=((-1.0, 1.0), (-1.0, 1.0)))
+    pts = roa.points()[roa.feasible_terminal == 1]
+    pts = pts[~T.contains(pts)]
+    assert len(pts) >= 1, "premise: a grid state outside Z_f from which the program is feasible"
+    z0 = pts[np.argmax(np.linalg.norm(pts, axis=1))]
+    ok, plan = prog.solve(z0)
+    assert ok
+
+    class Tail:
+        net = None
+
+        def __init__(self, plan):
+            self.plan = plan
+
+        def step(self, z, t, reference=None):
+            Zp, Vp = self.plan
+            v = Vp[0].copy()
+            self.plan = term.shifted_plan(T, Zp, Vp)
+            return fl.StepResult(v=v, status="nominal", solve_time=0.0)
+
+    n_steps = 30
+    log = fl.simulate(system, Tail(plan), t_final=n_steps * TS, ts=TS, z0=z0, net=net, check_domain=True)
+    assert log.message == "" and log.n_steps == n_steps and not log.fallback.any()
+    u_eps = system.u_max - eps
+    assert np.all(np.abs(log.u_nn) <= u_eps + 1e-6), "the shifted plan left the network constraint"
+    assert np.all(np.abs(log.u) <= system.u_max), "Proposition 1: the true input at the samples"
+    assert np.all(system.in_domain(log.z))
+    assert np.all(T.contains(log.z[N:], tol=1e-6)), "z(k) must be in Z_f from step N_p on"
+    Vf = T.terminal_cost(log.z[N:])
+    assert np.all(np.diff(Vf) <= 1e-9 * (1 + Vf[:-1])), "the terminal cost must decrease inside Z_f (axiom A4)"
+    assert Vf[-1] < 0.05 * Vf[0]
