@@ -183,11 +183,14 @@ def intersample_drift(system: FLSystem, ts: float, *, z_box: Optional[tuple] = N
                       batch: int = 4096) -> DriftBound:
     """Certify ``delta(t_s) = max |Phi(z(tau), v) - Phi(z, v)|`` over ``(z, v) in Z``, ``tau in [0, t_s]``.
 
-    Branch and bound of :func:`flnotes.certify_error` over the box
-    ``Z x [0, t_s]`` of ``(z, v, tau)``, with ``f(z, v, tau) = Phi(z(tau), v) -
-    Phi(z, v)`` written with :func:`flow_interval` and ``system.phi_interval``
-    (rigorous, outward-rounded), against the zero network. See the module
-    docstring for what the bound guarantees and under which condition.
+    Branch and bound over the box ``Z x [0, t_s]`` of ``(z, v, tau)``, with
+    ``f(z, v, tau) = Phi(z(tau), v) - Phi(z, v)`` written with
+    :func:`flow_interval` and ``system.phi_interval`` (rigorous,
+    outward-rounded): first :func:`flnotes.certify_error` against the zero
+    network over the whole box; with ``admissible=True`` its upper end then caps
+    a second branch and bound restricted to the admissible samples
+    ``|Phi(z, v)| <= u_max``. See the module docstring for what the bound
+    guarantees and under which condition.
 
     Parameters
     ----------
