@@ -28,3 +28,6 @@ from .paper import paper_net, paper_eps
 from . import studies
 from .arm import two_link_arm, arm_net
 from . import arm, pieces
+from . import intersample, terminal
+from .terminal import RegionOfAttraction, TerminalSet, region_of_attraction, terminal_set
+from .intersample import DriftBound, drift_curve, intersample_drift

@@ -1,0 +1,92 @@
+"""Figures of the MPC's guarantees: the terminal set's certificate, the region of attraction, the margin between samples."""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .style import COLORS, new_axes
+
+__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve"]
+
+
+def plot_terminal_bisection(term, ax=None):
+    """The bisection on the level ``alpha``: the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha Z_f`` against ``u_max^eps``.
+
+    Parameters
+    ----------
+    term
+        A :class:`flnotes.terminal.TerminalSet`.
+    """
+    if ax is None:
+        _, ax = new_axes(figsize=(5.0, 3.4))
+    H = np.array([(a, up, lo) for a, up, lo, _ in term.history])
+    ok = np.array([h[3] for h in term.history], bool)
+    order = np.argsort(H[:, 0])
+    ax.plot(H[order, 0], H[order, 1], color="0.6", lw=1, zorder=1)
+    ax.scatter(H[ok, 0], H[ok, 1], color=COLORS["nominal"], zorder=2, label="certified (MILP upper bound)")
+    ax.scatter(H[~ok, 0], H[~ok, 1], color=COLORS["unsafe"], marker="x", zorder=2, label="fails")
+    ax.axhline(float(np.max(term.u_eps)), color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max}^{\varepsilon}$")
+    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\alpha = {term.alpha:.3g}$")
+    ax.set(xlabel=r"level $\alpha$", ylabel=r"$\max_{z \in \alpha O_\infty} |\Phi_{NN}(z, Kz)|$")
+    ax.legend(loc="upper left")
+    return ax
+
+
+def _slice_mask(term, roa, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    Z = np.broadcast_to(roa.z_fixed, X.shape + (len(roa.z_fixed),)).copy()
+    Z[..., roa.axes[0]], Z[..., roa.axes[1]] = X, Y
+    return term.contains(Z.reshape(-1, Z.shape[-1]), tol=0.0).reshape(X.shape)
+
+
+def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
+    """Initial states (a 2-D slice) from which the horizon program is feasible, without and with ``z(N_p) in Z_f``.
+
+    Parameters
+    ----------
+    roa
+        A :class:`flnotes.terminal.RegionOfAttraction`.
+    """
+    if ax is None:
+        _, ax = new_axes(figsize=(5.0, 4.2))
+    x, y = roa.x, roa.y
+    X, Y = np.meshgrid(x, y)
+    for F, color, label, size in ((roa.feasible, COLORS["ref"], "feasible, no terminal set", 40),
+                                  (roa.feasible_terminal, COLORS["nominal"], r"feasible with $z(N_p) \in Z_f$", 16)):
+        sel = F == 1
+        ax.scatter(X[sel], Y[sel], s=size, color=color, label=label, zorder=2)
+    bad = np.isnan(roa.feasible) | np.isnan(roa.feasible_terminal)
+    if bad.any():
+        ax.scatter(X[bad], Y[bad], s=30, marker="x", color=COLORS["unsafe"], label="undecided (time limit)", zorder=3)
+    xf, yf = np.linspace(x[0], x[-1], 300), np.linspace(y[0], y[-1], 300)
+    Xf, Yf = np.meshgrid(xf, yf)
+    M = _slice_mask(roa.terminal, roa, Xf, Yf)
+    if M.any():
+        ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4)
+        ax.plot([], [], color=COLORS["true"], label=r"terminal set $Z_f$ (slice)")
+    ax.set(xlabel=f"$z_{roa.axes[0] + 1}$", ylabel=f"$z_{roa.axes[1] + 1}$",
+           title=title or rf"region of attraction, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
+    ax.legend(loc="upper right", fontsize=7.5)
+    return ax
+
+
+def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Optional[str] = None):
+    """Certified ``delta(t_s)`` (bracket) against the budget ``u_max - eps`` it must stay under.
+
+    Parameters
+    ----------
+    curve
+        The dict of :func:`flnotes.intersample.drift_curve`.
+    u_max, eps
+        The input bound and the certified approximation error.
+    """
+    if ax is None:
+        _, ax = new_axes(figsize=(5.0, 3.4))
+    ts = curve["ts"]
+    ax.plot(ts, curve["upper"][:, 0], "o-", color=COLORS["nn"], label=r"$\delta(t_s)$, certified upper bound")
+    ax.plot(ts, curve["lower"][:, 0], "v", color=COLORS["true"], ms=4, label="attained (lower end)")
+    ax.axhline(u_max - eps, color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max} - \varepsilon$")
+    ax.set(xlabel=r"hold time $t_s$ [s]", ylabel=r"$\delta(t_s)$", title=title)
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="upper left")
+    return ax

@@ -1,0 +1,850 @@
+"""Terminal ingredients for the MPC of eq. (MPC_form_miqp): a terminal cost, a terminal set, a region of attraction.
+
+The paper leaves recursive feasibility and stability of its MPC open ("adopting
+the standard MPC axioms" is named as future work). The standard remedy (Mayne,
+Rawlings, Rao & Scokaert 2000, Sec. 3.3, axioms A1-A4) adds to eq.
+(MPC_form_miqp) a terminal cost ``V_f(z) = z' P z`` on ``z(N_p)`` and a terminal
+constraint ``z(N_p) in Z_f`` such that, with a local law ``v = K z``,
+
+* A1: ``Z_f`` lies in the state box ``X_z`` (eq. MPC_form_miqp_d) and contains 0;
+* A2: ``K z`` is admissible on ``Z_f``: ``v_lo <= K z <= v_hi`` and the network
+  constraint ``|Phi_NN(z, K z)| <= u_max^eps`` (eq. MPC_form_miqp_b) hold;
+* A3: ``Z_f`` is positively invariant under ``z+ = (A_d + B_d K) z``;
+* A4: ``V_f((A_d + B_d K) z) - V_f(z) + l(z, K z) <= 0`` on ``Z_f``.
+
+Here ``K`` and ``P`` are the LQR gain and the solution of the discrete algebraic
+Riccati equation of the Brunovsky model ``(A_d, B_d)`` (eq. MPC_form_miqp_c) with
+the stage weights ``l(z, v) = z'Qz + v'Rv``, so A4 holds with equality. ``Z_f``
+is a polytope ``{z : F z <= alpha g}`` (the MPC stays a mixed-integer QP with
+linear constraints): ``{F z <= g}`` is the maximal output-admissible set of
+``z+ = (A_d + B_d K) z`` for the boxes (Gilbert & Tan 1991), which gives A1 and A3
+and the v-box part of A2 for every level ``alpha in (0, 1]``; the level ``alpha``
+is the largest for which the network part of A2 is **proved by a mixed-integer
+program** over the network, the big-M encoding of eq. (MIP_general): the maximum
+of ``+-Phi_NN(z, K z)`` over ``alpha {F z <= g}`` is at most ``u_max^eps``.
+
+With these ingredients the MPC is recursively feasible and its nominal closed
+loop asymptotically stable (Mayne et al. 2000, Thm. 1): if ``(v(0), ..., v(N_p-1))``
+is feasible at ``z``, the shifted plan ``(v(1), ..., v(N_p-1), K z(N_p))`` is
+feasible at ``A_d z + B_d v(0)`` (A2, A3), and its cost shows that the optimal
+cost decreases by at least ``l(z, v(0))`` (A4). :func:`shifted_plan` builds that
+candidate; :func:`region_of_attraction` draws the set of states from which the
+horizon program is feasible, with and without the terminal constraint.
+
+Functions the MPC engine calls: :func:`terminal_set` (the whole construction),
+then ``TerminalSet.P`` (terminal weight on ``z(N_p)``) and
+``TerminalSet.constraint()`` (``F_f z(N_p) <= g_f``).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.linalg import solve_discrete_are
+from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+
+from ._checks import as_batch, as_vector
+from .bounds import NodeBounds, fbbt
+from .encoding import bigm_form
+from .network import ReLUNet
+from .systems import FLSystem
+
+Array = np.ndarray
+
+__all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "TerminalSet", "terminal_set",
+           "shifted_plan", "HorizonFeasibility", "RegionOfAttraction", "region_of_attraction"]
+
+
+# ============================================================================ terminal cost
+def lqr(Ad: Array, Bd: Array, Q: Array, R: Array) -> tuple[Array, Array]:
+    """LQR gain and terminal weight of the discrete model (eq. MPC_form_miqp_c), axiom A4 of Mayne et al. 2000.
+
+    ``P`` solves the discrete algebraic Riccati equation
+    ``P = A_d'PA_d - A_d'PB_d (R + B_d'PB_d)^{-1} B_d'PA_d + Q`` and
+    ``K = -(R + B_d'PB_d)^{-1} B_d'PA_d``, so that with ``v = K z``
+    ``z+'Pz+ - z'Pz + z'Qz + v'Rv = 0``: the terminal cost ``||z(N_p)||_P^2``
+    decreases by exactly the stage cost ``l(z, v) = ||z||_Q^2 + ||v||_R^2`` of
+    eq. (MPC_form_miqp_a).
+
+    Parameters
+    ----------
+    Ad, Bd
+        Discrete pair, shapes (n, n) and (n, m).
+    Q, R
+        Stage weights, (n, n) positive semidefinite and (m, m) positive definite
+        (vectors or scalars are made diagonal).
+
+    Returns
+    -------
+    K, P
+        Gain (m, n) of the law ``v = K z`` and the symmetric positive definite (n, n) ``P``.
+    """
+    Ad, Bd = _pair(Ad, Bd)
+    n, m = Bd.shape
+    Q, R = _weight(Q, n, "Q"), _weight(R, m, "R")
+    if np.min(np.linalg.eigvalsh(R)) <= 0:
+        raise ValueError("R must be positive definite (the LQR gain needs (R + B'PB)^{-1})")
+    if np.min(np.linalg.eigvalsh(Q)) < -1e-12:
+        raise ValueError("Q must be positive semidefinite")
+    P = solve_discrete_are(Ad, Bd, Q, R)
+    P = 0.5 * (P + P.T)
+    K = -np.linalg.solve(R + Bd.T @ P @ Bd, Bd.T @ P @ Ad)
+    return K, P
+
+
+# ============================================================================ polytopes
+def _lp_max(c: Array, F: Array, g: Array) -> float:
+    """``max c'z s.t. F z <= g`` (HiGHS through scipy); ``inf`` if unbounded."""
+    res = linprog(-c, A_ub=F, b_ub=g, bounds=[(None, None)] * len(c), method="highs")
+    if res.status == 3:
+        return np.inf
+    if res.status != 0:
+        raise RuntimeError(f"LP over the polytope failed: {res.message}")
+    return float(-res.fun)
+
+
+def remove_redundant(F: Array, g: Array, tol: float = 1e-9) -> tuple[Array, Array]:
+    """Drop the rows of ``{z : F z <= g}`` implied by the others (one LP per row).
+
+    Row ``i`` is redundant when ``max F_i z`` over the other rows (and
+    ``F_i z <= g_i + 1``, to keep the LP bounded) is at most ``g_i + tol (1 + |g_i|)``.
+    Rows are visited in order and a redundant row is removed at once, so the
+    result describes the same set with no redundant row left.
+    """
+    F, g = np.asarray(F, float), np.asarray(g, float).reshape(-1)
+    if F.ndim != 2 or F.shape[0] != g.shape[0]:
+        raise ValueError(f"F must be (p, n) and g (p,), got {F.shape} and {g.shape}")
+    keep = np.ones(len(g), bool)
+    for i in range(len(g)):
+        keep[i] = False
+        Fi, gi = np.vstack([F[keep], F[i]]), np.r_[g[keep], g[i] + 1.0]
+        if _lp_max(F[i], Fi, gi) > g[i] + tol * (1.0 + abs(g[i])):
+            keep[i] = True
+    return F[keep], g[keep]
+
+
+def max_admissible_set(A_cl: Array, C: Array, d: Array, max_iter: int = 200,
+                       tol: float = 1e-9) -> tuple[Array, Array, int]:
+    """Maximal output-admissible set of ``z+ = A_cl z`` for ``C z <= d`` (Gilbert & Tan 1991, Alg. 3.2).
+
+    ``O_inf = {z : C A_cl^t z <= d, t = 0, 1, ...}``. For a Schur ``A_cl`` and a
+    bounded ``{C z <= d}`` containing 0 in its interior, it is a polytope
+    described by finitely many ``t``: the iteration adds ``C A_cl^{t+1}`` until
+    every new row is implied by the rows ``0..t`` (one LP per row), then removes
+    redundant rows (:func:`remove_redundant`).
+
+    Parameters
+    ----------
+    A_cl
+        Closed-loop matrix ``A_d + B_d K``, (n, n), Schur stable.
+    C, d
+        The constraints ``C z <= d``, (p, n) and (p,), with ``d > 0``.
+    max_iter
+        Largest ``t`` tried; ``RuntimeError`` if the set is not determined by then.
+
+    Returns
+    -------
+    F, g, t_star
+        ``O_inf = {F z <= g}`` (irredundant) and the determinedness index ``t*``.
+    """
+    A_cl = np.atleast_2d(np.asarray(A_cl, float))
+    n = A_cl.shape[0]
+    if A_cl.shape != (n, n):
+        raise ValueError(f"A_cl must be square, got {A_cl.shape}")
+    rho = np.max(np.abs(np.linalg.eigvals(A_cl)))
+    if rho >= 1:
+        raise ValueError(f"A_cl must be Schur stable (spectral radius {rho:.4g} >= 1): the closed loop with this K "
+                         f"does not converge, so no bounded invariant set is determined by finitely many steps")
+    C, d = np.asarray(C, float), np.asarray(d, float).reshape(-1)
+    if C.ndim != 2 or C.shape != (len(d), n):
+        raise ValueError(f"C must be ({len(d)}, {n}) to match d and A_cl, got {C.shape}")
+    if np.any(d <= 0):
+        raise ValueError("d must be > 0 (the constraint set must contain 0 in its interior)")
+    F, g, Ak = C.copy(), d.copy(), np.eye(n)
+    for t in range(max_iter):
+        Ak = Ak @ A_cl
+        Cn = C @ Ak
+        if all(_lp_max(Cn[i], F, g) <= d[i] + tol * (1.0 + abs(d[i])) for i in range(len(d))):
+            F, g = remove_redundant(F, g, tol)
+            return F, g, t
+        F, g = np.vstack([F, Cn]), np.r_[g, d]
+    raise RuntimeError(f"the maximal output-admissible set is not determined after {max_iter} steps; raise max_iter")
+
+
+def _bounding_box(F: Array, g: Array) -> tuple[Array, Array]:
+    """Smallest box containing ``{F z <= g}`` (2 n LPs)."""
+    n = F.shape[1]
+    hi = np.array([_lp_max(np.eye(n)[j], F, g) for j in range(n)])
+    lo = -np.array([_lp_max(-np.eye(n)[j], F, g) for j in range(n)])
+    return lo, hi
+
+
+# ============================================================================ the MILP certificate
+@dataclass
+class NetworkMax:
+    """``max_{z in S} s Phi_NN,i(z, K z)`` over a polytope ``S``, from one MILP per sign and output.
+
+    Attributes
+    ----------
+    upper
+        Proved upper bound of ``max_S |Phi_NN,i(z, K z)|`` per output, shape (m,):
+        the MILP's dual bound (HiGHS), the larger of the two signs.
+    lower
+        ``|Phi_NN,i(z*, K z*)|`` at the best point found, evaluated by the
+        network's forward pass, shape (m,): the maximum is at least this.
+    argmax
+        That point ``z*`` per output, shape (m, n_z).
+    n_binaries
+        Binaries of the encoding (unstable neurons under the node bounds).
+    time_s
+        Wall-clock time of the MILPs.
+    """
+
+    upper: Array
+    lower: Array
+    argmax: Array
+    n_binaries: int
+    time_s: float
+
+
+def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float = 1e-6,
+                time_limit: Optional[float] = None) -> NetworkMax:
+    """Maximize ``+-Phi_NN(z, K z)`` over ``{z : F z <= g}`` with the big-M encoding (eq. MIP_general).
+
+    The input of the network is ``y^0 = [z, K z]``; the node bounds ``L``, ``U``
+    of eq. (MIP_general_c) come from :func:`flnotes.fbbt` over the bounding box
+    of the polytope and of ``K z`` on it (LPs), so the encoding is exact on the
+    polytope. Each MILP is solved by HiGHS (:func:`scipy.optimize.milp`); its
+    dual bound is a proof that no point of the polytope gives a larger value,
+    up to the solver's feasibility tolerances (1e-7 absolute by default).
+
+    Parameters
+    ----------
+    net
+        ``Phi_NN`` with ``n_in = n_z + m`` inputs ``(z, v)`` and ``m`` outputs.
+    K
+        Gain (m, n_z) of the law ``v = K z``.
+    F, g
+        The polytope, (p, n_z) and (p,); it must be bounded and non-empty.
+    mip_rel_gap, time_limit
+        HiGHS options; a MILP that stops without proving optimality raises
+        ``RuntimeError`` (a certificate must be a proof).
+
+    Returns
+    -------
+    NetworkMax
+    """
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    K = np.atleast_2d(np.asarray(K, float))
+    m, n = K.shape
+    if net.n_in != n + m or net.n_out != m:
+        raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but K of shape {K.shape} needs (z, Kz) in "
+                         f"R^{n + m} -> R^{m}")
+    F, g = np.asarray(F, float), np.asarray(g, float).reshape(-1)
+    if F.ndim != 2 or F.shape != (len(g), n):
+        raise ValueError(f"F must be ({len(g)}, {n}) to match g and K, got {F.shape}")
+    t0 = time.perf_counter()
+    zlo, zhi = _bounding_box(F, g)
+    if not (np.all(np.isfinite(zlo)) and np.all(np.isfinite(zhi))):
+        raise ValueError("the polytope {F z <= g} is unbounded: give a bounded terminal set")
+    vhi = np.array([_lp_max(K[i], F, g) for i in range(m)])
+    vlo = -np.array([_lp_max(-K[i], F, g) for i in range(m)])
+    nb = fbbt(net, np.r_[zlo, vlo], np.r_[zhi, vhi])
+    form = bigm_form(net, nb)
+    N = form.n
+    lb, ub = form.lb.copy(), form.ub.copy()
+    lb[form.x], ub[form.x] = np.r_[zlo, vlo], np.r_[zhi, vhi]
+    x_z, x_v = form.x[:n], form.x[n:]
+    # v = K z:  K x_z - x_v = 0
+    Lk = sp.lil_matrix((m, N))
+    for i in range(m):
+        Lk[i, x_z] = K[i]
+        Lk[i, x_v[i]] = -1.0
+    Fz = sp.lil_matrix((len(g), N))
+    Fz[:, x_z] = F
+    cons = [LinearConstraint(form.A_eq, form.b_eq, form.b_eq), LinearConstraint(form.A_ub, -np.inf, form.b_ub),
+            LinearConstraint(Lk.tocsr(), 0.0, 0.0), LinearConstraint(Fz.tocsr(), -np.inf, g)]
+    opts = dict(mip_rel_gap=mip_rel_gap)
+    if time_limit is not None:
+        opts["time_limit"] = float(time_limit)
+    upper, lower, argmax = np.full(m, -np.inf), np.full(m, -np.inf), np.zeros((m, n))
+    for i in range(m):
+        for s in (1.0, -1.0):
+            c = np.zeros(N)
+            c[form.out[i]] = -s  # milp minimizes: min -s y^K_i = -max s y^K_i
+            res = milp(c, integrality=form.integrality, bounds=Bounds(lb, ub), constraints=cons, options=opts)
+            if res.status != 0 or res.x is None:
+                raise RuntimeError(f"the MILP max of {'+' if s > 0 else '-'}Phi_NN over the polytope was not solved "
+                                   f"to optimality ({res.message}); no certificate")
+            dual = getattr(res, "mip_dual_bound", None)
+            up_s = -float(dual) if dual is not None and np.isfinite(dual) else -float(res.fun)
+            up_s = max(up_s, -float(res.fun))
+            z_star = res.x[x_z]
+            val = s * float(net(np.r_[z_star, K @ z_star][None])[0, i])
+            upper[i] = max(upper[i], up_s, val)
+            if val > lower[i]:
+                lower[i], argmax[i] = val, z_star
+    return NetworkMax(upper=upper, lower=lower, argmax=argmax, n_binaries=form.n_binaries,
+                      time_s=time.perf_counter() - t0)
+
+
+# ============================================================================ the terminal set
+@dataclass
+class TerminalSet:
+    """Terminal ingredients of the MPC (Mayne et al. 2000, axioms A1-A4) for eq. (MPC_form_miqp).
+
+    Attributes
+    ----------
+    K, P
+        LQR gain (m, n_z) of the terminal law ``v = K z`` and terminal weight (n_z, n_z) (:func:`lqr`).
+    F, g
+        The maximal output-admissible set ``O_inf = {F z <= g}`` of ``A_d + B_d K``
+        for the state box and the v-box (:func:`max_admissible_set`).
+    alpha
+        The level: ``Z_f = alpha O_inf = {F z <= alpha g}``, the largest in
+        ``(0, 1]`` (within ``tol``) for which the MILP proves
+        ``max_{Z_f} |Phi_NN(z, K z)| <= u_max^eps``.
+    u_eps
+        ``u_max^eps = u_max - eps`` (eq. Phi_NN_ep), shape (m,).
+    certificate
+        The :class:`NetworkMax` at ``alpha``: ``upper <= u_eps`` is the proof.
+    failed
+        The :class:`NetworkMax` at the smallest level tried that failed
+        (``None`` when ``alpha = 1``): ``upper > u_eps`` for some output there.
+    alpha_failed
+        That level (``alpha < alpha_failed <= alpha (1 + tol)``), or ``None``.
+    history
+        One row per level tried, in order: ``(level, upper, lower, passed)`` with ``upper``, ``lower`` the
+        largest over the outputs of :class:`NetworkMax`'s bounds on ``max |Phi_NN(z, K z)|`` over that
+        level's set, and ``passed`` whether ``upper <= u_eps`` for every output.
+    t_star
+        Determinedness index of ``O_inf``.
+    Ad, Bd, Q, R, ts, z_lo, z_hi, v_lo, v_hi
+        The model, weights and boxes it was built for.
+    tol
+        Relative tolerance of the bisection on ``alpha``.
+    discretization
+        How ``(A_d, B_d)`` was computed (``"rk4"`` or ``"exact"``).
+    time_s
+        Wall-clock time of the whole construction.
+    """
+
+    K: Array
+    P: Array
+    F: Array
+    g: Array
+    alpha: float
+    u_eps: Array
+    certificate: NetworkMax
+    failed: Optional[NetworkMax]
+    alpha_failed: Optional[float]
+    history: list
+    t_star: int
+    Ad: Array
+    Bd: Array
+    Q: Array
+    R: Array
+    ts: float
+    z_lo: Array
+    z_hi: Array
+    v_lo: Array
+    v_hi: Array
+    tol: float
+    discretization: str = "rk4"
+    time_s: float = 0.0
+
+    @property
+    def A_cl(self) -> Array:
+        """``A_d + B_d K``."""
+        return self.Ad + self.Bd @ self.K
+
+    def constraint(self) -> tuple[Array, Array]:
+        """``(F_f, g_f)`` of the terminal constraint ``F_f z(N_p) <= g_f``, i.e. ``F z <= alpha g``."""
+        return self.F.copy(), self.alpha * self.g
+
+    def contains(self, z: Array, tol: float = 1e-9) -> Array:
+        """Boolean mask: is ``z`` (n_z,) or (N, n_z) in ``Z_f = {F z <= alpha g}``?"""
+        Z = as_batch(z, self.F.shape[1], "z")
+        return np.all(Z @ self.F.T <= self.alpha * self.g + tol, axis=1)
+
+    def terminal_cost(self, z: Array) -> Array:
+        """``V_f(z) = z' P z``, for (n_z,) or (N, n_z)."""
+        Z = as_batch(z, self.F.shape[1], "z")
+        return np.einsum("ij,jk,ik->i", Z, self.P, Z)
+
+    def sample(self, n: int, seed: int = 0) -> Array:
+        """``n`` uniform points of ``Z_f`` (rejection sampling in its bounding box)."""
+        lo, hi = _bounding_box(self.F, self.alpha * self.g)
+        rng = np.random.default_rng(seed)
+        out, got = [], 0
+        while got < n:
+            Z = rng.uniform(lo, hi, (max(4 * n, 1000), len(lo)))
+            Z = Z[self.contains(Z, tol=0.0)]
+            out.append(Z)
+            got += len(Z)
+        return np.vstack(out)[:n]
+
+    def summary(self) -> str:
+        return (f"terminal set: {len(self.g)} faces (t* = {self.t_star}), alpha = {self.alpha:.4g}; "
+                f"max |Phi_NN(z, Kz)| on Z_f in [{self.certificate.lower.max():.5g}, {self.certificate.upper.max():.5g}] "
+                f"<= u_max^eps = {self.u_eps.max():.5g}; {len(self.history)} MILP pairs, {self.time_s:.2f} s")
+
+
+def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discretization: str = "rk4",
+                 z_box: Optional[tuple] = None, v_box: Optional[tuple] = None, tol: float = 1e-2,
+                 max_bisections: int = 40, mip_rel_gap: float = 1e-6) -> TerminalSet:
+    """Terminal cost ``P``, law ``v = K z`` and certified terminal set ``Z_f`` for eq. (MPC_form_miqp).
+
+    The construction follows the axioms of Mayne et al. 2000 (see the module
+    docstring):
+
+    1. ``K``, ``P`` from the Riccati equation of ``(A_d, B_d)`` with ``Q``, ``R`` (:func:`lqr`, A4);
+    2. ``O_inf = {F z <= g}``, the maximal output-admissible set of ``A_d + B_d K``
+       for ``z in X_z`` and ``v_lo <= K z <= v_hi`` (:func:`max_admissible_set`,
+       A1, A3 and the box part of A2); every ``alpha O_inf`` with ``alpha in (0, 1]``
+       keeps these properties (a linear map and a convex set containing 0);
+    3. the network part of A2, ``|Phi_NN(z, K z)| <= u_max^eps`` (eq. MPC_form_miqp_b),
+       is proved on ``alpha O_inf`` by MILPs (:func:`network_max`), and the largest
+       such ``alpha`` is found by bisection: the sets are nested, so the
+       maximum is non-decreasing in ``alpha``. The bisection stops when the
+       smallest failing level is within a factor ``1 + tol`` of the largest passing one.
+
+    Parameters
+    ----------
+    system
+        The system (Brunovsky pair, domain box, ``u_max``).
+    net
+        ``Phi_NN`` on ``system``'s stacked input ``(z, v)``.
+    eps
+        Certified error bound (scalar or (m,)): ``u_max^eps = u_max - eps``. To
+        also keep ``|u| <= u_max`` between samples pass ``eps + delta``
+        (:mod:`flnotes.intersample`).
+    ts
+        Sampling time of the MPC.
+    Q, R
+        The MPC's stage weights (eq. MPC_form_miqp_a).
+    discretization
+        ``"rk4"`` (the paper) or ``"exact"``, as in the MPC.
+    z_box, v_box
+        ``(lo, hi)`` of the state box ``X_z`` and of ``v``; default the network's domain box.
+    tol
+        Relative tolerance of the bisection on ``alpha``.
+
+    Returns
+    -------
+    TerminalSet
+
+    Raises
+    ------
+    ValueError
+        If ``|Phi_NN(0, 0)| > u_max^eps`` (the origin itself is not admissible:
+        no terminal set exists), or for arguments of the wrong shape.
+    """
+    t0 = time.perf_counter()
+    if not isinstance(system, FLSystem):
+        raise TypeError(f"system must be a flnotes.FLSystem, got {type(system).__name__}")
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if net.n_in != system.n_in or net.n_out != system.m:
+        raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but {system.name} needs (z, v) in R^{system.n_in} "
+                         f"-> u in R^{system.m}")
+    if not (0 < tol < 1):
+        raise ValueError(f"tol must be in (0, 1), got {tol!r}")
+    n, m = system.n_z, system.m
+    eps = as_vector(eps, m, "eps")
+    u_eps = system.u_max - eps
+    if np.any(eps < 0) or np.any(u_eps <= 0):
+        raise ValueError(f"need 0 <= eps < u_max: eps = {eps}, u_max = {system.u_max}")
+    zb = (system.lo[:n], system.hi[:n]) if z_box is None else z_box
+    vb = (system.lo[n:], system.hi[n:]) if v_box is None else v_box
+    z_lo, z_hi = as_vector(zb[0], n, "z_box[0]"), as_vector(zb[1], n, "z_box[1]")
+    v_lo, v_hi = as_vector(vb[0], m, "v_box[0]"), as_vector(vb[1], m, "v_box[1]")
+    if np.any(z_lo >= 0) or np.any(z_hi <= 0) or np.any(v_lo >= 0) or np.any(v_hi <= 0):
+        raise ValueError("z_box and v_box must contain 0 in their interior (the terminal set is built around the origin)")
+    Ad, Bd = system.discretize(ts, discretization)
+    K, P = lqr(Ad, Bd, Q, R)
+    In, Im = np.eye(n), np.eye(m)
+    C = np.vstack([In, -In, K, -K])
+    d = np.r_[z_hi, -z_lo, v_hi, -v_lo]
+    F, g, t_star = max_admissible_set(Ad + Bd @ K, C, d)
+    u0 = net(np.zeros((1, n + m)))[0]
+    if np.any(np.abs(u0) > u_eps):
+        raise ValueError(f"|Phi_NN(0, 0)| = {np.abs(u0)} > u_max^eps = {u_eps}: the origin is not admissible for the "
+                         f"network constraint, so no terminal set around it exists")
+
+    history: list = []
+
+    def check(a: float) -> tuple[bool, NetworkMax]:
+        cert = network_max(net, K, F, a * g, mip_rel_gap=mip_rel_gap)
+        ok = bool(np.all(cert.upper <= u_eps))
+        history.append((a, float(np.max(cert.upper)), float(np.max(cert.lower)), ok))
+        return ok, cert
+
+    ok, cert = check(1.0)
+    failed, a_fail = None, None
+    if ok:
+        alpha, best = 1.0, cert
+    else:
+        lo, hi, best, failed = 0.0, 1.0, None, cert
+        for _ in range(max_bisections):
+            if lo > 0 and hi <= lo * (1.0 + tol):
+                break
+            mid = 0.5 * (lo + hi)
+            ok, c = check(mid)
+            if ok:
+                lo, best = mid, c
+            else:
+                hi, failed = mid, c
+        else:
+            raise RuntimeError(f"the bisection on alpha did not reach tol = {tol} in {max_bisections} steps "
+                               f"(alpha in [{lo:.3g}, {hi:.3g}])")
+        alpha, a_fail = lo, hi
+    return TerminalSet(K=K, P=P, F=F, g=g, alpha=alpha, u_eps=u_eps, certificate=best, failed=failed,
+                       alpha_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd, Q=_weight(Q, n, "Q"),
+                       R=_weight(R, m, "R"), ts=float(ts), z_lo=z_lo, z_hi=z_hi, v_lo=v_lo, v_hi=v_hi, tol=tol,
+                       discretization=discretization, time_s=time.perf_counter() - t0)
+
+
+# ============================================================================ recursive feasibility
+def shifted_plan(term: TerminalSet, z_pred: Array, v_pred: Array) -> tuple[Array, Array]:
+    """The candidate of the recursive-feasibility proof (Mayne et al. 2000, Sec. 3.3).
+
+    Given a feasible plan ``z(0..N_p)``, ``v(0..N_p-1)`` of eq. (MPC_form_miqp)
+    with ``z(N_p) in Z_f``, the plan from ``z(1)`` is ``v(1), ..., v(N_p-1), K z(N_p)``,
+    with states ``z(1), ..., z(N_p), (A_d + B_d K) z(N_p)``. It is feasible: the
+    old constraints hold for the kept steps, ``K z(N_p)`` is admissible on
+    ``Z_f`` (A2) and ``(A_d + B_d K) z(N_p)`` is in ``Z_f`` (A3).
+
+    Returns
+    -------
+    z_next, v_next
+        Shapes (N_p + 1, n_z) and (N_p, m).
+    """
+    Z, V = np.asarray(z_pred, float), np.asarray(v_pred, float)
+    n, m = term.K.shape[1], term.K.shape[0]
+    if Z.ndim != 2 or Z.shape[1] != n or V.shape != (len(Z) - 1, m):
+        raise ValueError(f"z_pred must be (N_p + 1, {n}) and v_pred (N_p, {m}), got {Z.shape} and {V.shape}")
+    vN = term.K @ Z[-1]
+    return np.vstack([Z[1:], term.A_cl @ Z[-1]]), np.vstack([V[1:], vN])
+
+
+class HorizonFeasibility:
+    """Feasibility of the horizon program of eq. (MPC_form_miqp) at a given ``z(0)``, as one MILP.
+
+    Variables: per step ``k = 0..N_p-1`` the big-M encoding of eq. (MIP_general) of
+    ``Phi_NN(z(k), v(k))`` (:func:`flnotes.bigm_form`; node bounds by
+    :func:`flnotes.fbbt` over the box reachable from ``z(0)`` in ``k`` steps
+    with ``v`` in its box, intersected with the state box, so the encoding is
+    exact on every feasible plan), and ``z(N_p)``. Constraints:
+    ``|Phi_NN(z(k), v(k))| <= u_max^eps`` (MPC_form_miqp_b), the dynamics
+    (MPC_form_miqp_c), ``z(k)`` in the state box for ``k = 1..N_p`` and ``v(k)``
+    in the v-box (MPC_form_miqp_d), and optionally ``F_f z(N_p) <= g_f``. The
+    equality constraints are built once; :meth:`solve` fixes ``z(0)`` and writes the big-M constants.
+
+    Parameters
+    ----------
+    system, net, eps, ts, horizon
+        As for :class:`flnotes.MPC`.
+    terminal
+        ``None`` (no terminal constraint) or ``(F_f, g_f)`` (e.g.
+        :meth:`TerminalSet.constraint`).
+    discretization, z_box, v_box
+        As for :func:`terminal_set`.
+    time_limit
+        Seconds per MILP; a point not decided in time is reported as undecided.
+    gains
+        Gains ``K`` (m, n_z) of greedy candidate plans tried before the MILP
+        (single-input systems): at each step the ``v`` of a grid of the v-box
+        nearest to ``K z`` among those with ``|Phi_NN(z, v)| <= u_max^eps`` (forward
+        pass). A candidate that meets every constraint proves feasibility
+        without a MILP; infeasibility is only ever concluded by the MILP (or
+        by an empty reachable box). ``v = 0``'s nearest admissible neighbour
+        (``K = 0``) is always tried.
+    n_v
+        Grid points of the v-box for those candidates.
+    candidates
+        ``False``: decide every point by the MILP alone (no greedy candidates).
+    """
+
+    def __init__(self, system: FLSystem, net: ReLUNet, eps, ts: float, horizon: int,
+                 terminal: Optional[tuple] = None, *, discretization: str = "rk4", z_box: Optional[tuple] = None,
+                 v_box: Optional[tuple] = None, time_limit: Optional[float] = 10.0, gains: Sequence = (),
+                 n_v: int = 801, candidates: bool = True):
+        if int(horizon) != horizon or horizon < 1:
+            raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+        if net.n_in != system.n_in or net.n_out != system.m:
+            raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but {system.name} needs R^{system.n_in} -> R^{system.m}")
+        n, m, N = system.n_z, system.m, int(horizon)
+        self.n, self.m, self.N = n, m, N
+        eps = as_vector(eps, m, "eps")
+        self.u_eps = system.u_max - eps
+        if np.any(self.u_eps <= 0):
+            raise ValueError(f"eps = {eps} leaves no admissible input (u_max = {system.u_max})")
+        zb = (system.lo[:n], system.hi[:n]) if z_box is None else z_box
+        vb = (system.lo[n:], system.hi[n:]) if v_box is None else v_box
+        self.z_lo, self.z_hi = as_vector(zb[0], n, "z_box[0]"), as_vector(zb[1], n, "z_box[1]")
+        self.v_lo, self.v_hi = as_vector(vb[0], m, "v_box[0]"), as_vector(vb[1], m, "v_box[1]")
+        self.Ad, self.Bd = system.discretize(ts, discretization)
+        self.net, self.time_limit = net, time_limit
+        nb = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
+        self.form = form = bigm_form(net, nb)
+        nf = form.n
+        self.nvar = N * nf + n
+        off = [k * nf for k in range(N)]
+        self.iz = [form.x[:n] + o for o in off] + [np.arange(N * nf, N * nf + n)]
+        self.iv = [form.x[n:] + o for o in off]
+        self.iout = [form.out + o for o in off]
+        self.integrality = np.r_[np.tile(form.integrality, N), np.zeros(n, int)]
+        self._pad = lambda M: sp.hstack([M, sp.csr_matrix((M.shape[0], n))]).tocsr()  # noqa: E731
+        A_eq = self._pad(sp.block_diag([form.A_eq] * N))
+        dyn = sp.lil_matrix((N * n, self.nvar))
+        for k in range(N):  # z(k+1) - Ad z(k) - Bd v(k) = 0   (MPC_form_miqp_c)
+            r = slice(k * n, (k + 1) * n)
+            dyn[r, self.iz[k + 1]] = np.eye(n)
+            dyn[r, self.iz[k]] = -self.Ad
+            dyn[r, self.iv[k]] = -self.Bd
+        self.cons = [LinearConstraint(A_eq, np.tile(form.b_eq, N), np.tile(form.b_eq, N)),
+                     LinearConstraint(dyn.tocsr(), 0.0, 0.0)]
+        # reachable boxes: z(k) = Ad^k z0 + sum_j Ad^(k-1-j) Bd v(j), one column block per v(j)
+        self._Apow = [np.linalg.matrix_power(self.Ad, k) for k in range(N + 1)]
+        self.gains = [np.zeros((m, n))] + [np.atleast_2d(np.asarray(K, float)) for K in gains] if candidates else []
+        if any(K.shape != (m, n) for K in self.gains):
+            raise ValueError(f"every gain must have shape ({m}, {n})")
+        self.v_grid = np.linspace(self.v_lo[0], self.v_hi[0], int(n_v))[:, None] if m == 1 else None
+        self.terminal, self.Ff, self.gf = terminal, None, None
+        self.last_method = ""
+        if terminal is not None:
+            Ff, gf = np.asarray(terminal[0], float), np.asarray(terminal[1], float).reshape(-1)
+            if Ff.ndim != 2 or Ff.shape != (len(gf), n):
+                raise ValueError(f"terminal must be (F_f, g_f) with F_f of shape (p, {n}) and g_f (p,), got "
+                                 f"{Ff.shape} and {gf.shape}")
+            self.Ff, self.gf = Ff, gf
+            T = sp.lil_matrix((len(gf), self.nvar))
+            T[:, self.iz[N]] = Ff
+            self.cons.append(LinearConstraint(T.tocsr(), -np.inf, gf))
+
+    def feasible_plan(self, z_pred: Array, v_pred: Array, tol: float = 0.0) -> bool:
+        """Does the plan meet every constraint of the program (network by its forward pass)?"""
+        Z, V = np.asarray(z_pred, float), np.asarray(v_pred, float)
+        ok = (np.all(Z[1:] >= self.z_lo - tol) and np.all(Z[1:] <= self.z_hi + tol)
+              and np.all(V >= self.v_lo - tol) and np.all(V <= self.v_hi + tol)
+              and np.all(np.abs(self.net(np.hstack([Z[:-1], V]))) <= self.u_eps + tol)
+              and np.allclose(Z[1:], Z[:-1] @ self.Ad.T + V @ self.Bd.T, rtol=1e-9, atol=1e-9))
+        if ok and self.Ff is not None:
+            ok = bool(np.all(self.Ff @ Z[-1] <= self.gf + tol))
+        return bool(ok)
+
+    def _greedy(self, z0: Array, K: Array) -> Optional[tuple[Array, Array]]:
+        if self.v_grid is None:
+            return None
+        Z, V, z = [z0], [], z0
+        for _ in range(self.N):
+            X = np.hstack([np.repeat(z[None], len(self.v_grid), 0), self.v_grid])
+            ok = np.all(np.abs(self.net(X)) <= self.u_eps, axis=1)
+            if not ok.any():
+                return None
+            cand = self.v_grid[ok]
+            v = cand[np.argmin(np.abs(cand[:, 0] - float(K[0] @ z)))]
+            z = self.Ad @ z + self.Bd @ v
+            Z.append(z), V.append(v)
+        Z, V = np.array(Z), np.array(V)
+        return (Z, V) if self.feasible_plan(Z, V) else None
+
+    def solve(self, z0: Array) -> tuple[Optional[bool], Optional[tuple[Array, Array]]]:
+        """Is the program feasible at ``z0``? ``(True, (z_pred, v_pred))``, ``(False, None)`` or ``(None, None)`` (undecided).
+
+        ``last_method`` records how it was decided: ``"candidate"`` (a greedy
+        plan met every constraint), ``"reach"`` (a reachable box left the state
+        box), ``"milp"`` or ``"undecided"``.
+        """
+        z0 = as_vector(z0, self.n, "z0")
+        for K in self.gains:
+            plan = self._greedy(z0, K)
+            if plan is not None:
+                self.last_method = "candidate"
+                return True, plan
+        n, N, form = self.n, self.N, self.form
+        # node bounds per step by fbbt over the box reachable from z0 (intersected with the state box): with z(0)
+        # fixed the first steps have few unstable neurons, and the encoding stays exact on every feasible plan
+        zl, zh = [z0], [z0]
+        for k in range(1, N + 1):
+            c = self._Apow[k] @ z0
+            lo_k, hi_k = c.copy(), c.copy()
+            for j in range(k):
+                G = self._Apow[k - 1 - j] @ self.Bd
+                lo_k += np.minimum(G * self.v_lo, G * self.v_hi).sum(1)
+                hi_k += np.maximum(G * self.v_lo, G * self.v_hi).sum(1)
+            zl.append(np.maximum(lo_k, self.z_lo)), zh.append(np.minimum(hi_k, self.z_hi))
+        if any(np.any(l > h) for l, h in zip(zl, zh)):
+            self.last_method = "reach"
+            return False, None
+        nb = fbbt(self.net, np.hstack([np.array(zl[:N]), np.tile(self.v_lo, (N, 1))]),
+                  np.hstack([np.array(zh[:N]), np.tile(self.v_hi, (N, 1))]))
+        A_ub, b_ub, lb, ub = [], [], [], []
+        for k in range(N):
+            A_k, b_k, lb_k, ub_k = form.update(NodeBounds([L[k] for L in nb.L], [U[k] for U in nb.U],
+                                                          nb.out_L[k], nb.out_U[k]))
+            lb_k[form.x], ub_k[form.x] = np.r_[zl[k], self.v_lo], np.r_[zh[k], self.v_hi]
+            lb_k[form.out], ub_k[form.out] = -self.u_eps, self.u_eps
+            A_ub.append(A_k), b_ub.append(b_k), lb.append(lb_k), ub.append(ub_k)
+        lb, ub = np.r_[np.concatenate(lb), zl[N]], np.r_[np.concatenate(ub), zh[N]]
+        cons = self.cons + [LinearConstraint(self._pad(sp.block_diag(A_ub)), -np.inf, np.concatenate(b_ub))]
+        opts = {} if self.time_limit is None else dict(time_limit=float(self.time_limit))
+        res = milp(np.zeros(self.nvar), integrality=self.integrality, bounds=Bounds(lb, ub), constraints=cons,
+                   options=opts)
+        if res.status == 2:
+            self.last_method = "milp"
+            return False, None
+        if res.x is None:
+            self.last_method = "undecided"
+            return None, None
+        self.last_method = "milp"
+        Z = np.array([res.x[i] for i in self.iz])
+        V = np.array([res.x[i] for i in self.iv])
+        return True, (Z, V)
+
+
+@dataclass
+class RegionOfAttraction:
+    """Feasibility of the horizon program on a 2-D grid of initial states.
+
+    Attributes
+    ----------
+    x, y
+        Grid values along the two sliced coordinates, shapes (n_x,) and (n_y,).
+    axes
+        The two coordinates of ``z`` that vary.
+    z_fixed
+        The value of ``z`` on the other coordinates, (n_z,).
+    feasible, feasible_terminal
+        Feasibility without / with the terminal constraint, shape (n_y, n_x),
+        dtype float: 1 feasible, 0 infeasible, NaN undecided within the time limit.
+    horizon, ts
+        The program's ``N_p`` and ``t_s``.
+    terminal
+        The :class:`TerminalSet` used.
+    time_s
+        Wall-clock time (both grids).
+    """
+
+    x: Array
+    y: Array
+    axes: tuple
+    z_fixed: Array
+    feasible: Array
+    feasible_terminal: Array
+    horizon: int
+    ts: float
+    terminal: TerminalSet
+    time_s: float
+
+    def fraction(self) -> tuple[float, float]:
+        """Share of decided grid points that are feasible, without and with the terminal constraint."""
+        return float(np.nanmean(self.feasible)), float(np.nanmean(self.feasible_terminal))
+
+    def points(self) -> Array:
+        """All grid states, shape (n_y, n_x, n_z)."""
+        X, Y = np.meshgrid(self.x, self.y)
+        Z = np.broadcast_to(self.z_fixed, X.shape + (len(self.z_fixed),)).copy()
+        Z[..., self.axes[0]], Z[..., self.axes[1]] = X, Y
+        return Z
+
+
+def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, horizon: int,
+                         axes: Sequence[int] = (0, 1), z_fixed: Optional[Array] = None, n_grid: int = 15,
+                         limits: Optional[tuple] = None, time_limit: Optional[float] = 10.0) -> RegionOfAttraction:
+    """The set of initial states from which eq. (MPC_form_miqp) is feasible, on a 2-D slice.
+
+    Each grid point is one feasibility MILP (:class:`HorizonFeasibility`), with
+    and without the terminal constraint ``z(N_p) in Z_f``. With it, the feasible
+    set is the region of attraction of the MPC: from any of its states the loop
+    stays feasible and converges (Mayne et al. 2000, Thm. 1). Without it, a
+    feasible state may lead to an infeasible one later.
+
+    Parameters
+    ----------
+    system, net, eps
+        As for :class:`flnotes.MPC`.
+    terminal
+        The terminal ingredients (:func:`terminal_set`); its ``ts``, boxes and model are used.
+    horizon
+        ``N_p``.
+    axes
+        The two coordinates of ``z`` on the grid.
+    z_fixed
+        Values of the other coordinates (default 0).
+    n_grid
+        Grid points per axis (an int or a pair).
+    limits
+        ``((x_lo, x_hi), (y_lo, y_hi))``; default the state box.
+    time_limit
+        Seconds per MILP.
+
+    Returns
+    -------
+    RegionOfAttraction
+    """
+    if not isinstance(terminal, TerminalSet):
+        raise TypeError(f"terminal must be a flnotes.terminal.TerminalSet (from terminal_set), got {type(terminal).__name__}")
+    n = system.n_z
+    axes = tuple(int(a) for a in axes)
+    if len(axes) != 2 or axes[0] == axes[1] or not all(0 <= a < n for a in axes):
+        raise ValueError(f"axes must be two different coordinates of z in 0..{n - 1}, got {axes}")
+    z_fixed = np.zeros(n) if z_fixed is None else as_vector(z_fixed, n, "z_fixed")
+    nx, ny = (int(n_grid), int(n_grid)) if np.ndim(n_grid) == 0 else (int(n_grid[0]), int(n_grid[1]))
+    if min(nx, ny) < 2:
+        raise ValueError(f"n_grid must be >= 2 per axis, got {n_grid!r}")
+    if limits is None:
+        limits = ((terminal.z_lo[axes[0]], terminal.z_hi[axes[0]]), (terminal.z_lo[axes[1]], terminal.z_hi[axes[1]]))
+    x, y = np.linspace(*limits[0], nx), np.linspace(*limits[1], ny)
+    t0 = time.perf_counter()
+    common = dict(discretization=terminal.discretization, z_box=(terminal.z_lo, terminal.z_hi), v_box=(terminal.v_lo, terminal.v_hi),
+                  time_limit=time_limit, gains=(terminal.K,))
+    eps_v = as_vector(eps, system.m, "eps")
+    progs = [HorizonFeasibility(system, net, eps_v, terminal.ts, horizon, None, **common),
+             HorizonFeasibility(system, net, eps_v, terminal.ts, horizon, terminal.constraint(), **common)]
+    out = [np.full((ny, nx), np.nan), np.full((ny, nx), np.nan)]
+    roa = RegionOfAttraction(x=x, y=y, axes=axes, z_fixed=z_fixed, feasible=out[0], feasible_terminal=out[1],
+                             horizon=int(horizon), ts=terminal.ts, terminal=terminal, time_s=0.0)
+    Z = roa.points()
+    for i in range(ny):
+        for j in range(nx):
+            for k, p in enumerate(progs):
+                if k == 1 and out[0][i, j] == 0:  # the terminal constraint only removes plans
+                    out[1][i, j] = 0.0
+                    continue
+                ok, _ = p.solve(Z[i, j])
+                out[k][i, j] = np.nan if ok is None else float(ok)
+    roa.time_s = time.perf_counter() - t0
+    return roa
+
+
+# ============================================================================ helpers
+def _pair(Ad: Array, Bd: Array) -> tuple[Array, Array]:
+    Ad = np.atleast_2d(np.asarray(Ad, float))
+    Bd = np.asarray(Bd, float)
+    if Bd.ndim == 1:
+        Bd = Bd[:, None]
+    n = Ad.shape[0]
+    if Ad.shape != (n, n) or Bd.shape[0] != n:
+        raise ValueError(f"Ad must be square and Bd must have as many rows: got Ad {Ad.shape}, Bd {Bd.shape}")
+    return Ad, Bd
+
+
+def _weight(W, n: int, name: str) -> Array:
+    a = np.asarray(W, float)
+    if a.ndim == 0:
+        a = a * np.eye(n)
+    elif a.ndim == 1:
+        if a.shape != (n,):
+            raise ValueError(f"{name} must be a scalar, a vector of length {n} or an ({n}, {n}) matrix, got shape {a.shape}")
+        a = np.diag(a)
+    if a.shape != (n, n):
+        raise ValueError(f"{name} must be a scalar, a vector of length {n} or an ({n}, {n}) matrix, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return 0.5 * (a + a.T)
