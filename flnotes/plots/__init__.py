@@ -18,6 +18,7 @@ from .mpc import plot_mpc_tracking, plot_mpc_input, plot_horizon_sweep, plot_int
 from .realtime import step_times, scaling, lever_bars
 from .static import FramePlayer, frame_player
 from .multi import input_sets_plot
+from .guarantees import plot_drift_curve, plot_region_of_attraction, plot_terminal_bisection
 
 __all__ = [
     'COLORS', 'new_axes', 'bound_lines', 'use_book_style', 'static_feasible_set', 'fl_identity_residual',
@@ -29,5 +30,6 @@ __all__ = [
     'show_source', 'explore_architecture', 'clfcbf_phase_portrait', 'clfcbf_signals', 'clfcbf_figure3',
     'exact_1d_plot', 'solve_time_plot', 'cbf_failure_plot', 'wall_runs_plot', 'plot_mpc_tracking',
     'plot_mpc_input', 'plot_horizon_sweep', 'plot_intersample', 'plot_step_times', 'explore_horizon',
-    'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player', 'input_sets_plot'
+    'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player', 'input_sets_plot',
+    'plot_drift_curve', 'plot_region_of_attraction', 'plot_terminal_bisection'
 ]
