@@ -1,6 +1,6 @@
 """Benchmarks behind ``make bench``: per-step solve times and certification times.
 
-Each section module (``error``, ``clfcbf``, ``mpc``) defines
+Each section module (``error``, ``clfcbf``, ``mpc``, ``exactness``) defines
 ``run(fast: bool) -> dict`` returning
 
     {"title": str, "rows": [dict, ...], "notes": [str, ...], "figures": [path, ...]}
@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-SECTIONS = ("error", "clfcbf", "mpc")
+SECTIONS = ("error", "clfcbf", "mpc", "exactness")
 
 
 def out_dir() -> Path:
