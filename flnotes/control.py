@@ -631,9 +631,10 @@ class ClfCbfController:
         A solver's point is checked with the network's forward pass: one that
         exceeds ``u_max^eps`` (beyond round-off) is an error, never applied as a
         solution. ``info["input_admissible"]`` says whether the applied ``v``
-        satisfies ``|Phi_NN(z, v)| <= u_max^eps``; on the softened program's
-        fallback it is False only when no admissible ``v`` satisfies the CBF
-        condition too (the input bound is given up last).
+        satisfies ``|Phi_NN(z, v)| <= u_max^eps``: on the softened program's
+        fallback the input bound carries the largest penalty ``rho_u`` (given
+        up last, an exact penalty once ``rho_u`` exceeds its multiplier), and
+        this flag records whether it was given up.
 
         Raises ``ValueError`` when ``z`` lies outside the network's domain box
         (beyond :data:`flnotes.miqp.BOX_TOL`; closer, it is projected onto the

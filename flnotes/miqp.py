@@ -294,10 +294,12 @@ def next_margin(margin: float, excess: float, scale: float = 1.0) -> float:
     """The tightening of ``u_max^eps`` to try after a returned point exceeded it by ``excess``.
 
     At least ``1e-9 * max(1, scale)`` and at least twice the excess above the previous margin,
-    and never less than twice the previous margin: a solver whose tolerance let the point
+    and at least four times the previous margin: a solver whose tolerance let the point
     through moves only when the bound moves by more than its tolerance.
+    At most ``1e-4 * max(1, scale)``: an excess that needs more is not a solver tolerance, and the
+    point is then reported as failing the forward-pass check (never applied as a solution).
     """
-    return float(max(4.0 * margin, margin + 2.0 * excess, 1e-9 * max(1.0, scale)))
+    return float(min(max(4.0 * margin, margin + 2.0 * excess, 1e-9 * max(1.0, scale)), 1e-4 * max(1.0, scale)))
 
 
 def project_to_box(z: Array, lo: Array, hi: Array, name: str = "z") -> Array:
@@ -1870,7 +1872,7 @@ class HorizonMIQP:
                 if viol & set(enc):
                     # an encoded step exceeds u_max^eps by more than round-off: the solver's tolerance let it
                     # through. Tighten the bound in the rows and solve again (at most a few times).
-                    ex = self._excess(z0, res.w[: N * m])
+                    ex = self._excess(z0, res.w[: N * m], enc)
                     if stats.get("tightened", 0) >= 5:
                         return done("error", None, -np.inf, f"the optimum exceeds u_max^eps by {ex:.1e} after "
                                     f"tightening the rows by {self.margin:.1e}", **last)
@@ -1915,11 +1917,12 @@ class HorizonMIQP:
         out = np.abs(self.net(np.hstack([Z[: self.N], V])))
         return np.flatnonzero(np.any(out > self.u_eps + tol, axis=1)).tolist()
 
-    def _excess(self, z0: Array, V: Array) -> float:
-        """``max_k |Phi_NN(z(k), v(k))| - u_max^eps`` of the plan ``V`` (negative when it is within)."""
+    def _excess(self, z0: Array, V: Array, steps) -> float:
+        """``max |Phi_NN(z(k), v(k))| - u_max^eps`` over the predicted ``steps`` of the plan ``V``."""
         V = np.asarray(V, float).reshape(self.N, self.m)
         Z = self.predict(z0, V)
-        return float(np.max(np.abs(self.net(np.hstack([Z[: self.N], V]))) - self.u_eps))
+        st = list(steps)
+        return float(np.max(np.abs(self.net(np.hstack([Z[: self.N], V])[st])) - self.u_eps))
 
     def _steps(self, nb):
         """Steps whose network constraint must be encoded; ``None`` when a step cannot meet it at all."""

@@ -1178,7 +1178,7 @@ class MPC:
             if status == "optimal" and set(viol.tolist()) & set(prog.steps) and tightened < 5:
                 # an encoded step exceeds u_max^eps beyond round-off (the solver's tolerance let it through):
                 # tighten the bound in the rows and solve again
-                u = np.abs(self.net(np.hstack([Z[: self.N], V])))
+                u = np.abs(self.net(np.hstack([Z[: self.N], V])[list(prog.steps)]))  # the encoded steps
                 self.margin = next_margin(self.margin, float(np.max(u - self.u_eps)), float(np.max(self.u_eps)))
                 tightened += 1
                 continue

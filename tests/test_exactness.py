@@ -161,9 +161,9 @@ def test_mpc_is_exact_on_diverse_states(quad5):
             assert r["excess"] <= BOUND_TOL or (r["fallback"] and r["status"] == "infeasible"), (c, r)
 
 
-def test_state_on_the_face_of_the_box_is_not_infeasible(quad):
+def test_state_on_the_face_of_the_box_is_not_infeasible(quad5):
     """z2 = -5 - 5e-10 is the state z2 = -5 (one tolerance for the box, flnotes.miqp.BOX_TOL)."""
-    mpc = book_mpc(quad)
+    mpc = book_mpc(quad5)
     ref = np.array([4.443496973836615, 0.0, 0.0])
     z = np.array([1.95917156728804, -5.0, 4.761859723150327])
     a = mpc(z + np.array([0.0, -5e-10, 0.0]), ref)

@@ -271,8 +271,8 @@ def run(fast: bool) -> dict:
                            ("default, warm, time limit 5 s", dict(time_limit=5.0), True),
                            ("default, cold, DAQP's infeasibility trusted", trust, False),
                            ("scip level set, cold", dict(backend="scip"), False),
-                           ("default, no screening, no constraint generation", dict(screening=False, lazy=False),
-                            False)):
+                           ("default, no screening, no constraint generation, time limit 30 s",
+                            dict(screening=False, lazy=False, time_limit=30.0), False)):
         tl = kw.pop("time_limit", None)
         res = mpc_controller_rows(setup, cases, refs, name, warm, time_limit=tl, **kw)
         rows.append(dict(program="Quad-1D MPC", **summarize(name, res)))
