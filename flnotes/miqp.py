@@ -54,7 +54,7 @@ for a measured state on the face of the domain box, :data:`FEAS_TOL` for the
 solvers' rows, and the network bound checked with the forward pass to
 :data:`BOUND_TOL` (round-off of the forward pass itself); the controllers
 tighten ``u_max^eps`` in the rows they hand to a solver until the returned
-point passes that check (:func:`tighten_until_within`).
+point passes that check (:func:`next_margin`).
 """
 from __future__ import annotations
 
