@@ -12,7 +12,7 @@ STAMP   := $(VENV)/.installed
 # seconds per notebook under nbmake (the fast mode is meant to take far less)
 NBMAKE_TIMEOUT ?= 900
 
-.PHONY: all venv book test bench assignments clean help
+.PHONY: all venv book test bench assignments reference clean help
 
 all: book
 
@@ -21,6 +21,7 @@ help:
 	@echo "make test         unit tests + every notebook through nbmake, FLNOTES_FAST=1"
 	@echo "make bench        solver benchmarks (python -m flnotes.bench)"
 	@echo "make assignments  students' versions of the assignments into _build/assignments"
+	@echo "make reference    retrain and recertify the shipped networks and sweep table (changes the book's numbers)"
 	@echo "make clean        remove _build and caches (keeps .venv)"
 
 # ---------------------------------------------------------------------------------
@@ -50,6 +51,11 @@ test: venv
 
 bench: venv
 	$(PY) -m flnotes.bench
+
+# Rewrites flnotes/data/: the book's networks, their certified eps and chapter 5's sweep, trained on this
+# machine. Only to change them on purpose; commit the result.
+reference: venv
+	$(PY) -c "import flnotes.paper as p, flnotes.studies as s; print(*p.write_references(), sep='\n'); s.write_sweep()"
 
 assignments: venv
 	$(PY) -m flnotes.grading student book/assignments _build/assignments

@@ -13,7 +13,6 @@ stably active, one with ``U <= 0`` stably inactive: neither needs a binary.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
@@ -88,6 +87,16 @@ def interval_affine(W: Array, b: Array, l: Array, u: Array) -> tuple[Array, Arra
     return l @ Wp.T + u @ Wm.T + b, u @ Wp.T + l @ Wm.T + b
 
 
+def _check_net_box(net: ReLUNet, lo, hi) -> None:
+    """``TypeError``/``ValueError`` naming ``net`` when it is not a network or its input size is not the box's."""
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    d = np.shape(lo)[-1] if np.ndim(lo) else None
+    if d is not None and d != net.n_in and np.shape(lo) == np.shape(hi):
+        raise ValueError(f"net has {net.n_in} inputs but the box lo, hi has {d} dimensions: lo and hi must have "
+                         f"shape ({net.n_in},) or (T, {net.n_in}), a box over the network's input (z, v)")
+
+
 def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
     """Node bounds by interval propagation (FBBT, Grimstad & Andersson 2019, Sec. 4.3).
 
@@ -106,6 +115,7 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
         ``L``, ``U`` of shape (n_k,) (or (T, n_k)) per hidden layer, and the
         output bounds.
     """
+    _check_net_box(net, lo, hi)
     lo_a, hi_a, batch = check_boxes(lo, hi, net.n_in)
     l, u = lo_a, hi_a
     Ls, Us = [], []
@@ -121,6 +131,7 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
 
 def sample_preactivations(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000, seed: int = 0) -> list[Array]:
     """Pre-activations at ``n`` uniform samples of the box plus its corners (to check bounds)."""
+    _check_net_box(net, lo, hi)
     lo, hi = check_box(lo, hi, net.n_in)
     X = np.random.default_rng(seed).uniform(lo, hi, (n, net.n_in))
     if net.n_in <= 12:

@@ -162,6 +162,137 @@ class DistanceCBF(Certificate):
         return f"DistanceCBF(z_o={self.z_o.tolist()}, r_o={self.r_o})"
 
 
+class AffineCBF(Certificate):
+    """An affine barrier ``h(z) = c^T z + d``: the safe set is the half-space ``h(z) >= 0``.
+
+    ``grad h = c``. On a Brunovsky chain a barrier on a position (``c^T B = 0``)
+    has relative degree two: its first-order condition (CLF_CBF_d) does not
+    contain ``v`` and cannot be enforced; use it through :class:`ExponentialCBF`.
+
+    Parameters
+    ----------
+    c
+        Normal of the boundary, shape (n_z,), not zero.
+    d
+        Offset.
+    """
+
+    name = "h"
+
+    def __init__(self, c: Array, d: float):
+        self.c = np.asarray(c, float).reshape(-1)
+        if not np.all(np.isfinite(self.c)) or not np.any(self.c != 0):
+            raise ValueError(f"c must be a finite, nonzero vector, got {self.c.tolist()}")
+        if not np.isfinite(d):
+            raise ValueError(f"d must be finite, got {d!r}")
+        self.d = float(d)
+
+    def value(self, Z: Array) -> Array:
+        if Z.shape[1] != len(self.c):
+            raise ValueError(f"z must have {len(self.c)} entries like c, got shape {Z.shape}")
+        return Z @ self.c + self.d
+
+    def grad(self, z: Array) -> Array:
+        return self.c.copy()
+
+    def __repr__(self) -> str:
+        return f"AffineCBF(c={self.c.tolist()}, d={self.d})"
+
+
+class ExponentialCBF(Certificate):
+    """The exponential (second-order) CBF ``H_2 = dh/dt + k_1 h`` of a relative-degree-2 barrier ``h``.
+
+    For ``z' = A z + B v`` and an affine ``h(z) = c^T z + d`` with
+    ``c^T B = 0`` and ``c^T A B != 0`` (e.g. a bound on a position of a
+    double integrator), ``dh/dt = c^T A z`` does not depend on ``v`` and
+
+        H_2(z) = c^T A z + k_1 h(z),     grad H_2 = A^T c + k_1 c,
+
+    so ``grad H_2^T B = c^T A B`` is never zero: the condition (CLF_CBF_d)
+    written for ``H_2``, ``grad H_2^T (A z + B v) >= -kappa H_2(z)``, is a
+    half-line in ``v`` that is never empty (without input bounds). Along any
+    closed loop that keeps it, ``H_2(z(t)) >= 0`` for ``t >= 0`` if
+    ``H_2(z(0)) >= 0``; then ``dh/dt >= -k_1 h``, so ``h(z(t)) >= h(z(0))
+    e^{-k_1 t} >= 0``: the set ``{h >= 0} ∩ {H_2 >= 0}`` is forward invariant.
+    Pass the object as ``H`` to :class:`ClfCbfController`; ``kappa`` of the
+    controller plays the role of the second gain ``k_2``.
+
+    Parameters
+    ----------
+    h
+        The barrier, an :class:`AffineCBF`.
+    A, B
+        The Brunovsky pair, shapes (n_z, n_z) and (n_z, m).
+    k1
+        Gain > 0 of the inner condition ``dh/dt >= -k_1 h``.
+    """
+
+    name = "H2"
+
+    def __init__(self, h: AffineCBF, A: Array, B: Array, k1: float):
+        if not isinstance(h, AffineCBF):
+            raise TypeError(f"h must be an AffineCBF, got {type(h).__name__}")
+        A, B = np.atleast_2d(np.asarray(A, float)), np.asarray(B, float)
+        B = B.reshape(len(B), -1)
+        n = len(h.c)
+        if A.shape != (n, n) or B.shape[0] != n:
+            raise ValueError(f"A must be ({n}, {n}) and B ({n}, m) for h with {n} entries, got {A.shape} and {B.shape}")
+        if not np.allclose(h.c @ B, 0.0):
+            raise ValueError(f"h has relative degree one (c^T B = {(h.c @ B).tolist()} != 0): use it directly as H, "
+                             "the first-order condition already contains v")
+        if np.allclose(h.c @ A @ B, 0.0):
+            raise ValueError("h has relative degree above two (c^T A B = 0): differentiate once more")
+        if not (np.isfinite(k1) and k1 > 0):
+            raise ValueError(f"k1 must be a positive gain, got {k1!r}")
+        self.h, self.A, self.B, self.k1 = h, A, B, float(k1)
+        self._g = A.T @ h.c + self.k1 * h.c
+
+    def value(self, Z: Array) -> Array:
+        """``H_2(z) = c^T A z + k_1 (c^T z + d)`` on a batch (N, n_z) -> (N,)."""
+        return Z @ (self.A.T @ self.h.c) + self.k1 * self.h.value(Z)
+
+    def grad(self, z: Array) -> Array:
+        """``grad H_2 = A^T c + k_1 c`` (constant)."""
+        return self._g.copy()
+
+    def __repr__(self) -> str:
+        return f"ExponentialCBF(h={self.h!r}, k1={self.k1})"
+
+
+def cbf_condition_fails(H: Certificate, Z: Array, A: Array, B: Array, kappa: float, tol: float = 1e-12) -> Array:
+    """Where no ``v`` at all satisfies the CBF condition (CLF_CBF_d), input bounds ignored.
+
+    The condition ``grad H(z)^T (A z + B v) >= -kappa H(z)`` is affine in
+    ``v``; if ``grad H(z)^T B != 0`` some ``v`` satisfies it. It fails for
+    every ``v`` exactly where ``|grad H(z)^T B| <= tol`` and
+    ``grad H(z)^T A z + kappa H(z) < 0``.
+
+    Parameters
+    ----------
+    H
+        The barrier function.
+    Z
+        States, shape (N, n_z).
+    A, B
+        The Brunovsky pair.
+    kappa
+        The CBF gain, > 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean mask, shape (N,).
+    """
+    Z = np.atleast_2d(np.asarray(Z, float))
+    if not kappa > 0:
+        raise ValueError(f"kappa must be positive, got {kappa!r}")
+    G = np.array([H.grad(z) for z in Z])
+    if G.shape != Z.shape:
+        raise ValueError(f"grad H must have shape {Z.shape[1:]} per state, got {G.shape[1:]}")
+    no_authority = np.all(np.abs(G @ np.asarray(B, float)) <= tol, axis=1)
+    return no_authority & (np.einsum("ni,ni->n", G, Z @ np.asarray(A, float).T) + kappa * H.value(Z) < 0)
+
+
 class _FunctionCertificate(Certificate):
     def __init__(self, fn: Callable[[Array], float], grad: Callable[[Array], Array], name: str):
         self.fn, self._grad, self.name = fn, grad, name

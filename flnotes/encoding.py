@@ -21,7 +21,7 @@ Two forms are offered:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Sequence, Union
+from typing import Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -62,6 +62,15 @@ class Encoding:
 
 def _as_params_or_arrays(bounds: Optional[NodeBounds], L, U, net: ReLUNet, T: Optional[int]):
     if bounds is not None:
+        if not isinstance(bounds, NodeBounds):
+            raise TypeError(f"bounds must be a flnotes.NodeBounds, e.g. bounds=fl.fbbt(net, lo, hi) or "
+                            f"fl.lp_bounds(net, lo, hi), got {type(bounds).__name__}; to give the per-layer arrays "
+                            f"yourself pass L=[L^1, ..., L^(K-1)] and U=[U^1, ..., U^(K-1)] instead")
+        if L is not None or U is not None:
+            raise ValueError("give either bounds= or L= and U=, not both")
+        if len(bounds.L) != net.K - 1 or len(bounds.U) != net.K - 1:
+            raise ValueError(f"bounds hold {len(bounds.L)} layers but the network has {net.K - 1} hidden layers: "
+                             f"compute them for this network, bounds=fl.fbbt(net, lo, hi)")
         L, U = bounds.L, bounds.U
         if any(np.ndim(a) == 2 for a in L):
             # a batch from fbbt(net, lo, hi) with lo, hi of shape (T, n_in) stores (T, n_k) per layer;
@@ -75,6 +84,10 @@ def _as_params_or_arrays(bounds: Optional[NodeBounds], L, U, net: ReLUNet, T: Op
             L, U = [np.asarray(a).T for a in L], [np.asarray(a).T for a in U]
     if L is None or U is None:
         raise ValueError("encode needs node bounds: pass bounds=fbbt(net, lo, hi) (or L= and U= lists)")
+    for name, B in (("L", L), ("U", U)):
+        if not isinstance(B, (list, tuple)):
+            raise TypeError(f"{name} must be a list with one array (or cvxpy Parameter) per hidden layer, "
+                            f"got {type(B).__name__}")
     if len(L) != net.K - 1 or len(U) != net.K - 1:
         raise ValueError(f"need one L and one U per hidden layer ({net.K - 1}), got {len(L)} and {len(U)}")
     return list(L), list(U)
@@ -113,6 +126,12 @@ def encode(net: ReLUNet, x, bounds: Optional[NodeBounds] = None, L: Optional[Seq
     """
     import cvxpy as cp
 
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if not isinstance(x, cp.Expression):
+        raise TypeError(f"x must be a cvxpy expression of the network input (e.g. cp.Variable({net.n_in})), got "
+                        f"{type(x).__name__}; to evaluate the network at a numeric point call net(x), to solve the "
+                        f"encoding with the input fixed use fl.forward_milp(net, x)")
     shape = tuple(x.shape)
     if len(shape) == 1:
         T = None
@@ -267,6 +286,10 @@ def _write_layer(A_ub, b_ub, lb, ub, form: BigMForm, k: int, L: Array, U: Array)
 
 def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     """Eq. (MIP_general) for one point as a :class:`BigMForm` (see there for the layout)."""
+    if not isinstance(bounds, NodeBounds):
+        raise TypeError(f"bounds must be a flnotes.NodeBounds (e.g. fl.fbbt(net, lo, hi)), got {type(bounds).__name__}")
+    if len(bounds.L) != net.K - 1:
+        raise ValueError(f"bounds hold {len(bounds.L)} layers but the network has {net.K - 1} hidden layers")
     if np.ndim(bounds.L[0]) != 1:
         raise ValueError("bigm_form takes bounds for one input box (arrays of shape (n_k,)); stack copies for a horizon")
     n_in, n_out = net.n_in, net.n_out
@@ -275,10 +298,14 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     ybars, yunds, alphas = [], [], []
     for W in net.W[:-1]:
         n_k = W.shape[0]
-        ybars.append(np.arange(idx, idx + n_k)); idx += n_k
-        yunds.append(np.arange(idx, idx + n_k)); idx += n_k
-        alphas.append(np.arange(idx, idx + n_k)); idx += n_k
-    out = np.arange(idx, idx + n_out); idx += n_out
+        ybars.append(np.arange(idx, idx + n_k))
+        idx += n_k
+        yunds.append(np.arange(idx, idx + n_k))
+        idx += n_k
+        alphas.append(np.arange(idx, idx + n_k))
+        idx += n_k
+    out = np.arange(idx, idx + n_out)
+    idx += n_out
     n = idx
 
     eq_r, eq_c, eq_v, b_eq = [], [], [], []
@@ -287,7 +314,9 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
     for k, (W, b) in enumerate(zip(net.W[:-1], net.b[:-1])):
         n_k = W.shape[0]
         Wc = sp.coo_matrix(W)
-        eq_r += (row + Wc.row).tolist(); eq_c += prev[Wc.col].tolist(); eq_v += Wc.data.tolist()
+        eq_r += (row + Wc.row).tolist()
+        eq_c += prev[Wc.col].tolist()
+        eq_v += Wc.data.tolist()
         eq_r += list(range(row, row + n_k)) * 2
         eq_c += ybars[k].tolist() + yunds[k].tolist()
         eq_v += [-1.0] * n_k + [1.0] * n_k
@@ -295,8 +324,12 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
         row += n_k
         prev = ybars[k]
     Wc = sp.coo_matrix(net.W[-1])
-    eq_r += (row + Wc.row).tolist(); eq_c += prev[Wc.col].tolist(); eq_v += Wc.data.tolist()
-    eq_r += list(range(row, row + n_out)); eq_c += out.tolist(); eq_v += [-1.0] * n_out
+    eq_r += (row + Wc.row).tolist()
+    eq_c += prev[Wc.col].tolist()
+    eq_v += Wc.data.tolist()
+    eq_r += list(range(row, row + n_out))
+    eq_c += out.tolist()
+    eq_v += [-1.0] * n_out
     b_eq += (-net.b[-1]).tolist()
     row += n_out
     A_eq = sp.csr_matrix((eq_v, (eq_r, eq_c)), shape=(row, n))
@@ -308,15 +341,20 @@ def bigm_form(net: ReLUNet, bounds: NodeBounds) -> BigMForm:
         n_k = len(ybars[k])
         rU, rL = np.arange(r, r + n_k), np.arange(r + n_k, r + 2 * n_k)
         rows_U.append(rU), rows_L.append(rL)
-        ub_r += rU.tolist() * 2; ub_c += ybars[k].tolist() + alphas[k].tolist(); ub_v += [1.0] * n_k + [-1.0] * n_k
-        ub_r += rL.tolist() * 2; ub_c += yunds[k].tolist() + alphas[k].tolist(); ub_v += [1.0] * n_k + [-1.0] * n_k
+        ub_r += rU.tolist() * 2
+        ub_c += ybars[k].tolist() + alphas[k].tolist()
+        ub_v += [1.0] * n_k + [-1.0] * n_k
+        ub_r += rL.tolist() * 2
+        ub_c += yunds[k].tolist() + alphas[k].tolist()
+        ub_v += [1.0] * n_k + [-1.0] * n_k
         r += 2 * n_k
     A_ub = sp.lil_matrix(sp.csr_matrix((ub_v, (ub_r, ub_c)), shape=(r, n)))
     b_ub = np.zeros(r)
     lb, ub = np.full(n, -np.inf), np.full(n, np.inf)
     integrality = np.zeros(n, dtype=int)
     for k in range(net.K - 1):
-        lb[ybars[k]] = 0.0; lb[yunds[k]] = 0.0
+        lb[ybars[k]] = 0.0
+        lb[yunds[k]] = 0.0
         integrality[alphas[k]] = 1
     form = BigMForm(n=n, A_eq=A_eq, b_eq=np.asarray(b_eq), A_ub=A_ub.tocsr(), b_ub=b_ub, lb=lb, ub=ub,
                     integrality=integrality, x=x, out=out, ybar=ybars, yund=yunds, alpha=alphas,

@@ -37,7 +37,7 @@ Array = np.ndarray
 
 __all__ = ["ErrorEstimate", "ErrorBracket", "NotCertifiable", "pso_max_error", "sample_max_error",
            "grid_max_error", "de_max_error", "certify_error", "error_function", "worst_violation", "local_max_error",
-           "table1_rows", "architecture_sweep", "estimates_table", "enclosure_widths"]
+           "enclosure_widths"]
 
 
 # ============================================================================ results
@@ -150,6 +150,10 @@ def _resolve(f, net: ReLUNet, lo, hi) -> tuple[Callable[[Array], Array], Array, 
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
     if isinstance(f, FLSystem):
+        if (net.n_in, net.n_out) != (f.n_in, f.m):
+            raise ValueError(f"net has {net.n_in} inputs and {net.n_out} outputs, but the box of {f.name} has "
+                             f"{f.n_in} dimensions (z in R^{f.n_z}, v in R^{f.m}) and Phi has {f.m} outputs: pass the "
+                             f"network trained on this system's stacked input (z, v)")
         lo = f.lo if lo is None else lo
         hi = f.hi if hi is None else hi
         raw = f.phi_stacked
@@ -160,6 +164,11 @@ def _resolve(f, net: ReLUNet, lo, hi) -> tuple[Callable[[Array], Array], Array, 
         raise TypeError(f"f must be a callable (N, n_in) -> (N, m) or an FLSystem, got {type(f).__name__}")
     if lo is None or hi is None:
         raise ValueError("give the box lo, hi (shape (n_in,)) over which to bound the error")
+    for b, bname in ((lo, "lo"), (hi, "hi")):
+        if np.ndim(b) == 1 and np.shape(b)[0] != net.n_in:
+            raise ValueError(f"net has {net.n_in} inputs, the box lo = {np.asarray(lo)}, hi = {np.asarray(hi)} has "
+                             f"{np.shape(b)[0]} dimensions: {bname} must have shape ({net.n_in},), a box over the "
+                             f"network's input")
     lo, hi = check_box(lo, hi, net.n_in, "lo", "hi")
     m = net.n_out
 
@@ -383,7 +392,8 @@ def _interval_f(f, net: ReLUNet, f_interval, lipschitz, fun) -> tuple[Callable[[
             except (TypeError, AttributeError) as exc:
                 raise NotCertifiable(
                     f"f_interval failed on Interval inputs ({type(exc).__name__}: {exc}); write it with the "
-                    f"operations of flnotes.interval (+ - * /, iv.exp, iv.tanh, iv.sqrt, iv.abs, iv.arcsin, ...), "
+                    f"operations of flnotes.interval (+ - * / **, iv.sin, iv.cos, iv.tan, iv.arctan, iv.exp, iv.log, "
+                    f"iv.sqrt, iv.tanh, iv.abs, iv.arcsin, ...), "
                     f"not numpy functions") from exc
             if not isinstance(Y, Interval):
                 raise NotCertifiable(f"f_interval must return an flnotes.interval.Interval, got {type(Y).__name__}")
@@ -482,6 +492,70 @@ class _Evaluator:
         return ub, best, pts, score.argmax(1)
 
 
+#: Relative tolerance of the consistency checks of f_interval / lipschitz against Phi (rounding only).
+_CHECK_RTOL = 1e-8
+
+
+def _check_enclosure(f_enc, fun, X0: Array, Y0: Array, whole: Interval, lo: Array, hi: Array, name: str,
+                     seed: int, n_boxes: int = 64, per_box: int = 16) -> None:
+    """Refuse an interval version of ``Phi`` that does not enclose ``Phi``.
+
+    Checked where it is cheap: at the sample points ``X0`` (``Phi(x)`` in
+    ``f_interval([x, x])``), on the whole box, and on ``n_boxes`` small random
+    boxes of several sizes (``per_box`` samples each). A certificate computed
+    with an interval function that misses ``Phi`` would bound the error of
+    another function: ``ValueError`` naming the argument.
+    """
+
+    def fail(x, y, ilo, ihi, where):
+        raise ValueError(
+            f"{name} does not enclose Phi: at x = {np.array2string(np.asarray(x), precision=4)}, Phi(x) = {y:.6g} "
+            f"but {name} on {where} gives [{ilo:.6g}, {ihi:.6g}]. The interval version must compute the same "
+            f"function as Phi with flnotes.interval operations (look for a typo or a missing term); "
+            f"certify_error refuses to certify with it.")
+
+    def check(P, Y, E, where):
+        tol = _CHECK_RTOL * (1.0 + np.abs(Y))
+        bad = (Y < E.lo - tol) | (Y > E.hi + tol)
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            fail(P[r], Y[r, c], E.lo[r, c], E.hi[r, c], where(r))
+
+    check(X0, Y0, f_enc(Interval(X0, X0, check=False)), lambda r: "the point [x, x]")
+    W = Interval(np.broadcast_to(whole.lo, Y0.shape), np.broadcast_to(whole.hi, Y0.shape), check=False)
+    check(X0, Y0, W, lambda r: "the whole box")
+    rng = np.random.default_rng(seed + 1)
+    n = len(lo)
+    centre = rng.uniform(lo, hi, (n_boxes, n))
+    half = (hi - lo) * 10.0 ** rng.uniform(-4.0, -0.5, (n_boxes, 1))
+    blo, bhi = np.maximum(centre - half, lo), np.minimum(centre + half, hi)
+    E = f_enc(Interval(blo, bhi, check=False))
+    P = rng.uniform(np.repeat(blo, per_box, 0), np.repeat(bhi, per_box, 0))
+    Y = fun(P)
+    Eb = Interval(np.repeat(E.lo, per_box, 0), np.repeat(E.hi, per_box, 0), check=False)
+    check(P, Y, Eb, lambda r: f"the box [{np.array2string(blo[r // per_box], precision=4)}, "
+                              f"{np.array2string(bhi[r // per_box], precision=4)}]")
+
+
+def _check_lipschitz(fun, X0: Array, Y0: Array, lipschitz, lo: Array, hi: Array, seed: int, n_pairs: int = 2000) -> None:
+    """Refuse Lipschitz constants that pairs of nearby sample points contradict (``ValueError`` naming ``lipschitz``)."""
+    m, n = Y0.shape[1], X0.shape[1]
+    L = np.broadcast_to(np.asarray(lipschitz, float), (m, n))
+    rng = np.random.default_rng(seed + 1)
+    k = min(n_pairs, len(X0))
+    step = (hi - lo) * 10.0 ** rng.uniform(-4.0, -1.0, (k, 1)) * rng.uniform(-1.0, 1.0, (k, n))
+    X1 = np.clip(X0[:k] + step, lo, hi)
+    dY = np.abs(fun(X1) - Y0[:k])
+    bound = np.abs(X1 - X0[:k]) @ L.T
+    bad = dY > bound * (1.0 + 1e-6) + _FTOL * (2.0 + np.abs(Y0[:k]))
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise ValueError(
+            f"lipschitz is too small: between x = {np.array2string(X0[r], precision=4)} and "
+            f"y = {np.array2string(X1[r], precision=4)}, |Phi_{c}(x) - Phi_{c}(y)| = {dY[r, c]:.6g} > "
+            f"sum_j L_{c}j |x_j - y_j| = {bound[r, c]:.6g}; a certificate with it would not be sound.")
+
+
 def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, *,
                   f_interval: Optional[Callable[[Interval], Interval]] = None,
                   lipschitz: Optional[Union[float, Array]] = None, rtol: float = 0.05, atol: float = 0.0,
@@ -526,16 +600,21 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         an interval version of ``Phi``, a function of an
         :class:`flnotes.interval.Interval` ``X`` of shape (T, n_in) returning
         an Interval of shape (T, m), written with the operations of
-        :mod:`flnotes.interval` (``+ - * /``, ``iv.exp``, ``iv.tanh``,
-        ``iv.sqrt``, ``iv.abs``, ``iv.arcsin``, ``iv.sqr``, ``iv.hstack``,
-        slicing ``X[:, j:j+1]``) so that it also carries gradients; for an
-        :class:`FLSystem` it is ``phi_interval(z, v)``. It must be defined
-        (no singularity) on the whole box.
+        :mod:`flnotes.interval` (``+ - * /``, integer powers ``**``,
+        ``iv.sin``, ``iv.cos``, ``iv.tan``, ``iv.arctan``, ``iv.exp``,
+        ``iv.log``, ``iv.sqrt``, ``iv.tanh``, ``iv.abs``, ``iv.arcsin``,
+        ``iv.sqr``, ``iv.hstack``, slicing ``X[:, j:j+1]``) so that it also
+        carries gradients; for an :class:`FLSystem` it is
+        ``phi_interval(z, v)``. It must be defined (no singularity) on the
+        whole box, and it must enclose ``Phi``: before certifying, ``Phi`` at
+        the sample points and on small random boxes is checked against it,
+        and a mismatch (a typo) raises ``ValueError`` naming it.
     lipschitz
         ... or Lipschitz constants ``L`` with
         ``|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j|`` on the box (scalar,
         (n_in,) or (m, n_in)). Then ``Phi`` is only evaluated at points, and its
-        floating-point value is trusted to a relative accuracy of 1e-12. Much
+        floating-point value is trusted to a relative accuracy of 1e-12 (and
+        constants that pairs of nearby samples contradict are refused). Much
         slower to converge than ``f_interval``: the enclosure is first order
         (it cannot see ``Phi`` and ``Phi_NN`` cancel), so sub-boxes must shrink
         to about ``tolerance / L``; practical in one or two dimensions or for
@@ -568,7 +647,10 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         If neither ``f_interval`` nor ``lipschitz`` is available, or ``Phi``'s
         interval version is undefined somewhere on the box.
     ValueError
-        For an empty box (``lo > hi``) or a function returning the wrong shape.
+        For an empty box (``lo > hi``), a network whose input size is not the
+        box's, a function returning the wrong shape, an ``f_interval`` (or
+        ``phi_interval``) that does not enclose ``Phi``, or ``lipschitz``
+        constants that samples of ``Phi`` contradict.
     """
     fun, lo, hi = _resolve(f, net, lo, hi)
     if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
@@ -587,7 +669,15 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     if seeds is not None:
         S = seeds.argmax if isinstance(seeds, ErrorEstimate) else as_batch(seeds, n, "seeds")
         X0 = np.vstack([np.clip(S, lo, hi), X0])
-    E0 = np.abs(fun(X0) - net(X0))
+    Y0 = fun(X0)
+    if not np.all(np.isfinite(Y0)):
+        raise ValueError("Phi returned NaN or inf on the box: certify on a box where it is defined")
+    if method == "interval":
+        name = "f_interval" if f_interval is not None else f"phi_interval of {f.name}"
+        _check_enclosure(f_enc, fun, X0, Y0, whole, lo, hi, name, seed)
+    else:
+        _check_lipschitz(fun, X0, Y0, lipschitz, lo, hi, seed)
+    E0 = np.abs(Y0 - net(X0))
     # initial partition
     edges = [np.linspace(l, h, 1 if d else initial_per_axis + 1) for l, h, d in zip(lo, hi, degenerate)]
     cells = np.stack(np.meshgrid(*[np.arange(max(len(e) - 1, 1)) for e in edges], indexing="ij"), -1).reshape(-1, n)
@@ -726,111 +816,7 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
     return dict(violation=best, point=point, n_feasible=n_feas, n_points=len(Z) * n_v)
 
 
-# ============================================================================ the paper's Table 1 and sweeps
-def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
-    """The paper's Table 1 next to the book's networks: K, n_bar, eps, n_s, training time, certified eps.
-
-    For each system one row with the paper's numbers (``source = "paper"``)
-    and one with the book's: the network of :func:`flnotes.paper_net`, its
-    PSO estimate and its certified bracket (:func:`flnotes.paper.paper_eps`).
-    """
-    from . import paper
-
-    rows = []
-    for name in names:
-        t = paper.TABLE1[name]
-        rows.append({"system": name, "source": "paper", "K": t["K"], "n_bar": t["n_bar"], "n_s": str(t["n_s"]),
-                     "eps (PSO)": t["eps"], "eps certified": "", "training time (s)": t["train_time_s"]})
-        net, rep = paper.paper_net(name)
-        sysm = paper.system(name)
-        pso = pso_max_error(sysm, net, **paper.EPS_SETTINGS["pso"])
-        br = paper.paper_eps(name)
-        n_s = "x".join(str(k) for k in rep.n_per_axis) if len(set(rep.n_per_axis)) > 1 else str(rep.n_per_axis[0])
-        rows.append({"system": name, "source": "flnotes", "K": net.K, "n_bar": net.widths[0], "n_s": n_s,
-                     "eps (PSO)": round(float(pso.eps[0]), 5),
-                     "eps certified": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
-                     "training time (s)": round(rep.time_s, 1)})
-    return rows
-
-
-def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), depths: Sequence[int] = (1, 2, 3),
-                       n_per_axis: Sequence[int] = (10, 20, 30), max_iter: int = 300, max_train: Optional[int] = None,
-                       seed: int = 0,
-                       rtol: float = 0.05, max_time: float = 20.0, n_samples: int = 20_000,
-                       cache: bool = True, progress: bool = False) -> list[dict]:
-    """Train small networks over a grid of widths, depths and grid densities; estimate and certify each eps.
-
-    One row per network with ``width``, ``depth``, ``n_s``, ``n_binaries``
-    (``width * depth``, the binaries of one copy of eq. (MIP_general)),
-    ``eps_sample`` (max over ``n_samples`` random points), ``eps_pso``,
-    ``eps_certified`` (upper end of :func:`certify_error` with ``rtol``),
-    ``eps_lower``, ``train_time_s`` and ``certify_time_s``. ``max_train``
-    caps the training points per network (a random subset of the grid, as in
-    :func:`flnotes.fit_relu`; ``None``: the whole grid). The table is cached
-    on disk (keyed by all arguments), so a chapter computes it once.
-    """
-    import hashlib
-    import json
-
-    from .config import cache_dir
-    from .network import fit_relu
-
-    args = dict(system=system.name, lo=system.lo.tolist(), hi=system.hi.tolist(), widths=list(widths),
-                depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, max_train=max_train, seed=seed, rtol=rtol,
-                max_time=max_time, n_samples=n_samples, version=1)
-    path = cache_dir() / f"sweep-{system.name}-{hashlib.sha1(json.dumps(args, sort_keys=True).encode()).hexdigest()[:12]}.json"
-    if cache and path.exists():
-        return json.loads(path.read_text())
-    rows = []
-    for n_s in n_per_axis:
-        for depth in depths:
-            for width in widths:
-                net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(width,) * depth,
-                                    n_per_axis=n_s, max_train=max_train, max_iter=max_iter, seed=seed)
-                smp = sample_max_error(system, net, n=n_samples, seed=seed)
-                pso = pso_max_error(system, net, n_particles=50, n_iter=100, seed=seed)
-                br = certify_error(system, net, rtol=rtol, seeds=pso, n_samples=1000, max_time=max_time)
-                rows.append(dict(width=width, depth=depth, n_s=n_s, n_binaries=width * depth,
-                                 eps_sample=float(smp.eps[0]), eps_pso=float(pso.eps[0]),
-                                 eps_lower=float(br.lower[0]), eps_certified=float(br.upper[0]),
-                                 converged=bool(br.converged[0]), train_time_s=rep.time_s,
-                                 certify_time_s=float(br.time_s[0])))
-                if progress:
-                    print(rows[-1], flush=True)
-    if cache:
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(rows))
-        tmp.replace(path)
-    return rows
-
-
 # ============================================================================ teaching helpers
-def estimates_table(estimates: dict, brackets: Optional[dict] = None) -> list[dict]:
-    """Rows comparing estimates of eq. (epsilon_find): system, method, eps found, evaluations, time.
-
-    ``estimates`` maps a system name to a list of :class:`ErrorEstimate`;
-    ``brackets`` optionally maps it to an :class:`ErrorBracket`, added as a
-    last row and used to report each estimate relative to the certified lower bound.
-    """
-    names = {"pso": "particle swarm", "de": "differential evolution", "grid": "dense grid",
-             "sample": "random samples", "local": "L-BFGS-B, best of several starts"}
-    rows = []
-    for system, ests in estimates.items():
-        br = None if brackets is None else brackets.get(system)
-        for e in ests:
-            row = {"system": system, "method": names.get(e.method, e.method), "eps found": round(float(e.eps[0]), 5),
-                   "evaluations": f"{e.n_evals:,}", "time (s)": round(e.time_s, 2)}
-            if br is not None:
-                row["found / certified lower"] = round(float(e.eps[0] / br.lower[0]), 3)
-            rows.append(row)
-        if br is not None:
-            rows.append({"system": system, "method": "certified bracket",
-                         "eps found": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
-                         "evaluations": f"{int(br.n_boxes[0]):,} boxes", "time (s)": round(float(br.time_s[0]), 2),
-                         "found / certified lower": 1.0})
-    return rows
-
-
 def enclosure_widths(system: FLSystem, net: ReLUNet, x0: Array, radii: Sequence[float] = (1.0, 0.3, 0.1, 0.03, 0.01),
                      n_samples: int = 20_000, seed: int = 0) -> list[dict]:
     """How tight are the bounds of ``max |Phi - Phi_NN|`` on boxes ``x0 +- r``?

@@ -21,11 +21,17 @@ an enclosure too narrow:
 * ``+ - * /`` and ``sqrt`` are correctly rounded in IEEE 754 double precision,
   so moving each result outward by one unit in the last place is enough
   (:func:`down`, :func:`up` move it by a few);
-* ``exp``, ``tanh``, ``arcsin`` come from the C math library / numpy's SIMD
+* ``exp``, ``log``, ``tanh``, ``arcsin``, ``arctan``, ``sin``, ``cos``,
+  ``tan`` and integer powers come from the C math library / numpy's SIMD
   kernels, which are accurate to a few ulp but not correctly rounded; their
   results are widened by :data:`LIBM_ULPS` ulp (relative) plus
-  :data:`TINY` (absolute). This is the one assumption: the library's error is
-  below ``LIBM_ULPS`` ulp (glibc and numpy document at most about 4);
+  :data:`TINY` (absolute); ``sin``, ``cos``, ``tan`` also by an absolute
+  ``LIBM_ULPS * 2^-53`` (near their zeros). This is the one assumption: the
+  library's error is below ``LIBM_ULPS`` ulp (glibc and numpy document at
+  most about 4);
+* the extrema of ``sin`` and ``cos`` inside an interval (``+-1`` at
+  ``pi/2 + k pi`` and ``k pi``) are detected with a small slack, so an
+  interval ending just short of one still gets ``+-1``: wider, never unsound;
 * matrix products (:func:`affine`) use the midpoint-radius form with the
   classical a-priori bound ``|fl(x.y) - x.y| <= gamma_n |x|.|y|``,
   ``gamma_n = n u / (1 - n u)``, ``u = 2^-53``, valid for any summation order
@@ -44,7 +50,7 @@ import numpy as np
 Array = np.ndarray
 Number = Union[float, int, Array]
 
-#: Relative widening, in units of 2^-52, applied to exp, tanh, arcsin results.
+#: Relative widening, in units of 2^-52, applied to the results of library functions (exp, log, sin, ...).
 LIBM_ULPS = 16
 #: Absolute widening added to every library-function result (covers underflow).
 TINY = 1e-300
@@ -55,7 +61,8 @@ _INF = np.inf
 
 class NotCertifiable(ValueError):
     """Raised when an interval operation leaves its domain (division by an interval
-    containing 0, ``sqrt`` or ``arcsin`` outside their domain, NaN)."""
+    containing 0, ``sqrt``, ``log`` or ``arcsin`` outside their domain, ``tan``
+    across a pole, NaN)."""
 
 
 # ---------------------------------------------------------------------- rounding
@@ -125,9 +132,13 @@ class Interval:
     Notes
     -----
     Supports ``+ - * /`` (with numbers, arrays and other intervals), unary
-    ``-``, integer powers ``x**k``, indexing and slicing like the arrays, and
-    the functions of this module (:func:`exp`, :func:`tanh`, :func:`sqrt`,
-    :func:`abs`, :func:`arcsin`, :func:`sqr`, :func:`hstack`). A plain float
+    ``-``, integer powers ``x**k`` (:func:`power`), indexing and slicing like
+    the arrays, and the functions of this module (:func:`exp`, :func:`log`,
+    :func:`sqrt`, :func:`sin`, :func:`cos`, :func:`tan`, :func:`arctan`,
+    :func:`tanh`, :func:`arcsin`, :func:`abs`, :func:`sqr`, :func:`hstack`).
+    Leaving a function's domain (``1 / x`` or ``x ** -k`` with 0 inside,
+    ``sqrt`` or ``log`` below 0, ``tan`` across a pole) raises
+    :class:`NotCertifiable` with a message saying which. A plain float
     in an expression is an exact constant (the double it is stored as).
     """
 
@@ -143,7 +154,10 @@ class Interval:
             if np.isnan(lo).any() or np.isnan(hi).any():
                 raise NotCertifiable("interval bound is NaN: the function left its domain on some box")
             if np.any(lo > hi):
-                raise ValueError("Interval: every lower bound must be <= its upper bound")
+                i = tuple(int(j) for j in np.argwhere(lo > hi)[0])
+                at = str(list(i)) if i else ""
+                raise ValueError(f"Interval: lo{at} = {lo[i]} > hi{at} = {hi[i]}; every lower bound must "
+                                 f"be <= its upper bound")
         self.lo, self.hi = lo, hi
         if (dlo is None) != (dhi is None):
             raise ValueError("Interval: give both dlo and dhi or neither")
@@ -296,18 +310,8 @@ class Interval:
         return self._lift(other) * self.reciprocal()
 
     def __pow__(self, k: int) -> "Interval":
-        if not (isinstance(k, (int, np.integer)) and k >= 0):
-            raise NotCertifiable(f"Interval ** {k!r}: only non-negative integer powers are supported; "
-                                 f"write other powers with exp/sqrt")
-        if k == 0:
-            return Interval(np.ones_like(self.lo), np.ones_like(self.hi))
-        if k == 1:
-            return self
-        if k == 2:
-            return sqr(self)
-        half = self ** (k // 2)
-        out = sqr(half)
-        return out * self if k % 2 else out
+        """``x ** k`` for an integer ``k`` (see :func:`power`)."""
+        return power(self, k)
 
     def __abs__(self) -> "Interval":
         return abs_(self)
@@ -393,6 +397,174 @@ def arcsin(x: Interval) -> Interval:
     return _chain(x, lo, hi, r.lo, r.hi)
 
 
+def _lib_abs_down(x: Array) -> Array:
+    """Lower bound for a periodic library function's result: relative and absolute widening."""
+    return _lib_down(x) - _TRIG_ABS
+
+
+def _lib_abs_up(x: Array) -> Array:
+    return _lib_up(x) + _TRIG_ABS
+
+
+#: Absolute widening of sin, cos, tan results (LIBM_ULPS units of 2^-53): covers the library's argument
+#: reduction near a zero of the function, where a relative bound alone would be too strict an assumption.
+_TRIG_ABS = LIBM_ULPS * _U
+_TWO_PI = 2.0 * np.pi
+
+
+def _hits(lo: Array, hi: Array, a: float, period: float = _TWO_PI) -> Array:
+    """Does ``[lo, hi]`` (possibly) contain a point ``a + k period``, ``k`` integer?
+
+    Computed with a small slack, so a point just outside counts as inside: that
+    only widens an enclosure, never makes it too narrow.
+    """
+    mag = np.maximum(np.abs(lo), np.abs(hi))
+    slack = 1e-9 * (1.0 + mag / period)
+    return np.floor((hi - a) / period + slack) >= np.ceil((lo - a) / period - slack)
+
+
+def _sin_cos(x: Interval, phase: float) -> tuple[Array, Array]:
+    """Value bounds of ``cos(x - phase)`` written as sin (phase = pi/2) or cos (phase = 0), with extrema inside."""
+    f = np.cos if phase == 0.0 else np.sin
+    a, b = f(x.lo), f(x.hi)
+    lo = _lib_abs_down(np.minimum(a, b))
+    hi = _lib_abs_up(np.maximum(a, b))
+    hi = np.where(_hits(x.lo, x.hi, phase), 1.0, hi)                # a maximum inside the interval
+    lo = np.where(_hits(x.lo, x.hi, phase + np.pi), -1.0, lo)       # a minimum inside
+    return np.clip(lo, -1.0, 1.0), np.clip(hi, -1.0, 1.0)
+
+
+def _check_finite(x: Interval, name: str) -> None:
+    if not (np.all(np.isfinite(x.lo)) and np.all(np.isfinite(x.hi))):
+        raise NotCertifiable(f"{name} of an unbounded interval: the argument is infinite on some box")
+
+
+def sin(x: Interval) -> Interval:
+    """``sin x``: the end values, and ``+-1`` wherever a maximum ``pi/2 + 2k pi`` or minimum lies inside.
+
+    The derivative enclosure is :func:`cos` of the same interval.
+    """
+    x = Interval._lift(x)
+    _check_finite(x, "sin")
+    lo, hi = _sin_cos(x, np.pi / 2)
+    if not x.has_grad:
+        return Interval(lo, hi, check=False)
+    dlo, dhi = _sin_cos(x, 0.0)
+    return _chain(x, lo, hi, dlo, dhi)
+
+
+def cos(x: Interval) -> Interval:
+    """``cos x``: the end values, and ``+-1`` wherever a maximum ``2k pi`` or minimum ``pi + 2k pi`` lies inside.
+
+    The derivative enclosure is ``-sin`` of the same interval.
+    """
+    x = Interval._lift(x)
+    _check_finite(x, "cos")
+    lo, hi = _sin_cos(x, 0.0)
+    if not x.has_grad:
+        return Interval(lo, hi, check=False)
+    slo, shi = _sin_cos(x, np.pi / 2)
+    return _chain(x, lo, hi, -shi, -slo)
+
+
+def tan(x: Interval) -> Interval:
+    """``tan x`` (increasing between its poles ``pi/2 + k pi``); derivative ``1 + tan^2 x``.
+
+    Raises :class:`NotCertifiable` if an interval contains (or touches) a pole.
+    """
+    x = Interval._lift(x)
+    _check_finite(x, "tan")
+    if np.any(_hits(x.lo, x.hi, np.pi / 2, np.pi)):
+        raise NotCertifiable("tan of an interval containing a pole (pi/2 + k pi): tan is unbounded on some box; "
+                             "keep its argument inside (-pi/2, pi/2) (mod pi) on the whole domain")
+    lo, hi = _lib_abs_down(np.tan(x.lo)), _lib_abs_up(np.tan(x.hi))
+    if not x.has_grad:
+        return Interval(lo, hi, check=False)
+    s_lo, s_hi = _sqr_lo_hi(lo, hi)
+    return _chain(x, lo, hi, down(1.0 + s_lo), up(1.0 + s_hi))
+
+
+def arctan(x: Interval) -> Interval:
+    """``arctan x`` (increasing, values in (-pi/2, pi/2)); derivative ``1 / (1 + x^2)``."""
+    x = Interval._lift(x)
+    lo = np.maximum(_lib_down(np.arctan(x.lo)), -np.pi / 2 - 1e-15)
+    hi = np.minimum(_lib_up(np.arctan(x.hi)), np.pi / 2 + 1e-15)
+    if not x.has_grad:
+        return Interval(lo, hi, check=False)
+    s_lo, s_hi = _sqr_lo_hi(x.lo, x.hi)
+    return _chain(x, lo, hi, np.maximum(down(1.0 / up(1.0 + s_hi)), 0.0), np.minimum(up(1.0 / down(1.0 + s_lo)), 1.0))
+
+
+def log(x: Interval) -> Interval:
+    """Natural logarithm (increasing); needs ``x > 0`` on the whole interval. Derivative ``1 / x``."""
+    x = Interval._lift(x)
+    if np.any(x.lo <= 0):
+        raise NotCertifiable("log of an interval reaching 0 or below: the function is undefined on some box; "
+                             "keep its argument > 0 on the whole domain")
+    _check_finite(x, "log")
+    lo, hi = _lib_down(np.log(x.lo)), _lib_up(np.log(x.hi))
+    if not x.has_grad:
+        return Interval(lo, hi, check=False)
+    return _chain(x, lo, hi, down(1.0 / x.hi), up(1.0 / x.lo))
+
+
+def _pow_lo_hi(a: Array, k: int) -> tuple[Array, Array]:
+    """Bounds of ``a ** k`` for ``a >= 0`` or odd ``k`` (k >= 1): the float power widened by k + LIBM_ULPS ulp."""
+    with np.errstate(over="ignore"):
+        p = np.power(a, k)
+    w = np.abs(p) * ((k + LIBM_ULPS) * _EPS) + TINY
+    return p - w, p + w
+
+
+def power(x: Interval, k: int) -> Interval:
+    """``x ** k`` for an integer ``k`` (also written ``x ** k``).
+
+    Odd ``k``: increasing, ``[lo^k, hi^k]``. Even ``k``: ``[0, max(|lo|, |hi|)^k]``
+    when 0 is inside, else ``[min(|lo|, |hi|)^k, max(|lo|, |hi|)^k]`` (no
+    dependency problem, unlike repeated multiplication). ``k = 0`` gives 1,
+    ``k < 0`` is ``1 / x^|k|`` and raises :class:`NotCertifiable` if an
+    interval contains 0. Derivative ``k x^(k-1)``.
+    """
+    x = Interval._lift(x)
+    if isinstance(k, (float, np.floating)) and float(k).is_integer():
+        k = int(k)
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
+        raise NotCertifiable(f"Interval ** {k!r}: only integer powers are supported; write x ** 0.5 as iv.sqrt(x) "
+                             f"and a real power p of x > 0 as iv.exp(p * iv.log(x))")
+    k = int(k)
+    if k < 0:
+        if np.any((x.lo <= 0) & (x.hi >= 0)):
+            raise NotCertifiable(f"Interval ** {k}: division by an interval that contains 0 (a negative power of 0) "
+                                 f"on some box")
+        return power(x, -k).reciprocal()
+    if k == 0:
+        one = np.ones_like(x.lo)
+        if not x.has_grad:
+            return Interval(one, one, check=False)
+        z = np.zeros_like(x.dlo)
+        return Interval(one, one, z, z, check=False)
+    if k == 1:
+        return x
+    if k == 2:
+        return sqr(x)
+    _check_finite(x, f"Interval ** {k}")
+    if k % 2:
+        lo, _ = _pow_lo_hi(x.lo, k)
+        _, hi = _pow_lo_hi(x.hi, k)
+    else:
+        a, b = np.abs(x.lo), np.abs(x.hi)
+        zero = (x.lo <= 0) & (x.hi >= 0)
+        lo, _ = _pow_lo_hi(np.where(zero, 0.0, np.minimum(a, b)), k)
+        _, hi = _pow_lo_hi(np.maximum(a, b), k)
+        lo = np.maximum(lo, 0.0)
+    if not np.all(np.isfinite(hi)) or not np.all(np.isfinite(lo)):
+        raise NotCertifiable(f"Interval ** {k} overflowed on some box")
+    if not x.has_grad:
+        return Interval(lo, hi, check=False)
+    d = power(Interval(x.lo, x.hi, check=False), k - 1) * float(k)
+    return _chain(x, lo, hi, d.lo, d.hi)
+
+
 def abs_(x: Interval) -> Interval:
     """``|x|``; where 0 is inside, the (Clarke) derivative is the whole ``[-1, 1]``."""
     x = Interval._lift(x)
@@ -432,6 +604,9 @@ def hstack(parts: Sequence[Interval]) -> Interval:
 
 
 abs = abs_  # noqa: A001  (so that ``iv.abs(x)`` reads like ``np.abs(x)``)
+pow = power  # noqa: A001  (``iv.pow(x, 3)`` reads like ``np.power(x, 3)``)
+atan = arctan  # the names of the math module
+asin = arcsin
 
 
 # ---------------------------------------------------------------------- linear algebra
@@ -685,6 +860,7 @@ def make_quad1d_phi(Gamma: float, gamma_: float, tau: float):
     return quad1d_phi
 
 
-__all__ = ["Interval", "NotCertifiable", "LIBM_ULPS", "TINY", "down", "up", "gamma", "sqr", "exp", "tanh",
-           "sqrt", "arcsin", "abs_", "relu", "hstack", "affine", "net_interval", "net_preactivations", "net_linear_bound", "dot_bounds",
+__all__ = ["Interval", "NotCertifiable", "LIBM_ULPS", "TINY", "down", "up", "gamma", "sqr", "exp", "log", "tanh",
+           "sqrt", "arcsin", "asin", "sin", "cos", "tan", "arctan", "atan", "power", "abs_", "relu", "hstack", "affine",
+           "net_interval", "net_preactivations", "net_linear_bound", "dot_bounds",
            "mean_value_bound", "intersect", "stribeck", "msd_phi", "make_quad1d_phi"]

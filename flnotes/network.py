@@ -134,7 +134,8 @@ class ReLUNet:
         The optional affine maps are folded in (see :meth:`affine_wrapped`).
         """
         if getattr(model, "activation", None) != "relu":
-            raise ValueError(f"only ReLU networks can be encoded as MILPs; the model uses activation={getattr(model, 'activation', None)!r}")
+            raise ValueError("only ReLU networks can be encoded as MILPs; the model uses "
+                             f"activation={getattr(model, 'activation', None)!r}")
         if not hasattr(model, "coefs_"):
             raise ValueError("the MLPRegressor is not fitted yet: call model.fit(X, y) first")
         net = cls([c.T for c in model.coefs_], list(model.intercepts_))
@@ -195,7 +196,7 @@ def uniform_grid(lo: Array, hi: Array, n_per_axis: Union[int, Sequence[int]]) ->
 def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence[int] = (20, 20, 20),
              n_per_axis: Union[int, Sequence[int]] = 30, max_train: Optional[int] = 60_000,
              max_iter: int = 3000, seed: int = 0, alpha: float = 0.0, tol: float = 1e-10,
-             ) -> tuple[ReLUNet, TrainingReport]:
+             threads: Optional[int] = 1) -> tuple[ReLUNet, TrainingReport]:
     """Train ``Phi_NN`` by regression on a uniform grid (the paper's Sec. III-A.1 and IV).
 
     The scheme: sample ``f`` on the full grid of ``n_per_axis`` points per axis;
@@ -226,19 +227,31 @@ def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence
         L-BFGS iterations, tolerance, and L2 penalty (0: plain least squares).
     seed
         Seed of the initial weights and of the subset.
+    threads
+        Threads the BLAS and OpenMP pools may use while training (through
+        :mod:`threadpoolctl`); ``None`` leaves them as they are. One thread is
+        the default: the products of full-batch L-BFGS are small, and on a
+        busy two-core machine more threads oversubscribe the cores and make
+        the training time erratic (``make bench`` measures both).
 
     Returns
     -------
     net, report
         The network on raw units and a :class:`TrainingReport`.
     """
-    from sklearn.neural_network import MLPRegressor
     from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPRegressor
+    from threadpoolctl import threadpool_limits
 
+    if not callable(f):
+        hint = " (for a system, pass system.phi_stacked)" if hasattr(f, "phi_stacked") else ""
+        raise TypeError(f"f must be a function (N, n_in) -> (N, m) to approximate, got {type(f).__name__}{hint}")
     lo, hi = check_box(lo, hi, len(np.atleast_1d(lo)))
     widths = tuple(int(w) for w in widths)
     if not widths or min(widths) < 1:
         raise ValueError(f"widths must list at least one positive hidden width, got {widths}")
+    if threads is not None and (int(threads) != threads or threads < 1):
+        raise ValueError(f"threads must be a positive integer or None (leave the thread pools alone), got {threads!r}")
     t0 = time.perf_counter()
     X = uniform_grid(lo, hi, n_per_axis)
     Y = np.asarray(f(X), float)
@@ -251,7 +264,7 @@ def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence
     y_off, y_sc = Y.mean(0), np.maximum(Y.std(0), 1e-12)
     model = MLPRegressor(hidden_layer_sizes=widths, activation="relu", solver="lbfgs", alpha=alpha,
                          max_iter=max_iter, max_fun=10 * max_iter, tol=tol, random_state=seed)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), threadpool_limits(limits=None if threads is None else int(threads)):
         warnings.simplefilter("ignore", ConvergenceWarning)
         model.fit((X[idx] - x_off) / x_sc, ((Y[idx] - y_off) / y_sc).squeeze() if Y.shape[1] == 1 else (Y[idx] - y_off) / y_sc)
     net = ReLUNet.from_sklearn(model, x_off, x_sc, y_off, y_sc)
@@ -260,6 +273,6 @@ def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence
         time_s=time.perf_counter() - t0, n_grid=len(X), n_train=len(idx), n_iter=int(model.n_iter_),
         widths=widths, n_per_axis=tuple(np.broadcast_to(np.asarray(n_per_axis, int), lo.shape).tolist()),
         grid_max_error=err.max(0), grid_rmse=np.sqrt((err**2).mean(0)),
-        settings=dict(max_train=max_train, max_iter=max_iter, seed=seed, alpha=alpha, tol=tol),
+        settings=dict(max_train=max_train, max_iter=max_iter, seed=seed, alpha=alpha, tol=tol, threads=threads),
     )
     return net, report

@@ -8,12 +8,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from typing import Callable
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
 from .config import cache_dir
 from .network import ReLUNet, TrainingReport, fit_relu
+from .reference import load_reference, save_reference, weights_sha256
 from .systems import FLSystem, msd, quad1d
 
 #: Table 1 of the paper: architecture, error bound, controller gains, grid density, training time.
@@ -46,8 +47,9 @@ QUAD_SETTING = dict(
 
 #: The book's training settings, chosen to match Table 1's architectures and grids. The MSD grid is
 #: twice as dense along z2 (60 instead of Table 1's 30 points): the Stribeck term tanh(10 z2) rises over
-#: |z2| < 0.2, which a spacing of 10/29 = 0.34 barely samples, and on the 30^3 grid the certified eps
-#: is above the paper's (chapter 5 shows both).
+#: |z2| < 0.2, which a spacing of 10/29 = 0.34 barely samples; on the 30^3 grid the certified eps of the
+#: same architecture is larger (chapter 5 shows both). ``fit_relu``'s default ``threads=1`` is part of the
+#: setting: the thread count of the BLAS changes the weights L-BFGS converges to.
 NET_SETTINGS = {
     "MSD": dict(widths=(20, 20, 20), n_per_axis=(30, 60, 30), max_train=None, max_iter=3000, seed=2),
     "Quad-1D": dict(widths=(10, 10, 10), n_per_axis=35, max_train=60_000, max_iter=3000, seed=0),
@@ -69,15 +71,53 @@ def _key(name: str, settings: dict) -> str:
     return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 
-def paper_net(name: str, refresh: bool = False, **overrides) -> tuple[ReLUNet, TrainingReport]:
-    """The book's network for ``name`` with Table 1's architecture, trained once and cached.
+#: The networks shipped with the package (:mod:`flnotes.reference`): reference name -> (system, training
+#: settings). ``"MSD"`` and ``"Quad-1D"`` are the book's networks; ``"MSD-n30"`` is the MSD network on
+#: Table 1's own 30^3 grid, which chapter 5 compares with.
+REFERENCES: dict[str, tuple[str, dict]] = {
+    "MSD": ("MSD", NET_SETTINGS["MSD"]),
+    "Quad-1D": ("Quad-1D", NET_SETTINGS["Quad-1D"]),
+    "MSD-n30": ("MSD", {**NET_SETTINGS["MSD"], "n_per_axis": 30, "seed": 0}),
+}
 
-    Training takes seconds to a minute; the result is cached on disk (see
-    :func:`flnotes.config.cache_dir`) keyed by the settings, so every chapter
-    uses the very same network. ``overrides`` change :data:`NET_SETTINGS`.
+
+def _normalized(settings: dict) -> dict:
+    return json.loads(json.dumps({k: (list(v) if isinstance(v, tuple) else v) for k, v in settings.items()}))
+
+
+def shipped_name(name: str, settings: dict) -> Optional[str]:
+    """The shipped reference trained on system ``name`` with exactly ``settings``, if there is one."""
+    want = _normalized(settings)
+    for ref, (sys_name, ref_settings) in REFERENCES.items():
+        if sys_name == name and _normalized(ref_settings) == want:
+            return ref
+    return None
+
+
+def paper_net(name: str, refresh: bool = False, **overrides) -> tuple[ReLUNet, TrainingReport]:
+    """The book's network for ``name`` with Table 1's architecture: the shipped reference, or trained.
+
+    Parameters
+    ----------
+    name
+        ``"MSD"`` or ``"Quad-1D"``.
+    refresh
+        ``False`` (default): load the network shipped with the package
+        (:mod:`flnotes.reference`), the same weights on every machine.
+        ``True``: train it anew with :func:`flnotes.fit_relu` on this machine
+        (seconds to a minute) and cache the result on disk (see
+        :func:`flnotes.config.cache_dir`); the weights may then differ from
+        the shipped ones in the last digits, and with them ``eps``.
+    overrides
+        Change :data:`NET_SETTINGS`; settings that match a shipped reference
+        (see :data:`REFERENCES`) load it, any other is trained and cached.
     """
     sysm = system(name)
     settings = {**NET_SETTINGS[name], **overrides}
+    ref = shipped_name(name, settings)
+    if ref is not None and not refresh:
+        r = load_reference(ref)
+        return r.net, r.report
     path = cache_dir() / f"net-{name}-{_key(name, settings)}.npz"
     meta = path.with_suffix(".json")
     if path.exists() and meta.exists() and not refresh:
@@ -101,25 +141,43 @@ EPS_SETTINGS = dict(rtol=1e-3, atol=0.0, pso=dict(n_particles=100, n_iter=300, s
 _EPS_VERSION = "certify-v1"  # bump when the certification algorithm changes, to refresh cached brackets
 
 
-def paper_eps(name: str, refresh: bool = False, **overrides):
-    """The certified error bound ``eps`` of eq. (approx_err) for the book's network, computed once and cached.
-
-    Runs :func:`flnotes.error.pso_max_error` (the paper's estimate, used as a
-    starting lower bound) and then :func:`flnotes.error.certify_error` on
-    :func:`paper_net` ``(name)`` over the system's domain box, with
-    :data:`EPS_SETTINGS`. The result is an :class:`flnotes.error.ErrorBracket`;
-    chapters use its ``upper`` as ``eps`` in ``u_max^eps = u_max - eps``
-    (eq. Phi_NN_ep). Cached on disk next to the network, keyed by the
-    network's settings, a hash of its weights and the certification
-    settings; ``overrides`` change :data:`NET_SETTINGS` exactly as in
-    :func:`paper_net`.
-    """
-    from .error import ErrorBracket, certify_error, pso_max_error
+def certify_book_eps(name: str, net: ReLUNet):
+    """Certify ``eps`` of eq. (approx_err) for ``net`` on system ``name``'s box with :data:`EPS_SETTINGS`."""
+    from .error import certify_error, pso_max_error
 
     sysm = system(name)
+    pso = pso_max_error(sysm, net, **EPS_SETTINGS["pso"])
+    return certify_error(sysm, net, rtol=EPS_SETTINGS["rtol"], atol=EPS_SETTINGS["atol"], seeds=pso,
+                         n_samples=EPS_SETTINGS["n_samples"], seed=EPS_SETTINGS["seed"])
+
+
+def paper_eps(name: str, refresh: bool = False, **overrides):
+    """The certified error bound ``eps`` of eq. (approx_err) for the book's network.
+
+    For a shipped network (see :func:`paper_net`) this is the bracket
+    certified when the reference was written, stored with it, so every
+    machine uses the same ``eps``. Otherwise (``refresh=True`` or settings
+    with no shipped reference) it runs :func:`flnotes.error.pso_max_error`
+    (the paper's estimate, used as a starting lower bound) and then
+    :func:`flnotes.error.certify_error` on :func:`paper_net` ``(name)`` over
+    the system's domain box, with :data:`EPS_SETTINGS`, and caches the result
+    on disk keyed by the network's settings, a hash of its weights and the
+    certification settings. The result is an
+    :class:`flnotes.error.ErrorBracket`; chapters use its ``upper`` as
+    ``eps`` in ``u_max^eps = u_max - eps`` (eq. Phi_NN_ep).
+    """
+    from .error import ErrorBracket
+
     net_settings = {**NET_SETTINGS[name], **overrides}
-    net, _ = paper_net(name, **overrides)
-    weights = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in net.W + net.b)).hexdigest()[:12]
+    ref = shipped_name(name, net_settings)
+    if ref is not None and not refresh:
+        r = load_reference(ref)
+        if r.bracket is None or r.meta.get("eps_settings") != _normalized(dict(EPS_SETTINGS, version=_EPS_VERSION)):
+            raise ValueError(f"the shipped reference {ref!r} has no bracket certified with the current EPS_SETTINGS; "
+                             f"call paper_eps({name!r}, refresh=True) or rewrite the references (make reference)")
+        return ErrorBracket(**{k: (np.array(v) if isinstance(v, list) else v) for k, v in r.bracket.items()})
+    net, _ = paper_net(name, refresh=refresh, **overrides)
+    weights = weights_sha256(net)[:12]
     key = _key(name, dict(net=_key(name, net_settings), weights=weights, version=_EPS_VERSION,
                           **{k: (json.dumps(v, sort_keys=True) if isinstance(v, dict) else v) for k, v in EPS_SETTINGS.items()}))
     path = cache_dir() / f"eps-{name}-{key}.json"
@@ -127,12 +185,36 @@ def paper_eps(name: str, refresh: bool = False, **overrides):
         d = json.loads(path.read_text())
         d = {k: (np.array(v) if isinstance(v, list) else v) for k, v in d.items()}
         return ErrorBracket(**d)
-    pso = pso_max_error(sysm, net, **EPS_SETTINGS["pso"])
-    br = certify_error(sysm, net, rtol=EPS_SETTINGS["rtol"], atol=EPS_SETTINGS["atol"], seeds=pso,
-                       n_samples=EPS_SETTINGS["n_samples"], seed=EPS_SETTINGS["seed"])
+    br = certify_book_eps(name, net)
     d = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in br.__dict__.items()
          if k not in ("partition", "history")}
     tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.json")
     tmp.write_text(json.dumps(d))
     os.replace(tmp, path)
     return br
+
+
+def write_references(names: Optional[Sequence[str]] = None, folder=None) -> list[str]:
+    """Train, certify and write the shipped references (``make reference``); returns the files written.
+
+    Each network of :data:`REFERENCES` is trained with its settings, its
+    ``eps`` is certified with :data:`EPS_SETTINGS`, and both are written by
+    :func:`flnotes.reference.save_reference` with the library versions of
+    this machine. Run it only to change the book's networks on purpose: the
+    rendered book's numbers follow them.
+    """
+    out = []
+    for ref in (names or list(REFERENCES)):
+        if ref not in REFERENCES:
+            raise ValueError(f"unknown reference {ref!r}; choose from {sorted(REFERENCES)}")
+        sys_name, settings = REFERENCES[ref]
+        sysm = system(sys_name)
+        net, rep = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **settings)
+        br = certify_book_eps(sys_name, net)
+        out.append(str(save_reference(ref, net, rep, dict(system=sys_name, **settings), bracket=br,
+                                      eps_settings=dict(EPS_SETTINGS, version=_EPS_VERSION), folder=folder)))
+    return out
+
+
+#: Chapter 5's architecture sweep for the MSD (:func:`flnotes.studies.book_sweep`); its table is shipped.
+SWEEP_SETTINGS = dict(widths=(5, 10, 20), depths=(1, 2, 3), n_per_axis=(10, 20, 30), max_iter=300)

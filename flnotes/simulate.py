@@ -14,10 +14,24 @@ integrated accurately (``scipy.integrate.solve_ivp``) with either
 
 Any controller plugs in through the :class:`Controller` protocol; a plain
 function ``k(z) -> v`` is accepted too.
+
+What stops a run, and what does not
+-----------------------------------
+* Bad arguments raise before the first step: a start ``z0`` (or ``x0``)
+  outside the domain box when the controller carries a network, a reference
+  of the wrong shape, ``ts <= 0``, ...
+* A controller that raises :class:`flnotes.SolverFailure` (its documented
+  solver outcome: infeasible, time limit, solver failure) gets the fallback
+  input; the step is flagged and the log says why. Any other exception of the
+  controller is raised as it is: a programming error is never turned into a
+  fallback.
+* Where the plant cannot go on (``Phi`` singular, the integration fails, the
+  state leaves the domain box of a network controller) the run stops and
+  ``log.message`` says where and why.
 """
 from __future__ import annotations
 
-import sys
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
@@ -26,9 +40,14 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from ._checks import as_vector
+from .errors import SolverFailure
+from .network import ReLUNet
 from .systems import FLSystem
 
 Array = np.ndarray
+
+#: Exceptions that signal a mistake in the code or the call, never a place the plant cannot go: always raised.
+_PROGRAMMING_ERRORS = (TypeError, AttributeError, NameError, ImportError, KeyError, IndexError, NotImplementedError)
 
 
 @dataclass
@@ -144,7 +163,8 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
              x0: Optional[Array] = None, z0: Optional[Array] = None,
              reference: Optional[Callable[[Array], Array]] = None, hold: str = "v", net=None,
              n_fine: int = 10, fallback: Optional[Callable[[Array], Array]] = None,
-             progress: Optional[bool] = None, rtol: float = 1e-8, atol: float = 1e-10) -> SimLog:
+             progress: Optional[bool] = None, rtol: float = 1e-8, atol: float = 1e-10,
+             check_domain: Optional[bool] = None) -> SimLog:
     """Run the sampled closed loop on the true plant ``x' = f(x, u)``, ``u = Phi(z, v)``.
 
     Parameters
@@ -161,7 +181,9 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         ``system.to_x``). Give exactly one.
     reference
         Optional ``t -> z_ref(t)``, vectorized: an array of times (T,) gives
-        (T, n_z). Passed on to the controller.
+        (T, n_z) (a constant reference may return (n_z,)). Passed on to the
+        controller. It is called once before the first step, on ``t = 0`` and
+        on a few times of the run, and a wrong shape or a NaN stops there.
     hold
         ``"v"`` (hold v, recompute u continuously: exact linearization) or
         ``"u"`` (hold u between samples); see the module docstring.
@@ -170,38 +192,79 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     n_fine
         Points per sampling interval recorded for ``u(t)`` between samples.
     fallback
-        ``z -> v`` applied when the controller raises; default: the previous
-        ``v`` (zero at the first step). Such steps are flagged and counted.
+        ``z -> v`` applied when the controller raises
+        :class:`flnotes.SolverFailure` (infeasible program, time limit without
+        an admissible incumbent, solver failure); default: the previous ``v``
+        (zero at the first step). Such steps are flagged (``log.fallback``),
+        their status reads ``"error: SolverFailure: <message>"`` and
+        ``log.steps[k].info`` holds ``solver_status`` and ``fallback_rule``.
+        Any other exception of the controller (``ValueError``, ``TypeError``,
+        ``ImportError``, ...) is a mistake, not a solver outcome: it stops the
+        run and is raised with its message.
     progress
         Print a one-line progress indicator. ``True``: every 5 % of the run;
         ``None`` (default): only on long runs, every 5 s of wall-clock time
         once the run has lasted that long (short runs print nothing);
         ``False``: never.
+    rtol, atol
+        Tolerances of the plant's integration (``solve_ivp``).
+    check_domain
+        Whether the state must stay in the domain box ``system.lo[:n_z] <= z <=
+        system.hi[:n_z]``, the box where the network was trained and ``eps``
+        certified. ``None`` (default): when the controller carries a network
+        (an attribute ``net``, as :class:`flnotes.ClfCbfController` and
+        :class:`flnotes.MPC` do); a plain law ``k(z)`` may run anywhere.
+        ``True``/``False`` force it on or off. When on, a start outside the
+        box raises ``ValueError`` before the first step, and a state that
+        leaves the box later stops the run there (``log.message`` says so).
 
     Returns
     -------
     SimLog
         The run. It never ends with a bare traceback: if the plant leaves the
-        region where ``Phi`` is defined, the run stops there and
-        ``log.message`` says why.
+        region where ``Phi`` is defined (or, with ``check_domain``, the domain
+        box), the run stops there and ``log.message`` says why.
+
+    Raises
+    ------
+    ValueError
+        For a bad argument (``z0``/``x0`` of the wrong shape or outside the
+        domain box, a reference of the wrong shape, ``ts``, ``hold``, ...).
+    TypeError
+        For a ``system``, ``controller``, ``reference``, ``fallback`` or
+        ``net`` of the wrong kind, or a controller whose ``step`` does not
+        return a :class:`StepResult`.
+    Exception
+        Any exception of the controller other than
+        :class:`flnotes.SolverFailure`, as it was raised.
     """
-    if hold not in ("v", "u"):
-        raise ValueError(f"hold must be 'v' (hold v, u = Phi(z(t), v)) or 'u' (hold u), got {hold!r}")
-    if not (np.isfinite(ts) and ts > 0 and np.isfinite(t_final) and t_final >= ts):
-        raise ValueError(f"need 0 < ts <= t_final, got ts={ts!r}, t_final={t_final!r}")
-    if (x0 is None) == (z0 is None):
-        raise ValueError("give exactly one initial condition: x0 (plant state) or z0 (linearizing state)")
+    _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fallback, rtol, atol)
     ctrl = controller if isinstance(controller, Controller) else FeedbackLaw(controller)
+    if check_domain is None:
+        check_domain = isinstance(getattr(ctrl, "net", None), ReLUNet)
+    m = system.m
+    if z0 is not None:
+        z_start = as_vector(z0, system.n_z, "z0")
+        if check_domain:
+            _check_start(system, z_start, "z0")
+        x = np.asarray(system.to_x(z_start), float).reshape(-1).copy()
+    else:
+        x = np.asarray(x0, float).reshape(-1).copy()
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"x0 contains NaN or inf: {x}")
+        z_start = as_vector(system.to_z(x), system.n_z, f"to_z(x0) for x0 = {x}")
+        if check_domain:
+            _check_start(system, z_start, "x0", x)
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"to_x(z0) contains NaN or inf: {x}")
+    if reference is not None:
+        _check_reference(reference, system.n_z, t_final, ts)
     if hasattr(ctrl, "reset"):
         ctrl.reset()
-    x = np.asarray(system.to_x(as_vector(z0, system.n_z, "z0")) if z0 is not None else x0, float).copy()
-    if not np.all(np.isfinite(x)):
-        raise ValueError(f"x0 contains NaN or inf: {x}")
     K = int(round(t_final / ts))
     every_s = 5.0 if progress is None else 0.0  # progress=None: time-based, silent on short runs
     progress = True if progress is None else bool(progress)
     last_print, printed = time.perf_counter(), False
-    m = system.m
 
     ts_list, xs, zs, vs, us, unn, times, stats, fbs, steps = [0.0], [x.copy()], [system.to_z(x)], [], [], [], [], [], [], []
     t_fine, x_fine, u_fine = [], [], []
@@ -211,14 +274,33 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     for k in range(K):
         t = k * ts
         z = np.asarray(system.to_z(x), float)
+        if check_domain and not system.in_domain(z)[0]:
+            message = (f"stopped at t = {t:.3f} s: z = {np.array2string(z, precision=4)} left the domain box "
+                       f"lo = {np.array2string(system.lo[:system.n_z], precision=3)}, "
+                       f"hi = {np.array2string(system.hi[:system.n_z], precision=3)} where the network and eps are "
+                       f"valid (pass check_domain=False to run on without the guarantee)")
+            break
         try:
             res = ctrl.step(z, t, reference)
-            v = as_vector(res.v, m, "controller output v")
-        except Exception as exc:  # the run goes on with the documented fallback
-            v = as_vector(fallback(z), m, "fallback v") if fallback is not None else v_prev.copy()
-            res = StepResult(v=v, status=f"error: {type(exc).__name__}: {exc}", solve_time=np.nan, fallback=True)
+        except SolverFailure as exc:  # the documented solver outcome: the documented fallback, flagged
+            v = as_vector(fallback(z), m, "fallback(z)") if fallback is not None else v_prev.copy()
+            rule = "fallback(z)" if fallback is not None else ("the previous v" if k else "v = 0 (first step)")
+            res = StepResult(v=v, status=f"error: {type(exc).__name__}: {exc}", solve_time=np.nan, fallback=True,
+                             info=dict(solver_status=exc.status, fallback_rule=f"simulate applied {rule}"))
+        if not isinstance(res, StepResult):
+            raise TypeError(f"controller.step(z, t, reference) must return a flnotes.StepResult, got "
+                            f"{type(res).__name__} at t = {t:.3f} s")
+        v = as_vector(res.v, m, f"the controller's v at t = {t:.3f} s")
         try:
             u_k = system.Phi(z, v)
+        except _PROGRAMMING_ERRORS:
+            raise
+        except Exception as exc:
+            if k == 0:  # at the start, which the caller chose: a bad Phi or a bad start, not a place the plant went
+                raise
+            message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
+            break
+        try:
             if hold == "v":
                 rhs = lambda _t, xx: system.f(xx, system.Phi(np.asarray(system.to_z(xx), float), v))
             else:
@@ -227,7 +309,9 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
             sol = solve_ivp(rhs, (t, t + ts), x, t_eval=grid, rtol=rtol, atol=atol, method="RK45")
             if not sol.success:
                 raise RuntimeError(sol.message)
-        except Exception as exc:
+        except _PROGRAMMING_ERRORS:
+            raise
+        except Exception as exc:  # Phi or f undefined where the plant went (e.g. a singularity): stop there
             message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
             break
         X = sol.y.T
@@ -242,6 +326,8 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         try:
             U = (system.Phi(Zs[:-1], np.repeat(v[None], len(Zs) - 1, axis=0)) if hold == "v"
                  else np.repeat(u_k[None], len(X) - 1, axis=0))
+        except _PROGRAMMING_ERRORS:
+            raise
         except Exception as exc:
             message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
             break
@@ -272,3 +358,70 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         u_fine=np.vstack(u_fine) if u_fine else np.zeros((0, m)),
         in_domain=system.in_domain(Z), steps=steps, message=message,
     )
+
+
+# ---------------------------------------------------------------------- argument checks
+def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fallback, rtol, atol) -> None:
+    if not isinstance(system, FLSystem):
+        raise TypeError(f"system must be a flnotes.FLSystem (e.g. fl.msd()), got {type(system).__name__}")
+    if not (isinstance(controller, Controller) or callable(controller)):
+        raise TypeError(f"controller must be a controller with step(z, t, reference) (ClfCbfController, MPC, ...) "
+                        f"or a function k(z) -> v, got {type(controller).__name__}; for a gain matrix K pass "
+                        f"lambda z: -K @ z")
+    if hold not in ("v", "u"):
+        raise ValueError(f"hold must be 'v' (hold v, u = Phi(z(t), v)) or 'u' (hold u), got {hold!r}")
+    if not all(isinstance(a, numbers.Real) and not isinstance(a, bool) for a in (ts, t_final)):
+        raise TypeError(f"ts and t_final must be numbers (seconds), got ts={ts!r}, t_final={t_final!r}")
+    ts_f, tf_f = float(ts), float(t_final)
+    if not (np.isfinite(ts_f) and ts_f > 0 and np.isfinite(tf_f) and tf_f >= ts_f):
+        raise ValueError(f"need 0 < ts <= t_final, got ts={ts!r}, t_final={t_final!r}")
+    if (x0 is None) == (z0 is None):
+        raise ValueError("give exactly one initial condition: x0 (plant state) or z0 (linearizing state)")
+    if net is not None:
+        if not isinstance(net, ReLUNet):
+            raise TypeError(f"net must be a flnotes.ReLUNet (to log Phi_NN), got {type(net).__name__}")
+        if (net.n_in, net.n_out) != (system.n_in, system.m):
+            raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but {system.name} needs (z, v) in "
+                             f"R^{system.n_in} -> u in R^{system.m}: pass the network trained on this system")
+    if isinstance(n_fine, bool) or not isinstance(n_fine, (int, np.integer)) or n_fine < 1:
+        raise ValueError(f"n_fine must be a positive integer (points per sampling interval), got {n_fine!r}")
+    if fallback is not None and not callable(fallback):
+        raise TypeError(f"fallback must be a function z -> v, got {type(fallback).__name__}")
+    if not (np.isfinite(rtol) and rtol > 0 and np.isfinite(atol) and atol > 0):
+        raise ValueError(f"rtol and atol must be positive tolerances, got rtol={rtol!r}, atol={atol!r}")
+
+
+def _check_start(system: FLSystem, z: Array, name: str, x: Optional[Array] = None) -> None:
+    """``ValueError`` naming ``z0`` (or ``x0``) and the box when the start is outside the domain box."""
+    if system.in_domain(z)[0]:
+        return
+    lo, hi = system.lo[:system.n_z], system.hi[:system.n_z]
+    bad = np.flatnonzero((z < lo - 1e-9) | (z > hi + 1e-9))
+    where = f"{name} = {np.array2string(np.asarray(x), precision=4)} (z = {np.array2string(z, precision=4)})" \
+        if x is not None else f"{name} = {np.array2string(z, precision=4)}"
+    raise ValueError(
+        f"{where} is outside the domain box of the network, lo = {np.array2string(lo, precision=3)} <= z <= "
+        f"hi = {np.array2string(hi, precision=3)} (component(s) {bad.tolist()}): the error bound eps, hence "
+        f"|u| <= u_max, is only guaranteed inside it. Start inside the box, retrain on a larger box, or pass "
+        f"check_domain=False to run without the guarantee.")
+
+
+def _check_reference(reference, n_z: int, t_final: float, ts: float) -> None:
+    """Call ``reference`` on ``t = 0`` and on a few times of the run; ``ValueError`` naming it on a bad answer."""
+    if not callable(reference):
+        raise TypeError(f"reference must be a function t -> z_ref(t) (times (T,) -> (T, {n_z})), got "
+                        f"{type(reference).__name__}; for a constant reference r use lambda t: np.tile(r, (np.size(t), 1))")
+    T = n_z + 2  # a number of times that cannot be mistaken for n_z
+    times = np.linspace(0.0, float(t_final), T)
+    for t, ok_shapes, what in ((0.0, [(n_z,), (1, n_z)], "t = 0.0"),
+                               (times, [(T, n_z), (n_z,)], f"an array of {T} times")):
+        try:
+            r = np.asarray(reference(t), float)
+        except Exception as exc:
+            raise ValueError(f"reference must accept a time t and an array of times (T,) and return z_ref of shape "
+                             f"(T, {n_z}); called on {what} it raised {type(exc).__name__}: {exc}") from exc
+        if r.shape not in ok_shapes:
+            raise ValueError(f"reference returned shape {r.shape} on {what}; expected one of {ok_shapes} "
+                             f"(one row of n_z = {n_z} reference states per time)")
+        if not np.all(np.isfinite(r)):
+            raise ValueError(f"reference returned NaN or inf on {what}: {r}")

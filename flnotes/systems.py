@@ -198,6 +198,13 @@ class FLSystem:
         if np.any(self.u_max <= 0):
             raise ValueError(f"u_max must be positive, got {self.u_max}")
         self.lo, self.hi = check_box(self.lo, self.hi, n_z + m, "lo", "hi")
+        what = dict(phi="phi(z (N, n_z), v (N, m)) -> u (N, m)", f="f(x, u) -> x'", to_z="to_z(x) -> z",
+                    to_x="to_x(z) -> x", extra="extra(z, v) -> varphi (N, p), or None",
+                    phi_interval="phi_interval(z, v) on flnotes.interval.Interval, or None")
+        for name, sig in what.items():
+            fun = getattr(self, name)
+            if not callable(fun) and not (fun is None and name in ("extra", "phi_interval")):
+                raise TypeError(f"{name} must be a function {sig}, got {type(fun).__name__}")
         if not self.state_names:
             self.state_names = tuple(f"z{i + 1}" for i in range(n_z))
         if not self.input_names:

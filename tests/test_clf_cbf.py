@@ -239,11 +239,15 @@ def test_infeasible_cbf_reports_and_falls_back(msd, backend):
 
 
 def test_input_bound_too_small_gives_up_the_input_bound_last(msd):
-    """u_max = 1: at z = [5, 5] no v in [-10, 10] gives |Phi_NN| <= u_max^eps; the fallback minimizes the excess."""
+    """u_max = 0.5: at z = [5, 5] no v in [-10, 10] gives |Phi_NN| <= u_max^eps; the fallback minimizes the excess.
+
+    (The true map gives |Phi| = |v + 10.8| >= 0.8 there, so no admissible v exists for Phi either.)"""
     _, net = msd
-    sysm = fl.msd(u_max=1.0)
+    sysm = fl.msd(u_max=0.5)
     V, H, k = parts()
     z = np.array([5.0, 5.0])
+    pw = network_pieces_1d(net, z, -10, 10)
+    assert np.all(pw.values > 0.5 - EPS), "premise: no v in [-10, 10] is admissible at z = [5, 5] for this network"
     res = {}
     for backend in ("exact", "highs"):
         ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic" if backend == "exact" else "linear",
@@ -251,8 +255,6 @@ def test_input_bound_too_small_gives_up_the_input_bound_last(msd):
         r = ctrl.step(z)
         assert r.status == "infeasible" and r.fallback and r.info["slack_u"][0] > 0
         res[backend] = r.v[0]
-    pw = network_pieces_1d(net, z, -10, 10)
-    assert np.all(pw.values > 1.0 - EPS)  # indeed infeasible
     assert np.allclose([res["exact"], res["highs"]], -10.0)  # the smallest |Phi_NN| is at v_lo
 
 

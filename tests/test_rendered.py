@@ -11,7 +11,10 @@ then checks the HTML:
   apt-get when running as root): the intro and every chapter page are opened in
   headless Chromium; after its scripts ran, the math must be typeset by MathJax
   (``mjx-container`` present, no raw ``$$``, ``\\(`` or ``\\[`` left in the text).
-  Screenshots are written to ``_build/screenshots/``.
+  Screenshots are written to ``_build/screenshots/``;
+* the explorers: every chapter that calls one embeds a kernel-free player (frames as
+  data URIs); in Chromium, with every other host unreachable, moving its sliders swaps
+  the picture.
 
 Set ``FLNOTES_RENDERED_HTML=<folder with index.html>`` to check an existing build
 (e.g. ``_build/html`` after ``make book``) instead of building again.
@@ -19,6 +22,7 @@ Set ``FLNOTES_RENDERED_HTML=<folder with index.html>`` to check an existing buil
 from __future__ import annotations
 
 import functools
+import json
 import http.server
 import os
 import re
@@ -333,3 +337,60 @@ def test_page_renders_in_chromium(page, chromium, server, html_dir):
         shot = SCREENSHOTS / (page.replace("/", "__") + ".png")
         _chrome(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url)
         assert shot.is_file() and shot.stat().st_size > 10_000, f"{page}: no screenshot written"
+
+
+# ----------------------------------------------------------------------------------
+# the explorers: precomputed frames behind sliders that run in the page
+_PLAYER = re.compile(r'<div class="fl-static-explorer" id="([^"]+)".*?<img class="fl-frame" data-frame="([^"]+)"'
+                     r'.*?src="([^"]+)".*?<script>(.*?)</script>', re.S)
+
+
+def _explorer_pages() -> list[str]:
+    """Chapters whose notebook calls an explorer."""
+    return [p for p in CHAPTERS if (ROOT / f"{p}.ipynb").is_file()
+            and re.search(r"\bexplore_\w+\(", (ROOT / f"{p}.ipynb").read_text(encoding="utf-8"))]
+
+
+def _players(html: str) -> list[dict]:
+    found = []
+    for pid, key, src, script in _PLAYER.findall(html):
+        frames = json.loads(re.search(r"var frames=(\{.*?\});var values=", script, re.S).group(1))
+        block = html[html.index(f'id="{pid}"'):html.index("<script>", html.index(f'id="{pid}"'))]
+        found.append(dict(id=pid, key=key, src=src, frames=frames, max=[int(m) for m in re.findall(r'max="(\d+)"', block)]))
+    return found
+
+
+EXPLORER_PAGES = _explorer_pages()
+
+
+def test_explorers_have_kernel_free_frames(html_dir):
+    assert EXPLORER_PAGES, "no chapter calls an explorer: the check below would test nothing"
+    for page in EXPLORER_PAGES:
+        html = (html_dir / f"{page}.html").read_text(encoding="utf-8")
+        players = _players(html)
+        assert players, f"{page}: an explorer is called but no kernel-free player is in the page"
+        for p in players:
+            assert len(p["frames"]) >= 2 and len(set(p["frames"].values())) >= 2, f"{page}: {p['id']} has a single picture"
+            assert all(v.startswith("data:image/png;base64,") for v in p["frames"].values()), \
+                f"{page}: {p['id']} frames must be embedded (data URIs), not fetched"
+            assert p["src"] == p["frames"][p["key"]], f"{page}: {p['id']} shows a frame that is not its first one"
+
+
+@pytest.mark.parametrize("page", EXPLORER_PAGES)
+def test_explorer_slider_moves_offline(page, chromium, server, html_dir):
+    """Moving a slider (through the handler a reader triggers) swaps the picture, with every other host unreachable."""
+    players = _players((html_dir / f"{page}.html").read_text(encoding="utf-8"))
+    assert players, f"{page}: no kernel-free player"
+    offline = "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"
+    with tempfile.TemporaryDirectory(prefix="flnotes-chrome-") as profile:
+        for p in players:
+            target = ",".join(str(m) if int(k) != m else "0" for k, m in zip(p["key"].split(","), p["max"]))
+            assert target != p["key"]
+            dom = _chrome(chromium, profile, offline, "--dump-dom", f"{server}/{page}.html#{p['id']}={target}").stdout
+            m = re.search(rf'id="{re.escape(p["id"])}".*?<img[^>]*class="fl-frame"[^>]*>', dom, re.S)
+            assert m, f"{page}: player {p['id']} missing from the rendered page"
+            img = m.group(0)[m.group(0).rindex("<img"):]
+            key = re.search(r'data-frame="([^"]+)"', img).group(1)
+            src = re.search(r'src="([^"]+)"', img).group(1)
+            assert key == target, f"{page}: moving {p['id']} to {target} left the picture at {key}"
+            assert src == p["frames"][target] != p["src"], f"{page}: {p['id']} did not swap its picture"

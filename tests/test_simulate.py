@@ -40,21 +40,42 @@ def test_log_shapes_and_summary():
     assert s["max_abs_u_samples"][0] > 5.0 and not s["u_within_bound_at_samples"]
 
 
-def test_controller_failure_uses_fallback_and_is_counted():
-    sysm = fl.msd()
+def _flaky(exc: Exception):
     calls = {"n": 0}
 
     class Flaky:
         def step(self, z, t, reference=None):
             calls["n"] += 1
             if calls["n"] % 3 == 0:
-                raise RuntimeError("solver crashed")
+                raise exc
             return fl.StepResult(v=np.array([-z[0] - z[1]]), status="optimal", solve_time=1e-4)
 
-    log = fl.simulate(sysm, Flaky(), t_final=0.9, ts=0.1, z0=[1.0, 0.0], fallback=lambda z: np.zeros(1))
+    return Flaky()
+
+
+def test_solver_failure_uses_fallback_and_is_counted():
+    """Only the documented solver outcome (SolverFailure) triggers the fallback; the log says which rule gave v."""
+    sysm = fl.msd()
+    log = fl.simulate(sysm, _flaky(fl.SolverFailure("no admissible v", status="infeasible")), t_final=0.9, ts=0.1,
+                      z0=[1.0, 0.0], fallback=lambda z: np.zeros(1))
     assert log.summary()["fallback_steps"] == 3
-    assert all(s.startswith("error: RuntimeError") for s, f in zip(log.status, log.fallback) if f)
+    assert all(s.startswith("error: SolverFailure: no admissible v") for s, f in zip(log.status, log.fallback) if f)
     assert np.all(log.v[log.fallback] == 0)
+    flagged = [st for st in log.steps if st.fallback]
+    assert all(st.info["solver_status"] == "infeasible" and "fallback(z)" in st.info["fallback_rule"] for st in flagged)
+    # without a fallback law the previous v is held
+    log = fl.simulate(sysm, _flaky(fl.SolverFailure("time limit", status="time_limit")), t_final=0.9, ts=0.1,
+                      z0=[1.0, 0.0])
+    k = np.flatnonzero(log.fallback)
+    assert len(k) == 3 and np.all(log.v[k] == log.v[k - 1])
+
+
+@pytest.mark.parametrize("exc", [RuntimeError("solver crashed"), ValueError("bad shape"), TypeError("bad type"),
+                                 ImportError("no module named gurobipy"), KeyError("x"), IndexError("i")])
+def test_other_controller_errors_stop_the_run(exc):
+    """A programming error of the controller is raised with its message, never turned into a fallback."""
+    with pytest.raises(type(exc), match=str(exc.args[0])):
+        fl.simulate(fl.msd(), _flaky(exc), t_final=0.9, ts=0.1, z0=[1.0, 0.0], fallback=lambda z: np.zeros(1))
 
 
 def test_run_stops_with_a_message_at_the_singularity():
@@ -76,3 +97,12 @@ def test_bad_arguments_raise_clear_errors(kw, match):
     args.update(kw)
     with pytest.raises(ValueError, match=match):
         fl.simulate(fl.msd(), lambda z: np.zeros(1), **args)
+
+
+def test_a_phi_of_the_wrong_shape_raises_at_the_start():
+    """Phi is evaluated at the start the caller chose: a wrong shape is raised there, not logged as a stop."""
+    import dataclasses
+
+    sysm = dataclasses.replace(fl.msd(), phi=lambda z, v: np.hstack([v, v]))
+    with pytest.raises(ValueError, match=r"phi returned shape \(1, 2\), expected \(1, 1\)"):
+        fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=0.1, z0=[0.0, 1.0])

@@ -7,13 +7,14 @@ import pytest
 import flnotes as fl
 from flnotes.tightening import EmptyBoxError, ellipsoid_box, horizon_boxes, intersect, lp_bounds
 
+from _nets import test_net
+
 
 @pytest.fixture(scope="module")
 def small_net():
-    """A small ReLU network fitted to the Quad-1D map on a coarse grid (seconds)."""
-    s = fl.quad1d()
-    net, _ = fl.fit_relu(s.phi_stacked, s.lo, s.hi, widths=(8, 8), n_per_axis=7, max_iter=300, seed=1)
-    return s, net
+    """A small ReLU network fitted to the Quad-1D map on a coarse grid, stored with the tests."""
+    net, _ = test_net("quad1d-8x8")
+    return fl.quad1d(), net
 
 
 def _samples(net, lo, hi, n=40_000, seed=0):

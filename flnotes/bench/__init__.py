@@ -1,6 +1,6 @@
 """Benchmarks behind ``make bench``: per-step solve times and certification times.
 
-Each section module (``error``, ``clfcbf``, ``mpc``, ``exactness``) defines
+Each section module (``training``, ``error``, ``clfcbf``, ``mpc``, ``exactness``) defines
 ``run(fast: bool) -> dict`` returning
 
     {"title": str, "rows": [dict, ...], "notes": [str, ...], "figures": [path, ...]}
@@ -23,7 +23,9 @@ import time
 from pathlib import Path
 from typing import Optional
 
-SECTIONS = ("error", "clfcbf", "mpc", "exactness")
+from ..tables import Table
+
+SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness")
 
 
 def out_dir() -> Path:
@@ -54,21 +56,8 @@ def machine() -> dict:
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """Rows of dicts as a Markdown table (columns in first-seen order)."""
-    if not rows:
-        return "(no rows)\n"
-    cols: list[str] = []
-    for r in rows:
-        cols += [c for c in r if c not in cols]
-
-    def fmt(v) -> str:
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return "" if v is None else str(v)
-
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
+    """Rows of dicts as a Markdown table (:meth:`flnotes.tables.Table.markdown`)."""
+    return Table(rows).markdown()
 
 
 def _section_md(sec: dict) -> str:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 
 from .. import paper
 from ..error import certify_error, pso_max_error
@@ -59,8 +58,8 @@ def run(fast: bool = False) -> dict:
     notes += [
         "eps: the PSO value is a lower bound on max |Phi - Phi_NN|; certified rows give the rigorous bracket "
         "[lower, upper] and use upper as eps.",
-        f"networks: fl.paper_net with NET_SETTINGS (MSD trained in {paper.paper_net('MSD')[1].time_s:.0f} s, "
-        f"Quad-1D in {paper.paper_net('Quad-1D')[1].time_s:.0f} s, cached).",
+        f"networks: the shipped references of fl.paper_net (MSD trained in {paper.paper_net('MSD')[1].time_s:.0f} s, "
+        f"Quad-1D in {paper.paper_net('Quad-1D')[1].time_s:.0f} s when they were written; see the training section).",
         "wall_s and cpu_s: wall-clock and process CPU time; on a shared machine wall time can be several times the CPU time.",
     ]
     return dict(title="Error bound eps: PSO estimate and certification", rows=rows, notes=notes, figures=figures)

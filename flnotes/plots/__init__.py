@@ -1,12 +1,32 @@
 """The book's figures: each function turns a system, a network or a run log into one figure.
 
 Submodules hold the figures of one part of the book each; everything is
-re-exported here so a notebook writes ``fl.plots.phase_portrait(...)``.
+re-exported here by name so a notebook writes ``fl.plots.phase_portrait(...)``.
+Plots only draw: what they show is computed by the library or by
+:mod:`flnotes.studies`.
 """
-from .style import COLORS, new_axes, bound_lines, use_book_style
+from .style import COLORS, bound_lines, new_axes, use_book_style
+from .foundations import (static_feasible_set, fl_identity_residual, plot_feasible_set, plot_feasible_v, explore_feasible_set,
+    plot_zeta, plot_input_violation, discretization_gap, plot_discretization_gap, plot_error_slice, plot_line_cut,
+    plot_width_experiment, plot_relu_bigm, bounds_looseness, plot_bounds_vs_samples, unstable_fixed_z,
+    plot_unstable_fixed_z, unstable_vs_box_size, plot_unstable_vs_box_size)
+from .error import (static_architecture, error_slice, pso_swarm, estimator_convergence, certification_progress, partition_slice,
+    eps_sweep, violation_line, show_source, explore_architecture)
+from .clfcbf import (clfcbf_phase_portrait, clfcbf_signals, clfcbf_figure3, exact_1d_plot, solve_time_plot, cbf_failure_plot,
+    wall_runs_plot)
+from .mpc import plot_mpc_tracking, plot_mpc_input, plot_horizon_sweep, plot_intersample, plot_step_times, explore_horizon
+from .realtime import step_times, scaling, lever_bars
+from .static import FramePlayer, frame_player
 
-from .foundations import *  # noqa: F401,F403
-from .error import *  # noqa: F401,F403
-from .clfcbf import *  # noqa: F401,F403
-from .mpc import *  # noqa: F401,F403
-from .realtime import *  # noqa: F401,F403
+__all__ = [
+    'COLORS', 'new_axes', 'bound_lines', 'use_book_style', 'static_feasible_set', 'fl_identity_residual',
+    'plot_feasible_set', 'plot_feasible_v', 'explore_feasible_set', 'plot_zeta', 'plot_input_violation',
+    'discretization_gap', 'plot_discretization_gap', 'plot_error_slice', 'plot_line_cut', 'plot_width_experiment',
+    'plot_relu_bigm', 'bounds_looseness', 'plot_bounds_vs_samples', 'unstable_fixed_z', 'plot_unstable_fixed_z',
+    'unstable_vs_box_size', 'plot_unstable_vs_box_size', 'static_architecture', 'error_slice', 'pso_swarm',
+    'estimator_convergence', 'certification_progress', 'partition_slice', 'eps_sweep', 'violation_line',
+    'show_source', 'explore_architecture', 'clfcbf_phase_portrait', 'clfcbf_signals', 'clfcbf_figure3',
+    'exact_1d_plot', 'solve_time_plot', 'cbf_failure_plot', 'wall_runs_plot', 'plot_mpc_tracking',
+    'plot_mpc_input', 'plot_horizon_sweep', 'plot_intersample', 'plot_step_times', 'explore_horizon',
+    'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player'
+]

@@ -9,7 +9,8 @@ from matplotlib.patches import Circle
 
 from .style import COLORS, bound_lines, new_axes
 
-__all__ = ["clfcbf_phase_portrait", "clfcbf_signals", "clfcbf_figure3", "exact_1d_plot", "solve_time_plot"]
+__all__ = ["clfcbf_phase_portrait", "clfcbf_signals", "clfcbf_figure3", "exact_1d_plot", "solve_time_plot",
+           "cbf_failure_plot", "wall_runs_plot"]
 
 _NAMED = {"lcost": COLORS["lcost"], "qcost": COLORS["qcost"], "k(z)": COLORS["nominal"], "nominal": COLORS["nominal"]}
 
@@ -138,10 +139,10 @@ def exact_1d_plot(net, z: np.ndarray, bound: float, v_lo: float = -10.0, v_hi: f
     ax.plot(pw.knots, pw.values, "o", color=COLORS["nn"], ms=3.5, label=f"breakpoints ({len(pw.knots) - 2} inside)")
     for s in (1, -1):
         ax.axhline(s * bound, color=COLORS["u_max_eps"], ls=":", lw=1.2,
-                   label=r"$\pm u_{max}^{\epsilon}$" if s == 1 else None)
+                   label=r"$\pm u_{\max}^{\varepsilon}$" if s == 1 else None)
     for j, (a, b) in enumerate(iv):
         ax.axvspan(a, b, color=COLORS["u_max_eps"], alpha=0.15, lw=0,
-                   label=r"$|\Phi_{NN}| \leq u_{max}^{\epsilon}$" if j == 0 else None)
+                   label=r"$|\Phi_{NN}| \leq u_{\max}^{\varepsilon}$" if j == 0 else None)
     shown_cbf = False
     for i, c in enumerate(controllers):
         d = c.program_data(z)
@@ -183,3 +184,76 @@ def solve_time_plot(logs: Mapping[str, Any], system: Optional[str] = "MSD", ax=N
     ax.set_ylabel("solve time per step (ms)")
     ax.legend(ncol=3, fontsize=7.5)
     return ax.figure
+
+
+def cbf_failure_plot(H: Any, segment: np.ndarray, z_mark: Optional[np.ndarray] = None, ax=None,
+                     lim: Sequence[float] = (-0.5, 3.0, -0.5, 2.5)):
+    """The unsafe disc, the line where ``grad H^T B = 0`` and the safe states there where the CBF condition fails.
+
+    Parameters
+    ----------
+    H
+        A :class:`flnotes.control.DistanceCBF`; ``grad H^T B = 0`` on the line ``z_2 = z_o[1]``.
+    segment
+        States on that line where no ``v`` satisfies the condition (e.g. the
+        ones flagged by :func:`flnotes.control.cbf_condition_fails`), shape (N, 2).
+    z_mark
+        A state to mark, shape (2,).
+    """
+    if ax is None:
+        fig, ax = new_axes(figsize=(5.2, 3.8))
+    ax.add_patch(Circle(H.z_o[:2], H.r_o, color=COLORS["unsafe"], alpha=0.2, lw=0, label=r"unsafe: $H(z) < 0$"))
+    ax.axhline(H.z_o[1], color="0.4", lw=0.9, ls="--", label=r"$\nabla H(z)^\top B = 0$")
+    segment = np.atleast_2d(segment)
+    if len(segment):
+        ax.plot(segment[:, 0], segment[:, 1], color=COLORS["unsafe"], lw=4, solid_capstyle="butt",
+                label="safe, but no $v$ satisfies the CBF condition")
+    if z_mark is not None:
+        ax.plot(*np.asarray(z_mark)[:2], "ko", ms=5, label=f"$z = [{z_mark[0]:g}, {z_mark[1]:g}]$")
+    for x0 in np.linspace(lim[0] + 0.2, H.z_o[0] - H.r_o - 0.5, 3):  # the flow on the line: z1' = z2 = z_o2 > 0
+        ax.annotate("", xy=(x0 + 0.3, H.z_o[1]), xytext=(x0, H.z_o[1]), arrowprops=dict(arrowstyle="->", color="0.3"))
+    ax.set_xlim(lim[0], lim[1]), ax.set_ylim(lim[2], lim[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel(r"$z_1$ (position)"), ax.set_ylabel(r"$z_2$ (velocity)")
+    ax.legend(loc="upper right", fontsize=7.5)
+    ax.set_title("where the distance H is not a CBF")
+    return ax.figure
+
+
+def wall_runs_plot(logs: Mapping[str, Any], h: Any, u_max: float, eps: Optional[float] = None):
+    """Runs against a wall ``h(z) = c^T z + d >= 0`` on the position: phase portrait, ``h(z(t))`` and the true ``u``.
+
+    Parameters
+    ----------
+    logs
+        ``{name: SimLog}``.
+    h
+        A :class:`flnotes.control.AffineCBF` on ``z_1`` (``c = [c_1, 0]``).
+    u_max, eps
+        Bounds drawn on the input panel.
+    """
+    fig, axes = new_axes(1, 3, figsize=(11.0, 3.4))
+    a_ph, a_h, a_u = np.ravel(axes)
+    wall = -h.d / h.c[0]
+    a_ph.axvspan(wall, wall + 10 * (1 if h.c[0] < 0 else -1), color=COLORS["unsafe"], alpha=0.15, lw=0,
+                 label=r"unsafe: $h(z) < 0$")
+    for i, (name, log) in enumerate(logs.items()):
+        c = f"C{i}"
+        Z = np.vstack([log.z_fine, log.z[-1:]]) if len(log.z_fine) else log.z
+        a_ph.plot(Z[:, 0], Z[:, 1], color=c, label=name)
+        a_h.plot(log.t, h(log.z), color=c, label=name)
+        tf = np.append(log.t_fine, log.t[-1])
+        a_u.plot(tf, np.append(log.u_fine[:, 0], log.u_fine[-1, 0]), color=c, label=name)
+    first = next(iter(logs.values()))
+    z_all = np.vstack([log.z for log in logs.values()])
+    a_ph.set_xlim(z_all[:, 0].min() - 0.3, max(z_all[:, 0].max(), wall) + 0.5)
+    a_ph.plot(*first.z[0, :2], "ko", ms=5)
+    a_ph.set_xlabel(r"$z_1$"), a_ph.set_ylabel(r"$z_2$"), a_ph.set_title("phase portrait")
+    a_ph.legend(fontsize=7.5)
+    a_h.axhline(0, color=COLORS["unsafe"], lw=1)
+    a_h.set_xlabel("t [s]"), a_h.set_ylabel(r"$h(z)$ at the samples"), a_h.set_title("distance to the wall")
+    bound_lines(a_u, u_max, eps)
+    a_u.set_xlabel("t [s]"), a_u.set_ylabel("true u"), a_u.set_title("input on the plant")
+    a_u.legend(fontsize=7.5)
+    fig.tight_layout()
+    return fig

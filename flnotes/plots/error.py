@@ -14,8 +14,9 @@ from matplotlib.patches import Rectangle
 
 from .style import COLORS, new_axes
 
-__all__ = ["error_slice", "pso_swarm", "estimator_convergence", "certification_progress", "partition_slice",
-           "eps_sweep", "violation_line", "show_table", "show_source", "explore_architecture"]
+__all__ = ["static_architecture", "error_slice", "pso_swarm",
+           "estimator_convergence", "certification_progress", "partition_slice",
+           "eps_sweep", "violation_line", "show_source", "explore_architecture"]
 
 _METHOD_STYLE = {
     "pso": dict(color="#d95f02", marker="*", label="PSO"),
@@ -244,15 +245,15 @@ def violation_line(system, net, z: np.ndarray, eps: dict, v_focus: Optional[floa
         ax.plot(v, phi, color=COLORS["true"], label=r"$\Phi(z, v)$")
         ax.plot(v, nn, color=COLORS["nn"], ls="--", label=r"$\Phi_{NN}(z, v)$")
         for sgn in (1, -1):
-            ax.axhline(sgn * u_max, color=COLORS["u_max"], lw=1, label=r"$\pm u_{max}$" if sgn > 0 else None)
+            ax.axhline(sgn * u_max, color=COLORS["u_max"], lw=1, label=r"$\pm u_{\max}$" if sgn > 0 else None)
         for (label, e), c in zip(eps.items(), ["#d62728", COLORS["u_max_eps"], "#7570b3"]):
             e = float(np.atleast_1d(e)[0])
             for sgn in (1, -1):
                 ax.axhline(sgn * (u_max - e), color=c, ls=":", lw=1.4,
-                           label=f"$\\pm(u_{{max}} - \\epsilon)$, {label}" if sgn > 0 else None)
+                           label=f"$\\pm(u_{{\\max}} - \\varepsilon)$, {label}" if sgn > 0 else None)
             bad = (np.abs(nn) <= u_max - e) & (np.abs(phi) > u_max)
             if bad.any():
-                ax.plot(v[bad], phi[bad], ".", color=c, ms=4, label=f"allowed by {label}, $|\\Phi| > u_{{max}}$")
+                ax.plot(v[bad], phi[bad], ".", color=c, ms=4, label=f"allowed by {label}, $|\\Phi| > u_{{\\max}}$")
         if p == 1:
             mid = np.concatenate([phi, nn])
             pad = 0.25 * (mid.max() - mid.min()) + 1e-9
@@ -283,13 +284,51 @@ def show_source(func, skip_docstring: bool = True):
     return Markdown("```python\n" + src.rstrip() + "\n```")
 
 
-def show_table(rows: Sequence[dict]):
-    """Rows of dicts as a rendered Markdown table (notebook display)."""
-    from IPython.display import Markdown
+def _architecture_figure(rows: Sequence[dict], width: int, depth: int, n_s: int, title: str):
+    """One frame of :func:`explore_architecture`: eps against width, and accuracy against MILP size."""
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.5, 3.8))
+    rr = sorted([r for r in rows if r["depth"] == depth and r["n_s"] == n_s], key=lambda r: r["width"])
+    for key, st in (("eps_sample", dict(color="#666666", marker="o", label="max over samples")),
+                    ("eps_pso", dict(color="#d95f02", marker="*", label="PSO")),
+                    ("eps_certified", dict(color="#2ca02c", marker="s", label="certified upper"))):
+        a1.plot([r["width"] for r in rr], [r[key] for r in rr], **st)
+    sel = [r for r in rr if r["width"] == width]
+    if sel:
+        a1.axvline(width, color="k", lw=0.8)
+        a1.set_title(f"width {width}, depth {depth}, $n_s$ = {n_s}: certified eps = {sel[0]['eps_certified']:.4f}, "
+                     f"{sel[0]['n_binaries']} binaries", fontsize=9)
+    a1.set_xlabel(r"hidden width $\bar n$")
+    a1.set_ylabel("eps")
+    a1.set_yscale("log")
+    a1.legend(fontsize=8)
+    a2.scatter([r["n_binaries"] for r in rows], [r["eps_certified"] for r in rows], c="0.75", s=18)
+    if sel:
+        a2.scatter([sel[0]["n_binaries"]], [sel[0]["eps_certified"]], c="#d62728", s=60, label="selected")
+        a2.legend(fontsize=8)
+    a2.set_xlabel("binaries per network copy")
+    a2.set_ylabel("certified eps")
+    a2.set_yscale("log")
+    a2.set_title(f"{title}: accuracy vs MILP size, all nets", fontsize=9)
+    fig.tight_layout()
+    return fig
 
-    from ..bench import markdown_table
 
-    return Markdown(markdown_table(list(rows)))
+def static_architecture(rows: Sequence[dict], title: str = "MSD"):
+    """Kernel-free version of :func:`explore_architecture`: every (width, depth, grid) frame precomputed.
+
+    Returns
+    -------
+    flnotes.plots.static.FramePlayer
+        Sliders for width, depth and grid density that run in the browser.
+    """
+    from .static import frame_player
+
+    widths = sorted({r["width"] for r in rows})
+    depths = sorted({r["depth"] for r in rows})
+    grids = sorted({r["n_s"] for r in rows})
+    return frame_player(lambda w, d, g: _architecture_figure(rows, w, d, g, title),
+                        {"width": widths, "depth": depths, "grid n_s": grids}, name=f"architecture{title}".replace("-", ""),
+                        start=[len(widths) // 2, len(depths) - 1, len(grids) - 1])
 
 
 def explore_architecture(rows: Sequence[dict], title: str = "MSD"):
@@ -299,8 +338,9 @@ def explore_architecture(rows: Sequence[dict], title: str = "MSD"):
     panel shows eps (sampled maximum, PSO and certified) against the width
     for the chosen depth and grid density, the chosen net highlighted; the
     right panel its number of binaries ``sum_k n_k`` per copy of eq.
-    (MIP_general) against its certified eps for all nets. A static default
-    figure is drawn first; the sliders only index the table.
+    (MIP_general) against its certified eps for all nets. The kernel-free
+    player of :func:`static_architecture` is shown first (it moves in the
+    built book); the ipywidgets sliders below it redraw in a running kernel.
     """
     import ipywidgets as W
     from IPython.display import display
@@ -311,30 +351,7 @@ def explore_architecture(rows: Sequence[dict], title: str = "MSD"):
     out = W.Output()
 
     def draw(width: int, depth: int, n_s: int) -> None:
-        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.5, 3.8))
-        rr = sorted([r for r in rows if r["depth"] == depth and r["n_s"] == n_s], key=lambda r: r["width"])
-        for key, st in (("eps_sample", dict(color="#666666", marker="o", label="max over samples")),
-                        ("eps_pso", dict(color="#d95f02", marker="*", label="PSO")),
-                        ("eps_certified", dict(color="#2ca02c", marker="s", label="certified upper"))):
-            a1.plot([r["width"] for r in rr], [r[key] for r in rr], **st)
-        sel = [r for r in rr if r["width"] == width]
-        if sel:
-            a1.axvline(width, color="k", lw=0.8)
-            a1.set_title(f"width {width}, depth {depth}, $n_s$ = {n_s}: certified eps = {sel[0]['eps_certified']:.4f}, "
-                         f"{sel[0]['n_binaries']} binaries", fontsize=9)
-        a1.set_xlabel(r"hidden width $\bar n$")
-        a1.set_ylabel("eps")
-        a1.set_yscale("log")
-        a1.legend(fontsize=8)
-        a2.scatter([r["n_binaries"] for r in rows], [r["eps_certified"] for r in rows], c="0.75", s=18)
-        if sel:
-            a2.scatter([sel[0]["n_binaries"]], [sel[0]["eps_certified"]], c="#d62728", s=60, label="selected")
-            a2.legend(fontsize=8)
-        a2.set_xlabel("binaries per network copy")
-        a2.set_ylabel("certified eps")
-        a2.set_yscale("log")
-        a2.set_title(f"{title}: accuracy vs MILP size, all nets", fontsize=9)
-        fig.tight_layout()
+        fig = _architecture_figure(rows, width, depth, n_s, title)
         display(fig)
         plt.close(fig)
 
@@ -349,7 +366,7 @@ def explore_architecture(rows: Sequence[dict], title: str = "MSD"):
 
     for s in (sw, sd, sg):
         s.observe(update, names="value")
-    draw(sw.value, sd.value, sg.value)  # the static default figure (what a rendered page shows)
+    display(static_architecture(rows, title))  # works in the static book, without a kernel
     box = W.VBox([W.HBox([sw, sd, sg]), out])
     display(box)
     return box

@@ -8,6 +8,7 @@ those figures show, so a chapter can print or glue exactly what is drawn.
 """
 from __future__ import annotations
 
+import re
 from typing import Optional, Sequence
 
 import matplotlib.pyplot as plt
@@ -15,16 +16,17 @@ import numpy as np
 
 from .._checks import as_vector, check_box
 from ..bounds import fbbt, sample_preactivations
-from ..network import ReLUNet, fit_relu
+from ..network import ReLUNet
 from ..systems import FLSystem, brunovsky, discretize
 from .style import COLORS, bound_lines, new_axes
 
 Array = np.ndarray
 
 __all__ = [
+    "static_feasible_set",
     "fl_identity_residual", "plot_feasible_set", "plot_feasible_v", "explore_feasible_set", "plot_zeta",
     "plot_input_violation", "discretization_gap", "plot_discretization_gap",
-    "plot_error_slice", "plot_line_cut", "sample_error", "Table", "width_experiment", "plot_width_experiment",
+    "plot_error_slice", "plot_line_cut", "plot_width_experiment",
     "plot_relu_bigm", "bounds_looseness", "plot_bounds_vs_samples", "unstable_fixed_z", "plot_unstable_fixed_z",
     "unstable_vs_box_size", "plot_unstable_vs_box_size",
 ]
@@ -132,7 +134,7 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
         ax.contourf(Zg, Vg, ok.astype(float), levels=[0.5, 1.5], colors=[c], alpha=0.30)
         if ok.any() and not ok.all():
             ax.contour(Zg, Vg, ok.astype(float), levels=[0.5], colors=[c], linewidths=1.2)
-        lab = r"$|\Phi(z, v)| \leq u_{max}$" if fam_idx is None else f"$z_{fam_idx + 1} = {val:g}$"
+        lab = r"$|\Phi(z, v)| \leq u_{\max}$" if fam_idx is None else f"$z_{fam_idx + 1} = {val:g}$"
         handles.append(plt.Rectangle((0, 0), 1, 1, color=c, alpha=0.45, label=lab))
     for s in (system.lo[-1], system.hi[-1]):
         if vs[0] <= s <= vs[-1]:
@@ -180,7 +182,7 @@ def plot_feasible_v(system: FLSystem, z: Optional[Array] = None, net: Optional[R
         fig, ax = new_axes(figsize=(6.4, 3.6))
     else:
         fig = ax.figure
-    _shade_runs(ax, vs, np.abs(u) <= u_max, COLORS["u_max"], 0.18, r"$|\Phi| \leq u_{max}$")
+    _shade_runs(ax, vs, np.abs(u) <= u_max, COLORS["u_max"], 0.18, r"$|\Phi| \leq u_{\max}$")
     ax.plot(vs, u, color=COLORS["true"], label=r"$\Phi(z, v)$")
     title = f"{system.name} at z = {np.array2string(z, precision=2)}"
     if net is not None:
@@ -188,7 +190,7 @@ def plot_feasible_v(system: FLSystem, z: Optional[Array] = None, net: Optional[R
         ax.plot(vs, unn, color=COLORS["nn"], ls="--", label=r"$\Phi_{NN}(z, v)$")
         if eps is not None:
             _shade_runs(ax, vs, np.abs(unn) <= u_max - float(eps), COLORS["u_max_eps"], 0.25,
-                        r"$|\Phi_{NN}| \leq u_{max}^{\epsilon}$")
+                        r"$|\Phi_{NN}| \leq u_{\max}^{\varepsilon}$")
     bound_lines(ax, u_max, None if net is None else eps)
     ok = np.abs(u) <= u_max
     title += (f": admissible v in [{vs[ok].min():.2f}, {vs[ok].max():.2f}]" if ok.any()
@@ -208,10 +210,11 @@ def _shade_runs(ax, x: Array, mask: Array, color: str, alpha: float, label: str)
 def explore_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: Optional[float] = None):
     """Interactive: move the state ``z`` and watch the admissible set of ``v`` move.
 
-    Draws the static default figure (:func:`plot_feasible_v` at ``z = 0``)
-    first, so the page shows it without a running kernel, then returns one
-    slider per component of ``z`` (``continuous_update=False``) and an output
-    area that redraws the figure for the chosen state.
+    Shows :func:`static_feasible_set` first (precomputed frames behind a
+    slider that runs in the browser, so the built book moves without a
+    kernel), then returns one ipywidgets slider per component of ``z``
+    (``continuous_update=False``) and an output area that redraws the figure
+    for the chosen state in a running kernel.
 
     Parameters
     ----------
@@ -228,9 +231,7 @@ def explore_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: O
     from IPython.display import display
 
     _single_input(system, "explore_feasible_set")
-    fig = plot_feasible_v(system, np.zeros(system.n_z), net, eps)
-    display(fig)
-    plt.close(fig)
+    display(static_feasible_set(system, net, eps))  # works in the static book, without a kernel
     sliders = [widgets.FloatSlider(value=0.0, min=float(system.lo[i]), max=float(system.hi[i]),
                                    step=float(system.hi[i] - system.lo[i]) / 100, description=f"z{i + 1}",
                                    continuous_update=False, readout_format=".2f")
@@ -248,6 +249,44 @@ def explore_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: O
         s.observe(redraw, names="value")
     note = widgets.HTML("<i>Move a slider: the figure is redrawn below for the chosen state.</i>")
     return widgets.VBox([widgets.HBox(sliders), note, out])
+
+
+def static_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: Optional[float] = None,
+                        n_frames: Optional[int] = None):
+    """Kernel-free explorer: :func:`plot_feasible_v` precomputed along the last component of ``z``, the others zero.
+
+    Parameters
+    ----------
+    system
+        A single-input system.
+    net, eps
+        Optional network and error bound, drawn as in :func:`plot_feasible_v`.
+    n_frames
+        Number of values of ``z_{n_z}`` (odd, so that ``z = 0`` is one of them);
+        default 9, 5 in fast mode.
+
+    Returns
+    -------
+    flnotes.plots.static.FramePlayer
+    """
+    from ..config import FAST
+    from .static import frame_player
+
+    _single_input(system, "static_feasible_set")
+    n = (5 if FAST else 9) if n_frames is None else int(n_frames)
+    if n < 2:
+        raise ValueError(f"n_frames must be at least 2, got {n_frames!r}")
+    i = system.n_z - 1
+    values = np.round(np.linspace(system.lo[i], system.hi[i], n), 3)
+
+    def draw(zi: float):
+        z = np.zeros(system.n_z)
+        z[i] = zi
+        return plot_feasible_v(system, z, net, eps)
+
+    name = re.sub(r"[^A-Za-z0-9]", "", f"feasible{system.name}") + ("-net" if net is not None else "")
+    start = int(np.argmin(np.abs(values)))
+    return frame_player(draw, {f"z{i + 1}": values}, name=name, start=[start])
 
 
 def plot_zeta(system: FLSystem, extent: float = 15.0, n: int = 301):
@@ -343,16 +382,6 @@ def plot_discretization_gap(ts_values: Sequence[float] = (0.01, 0.1, 0.5),
 # --------------------------------------------------------------------------
 # Chapter 2: ReLU networks
 # --------------------------------------------------------------------------
-def sample_error(system: FLSystem, net: ReLUNet, n: int = 200_000, seed: int = 0) -> Array:
-    """Largest ``|Phi - Phi_NN|`` over ``n`` uniform random samples of the domain box, shape (m,).
-
-    A lower estimate of the true ``eps`` of eq. (epsilon_find): random points
-    miss the worst case, which chapter 5 certifies.
-    """
-    X = np.random.default_rng(seed).uniform(system.lo, system.hi, (int(n), system.n_in))
-    return np.abs(net(X) - system.phi_stacked(X)).max(0)
-
-
 def _slice_points(system: FLSystem, axes: tuple[int, int], x_fixed: Optional[Array], n: int):
     x0 = (system.lo + system.hi) / 2 if x_fixed is None else as_vector(x_fixed, system.n_in, "x_fixed")
     a = np.linspace(system.lo[axes[0]], system.hi[axes[0]], int(n))
@@ -417,79 +446,6 @@ def plot_line_cut(system: FLSystem, net: ReLUNet, axis: int = 1, x_fixed: Option
     a2.plot(s, unn - u, color=COLORS["nn"])
     a2.set(xlabel=_name(system, axis), ylabel=r"$\Phi_{NN} - \Phi$")
     return fig
-
-
-class Table:
-    """A small table that renders as HTML in a notebook and as text elsewhere.
-
-    Parameters
-    ----------
-    rows
-        One dict per row; the keys of the first row are the columns.
-    floatfmt
-        Format of float cells.
-    """
-
-    def __init__(self, rows: Sequence[dict], floatfmt: str = ".4g"):
-        self.rows = [dict(r) for r in rows]
-        self.columns = list(self.rows[0]) if self.rows else []
-        self.floatfmt = floatfmt
-
-    def _cell(self, v) -> str:
-        if v is None:
-            return "-"
-        if isinstance(v, (float, np.floating)):
-            return format(float(v), self.floatfmt)
-        if isinstance(v, np.ndarray):
-            return ", ".join(self._cell(x) for x in v.ravel())
-        return str(v)
-
-    def _repr_html_(self) -> str:
-        head = "".join(f"<th>{c}</th>" for c in self.columns)
-        body = "".join("<tr>" + "".join(f"<td>{self._cell(r.get(c))}</td>" for c in self.columns) + "</tr>"
-                       for r in self.rows)
-        return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-    def __repr__(self) -> str:
-        cells = [[str(c) for c in self.columns]] + [[self._cell(r.get(c)) for c in self.columns] for r in self.rows]
-        w = [max(len(row[i]) for row in cells) for i in range(len(self.columns))]
-        return "\n".join("  ".join(x.rjust(wi) for x, wi in zip(row, w)) for row in cells)
-
-
-def width_experiment(system: FLSystem, n_bars: Sequence[int] = (5, 10, 20, 30), depth: int = 3,
-                     n_per_axis: int = 15, max_iter: int = 1000, n_test: int = 100_000,
-                     seed: int = 0) -> list[dict]:
-    """Train ``depth`` hidden layers of ``n_bar`` neurons each on a coarse grid, for several widths.
-
-    Parameters
-    ----------
-    system
-        The system whose ``Phi`` is fitted on its domain box.
-    n_bars
-        Hidden widths ``n_bar`` to try (the paper's K - 1 = ``depth`` layers each).
-    depth
-        Number of hidden layers.
-    n_per_axis, max_iter, seed
-        Passed to :func:`flnotes.fit_relu`.
-    n_test
-        Random test points for the off-grid error (:func:`sample_error`).
-
-    Returns
-    -------
-    list of dict
-        One row per width: ``n_bar``, ``n_hidden``, ``params``, ``grid_max_error``,
-        ``grid_rmse``, ``sample_max_error`` (first input), ``time_s``.
-    """
-    rows = []
-    for nb in n_bars:
-        net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(int(nb),) * depth,
-                            n_per_axis=n_per_axis, max_train=None, max_iter=max_iter, seed=seed)
-        rows.append(dict(n_bar=int(nb), n_hidden=net.n_hidden,
-                         params=int(sum(W.size + b.size for W, b in zip(net.W, net.b))),
-                         grid_max_error=float(rep.grid_max_error[0]), grid_rmse=float(rep.grid_rmse[0]),
-                         sample_max_error=float(sample_error(system, net, n_test, seed + 1)[0]),
-                         time_s=rep.time_s))
-    return rows
 
 
 def plot_width_experiment(rows: Sequence[dict], title: str = ""):

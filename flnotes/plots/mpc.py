@@ -219,19 +219,22 @@ def explore_horizon(runs: Mapping[int, object], rows: Sequence[dict],
 
     The chosen horizon is drawn in color over the others in light grey: the
     displacement ``x(t)``, the true input ``u`` at the samples and the
-    controller's time per step. A static default figure (the middle horizon)
-    is drawn first; the slider (``continuous_update=False``) only indexes the
-    precomputed runs.
+    controller's time per step. A kernel-free player (one precomputed frame
+    per horizon, :func:`flnotes.plots.static.frame_player`) is shown first
+    and moves in the built book; the ipywidgets slider below it
+    (``continuous_update=False``) redraws in a running kernel.
     """
     import ipywidgets as W
     import matplotlib.pyplot as plt
     from IPython.display import display
 
+    from .static import frame_player
+
     horizons = sorted(int(n) for n in runs)
     by_n = {int(r["N_p"]): r for r in rows}
     out = W.Output()
 
-    def draw(Np: int) -> None:
+    def figure(Np: int):
         fig, axes = new_axes(3, 1, figsize=(7.5, 6.4), sharex=True)
         ax1, ax2, ax3 = np.asarray(axes).ravel()
         for n in horizons:
@@ -258,6 +261,10 @@ def explore_horizon(runs: Mapping[int, object], rows: Sequence[dict],
         ax3.set_title(f"median {r.get('median_ms', np.nan):.1f} ms, max {r.get('max_ms', np.nan):.0f} ms per step",
                       fontsize=9)
         fig.tight_layout()
+        return fig
+
+    def draw(Np: int) -> None:
+        fig = figure(Np)
         display(fig)
         plt.close(fig)
 
@@ -270,7 +277,8 @@ def explore_horizon(runs: Mapping[int, object], rows: Sequence[dict],
             draw(slider.value)
 
     slider.observe(update, names="value")
-    draw(slider.value)  # the static default figure (what a rendered page shows)
+    # the kernel-free player first: precomputed frames behind a slider that runs in the built book
+    display(frame_player(figure, {"N_p": horizons}, name="horizon", start=[horizons.index(slider.value)]))
     box = W.VBox([slider, out])
     display(box)
     return box

@@ -63,7 +63,8 @@ def scaling(rows_horizon: Sequence[dict], rows_width: Sequence[dict] = (), targe
     fig, axes = new_axes(1, ncols, figsize=(7.0 if ncols == 2 else 4.2, 3.0))
     axes = np.ravel(axes)
     for ax, rows, key, label in ((axes[0], rows_horizon, "N_p", r"horizon $N_p$"),
-                                 *(((axes[1], rows_width, "width", r"neurons per hidden layer $\bar n$"),) if rows_width else ())):
+                                 *(((axes[1], rows_width, "width", r"neurons per hidden layer $\bar n$"),)
+                                   if rows_width else ())):
         rows = [r for r in rows if "ms_median" in r]
         x = [r[key] for r in rows]
         ax.semilogy(x, [r["ms_median"] for r in rows], "o-", color=COLORS["nn"], label="median")

@@ -5,7 +5,6 @@ from typing import Optional, Sequence
 
 import matplotlib as mpl
 import matplotlib.pyplot as plt
-import numpy as np
 
 #: Colours used consistently: the true input, the network, bounds, references, the three controllers.
 COLORS = dict(
@@ -35,7 +34,7 @@ def bound_lines(ax, u_max: float, eps: Optional[float] = None, label: bool = Tru
     """Draw ``±u_max`` (blue) and ``±u_max^eps = ±(u_max - eps)`` (green) as in the paper's Fig. 5."""
     for s in (1, -1):
         ax.axhline(s * u_max, color=COLORS["u_max"], ls="--", lw=1,
-                   label=r"$\pm u_{max}$" if (label and s == 1) else None)
+                   label=r"$\pm u_{\max}$" if (label and s == 1) else None)
         if eps is not None:
             ax.axhline(s * (u_max - eps), color=COLORS["u_max_eps"], ls=":", lw=1.2,
-                       label=r"$\pm u_{max}^{\epsilon}$" if (label and s == 1) else None)
+                       label=r"$\pm u_{\max}^{\varepsilon}$" if (label and s == 1) else None)

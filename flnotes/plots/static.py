@@ -1,0 +1,136 @@
+"""Explorers that work without a kernel: precomputed frames behind sliders that run in the browser.
+
+The ipywidgets explorers of :mod:`flnotes.widgets` recompute their figure in the
+kernel, so a static HTML page (the built book, read offline) cannot move them.
+:func:`frame_player` draws every combination of the slider values once, when the
+notebook is executed, encodes the figures as PNG data URIs and returns a small,
+self-contained HTML/JavaScript player: one ``<input type="range">`` per slider
+and an ``<img>`` whose source is swapped in the browser. No kernel, no network,
+no external script.
+
+The player also reads the page address: ``#<player id>=i,j,...`` (indices into
+the slider values) moves the sliders there on load, through the same handler a
+reader triggers, so a headless browser can check that the picture moves.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import itertools
+import json
+import re
+from typing import Callable, Mapping, Sequence
+
+import matplotlib.pyplot as plt
+
+__all__ = ["FramePlayer", "frame_player"]
+
+
+def _png_data_uri(fig, dpi: int) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+class FramePlayer:
+    """Precomputed frames and their sliders; displays as self-contained HTML (``_repr_html_``).
+
+    Attributes
+    ----------
+    name
+        Identifier of the player in the page (``id`` of its ``<div>``).
+    sliders
+        ``{label: values}`` in slider order.
+    frames
+        ``{"i,j,...": data URI}``, one PNG per combination of slider indices.
+    start
+        Indices shown first.
+    """
+
+    def __init__(self, name: str, sliders: Mapping[str, Sequence], frames: Mapping[str, str], start: Sequence[int]):
+        self.name, self.sliders, self.frames, self.start = name, dict(sliders), dict(frames), list(start)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __repr__(self) -> str:
+        dims = " x ".join(f"{k} ({len(v)})" for k, v in self.sliders.items())
+        return f"FramePlayer({self.name!r}: {len(self)} precomputed frames over {dims})"
+
+    def _repr_html_(self) -> str:
+        pid = self.name
+        labels = [html.escape(str(k)) for k in self.sliders]
+        values = [[str(v) for v in vals] for vals in self.sliders.values()]
+        key0 = ",".join(map(str, self.start))
+        rows = "".join(
+            f'<label style="display:inline-block;margin-right:1.2em">{lab} '
+            f'<input type="range" class="fl-slider" data-dim="{d}" min="0" max="{len(vals) - 1}" step="1" '
+            f'value="{self.start[d]}" aria-label="{lab}"> '
+            f'<output class="fl-value">{html.escape(vals[self.start[d]])}</output></label>'
+            for d, (lab, vals) in enumerate(zip(labels, values)))
+        script = (
+            "(function(){"
+            f"var root=document.getElementById({json.dumps(pid)});"
+            f"var frames={json.dumps(self.frames)};var values={json.dumps(values)};"
+            "var sl=root.querySelectorAll('input.fl-slider');var out=root.querySelectorAll('output.fl-value');"
+            "var img=root.querySelector('img.fl-frame');"
+            "function show(){var k=[];for(var d=0;d<sl.length;d++){k.push(sl[d].value);"
+            "out[d].textContent=values[d][sl[d].value];}"
+            "var key=k.join(',');img.src=frames[key];img.setAttribute('data-frame',key);}"
+            "for(var d=0;d<sl.length;d++){sl[d].addEventListener('input',show);}"
+            "var m=new RegExp('[#&]'+root.id+'=([0-9,]+)').exec(window.location.hash);"
+            "if(m){var idx=m[1].split(',');for(var d=0;d<sl.length&&d<idx.length;d++){sl[d].value=idx[d];"
+            "sl[d].dispatchEvent(new Event('input'));}}"
+            "})();")
+        return (f'<div class="fl-static-explorer" id="{pid}" style="margin:0.5em 0">'
+                f'<div style="font-size:0.9em">{rows}</div>'
+                f'<img class="fl-frame" data-frame="{key0}" alt="explorer frame" style="max-width:100%" '
+                f'src="{self.frames[key0]}"><script>{script}</script></div>')
+
+
+def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], name: str,
+                 start: Sequence[int] | None = None, dpi: int = 60) -> FramePlayer:
+    """Draw ``draw(*values)`` for every combination of the slider values; return the browser-side player.
+
+    Parameters
+    ----------
+    draw
+        Called with one value per slider (in the order of ``sliders``); returns
+        a matplotlib figure (closed after encoding).
+    sliders
+        ``{label: sequence of values}``; each slider steps through its values.
+    name
+        Identifier of the player in the page: letters, digits, ``-`` and ``_``,
+        starting with a letter; unique within a page.
+    start
+        Index of the first frame along each slider (default: the middle).
+    dpi
+        Resolution of the PNG frames; keep it low, every frame is embedded.
+
+    Returns
+    -------
+    FramePlayer
+        Displayed as HTML by Jupyter and by the built book.
+    """
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
+        raise ValueError(f"name must start with a letter and hold only letters, digits, '-' and '_', got {name!r}")
+    if not sliders:
+        raise ValueError("sliders must hold at least one {label: values} entry")
+    axes = [list(v) for v in sliders.values()]
+    if any(len(v) == 0 for v in axes):
+        raise ValueError(f"every slider needs at least one value, got lengths {[len(v) for v in axes]}")
+    n_frames = 1
+    for v in axes:
+        n_frames *= len(v)
+    if n_frames > 200:
+        raise ValueError(f"{n_frames} frames would make the page heavy: use fewer slider values (at most 200 frames)")
+    start = [len(v) // 2 for v in axes] if start is None else [int(s) for s in start]
+    if len(start) != len(axes) or any(not 0 <= s < len(v) for s, v in zip(start, axes)):
+        raise ValueError(f"start must hold one valid index per slider, got {start} for lengths {[len(v) for v in axes]}")
+    frames = {}
+    for idx in itertools.product(*[range(len(v)) for v in axes]):
+        fig = draw(*[v[i] for v, i in zip(axes, idx)])
+        frames[",".join(map(str, idx))] = _png_data_uri(fig, dpi)
+    return FramePlayer(name, dict(zip(sliders, axes)), frames, start)

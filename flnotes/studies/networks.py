@@ -1,0 +1,210 @@
+"""Studies of chapters 2 and 5: the book's networks against fresh ones, Table 1, sweeps over architectures.
+
+These functions produce the chapters' tables; they train and certify many
+networks, so their results for the book's settings ship as reference data
+(:mod:`flnotes.reference`) where training would make them machine-dependent.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .. import paper
+from ..config import cache_dir
+from ..error import certify_error, pso_max_error, sample_max_error
+from ..network import fit_relu
+from ..reference import DATA_DIR, load_reference, load_table, save_table, weights_sha256
+from ..systems import FLSystem
+
+Array = np.ndarray
+
+__all__ = ["table1_rows", "architecture_sweep", "book_sweep", "write_sweep", "fresh_vs_shipped",
+           "width_experiment", "estimates_table"]
+
+
+def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
+    """The paper's Table 1 next to the book's networks: K, n_bar, eps, n_s, training time, certified eps.
+
+    For each system one row with the paper's numbers (``source = "paper"``)
+    and one with the book's: the network of :func:`flnotes.paper_net`, its
+    PSO estimate and its certified bracket (:func:`flnotes.paper.paper_eps`).
+    """
+    rows = []
+    for name in names:
+        t = paper.TABLE1[name]
+        rows.append({"system": name, "source": "paper", "K": t["K"], "n_bar": t["n_bar"], "n_s": str(t["n_s"]),
+                     "eps (PSO)": t["eps"], "eps certified": "", "training time (s)": t["train_time_s"]})
+        net, rep = paper.paper_net(name)
+        sysm = paper.system(name)
+        pso = pso_max_error(sysm, net, **paper.EPS_SETTINGS["pso"])
+        br = paper.paper_eps(name)
+        n_s = "x".join(str(k) for k in rep.n_per_axis) if len(set(rep.n_per_axis)) > 1 else str(rep.n_per_axis[0])
+        rows.append({"system": name, "source": "flnotes", "K": net.K, "n_bar": net.widths[0], "n_s": n_s,
+                     "eps (PSO)": round(float(pso.eps[0]), 5),
+                     "eps certified": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
+                     "training time (s)": round(rep.time_s, 1)})
+    return rows
+
+
+def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), depths: Sequence[int] = (1, 2, 3),
+                       n_per_axis: Sequence[int] = (10, 20, 30), max_iter: int = 300, max_train: Optional[int] = None,
+                       seed: int = 0,
+                       rtol: float = 0.05, max_time: float = 20.0, n_samples: int = 20_000,
+                       cache: bool = True, progress: bool = False, recompute: bool = False,
+                       ship_to: Optional[str] = None) -> list[dict]:
+    """Train small networks over a grid of widths, depths and grid densities; estimate and certify each eps.
+
+    One row per network with ``width``, ``depth``, ``n_s``, ``n_binaries``
+    (``width * depth``, the binaries of one copy of eq. (MIP_general)),
+    ``eps_sample`` (max over ``n_samples`` random points), ``eps_pso``,
+    ``eps_certified`` (upper end of :func:`certify_error` with ``rtol``),
+    ``eps_lower``, ``train_time_s`` and ``certify_time_s``. ``max_train``
+    caps the training points per network (a random subset of the grid, as in
+    :func:`flnotes.fit_relu`; ``None``: the whole grid).
+
+    Training many networks takes minutes and its result depends on the
+    machine (see :mod:`flnotes.reference`), so the table chapter 5 draws is
+    shipped with the package and returned as it is when the arguments match
+    it exactly; ``recompute=True`` trains everything anew on this machine.
+    Other arguments are computed and cached on disk (keyed by all arguments,
+    ``cache=False`` skips the disk). ``ship_to`` (a folder) writes the
+    computed table there as the shipped one (see
+    :func:`flnotes.paper.write_sweep`).
+    """
+    args = dict(system=system.name, lo=system.lo.tolist(), hi=system.hi.tolist(), widths=list(widths),
+                depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, max_train=max_train, seed=seed, rtol=rtol,
+                max_time=max_time, n_samples=n_samples, version=1)
+    shipped = None if recompute else load_table(f"sweep-{system.name}", args)
+    if shipped is not None:
+        return shipped
+    path = cache_dir() / f"sweep-{system.name}-{hashlib.sha1(json.dumps(args, sort_keys=True).encode()).hexdigest()[:12]}.json"
+    if cache and not recompute and path.exists():
+        return json.loads(path.read_text())
+    rows = []
+    for n_s in n_per_axis:
+        for depth in depths:
+            for width in widths:
+                net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(width,) * depth,
+                                    n_per_axis=n_s, max_train=max_train, max_iter=max_iter, seed=seed)
+                smp = sample_max_error(system, net, n=n_samples, seed=seed)
+                pso = pso_max_error(system, net, n_particles=50, n_iter=100, seed=seed)
+                br = certify_error(system, net, rtol=rtol, seeds=pso, n_samples=1000, max_time=max_time)
+                rows.append(dict(width=width, depth=depth, n_s=n_s, n_binaries=width * depth,
+                                 eps_sample=float(smp.eps[0]), eps_pso=float(pso.eps[0]),
+                                 eps_lower=float(br.lower[0]), eps_certified=float(br.upper[0]),
+                                 converged=bool(br.converged[0]), train_time_s=rep.time_s,
+                                 certify_time_s=float(br.time_s[0])))
+                if progress:
+                    print(rows[-1], flush=True)
+    if cache:
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(rows))
+        tmp.replace(path)
+    if ship_to is not None:
+        save_table(f"sweep-{system.name}", args, rows, folder=ship_to)
+    return rows
+
+
+def estimates_table(estimates: dict, brackets: Optional[dict] = None) -> list[dict]:
+    """Rows comparing estimates of eq. (epsilon_find): system, method, eps found, evaluations, time.
+
+    ``estimates`` maps a system name to a list of :class:`ErrorEstimate`;
+    ``brackets`` optionally maps it to an :class:`ErrorBracket`, added as a
+    last row and used to report each estimate relative to the certified lower bound.
+    """
+    names = {"pso": "particle swarm", "de": "differential evolution", "grid": "dense grid",
+             "sample": "random samples", "local": "L-BFGS-B, best of several starts"}
+    rows = []
+    for system, ests in estimates.items():
+        br = None if brackets is None else brackets.get(system)
+        for e in ests:
+            row = {"system": system, "method": names.get(e.method, e.method), "eps found": round(float(e.eps[0]), 5),
+                   "evaluations": f"{e.n_evals:,}", "time (s)": round(e.time_s, 2)}
+            if br is not None:
+                row["found / certified lower"] = round(float(e.eps[0] / br.lower[0]), 3)
+            rows.append(row)
+        if br is not None:
+            rows.append({"system": system, "method": "certified bracket",
+                         "eps found": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
+                         "evaluations": f"{int(br.n_boxes[0]):,} boxes", "time (s)": round(float(br.time_s[0]), 2),
+                         "found / certified lower": 1.0})
+    return rows
+
+
+def book_sweep(name: str = "MSD", recompute: bool = False) -> list[dict]:
+    """Chapter 5's sweep over widths, depths and grid densities with :data:`SWEEP_SETTINGS` (shipped table).
+
+    ``recompute=True`` retrains its networks on this machine (minutes).
+    """
+    return architecture_sweep(paper.system(name), **paper.SWEEP_SETTINGS, recompute=recompute)
+
+
+def write_sweep(name: str = "MSD", folder=None) -> None:
+    """Recompute chapter 5's sweep on this machine and write it as the shipped table (``make reference``)."""
+    architecture_sweep(paper.system(name), **paper.SWEEP_SETTINGS, cache=False, recompute=True,
+                       ship_to=DATA_DIR if folder is None else folder)
+
+
+def fresh_vs_shipped(names: Sequence[str] = ("MSD", "Quad-1D"), **overrides) -> list[dict]:
+    """Train the book's networks anew on this machine and compare them with the shipped ones (chapter 2).
+
+    For each system one row for the shipped reference and one for a network
+    trained now with the same settings (``overrides`` change them, e.g. fewer
+    iterations), each with its grid error, certified bracket of ``eps``
+    (eq. approx_err, :data:`EPS_SETTINGS`), training time and weights
+    checksum, and whether the two networks are identical.
+    """
+    rows = []
+    for name in names:
+        ref = load_reference(paper.shipped_name(name, paper.NET_SETTINGS[name]))
+        sysm = paper.system(name)
+        settings = {**paper.NET_SETTINGS[name], **overrides}
+        net, rep = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **settings)
+        br = paper.certify_book_eps(name, net)
+        same = (net.widths == ref.net.widths and all(np.array_equal(a, b) for a, b in zip(net.W + net.b, ref.net.W + ref.net.b)))
+        for source, n, r, lower, upper in (("shipped", ref.net, ref.report, ref.bracket["lower"][0], ref.bracket["upper"][0]),
+                                           ("trained now", net, rep, br.lower[0], br.upper[0])):
+            rows.append({"system": name, "network": source, "widths": str(n.widths), "L-BFGS iterations": r.n_iter,
+                         "train time [s]": round(r.time_s, 1), "grid max error": float(r.grid_max_error[0]),
+                         "eps certified": f"[{lower:.5f}, {upper:.5f}]", "eps": float(upper),
+                         "weights sha256": weights_sha256(n)[:12], "identical to shipped": bool(same)})
+    return rows
+
+
+def width_experiment(system: FLSystem, n_bars: Sequence[int] = (5, 10, 20, 30), depth: int = 3,
+                     n_per_axis: int = 15, max_iter: int = 1000, n_test: int = 100_000,
+                     seed: int = 0) -> list[dict]:
+    """Train ``depth`` hidden layers of ``n_bar`` neurons each on a coarse grid, for several widths.
+
+    Parameters
+    ----------
+    system
+        The system whose ``Phi`` is fitted on its domain box.
+    n_bars
+        Hidden widths ``n_bar`` to try (the paper's K - 1 = ``depth`` layers each).
+    depth
+        Number of hidden layers.
+    n_per_axis, max_iter, seed
+        Passed to :func:`flnotes.fit_relu`.
+    n_test
+        Random test points for the off-grid error (:func:`flnotes.error.sample_max_error`).
+
+    Returns
+    -------
+    list of dict
+        One row per width: ``n_bar``, ``n_hidden``, ``params``, ``grid_max_error``,
+        ``grid_rmse``, ``sample_max_error`` (first input), ``time_s``.
+    """
+    rows = []
+    for nb in n_bars:
+        net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(int(nb),) * depth,
+                            n_per_axis=n_per_axis, max_train=None, max_iter=max_iter, seed=seed)
+        rows.append(dict(n_bar=int(nb), n_hidden=net.n_hidden,
+                         params=int(sum(W.size + b.size for W, b in zip(net.W, net.b))),
+                         grid_max_error=float(rep.grid_max_error[0]), grid_rmse=float(rep.grid_rmse[0]),
+                         sample_max_error=float(sample_max_error(system, net, n=n_test, seed=seed + 1).eps[0]),
+                         time_s=rep.time_s))
+    return rows

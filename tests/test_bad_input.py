@@ -1,0 +1,309 @@
+"""Bad input is never swallowed: each call a new user might get wrong raises a clear error naming the argument.
+
+Every network here has explicit weights (no training), so no premise depends on the machine.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import math
+
+import cvxpy as cp
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes import interval as iv
+
+
+def _identity_net(system: fl.FLSystem) -> fl.ReLUNet:
+    """A network with known weights: Phi_NN(z, v) = v + z_1 (relu(y) - relu(-y) for y = v + z_1)."""
+    w = np.zeros(system.n_in)
+    w[0], w[-1] = 1.0, 1.0
+    return fl.ReLUNet([np.vstack([w, -w]), np.array([[1.0, -1.0]])], [np.zeros(2), np.zeros(1)])
+
+
+def _random_net(n_in: int, widths=(6,), n_out: int = 1, seed: int = 0) -> fl.ReLUNet:
+    rng = np.random.default_rng(seed)
+    sizes = [n_in, *widths, n_out]
+    return fl.ReLUNet([rng.normal(size=(b, a)) for a, b in zip(sizes[:-1], sizes[1:])],
+                      [rng.normal(size=b) * 0.1 for b in sizes[1:]])
+
+
+class _NetController:
+    """A controller that carries a network (as ClfCbfController and MPC do): v = -z_1 - z_2."""
+
+    def __init__(self, net, v=None):
+        self.net, self.v = net, v
+
+    def step(self, z, t, reference=None):
+        v = np.array([-z[0] - z[1]]) if self.v is None else np.array([self.v])
+        return fl.StepResult(v=v, status="optimal")
+
+
+@pytest.fixture(scope="module")
+def msd():
+    sysm = fl.msd()
+    return sysm, _identity_net(sysm)
+
+
+# --------------------------------------------------------------------------- item 1: start outside the box
+@pytest.mark.parametrize("kw, name", [(dict(z0=[0.0, 6.0]), "z0"), (dict(x0=[-5.5, 0.0]), "x0")])
+def test_simulate_start_outside_the_domain_box_raises_before_the_first_step(msd, kw, name):
+    sysm, net = msd
+    calls = []
+
+    class Spy(_NetController):
+        def step(self, z, t, reference=None):
+            calls.append(t)
+            return super().step(z, t, reference)
+
+    with pytest.raises(ValueError, match=rf"{name} = .* outside the domain box") as err:
+        fl.simulate(sysm, Spy(net), t_final=0.2, ts=0.1, **kw)
+    assert "lo = [-5. -5.]" in str(err.value) and "hi = [5. 5.]" in str(err.value)
+    assert calls == []  # raised before the first step
+
+
+def test_simulate_start_outside_the_box_with_a_real_controller(msd):
+    sysm, net = msd
+    S = fl.paper.MSD_SETTING
+    ctrl = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(S["P"]), None, lambda z: -S["K_nominal"] @ z,
+                               cost="quadratic", backend="exact")
+    with pytest.raises(ValueError, match=r"z0 = \[0. 6.\] is outside the domain box"):
+        fl.simulate(sysm, ctrl, t_final=0.2, ts=0.1, z0=[0.0, 6.0])
+
+
+def test_a_plain_law_may_run_outside_the_box_and_the_check_can_be_switched(msd):
+    """The box is where the network is trusted: a plain k(z) runs anywhere, a network controller with opt-out."""
+    sysm, net = msd
+    K = fl.paper.MSD_SETTING["K_nominal"]
+    log = fl.simulate(sysm, lambda z: -K @ z, t_final=0.2, ts=0.1, z0=[0.0, 6.0])
+    assert log.n_steps == 2 and not log.in_domain[0]
+    log = fl.simulate(sysm, _NetController(net), t_final=0.2, ts=0.1, z0=[0.0, 6.0], check_domain=False)
+    assert log.n_steps == 2
+    with pytest.raises(ValueError, match="z0 = .* outside the domain box"):
+        fl.simulate(sysm, lambda z: -K @ z, t_final=0.2, ts=0.1, z0=[0.0, 6.0], check_domain=True)
+
+
+def test_leaving_the_box_during_the_run_stops_it_with_a_message(msd):
+    sysm, net = msd
+    log = fl.simulate(sysm, _NetController(net, v=30.0), t_final=2.0, ts=0.1, z0=[0.0, 4.0])
+    assert "left the domain box" in log.message and log.message.startswith("stopped at t =")
+    assert log.n_steps < 20
+    assert log.in_domain[:-1].all() and not log.in_domain[-1]
+
+
+# --------------------------------------------------------------------------- item 2: ClfCbfController.step outside
+@pytest.mark.xfail(strict=True, reason="owned by the controllers' change")
+def test_clf_cbf_step_outside_the_domain_raises_like_mpc(msd):
+    sysm, net = msd
+    S = fl.paper.MSD_SETTING
+    ctrl = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(S["P"]), None, lambda z: -S["K_nominal"] @ z,
+                               cost="quadratic", backend="exact")
+    mpc = fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1)
+    z = np.array([0.0, 6.0])
+    with pytest.raises(ValueError, match="z = .* is outside") as e_mpc:
+        mpc(z, np.zeros(2))
+    with pytest.raises(ValueError, match="z = .* is outside") as e_ctrl:
+        ctrl.step(z)
+    assert "trained domain" in str(e_mpc.value) and "trained domain" in str(e_ctrl.value)
+
+
+# --------------------------------------------------------------------------- item 3: MPC solver availability
+@pytest.mark.skipif(importlib.util.find_spec("gurobipy") is not None, reason="gurobipy is installed here")
+@pytest.mark.xfail(strict=True, reason="owned by the controllers' change")
+def test_mpc_with_a_missing_solver_fails_at_construction(msd):
+    sysm, net = msd
+    with pytest.raises((ImportError, ValueError), match="gurobi"):
+        fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, backend="gurobi")
+
+
+# --------------------------------------------------------------------------- item 4: reference
+@pytest.mark.parametrize("reference, exc, match", [
+    (lambda t: np.zeros(3), ValueError, r"reference returned shape \(3,\)"),
+    (lambda t: np.zeros((np.size(t), 3)), ValueError, r"reference returned shape \(1, 3\)"),
+    (lambda t: np.zeros((2, np.size(t))), ValueError, "reference returned shape"),
+    (lambda t: np.full((np.size(t), 2), np.nan), ValueError, "reference returned NaN"),
+    (lambda t: np.array([math.sin(t), 0.0]), ValueError, "reference must accept .* array of times"),
+    (np.zeros(2), TypeError, "reference must be a function"),
+])
+def test_simulate_rejects_a_bad_reference_before_the_first_step(msd, reference, exc, match):
+    sysm, net = msd
+    calls = []
+
+    class Spy(_NetController):
+        def step(self, z, t, reference=None):
+            calls.append(t)
+            return super().step(z, t, reference)
+
+    with pytest.raises(exc, match=match):
+        fl.simulate(sysm, Spy(net), t_final=0.3, ts=0.1, z0=[0.0, 1.0], reference=reference)
+    assert calls == []
+
+
+def test_simulate_accepts_vectorized_and_constant_references(msd):
+    sysm, net = msd
+    for ref in (lambda t: np.zeros((np.size(t), 2)), lambda t: np.array([1.0, 0.0]),
+                fl.sine_reference(n_z=2)):
+        assert fl.simulate(sysm, _NetController(net), t_final=0.3, ts=0.1, z0=[0.0, 1.0], reference=ref).n_steps == 3
+
+
+# --------------------------------------------------------------------------- item 5: controller errors
+@pytest.mark.parametrize("exc", [ValueError("z has the wrong shape"), TypeError("unsupported operand"),
+                                 ImportError("No module named 'gurobipy'"), AttributeError("no attribute 'L'")])
+def test_simulate_raises_the_controllers_programming_errors(msd, exc):
+    sysm, _ = msd
+
+    class Broken:
+        def step(self, z, t, reference=None):
+            raise exc
+
+    with pytest.raises(type(exc), match=str(exc).replace("(", r"\(").replace(")", r"\)")):
+        fl.simulate(sysm, Broken(), t_final=0.3, ts=0.1, z0=[0.0, 1.0], fallback=lambda z: np.zeros(1))
+
+
+def test_simulate_falls_back_only_on_a_solver_failure_and_says_so(msd):
+    sysm, _ = msd
+
+    class Infeasible:
+        def step(self, z, t, reference=None):
+            raise fl.SolverFailure(f"no admissible v at t = {t:.1f}", status="infeasible")
+
+    log = fl.simulate(sysm, Infeasible(), t_final=0.3, ts=0.1, z0=[0.0, 1.0], fallback=lambda z: np.zeros(1))
+    assert log.fallback.all() and all("SolverFailure: no admissible v" in s for s in log.status)
+    assert all(st.info["solver_status"] == "infeasible" for st in log.steps)
+
+
+def test_simulate_checks_what_the_controller_returns(msd):
+    sysm, _ = msd
+
+    class ReturnsArray:
+        def step(self, z, t, reference=None):
+            return np.zeros(1)
+
+    with pytest.raises(TypeError, match="must return a flnotes.StepResult"):
+        fl.simulate(sysm, ReturnsArray(), t_final=0.3, ts=0.1, z0=[0.0, 1.0])
+    with pytest.raises(ValueError, match=r"the controller's v at t = 0.000 s must have shape \(1,\)"):
+        fl.simulate(sysm, lambda z: np.zeros(2), t_final=0.3, ts=0.1, z0=[0.0, 1.0])
+
+
+# --------------------------------------------------------------------------- item 6: phi_interval is checked
+def _typo(z, v):  # the MSD map with a typo: 2 z_1 instead of z_1
+    return v + iv.stribeck(z[:, 1:2]) + 2.0 * z[:, 0:1]
+
+
+def test_certify_error_refuses_a_phi_interval_that_does_not_enclose_phi(msd):
+    sysm, net = msd
+    bad = dataclasses.replace(sysm, phi_interval=_typo)
+    with pytest.raises(ValueError, match="phi_interval of MSD does not enclose Phi"):
+        fl.certify_error(bad, net, n_samples=500)
+    with pytest.raises(ValueError, match="f_interval does not enclose Phi"):
+        fl.certify_error(sysm, net, f_interval=lambda X: _typo(X[:, :2], X[:, 2:]), n_samples=500)
+
+
+def test_certify_error_refuses_a_phi_interval_wrong_only_on_a_small_region():
+    """Right at every sample point of a coarse look, wrong near one spot: the small random boxes see it."""
+    net = _random_net(1, seed=1)
+
+    def phi(X):
+        return np.sin(3.0 * X)
+
+    def wrong(X):  # sin(3x) everywhere, but its enclosure is shifted up by 0.5 on boxes right of 0.2
+        y = iv.sin(3.0 * X)
+        shift = np.where(X.lo > 0.2, 0.5, 0.0)
+        return iv.Interval(y.lo + shift, y.hi + shift, y.dlo, y.dhi)
+
+    with pytest.raises(ValueError, match="f_interval does not enclose Phi"):
+        fl.certify_error(phi, net, [-1.0], [1.0], f_interval=wrong, n_samples=200)
+
+
+def test_certify_error_refuses_too_small_lipschitz_constants():
+    net = _random_net(1, seed=2)
+    with pytest.raises(ValueError, match="lipschitz is too small"):
+        fl.certify_error(lambda X: np.sin(3.0 * X), net, [-1.0], [1.0], lipschitz=1.0, n_samples=500)
+
+
+# --------------------------------------------------------------------------- item 7: network of the wrong size
+def test_certify_error_names_a_network_of_the_wrong_input_size():
+    sysm = fl.quad1d()
+    with pytest.raises(ValueError, match=r"net has 3 inputs .* the box of Quad-1D has 4 dimensions"):
+        fl.certify_error(sysm, _random_net(3))
+    with pytest.raises(ValueError, match=r"net has 3 inputs, the box .* has 4 dimensions"):
+        fl.certify_error(lambda X: X[:, :1], _random_net(3), np.zeros(4), np.ones(4))
+    with pytest.raises(ValueError,
+                       match=r"net has 3 inputs but the box lo, hi has 4 dimensions: lo and hi must have shape \(3,\)"):
+        fl.fbbt(_random_net(3), np.zeros(4), np.ones(4))
+
+
+# --------------------------------------------------------------------------- item 8: encode's bounds
+def test_encode_names_bounds_of_the_wrong_kind():
+    net = _random_net(3)
+    with pytest.raises(TypeError, match=r"bounds must be a flnotes.NodeBounds, e.g. bounds=fl.fbbt\(net, lo, hi\)"):
+        fl.encode(net, cp.Variable(3), np.zeros(3))
+    with pytest.raises(TypeError, match="x must be a cvxpy expression"):
+        fl.encode(net, np.zeros(3), fl.fbbt(net, -np.ones(3), np.ones(3)))
+    with pytest.raises(TypeError, match="bounds must be a flnotes.NodeBounds"):
+        fl.bigm_form(net, (np.zeros(6), np.ones(6)))
+    with pytest.raises(ValueError, match="either bounds= or L= and U="):
+        fl.encode(net, cp.Variable(3), fl.fbbt(net, -np.ones(3), np.ones(3)), L=[np.zeros(6)], U=[np.ones(6)])
+    with pytest.raises(ValueError, match="bounds hold 1 layers but the network has 2 hidden layers"):
+        fl.encode(_random_net(3, (4, 4)), cp.Variable(3), fl.fbbt(net, -np.ones(3), np.ones(3)))
+
+
+# --------------------------------------------------------------------------- item 9: R of the MPC
+@pytest.mark.xfail(strict=True, reason="owned by the controllers' change")
+def test_mpc_says_r_must_be_positive_definite(msd):
+    sysm, net = msd
+    with pytest.raises(ValueError, match="R must be .*positive definite") as err:
+        fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=-0.1)
+    assert "semidefinite" not in str(err.value)
+
+
+# --------------------------------------------------------------------------- more: simulate, FLSystem, interval
+@pytest.mark.parametrize("kw, exc, match", [
+    (dict(controller=np.ones((1, 2))), TypeError, "controller must be"),
+    (dict(system="msd"), TypeError, "system must be a flnotes.FLSystem"),
+    (dict(net=np.ones(3)), TypeError, "net must be a flnotes.ReLUNet"),
+    (dict(net="wrong size"), ValueError, r"net maps R\^4 -> R\^1"),
+    (dict(n_fine=0), ValueError, "n_fine must be a positive integer"),
+    (dict(fallback=0.0), TypeError, "fallback must be a function"),
+    (dict(ts="0.1"), TypeError, "ts and t_final must be numbers"),
+    (dict(rtol=0.0), ValueError, "rtol and atol must be positive"),
+    (dict(z0=[0.0, np.nan]), ValueError, "z0 contains NaN"),
+    (dict(z0=None, x0=[0.0, np.inf]), ValueError, "x0 contains NaN or inf"),
+])
+def test_simulate_bad_arguments(msd, kw, exc, match):
+    sysm, net = msd
+    args = dict(system=sysm, controller=lambda z: np.zeros(1), t_final=0.3, ts=0.1, z0=[0.0, 1.0])
+    if isinstance(kw.get("net"), str):
+        kw = dict(net=_random_net(4))
+    args.update(kw)
+    with pytest.raises(exc, match=match):
+        fl.simulate(**args)
+
+
+@pytest.mark.parametrize("field, match", [("phi", "phi must be a function"), ("f", "f must be a function"),
+                                          ("to_z", "to_z must be a function"),
+                                          ("phi_interval", "phi_interval must be a function")])
+def test_flsystem_names_a_field_that_is_not_a_function(field, match):
+    with pytest.raises(TypeError, match=match):
+        dataclasses.replace(fl.msd(), **{field: np.zeros(3)})
+
+
+@pytest.mark.parametrize("call, exc, match", [
+    (lambda: iv.sqrt(iv.Interval(-1.0, 4.0)), iv.NotCertifiable, "sqrt of an interval reaching below 0"),
+    (lambda: iv.log(iv.Interval(0.0, 4.0)), iv.NotCertifiable, "log of an interval reaching 0 or below"),
+    (lambda: 1.0 / iv.Interval(-1.0, 2.0), iv.NotCertifiable, "division by an interval that contains 0"),
+    (lambda: iv.tan(iv.Interval(1.0, 2.0)), iv.NotCertifiable, r"tan .* pole"),
+    (lambda: iv.Interval(2.0, 1.0), ValueError, "lower bound must be <= its upper bound"),
+    (lambda: iv.Interval(0.0, 1.0) ** 0.5, iv.NotCertifiable, "integer powers"),
+])
+def test_interval_domain_errors_are_clear(call, exc, match):
+    with pytest.raises(exc, match=match):
+        call()
+
+
+def test_fit_relu_with_a_system_instead_of_a_function_names_f():
+    s = fl.msd()
+    with pytest.raises(TypeError, match=r"f must be a function.*phi_stacked"):
+        fl.fit_relu(s, s.lo, s.hi, widths=(3,), n_per_axis=3)

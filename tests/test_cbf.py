@@ -1,0 +1,71 @@
+"""The exponential (second-order) CBF for a relative-degree-2 barrier: definition, validity, closed loop.
+
+The closed loop uses a double integrator whose input map is Phi(z, v) = v, represented exactly by the
+ReLU network sigma(v) - sigma(-v); its premise does not depend on trained weights.
+"""
+import numpy as np
+import pytest
+
+import flnotes as fl
+
+U_MAX = 2.0
+EPS = 0.05
+
+
+def double_integrator():
+    A, B = fl.brunovsky(2)
+    sysm = fl.FLSystem("DI", A, B, phi=lambda z, v: np.asarray(v, float).reshape(-1, 1), lo=[-3, -3, -6],
+                       hi=[3, 3, 6], u_max=U_MAX, f=lambda x, u: np.array([x[1], u[0]]),
+                       to_z=lambda x: np.asarray(x, float), to_x=lambda z: np.asarray(z, float))
+    net = fl.ReLUNet([np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]), np.array([[1.0, -1.0]])],
+                     [np.zeros(2), np.zeros(1)])
+    return sysm, net
+
+
+def test_value_and_gradient_follow_the_definition():
+    A, B = fl.brunovsky(2)
+    h = fl.AffineCBF([-1.0, 0.0], 1.0)          # h = 1 - z1: a wall at z1 = 1
+    H2 = fl.ExponentialCBF(h, A, B, k1=2.0)     # H2 = dh/dt + 2 h = -z2 + 2 (1 - z1)
+    Z = np.random.default_rng(0).uniform(-3, 3, (50, 2))
+    assert np.allclose(H2(Z), -Z[:, 1] + 2.0 * (1.0 - Z[:, 0]))
+    for z in Z[:5]:
+        g = np.array([(H2(z + d) - H2(z - d)) / 2e-6 for d in np.eye(2) * 1e-6])
+        assert np.allclose(H2.grad(z), g, atol=1e-6)
+        # dh/dt along z' = Az + Bv does not contain v; H2's derivative does, with a never-zero coefficient
+        assert np.allclose(h.grad(z) @ B, 0.0) and abs(H2.grad(z) @ B[:, 0]) > 0
+
+
+def test_bad_barriers_are_refused():
+    A, B = fl.brunovsky(2)
+    with pytest.raises(ValueError, match="relative degree one"):
+        fl.ExponentialCBF(fl.AffineCBF([0.0, 1.0], 1.0), A, B, 1.0)
+    A3, B3 = fl.brunovsky(3)
+    with pytest.raises(ValueError, match="above two"):
+        fl.ExponentialCBF(fl.AffineCBF([1.0, 0.0, 0.0], 1.0), A3, B3, 1.0)
+    with pytest.raises(ValueError, match="k1"):
+        fl.ExponentialCBF(fl.AffineCBF([-1.0, 0.0], 1.0), A, B, 0.0)
+    with pytest.raises(TypeError, match="AffineCBF"):
+        fl.ExponentialCBF(fl.DistanceCBF([0, 0], 1.0), A, B, 1.0)
+    with pytest.raises(ValueError, match="nonzero"):
+        fl.AffineCBF([0.0, 0.0], 1.0)
+
+
+def test_closed_loop_keeps_the_wall_where_the_first_order_condition_cannot():
+    sysm, net = double_integrator()
+    V = fl.QuadraticCLF(np.array([[2.0, 0.5], [0.5, 1.0]]))
+    k = lambda z: -np.array([1.0, 2.0]) @ (z - np.array([2.5, 0.0]))  # pushes the mass towards z1 = 2.5
+    h = fl.AffineCBF([-1.0, 0.0], 1.0)                                   # the wall z1 <= 1
+    H2 = fl.ExponentialCBF(h, sysm.A, sysm.B, k1=1.5)
+    z0 = np.array([-2.0, 0.0])
+    assert H2(z0) >= 0 and h(z0) >= 0
+    logs = {}
+    for name, H in (("first order", h), ("exponential", H2)):
+        ctrl = fl.ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="exact", kappa=5.0)
+        logs[name] = fl.simulate(sysm, ctrl, t_final=6.0, ts=0.02, z0=z0, hold="u", net=net, progress=False)
+    first, expo = (fl.clf_cbf_checks(logs[n], h) for n in ("first order", "exponential"))
+    # the first-order condition -z2 >= -kappa h does not contain v: infeasible steps, and the wall is crossed
+    assert first["fallback_steps"] > 0 and h(logs["first order"].z).min() < 0
+    # the exponential CBF keeps h >= 0 and H2 >= 0 at every sample, with the true input within its bound
+    assert expo["fallback_steps"] == 0
+    assert h(logs["exponential"].z).min() >= 0 and H2(logs["exponential"].z).min() >= -1e-9
+    assert expo["max_abs_u"] <= U_MAX + 1e-9 and np.abs(logs["exponential"].u).max() <= U_MAX + 1e-9
