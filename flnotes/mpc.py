@@ -1310,9 +1310,11 @@ class MPC:
         else:
             R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
         s = self(z, R)
-        if s.v is None:
-            raise RuntimeError(f"MPC at t = {t:.3f} s: status {s.status!r} and no previous plan to fall back on "
-                               f"({s.message})")
+        if s.v is None:  # not reached: the fallback always gives an input (kept as the documented outcome)
+            from .errors import SolverFailure
+
+            raise SolverFailure(f"MPC at t = {t:.3f} s: status {s.status!r} and no input ({s.message})",
+                                status=s.status)
         info = s.as_info()
         info["z_ref"] = R
         return StepResult(v=s.v, status=s.status, solve_time=s.wall_time, fallback=s.fallback, info=info)
