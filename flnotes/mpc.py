@@ -1239,7 +1239,7 @@ class MPC:
                 Zv[1:].T == self.Ad @ Zv[:N].T + self.Bd @ Vv.T,             # (MPC_form_miqp_c)
                 Zv[1:] >= self.z_lo[None], Zv[1:] <= self.z_hi[None],        # (MPC_form_miqp_d)
                 Vv >= self.v_lo[None], Vv <= self.v_hi[None],
-                cp.abs(enc.output) <= self.u_eps[:, None]]                   # (MPC_form_miqp_b), eq. (Phi_NN_ep)
+                cp.abs(enc.output) <= self.u_solve[:, None]]                 # (MPC_form_miqp_b), eq. (Phi_NN_ep)
         cons += enc.constraints
         E = Zv - zr
         cost = sum(cp.quad_form(E[k], self._Wk[k]) for k in range(N + 1) if np.any(self._Wk[k])) \
@@ -1248,6 +1248,21 @@ class MPC:
         return dict(prob=prob, z=Zv, v=Vv, z0=z0, zr=zr, n_bin=enc.n_binaries)
 
     def _solve_cvxpy(self, z: Array, R: Array) -> MPCStep:
+        """The reference path; when SCIP's tolerance lets the plan exceed ``u_max^eps``, the bound is tightened
+        (:attr:`margin`) and the program solved again, as on the other paths."""
+        for _ in range(6):
+            step = self._solve_cvxpy_once(z, R)
+            if step.fallback or step.status != "optimal":
+                return step
+            u = np.abs(step.u_nn_pred)
+            ex = float(np.max(u - self.u_eps))
+            if ex <= BOUND_TOL:
+                return step
+            self.margin = next_margin(self.margin, ex, float(np.max(self.u_eps)))
+            self._cvx = None  # the bound is a constant of the cvxpy problem: rebuild it
+        return step
+
+    def _solve_cvxpy_once(self, z: Array, R: Array) -> MPCStep:
         import cvxpy as cp
 
         self._candidate = None
