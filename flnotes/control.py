@@ -56,6 +56,7 @@ from .bounds import NodeBounds, fbbt
 from .network import ReLUNet
 from .simulate import SimLog, StepResult
 from .systems import FLSystem
+from .miqp import BOUND_TOL, next_margin, project_to_box
 
 Array = np.ndarray
 
@@ -758,19 +759,42 @@ class ClfCbfController:
         applied), ``"infeasible"`` or ``"error: ..."``; in the last two cases
         ``fallback`` is True and ``info["fallback_rule"]`` says which rule gave
         ``v``: ``"softened program"`` or ``"k(z) clipped to the v box"``.
+        A solver's point is checked with the network's forward pass: one that
+        exceeds ``u_max^eps`` (beyond round-off) is an error, never applied as a
+        solution. ``info["input_admissible"]`` says whether the applied ``v``
+        satisfies ``|Phi_NN(z, v)| <= u_max^eps``: on the softened program's
+        fallback the input bound carries the largest penalty ``rho_u`` (given
+        up last, an exact penalty once ``rho_u`` exceeds its multiplier), and
+        this flag records whether it was given up.
+
+        Raises ``ValueError`` when ``z`` lies outside the network's domain box
+        (beyond :data:`flnotes.miqp.BOX_TOL`; closer, it is projected onto the
+        box), as :class:`flnotes.MPC` does: the error bound eps, hence
+        ``|u| <= u_max``, is only guaranteed inside it.
         """
         t0, c0 = time.perf_counter(), time.thread_time()
         z = as_vector(z, self.system.n_z, "z")
+        self.system.check_domain(z, what="the measured state z")
+        z = project_to_box(z, self.system.lo[: self.system.n_z], self.system.hi[: self.system.n_z], "z")
         d = self.program_data(z)
         try:
             sol = self._impl.solve(z, d, soft=False)
-        except Exception as exc:  # a solver failure must not end a simulation
+        except (ValueError, TypeError, ImportError):  # a programming error stops the run with its message
+            raise
+        except Exception as exc:  # a solver failure is a result: reported, then the fallback
             sol = _Solution(status=f"error: {type(exc).__name__}: {exc}")
+        if sol.v is not None and sol.status in ("optimal", "time_limit") and not self._admissible(z, sol.v):
+            # never a point that breaks the network bound labelled as a solution
+            ex = float(np.max(np.abs(self.net(np.concatenate([z, sol.v]))) - self.u_eps))
+            sol = _Solution(status="error: the solver's point exceeds u_max^eps by " f"{ex:.1e} (forward pass)",
+                            detail=sol.detail)
         status, fallback, rule, first = sol.status, False, None, sol
         if sol.v is None or sol.status == "infeasible":
             fallback, rule = True, "softened program"
             try:
                 sol = self._impl.solve(z, d, soft=True)
+            except (ValueError, TypeError, ImportError):
+                raise
             except Exception as exc:
                 sol = _Solution(status=f"error: {type(exc).__name__}: {exc}")
             if sol.v is None:
@@ -784,10 +808,16 @@ class ClfCbfController:
                     z_in_domain=bool(self.system.in_domain(z)[0]))
         if fallback:
             info.update(fallback_rule=rule, fallback_detail=sol.detail)
+        info["input_admissible"] = self._admissible(z, v)
         info["cpu_time"] = time.thread_time() - c0
         res = StepResult(v=v, status=status, solve_time=time.perf_counter() - t0, fallback=fallback, info=info)
         self.history.append(res)
         return res
+
+    def _admissible(self, z: Array, v: Array) -> bool:
+        """``|Phi_NN(z, v)| <= u_max^eps`` by the forward pass, to the round-off :data:`flnotes.miqp.BOUND_TOL`."""
+        return bool(np.all(np.abs(self.net(np.concatenate([z, np.asarray(v, float).reshape(-1)])))
+                           <= self.u_eps + BOUND_TOL))
 
     def describe(self) -> str:
         """A few lines on the program this controller solves and how it is held in memory."""
@@ -863,9 +893,12 @@ class _ExactBackend:
         return sol
 
 
-_CVXPY_STATUS = {"optimal": "optimal", "optimal_inaccurate": "optimal", "infeasible": "infeasible",
-                 "infeasible_inaccurate": "infeasible", "user_limit": "time_limit",
-                 "unbounded": "error: unbounded", "infeasible_or_unbounded": "infeasible"}
+#: cvxpy status -> step status. Only "optimal" is a proof; an inaccurate answer is a point without proof
+#: ("time_limit": applied only if it passes the forward-pass check) or an error.
+_CVXPY_STATUS = {"optimal": "optimal", "optimal_inaccurate": "time_limit", "infeasible": "infeasible",
+                 "infeasible_inaccurate": "error: infeasible_inaccurate", "user_limit": "time_limit",
+                 "unbounded": "error: unbounded", "unbounded_inaccurate": "error: unbounded_inaccurate",
+                 "infeasible_or_unbounded": "infeasible"}
 
 
 class _CvxpyBackend:
@@ -887,13 +920,14 @@ class _CvxpyBackend:
         self.L = [cp.Parameter(n, name=f"L{i + 1}") for i, n in enumerate(net.widths)]
         self.U = [cp.Parameter(n, name=f"U{i + 1}") for i, n in enumerate(net.widths)]
         self.cap_u = cp.Parameter(m, nonneg=True, name="cap_u")
+        self.u_in = cp.Parameter(m, nonneg=True, name="u_max_eps")  # tightened when a point exceeds it
         self.v = cp.Variable(m, name="v")
         self.delta = cp.Variable(nonneg=True, name="delta")
         self.s_u = cp.Variable(m, nonneg=True, name="s_u")
         self.enc = encode(net, cp.hstack([self.z, self.v]), L=self.L, U=self.U)
         y = self.enc.output
         cons = list(self.enc.constraints) + [
-            y <= c.u_eps + self.s_u, -y <= c.u_eps + self.s_u, self.s_u <= self.cap_u,   # (CLF_CBF_b)
+            y <= self.u_in + self.s_u, -y <= self.u_in + self.s_u, self.s_u <= self.cap_u,   # (CLF_CBF_b)
             self.v >= c.v_lo, self.v <= c.v_hi,
             self.aV @ self.v + self.bV <= self.delta,                                  # (CLF_CBF_c)
         ]
@@ -912,13 +946,15 @@ class _CvxpyBackend:
         self.solver = solver or ("HIGHS" if c.cost == "linear" else "SCIP")
         self.n_binaries = self.enc.n_binaries
         self.big = 1e4
+        self.margin = 0.0
 
     def _opts(self) -> dict:
         tl = self.c.time_limit
         if self.solver == "HIGHS":
-            # presolve off: see flnotes.miqp.HighsSolver (HiGHS's MIP presolve can return sub-optimal points)
-            o = dict(mip_rel_gap=1e-9, mip_abs_gap=1e-10, mip_feasibility_tolerance=1e-9,
-                     primal_feasibility_tolerance=1e-9, presolve="off")
+            # the settings measured best in flnotes.miqp.HighsSolver (presolve on, tolerances 1e-8; 1e-9 declared
+            # feasible programs infeasible); this teaching form has no cross-check: HiGHS's "optimal" is taken
+            o = dict(mip_rel_gap=1e-9, mip_abs_gap=1e-10, mip_feasibility_tolerance=1e-8,
+                     primal_feasibility_tolerance=1e-8)
             if tl is not None:
                 o["time_limit"] = float(tl)
             return o
@@ -942,7 +978,15 @@ class _CvxpyBackend:
         if c.p:
             self.aH.value, self.bH.value = d["aH"], d["bH"]
             self.cap_H.value = np.full(c.p, self.big if soft else 0.0)
-        self.problem.solve(solver=self.solver, **self._opts())
+        for _ in range(6):
+            self.u_in.value = c.u_eps - self.margin
+            self.problem.solve(solver=self.solver, **self._opts())
+            if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
+                break
+            ex = float(np.max(np.abs(c.net(np.concatenate([z, np.asarray(self.v.value, float)]))) - c.u_eps))
+            if ex <= BOUND_TOL:
+                break
+            self.margin = next_margin(self.margin, ex, float(np.max(c.u_eps)))  # see _MiqpBackend.solve
         raw = self.problem.status
         st = _CVXPY_STATUS.get(raw, f"error: {raw}")
         stats = self.problem.solver_stats
@@ -1037,6 +1081,9 @@ class _MiqpBackend:
         if c.cost == "quadratic":
             Hq = sp.csc_matrix((np.full(m, 2.0), (self.i_v, self.i_v)), shape=(n, n))
         self.problem = MIQP(Hq, self.cvec, 0.0, A, rl, self.ru, self.lb, self.ub, integ)
+        self.r_out = n_eq + n_ub + np.arange(2 * m)   # +-y^K - s_u <= u_max^eps
+        #: how much u_max^eps is tightened in the rows handed to the solver (tolerance policy of flnotes.miqp)
+        self.margin = 0.0
         self.backend = backend
         self.solver = make_solver(self.problem, backend=backend, **c.solver_options)
         self.n_binaries = None
@@ -1082,6 +1129,7 @@ class _MiqpBackend:
         A = sp.csr_matrix((data, self._A.indices, self._A.indptr), shape=self._A.shape)
         ru, lb, ub = self.ru.copy(), self.lb.copy(), self.ub.copy()
         ru[self.rL] = -Lm
+        ru[self.r_out] = np.tile(c.u_eps - self.margin, 2)
         ru[self.r_clf] = -d["bV"]
         ru[self.r_cbf] = d["bH"]
         ub[self.i_ybar], ub[self.i_yund] = Up, -Lm
@@ -1103,8 +1151,17 @@ class _MiqpBackend:
             sol = self.screen(z, d)
             if sol is not None:
                 return sol
-        self.solver.update(**self.write(z, d, c.node_bounds(z), soft))
-        r = self.solver.solve(time_limit=c.time_limit, gap=c.gap)
+        nb = c.node_bounds(z)
+        for _ in range(6):
+            self.solver.update(**self.write(z, d, nb, soft))
+            r = self.solver.solve(time_limit=c.time_limit, gap=c.gap)
+            if soft or r.w is None or r.status not in ("optimal", "time_limit"):
+                break
+            ex = float(np.max(np.abs(c.net(np.concatenate([z, r.w[self.i_v]]))) - c.u_eps))
+            if ex <= BOUND_TOL:
+                break
+            # the solver's tolerance let the point through above u_max^eps: tighten the rows, solve again
+            self.margin = next_margin(self.margin, ex, float(np.max(c.u_eps)))
         st = r.status if r.status != "error" else f"error: {r.backend}: {r.message}"
         sol = _Solution(status=st, solver_time=r.time, detail=f"{r.backend}: {r.message}", nodes=r.nodes)
         if r.w is not None and r.status in ("optimal", "time_limit"):

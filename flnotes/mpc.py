@@ -69,14 +69,23 @@ measured. All of them are exact: they never change the optimum.
   it is hit, the solver's best incumbent is returned if it satisfies the
   constraints at every predicted step (status ``"time_limit"``, its gap to the
   relaxation's bound recorded). Otherwise a fallback plan is applied
-  (``fallback=True``): the previous plan shifted by one step, its new last input
-  chosen so that the network constraint holds (:meth:`MPC.shifted_plan`), or at
-  the first step the screening QP's plan repaired step by step
-  (:meth:`MPC.repair_plan`), whichever satisfies the constraints. If none does,
-  the shifted plan is still applied and the message says so; with no plan at
-  all ``v`` is ``None`` and :meth:`MPC.step` raises. The same fallback applies
-  when the program is infeasible or the solver fails. Nothing is silent: every
-  step's status, gap, nodes, time and message are kept in :attr:`MPC.history`.
+  (``fallback=True``, :meth:`MPC.fallback_plan`), safety first: the applied
+  input satisfies ``|Phi_NN(z, v)| <= u_max^eps`` whenever any admissible ``v``
+  exists at the measured state (the shifted previous plan if it is admissible,
+  else a plan repaired step by step with :meth:`MPC.feasible_tail`, always
+  tried, else an admissible first input found exactly by :meth:`MPC.safe_input`);
+  when none exists, the least-violation input is applied and flagged
+  (``input_admissible=False``). The same fallback applies when the program is
+  infeasible or the solver fails. Nothing is silent: every step's status, gap,
+  nodes, time and message are kept in :attr:`MPC.history`.
+
+"Optimal" is claimed only when proven (see :mod:`flnotes.miqp`), and the
+returned plan is checked with the network's forward pass at every predicted
+step: ``|Phi_NN| <= u_max^eps`` holds in floating point (to the round-off
+:data:`flnotes.miqp.BOUND_TOL`); when a solver's tolerance lets a point through
+above it, the bound in the rows is tightened (:attr:`MPC.margin`) and the
+program solved again. A measured state at most :data:`flnotes.miqp.BOX_TOL`
+outside the domain box is projected onto it; farther out is a ``ValueError``.
 """
 from __future__ import annotations
 
@@ -109,7 +118,7 @@ BACKENDS = ("auto", "cvxpy-scip", "highs", "scip", "daqp", "gurobi", "cplex")
 #: with the defaults DAQP may stop with "cycling" on them). Override with ``solver_options``.
 DAQP_OPTIONS = {"params": {"cycle_tol": 1000, "progress_tol": 1e-10}}
 
-_TOL = 1e-7  # feasibility tolerance of the forward-pass checks (solvers work to ~1e-9)
+from .miqp import BOUND_TOL, FEAS_TOL, next_margin, project_to_box  # the tolerance policy, see flnotes.miqp
 
 
 # --------------------------------------------------------------------------- references
@@ -164,7 +173,11 @@ class MPCStep:
         True when the QP without the network constraint was already feasible
         for it, hence optimal.
     fallback
-        True when ``v`` comes from the previous plan shifted by one step.
+        True when ``v`` does not come from this solve (see :meth:`MPC.fallback_plan`).
+    input_admissible
+        True when the applied ``v`` satisfies ``|Phi_NN(z, v)| <= u_max^eps`` at the measured
+        state (forward pass, to :data:`flnotes.miqp.BOUND_TOL`). False only on a fallback where no
+        admissible ``v`` exists: then ``v`` is the least-violation input.
     warm_started
         True when the shifted previous plan was passed to the solver.
     n_binaries
@@ -192,6 +205,7 @@ class MPCStep:
     wall_time: float = 0.0
     screened: bool = False
     fallback: bool = False
+    input_admissible: bool = True
     warm_started: bool = False
     n_binaries: int = 0
     encoded_steps: tuple = ()
@@ -207,7 +221,8 @@ class MPCStep:
     def as_info(self) -> dict:
         """The fields logged by :func:`flnotes.simulate` in ``StepResult.info``."""
         keys = ("z_pred", "v_pred", "u_nn_pred", "objective", "bound", "gap", "nodes", "solve_time", "wall_time",
-                "screened", "warm_started", "n_binaries", "encoded_steps", "rounds", "backend", "message")
+                "screened", "warm_started", "n_binaries", "encoded_steps", "rounds", "backend", "message",
+                "input_admissible")
         return {k: getattr(self, k) for k in keys}
 
 
@@ -327,7 +342,7 @@ class _Program:
             self.integrality[ia.ravel()] = 1
         self.lb, self.ub = np.full(n, -np.inf), np.full(n, np.inf)
         self.lb[self.iv], self.ub[self.iv] = mpc.v_lo, mpc.v_hi
-        self.lb[self.i_out], self.ub[self.i_out] = -mpc.u_eps, mpc.u_eps      # eq. (Phi_NN_ep)
+        self.lb[self.i_out], self.ub[self.i_out] = -mpc.u_solve, mpc.u_solve  # eq. (Phi_NN_ep)
         for iy in self.i_ybar + self.i_yund:
             self.lb[iy] = 0.0
         self.c, self.c0 = np.zeros(n), 0.0
@@ -356,6 +371,7 @@ class _Program:
             ia = self.i_alpha[layer]
             lb[ia] = np.where(L >= 0, 1.0, 0.0)           # stably active: alpha = 1
             ub[ia] = np.where(U <= 0, 0.0, 1.0)           # stably inactive: alpha = 0
+        lb[self.i_out], ub[self.i_out] = -mpc.u_solve, mpc.u_solve  # eq. (Phi_NN_ep), tightened (see MPC.margin)
         Zfree = mpc.Sx @ z0                               # (N+1, nz): the free response
         if self.condensed:
             self.rl[self.r_box] = zl[1:] - Zfree[1:]
@@ -478,7 +494,7 @@ class _CompactProgram:
                 per.append((idx_y, idx_al, unst))
                 Y, y0 = Yn, yn0
             out, o0 = net.W[-1] @ Y, net.W[-1] @ y0 + net.b[-1]      # eq. (MIP_general_d), (Phi_NN_ep)
-            rows_A.append(out); rl.append(-mpc.u_eps - o0); ru.append(mpc.u_eps - o0)
+            rows_A.append(out); rl.append(-mpc.u_solve - o0); ru.append(mpc.u_solve - o0)
             self.units.append(per)
         A = np.vstack(rows_A)[:, :n]
         self.n = n
@@ -596,6 +612,16 @@ class MPC:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if bounds not in ("auto", "box", "horizon", "lp", "levelset"):
             raise ValueError(f"bounds must be 'auto', 'box', 'horizon', 'lp' or 'levelset', got {bounds!r}")
+        from .miqp import _require
+
+        for pkg in (("cvxpy", "scip") if backend == "cvxpy-scip" else ("daqp" if backend == "auto" else backend,)):
+            if pkg == "cvxpy":
+                try:
+                    import cvxpy  # noqa: F401
+                except ImportError as exc:  # pragma: no cover - cvxpy is a requirement
+                    raise ImportError("backend='cvxpy-scip' needs cvxpy: pip install cvxpy") from exc
+            else:
+                _require(pkg)  # ImportError naming the package to install, here rather than at the first solve
         if bounds == "auto":
             bounds = "lp" if backend == "cvxpy-scip" else "levelset"
         if bounds == "levelset" and backend == "cvxpy-scip":
@@ -616,10 +642,8 @@ class MPC:
             raise ValueError(f"need 0 <= eps < u_max: eps = {self.eps}, u_max = {system.u_max} leaves no admissible "
                              f"input (u_max - eps = {self.u_eps})")
         self.Q = _weight(Q if Q is not None else np.eye(self.n_z), self.n_z, "Q")
-        self.R = _weight(R if R is not None else np.eye(self.m), self.m, "R")
+        self.R = _weight(R if R is not None else np.eye(self.m), self.m, "R", definite=True)
         self.P = _weight(P, self.n_z, "P") if P is not None else np.zeros((self.n_z, self.n_z))
-        if np.min(np.linalg.eigvalsh(self.R)) <= 0:
-            raise ValueError("R must be positive definite")
         self.discretization = discretization
         self.Ad, self.Bd = system.discretize(self.ts, discretization)
         self.z_lo, self.z_hi = system.lo[: self.n_z].copy(), system.hi[: self.n_z].copy()
@@ -641,6 +665,9 @@ class MPC:
                                    z_hi=self.z_hi, v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps,
                                    backend=self.backend, bounds="levelset", screening=self.screening,
                                    warm_start=self.warm_start, lazy=self.lazy, solver_options=self.solver_options)
+        #: How much ``u_max^eps`` is tightened in the rows handed to the solver (grows when a returned plan's
+        #: forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of :mod:`flnotes.miqp`).
+        self.margin = 0.0
         self.history: list[MPCStep] = []
         self._plan: Optional[tuple[Array, Array]] = None
         self._active_prev: tuple = ()
@@ -700,18 +727,22 @@ class MPC:
         return float(sum(E[k] @ self._Wk[k] @ E[k] for k in range(self.N + 1))
                      + sum(v @ self.R @ v for v in np.asarray(v_pred)))
 
-    def violated_steps(self, z_pred: Array, v_pred: Array, tol: float = _TOL) -> Array:
+    def violated_steps(self, z_pred: Array, v_pred: Array, tol: float = BOUND_TOL) -> Array:
         """Predicted steps ``k`` with ``|Phi_NN(z(k), v(k))| > u_max^eps + tol`` (forward pass)."""
         u = self.net(np.hstack([z_pred[: self.N], v_pred]))
         return np.flatnonzero(np.any(np.abs(u) > self.u_eps + tol, axis=1))
 
-    def plan_feasible(self, z_pred: Array, v_pred: Array, tol: float = _TOL) -> bool:
-        """Does a plan satisfy eq. (MPC_form_miqp_b)-(d) (network forward pass and boxes)?"""
+    def plan_feasible(self, z_pred: Array, v_pred: Array, tol: float = FEAS_TOL) -> bool:
+        """Does a plan satisfy eq. (MPC_form_miqp_b)-(d)?
+
+        The network bound by the forward pass to :data:`flnotes.miqp.BOUND_TOL` (round-off only),
+        the boxes of the predicted states and inputs to ``tol``.
+        """
         if np.any(z_pred[1:] < self.z_lo - tol) or np.any(z_pred[1:] > self.z_hi + tol):
             return False
         if np.any(v_pred < self.v_lo - tol) or np.any(v_pred > self.v_hi + tol):
             return False
-        return self.violated_steps(z_pred, v_pred, tol).size == 0
+        return self.violated_steps(z_pred, v_pred).size == 0
 
     def shifted_plan(self, z: Array) -> Optional[tuple[Array, Array]]:
         """The previous plan shifted by one step, re-predicted from the measured ``z``.
@@ -729,16 +760,18 @@ class MPC:
         V[-1] = self.feasible_tail(Z[-2], V[-1])
         return self.predict(z, V), V
 
-    def repair_plan(self, z: Array, v_guess: Array) -> tuple[Array, Array]:
+    def repair_plan(self, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
         """A plan built step by step from ``v_guess`` (N_p, m): each input replaced by :meth:`feasible_tail`.
 
         A cheap first incumbent when no previous plan exists (e.g. from the
-        screening QP's inputs); check it with :meth:`plan_feasible`.
+        screening QP's inputs); check it with :meth:`plan_feasible`. With
+        ``first=False`` the first input is kept as given.
         """
         V = np.array(v_guess, float).reshape(self.N, self.m)
         zk = np.asarray(z, float)
         for k in range(self.N):
-            V[k] = self.feasible_tail(zk, V[k])
+            if first or k:
+                V[k] = self.feasible_tail(zk, V[k])
             zk = self.Ad @ zk + self.Bd @ V[k]
         return self.predict(z, V), V
 
@@ -755,7 +788,7 @@ class MPC:
             cand = np.r_[v_guess, np.linspace(self.v_lo[0], self.v_hi[0], n_grid)][:, None]
         u = self.net(np.hstack([np.repeat(np.asarray(z)[None], len(cand), 0), cand]))
         nxt = z @ self.Ad.T + cand @ self.Bd.T
-        ok = (np.all(np.abs(u) <= self.u_eps, axis=1) & np.all(nxt >= self.z_lo, axis=1)
+        ok = (np.all(np.abs(u) <= self.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= self.z_lo, axis=1)
               & np.all(nxt <= self.z_hi, axis=1))
         if not ok.any() or ok[0]:
             return v_guess
@@ -875,7 +908,7 @@ class MPC:
         if not np.all(np.isfinite(z)):
             raise ValueError(f"z contains NaN or inf: {z}")
         self.system.check_domain(z, what="the measured state z")
-        return z
+        return project_to_box(z, self.z_lo, self.z_hi, "z")  # on the face of the box up to BOX_TOL: on it
 
     def _check_ref(self, z_ref) -> Array:
         R = np.asarray(z_ref, float)
@@ -918,33 +951,127 @@ class MPC:
             step = self._solve_levelset(z, R)
         else:
             step = self._solve_persistent(z, R)
+        if step.v is not None and not step.fallback and not self.plan_feasible(step.z_pred, step.v_pred):
+            # never a plan that breaks the program labelled as a solution
+            base = {k: getattr(step, k) for k in ("nodes", "solve_time", "n_binaries", "encoded_steps", "rounds",
+                                                   "backend", "warm_started")}
+            base["message"] = f"{step.message}; the returned plan fails the forward-pass check"
+            step = self._fallback(z, "error", base)
         step.wall_time = time.perf_counter() - t_start
         if step.v is not None:
             self._plan = (step.z_pred, step.v_pred)
         self.history.append(step)
         return step
 
+    @property
+    def u_solve(self) -> Array:
+        """``u_max^eps`` as written in the programs handed to a solver: ``u_eps - margin``."""
+        return self.u_eps - self.margin
+
     def _result(self, Z: Array, V: Array, status: str, **kw) -> MPCStep:
-        return MPCStep(v=V[0].copy(), z_pred=Z, v_pred=V, u_nn_pred=self.net(np.hstack([Z[: self.N], V])),
-                       status=status, **kw)
+        u = self.net(np.hstack([Z[: self.N], V]))
+        kw["input_admissible"] = bool(kw.get("input_admissible", True)
+                                      and np.all(np.abs(u[0]) <= self.u_eps + BOUND_TOL))
+        return MPCStep(v=V[0].copy(), z_pred=Z, v_pred=V, u_nn_pred=u, status=status, **kw)
 
     def _fallback(self, z: Array, status: str, base: dict) -> MPCStep:
-        """No plan from this solve: apply the previous plan shifted by one step if it is admissible, else the
-        screening QP's plan repaired step by step (:meth:`repair_plan`) if that one is; else report no input."""
+        """No proven plan from this solve: apply :meth:`fallback_plan` (flagged ``fallback=True``)."""
         base = dict(base)
-        for plan, what in ((self.shifted_plan(z), "the previous plan shifted by one step"),
-                           (self._candidate, "the QP plan repaired step by step")):
-            if plan is not None and self.plan_feasible(*plan):
-                base["message"] = (base.get("message", "") + f"; applied {what}").lstrip("; ")
-                base["objective"] = self.cost(plan[0], plan[1], self._R)
-                return self._result(*plan, status=status, fallback=True, **base)
-        sh = self.shifted_plan(z)
-        if sh is not None:  # not admissible for the network constraint: still applied, and said so
-            base["message"] = (base.get("message", "") + "; applied the previous plan shifted by one step, which "
-                               "violates the network constraint at some predicted step").lstrip("; ")
-            base["objective"] = self.cost(sh[0], sh[1], self._R)
-            return self._result(*sh, status=status, fallback=True, **base)
-        return MPCStep(v=None, z_pred=None, v_pred=None, u_nn_pred=None, status=status, **base)
+        Z, V, what, ok = self.fallback_plan(z)
+        base["message"] = (base.get("message", "") + f"; applied {what}").lstrip("; ")
+        base["objective"] = self.cost(Z, V, self._R)
+        return self._result(Z, V, status=status, fallback=True, input_admissible=ok, **base)
+
+    def fallback_plan(self, z: Array) -> tuple[Array, Array, str, bool]:
+        """The plan applied when a solve gives no proven plan (infeasible, time limit, solver failure).
+
+        Safety first, in this order:
+
+        1. the previous plan shifted by one step (:meth:`shifted_plan`), if it satisfies
+           eq. (MPC_form_miqp_b)-(d) from the measured ``z``;
+        2. a plan repaired step by step (:meth:`repair_plan`) from the shifted plan, then from the
+           screening QP's plan, then from zero inputs, if one satisfies them;
+        3. otherwise only the first input is made safe: if any ``v`` with
+           ``|Phi_NN(z, v)| <= u_max^eps`` exists at the measured ``z`` (:meth:`safe_input`, exact
+           for a single input), the closest one to the plan's is applied and the rest of the plan
+           repaired step by step;
+        4. when none exists, the least-violation input (smallest ``max |Phi_NN(z, v)| - u_max^eps``).
+
+        Returns ``(z_pred, v_pred, what, admissible)``: ``what`` says which rule gave the plan,
+        ``admissible`` whether its first input satisfies the network bound at ``z``.
+        """
+        z = np.asarray(z, float)
+        shifted = self.shifted_plan(z)
+        if shifted is not None and self.plan_feasible(*shifted):
+            return shifted[0], shifted[1], "the previous plan shifted by one step", True
+        guesses = []
+        if shifted is not None:
+            guesses.append((shifted[1], "the shifted previous plan"))
+        if self._candidate is not None:
+            guesses.append((self._candidate[1], "the QP plan"))
+        guesses.append((np.zeros((self.N, self.m)), "zero inputs"))
+        for V, what in guesses:
+            plan = self.repair_plan(z, V)
+            if self.plan_feasible(*plan):
+                return plan[0], plan[1], f"{what} repaired step by step", True
+        V = np.array(guesses[0][0], float)
+        v0, ok = self.safe_input(z, V[0])
+        V[0] = v0
+        Zr, Vr = self.repair_plan(z, V, first=False)
+        if ok:
+            return Zr, Vr, ("an admissible first input (|Phi_NN(z, v)| <= u_max^eps at the measured state); "
+                            "the rest of the plan violates the program"), True
+        return Zr, Vr, ("the least-violation input: no v satisfies |Phi_NN(z, v)| <= u_max^eps at the measured "
+                        "state (input bound violated, flagged)"), False
+
+    def safe_input(self, z: Array, v_guess: Array) -> tuple[Array, bool]:
+        """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` closest to ``v_guess``, or the least-violation one.
+
+        For a single input the admissible set is computed exactly
+        (:func:`flnotes.control.exact_1d_feasible_set`); inputs that also keep ``A_d z + B_d v`` in
+        the state box are preferred. For several inputs a seeded sample of the ``v`` box (4096
+        points) is searched. Returns ``(v, admissible)``; when nothing is admissible, ``v``
+        minimizes ``max(|Phi_NN(z, v)| - u_max^eps)`` (exactly for a single input: over the pieces'
+        knots and zero crossings).
+        """
+        from .control import exact_1d_feasible_set, network_pieces_1d
+
+        z, v_guess = np.asarray(z, float), np.asarray(v_guess, float).reshape(self.m)
+        phi_ok = lambda v: bool(np.all(np.abs(self.net(np.r_[z, v])) <= self.u_eps + BOUND_TOL))
+        if self.m == 1:
+            lo, hi = float(self.v_lo[0]), float(self.v_hi[0])
+            iv = exact_1d_feasible_set(self.net, z, lo, hi, float(self.u_eps[0]))
+            # the next state in the box: Bd v in [z_lo - Ad z, z_hi - Ad z], an interval of v
+            a, b, Bc = self.z_lo - self.Ad @ z, self.z_hi - self.Ad @ z, self.Bd[:, 0]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                l1 = np.where(Bc > 0, a / Bc, np.where(Bc < 0, b / Bc, -np.inf))
+                u1 = np.where(Bc > 0, b / Bc, np.where(Bc < 0, a / Bc, np.inf))
+            s_lo, s_hi = float(np.max(l1)), float(np.min(u1))
+            for keep_state in (True, False):
+                cand = []
+                for l, h in np.asarray(iv).reshape(-1, 2):
+                    if keep_state:
+                        l, h = max(l, s_lo), min(h, s_hi)
+                    if l <= h:
+                        cand += [np.clip(v_guess[0], l, h), 0.5 * (l + h)]
+                cand = sorted(cand, key=lambda v: abs(v - v_guess[0]))
+                for v in cand:
+                    if phi_ok([v]):
+                        return np.array([v]), True
+            pw = network_pieces_1d(self.net, z, lo, hi)
+            v0, y0, sl = pw.knots[:-1], pw.values[:-1], pw.slope
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cross = np.where(sl != 0, v0 - y0 / sl, v0)
+            cand = np.r_[pw.knots, np.clip(cross, pw.knots[:-1], pw.knots[1:])]
+            v = float(cand[np.argmin(np.abs(self.net(np.c_[np.repeat(z[None], cand.size, 0), cand])[:, 0]))])
+            return np.array([v]), False
+        rng = np.random.default_rng(0)
+        cand = np.vstack([v_guess, rng.uniform(self.v_lo, self.v_hi, (4096, self.m))])
+        excess = np.max(np.abs(self.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))) - self.u_eps, axis=1)
+        ok = np.flatnonzero(excess <= BOUND_TOL)
+        if ok.size:
+            return cand[ok[np.argmin(np.abs(cand[ok] - v_guess).sum(axis=1))]].copy(), True
+        return cand[int(np.argmin(excess))].copy(), False
 
     def _solve_levelset(self, z: Array, R: Array) -> MPCStep:
         """``bounds="levelset"``: :meth:`flnotes.miqp.HorizonMIQP.solve`, warm-started with the shifted plan."""
@@ -955,9 +1082,8 @@ class MPC:
                     n_binaries=int(r.n_binaries), encoded_steps=tuple(r.encoded_steps),
                     backend="qp-screening" if r.screened else self.backend, message=r.message)
         if r.v_pred is None or r.status not in ("optimal", "time_limit"):
-            # no plan: the shifted one, or (first step) zero inputs repaired step by step, see _fallback
-            self._candidate = self.repair_plan(z, np.zeros((self.N, self.m))) if self._plan is None else None
-            return self._fallback(z, r.status, base)
+            self._candidate = None
+            return self._fallback(z, r.status, base)  # see fallback_plan
         Z, V = self.predict(z, r.v_pred), np.asarray(r.v_pred, float).reshape(self.N, self.m)
         return self._result(Z, V, r.status, objective=float(r.objective), bound=float(r.bound), gap=float(r.gap),
                             screened=bool(r.screened), **base)
@@ -997,6 +1123,7 @@ class MPC:
         shifted = self.shifted_plan(z) if self.warm_start else None
         if shifted is not None and not self.plan_feasible(*shifted):
             shifted = None
+        tightened = 0
         if shifted is None and self._plan is None and qp is not None:  # no previous plan: repair the QP's
             self._candidate = self.repair_plan(z, qp[1])
             if self.warm_start and self.plan_feasible(*self._candidate):
@@ -1048,6 +1175,13 @@ class MPC:
             Z, V = prog.plan(res.w, z)
             viol = self.violated_steps(Z, V)
             new = set(viol.tolist()) - active
+            if status == "optimal" and set(viol.tolist()) & set(prog.steps) and tightened < 5:
+                # an encoded step exceeds u_max^eps beyond round-off (the solver's tolerance let it through):
+                # tighten the bound in the rows and solve again
+                u = np.abs(self.net(np.hstack([Z[: self.N], V])[list(prog.steps)]))  # the encoded steps
+                self.margin = next_margin(self.margin, float(np.max(u - self.u_eps)), float(np.max(self.u_eps)))
+                tightened += 1
+                continue
             if status == "optimal" and not new:
                 self._active_prev = prog.steps
                 return self._result(Z, V, "optimal", objective=self.cost(Z, V, R), **base)
@@ -1090,7 +1224,7 @@ class MPC:
                                    np.zeros_like(prog.integrality)), backend="daqp", **DAQP_OPTIONS).solve()
         except Exception:
             return np.nan
-        return float(res.objective) if _status(res.status) == "optimal" and res.w is not None else np.nan
+        return float(res.bound) if _status(res.status) == "optimal" and res.w is not None else np.nan
 
     # ------------------------------------------------------------------ the reference: cvxpy + SCIP, cold
     def _build_cvxpy(self, bounds: Optional[NodeBounds]):
@@ -1105,7 +1239,7 @@ class MPC:
                 Zv[1:].T == self.Ad @ Zv[:N].T + self.Bd @ Vv.T,             # (MPC_form_miqp_c)
                 Zv[1:] >= self.z_lo[None], Zv[1:] <= self.z_hi[None],        # (MPC_form_miqp_d)
                 Vv >= self.v_lo[None], Vv <= self.v_hi[None],
-                cp.abs(enc.output) <= self.u_eps[:, None]]                   # (MPC_form_miqp_b), eq. (Phi_NN_ep)
+                cp.abs(enc.output) <= self.u_solve[:, None]]                 # (MPC_form_miqp_b), eq. (Phi_NN_ep)
         cons += enc.constraints
         E = Zv - zr
         cost = sum(cp.quad_form(E[k], self._Wk[k]) for k in range(N + 1) if np.any(self._Wk[k])) \
@@ -1114,6 +1248,21 @@ class MPC:
         return dict(prob=prob, z=Zv, v=Vv, z0=z0, zr=zr, n_bin=enc.n_binaries)
 
     def _solve_cvxpy(self, z: Array, R: Array) -> MPCStep:
+        """The reference path; when SCIP's tolerance lets the plan exceed ``u_max^eps``, the bound is tightened
+        (:attr:`margin`) and the program solved again, as on the other paths."""
+        for _ in range(6):
+            step = self._solve_cvxpy_once(z, R)
+            if step.fallback or step.status != "optimal":
+                return step
+            u = np.abs(step.u_nn_pred)
+            ex = float(np.max(u - self.u_eps))
+            if ex <= BOUND_TOL:
+                return step
+            self.margin = next_margin(self.margin, ex, float(np.max(self.u_eps)))
+            self._cvx = None  # the bound is a constant of the cvxpy problem: rebuild it
+        return step
+
+    def _solve_cvxpy_once(self, z: Array, R: Array) -> MPCStep:
         import cvxpy as cp
 
         self._candidate = None
@@ -1167,17 +1316,20 @@ class MPC:
     def step(self, z: Array, t: float, reference: Optional[Callable[[Array], Array]] = None) -> StepResult:
         """One sampling instant for :func:`flnotes.simulate`: ``z_ref(k) = reference(t + k t_s)``, k = 0..N_p.
 
-        Raises ``RuntimeError`` when the program is infeasible and no previous
-        plan exists (``simulate`` then applies its own fallback and flags the step).
+        A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``;
+        ``info["input_admissible"]`` is False when even the first input had to violate
+        ``|Phi_NN(z, v)| <= u_max^eps`` because no admissible one exists at ``z``).
         """
         if reference is None:
             R = np.zeros((self.N + 1, self.n_z))
         else:
             R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
         s = self(z, R)
-        if s.v is None:
-            raise RuntimeError(f"MPC at t = {t:.3f} s: status {s.status!r} and no previous plan to fall back on "
-                               f"({s.message})")
+        if s.v is None:  # not reached: the fallback always gives an input (kept as the documented outcome)
+            from .errors import SolverFailure
+
+            raise SolverFailure(f"MPC at t = {t:.3f} s: status {s.status!r} and no input ({s.message})",
+                                status=s.status)
         info = s.as_info()
         info["z_ref"] = R
         return StepResult(v=s.v, status=s.status, solve_time=s.wall_time, fallback=s.fallback, info=info)
@@ -1227,7 +1379,8 @@ def _objective(prog, w: Array) -> float:
     return float(0.5 * w @ (prog.H @ w) + prog.c @ w + prog.c0)
 
 
-def _weight(W, n: int, name: str) -> Array:
+def _weight(W, n: int, name: str, definite: bool = False) -> Array:
+    """A weight matrix from a scalar, a diagonal or a matrix; symmetric positive (semi)definite, else ValueError."""
     W = np.asarray(W, float)
     if W.ndim == 0:
         W = W * np.eye(n)
@@ -1237,8 +1390,16 @@ def _weight(W, n: int, name: str) -> Array:
         W = np.diag(W)
     if W.shape != (n, n):
         raise ValueError(f"{name} must have shape ({n}, {n}), got {W.shape}")
-    if not np.allclose(W, W.T) or np.min(np.linalg.eigvalsh(W)) < -1e-12:
-        raise ValueError(f"{name} must be symmetric positive semidefinite")
+    if not np.all(np.isfinite(W)):
+        raise ValueError(f"{name} contains NaN or inf")
+    if not np.allclose(W, W.T):
+        raise ValueError(f"{name} must be symmetric, got {W.tolist()}")
+    lam = float(np.min(np.linalg.eigvalsh(W)))
+    if definite and lam <= 0:
+        raise ValueError(f"{name} must be positive definite (smallest eigenvalue {lam:g}): give every input a "
+                         f"positive weight, e.g. {name}=0.0175")
+    if lam < -1e-12:
+        raise ValueError(f"{name} must be positive semidefinite (smallest eigenvalue {lam:g})")
     return W
 
 

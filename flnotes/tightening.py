@@ -374,8 +374,9 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     Raises
     ------
     EmptyBoxError
-        When ``z0`` lies outside the state box or no admissible input keeps
-        the state in the box.
+        When ``z0`` lies outside the state box by more than
+        :data:`flnotes.miqp.BOX_TOL` (closer, it is projected onto the box) or
+        no admissible input keeps the state in the box.
     """
     Ad, Bd = np.atleast_2d(np.asarray(Ad, float)), np.atleast_2d(np.asarray(Bd, float))
     n_z = Ad.shape[0]
@@ -390,8 +391,11 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     if not int(horizon) == horizon or horizon < 1:
         raise ValueError(f"horizon must be a positive integer, got {horizon}")
     horizon = int(horizon)
-    if np.any(z0 < z_lo - 1e-12) or np.any(z0 > z_hi + 1e-12):
-        raise EmptyBoxError(f"z0 = {z0} lies outside the state box [{z_lo}, {z_hi}]")
+    from .miqp import BOX_TOL
+
+    if np.any(z0 < z_lo - BOX_TOL) or np.any(z0 > z_hi + BOX_TOL):
+        raise EmptyBoxError(f"z0 = {z0} lies outside the state box [{z_lo}, {z_hi}] (tolerance {BOX_TOL:g})")
+    z0 = np.clip(z0, z_lo, z_hi)  # on the face of the box up to round-off: on the face
     lo, hi = np.empty((horizon, n_z + m)), np.empty((horizon, n_z + m))
     lo[:, n_z:], hi[:, n_z:] = v_lo, v_hi
     c_v, r_v = 0.5 * (v_hi + v_lo), 0.5 * (v_hi - v_lo)

@@ -338,3 +338,32 @@ def test_horizon_miqp_checks_its_arguments(horizon_setup):
                     v_lo=[-1], v_hi=[1], u_eps=0.1)
     with pytest.raises(ValueError, match="z_ref"):
         _hz(horizon_setup).solve(cases[0][0], np.zeros((N + 3, 3)))
+
+
+def test_every_solver_status_is_mapped_and_only_proofs_are_optimal():
+    """Each HiGHS model status and DAQP exit flag has an explicit meaning; 'optimal' only for a proof."""
+    import highspy
+
+    from flnotes.miqp import DAQP_STATUS, HIGHS_STATUS, SCIP_STATUS
+
+    names = {m for m in dir(highspy.HighsModelStatus) if m.startswith("k")}
+    assert names <= set(HIGHS_STATUS), names - set(HIGHS_STATUS)
+    assert [k for k, v in HIGHS_STATUS.items() if v == "optimal"] == ["kOptimal"]
+    assert sorted(k for k, v in SCIP_STATUS.items() if v == "optimal") == ["gaplimit", "optimal"]
+    assert [k for k, v in DAQP_STATUS.items() if v == "optimal"] == [1]
+    assert set(DAQP_STATUS) >= {1, 2, -1, -2, -3, -4, -5, -6, -7, -8} and 4 not in DAQP_STATUS  # 4: no proof
+    assert set(HIGHS_STATUS.values()) | set(SCIP_STATUS.values()) <= {"optimal", "infeasible", "time_limit", "error"}
+
+
+def test_boundary_point_is_optimal_not_infeasible():
+    """A MILP whose optimum lies exactly on a row's bound is 'optimal' for every back-end, the point within FEAS_TOL."""
+    from flnotes.miqp import FEAS_TOL
+
+    # min -x - y  s.t.  x + 3 y <= 1 (the optimum on it),  y <= b (big-M with a binary b),  x in [0, 1], y in [0, 1]
+    A = sp.csr_matrix(np.array([[1.0, 3.0, 0.0], [0.0, 1.0, -1.0]]))
+    p = MIQP(None, np.array([-1.0, -1.0, 0.1]), 0.0, A, np.full(2, -np.inf), np.array([1.0, 0.0]), np.zeros(3),
+             np.ones(3), np.array([0, 0, 1]))
+    for b in ("highs", "scip", "daqp"):
+        r = make_solver(p, b).solve()
+        assert r.status == "optimal", (b, r)
+        assert p.violation(r.w) <= FEAS_TOL and abs(r.objective - (-1.0)) <= 1e-7, (b, r)

@@ -131,6 +131,24 @@ def test_bad_inputs_give_clear_errors(quad):
         MPC(sysm, net, 0.2)  # eps > u_max: no admissible input
     with pytest.raises(ValueError, match="backend"):
         MPC(sysm, net, EPS, backend="cplexx")
+    with pytest.raises(ValueError, match="R must be positive definite"):
+        MPC(sysm, net, EPS, R=-0.1)
+    with pytest.raises(ValueError, match="Q must be positive semidefinite"):
+        MPC(sysm, net, EPS, Q=[-1.0, 1.0, 1.0])
+    # a state 5e-10 outside the box is on its face (tolerance policy of flnotes.miqp); 1e-6 outside is not
+    assert mpc._check_z(np.array([0.0, -5.0 - 5e-10, 0.0]))[1] == -5.0
+    with pytest.raises(ValueError, match="outside"):
+        mpc(np.array([0.0, -5.0 - 1e-6, 0.0]), np.zeros(3))
+
+
+def test_missing_solver_package_fails_at_construction(quad, monkeypatch):
+    """A back-end whose package is not installed is an ImportError when the controller is built, not at a solve."""
+    import sys
+
+    sysm, net = quad
+    monkeypatch.setitem(sys.modules, "gurobipy", None)  # as if it were not installed
+    with pytest.raises(ImportError, match="gurobipy"):
+        MPC(sysm, net, EPS, horizon=3, backend="gurobi")
 
 
 @pytest.mark.parametrize("backend", ["daqp", "cvxpy-scip"])
@@ -140,9 +158,14 @@ def test_infeasible_start_is_reported(quad, backend):
     mpc = MPC(sysm, net, EPS, horizon=3, ts=0.1, Q=S["Q"], R=S["R"], backend=backend)
     z = np.array([0.0, 0.0, 5.0])
     st = mpc(z, np.zeros(3))
-    assert st.status == "infeasible" and st.v is None and not st.fallback
-    with pytest.raises(RuntimeError, match="infeasible"):
-        mpc.step(z, 0.0, None)
+    # reported and flagged: the least-violation input, since no v is admissible at z (checked on a fine grid)
+    assert st.status == "infeasible" and st.fallback and not st.input_admissible
+    grid = np.linspace(sysm.lo[3], sysm.hi[3], 20001)
+    phi = np.abs(net(np.c_[np.repeat(z[None], grid.size, 0), grid]))[:, 0]
+    assert phi.min() > mpc.u_eps[0]
+    assert abs(net(np.r_[z, st.v])[0]) <= phi.min() + 1e-9
+    r = mpc.step(z, 0.0, None)
+    assert r.fallback and r.info["input_admissible"] is False and "least-violation" in r.info["message"]
 
 
 def test_simulate_survives_an_infeasible_start(quad):
@@ -150,7 +173,7 @@ def test_simulate_survives_an_infeasible_start(quad):
     mpc = MPC(sysm, net, EPS, horizon=3, ts=0.1, Q=S["Q"], R=S["R"])
     log = fl.simulate(sysm, mpc, t_final=0.2, ts=0.1, z0=[0.0, 4.0, 4.5], net=net)
     assert log.n_steps >= 1
-    assert log.fallback[0] and log.status[0].startswith("error")
+    assert log.fallback[0] and log.status[0] == "infeasible"
 
 
 def test_levers_do_not_change_the_optimum(run, quad):

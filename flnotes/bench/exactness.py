@@ -1,0 +1,338 @@
+"""Randomized exactness harness: every back-end and lever against a cold reference, on diverse states.
+
+The closed-loop benchmarks replay states of one run of the book's loop; a solver
+that is wrong elsewhere in the box goes unnoticed there. Here the states are
+drawn all over the domain box, in categories chosen to reach the corners of the
+programs:
+
+* ``"uniform"``: uniform in the state box;
+* ``"edge"``: one coordinate at a face of the box;
+* ``"active"``: states where the network constraint is strongly active (MPC:
+  far from the reference, so that the unconstrained plan wants large inputs;
+  CLF-CBF: large ``|z|``, where the CLF's preferred input is large);
+* ``"near limit"``: a coordinate within 2 % of the box's face;
+* MPC only: a random sine or step reference instead of a constant one, and a
+  previous plan (the reference's optimum at a nearby state, shifted) as warm
+  start.
+
+Every program is compared with the cold reference (SCIP, every step encoded,
+gap 1e-8; for the single-input CLF-CBF program also the exact 1-D method) and
+each result is classified:
+
+* **wrong optimum**: status ``"optimal"`` but the objective is above the
+  reference's by more than ``1e-6`` relative (or below it: then the reference is
+  wrong, which is also reported);
+* **false infeasibility**: status ``"infeasible"`` where the reference found a
+  plan;
+* **bound excess**: ``max(|Phi_NN| - u_max^eps, 0)`` of the applied input
+  (forward pass), which the tolerance policy makes 0 up to round-off; a
+  fallback's least-violation input (no admissible ``v`` exists) is flagged by
+  the controller and counted apart (``flagged_violations``);
+* the time per program (median, p90, p99, max).
+
+:func:`run` is the ``make bench`` section; tests use the same functions on a
+smaller seeded subset.
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from .. import paper
+
+REL_TOL = 1e-6  # relative objective difference that counts as a wrong optimum
+
+MPC_CATEGORIES = ("uniform", "edge", "active", "near limit", "sine reference", "step reference")
+CLF_CATEGORIES = ("uniform", "edge", "active", "near limit")
+
+
+# ----------------------------------------------------------------------------------- states
+def _edge(rng, lo, hi, n, inset=0.0):
+    Z = rng.uniform(lo, hi, (n, lo.size))
+    i = rng.integers(0, lo.size, n)
+    side = rng.integers(0, 2, n)
+    span = hi - lo
+    Z[np.arange(n), i] = np.where(side == 1, hi[i] - inset * span[i], lo[i] + inset * span[i])
+    return Z
+
+
+def mpc_cases(setup: dict, n: int, seed: int = 0) -> list[dict]:
+    """``n`` diverse MPC programs: dicts with ``z``, ``z_ref`` (N_p + 1, n_z), ``category``.
+
+    The categories cycle through :data:`MPC_CATEGORIES`. The reference's position
+    ``x_ref`` is uniform in ``[-4.5, 4.5]``, its derivatives zero, except for the sine
+    references (random amplitude, frequency and phase, consistent derivatives) and the
+    step references (a step of the position at a random predicted step).
+    """
+    from ..mpc import sine_reference
+
+    rng = np.random.default_rng(seed)
+    s = setup["system"]
+    nz, N, ts = s.n_z, setup["N"], setup["ts"]
+    lo, hi = s.lo[:nz], s.hi[:nz]
+    out = []
+    for j in range(n):
+        cat = MPC_CATEGORIES[j % len(MPC_CATEGORIES)]
+        R = np.zeros((N + 1, nz))
+        R[:, 0] = rng.uniform(-4.5, 4.5)
+        if cat == "uniform" or cat.endswith("reference"):
+            z = rng.uniform(lo, hi)
+        elif cat == "edge":
+            z = _edge(rng, lo, hi, 1)[0]
+        elif cat == "near limit":
+            z = _edge(rng, lo, hi, 1, inset=rng.uniform(0.0, 0.02))[0]
+        else:  # active: far from the reference, moving away from it
+            z = rng.uniform(lo, hi)
+            z[0] = -np.sign(R[0, 0]) * rng.uniform(2.0, 5.0)
+            z[1] = -np.sign(R[0, 0]) * rng.uniform(0.0, 3.0)
+        if cat == "sine reference":
+            ref = sine_reference(rng.uniform(0.5, 2.0), rng.uniform(0.5, 1.5), nz, rng.uniform(0, 2 * np.pi))
+            R = ref(rng.uniform(0, 10) + ts * np.arange(N + 1))
+        elif cat == "step reference":
+            k = int(rng.integers(0, N + 1))
+            R[k:, 0] = rng.uniform(-4.5, 4.5)
+        out.append(dict(z=z, z_ref=R, category=cat))
+    return out
+
+
+def clf_states(system, n: int, seed: int = 0) -> list[tuple[np.ndarray, str]]:
+    """``n`` diverse CLF-CBF states ``(z, category)`` in the domain box, categories of :data:`CLF_CATEGORIES`."""
+    rng = np.random.default_rng(seed)
+    nz = system.n_z
+    lo, hi = system.lo[:nz], system.hi[:nz]
+    out = []
+    for j in range(n):
+        cat = CLF_CATEGORIES[j % len(CLF_CATEGORIES)]
+        if cat == "uniform":
+            z = rng.uniform(lo, hi)
+        elif cat == "edge":
+            z = _edge(rng, lo, hi, 1)[0]
+        elif cat == "near limit":
+            z = _edge(rng, lo, hi, 1, inset=rng.uniform(0.0, 0.02))[0]
+        else:  # large |z|: the CLF asks for a large input
+            z = rng.uniform(0.5, 1.0, nz) * np.where(rng.integers(0, 2, nz) == 1, hi, lo)
+        out.append((z, cat))
+    return out
+
+
+# ----------------------------------------------------------------------------------- statistics
+def time_stats(seconds) -> dict:
+    """Median, p90, p99 and max in milliseconds."""
+    ms = np.asarray(seconds, float) * 1e3
+    if ms.size == 0:
+        return dict(ms_median=np.nan, ms_p90=np.nan, ms_p99=np.nan, ms_max=np.nan)
+    return dict(ms_median=float(np.median(ms)), ms_p90=float(np.percentile(ms, 90)),
+                ms_p99=float(np.percentile(ms, 99)), ms_max=float(ms.max()))
+
+
+def classify(status: str, objective: float, ref_status: str, ref_objective: float, excess: float) -> dict:
+    """One comparison with the reference (see the module docstring)."""
+    feas_ref = ref_status in ("optimal",) and np.isfinite(ref_objective)
+    rel = np.nan
+    if status == "optimal" and feas_ref and np.isfinite(objective):
+        rel = (objective - ref_objective) / max(1.0, abs(ref_objective))
+    return dict(wrong_optimum=bool(np.isfinite(rel) and rel > REL_TOL),
+                below_reference=bool(np.isfinite(rel) and rel < -REL_TOL),
+                false_infeasible=bool(status == "infeasible" and feas_ref),
+                excess=float(max(excess, 0.0)), rel=rel)
+
+
+def summarize(name: str, rows: list[dict]) -> dict:
+    """One table row from per-program comparisons (keys of :func:`classify` plus ``status`` and ``time``)."""
+    t = [r["time"] for r in rows]
+    ex = np.array([r["excess"] for r in rows], float)
+    return dict(config=name, programs=len(rows),
+                optimal=int(sum(r["status"] == "optimal" for r in rows)),
+                wrong_optimum=int(sum(r["wrong_optimum"] for r in rows)),
+                below_reference=int(sum(r["below_reference"] for r in rows)),
+                false_infeasible=int(sum(r["false_infeasible"] for r in rows)),
+                max_bound_excess=float(ex.max()) if ex.size else 0.0,
+                fallbacks=int(sum(r.get("fallback", False) for r in rows)),
+                flagged_violations=int(sum(r.get("flagged_violation", False) for r in rows)),
+                **time_stats(t))
+
+
+# ----------------------------------------------------------------------------------- MPC
+def mpc_reference(setup: dict, cases: list[dict], time_limit: float = 120.0) -> list:
+    """The cold reference at every case: SCIP, every step encoded on the reachable boxes, gap 1e-8."""
+    from .mpc import make_solver
+
+    hz = make_solver(setup, backend="scip", bounds="horizon", encode="all", screening=False, warm_start=False,
+                     lazy=False)
+    return [hz.solve(c["z"], c["z_ref"], time_limit=time_limit, gap=1e-8) for c in cases]
+
+
+def add_previous_plans(setup: dict, cases: list[dict], refs: list) -> None:
+    """A previous plan for every case: the reference's optimum shifted by one step (the warm start of a
+    closed loop that followed the prediction), stored as ``case["ws"]`` (``None`` without a plan)."""
+    for c, r in zip(cases, refs):
+        c["ws"] = None if r.v_pred is None else np.vstack([r.v_pred[1:], r.v_pred[-1:]])
+
+
+def mpc_controller_rows(setup: dict, cases: list[dict], refs: list, name: str, warm: bool,
+                        time_limit: Optional[float] = None, **mpc_kw) -> list[dict]:
+    """Compare :class:`flnotes.MPC` (the whole step: solve, checks, fallback) with the reference.
+
+    With ``warm`` the controller gets a previous plan: the reference's optimum at ``z`` with
+    its inputs perturbed by 5 % (seeded), shifted back by one step, so that the controller's
+    shifted plan is a near-optimal warm start that may or may not be admissible.
+    """
+    from ..mpc import MPC
+
+    S = paper.QUAD_SETTING
+    mpc = MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=S["Q"], R=S["R"],
+              time_limit=time_limit, **mpc_kw)
+    u_eps = mpc.u_eps
+    rows = []
+    rng = np.random.default_rng(7)
+    for c, r in zip(cases, refs):
+        mpc.reset()
+        if warm and r.v_pred is not None:
+            Vp = r.v_pred * (1.0 + 0.05 * rng.standard_normal(r.v_pred.shape))
+            V = np.vstack([Vp[-1:], Vp[:-1]])  # its shift is the perturbed optimum
+            mpc.set_previous_plan((mpc.predict(c["z"], V), V))
+        t0 = time.perf_counter()
+        s = mpc(c["z"], c["z_ref"])
+        dt = time.perf_counter() - t0
+        # a flagged least-violation input (no admissible v exists) is a documented violation, counted apart
+        excess = float(np.max(np.abs(mpc.net(np.r_[c["z"], s.v])) - u_eps)) if s.input_admissible else 0.0
+        row = classify(s.status, s.objective, r.status, r.objective, excess)
+        row.update(status=s.status, time=dt, fallback=s.fallback, category=c["category"],
+                   flagged_violation=not s.input_admissible)
+        rows.append(row)
+    return rows
+
+
+# ----------------------------------------------------------------------------------- CLF-CBF
+def clf_rows(ctrl, states, ref_ctrl, exact=None) -> list[dict]:
+    """Compare a :class:`flnotes.control.ClfCbfController` with the reference controller (and the exact 1-D method)."""
+    rows = []
+    for z, cat in states:
+        r = ctrl.step(z)
+        rr = ref_ctrl.step(z)
+        ref_status, ref_obj = rr.status, rr.info["objective"]
+        if exact is not None:  # the exact method decides where SCIP and it disagree
+            re = exact.step(z)
+            if re.status == "optimal" and (ref_status != "optimal" or re.info["objective"] < ref_obj):
+                ref_status, ref_obj = re.status, re.info["objective"]
+        # the softened program's input may violate the bound only when no admissible v exists: flagged
+        excess = 0.0 if r.fallback else float(np.max(np.abs(r.info["phi_nn"]) - ctrl.u_eps))
+        row = classify(r.status, r.info["objective"], ref_status, ref_obj, excess)
+        row.update(status=r.status, time=r.solve_time, fallback=r.fallback, category=cat,
+                   flagged_violation=not r.info["input_admissible"])
+        rows.append(row)
+    return rows
+
+
+# ----------------------------------------------------------------------------------- the section
+def run(fast: bool) -> dict:
+    """``make bench`` section: exactness and time per program on diverse states."""
+    from ..control import ClfCbfController, DistanceCBF, QuadraticCLF
+    from .mpc import quad_setup
+
+    rows, notes = [], []
+    # ---- CLF-CBF (MSD)
+    S = paper.MSD_SETTING
+    sysm = paper.system("MSD")
+    net, _ = paper.paper_net("MSD")
+    eps = float(np.max(paper.paper_eps("MSD").upper))
+    n_clf = 24 if fast else 200
+    states = clf_states(sysm, n_clf, seed=1)
+    V, H = QuadraticCLF(S["P"]), DistanceCBF(S["z_o"], S["r_o"])
+    k = lambda z: -S["K_nominal"] @ z
+    for cost, backends in (("linear", ("exact", "highs", "scip", "daqp", "cvxpy")),
+                           ("quadratic", ("exact", "scip", "daqp", "cvxpy"))):
+        base = dict(system=sysm, net=net, eps=eps, V=V, H=H, k=k, cost=cost, beta=S["beta"], kappa=S["kappa"])
+        ref = ClfCbfController(**base, backend="scip", gap=1e-8)
+        ex = ClfCbfController(**base, backend="exact")
+        for b in backends:
+            for scr in ((True, False) if b in ("highs", "scip", "daqp") else (True,)):
+                ctrl = ClfCbfController(**base, backend=b, screening=scr)
+                res = clf_rows(ctrl, states, ref, ex)
+                rows.append(dict(program=f"MSD CLF-CBF {'Lcost' if cost == 'linear' else 'Qcost'}",
+                                 **summarize(f"{b}{'' if scr else ', no screening'}", res)))
+    # ---- MPC (Quad-1D)
+    setup = quad_setup()
+    n_mpc = 6 if fast else 120
+    cases = mpc_cases(setup, n_mpc, seed=2)
+    t0 = time.perf_counter()
+    refs = mpc_reference(setup, cases)
+    t_ref = time.perf_counter() - t0
+    rows.append(dict(program="Quad-1D MPC", config="reference: SCIP, every step encoded, gap 1e-8",
+                     programs=len(cases), optimal=int(sum(r.status == "optimal" for r in refs)),
+                     **time_stats([r.time for r in refs])))
+    from ..mpc import DAQP_OPTIONS
+
+    trust = dict(solver_options=dict(DAQP_OPTIONS, verify_infeasible=False))
+    for name, kw, warm in (("default, cold", {}, False), ("default, warm (previous plan)", {}, True),
+                           ("default, cold, time limit 5 s", dict(time_limit=5.0), False),
+                           ("default, warm, time limit 5 s", dict(time_limit=5.0), True),
+                           ("default, cold, DAQP's infeasibility trusted", trust, False),
+                           ("scip level set, cold", dict(backend="scip"), False),
+                           ("default, no screening, no constraint generation, time limit 30 s",
+                            dict(screening=False, lazy=False, time_limit=30.0), False)):
+        tl = kw.pop("time_limit", None)
+        res = mpc_controller_rows(setup, cases, refs, name, warm, time_limit=tl, **kw)
+        rows.append(dict(program="Quad-1D MPC", **summarize(name, res)))
+    notes.append(f"{n_clf} CLF-CBF states (categories {', '.join(CLF_CATEGORIES)}) and {n_mpc} MPC programs "
+                 f"(categories {', '.join(MPC_CATEGORIES)}), seeded; reference computed in {t_ref:.0f} s. "
+                 "wrong_optimum counts 'optimal' results above the reference by more than 1e-6 relative; "
+                 "false_infeasible counts 'infeasible' where the reference found a plan; max_bound_excess is "
+                 "max(|Phi_NN(z, v)| - u_max^eps) of the applied input (forward pass). Times are wall-clock per "
+                 "program: these are the real-time numbers on diverse states, next to the closed-loop ones.")
+    return dict(title="Exactness and time on diverse states", rows=rows, notes=notes, figures=[])
+
+
+# ----------------------------------------------------------------------------------- the chapter's table
+def diverse_time_table(setup: dict, n: int, n_checked: int, seed: int = 2, time_limit: Optional[float] = None
+                       ) -> tuple[list[dict], dict]:
+    """Per-step time of the default MPC on ``n`` diverse states, cold and warm, next to each other.
+
+    Cold: no previous plan. Warm: the previous plan is the cold solution with its inputs perturbed
+    by 5 % (seeded) and shifted back by one step, so that its shift is a near-optimal warm start.
+    The first ``n_checked`` states are also solved by the cold reference (:func:`mpc_reference`)
+    and both runs compared with it. Returns the table rows and a dict of the numbers the chapter
+    quotes (``wrong`` and ``false_infeasible`` summed over both runs, ``max_excess``).
+    """
+    from ..mpc import MPC
+
+    S = paper.QUAD_SETTING
+    cases = mpc_cases(setup, n, seed)
+    refs = mpc_reference(setup, cases[:n_checked]) if n_checked else []
+    rng = np.random.default_rng(7)
+    mpc = MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=S["Q"], R=S["R"],
+              time_limit=time_limit)
+    rows, out = [], dict(wrong=0, false_infeasible=0, max_excess=0.0)
+    cold_plans = []
+    for name in ("cold", "warm"):
+        res = []
+        for j, c in enumerate(cases):
+            mpc.reset()
+            if name == "warm" and cold_plans[j] is not None:
+                Vp = cold_plans[j] * (1.0 + 0.05 * rng.standard_normal(cold_plans[j].shape))
+                V = np.vstack([Vp[-1:], Vp[:-1]])
+                mpc.set_previous_plan((mpc.predict(c["z"], V), V))
+            t0 = time.perf_counter()
+            s = mpc(c["z"], c["z_ref"])
+            dt = time.perf_counter() - t0
+            if name == "cold":
+                cold_plans.append(None if s.fallback else s.v_pred)
+            excess = float(np.max(np.abs(mpc.net(np.r_[c["z"], s.v])) - mpc.u_eps)) if s.input_admissible else 0.0
+            if j < len(refs):
+                r = refs[j]
+                row = classify(s.status, s.objective, r.status, r.objective, excess)
+            else:
+                row = classify(s.status, s.objective, "unknown", np.nan, excess)
+            row.update(status=s.status, time=dt, fallback=s.fallback, flagged_violation=not s.input_admissible)
+            res.append(row)
+        sm = summarize(f"default MPC, {name}", res)
+        sm["checked_against_reference"] = len(refs)
+        rows.append(sm)
+        out["wrong"] += sm["wrong_optimum"]
+        out["false_infeasible"] += sm["false_infeasible"]
+        out["max_excess"] = max(out["max_excess"], sm["max_bound_excess"])
+        out[f"{name}_ms_median"], out[f"{name}_ms_p90"], out[f"{name}_ms_max"] = (sm["ms_median"], sm["ms_p90"],
+                                                                                  sm["ms_max"])
+    return rows, out
