@@ -54,6 +54,7 @@ import scipy.sparse as sp
 from ._checks import as_vector
 from .bounds import NodeBounds, fbbt
 from .network import ReLUNet
+from .pieces import ExactPiecesBackend
 from .simulate import SimLog, StepResult
 from .systems import FLSystem
 from .miqp import BOUND_TOL, next_margin, project_to_box
@@ -597,11 +598,13 @@ class ClfCbfController:
     beta, kappa
         The CLF decay rate and the CBF class-K gain (Table 1: 0.001 and 4).
     backend
-        ``"exact"`` (single input), ``"cvxpy"``, or a persistent solver through
+        ``"exact"`` (one or two inputs: the linear pieces of ``Phi_NN(z, .)``
+        enumerated and each solved in closed form, :func:`solve_exact_1d` and
+        :func:`flnotes.pieces.solve_exact_2d`), ``"cvxpy"``, or a persistent solver through
         :mod:`flnotes.miqp` (``"highs"`` for the MILP; ``"scip"``, ``"gurobi"``
         for both; ``"daqp"`` is accepted, but on these programs it was measured
         slower than SCIP, see ``make bench``). ``"auto"``
-        (default) takes ``"exact"`` for a single input (the fastest exact
+        (default) takes ``"exact"`` for one or two inputs (the fastest exact
         method, measured) and otherwise the persistent SCIP model for both
         costs (on the MSD programs SCIP was faster than HiGHS and never wrong;
         HiGHS returned a sub-optimal point as optimal at a few states, see
@@ -685,7 +688,7 @@ class ClfCbfController:
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if backend == "auto":
-            backend = "exact" if m == 1 else "scip"
+            backend = "exact" if m <= 2 else "scip"
         self.backend = backend
         self.solver_options = dict(solver_options or {})
         if backend == "highs" and not self.solver_options:
@@ -697,10 +700,11 @@ class ClfCbfController:
             raise ValueError("HiGHS has no mixed-integer QP solver: for cost='quadratic' (Qcost) use "
                              "backend='scip', 'exact' (single input) or 'cvxpy'")
         if backend == "exact":
-            if m != 1:
-                raise ValueError(f"backend='exact' lists the pieces of Phi_NN(z, .) along a scalar v; this system "
-                                 f"has m = {m} inputs: use backend='highs', 'scip' or 'cvxpy'")
-            self._impl = _ExactBackend(self)
+            if m > 2:
+                raise ValueError(f"backend='exact' lists the linear pieces of Phi_NN(z, .) over v in a line (m = 1) or "
+                                 f"a plane (m = 2); this system has m = {m} inputs: use backend='scip', 'highs' or "
+                                 f"'cvxpy'")
+            self._impl = _ExactBackend(self) if m == 1 else ExactPiecesBackend(self)
         elif backend == "cvxpy":
             self._impl = _CvxpyBackend(self, solver)
         else:

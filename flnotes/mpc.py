@@ -1029,7 +1029,10 @@ class MPC:
 
         For a single input the admissible set is computed exactly
         (:func:`flnotes.control.exact_1d_feasible_set`); inputs that also keep ``A_d z + B_d v`` in
-        the state box are preferred. For several inputs a seeded sample of the ``v`` box (4096
+        the state box are preferred. For two inputs the admissible set is computed exactly as
+        convex polygons over the network's linear regions (:func:`flnotes.pieces.network_polygons`)
+        and the nearest admissible point to ``v_guess`` is returned; for more inputs, and for the
+        least-violation input when nothing is admissible, a seeded sample of the ``v`` box (4096
         points) is searched. Returns ``(v, admissible)``; when nothing is admissible, ``v``
         minimizes ``max(|Phi_NN(z, v)| - u_max^eps)`` (exactly for a single input: over the pieces'
         knots and zero crossings).
@@ -1065,6 +1068,15 @@ class MPC:
             cand = np.r_[pw.knots, np.clip(cross, pw.knots[:-1], pw.knots[1:])]
             v = float(cand[np.argmin(np.abs(self.net(np.c_[np.repeat(z[None], cand.size, 0), cand])[:, 0]))])
             return np.array([v]), False
+        if self.m == 2:  # the admissible set exactly, as convex polygons over the network's linear regions
+            from .pieces import _project, network_polygons, network_regions
+
+            regions = network_regions(self.net, z, self.v_lo, self.v_hi)
+            polys = network_polygons(self.net, z, self.v_lo, self.v_hi, self.u_eps, regions=regions)
+            cand = [_project(P, v_guess) for P in polys]
+            cand = [v for v in sorted(cand, key=lambda v: float(np.sum((v - v_guess) ** 2))) if phi_ok(v)]
+            if cand:
+                return np.asarray(cand[0], float).copy(), True
         rng = np.random.default_rng(0)
         cand = np.vstack([v_guess, rng.uniform(self.v_lo, self.v_hi, (4096, self.m))])
         excess = np.max(np.abs(self.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))) - self.u_eps, axis=1)

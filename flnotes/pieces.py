@@ -27,8 +27,8 @@ where the activation pattern of every hidden neuron is constant) it equals
   first and dropped as soon as interval bounds of the output or a lower bound
   of the cost rule them out, so only a few are ever solved. This is the
   two-input analogue of :func:`flnotes.solve_exact_1d`;
-  :class:`ExactPiecesBackend` plugs it into :class:`flnotes.ClfCbfController`
-  (see :func:`exact_pieces_controller`), and :func:`compare_exact_mip` checks it
+  :class:`ExactPiecesBackend` is the back-end of :class:`flnotes.ClfCbfController`
+  with ``backend="exact"`` (the default) for two inputs, and :func:`compare_exact_mip` checks it
   against a MIP back-end state by state.
 
 Three or more inputs would make the regions polytopes; this module is for two.
@@ -50,7 +50,7 @@ from .systems import FLSystem
 Array = np.ndarray
 
 __all__ = ["LinearRegions", "network_regions", "admissible_polygon", "network_polygons", "input_sets", "affine_in_v",
-           "clip_polygon", "polygon_area", "solve_exact_2d", "ExactPiecesBackend", "exact_pieces_controller",
+           "clip_polygon", "polygon_area", "solve_exact_2d", "ExactPiecesBackend",
            "compare_exact_mip"]
 
 _TOL = 1e-11
@@ -646,26 +646,6 @@ class ExactPiecesBackend:
         else:
             sol.slack_u, sol.slack_H = np.zeros(c.system.m), np.zeros(c.p)
         return sol
-
-
-def exact_pieces_controller(system: FLSystem, net: ReLUNet, eps, V: Any, H: Any = None, **kwargs):
-    """A :class:`flnotes.ClfCbfController` for two inputs whose solves use :class:`ExactPiecesBackend`.
-
-    Same arguments as the controller (``backend`` excepted): the program, its
-    data and its fallback are the controller's; only the solve is replaced by
-    the exact region method. ``ctrl.with_backend("scip")`` gives the same
-    program solved by SCIP, for comparison.
-    """
-    from .control import ClfCbfController
-
-    if "backend" in kwargs:
-        raise TypeError("exact_pieces_controller chooses its own solve; for another backend use ClfCbfController")
-    if system.m != 2:
-        raise ValueError(f"the exact region method works in the plane of two inputs; {system.name} has m = {system.m}")
-    ctrl = ClfCbfController(system, net, eps, V, H, backend="scip", **kwargs)
-    ctrl._impl = ExactPiecesBackend(ctrl)
-    ctrl.backend = "exact"
-    return ctrl
 
 
 def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7) -> dict:

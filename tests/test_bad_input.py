@@ -94,7 +94,6 @@ def test_leaving_the_box_during_the_run_stops_it_with_a_message(msd):
 
 
 # --------------------------------------------------------------------------- item 2: ClfCbfController.step outside
-@pytest.mark.xfail(strict=True, reason="owned by the controllers' change")
 def test_clf_cbf_step_outside_the_domain_raises_like_mpc(msd):
     sysm, net = msd
     S = fl.paper.MSD_SETTING
@@ -111,7 +110,6 @@ def test_clf_cbf_step_outside_the_domain_raises_like_mpc(msd):
 
 # --------------------------------------------------------------------------- item 3: MPC solver availability
 @pytest.mark.skipif(importlib.util.find_spec("gurobipy") is not None, reason="gurobipy is installed here")
-@pytest.mark.xfail(strict=True, reason="owned by the controllers' change")
 def test_mpc_with_a_missing_solver_fails_at_construction(msd):
     sysm, net = msd
     with pytest.raises((ImportError, ValueError), match="gurobi"):
@@ -251,7 +249,6 @@ def test_encode_names_bounds_of_the_wrong_kind():
 
 
 # --------------------------------------------------------------------------- item 9: R of the MPC
-@pytest.mark.xfail(strict=True, reason="owned by the controllers' change")
 def test_mpc_says_r_must_be_positive_definite(msd):
     sysm, net = msd
     with pytest.raises(ValueError, match="R must be .*positive definite") as err:

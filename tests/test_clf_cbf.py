@@ -75,7 +75,7 @@ def test_feasible_set_is_exact(msd):
         assert np.all(np.diff(iv.ravel()) >= 0), "intervals sorted and disjoint"
 
 
-def test_exact_method_needs_a_single_input():
+def test_exact_method_takes_one_or_two_inputs():
     A, B = fl.brunovsky([1, 1])
     rng = np.random.default_rng(1)
     net = fl.ReLUNet([rng.normal(size=(5, 4)), rng.normal(size=(2, 5))], [rng.normal(size=5), rng.normal(size=2)])
@@ -83,8 +83,8 @@ def test_exact_method_needs_a_single_input():
                        f=lambda x, u: u, to_z=lambda x: x, to_x=lambda z: z)
     with pytest.raises(ValueError, match="single input"):
         network_pieces_1d(net, np.zeros(3), -1, 1)
-    with pytest.raises(ValueError, match="m = 2 inputs"):
-        ClfCbfController(sysm, net, 0.1, QuadraticCLF(np.eye(2)), None, cost="linear", backend="exact")
+    ctrl = ClfCbfController(sysm, net, 0.1, QuadraticCLF(np.eye(2)), None, cost="linear", backend="exact")
+    assert ctrl.backend == "exact" and ctrl.step(np.zeros(2)).v.shape == (2,)
 
 
 # --------------------------------------------------------------------------- backends agree
@@ -293,7 +293,8 @@ def test_closed_loop_with_too_small_u_max_reports_infeasibility_and_never_crashe
                                                       ("linear", "scip", False), ("quadratic", "auto", True),
                                                       ("quadratic", "scip", False)])
 def test_multi_input_system_works_with_the_milp(msd, cost, backend, screening):
-    """Two decoupled double integrators with a random network: the persistent backends handle m = 2."""
+    """Two decoupled double integrators with a random network: the persistent backends and the exact region
+    method (the default for m = 2) handle m = 2 and agree with the cvxpy reference."""
     A, B = fl.brunovsky([2, 2])
     rng = np.random.default_rng(3)
     W1, W2 = rng.normal(size=(8, 6)) * 0.5, rng.normal(size=(2, 8)) * 0.5
@@ -304,7 +305,7 @@ def test_multi_input_system_works_with_the_milp(msd, cost, backend, screening):
     ctrl = ClfCbfController(sysm, net, 0.1, QuadraticCLF(P), DistanceCBF([1.5, 1.0, 0.0, 0.0], 0.8),
                             lambda z: -np.kron(np.eye(2), S["K_nominal"]) @ z, cost=cost, backend=backend,
                             screening=screening)
-    assert ctrl.backend == (backend if backend != "auto" else "scip")
+    assert ctrl.backend == (backend if backend != "auto" else "exact")
     ref = ctrl.with_backend("cvxpy")
     states = np.vstack([[0.0, 4.0, 1.0, -1.0], [2.0, 0.0, 0.0, 2.0], rng.uniform(-3.0, 3.0, (6, 4))])
     for z in states:

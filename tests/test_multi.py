@@ -169,7 +169,8 @@ K_NOM = np.array([[6.0, 4.0, 0.0, 0.0], [0.0, 0.0, 6.0, 4.0]])
 def _controllers(arm, net, eps, cost):
     H = fl.DistanceCBF(np.array([0.8, 0.0, -0.6, 0.0]), 0.5)
     kw = dict(k=lambda z: -K_NOM @ z, cost=cost)
-    ex = pc.exact_pieces_controller(arm, net, eps, fl.QuadraticCLF(P_CLF), H, **kw)
+    ex = fl.ClfCbfController(arm, net, eps, fl.QuadraticCLF(P_CLF), H, **kw)
+    assert ex.backend == "exact" and isinstance(ex._impl, pc.ExactPiecesBackend)
     return ex, ex.with_backend("scip")
 
 
@@ -240,11 +241,15 @@ def test_softened_program_equals_mip(arm, shipped, cost):
         assert np.all(np.abs(net(np.concatenate([z, a.v]))) <= arm.u_max - eps + 1e-9)
 
 
-def test_exact_controller_rejects_one_input():
-    sysm = fl.msd()
-    net = fl.ReLUNet([np.ones((2, 3)), np.ones((1, 2))], [np.zeros(2), np.zeros(1)])
-    with pytest.raises(ValueError, match="two inputs"):
-        pc.exact_pieces_controller(sysm, net, 0.1, fl.QuadraticCLF(np.eye(2)))
+def test_exact_backend_rejects_more_than_two_inputs():
+    A, B = fl.brunovsky((1, 1, 1))
+    ident = lambda x: np.asarray(x, float)
+    sysm = fl.FLSystem("three", A, B, phi=lambda z, v: v, lo=[-1] * 6, hi=[1] * 6, u_max=[1, 1, 1],
+                       f=lambda x, u: u, to_z=ident, to_x=ident)
+    net = fl.ReLUNet([np.ones((2, 6)), np.ones((3, 2))], [np.zeros(2), np.zeros(3)])
+    with pytest.raises(ValueError, match="m = 3 inputs"):
+        fl.ClfCbfController(sysm, net, 0.1, fl.QuadraticCLF(np.eye(3)), backend="exact")
+    assert fl.ClfCbfController(sysm, net, 0.1, fl.QuadraticCLF(np.eye(3))).backend == "scip"
 
 
 @pytest.mark.parametrize("cost", ["quadratic", "linear"])
@@ -255,7 +260,7 @@ def test_closed_loop_avoids_obstacle_with_true_torques_bounded(arm, shipped, cos
     H = fl.DistanceCBF(np.array([0.85, -1.44, -0.73, 1.23]), 0.3)   # on the nominal law's path
     nominal = fl.simulate(arm, lambda z: np.clip(-K_NOM @ z, arm.lo[4:], arm.hi[4:]), t_final=1.5, ts=0.02, z0=z0)
     assert H(nominal.z).min() < 0, "premise: without the CBF the nominal law enters the unsafe set"
-    ex = pc.exact_pieces_controller(arm, net, eps, fl.QuadraticCLF(P_CLF), H, k=lambda z: -K_NOM @ z, cost=cost)
+    ex = fl.ClfCbfController(arm, net, eps, fl.QuadraticCLF(P_CLF), H, k=lambda z: -K_NOM @ z, cost=cost)
     t_final = 0.8 if fl.FAST else 1.5
     logs = [fl.simulate(arm, c, t_final=t_final, ts=0.02, z0=z0, net=net) for c in (ex, ex.with_backend("scip"))]
     for log in logs:
@@ -289,3 +294,24 @@ def test_compare_exact_mip_reports_agreement(arm, shipped):
     assert r["exact_ms_min"] <= r["exact_ms_median"] <= r["exact_ms_max"]
     with pytest.raises(ValueError, match="shape"):
         pc.compare_exact_mip(ex, mip, np.zeros((2, 3)))
+
+
+def test_mpc_safe_input_is_exact_for_two_inputs():
+    """MPC.safe_input finds an admissible v for the arm wherever the network's admissible polygons are non-empty,
+    the nearest one to the guess among the polygons' projections."""
+    s = fl.two_link_arm()
+    net, eps, _ = fl.arm_net()
+    mpc = fl.MPC(s, net, eps, horizon=2, ts=0.05, Q=np.ones(4), R=0.01 * np.ones(2), backend="scip")
+    rng = np.random.default_rng(3)
+    n_ok = 0
+    for z in rng.uniform(s.lo[:4], s.hi[:4], (15, 4)):
+        guess = rng.uniform(s.lo[4:], s.hi[4:])
+        polys = fl.pieces.network_polygons(net, z, s.lo[4:], s.hi[4:], s.u_max - eps)
+        v, ok = mpc.safe_input(z, guess)
+        assert ok == bool(polys), (z, ok, len(polys))
+        if ok:
+            n_ok += 1
+            assert np.all(np.abs(net(np.r_[z, v])) <= s.u_max - eps + 1e-12)
+            best = min(np.sum((fl.pieces._project(P, guess) - guess) ** 2) for P in polys)
+            assert np.sum((v - guess) ** 2) <= best + 1e-9
+    assert n_ok >= 5
