@@ -18,7 +18,7 @@ all: book
 
 help:
 	@echo "make book         build the book at full scale into _build/html (runs every notebook)"
-	@echo "make test         unit tests + every notebook through nbmake, FLNOTES_FAST=1"
+	@echo "make test         ruff, unit tests + every notebook through nbmake, FLNOTES_FAST=1"
 	@echo "make bench        solver benchmarks (python -m flnotes.bench)"
 	@echo "make book-instructor  the instructor edition (reference solutions, all tests, rubrics) into _build/instructor"
 	@echo "make assignments  students' notebooks and autograder bundles (otter-grader) into _build/assignments"
@@ -46,6 +46,7 @@ book: venv
 
 # Unit tests and every notebook under book/ through nbmake, in fast mode.
 test: venv
+	$(VENV)/bin/ruff check .
 	env FLNOTES_FAST=1 MPLBACKEND=Agg PYTHONDONTWRITEBYTECODE=1 \
 	  $(PY) -m pytest tests/ --nbmake book/ --nbmake-timeout=$(NBMAKE_TIMEOUT) \
 	  --ignore-glob="**/.ipynb_checkpoints/*" -p no:cacheprovider -ra

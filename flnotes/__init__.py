@@ -6,7 +6,9 @@ The data flow, one direction::
        |                                  |                                                   ^
        +------------phi, box--------------+--> pso_max_error / certify_error ------eps--------+
 
-``import flnotes as fl`` gives every public name below.
+``import flnotes as fl`` gives every public name below, re-exported by name
+(see ``__all__``); the modules and which equation each owns are listed in
+the README's architecture section.
 """
 from .config import FAST, scale
 from .tables import Table, time_stats
@@ -17,12 +19,13 @@ from .encoding import BigMForm, Encoding, bigm_form, encode, forward_milp
 from .errors import SolverFailure
 from .simulate import Controller, FeedbackLaw, SimLog, StepResult, simulate
 from . import interval, plots, reference, widgets
-from .error import *  # noqa: F401,F403  pso_max_error, certify_error, ErrorBracket, ...
+from .error import (ErrorEstimate, ErrorBracket, NotCertifiable, pso_max_error, sample_max_error, grid_max_error, de_max_error,
+                    certify_error, error_function, worst_violation, local_max_error, enclosure_widths)
 from .miqp import BACKENDS, MIQP, HorizonMIQP, HorizonResult, MIQPResult, Solver, available_backends, make_solver
-from .tightening import *  # noqa: F401,F403  lp_bounds, horizon_boxes, ...
-from .control import *  # noqa: F401,F403  ClfCbfController, QuadraticCLF, DistanceCBF, exact 1-D solver, ...
-from .control import AffineCBF, ExponentialCBF, cbf_condition_fails
-from .mpc import *  # noqa: F401,F403  MPC, sine_reference, ...
+from .tightening import EmptyBoxError, lp_bounds, horizon_boxes, intersect, propagate, LPTightener, ellipsoid_box
+from .control import (Certificate, QuadraticCLF, DistanceCBF, as_certificate, PiecewiseAffine1D, network_pieces_1d,
+                      exact_1d_feasible_set, solve_exact_1d, ClfCbfController, AffineCBF, ExponentialCBF, cbf_condition_fails)
+from .mpc import MPC, MPCStep, sine_reference
 from . import paper
 from .paper import paper_net, paper_eps
 from . import studies
@@ -31,3 +34,20 @@ from . import arm, pieces
 from . import intersample, terminal
 from .terminal import RegionOfAttraction, TerminalSet, region_of_attraction, terminal_set
 from .intersample import DriftBound, drift_curve, intersample_drift
+
+__all__ = [
+    'FAST', 'scale', 'Table', 'time_stats', 'FLSystem', 'brunovsky', 'discretize', 'msd', 'quad1d', 'ReLUNet',
+    'TrainingReport', 'fit_relu', 'uniform_grid', 'NodeBounds', 'fbbt', 'interval_affine',
+    'sample_preactivations', 'BigMForm', 'Encoding', 'bigm_form', 'encode', 'forward_milp', 'SolverFailure',
+    'Controller', 'FeedbackLaw', 'SimLog', 'StepResult', 'simulate', 'interval', 'plots', 'reference', 'widgets',
+    'ErrorEstimate', 'ErrorBracket', 'NotCertifiable', 'pso_max_error', 'sample_max_error', 'grid_max_error',
+    'de_max_error', 'certify_error', 'error_function', 'worst_violation', 'local_max_error', 'enclosure_widths',
+    'BACKENDS', 'MIQP', 'HorizonMIQP', 'HorizonResult', 'MIQPResult', 'Solver', 'available_backends',
+    'make_solver', 'EmptyBoxError', 'lp_bounds', 'horizon_boxes', 'intersect', 'propagate', 'LPTightener',
+    'ellipsoid_box', 'Certificate', 'QuadraticCLF', 'DistanceCBF', 'as_certificate', 'PiecewiseAffine1D',
+    'network_pieces_1d', 'exact_1d_feasible_set', 'solve_exact_1d', 'ClfCbfController', 'AffineCBF',
+    'ExponentialCBF', 'cbf_condition_fails', 'MPC', 'MPCStep', 'sine_reference', 'paper', 'paper_net',
+    'paper_eps', 'studies', 'two_link_arm', 'arm_net', 'arm', 'pieces', 'intersample', 'terminal',
+    'RegionOfAttraction', 'TerminalSet', 'region_of_attraction', 'terminal_set', 'DriftBound', 'drift_curve',
+    'intersample_drift'
+]

@@ -55,7 +55,7 @@ from ._checks import as_vector
 from .bounds import NodeBounds, fbbt
 from .network import ReLUNet
 from .pieces import ExactPiecesBackend
-from .simulate import SimLog, StepResult
+from .simulate import StepResult
 from .systems import FLSystem
 from .miqp import BOUND_TOL, next_margin, project_to_box
 
@@ -64,7 +64,7 @@ Array = np.ndarray
 __all__ = [
     "Certificate", "QuadraticCLF", "DistanceCBF", "as_certificate",
     "PiecewiseAffine1D", "network_pieces_1d", "exact_1d_feasible_set", "solve_exact_1d",
-    "ClfCbfController", "clf_cbf_checks", "cross_check_exact", "chapter_eps", "solve_time_table", "TableRows",
+    "ClfCbfController", "AffineCBF", "ExponentialCBF", "cbf_condition_fails",
 ]
 
 #: Backends of :class:`ClfCbfController`; the persistent ones need :mod:`flnotes.miqp`.
@@ -1173,133 +1173,3 @@ class _MiqpBackend:
             sol.v, sol.delta, sol.objective = w[self.i_v].copy(), float(w[self.i_delta]), float(r.objective)
             sol.slack_u, sol.slack_H = w[self.i_su].copy(), w[self.i_sH].copy()
         return sol
-
-
-# ---------------------------------------------------------------------------
-# Checks and tables from a run
-# ---------------------------------------------------------------------------
-def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
-    """The chapter's checks, computed from a closed-loop run.
-
-    Parameters
-    ----------
-    log
-        A run of :func:`flnotes.simulate`.
-    H
-        The CBF (or list of CBFs) whose minimum along the run is reported.
-
-    Returns
-    -------
-    dict
-        ``max_abs_u`` (true plant, at samples and between them) vs ``u_max``,
-        ``max_abs_u_nn`` vs ``u_max^eps`` when logged, ``min_H`` at samples and
-        along the integrated trajectory, the final ``||z||``, and the counts of
-        non-optimal and fallback steps.
-    """
-    s = log.summary()
-    out = dict(steps=s["steps"], u_max=s["u_max"][0] if len(s["u_max"]) == 1 else s["u_max"],
-               max_abs_u=max(s["max_abs_u_samples"]) if s["steps"] else np.nan,
-               max_abs_u_between=max(s["max_abs_u_between"]) if s["steps"] else np.nan,
-               final_norm_z=s["final_norm_z"], non_optimal_steps=s["non_optimal_steps"],
-               fallback_steps=s["fallback_steps"], left_domain_steps=s["left_domain_steps"], message=s["message"])
-    if log.u_nn is not None and s["steps"]:
-        out["max_abs_u_nn"] = float(np.abs(log.u_nn).max())
-    if H is not None:
-        Hs = _cbf_list(H)
-        Z = log.z
-        Zf = np.vstack([log.z_fine, log.z[-1:]]) if len(log.z_fine) else Z
-        out["min_H"] = float(min(np.min(h(Z)) for h in Hs))
-        out["min_H_between"] = float(min(np.min(h(Zf)) for h in Hs))
-    return out
-
-
-def chapter_eps(name: str = "MSD") -> tuple[Array, str]:
-    """The error bound ``eps`` of eq. (approx_err) that the controller uses, and where it comes from.
-
-    The certified upper bound ``flnotes.paper.paper_eps(name).upper`` when the
-    certification is available, else the value of the paper's Table 1.
-    """
-    from . import paper
-
-    if hasattr(paper, "paper_eps"):
-        return np.atleast_1d(np.asarray(paper.paper_eps(name).upper, float)), "certified upper bound"
-    return np.atleast_1d(float(paper.TABLE1[name]["eps"])), "the paper's Table 1"
-
-
-def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
-    """Re-solve the program at every sampled state of a run with the exact 1-D method and compare.
-
-    Parameters
-    ----------
-    controller
-        The controller that produced ``log`` (single input).
-    log
-        Its run; ``log.steps[i].info["objective"]`` is compared with the exact
-        optimum at ``log.z[i]`` (of the softened program at fallback steps,
-        which both methods solve alike).
-
-    Returns
-    -------
-    dict
-        ``max_abs_diff`` and ``max_rel_diff`` (``|J - J_exact| / max(1, |J_exact|)``)
-        of the optimal values, ``max_v_diff``, ``steps``, and the exact
-        method's per-step times (ms) ``exact_ms_min/median/max/mean``.
-    """
-    ex = controller.with_backend("exact")
-    J, Jx, v, vx, t = [], [], [], [], []
-    for z, r in zip(log.z[:-1], log.steps):
-        if "objective" not in r.info or not np.isfinite(r.info["objective"]):
-            continue
-        rx = ex.step(z)
-        J.append(r.info["objective"]), Jx.append(rx.info["objective"])
-        v.append(r.v), vx.append(rx.v), t.append(rx.solve_time)
-    J, Jx, t = np.array(J), np.array(Jx), np.array(t) * 1e3
-    d = np.abs(J - Jx)
-    return dict(steps=len(J), max_abs_diff=float(d.max()) if len(d) else np.nan,
-                max_rel_diff=float((d / np.maximum(1.0, np.abs(Jx))).max()) if len(d) else np.nan,
-                max_v_diff=float(np.abs(np.array(v) - np.array(vx)).max()) if len(d) else np.nan,
-                exact_ms_min=float(t.min()), exact_ms_median=float(np.median(t)),
-                exact_ms_max=float(t.max()), exact_ms_mean=float(t.mean()))
-
-
-class TableRows(list):
-    """A list of row dicts that Jupyter shows as an HTML table (numbers to 4 significant digits)."""
-
-    def _repr_html_(self) -> str:
-        cols: list[str] = []
-        for r in self:
-            cols += [c for c in r if c not in cols]
-
-        def fmt(x) -> str:
-            if x is None or (isinstance(x, float) and not np.isfinite(x)):
-                return ""
-            return f"{x:.4g}" if isinstance(x, (float, np.floating)) else str(x)
-
-        head = "".join(f"<th>{c}</th>" for c in cols)
-        body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in self)
-        return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
-def solve_time_table(logs: dict, system: str = "MSD") -> "TableRows":
-    """Table 2's rows: min / median / max / mean solve time (ms) per controller, beside the paper's.
-
-    Parameters
-    ----------
-    logs
-        ``{controller name: SimLog}``, e.g. ``{"Lcost": ..., "Qcost": ..., "k(z)": ...}``.
-    system
-        The paper's system name for the reference rows of ``flnotes.paper.TABLE2_MS``.
-    """
-    from .paper import TABLE2_MS
-
-    rows = TableRows()
-    for name, log in logs.items():
-        st = log.solve_time[np.isfinite(log.solve_time)] * 1e3
-        cpu = np.array([r.info.get("cpu_time", np.nan) for r in log.steps], float) * 1e3
-        ref = TABLE2_MS.get((system, name), {})
-        backend = log.steps[0].info.get("backend", "numpy") if log.steps else ""
-        rows.append(dict(controller=name, backend=backend, steps=len(log.solve_time),
-                         min=float(st.min()), median=float(np.median(st)), max=float(st.max()), mean=float(st.mean()),
-                         cpu_median=float(np.nanmedian(cpu)) if np.isfinite(cpu).any() else None,
-                         paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
-    return rows

@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import importlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -373,7 +373,8 @@ class Solver:
         p = self.problem
         changed = {}
         if c is not None:
-            p.c = _vec(c, p.n, "c"); changed["c"] = True
+            p.c = _vec(c, p.n, "c")
+            changed["c"] = True
         if c0 is not None:
             c0 = float(c0)
             if not np.isfinite(c0):
@@ -692,10 +693,12 @@ class _quiet_c_output:
         import sys
 
         try:
-            sys.stdout.flush(); sys.stderr.flush()
+            sys.stdout.flush()
+            sys.stderr.flush()
             self._null = os.open(os.devnull, os.O_WRONLY)
             self._saved = (os.dup(1), os.dup(2))
-            os.dup2(self._null, 1); os.dup2(self._null, 2)
+            os.dup2(self._null, 1)
+            os.dup2(self._null, 2)
         except OSError:
             self._saved = None
         return self
@@ -704,7 +707,8 @@ class _quiet_c_output:
         import os
 
         if self._saved is not None:
-            os.dup2(self._saved[0], 1); os.dup2(self._saved[1], 2)
+            os.dup2(self._saved[0], 1)
+            os.dup2(self._saved[1], 2)
             for fd in (*self._saved, self._null):
                 os.close(fd)
         return False
@@ -1219,13 +1223,21 @@ class CplexSolver(Solver):
         for r in range(p.m):
             lo, hi = p.rl[r], p.ru[r]
             if lo == hi:
-                senses.append("E"); rhs.append(lo); rng.append(0.0)
+                senses.append("E")
+                rhs.append(lo)
+                rng.append(0.0)
             elif lo > -_INF and hi < _INF:
-                senses.append("R"); rhs.append(lo); rng.append(hi - lo)
+                senses.append("R")
+                rhs.append(lo)
+                rng.append(hi - lo)
             elif hi < _INF:
-                senses.append("L"); rhs.append(hi); rng.append(0.0)
+                senses.append("L")
+                rhs.append(hi)
+                rng.append(0.0)
             else:
-                senses.append("G"); rhs.append(lo if lo > -_INF else -inf); rng.append(0.0)
+                senses.append("G")
+                rhs.append(lo if lo > -_INF else -inf)
+                rng.append(0.0)
         A = p.A
         rows = [cplex.SparsePair(ind=A.indices[A.indptr[r]:A.indptr[r + 1]].tolist(),
                                  val=A.data[A.indptr[r]:A.indptr[r + 1]].tolist()) for r in range(p.m)]
@@ -1517,7 +1529,7 @@ class HorizonMIQP:
         """The QP without the network constraint (DAQP; H is positive definite)."""
         import daqp
 
-        N, m = self.N, self.m
+        N = self.N
         Zf = (self.Sx @ z0)[1:].reshape(-1)
         bu = np.r_[np.tile(self.v_hi, N), np.tile(self.z_hi, N) - Zf]
         bl = np.r_[np.tile(self.v_lo, N), np.tile(self.z_lo, N) - Zf]
@@ -1604,12 +1616,16 @@ class HorizonMIQP:
         # state box rows
         A_state = np.zeros((N * nz, n))
         A_state[:, :nV] = self._A_state
-        rows.append(A_state); rl.append(np.tile(self.z_lo, N) - Zf[1:].reshape(-1)); ru.append(np.tile(self.z_hi, N) - Zf[1:].reshape(-1))
+        rows.append(A_state)
+        rl.append(np.tile(self.z_lo, N) - Zf[1:].reshape(-1))
+        ru.append(np.tile(self.z_hi, N) - Zf[1:].reshape(-1))
         if lo is not None:  # boxes of every step as rows (the level-set restriction)
             Tb = np.zeros((N * (nz + m), n))
             Tb[:, :nV] = self.T.reshape(N * (nz + m), nV)
             off = np.hstack([Zf[:N], np.zeros((N, m))]).reshape(-1)
-            rows.append(Tb); rl.append(lo.reshape(-1) - off); ru.append(hi.reshape(-1) - off)
+            rows.append(Tb)
+            rl.append(lo.reshape(-1) - off)
+            ru.append(hi.reshape(-1) - off)
         iy_next, ia_next = nV, nV + n_y
         alphas = []
         for s, k in enumerate(steps):
@@ -1624,17 +1640,25 @@ class HorizonMIQP:
                 unst = ~(act | ina)
                 var = unst if self.eliminate_stable else np.ones_like(unst)
                 idx = np.flatnonzero(var)
-                iy = iy_next + np.arange(idx.size); ia = ia_next + np.arange(idx.size)
-                iy_next += idx.size; ia_next += idx.size
-                Yn = np.zeros_like(Aa); yn0 = np.zeros_like(a0)
+                iy = iy_next + np.arange(idx.size)
+                ia = ia_next + np.arange(idx.size)
+                iy_next += idx.size
+                ia_next += idx.size
+                Yn = np.zeros_like(Aa)
+                yn0 = np.zeros_like(a0)
                 sub = act & ~var                                     # substituted active neurons
                 Yn[sub], yn0[sub] = Aa[sub], a0[sub]
                 Yn[idx, iy] = 1.0
                 # rows of the encoded neurons
                 Up, Lm = np.maximum(U[idx], 0.0), np.minimum(L[idx], 0.0)
-                R1 = Aa[idx].copy(); R1[np.arange(idx.size), iy] -= 1.0          # a - y <= 0
-                R2 = np.zeros((idx.size, n)); R2[np.arange(idx.size), iy] = 1.0; R2[np.arange(idx.size), ia] = -Up
-                R3 = -Aa[idx]; R3[np.arange(idx.size), iy] += 1.0; R3[np.arange(idx.size), ia] -= Lm  # y - a - L alpha <= -L
+                R1 = Aa[idx].copy()
+                R1[np.arange(idx.size), iy] -= 1.0          # a - y <= 0
+                R2 = np.zeros((idx.size, n))
+                R2[np.arange(idx.size), iy] = 1.0
+                R2[np.arange(idx.size), ia] = -Up
+                R3 = -Aa[idx]
+                R3[np.arange(idx.size), iy] += 1.0
+                R3[np.arange(idx.size), ia] -= Lm  # y - a - L alpha <= -L
                 rows += [R1, R2, R3]
                 rl += [np.full(idx.size, -np.inf)] * 3
                 ru += [-a0[idx], np.zeros(idx.size), a0[idx] - Lm]
@@ -1643,12 +1667,16 @@ class HorizonMIQP:
                 # stable substituted neurons: L <= a <= U keeps the substitution exact
                 st = np.flatnonzero(~var)
                 if st.size:
-                    rows.append(Aa[st]); rl.append(L[st] - a0[st]); ru.append(U[st] - a0[st])
+                    rows.append(Aa[st])
+                    rl.append(L[st] - a0[st])
+                    ru.append(U[st] - a0[st])
                 al_k.append(ia)
                 Y, y0 = Yn, yn0
             out, o0 = net.W[-1] @ Y, net.W[-1] @ y0 + net.b[-1]
             u_in = self.u_eps - self.margin  # tightened by what a solver's tolerance let through before
-            rows.append(out); rl.append(-u_in - o0); ru.append(u_in - o0)    # eq. (Phi_NN_ep)
+            rows.append(out)
+            rl.append(-u_in - o0)
+            ru.append(u_in - o0)    # eq. (Phi_NN_ep)
             alphas.append(np.concatenate(al_k) if al_k else np.zeros(0, int))
         A = np.vstack(rows)
         Hf = sp.block_diag([sp.csc_matrix(self.H), sp.csc_matrix((n - nV, n - nV))], format="csc")
@@ -1676,7 +1704,8 @@ class HorizonMIQP:
                 a = pre[layer][s][var]
                 w[iy:iy + a.size] = np.maximum(a, 0.0)
                 w[ia:ia + a.size] = np.clip((a > 0).astype(float), (L[var] >= 0).astype(float), (U[var] > 0).astype(float))
-                iy += a.size; ia += a.size
+                iy += a.size
+                ia += a.size
         return w
 
     # -- the solve ---------------------------------------------------------------------

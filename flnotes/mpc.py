@@ -93,7 +93,7 @@ import time
 import warnings
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Mapping, Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -105,6 +105,7 @@ from .network import ReLUNet
 from .simulate import StepResult
 from .systems import FLSystem, condense
 from .tightening import EmptyBoxError, horizon_boxes, lp_bounds
+from .miqp import BOUND_TOL, FEAS_TOL, next_margin, project_to_box  # the tolerance policy, see flnotes.miqp
 
 Array = np.ndarray
 
@@ -118,7 +119,6 @@ BACKENDS = ("auto", "cvxpy-scip", "highs", "scip", "daqp", "gurobi", "cplex")
 #: with the defaults DAQP may stop with "cycling" on them). Override with ``solver_options``.
 DAQP_OPTIONS = {"params": {"cycle_tol": 1000, "progress_tol": 1e-10}}
 
-from .miqp import BOUND_TOL, FEAS_TOL, next_margin, project_to_box  # the tolerance policy, see flnotes.miqp
 
 
 # --------------------------------------------------------------------------- references
@@ -276,9 +276,12 @@ class _Program:
             for k in range(1, N + 1):
                 blk = mpc.Su[k][:, : k * m]
                 rr, cc = np.nonzero(np.ones_like(blk))
-                rows += (r + rr).tolist(); cols += cc.tolist(); vals += blk[rr, cc].tolist()
+                rows += (r + rr).tolist()
+                cols += cc.tolist()
+                vals += blk[rr, cc].tolist()
                 r += nz
-            rl += [0.0] * (N * nz); ru += [0.0] * (N * nz)
+            rl += [0.0] * (N * nz)
+            ru += [0.0] * (N * nz)
         else:  # (MPC_form_miqp_c): z(k+1) - Ad z(k) - Bd v(k) = 0
             for k in range(N):
                 for i in range(nz):
@@ -286,7 +289,8 @@ class _Program:
                     cols += [self.iz[k + 1, i], *self.iz[k], *self.iv[k]]
                     vals += [1.0, *(-mpc.Ad[i]), *(-mpc.Bd[i])]
                     r += 1
-            rl += [0.0] * (N * nz); ru += [0.0] * (N * nz)
+            rl += [0.0] * (N * nz)
+            ru += [0.0] * (N * nz)
         # (MIP_general_b), (MIP_general_d): one copy per encoded step
         Aeq = form.A_eq.tocoo()
         isx = np.isin(Aeq.col, form.x)
@@ -295,31 +299,41 @@ class _Program:
         np.add.at(self._Ax, (Aeq.row[isx], np.searchsorted(form.x, Aeq.col[isx])), Aeq.data[isx])
         self.r_eq = []
         for j, k in enumerate(self.steps):
-            rows += (r + Ar.row).tolist(); cols += g[j, Ar.col].tolist(); vals += Ar.data.tolist()
+            rows += (r + Ar.row).tolist()
+            cols += g[j, Ar.col].tolist()
+            vals += Ar.data.tolist()
             if condensed:  # input [z(k); v(k)] = T_k V + t_k(z0), T_k = [Su[k]; E_k]
                 T = np.zeros((n_in, N * m))
                 T[:nz] = mpc.Su[k]
                 T[nz:, k * m:(k + 1) * m] = np.eye(m)
                 AT = self._Ax @ T
                 rr, cc = np.nonzero(np.abs(AT) > 0)
-                rows += (r + rr).tolist(); cols += self.iv.ravel()[cc].tolist(); vals += AT[rr, cc].tolist()
+                rows += (r + rr).tolist()
+                cols += self.iv.ravel()[cc].tolist()
+                vals += AT[rr, cc].tolist()
             else:
                 xr, xc = np.nonzero(self._Ax)
-                rows += (r + xr).tolist(); cols += g[j, form.x][xc].tolist(); vals += self._Ax[xr, xc].tolist()
+                rows += (r + xr).tolist()
+                cols += g[j, form.x][xc].tolist()
+                vals += self._Ax[xr, xc].tolist()
             self.r_eq.append(np.arange(r, r + Aeq.shape[0]))
-            rl += form.b_eq.tolist(); ru += form.b_eq.tolist()
+            rl += form.b_eq.tolist()
+            ru += form.b_eq.tolist()
             r += Aeq.shape[0]
         self._b_eq = form.b_eq.copy()
         # (MIP_general_c): ybar - U+ alpha <= 0 and yund - L- alpha <= -L-
         self.r_U, self.r_L = [], []
         for layer, nk in enumerate(net.widths):
-            rU = r + np.arange(S * nk).reshape(S, nk); r += S * nk
-            rL = r + np.arange(S * nk).reshape(S, nk); r += S * nk
+            rU = r + np.arange(S * nk).reshape(S, nk)
+            r += S * nk
+            rL = r + np.arange(S * nk).reshape(S, nk)
+            r += S * nk
             for rr, iy in ((rU, self.i_ybar[layer]), (rL, self.i_yund[layer])):
                 rows += np.repeat(rr.ravel(), 2).tolist()
                 cols += np.stack([iy.ravel(), self.i_alpha[layer].ravel()], 1).ravel().tolist()
                 vals += [1.0, -1.0] * rr.size
-                rl += [-np.inf] * rr.size; ru += [0.0] * rr.size
+                rl += [-np.inf] * rr.size
+                ru += [0.0] * rr.size
             self.r_U.append(rU), self.r_L.append(rL)
         A = sp.csr_matrix((np.asarray(vals, float), (np.asarray(rows, int), np.asarray(cols, int))), shape=(r, n))
         A.sort_indices()
@@ -461,8 +475,11 @@ class _CompactProgram:
         Zfree = mpc.Sx @ z0
         # state box of z(1..N): Su[k] V in [zl - Sx z0, zh - Sx z0]   (MPC_form_miqp_d)
         for k in range(1, N + 1):
-            blk = np.zeros((nz, n_max)); blk[:, :nV] = mpc.Su[k]
-            rows_A.append(blk); rl.append(zl[k] - Zfree[k]); ru.append(zh[k] - Zfree[k])
+            blk = np.zeros((nz, n_max))
+            blk[:, :nV] = mpc.Su[k]
+            rows_A.append(blk)
+            rl.append(zl[k] - Zfree[k])
+            ru.append(zh[k] - Zfree[k])
         n = nV
         self.units = []  # per encoded step: list per layer of (index of y variables, index of alpha, unstable mask)
         for k in self.steps:
@@ -478,23 +495,36 @@ class _CompactProgram:
                 Yn, yn0 = np.zeros_like(Aa), np.zeros_like(a0)
                 Yn[act], yn0[act] = Aa[act], a0[act]                  # stably active: y = a
                 iy = np.flatnonzero(unst)
-                idx_y = n + np.arange(iy.size); idx_al = n + iy.size + np.arange(iy.size)
+                idx_y = n + np.arange(iy.size)
+                idx_al = n + iy.size + np.arange(iy.size)
                 n += 2 * iy.size
                 for j, yi, ai in zip(iy, idx_y, idx_al):
                     Yn[j, yi] = 1.0
-                    r1 = -Aa[j].copy(); r1[yi] += 1.0                 # y - a >= 0
-                    rows_A.append(r1[None]); rl.append([a0[j]]); ru.append([np.inf])
-                    r2 = np.zeros(n_max); r2[yi], r2[ai] = 1.0, -U[j]  # y - U alpha <= 0
-                    rows_A.append(r2[None]); rl.append([-np.inf]); ru.append([0.0])
-                    r3 = -Aa[j].copy(); r3[yi] += 1.0; r3[ai] -= L[j]  # y - a - L alpha <= -L
-                    rows_A.append(r3[None]); rl.append([-np.inf]); ru.append([a0[j] - L[j]])
+                    r1 = -Aa[j].copy()
+                    r1[yi] += 1.0                 # y - a >= 0
+                    rows_A.append(r1[None])
+                    rl.append([a0[j]])
+                    ru.append([np.inf])
+                    r2 = np.zeros(n_max)
+                    r2[yi], r2[ai] = 1.0, -U[j]  # y - U alpha <= 0
+                    rows_A.append(r2[None])
+                    rl.append([-np.inf])
+                    ru.append([0.0])
+                    r3 = -Aa[j].copy()
+                    r3[yi] += 1.0
+                    r3[ai] -= L[j]  # y - a - L alpha <= -L
+                    rows_A.append(r3[None])
+                    rl.append([-np.inf])
+                    ru.append([a0[j] - L[j]])
                 lb += [0.0] * iy.size + [0.0] * iy.size
                 ub += list(U[iy]) + [1.0] * iy.size
                 integ += [0] * iy.size + [1] * iy.size
                 per.append((idx_y, idx_al, unst))
                 Y, y0 = Yn, yn0
             out, o0 = net.W[-1] @ Y, net.W[-1] @ y0 + net.b[-1]      # eq. (MIP_general_d), (Phi_NN_ep)
-            rows_A.append(out); rl.append(-mpc.u_solve - o0); ru.append(mpc.u_solve - o0)
+            rows_A.append(out)
+            rl.append(-mpc.u_solve - o0)
+            ru.append(mpc.u_solve - o0)
             self.units.append(per)
         A = np.vstack(rows_A)[:, :n]
         self.n = n
@@ -1424,235 +1454,3 @@ def _status(s) -> str:
     if "infeas" in s:
         return "infeasible"
     return s
-
-
-# --------------------------------------------------------------------------- the chapter's measurements
-def active_fraction(log, u_eps, rel: float = 0.02) -> float:
-    """Fraction of sampling instants where the network constraint is active.
-
-    Active means ``|Phi_NN(z_k, v_k)| >= (1 - rel) u_max^eps`` (within ``rel``
-    of the bound), read from ``log.u_nn`` (run :func:`flnotes.simulate` with ``net=``).
-    """
-    if log.u_nn is None:
-        raise ValueError("log.u_nn is missing: run flnotes.simulate(..., net=net) to log Phi_NN(z_k, v_k)")
-    u_eps = np.asarray(u_eps, float).reshape(-1)
-    return float(np.mean(np.any(np.abs(log.u_nn) >= (1 - rel) * u_eps, axis=1))) if len(log.u_nn) else 0.0
-
-
-def tracking_error(log, reference: Callable[[Array], Array], component: int = 0) -> Array:
-    """``|z_i(t_k) - z_ref,i(t_k)|`` at the sampling instants (default: the position ``x``)."""
-    return np.abs(log.z[:, component] - np.asarray(reference(log.t), float)[:, component])
-
-
-def closed_loop_checks(log, mpc: "MPC", reference: Optional[Callable[[Array], Array]] = None,
-                       rel: float = 0.02) -> dict:
-    """The checks the chapter prints from a closed-loop run.
-
-    Returns a dict with the largest true ``|u|`` at the samples and between
-    them against ``u_max``, the largest ``|Phi_NN|`` at the samples and along
-    every predicted plan against ``u_max^eps``, the active fraction, the
-    tracking error of ``x`` (at ``t = 0``, and max/RMS over the second half of
-    the run), and the steps that hit the time limit, fell back or were not optimal.
-    """
-    u_max = float(log.system.u_max[0])
-    pred = [np.abs(s.info["u_nn_pred"]).max() for s in log.steps if s.info and s.info.get("u_nn_pred") is not None]
-    out = dict(
-        u_max=u_max, u_max_eps=float(mpc.u_eps[0]),
-        max_abs_u_samples=float(np.abs(log.u).max()), max_abs_u_between=float(np.abs(log.u_fine).max()),
-        max_abs_u_nn_samples=float(np.abs(log.u_nn).max()) if log.u_nn is not None else np.nan,
-        max_abs_u_nn_predicted=float(max(pred)) if pred else np.nan,
-        active_fraction=active_fraction(log, mpc.u_eps, rel) if log.u_nn is not None else np.nan,
-        steps=log.n_steps,
-        time_limit_steps=int(sum(s == "time_limit" for s in log.status)),
-        fallback_steps=int(np.sum(log.fallback)),
-        non_optimal_steps=int(sum(s != "optimal" for s in log.status)),
-        message=log.message,
-    )
-    if reference is not None:
-        e = tracking_error(log, reference)
-        half = e[len(e) // 2:]
-        out.update(tracking_error_initial=float(e[0]), tracking_error_max_second_half=float(half.max()),
-                   tracking_error_rms_second_half=float(np.sqrt(np.mean(half**2))))
-    return out
-
-
-def time_stats_ms(times_s: Array) -> dict:
-    """``min``, ``max``, ``mean``, ``median`` of per-step times given in seconds, in milliseconds."""
-    t = np.asarray(times_s, float) * 1e3
-    t = t[np.isfinite(t)]
-    return dict(min=float(t.min()), max=float(t.max()), mean=float(t.mean()), median=float(np.median(t)))
-
-
-def table2(log, mpc: "MPC", label: str = "this book") -> list[dict]:
-    """Table 2's MPC row from a run, next to the paper's, with the binary counts before/after elimination.
-
-    The binary count of eq. (MPC_form_miqp) is ``N_p sum_k n_k`` (the paper's
-    footnote); after elimination it is the number of binaries actually left
-    free in the programs solved (mean and max over the steps that needed one;
-    with ``lazy`` only the encoded steps count).
-    """
-    from .paper import TABLE2_MS
-
-    paper = TABLE2_MS[("Quad-1D", "MPC (N_p=10)")]
-    st = time_stats_ms(log.solve_time)
-    mi = [s for s in mpc.history if not s.screened]
-    nbin = np.array([s.n_binaries for s in mi]) if mi else np.zeros(1)
-    return [
-        dict(source="paper (CPLEX via YALMIP)", N_p=10, min_ms=paper["min"], max_ms=paper["max"], mean_ms=paper["mean"],
-             binaries=10 * 30, binaries_after_mean=None, binaries_after_max=None),
-        dict(source=f"{label} ({mpc.backend}, bounds={mpc.bounds}, lazy={mpc.lazy}, warm={mpc.warm_start})",
-             N_p=mpc.N, min_ms=st["min"], max_ms=st["max"], mean_ms=st["mean"], binaries=mpc.n_binaries_full,
-             binaries_after_mean=float(nbin.mean()), binaries_after_max=int(nbin.max())),
-    ]
-
-
-def run_closed_loop(system: FLSystem, net: ReLUNet, eps, t_final: float, reference: Callable[[Array], Array],
-                    z0: Array, hold: str = "v", **mpc_kwargs):
-    """Build an :class:`MPC` (``mpc_kwargs`` as in its signature) and run it on the true plant.
-
-    Returns ``(log, mpc)``; ``log`` records ``Phi_NN`` at the samples (``net=``).
-    """
-    from .simulate import simulate
-
-    mpc = MPC(system, net, eps, **mpc_kwargs)
-    log = simulate(system, mpc, t_final=t_final, ts=mpc.ts, z0=z0, reference=reference, hold=hold, net=net,
-                   progress=False)
-    return log, mpc
-
-
-def horizon_sweep(system: FLSystem, net: ReLUNet, eps, horizons: Sequence[int], t_final: float,
-                  reference: Callable[[Array], Array], z0: Array, known: Optional[Mapping[int, tuple]] = None,
-                  **mpc_kwargs) -> tuple[dict, list[dict]]:
-    """Closed-loop runs for several prediction horizons ``N_p`` (the paper's Figure 6).
-
-    ``known`` maps a horizon to an existing ``(log, mpc)`` run of the same
-    length (it is reused, not rerun). Returns ``({N_p: log}, rows)`` where each
-    row holds ``N_p``, the per-step time statistics (ms), the binaries
-    ``N_p sum_k n_k`` and after elimination, and the tracking error over the
-    second half of the run.
-    """
-    logs, rows = {}, []
-    known = dict(known or {})
-    for Np in horizons:
-        if int(Np) in known and abs(known[int(Np)][0].t[-1] - t_final) < 1e-9:
-            log, mpc = known[int(Np)]
-        else:
-            log, mpc = run_closed_loop(system, net, eps, t_final, reference, z0, horizon=int(Np), **mpc_kwargs)
-        logs[int(Np)] = log
-        st = time_stats_ms(log.solve_time)
-        chk = closed_loop_checks(log, mpc, reference)
-        mi = [s.n_binaries for s in mpc.history if not s.screened]
-        rows.append(dict(N_p=int(Np), min_ms=st["min"], max_ms=st["max"], mean_ms=st["mean"], median_ms=st["median"],
-                         binaries=mpc.n_binaries_full, binaries_after_mean=float(np.mean(mi)) if mi else 0.0,
-                         miqp_steps=len(mi), active_fraction=chk["active_fraction"],
-                         rms_x_error_second_half=chk["tracking_error_rms_second_half"],
-                         max_abs_u_samples=chk["max_abs_u_samples"], non_optimal=chk["non_optimal_steps"]))
-    return logs, rows
-
-
-def binaries_per_step(mpc: "MPC", z: Array, bounds: Sequence[str] = ("box", "horizon", "lp")) -> list[dict]:
-    """Binaries needed at each predicted step for the measured ``z`` under several ``bounds`` switches.
-
-    One row per switch: the free binaries (unstable neurons) at every step
-    ``k = 0..N_p-1`` and their total, against ``sum_k n_k`` per step.
-    """
-    rows, keep = [], mpc.bounds
-    try:
-        for b in bounds:
-            mpc.bounds = b
-            nb, _, _ = mpc.node_bounds(mpc._check_z(z))
-            per = np.sum([u.reshape(mpc.N, -1).sum(axis=1) for u in nb.unstable], axis=0).astype(int)
-            rows.append(dict(bounds=b, per_step=per, total=int(per.sum()), full=mpc.n_binaries_full))
-    finally:
-        mpc.bounds = keep
-    return rows
-
-
-def prediction_mismatch(log, mpc: "MPC") -> float:
-    """``max_k |z_{k+1} - (A_d z_k + B_d v_k)|`` on the true plant: 0 when the plant is exactly linearized."""
-    pred = log.z[:-1] @ mpc.Ad.T + log.v @ mpc.Bd.T
-    return float(np.abs(pred - log.z[1:]).max())
-
-
-def recorded_problems(log, indices: Sequence[int], with_plans: bool = False) -> list[tuple]:
-    """``(z_k, z_ref over the horizon)`` at the sampling instants ``indices`` of an MPC run.
-
-    With ``with_plans=True`` each problem also carries the plan ``(z_pred, v_pred)``
-    the controller had computed at step ``k - 1`` (``None`` at ``k = 0``), so that
-    :func:`lever_study` can replay it with the warm start it had in closed loop.
-    """
-    out = []
-    for k in indices:
-        k = int(k)
-        info = log.steps[k].info or {}
-        if "z_ref" not in info:
-            raise ValueError(f"step {k} of the log has no recorded reference (was it run with flnotes.mpc.MPC?)")
-        item = (log.z[k].copy(), np.asarray(info["z_ref"]).copy())
-        if with_plans:
-            prev = (log.steps[k - 1].info or {}) if k >= 1 else {}
-            plan = (np.asarray(prev["z_pred"]), np.asarray(prev["v_pred"])) if prev.get("v_pred") is not None else None
-            item = item + (plan,)
-        out.append(item)
-    return out
-
-
-def hardest_steps(log, n: int) -> list[int]:
-    """Indices of the ``n`` sampling instants with the largest controller time in a run."""
-    order = np.argsort(-np.nan_to_num(log.solve_time, nan=0.0))
-    return sorted(int(k) for k in order[:n])
-
-
-def compare_to_reference(mpc: "MPC", problems: Sequence[tuple[Array, Array]], **reference_kwargs) -> list[dict]:
-    """Solve recorded problems with ``mpc`` and with a cold SCIP solve of the same program (cvxpy).
-
-    Each problem is solved from scratch by both (a fresh copy of ``mpc`` with
-    the same settings, so no warm start; ``mpc`` itself is left untouched),
-    and the optimal costs are compared. Returns
-    one row per problem: both objectives, the relative difference, both times
-    (ms) and statuses. ``reference_kwargs`` change the reference controller
-    (default ``bounds="horizon"``; any valid bounds give the same optimum).
-    """
-    ref = mpc.clone(**{**dict(backend="cvxpy-scip", bounds="horizon", gap=1e-6, time_limit=None, solver_options=None,
-                              formulation="auto"), **reference_kwargs})
-    rows = []
-    for z, R in problems:
-        fresh = mpc.clone()
-        a = fresh(z, R)
-        b = ref(z, R)
-        rel = abs(a.objective - b.objective) / max(1.0, abs(b.objective))
-        rows.append(dict(objective=a.objective, scip_objective=b.objective, rel_diff=float(rel),
-                         ms=a.wall_time * 1e3, scip_ms=b.wall_time * 1e3, status=a.status, scip_status=b.status,
-                         binaries=a.n_binaries, scip_binaries=b.n_binaries))
-    return rows
-
-
-def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],
-                configs: Mapping[str, dict], **common) -> list[dict]:
-    """Solve the same sequence of recorded problems with several :class:`MPC` configurations.
-
-    The problems are solved in order by one controller per configuration, so
-    a warm start sees the previous problem's plan (as in closed loop when the
-    problems are consecutive); problems from ``recorded_problems(...,
-    with_plans=True)`` instead start from the plan recorded in closed loop. Returns one row per configuration with the
-    per-solve times (ms, array ``ms`` and statistics), the mean binaries left
-    free, the mean nodes, and the largest relative difference of the optimal
-    cost from the first configuration (every lever is exact, so it must be ~0).
-    """
-    rows, base = [], None
-    for label, kw in configs.items():
-        mpc = MPC(system, net, eps, **{**common, **kw})
-        steps = []
-        for prob in problems:
-            if len(prob) == 3:  # replay: the previous plan it had in closed loop
-                mpc.set_previous_plan(prob[2])
-            steps.append(mpc(prob[0], prob[1]))
-        obj = np.array([s.objective for s in steps])
-        if base is None:
-            base = obj
-        ms = np.array([s.wall_time for s in steps]) * 1e3
-        rows.append(dict(configuration=label, mean_ms=float(ms.mean()), max_ms=float(ms.max()),
-                         binaries=float(np.mean([s.n_binaries for s in steps])),
-                         nodes=float(np.mean([s.nodes for s in steps])),
-                         max_rel_diff=float(np.max(np.abs(obj - base) / np.maximum(1.0, np.abs(base)))),
-                         statuses=",".join(sorted(set(s.status for s in steps))), ms=ms))
-    return rows

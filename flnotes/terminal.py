@@ -467,7 +467,7 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
         raise ValueError("z_box and v_box must contain 0 in their interior (the terminal set is built around the origin)")
     Ad, Bd = system.discretize(ts, discretization)
     K, P = lqr(Ad, Bd, Q, R)
-    In, Im = np.eye(n), np.eye(m)
+    In = np.eye(n)
     C = np.vstack([In, -In, K, -K])
     d = np.r_[z_hi, -z_lo, v_hi, -v_lo]
     F, g, t_star = max_admissible_set(Ad + Bd @ K, C, d)
@@ -667,7 +667,7 @@ class HorizonFeasibility:
             if plan is not None:
                 self.last_method = "candidate"
                 return True, plan
-        n, N, form = self.n, self.N, self.form
+        N, form = self.N, self.form
         # node bounds per step by fbbt over the box reachable from z0 (intersected with the state box): with z(0)
         # fixed the first steps have few unstable neurons, and the encoding stays exact on every feasible plan
         zl, zh = [z0], [z0]
@@ -802,7 +802,8 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
         limits = ((terminal.z_lo[axes[0]], terminal.z_hi[axes[0]]), (terminal.z_lo[axes[1]], terminal.z_hi[axes[1]]))
     x, y = np.linspace(*limits[0], nx), np.linspace(*limits[1], ny)
     t0 = time.perf_counter()
-    common = dict(discretization=terminal.discretization, z_box=(terminal.z_lo, terminal.z_hi), v_box=(terminal.v_lo, terminal.v_hi),
+    common = dict(discretization=terminal.discretization, z_box=(terminal.z_lo, terminal.z_hi),
+                  v_box=(terminal.v_lo, terminal.v_hi),
                   time_limit=time_limit, gains=(terminal.K,))
     eps_v = as_vector(eps, system.m, "eps")
     progs = [HorizonFeasibility(system, net, eps_v, terminal.ts, horizon, None, **common),

@@ -54,7 +54,8 @@ def intersect(a: NodeBounds, b: NodeBounds, method: Optional[str] = None) -> Nod
                       method=method or f"{a.method}&{b.method}")
 
 
-def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0) -> tuple[list[Array], list[Array], Array, Array]:
+def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0
+              ) -> tuple[list[Array], list[Array], Array, Array]:
     """Interval propagation from layer ``start`` on: layers after it get ``max(their bounds, interval bounds)``.
 
     ``L[start]``, ``U[start]`` are kept; every later layer is intersected with
@@ -98,8 +99,10 @@ class LPTightener:
         self.y, self.alpha = [], []
         idx = n_in
         for n_k in widths:
-            self.y.append(np.arange(idx, idx + n_k)); idx += n_k
-            self.alpha.append(np.arange(idx, idx + n_k)); idx += n_k
+            self.y.append(np.arange(idx, idx + n_k))
+            idx += n_k
+            self.alpha.append(np.arange(idx, idx + n_k))
+            idx += n_k
         self.n = idx
         rows, cols, vals, rlo, rhi = [], [], [], [], []
         self.row_ge, self.row_U, self.row_L = [], [], []
@@ -112,21 +115,38 @@ class LPTightener:
             for j in range(n_k):
                 nzw = np.flatnonzero(W[j])
                 # a - y <= -b   (y >= a)
-                rows += [r] * (len(nzw) + 1); cols += prev[nzw].tolist() + [yk[j]]; vals += W[j, nzw].tolist() + [-1.0]
-                rlo.append(-np.inf); rhi.append(-b[j]); ge.append(r); r += 1
+                rows += [r] * (len(nzw) + 1)
+                cols += prev[nzw].tolist() + [yk[j]]
+                vals += W[j, nzw].tolist() + [-1.0]
+                rlo.append(-np.inf)
+                rhi.append(-b[j])
+                ge.append(r)
+                r += 1
                 # y - U alpha <= 0
-                rows += [r, r]; cols += [yk[j], ak[j]]; vals += [1.0, 0.0]
-                rlo.append(-np.inf); rhi.append(0.0); rU.append(r); r += 1
+                rows += [r, r]
+                cols += [yk[j], ak[j]]
+                vals += [1.0, 0.0]
+                rlo.append(-np.inf)
+                rhi.append(0.0)
+                rU.append(r)
+                r += 1
                 # y - a - L alpha <= -L   (y <= a - L (1 - alpha))
-                rows += [r] * (len(nzw) + 2); cols += prev[nzw].tolist() + [yk[j], ak[j]]
+                rows += [r] * (len(nzw) + 2)
+                cols += prev[nzw].tolist() + [yk[j], ak[j]]
                 vals += (-W[j, nzw]).tolist() + [1.0, 0.0]
-                rlo.append(-np.inf); rhi.append(b[j]); rL.append(r); r += 1
-            self.row_ge.append(np.array(ge)); self.row_U.append(np.array(rU)); self.row_L.append(np.array(rL))
+                rlo.append(-np.inf)
+                rhi.append(b[j])
+                rL.append(r)
+                r += 1
+            self.row_ge.append(np.array(ge))
+            self.row_U.append(np.array(rU))
+            self.row_L.append(np.array(rL))
             prev = yk
         self.row_out = None
         self.b_row_L = [np.asarray(b, float).copy() for b in net.b[:-1]]
         if out_bounds is not None:
-            olo = as_vector(out_bounds[0], net.n_out, "out_bounds[0]") if np.all(np.isfinite(out_bounds[0])) else np.asarray(out_bounds[0], float)
+            olo = (as_vector(out_bounds[0], net.n_out, "out_bounds[0]") if np.all(np.isfinite(out_bounds[0]))
+                   else np.asarray(out_bounds[0], float))
             ohi = np.asarray(out_bounds[1], float)
             if olo.shape != (net.n_out,) or ohi.shape != (net.n_out,):
                 raise ValueError(f"out_bounds must be a pair of arrays of shape ({net.n_out},)")
@@ -136,8 +156,13 @@ class LPTightener:
             ro = []
             for i in range(net.n_out):
                 nzw = np.flatnonzero(W[i])
-                rows += [r] * len(nzw); cols += prev[nzw].tolist(); vals += W[i, nzw].tolist()
-                rlo.append(olo[i] - b[i]); rhi.append(ohi[i] - b[i]); ro.append(r); r += 1
+                rows += [r] * len(nzw)
+                cols += prev[nzw].tolist()
+                vals += W[i, nzw].tolist()
+                rlo.append(olo[i] - b[i])
+                rhi.append(ohi[i] - b[i])
+                ro.append(r)
+                r += 1
             self.row_out = np.array(ro)
         self.m = r
         import scipy.sparse as sp

@@ -62,7 +62,7 @@ def test_closed_loop_keeps_the_wall_where_the_first_order_condition_cannot():
     for name, H in (("first order", h), ("exponential", H2)):
         ctrl = fl.ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="exact", kappa=5.0)
         logs[name] = fl.simulate(sysm, ctrl, t_final=6.0, ts=0.02, z0=z0, hold="u", net=net, progress=False)
-    first, expo = (fl.clf_cbf_checks(logs[n], h) for n in ("first order", "exponential"))
+    first, expo = (fl.studies.clf_cbf_checks(logs[n], h) for n in ("first order", "exponential"))
     # the first-order condition -z2 >= -kappa h does not contain v: infeasible steps, and the wall is crossed
     assert first["fallback_steps"] > 0 and h(logs["first order"].z).min() < 0
     # the exponential CBF keeps h >= 0 and H2 >= 0 at every sample, with the true input within its bound

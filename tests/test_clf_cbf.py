@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 
 import flnotes as fl
-from flnotes.control import (ClfCbfController, DistanceCBF, QuadraticCLF, as_certificate, clf_cbf_checks,
-                             cross_check_exact, exact_1d_feasible_set, network_pieces_1d)
+from flnotes.control import (ClfCbfController, DistanceCBF, QuadraticCLF, as_certificate, exact_1d_feasible_set,
+                             network_pieces_1d)
+from flnotes.studies import clf_cbf_checks, cross_check_exact
 
 S = fl.paper.MSD_SETTING
 EPS = fl.paper.TABLE1["MSD"]["eps"]

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 import flnotes as fl
-from flnotes.mpc import MPC, closed_loop_checks, compare_to_reference, recorded_problems, sine_reference
+from flnotes.mpc import MPC, sine_reference
+from flnotes.studies import closed_loop_checks, compare_to_reference, recorded_problems
 
 S = fl.paper.QUAD_SETTING
 EPS = fl.paper.TABLE1["Quad-1D"]["eps"]
@@ -178,7 +179,7 @@ def test_simulate_survives_an_infeasible_start(quad):
 
 def test_levers_do_not_change_the_optimum(run, quad):
     """Every lever is exact: bounds, warm start, constraint generation and formulation give the same optimum."""
-    from flnotes.mpc import lever_study
+    from flnotes.studies import lever_study
 
     log, mpc, _ = run
     sysm, net = quad

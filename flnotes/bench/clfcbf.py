@@ -16,7 +16,8 @@ import time
 import numpy as np
 
 from .. import paper
-from ..control import ClfCbfController, DistanceCBF, QuadraticCLF, chapter_eps, cross_check_exact
+from ..control import ClfCbfController, DistanceCBF, QuadraticCLF
+from ..studies import chapter_eps, cross_check_exact
 from ..simulate import simulate
 
 TARGET_MS = 5.0

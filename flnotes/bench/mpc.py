@@ -338,7 +338,6 @@ def binary_counts(setup: dict, z0, z_ref, warm_start=None) -> dict:
     domain box, FBBT on the reachable boxes, LP-tightened reachable boxes, and the level set of
     the default solver (which also drops the steps that need no encoding).
     """
-    from ..bounds import fbbt
 
     net, N = setup["net"], setup["N"]
     out = {"paper: every neuron a binary": N * net.n_hidden}
@@ -362,8 +361,10 @@ def backend_overheads(n_repeat: int = 20) -> list:
 
     rng = np.random.default_rng(0)
     n_c, n_b = 5, 4
-    F = rng.normal(size=(3, n_c + n_b)); F[:, n_c - 1:] = 0.0
-    A = rng.normal(size=(6, n_c + n_b)); A[:, n_c] += 2.0
+    F = rng.normal(size=(3, n_c + n_b))
+    F[:, n_c - 1:] = 0.0
+    A = rng.normal(size=(6, n_c + n_b))
+    A[:, n_c] += 2.0
     w = np.r_[rng.uniform(-1, 1, n_c), rng.integers(0, 2, n_b)]
     rows = []
     for kind, H in (("MIQP", sp.csc_matrix(F.T @ F)), ("MILP", None)):

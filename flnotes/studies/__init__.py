@@ -5,9 +5,23 @@ simulation) knows nothing of the paper or of a chapter; the studies combine it
 with the paper's settings and numbers (:mod:`flnotes.paper`) into what a
 chapter shows. They are the only part of the package, with the benchmarks,
 that imports :mod:`flnotes.paper`.
+
+``networks``
+    chapters 2 and 5: fresh against shipped networks, Table 1, sweeps over architectures;
+``clfcbf``
+    chapter 6: checks of a CLF-CBF run, Table 2's rows, the exact method against a back-end;
+``mpc``
+    chapters 7 and 8: checks of an MPC run, Table 2's MPC row, horizon sweeps, lever studies.
 """
+from .clfcbf import chapter_eps, clf_cbf_checks, cross_check_exact, solve_time_table
+from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
+                  horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, table2,
+                  tracking_error)
 from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
                        width_experiment, write_sweep)
 
 __all__ = ["architecture_sweep", "book_sweep", "estimates_table", "fresh_vs_shipped", "table1_rows",
-           "width_experiment", "write_sweep"]
+           "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact",
+           "solve_time_table", "active_fraction", "binaries_per_step", "closed_loop_checks", "compare_to_reference",
+           "hardest_steps", "horizon_sweep", "lever_study", "prediction_mismatch", "recorded_problems",
+           "run_closed_loop", "table2", "tracking_error"]

@@ -1,0 +1,240 @@
+"""Studies of chapters 7 and 8: checks of an MPC run, Table 2's MPC row, horizon sweeps, lever studies."""
+from __future__ import annotations
+
+from typing import Callable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from .. import paper
+from ..mpc import MPC
+from ..network import ReLUNet
+from ..simulate import simulate
+from ..systems import FLSystem
+from ..tables import time_stats
+
+Array = np.ndarray
+
+__all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "horizon_sweep",
+           "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps", "compare_to_reference",
+           "lever_study"]
+
+
+def active_fraction(log, u_eps, rel: float = 0.02) -> float:
+    """Fraction of sampling instants where the network constraint is active.
+
+    Active means ``|Phi_NN(z_k, v_k)| >= (1 - rel) u_max^eps`` (within ``rel``
+    of the bound), read from ``log.u_nn`` (run :func:`flnotes.simulate` with ``net=``).
+    """
+    if log.u_nn is None:
+        raise ValueError("log.u_nn is missing: run flnotes.simulate(..., net=net) to log Phi_NN(z_k, v_k)")
+    u_eps = np.asarray(u_eps, float).reshape(-1)
+    return float(np.mean(np.any(np.abs(log.u_nn) >= (1 - rel) * u_eps, axis=1))) if len(log.u_nn) else 0.0
+
+
+def tracking_error(log, reference: Callable[[Array], Array], component: int = 0) -> Array:
+    """``|z_i(t_k) - z_ref,i(t_k)|`` at the sampling instants (default: the position ``x``)."""
+    return np.abs(log.z[:, component] - np.asarray(reference(log.t), float)[:, component])
+
+
+def closed_loop_checks(log, mpc: "MPC", reference: Optional[Callable[[Array], Array]] = None,
+                       rel: float = 0.02) -> dict:
+    """The checks the chapter prints from a closed-loop run.
+
+    Returns a dict with the largest true ``|u|`` at the samples and between
+    them against ``u_max``, the largest ``|Phi_NN|`` at the samples and along
+    every predicted plan against ``u_max^eps``, the active fraction, the
+    tracking error of ``x`` (at ``t = 0``, and max/RMS over the second half of
+    the run), and the steps that hit the time limit, fell back or were not optimal.
+    """
+    u_max = float(log.system.u_max[0])
+    pred = [np.abs(s.info["u_nn_pred"]).max() for s in log.steps if s.info and s.info.get("u_nn_pred") is not None]
+    out = dict(
+        u_max=u_max, u_max_eps=float(mpc.u_eps[0]),
+        max_abs_u_samples=float(np.abs(log.u).max()), max_abs_u_between=float(np.abs(log.u_fine).max()),
+        max_abs_u_nn_samples=float(np.abs(log.u_nn).max()) if log.u_nn is not None else np.nan,
+        max_abs_u_nn_predicted=float(max(pred)) if pred else np.nan,
+        active_fraction=active_fraction(log, mpc.u_eps, rel) if log.u_nn is not None else np.nan,
+        steps=log.n_steps,
+        time_limit_steps=int(sum(s == "time_limit" for s in log.status)),
+        fallback_steps=int(np.sum(log.fallback)),
+        non_optimal_steps=int(sum(s != "optimal" for s in log.status)),
+        message=log.message,
+    )
+    if reference is not None:
+        e = tracking_error(log, reference)
+        half = e[len(e) // 2:]
+        out.update(tracking_error_initial=float(e[0]), tracking_error_max_second_half=float(half.max()),
+                   tracking_error_rms_second_half=float(np.sqrt(np.mean(half**2))))
+    return out
+
+
+def table2(log, mpc: "MPC", label: str = "this book") -> list[dict]:
+    """Table 2's MPC row from a run, next to the paper's, with the binary counts before/after elimination.
+
+    The binary count of eq. (MPC_form_miqp) is ``N_p sum_k n_k`` (the paper's
+    footnote); after elimination it is the number of binaries actually left
+    free in the programs solved (mean and max over the steps that needed one;
+    with ``lazy`` only the encoded steps count).
+    """
+    ref = paper.TABLE2_MS[("Quad-1D", "MPC (N_p=10)")]
+    st = time_stats(log.solve_time)
+    mi = [s for s in mpc.history if not s.screened]
+    nbin = np.array([s.n_binaries for s in mi]) if mi else np.zeros(1)
+    return [
+        dict(source="paper (CPLEX via YALMIP)", N_p=10, min_ms=ref["min"], max_ms=ref["max"], mean_ms=ref["mean"],
+             binaries=10 * 30, binaries_after_mean=None, binaries_after_max=None),
+        dict(source=f"{label} ({mpc.backend}, bounds={mpc.bounds}, lazy={mpc.lazy}, warm={mpc.warm_start})",
+             N_p=mpc.N, min_ms=st["min_ms"], max_ms=st["max_ms"], mean_ms=st["mean_ms"], binaries=mpc.n_binaries_full,
+             binaries_after_mean=float(nbin.mean()), binaries_after_max=int(nbin.max())),
+    ]
+
+
+def run_closed_loop(system: FLSystem, net: ReLUNet, eps, t_final: float, reference: Callable[[Array], Array],
+                    z0: Array, hold: str = "v", **mpc_kwargs):
+    """Build an :class:`MPC` (``mpc_kwargs`` as in its signature) and run it on the true plant.
+
+    Returns ``(log, mpc)``; ``log`` records ``Phi_NN`` at the samples (``net=``).
+    """
+
+    mpc = MPC(system, net, eps, **mpc_kwargs)
+    log = simulate(system, mpc, t_final=t_final, ts=mpc.ts, z0=z0, reference=reference, hold=hold, net=net,
+                   progress=False)
+    return log, mpc
+
+
+def horizon_sweep(system: FLSystem, net: ReLUNet, eps, horizons: Sequence[int], t_final: float,
+                  reference: Callable[[Array], Array], z0: Array, known: Optional[Mapping[int, tuple]] = None,
+                  **mpc_kwargs) -> tuple[dict, list[dict]]:
+    """Closed-loop runs for several prediction horizons ``N_p`` (the paper's Figure 6).
+
+    ``known`` maps a horizon to an existing ``(log, mpc)`` run of the same
+    length (it is reused, not rerun). Returns ``({N_p: log}, rows)`` where each
+    row holds ``N_p``, the per-step time statistics (ms), the binaries
+    ``N_p sum_k n_k`` and after elimination, and the tracking error over the
+    second half of the run.
+    """
+    logs, rows = {}, []
+    known = dict(known or {})
+    for Np in horizons:
+        if int(Np) in known and abs(known[int(Np)][0].t[-1] - t_final) < 1e-9:
+            log, mpc = known[int(Np)]
+        else:
+            log, mpc = run_closed_loop(system, net, eps, t_final, reference, z0, horizon=int(Np), **mpc_kwargs)
+        logs[int(Np)] = log
+        st = time_stats(log.solve_time)
+        chk = closed_loop_checks(log, mpc, reference)
+        mi = [s.n_binaries for s in mpc.history if not s.screened]
+        rows.append(dict(N_p=int(Np), min_ms=st["min_ms"], max_ms=st["max_ms"], mean_ms=st["mean_ms"], median_ms=st["median_ms"],
+                         binaries=mpc.n_binaries_full, binaries_after_mean=float(np.mean(mi)) if mi else 0.0,
+                         miqp_steps=len(mi), active_fraction=chk["active_fraction"],
+                         rms_x_error_second_half=chk["tracking_error_rms_second_half"],
+                         max_abs_u_samples=chk["max_abs_u_samples"], non_optimal=chk["non_optimal_steps"]))
+    return logs, rows
+
+
+def binaries_per_step(mpc: "MPC", z: Array, bounds: Sequence[str] = ("box", "horizon", "lp")) -> list[dict]:
+    """Binaries needed at each predicted step for the measured ``z`` under several ``bounds`` switches.
+
+    One row per switch: the free binaries (unstable neurons) at every step
+    ``k = 0..N_p-1`` and their total, against ``sum_k n_k`` per step.
+    """
+    rows, keep = [], mpc.bounds
+    try:
+        for b in bounds:
+            mpc.bounds = b
+            nb, _, _ = mpc.node_bounds(mpc._check_z(z))
+            per = np.sum([u.reshape(mpc.N, -1).sum(axis=1) for u in nb.unstable], axis=0).astype(int)
+            rows.append(dict(bounds=b, per_step=per, total=int(per.sum()), full=mpc.n_binaries_full))
+    finally:
+        mpc.bounds = keep
+    return rows
+
+
+def prediction_mismatch(log, mpc: "MPC") -> float:
+    """``max_k |z_{k+1} - (A_d z_k + B_d v_k)|`` on the true plant: 0 when the plant is exactly linearized."""
+    pred = log.z[:-1] @ mpc.Ad.T + log.v @ mpc.Bd.T
+    return float(np.abs(pred - log.z[1:]).max())
+
+
+def recorded_problems(log, indices: Sequence[int], with_plans: bool = False) -> list[tuple]:
+    """``(z_k, z_ref over the horizon)`` at the sampling instants ``indices`` of an MPC run.
+
+    With ``with_plans=True`` each problem also carries the plan ``(z_pred, v_pred)``
+    the controller had computed at step ``k - 1`` (``None`` at ``k = 0``), so that
+    :func:`lever_study` can replay it with the warm start it had in closed loop.
+    """
+    out = []
+    for k in indices:
+        k = int(k)
+        info = log.steps[k].info or {}
+        if "z_ref" not in info:
+            raise ValueError(f"step {k} of the log has no recorded reference (was it run with flnotes.mpc.MPC?)")
+        item = (log.z[k].copy(), np.asarray(info["z_ref"]).copy())
+        if with_plans:
+            prev = (log.steps[k - 1].info or {}) if k >= 1 else {}
+            plan = (np.asarray(prev["z_pred"]), np.asarray(prev["v_pred"])) if prev.get("v_pred") is not None else None
+            item = item + (plan,)
+        out.append(item)
+    return out
+
+
+def hardest_steps(log, n: int) -> list[int]:
+    """Indices of the ``n`` sampling instants with the largest controller time in a run."""
+    order = np.argsort(-np.nan_to_num(log.solve_time, nan=0.0))
+    return sorted(int(k) for k in order[:n])
+
+
+def compare_to_reference(mpc: "MPC", problems: Sequence[tuple[Array, Array]], **reference_kwargs) -> list[dict]:
+    """Solve recorded problems with ``mpc`` and with a cold SCIP solve of the same program (cvxpy).
+
+    Each problem is solved from scratch by both (a fresh copy of ``mpc`` with
+    the same settings, so no warm start; ``mpc`` itself is left untouched),
+    and the optimal costs are compared. Returns
+    one row per problem: both objectives, the relative difference, both times
+    (ms) and statuses. ``reference_kwargs`` change the reference controller
+    (default ``bounds="horizon"``; any valid bounds give the same optimum).
+    """
+    ref = mpc.clone(**{**dict(backend="cvxpy-scip", bounds="horizon", gap=1e-6, time_limit=None, solver_options=None,
+                              formulation="auto"), **reference_kwargs})
+    rows = []
+    for z, R in problems:
+        fresh = mpc.clone()
+        a = fresh(z, R)
+        b = ref(z, R)
+        rel = abs(a.objective - b.objective) / max(1.0, abs(b.objective))
+        rows.append(dict(objective=a.objective, scip_objective=b.objective, rel_diff=float(rel),
+                         ms=a.wall_time * 1e3, scip_ms=b.wall_time * 1e3, status=a.status, scip_status=b.status,
+                         binaries=a.n_binaries, scip_binaries=b.n_binaries))
+    return rows
+
+
+def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],
+                configs: Mapping[str, dict], **common) -> list[dict]:
+    """Solve the same sequence of recorded problems with several :class:`MPC` configurations.
+
+    The problems are solved in order by one controller per configuration, so
+    a warm start sees the previous problem's plan (as in closed loop when the
+    problems are consecutive); problems from ``recorded_problems(...,
+    with_plans=True)`` instead start from the plan recorded in closed loop. Returns one row per configuration with the
+    per-solve times (ms, array ``ms`` and statistics), the mean binaries left
+    free, the mean nodes, and the largest relative difference of the optimal
+    cost from the first configuration (every lever is exact, so it must be ~0).
+    """
+    rows, base = [], None
+    for label, kw in configs.items():
+        mpc = MPC(system, net, eps, **{**common, **kw})
+        steps = []
+        for prob in problems:
+            if len(prob) == 3:  # replay: the previous plan it had in closed loop
+                mpc.set_previous_plan(prob[2])
+            steps.append(mpc(prob[0], prob[1]))
+        obj = np.array([s.objective for s in steps])
+        if base is None:
+            base = obj
+        ms = np.array([s.wall_time for s in steps]) * 1e3
+        rows.append(dict(configuration=label, mean_ms=float(ms.mean()), max_ms=float(ms.max()),
+                         binaries=float(np.mean([s.n_binaries for s in steps])),
+                         nodes=float(np.mean([s.nodes for s in steps])),
+                         max_rel_diff=float(np.max(np.abs(obj - base) / np.maximum(1.0, np.abs(base)))),
+                         statuses=",".join(sorted(set(s.status for s in steps))), ms=ms))
+    return rows
