@@ -18,10 +18,11 @@ from .bounds import NodeBounds, fbbt, interval_affine, sample_preactivations
 from .encoding import BigMForm, Encoding, bigm_form, encode, forward_milp
 from .errors import SolverFailure
 from .simulate import Controller, FeedbackLaw, SimLog, StepResult, simulate
-from . import interval, plots, reference, widgets
+from . import interval, plots, reference, solvers, widgets
 from .error import (ErrorEstimate, ErrorBracket, NotCertifiable, pso_max_error, sample_max_error, grid_max_error, de_max_error,
                     certify_error, error_function, worst_violation, local_max_error, enclosure_widths)
-from .miqp import BACKENDS, MIQP, HorizonMIQP, HorizonResult, MIQPResult, Solver, available_backends, make_solver
+from .solvers import BACKENDS, MIQP, MIQPResult, Solver, available_backends, make_solver
+from .levelset import HorizonMIQP, HorizonResult
 from .tightening import EmptyBoxError, lp_bounds, horizon_boxes, intersect, propagate, LPTightener, ellipsoid_box
 from .control import (Certificate, QuadraticCLF, DistanceCBF, as_certificate, PiecewiseAffine1D, network_pieces_1d,
                       exact_1d_feasible_set, solve_exact_1d, ClfCbfController, AffineCBF, ExponentialCBF, cbf_condition_fails)
@@ -39,7 +40,7 @@ __all__ = [
     'FAST', 'scale', 'Table', 'time_stats', 'FLSystem', 'brunovsky', 'discretize', 'msd', 'quad1d', 'ReLUNet',
     'TrainingReport', 'fit_relu', 'uniform_grid', 'NodeBounds', 'fbbt', 'interval_affine',
     'sample_preactivations', 'BigMForm', 'Encoding', 'bigm_form', 'encode', 'forward_milp', 'SolverFailure',
-    'Controller', 'FeedbackLaw', 'SimLog', 'StepResult', 'simulate', 'interval', 'plots', 'reference', 'widgets',
+    'Controller', 'FeedbackLaw', 'SimLog', 'StepResult', 'simulate', 'interval', 'plots', 'reference', 'solvers', 'widgets',
     'ErrorEstimate', 'ErrorBracket', 'NotCertifiable', 'pso_max_error', 'sample_max_error', 'grid_max_error',
     'de_max_error', 'certify_error', 'error_function', 'worst_violation', 'local_max_error', 'enclosure_widths',
     'BACKENDS', 'MIQP', 'HorizonMIQP', 'HorizonResult', 'MIQPResult', 'Solver', 'available_backends',

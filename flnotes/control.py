@@ -21,7 +21,7 @@ Backends (all solve the same program exactly; they differ in speed):
   ``Parameter``; built once, re-solved each step (HiGHS for the MILP, SCIP for
   the MIQP). cvxpy's per-solve overhead is several milliseconds.
 * ``"highs"``, ``"scip"``, ...: a persistent solver model through
-  :mod:`flnotes.miqp`, built once from :func:`flnotes.bigm_form`, whose
+  :mod:`flnotes.solvers`, built once from :func:`flnotes.bigm_form`, whose
   big-M coefficients and bounds are updated in place each step.
 * ``"exact"`` (single input only): for a fixed ``z``, ``Phi_NN(z, .)`` is
   piecewise affine in the scalar ``v``; its breakpoints are listed exactly
@@ -54,10 +54,10 @@ import scipy.sparse as sp
 from ._checks import as_vector
 from .bounds import NodeBounds, fbbt
 from .network import ReLUNet
-from .pieces import ExactPiecesBackend
+from .pieces import solve_exact_2d
 from .simulate import StepResult
 from .systems import FLSystem
-from .miqp import BOUND_TOL, next_margin, project_to_box
+from .solvers import BOUND_TOL, next_margin, project_to_box
 
 Array = np.ndarray
 
@@ -67,7 +67,7 @@ __all__ = [
     "ClfCbfController", "AffineCBF", "ExponentialCBF", "cbf_condition_fails",
 ]
 
-#: Backends of :class:`ClfCbfController`; the persistent ones need :mod:`flnotes.miqp`.
+#: Backends of :class:`ClfCbfController`; the persistent ones need :mod:`flnotes.solvers`.
 BACKENDS = ("auto", "exact", "cvxpy", "highs", "scip", "gurobi", "daqp")
 
 
@@ -601,14 +601,14 @@ class ClfCbfController:
         ``"exact"`` (one or two inputs: the linear pieces of ``Phi_NN(z, .)``
         enumerated and each solved in closed form, :func:`solve_exact_1d` and
         :func:`flnotes.pieces.solve_exact_2d`), ``"cvxpy"``, or a persistent solver through
-        :mod:`flnotes.miqp` (``"highs"`` for the MILP; ``"scip"``, ``"gurobi"``
+        :mod:`flnotes.solvers` (``"highs"`` for the MILP; ``"scip"``, ``"gurobi"``
         for both; ``"daqp"`` is accepted, but on these programs it was measured
         slower than SCIP, see ``make bench``). ``"auto"``
         (default) takes ``"exact"`` for one or two inputs (the fastest exact
         method, measured) and otherwise the persistent SCIP model for both
         costs (on the MSD programs SCIP was faster than HiGHS and never wrong;
         HiGHS returned a sub-optimal point as optimal at a few states, see
-        :class:`flnotes.miqp.HighsSolver`).
+        :class:`flnotes.solvers.HighsSolver`).
     solver
         For ``backend="cvxpy"``: the cvxpy solver name (default HIGHS for Lcost, SCIP for Qcost).
     v_lo, v_hi
@@ -630,7 +630,7 @@ class ClfCbfController:
         Optimality gap ``|obj - bound| / max(1, |obj|)`` at which branch and
         bound stops (persistent backends; default 1e-6).
     solver_options
-        Options for :func:`flnotes.miqp.make_solver` (e.g. ``params`` of the
+        Options for :func:`flnotes.solvers.make_solver` (e.g. ``params`` of the
         back-end); the HiGHS default switches off symmetry detection and the
         feasibility-jump heuristic, which only cost time on these small programs.
     name
@@ -704,7 +704,7 @@ class ClfCbfController:
                 raise ValueError(f"backend='exact' lists the linear pieces of Phi_NN(z, .) over v in a line (m = 1) or "
                                  f"a plane (m = 2); this system has m = {m} inputs: use backend='scip', 'highs' or "
                                  f"'cvxpy'")
-            self._impl = _ExactBackend(self) if m == 1 else ExactPiecesBackend(self)
+            self._impl = _ExactBackend(self) if m == 1 else _ExactPiecesBackend(self)
         elif backend == "cvxpy":
             self._impl = _CvxpyBackend(self, solver)
         else:
@@ -772,7 +772,7 @@ class ClfCbfController:
         this flag records whether it was given up.
 
         Raises ``ValueError`` when ``z`` lies outside the network's domain box
-        (beyond :data:`flnotes.miqp.BOX_TOL`; closer, it is projected onto the
+        (beyond :data:`flnotes.solvers.BOX_TOL`; closer, it is projected onto the
         box), as :class:`flnotes.MPC` does: the error bound eps, hence
         ``|u| <= u_max``, is only guaranteed inside it.
         """
@@ -819,7 +819,7 @@ class ClfCbfController:
         return res
 
     def _admissible(self, z: Array, v: Array) -> bool:
-        """``|Phi_NN(z, v)| <= u_max^eps`` by the forward pass, to the round-off :data:`flnotes.miqp.BOUND_TOL`."""
+        """``|Phi_NN(z, v)| <= u_max^eps`` by the forward pass, to the round-off :data:`flnotes.solvers.BOUND_TOL`."""
         return bool(np.all(np.abs(self.net(np.concatenate([z, np.asarray(v, float).reshape(-1)])))
                            <= self.u_eps + BOUND_TOL))
 
@@ -905,6 +905,44 @@ _CVXPY_STATUS = {"optimal": "optimal", "optimal_inaccurate": "time_limit", "infe
                  "infeasible_or_unbounded": "infeasible"}
 
 
+class _ExactPiecesBackend:
+    """Two inputs: list the linear regions of ``Phi_NN(z, .)`` and minimize on each in closed form.
+
+    The interface of the controller's back-ends: ``solve(z, d, soft)`` returns
+    the controller's solution record (status, ``v``, ``delta``, objective,
+    time, slacks), exactly like the single-input ``"exact"`` back-end of
+    :class:`flnotes.ClfCbfController`.
+    """
+
+    n_binaries = 0
+
+    def __init__(self, c: Any):
+        if c.system.m != 2:
+            raise ValueError(f"the exact region method works in the plane of two inputs; this system has "
+                             f"m = {c.system.m}: use backend='exact' (m = 1) or a MILP/MIQP backend")
+        self.c = c
+
+    def solve(self, z: Array, d: dict, soft: bool):
+        c = self.c
+        t0 = time.perf_counter()
+        st: dict = {}
+        out = solve_exact_2d(c.net, z, d, c.cost, c.u_eps, c.v_lo, c.v_hi, soft=soft, rho=c.penalty, stats=st)
+        dt = time.perf_counter() - t0
+        what = ("screening: the optimum without the network constraint satisfies it" if st["screened"] else
+                f"{st['regions']} regions solved, {st['nodes']} partial regions visited")
+        if out is None:
+            return _Solution(status="infeasible", solver_time=dt, detail=f"{what}; empty feasible set")
+        v, delta, obj = out
+        sol = _Solution(status="optimal", v=np.asarray(v, float), delta=delta, objective=obj, solver_time=dt,
+                        detail=what, screened=st["screened"], nodes=st["nodes"])
+        if soft:
+            sol.slack_u = np.maximum(0.0, np.abs(c.net(np.concatenate([z, v]))) - c.u_eps)
+            sol.slack_H = np.maximum(0.0, -(d["aH"] @ v + d["bH"]))
+        else:
+            sol.slack_u, sol.slack_H = np.zeros(c.system.m), np.zeros(c.p)
+        return sol
+
+
 class _CvxpyBackend:
     """The teaching form: cvxpy with Parameters, built once (DPP), re-solved each step."""
 
@@ -955,7 +993,7 @@ class _CvxpyBackend:
     def _opts(self) -> dict:
         tl = self.c.time_limit
         if self.solver == "HIGHS":
-            # the settings measured best in flnotes.miqp.HighsSolver (presolve on, tolerances 1e-8; 1e-9 declared
+            # the settings measured best in flnotes.solvers.HighsSolver (presolve on, tolerances 1e-8; 1e-9 declared
             # feasible programs infeasible); this teaching form has no cross-check: HiGHS's "optimal" is taken
             o = dict(mip_rel_gap=1e-9, mip_abs_gap=1e-10, mip_feasibility_tolerance=1e-8,
                      primal_feasibility_tolerance=1e-8)
@@ -1004,7 +1042,7 @@ class _CvxpyBackend:
 
 
 class _MiqpBackend:
-    """A persistent solver model through :mod:`flnotes.miqp`, built once, updated in place each step.
+    """A persistent solver model through :mod:`flnotes.solvers`, built once, updated in place each step.
 
     Variables ``w = [BigMForm's w (x = [z, v], ybar, yund, alpha, ..., y^K) | delta | s_u (m) | s_H (p)]``.
     Rows: eq. (MIP_general) from :func:`flnotes.bigm_form`, ``+-y^K - s_u <= u_max^eps``
@@ -1020,7 +1058,7 @@ class _MiqpBackend:
 
     def __init__(self, c: ClfCbfController, backend: str):
         from .encoding import bigm_form
-        from .miqp import MIQP, make_solver
+        from .solvers import MIQP, make_solver
 
         self.c = c
         net, m, p = c.net, c.system.m, c.p
@@ -1086,7 +1124,7 @@ class _MiqpBackend:
             Hq = sp.csc_matrix((np.full(m, 2.0), (self.i_v, self.i_v)), shape=(n, n))
         self.problem = MIQP(Hq, self.cvec, 0.0, A, rl, self.ru, self.lb, self.ub, integ)
         self.r_out = n_eq + n_ub + np.arange(2 * m)   # +-y^K - s_u <= u_max^eps
-        #: how much u_max^eps is tightened in the rows handed to the solver (tolerance policy of flnotes.miqp)
+        #: how much u_max^eps is tightened in the rows handed to the solver (tolerance policy of flnotes.solvers)
         self.margin = 0.0
         self.backend = backend
         self.solver = make_solver(self.problem, backend=backend, **c.solver_options)

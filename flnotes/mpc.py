@@ -36,7 +36,7 @@ measured. All of them are exact: they never change the optimum.
   and steps whose output provably meets the bound are not encoded at all.
   ``J_up`` starts at the warm start's cost and is raised until the restricted
   program's optimum lies below it, which makes it the global optimum
-  (:class:`flnotes.miqp.HorizonMIQP`, chapter "Making it real-time").
+  (:class:`flnotes.levelset.HorizonMIQP`, chapter "Making it real-time").
 * ``warm_start=True``: the previous plan shifted by one step (its last input
   repeated) is handed to the solver as a first incumbent when it is feasible.
 * ``screening=True``: the QP without the network constraint is solved first;
@@ -79,12 +79,12 @@ measured. All of them are exact: they never change the optimum.
   infeasible or the solver fails. Nothing is silent: every step's status, gap,
   nodes, time and message are kept in :attr:`MPC.history`.
 
-"Optimal" is claimed only when proven (see :mod:`flnotes.miqp`), and the
+"Optimal" is claimed only when proven (see :mod:`flnotes.solvers`), and the
 returned plan is checked with the network's forward pass at every predicted
 step: ``|Phi_NN| <= u_max^eps`` holds in floating point (to the round-off
-:data:`flnotes.miqp.BOUND_TOL`); when a solver's tolerance lets a point through
+:data:`flnotes.solvers.BOUND_TOL`); when a solver's tolerance lets a point through
 above it, the bound in the rows is tightened (:attr:`MPC.margin`) and the
-program solved again. A measured state at most :data:`flnotes.miqp.BOX_TOL`
+program solved again. A measured state at most :data:`flnotes.solvers.BOX_TOL`
 outside the domain box is projected onto it; farther out is a ``ValueError``.
 """
 from __future__ import annotations
@@ -105,14 +105,14 @@ from .network import ReLUNet
 from .simulate import StepResult
 from .systems import FLSystem, condense
 from .tightening import EmptyBoxError, horizon_boxes, lp_bounds
-from .miqp import BOUND_TOL, FEAS_TOL, next_margin, project_to_box  # the tolerance policy, see flnotes.miqp
+from .solvers import BOUND_TOL, FEAS_TOL, next_margin, project_to_box  # the tolerance policy, see flnotes.solvers
 
 Array = np.ndarray
 
 #: Exported to ``flnotes``; the chapter's measurement helpers below stay under ``flnotes.mpc``.
 __all__ = ["MPC", "MPCStep", "sine_reference"]
 
-#: Accepted ``backend`` names: the cvxpy reference and the persistent back-ends of :mod:`flnotes.miqp`.
+#: Accepted ``backend`` names: the cvxpy reference and the persistent back-ends of :mod:`flnotes.solvers`.
 BACKENDS = ("auto", "cvxpy-scip", "highs", "scip", "daqp", "gurobi", "cplex")
 
 #: DAQP settings for the big-M programs: its cycling guard is loosened (the big-M rows are degenerate;
@@ -176,7 +176,7 @@ class MPCStep:
         True when ``v`` does not come from this solve (see :meth:`MPC.fallback_plan`).
     input_admissible
         True when the applied ``v`` satisfies ``|Phi_NN(z, v)| <= u_max^eps`` at the measured
-        state (forward pass, to :data:`flnotes.miqp.BOUND_TOL`). False only on a fallback where no
+        state (forward pass, to :data:`flnotes.solvers.BOUND_TOL`). False only on a fallback where no
         admissible ``v`` exists: then ``v`` is the least-violation input.
     warm_started
         True when the shifted previous plan was passed to the solver.
@@ -416,7 +416,7 @@ class _Program:
         return int(np.sum(self.lb[ia] < self.ub[ia]))
 
     def miqp(self):
-        from .miqp import MIQP
+        from .solvers import MIQP
 
         return MIQP(self.H, self.c, self.c0, self.A.copy(), self.rl.copy(), self.ru.copy(), self.lb.copy(),
                     self.ub.copy(), self.integrality.copy())
@@ -543,7 +543,7 @@ class _CompactProgram:
         return int(self.integrality.sum())
 
     def miqp(self):
-        from .miqp import MIQP
+        from .solvers import MIQP
 
         return MIQP(self.H, self.c, self.c0, self.A, self.rl, self.ru, self.lb, self.ub, self.integrality)
 
@@ -591,7 +591,7 @@ class MPC:
         ``"cvxpy-scip"``: the reference, the program written with
         :func:`flnotes.encode` and solved cold by SCIP through cvxpy.
         ``"daqp"``, ``"scip"``, ``"gurobi"``, ``"cplex"``: through
-        :func:`flnotes.miqp.make_solver`. ``"auto"`` is ``"daqp"``, the fastest
+        :func:`flnotes.solvers.make_solver`. ``"auto"`` is ``"daqp"``, the fastest
         exact back-end measured on this program.
     bounds
         ``"levelset"``, ``"box"``, ``"horizon"`` or ``"lp"``: see the module
@@ -615,7 +615,7 @@ class MPC:
     v_box
         Range ``(v_lo, v_hi)`` of ``v`` in the program; default the network's domain box.
     solver_options
-        Passed to :func:`flnotes.miqp.make_solver`.
+        Passed to :func:`flnotes.solvers.make_solver`.
 
     Examples
     --------
@@ -642,7 +642,7 @@ class MPC:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if bounds not in ("auto", "box", "horizon", "lp", "levelset"):
             raise ValueError(f"bounds must be 'auto', 'box', 'horizon', 'lp' or 'levelset', got {bounds!r}")
-        from .miqp import _require
+        from .solvers.base import _require
 
         for pkg in (("cvxpy", "scip") if backend == "cvxpy-scip" else ("daqp" if backend == "auto" else backend,)):
             if pkg == "cvxpy":
@@ -689,14 +689,14 @@ class MPC:
         self._build_condensed()
         self._hz = None
         if bounds == "levelset":
-            from .miqp import HorizonMIQP
+            from .levelset import HorizonMIQP
 
             self._hz = HorizonMIQP(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo,
                                    z_hi=self.z_hi, v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps,
                                    backend=self.backend, bounds="levelset", screening=self.screening,
                                    warm_start=self.warm_start, lazy=self.lazy, solver_options=self.solver_options)
         #: How much ``u_max^eps`` is tightened in the rows handed to the solver (grows when a returned plan's
-        #: forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of :mod:`flnotes.miqp`).
+        #: forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of :mod:`flnotes.solvers`).
         self.margin = 0.0
         self.history: list[MPCStep] = []
         self._plan: Optional[tuple[Array, Array]] = None
@@ -765,7 +765,7 @@ class MPC:
     def plan_feasible(self, z_pred: Array, v_pred: Array, tol: float = FEAS_TOL) -> bool:
         """Does a plan satisfy eq. (MPC_form_miqp_b)-(d)?
 
-        The network bound by the forward pass to :data:`flnotes.miqp.BOUND_TOL` (round-off only),
+        The network bound by the forward pass to :data:`flnotes.solvers.BOUND_TOL` (round-off only),
         the boxes of the predicted states and inputs to ``tol``.
         """
         if np.any(z_pred[1:] < self.z_lo - tol) or np.any(z_pred[1:] > self.z_hi + tol):
@@ -889,7 +889,7 @@ class MPC:
         return entry
 
     def problem(self, z: Array, z_ref, steps: Optional[Sequence[int]] = None):
-        """The assembled MIQP (:class:`flnotes.miqp.MIQP`) for state ``z`` and reference ``z_ref``.
+        """The assembled MIQP (:class:`flnotes.solvers.MIQP`) for state ``z`` and reference ``z_ref``.
 
         ``steps`` selects the predicted steps whose network constraint is
         encoded (default: all of them, i.e. eq. (MPC_form_miqp) itself). Node
@@ -1116,7 +1116,7 @@ class MPC:
         return cand[int(np.argmin(excess))].copy(), False
 
     def _solve_levelset(self, z: Array, R: Array) -> MPCStep:
-        """``bounds="levelset"``: :meth:`flnotes.miqp.HorizonMIQP.solve`, warm-started with the shifted plan."""
+        """``bounds="levelset"``: :meth:`flnotes.levelset.HorizonMIQP.solve`, warm-started with the shifted plan."""
         shifted = self.shifted_plan(z) if self.warm_start else None
         ws = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
         r = self._hz.solve(z, R, warm_start=ws, time_limit=self.time_limit, gap=self.gap)
@@ -1131,7 +1131,7 @@ class MPC:
                             screened=bool(r.screened), **base)
 
     def _solve_persistent(self, z: Array, R: Array) -> MPCStep:
-        from .miqp import make_solver
+        from .solvers import make_solver
 
         t0 = time.perf_counter()
         self._candidate = None
@@ -1237,7 +1237,7 @@ class MPC:
 
     def _polish(self, prog, w0: Array, z: Array) -> tuple[Array, float]:
         """Improve a feasible warm start: the QP with its activation pattern fixed (a convex piece of the program)."""
-        from .miqp import MIQP, make_solver
+        from .solvers import MIQP, make_solver
 
         t0 = time.perf_counter()
         ib = np.flatnonzero(prog.integrality == 1)
@@ -1259,7 +1259,7 @@ class MPC:
 
     def _relaxation_bound(self, prog) -> float:
         """Lower bound on eq. (MPC_form_miqp): the continuous relaxation of the program with the encoded steps."""
-        from .miqp import MIQP, make_solver
+        from .solvers import MIQP, make_solver
 
         try:
             res = make_solver(MIQP(prog.H, prog.c, prog.c0, prog.A, prog.rl, prog.ru, prog.lb, prog.ub,

@@ -27,7 +27,7 @@ where the activation pattern of every hidden neuron is constant) it equals
   first and dropped as soon as interval bounds of the output or a lower bound
   of the cost rule them out, so only a few are ever solved. This is the
   two-input analogue of :func:`flnotes.solve_exact_1d`;
-  :class:`ExactPiecesBackend` is the back-end of :class:`flnotes.ClfCbfController`
+  :func:`solve_exact_2d` is the solve of :class:`flnotes.ClfCbfController`
   with ``backend="exact"`` (the default) for two inputs, and :func:`compare_exact_mip` checks it
   against a MIP back-end state by state.
 
@@ -37,7 +37,6 @@ Polygons are arrays of vertices (k, 2) in counter-clockwise order.
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
@@ -50,7 +49,7 @@ from .systems import FLSystem
 Array = np.ndarray
 
 __all__ = ["LinearRegions", "network_regions", "admissible_polygon", "network_polygons", "input_sets", "affine_in_v",
-           "clip_polygon", "polygon_area", "solve_exact_2d", "ExactPiecesBackend",
+           "clip_polygon", "polygon_area", "solve_exact_2d",
            "compare_exact_mip"]
 
 _TOL = 1e-11
@@ -608,46 +607,6 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
 # ---------------------------------------------------------------------------
 # The back-end for ClfCbfController
 # ---------------------------------------------------------------------------
-class ExactPiecesBackend:
-    """Two inputs: list the linear regions of ``Phi_NN(z, .)`` and minimize on each in closed form.
-
-    The interface of the controller's back-ends: ``solve(z, d, soft)`` returns
-    the controller's solution record (status, ``v``, ``delta``, objective,
-    time, slacks), exactly like the single-input ``"exact"`` back-end of
-    :class:`flnotes.ClfCbfController`.
-    """
-
-    n_binaries = 0
-
-    def __init__(self, c: Any):
-        if c.system.m != 2:
-            raise ValueError(f"the exact region method works in the plane of two inputs; this system has "
-                             f"m = {c.system.m}: use backend='exact' (m = 1) or a MILP/MIQP backend")
-        self.c = c
-
-    def solve(self, z: Array, d: dict, soft: bool):
-        from .control import _Solution
-
-        c = self.c
-        t0 = time.perf_counter()
-        st: dict = {}
-        out = solve_exact_2d(c.net, z, d, c.cost, c.u_eps, c.v_lo, c.v_hi, soft=soft, rho=c.penalty, stats=st)
-        dt = time.perf_counter() - t0
-        what = ("screening: the optimum without the network constraint satisfies it" if st["screened"] else
-                f"{st['regions']} regions solved, {st['nodes']} partial regions visited")
-        if out is None:
-            return _Solution(status="infeasible", solver_time=dt, detail=f"{what}; empty feasible set")
-        v, delta, obj = out
-        sol = _Solution(status="optimal", v=np.asarray(v, float), delta=delta, objective=obj, solver_time=dt,
-                        detail=what, screened=st["screened"], nodes=st["nodes"])
-        if soft:
-            sol.slack_u = np.maximum(0.0, np.abs(c.net(np.concatenate([z, v]))) - c.u_eps)
-            sol.slack_H = np.maximum(0.0, -(d["aH"] @ v + d["bH"]))
-        else:
-            sol.slack_u, sol.slack_H = np.zeros(c.system.m), np.zeros(c.p)
-        return sol
-
-
 def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7) -> dict:
     """Solve eq. (CLF_CBF) at every state of ``Z`` with two controllers of the same program and compare.
 

@@ -400,7 +400,7 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     ------
     EmptyBoxError
         When ``z0`` lies outside the state box by more than
-        :data:`flnotes.miqp.BOX_TOL` (closer, it is projected onto the box) or
+        :data:`flnotes.solvers.BOX_TOL` (closer, it is projected onto the box) or
         no admissible input keeps the state in the box.
     """
     Ad, Bd = np.atleast_2d(np.asarray(Ad, float)), np.atleast_2d(np.asarray(Bd, float))
@@ -416,7 +416,7 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     if not int(horizon) == horizon or horizon < 1:
         raise ValueError(f"horizon must be a positive integer, got {horizon}")
     horizon = int(horizon)
-    from .miqp import BOX_TOL
+    from .solvers import BOX_TOL
 
     if np.any(z0 < z_lo - BOX_TOL) or np.any(z0 > z_hi + BOX_TOL):
         raise EmptyBoxError(f"z0 = {z0} lies outside the state box [{z_lo}, {z_hi}] (tolerance {BOX_TOL:g})")

@@ -10,7 +10,7 @@ import pytest
 import flnotes as fl
 from flnotes.bench import exactness as ex
 from flnotes.control import ClfCbfController, DistanceCBF, QuadraticCLF, exact_1d_feasible_set
-from flnotes.miqp import BOUND_TOL, BOX_TOL, MIQP, make_solver
+from flnotes.solvers import BOUND_TOL, BOX_TOL, MIQP, make_solver
 from flnotes.mpc import MPC
 
 S = fl.paper.MSD_SETTING
@@ -162,7 +162,7 @@ def test_mpc_is_exact_on_diverse_states(quad5):
 
 
 def test_state_on_the_face_of_the_box_is_not_infeasible(quad5):
-    """z2 = -5 - 5e-10 is the state z2 = -5 (one tolerance for the box, flnotes.miqp.BOX_TOL)."""
+    """z2 = -5 - 5e-10 is the state z2 = -5 (one tolerance for the box, flnotes.solvers.BOX_TOL)."""
     mpc = book_mpc(quad5)
     ref = np.array([4.443496973836615, 0.0, 0.0])
     z = np.array([1.95917156728804, -5.0, 4.761859723150327])

@@ -136,7 +136,7 @@ def test_bad_inputs_give_clear_errors(quad):
         MPC(sysm, net, EPS, R=-0.1)
     with pytest.raises(ValueError, match="Q must be positive semidefinite"):
         MPC(sysm, net, EPS, Q=[-1.0, 1.0, 1.0])
-    # a state 5e-10 outside the box is on its face (tolerance policy of flnotes.miqp); 1e-6 outside is not
+    # a state 5e-10 outside the box is on its face (tolerance policy of flnotes.solvers); 1e-6 outside is not
     assert mpc._check_z(np.array([0.0, -5.0 - 5e-10, 0.0]))[1] == -5.0
     with pytest.raises(ValueError, match="outside"):
         mpc(np.array([0.0, -5.0 - 1e-6, 0.0]), np.zeros(3))

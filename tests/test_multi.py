@@ -170,7 +170,7 @@ def _controllers(arm, net, eps, cost):
     H = fl.DistanceCBF(np.array([0.8, 0.0, -0.6, 0.0]), 0.5)
     kw = dict(k=lambda z: -K_NOM @ z, cost=cost)
     ex = fl.ClfCbfController(arm, net, eps, fl.QuadraticCLF(P_CLF), H, **kw)
-    assert ex.backend == "exact" and isinstance(ex._impl, pc.ExactPiecesBackend)
+    assert ex.backend == "exact" and isinstance(ex._impl, fl.control._ExactPiecesBackend)
     return ex, ex.with_backend("scip")
 
 

@@ -2,7 +2,7 @@
 
 The book's run (Sec. IV-B: ``N_p = 10``, ``t_s = 0.1`` s, ``x_ref = 1.5 sin t``, which makes the
 input bound active at many steps) is recorded once with the fast exact solver
-(:class:`flnotes.miqp.HorizonMIQP`, all levers on). Every configuration is then timed on the
+(:class:`flnotes.levelset.HorizonMIQP`, all levers on). Every configuration is then timed on the
 same recorded states (and the same warm starts: the recorded plan of the previous step, shifted),
 and every returned optimum is compared with a slow reference solve by SCIP (every step encoded,
 no screening, no level set, gap 1e-8). Scaling with ``N_p`` and with the width of the network
@@ -17,7 +17,8 @@ from typing import Optional
 import numpy as np
 
 from .. import paper
-from ..miqp import HorizonMIQP, available_backends
+from ..levelset import HorizonMIQP
+from ..solvers import available_backends
 from ..simulate import StepResult, simulate
 
 TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
@@ -357,7 +358,7 @@ def backend_overheads(n_repeat: int = 20) -> list:
     """Per-solve time of every installed back-end on one small mixed-binary QP and LP (data changed each time)."""
     import scipy.sparse as sp
 
-    from ..miqp import MIQP, make_solver as _make
+    from ..solvers import MIQP, make_solver as _make
 
     rng = np.random.default_rng(0)
     n_c, n_b = 5, 4

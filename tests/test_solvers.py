@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from flnotes.miqp import BACKENDS, MIQP, available_backends, make_solver
+from flnotes.solvers import BACKENDS, MIQP, available_backends, make_solver
 
 OPEN = [b for b in ("highs", "scip", "daqp") if b in available_backends()]
 MIQP_BACKENDS = [b for b in OPEN if b != "highs"]
@@ -268,7 +268,7 @@ def horizon_setup():
 
 
 def _hz(setup, **kw):
-    from flnotes.miqp import HorizonMIQP
+    from flnotes.levelset import HorizonMIQP
 
     net, Ad, Bd, N, common, _ = setup
     return HorizonMIQP(net, Ad, Bd, N, np.diag([10.0, 1.0, 1.0]), [[0.0175]], **common, **kw)
@@ -327,7 +327,7 @@ def test_warm_start_and_backends_give_the_same_optimum(horizon_setup):
 
 def test_horizon_miqp_checks_its_arguments(horizon_setup):
     net, Ad, Bd, N, common, cases = horizon_setup
-    from flnotes.miqp import HorizonMIQP
+    from flnotes.levelset import HorizonMIQP
 
     with pytest.raises(ValueError, match="bounds"):
         _hz(horizon_setup, bounds="nonsense")
@@ -344,7 +344,7 @@ def test_every_solver_status_is_mapped_and_only_proofs_are_optimal():
     """Each HiGHS model status and DAQP exit flag has an explicit meaning; 'optimal' only for a proof."""
     import highspy
 
-    from flnotes.miqp import DAQP_STATUS, HIGHS_STATUS, SCIP_STATUS
+    from flnotes.solvers import DAQP_STATUS, HIGHS_STATUS, SCIP_STATUS
 
     names = {m for m in dir(highspy.HighsModelStatus) if m.startswith("k")}
     assert names <= set(HIGHS_STATUS), names - set(HIGHS_STATUS)
@@ -357,7 +357,7 @@ def test_every_solver_status_is_mapped_and_only_proofs_are_optimal():
 
 def test_boundary_point_is_optimal_not_infeasible():
     """A MILP whose optimum lies exactly on a row's bound is 'optimal' for every back-end, the point within FEAS_TOL."""
-    from flnotes.miqp import FEAS_TOL
+    from flnotes.solvers import FEAS_TOL
 
     # min -x - y  s.t.  x + 3 y <= 1 (the optimum on it),  y <= b (big-M with a binary b),  x in [0, 1], y in [0, 1]
     A = sp.csr_matrix(np.array([[1.0, 3.0, 0.0], [0.0, 1.0, -1.0]]))

@@ -1,0 +1,74 @@
+"""One solver layer for the mixed-integer programs of the controllers.
+
+The CLF-CBF programs (eq. CLF_CBF with the costs eq. LP_cost / eq. QP_cost) and
+the MPC (eq. MPC_form_miqp) are all instances of
+
+    min  0.5 w'H w + c'w + c0
+    s.t. rl <= A w <= ru,   lb <= w <= ub,   w_i integer where integrality[i] == 1,
+
+with the big-M constraints of eq. (MIP_general) inside ``A``. A controller
+builds the program once (:class:`MIQP`), hands it to :func:`make_solver`, and
+at every control step only changes numbers in place (:meth:`Solver.update`:
+the measured state enters through ``lb``/``ub`` or ``rl``/``ru``, the
+reference through ``c``, new node bounds through the big-M coefficients of
+``A``) before calling :meth:`Solver.solve`. The back-ends keep their model
+between calls:
+
+* ``"highs"``: HiGHS through highspy (MILPs and continuous QPs; HiGHS has no
+  mixed-integer QP solver);
+* ``"scip"``: SCIP through PySCIPOpt, the reference MIQP solver (the quadratic
+  objective becomes an epigraph constraint ``t >= 0.5 w'Hw``);
+* ``"daqp"``: DAQP, a dual active-set QP solver with its own depth-first
+  branch and bound over binary constraints, written for hybrid MPC
+  (Arnström, Bemporad & Axehill 2022);
+* ``"gurobi"``, ``"cplex"``: commercial solvers, used only when installed.
+
+``"auto"`` picks SCIP for a MILP (on the book's small big-M programs it was
+measured faster than HiGHS and never wrong, while HiGHS returned sub-optimal
+points as optimal at a few states, see :class:`HighsSolver`), HiGHS for a
+continuous program and DAQP for a mixed-integer QP (the fastest exact back-end
+measured on the MPC programs, see the chapter "Making it real-time"). Every
+back-end reports the same :class:`MIQPResult`, with the objective re-evaluated
+from the returned ``w`` (constants included) so that back-ends can be compared
+number for number.
+
+What "optimal" means
+--------------------
+A result has status ``"optimal"`` only when the optimum is proven: by a solver
+status that is a proof (HiGHS ``kOptimal``, SCIP ``optimal``/``gaplimit``,
+DAQP exit flag 1; every other status of each back-end is mapped explicitly, see
+:data:`HIGHS_STATUS`, :data:`SCIP_STATUS`, :data:`DAQP_STATUS`) *and* a returned
+point that satisfies the program's rows, bounds and integrality to
+:data:`FEAS_TOL`. A claim that is not a proof is verified by an independent
+solver instead of being trusted: DAQP's exit flags other than 1 (its flag 4,
+returned after proximal-point iterations on the singular ``H`` of the big-M
+programs, is not documented as optimal and was measured sub-optimal up to 12x)
+and its "infeasible" on a mixed-integer program (its depth-first branch and
+bound has declared feasible big-M programs infeasible) are re-solved by SCIP
+(HiGHS for a continuous program), warm-started with DAQP's point; HiGHS's
+"infeasible" on a mixed-integer program is confirmed by SCIP. The result's
+``message`` says when this happened.
+
+The tolerance policy (one place, used by the controllers): :data:`BOX_TOL`
+for a measured state on the face of the domain box, :data:`FEAS_TOL` for the
+solvers' rows, and the network bound checked with the forward pass to
+:data:`BOUND_TOL` (round-off of the forward pass itself); the controllers
+tighten ``u_max^eps`` in the rows they hand to a solver until the returned
+point passes that check (:func:`next_margin`).
+
+Layout: :mod:`.problem` (the program, its result, the tolerance policy),
+:mod:`.base` (the persistent-model interface and back-end selection), and one
+module per back-end (:mod:`.highs`, :mod:`.scip`, :mod:`.daqp`, :mod:`.gurobi`,
+:mod:`.cplex`). This package sits at the bottom of :mod:`flnotes`: it imports
+numpy, scipy and the solver libraries only, never a controller; a back-end
+fix never touches MPC or CLF-CBF logic.
+"""
+from .base import BACKENDS, Solver, available_backends, make_solver
+from .daqp import DAQP_STATUS, DaqpSolver
+from .highs import HIGHS_STATUS, HighsSolver
+from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, MIQPResult, next_margin, project_to_box
+from .scip import SCIP_STATUS, ScipSolver
+
+__all__ = ["BACKENDS", "Solver", "available_backends", "make_solver", "DAQP_STATUS", "DaqpSolver", "HIGHS_STATUS",
+           "HighsSolver", "BOUND_TOL", "BOX_TOL", "FEAS_TOL", "MIQP", "MIQPResult", "next_margin", "project_to_box",
+           "SCIP_STATUS", "ScipSolver"]

@@ -1,0 +1,239 @@
+"""The solver interface: a persistent model of one :class:`~flnotes.solvers.problem.MIQP`, updated in place.
+
+Also the choice of a back-end (:func:`make_solver`) and the check of a solver's claim by another (:func:`_confirm`).
+
+Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and the tolerance policy).
+"""
+from __future__ import annotations
+
+import importlib
+import time
+from typing import Optional
+
+import numpy as np
+import scipy.sparse as sp
+
+from .problem import FEAS_TOL, MIQP, Array, MIQPResult, _check_order, _result, _vec
+
+#: Back-ends by name; ``"auto"`` is also accepted by :func:`make_solver`.
+BACKENDS = ("highs", "scip", "daqp", "gurobi", "cplex")
+
+
+#: What to install for each back-end.
+_INSTALL = {"highs": "highspy", "scip": "PySCIPOpt", "daqp": "daqp", "gurobi": "gurobipy", "cplex": "cplex"}
+
+
+_MODULE = {"highs": "highspy", "scip": "pyscipopt", "daqp": "daqp", "gurobi": "gurobipy", "cplex": "cplex"}
+
+
+def _require(backend: str):
+    try:
+        return importlib.import_module(_MODULE[backend])
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ImportError(f"the {backend!r} back-end needs the Python package {_INSTALL[backend]!r}: "
+                          f"pip install {_INSTALL[backend]} (or choose another backend from {BACKENDS})") from exc
+
+
+def available_backends() -> tuple[str, ...]:
+    """The back-ends whose Python package can be imported here (commercial ones need a license too)."""
+    out = []
+    for b in BACKENDS:
+        try:
+            importlib.import_module(_MODULE[b])
+            out.append(b)
+        except ImportError:
+            pass
+    return tuple(out)
+
+
+# ---------------------------------------------------------------------------
+# The solver interface
+# ---------------------------------------------------------------------------
+class Solver:
+    """A persistent model of one :class:`MIQP`, re-solved with new data at every control step.
+
+    Subclasses implement ``_build``, ``_push`` (send changed data to the
+    back-end) and ``_solve``. The problem data kept in :attr:`problem` is
+    always the current one.
+    """
+
+    name = "base"
+    supports_miqp = True
+
+    def __init__(self, problem: MIQP, **options):
+        if not isinstance(problem, MIQP):
+            raise ValueError(f"problem must be an flnotes.solvers.MIQP, got {type(problem).__name__}")
+        self.problem = problem.copy()
+        self.options = dict(options)
+        p = self.problem
+        if p.is_mip and p.H is not None and not self.supports_miqp:
+            raise ValueError(f"the {self.name!r} back-end cannot solve a mixed-integer QP (H is not None and "
+                             f"{int(p.integrality.sum())} integer variables); use backend='daqp' or 'scip'")
+        # the sparsity pattern of A, to map new values onto it
+        coo = p.A.tocoo()
+        self._Arow, self._Acol = coo.row.astype(np.int64), coo.col.astype(np.int64)
+        self._pattern = sp.csr_matrix((np.ones(p.A.nnz), (self._Arow, self._Acol)), shape=p.A.shape)
+        self._build()
+
+    # -- public API ----------------------------------------------------------
+    def update(self, *, c=None, c0=None, rl=None, ru=None, lb=None, ub=None, A=None) -> None:
+        """Change numbers of the program in place (the structure stays).
+
+        Parameters
+        ----------
+        c, c0, rl, ru, lb, ub
+            New values, same shapes as in the :class:`MIQP`.
+        A
+            New constraint matrix with the same sparsity pattern (entries may
+            become zero; no new nonzeros).
+        """
+        p = self.problem
+        changed = {}
+        if c is not None:
+            p.c = _vec(c, p.n, "c")
+            changed["c"] = True
+        if c0 is not None:
+            c0 = float(c0)
+            if not np.isfinite(c0):
+                raise ValueError(f"c0 must be finite, got {c0}")
+            p.c0 = c0
+        if rl is not None or ru is not None:
+            new_rl = _vec(rl, p.m, "rl", allow_inf=True) if rl is not None else p.rl
+            new_ru = _vec(ru, p.m, "ru", allow_inf=True) if ru is not None else p.ru
+            _check_order(new_rl, new_ru, "rl", "ru")
+            eq_old, eq_new = p.rl == p.ru, new_rl == new_ru
+            p.rl, p.ru = new_rl, new_ru
+            changed["rows"] = True
+            if np.any(eq_old != eq_new):
+                changed["row_kind"] = True
+        if lb is not None or ub is not None:
+            new_lb = _vec(lb, p.n, "lb", allow_inf=True) if lb is not None else p.lb
+            new_ub = _vec(ub, p.n, "ub", allow_inf=True) if ub is not None else p.ub
+            _check_order(new_lb, new_ub, "lb", "ub")
+            p.lb, p.ub = new_lb, new_ub
+            changed["bounds"] = True
+        if A is not None:
+            vals = self._values_on_pattern(A)
+            old = p.A.data
+            diff = np.flatnonzero(vals != old)
+            if diff.size:
+                p.A = sp.csr_matrix((vals, p.A.indices, p.A.indptr), shape=p.A.shape)
+                changed["A"] = diff
+        if changed:
+            self._push(changed)
+
+    def solve(self, warm_start: Optional[Array] = None, time_limit: Optional[float] = None,
+              gap: float = 1e-6) -> MIQPResult:
+        """Solve the current program.
+
+        Parameters
+        ----------
+        warm_start
+            A candidate solution (n,), e.g. the previous plan shifted by one
+            step. Back-ends use it as an incumbent (or an initial working
+            set); it never changes the optimum.
+        time_limit
+            Seconds; ``None`` for no limit.
+        gap
+            Relative optimality gap ``|obj - bound| / max(1, |obj|)`` at which
+            the search stops.
+        """
+        ws = None
+        if warm_start is not None:
+            ws = np.asarray(warm_start, float)
+            if ws.shape != (self.problem.n,):
+                raise ValueError(f"warm_start must have shape ({self.problem.n},), got {ws.shape}")
+            if not np.all(np.isfinite(ws)):
+                ws = None
+        if time_limit is not None and not time_limit > 0:
+            raise ValueError(f"time_limit must be positive seconds or None, got {time_limit}")
+        if not gap >= 0:
+            raise ValueError(f"gap must be >= 0, got {gap}")
+        t0 = time.perf_counter()
+        try:
+            return self._solve(ws, time_limit, float(gap), t0)
+        except (ValueError, ImportError):
+            raise
+        except Exception as exc:  # a solver failure is a result, not a crash of the control loop
+            return _result(self.problem, "error", None, -np.inf, 0, t0, self.name, f"{type(exc).__name__}: {exc}")
+
+    # -- helpers -------------------------------------------------------------
+    def _values_on_pattern(self, A) -> Array:
+        p = self.problem
+        A = sp.csr_matrix(A, dtype=float)
+        if A.shape != p.A.shape:
+            raise ValueError(f"A must have shape {p.A.shape} (the same as when the solver was built), got {A.shape}")
+        if A.nnz:
+            S = A.copy()
+            S.data = np.ones_like(S.data)
+            outside = S - S.multiply(self._pattern)
+            outside.eliminate_zeros()
+            if outside.nnz:
+                raise ValueError("A has nonzeros outside the sparsity pattern the solver was built with; "
+                                 "build a new solver (make_solver) for a new structure")
+            if not np.all(np.isfinite(A.data)):
+                raise ValueError("A contains NaN or inf")
+        return np.asarray(A[self._Arow, self._Acol], float).ravel()
+
+    def _warm_ok(self, ws: Optional[Array], tol: float = 1e-7) -> bool:
+        return ws is not None and self.problem.violation(ws) <= tol
+
+    # -- to implement ----------------------------------------------------------
+    def _build(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _push(self, changed: dict) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def make_solver(problem: MIQP, backend: str = "auto", **options) -> Solver:
+    """A persistent solver for ``problem``.
+
+    Parameters
+    ----------
+    problem
+        The program; its structure (sizes, sparsity of ``A``, ``H``,
+        integrality) is fixed from now on, its numbers change with
+        :meth:`Solver.update`.
+    backend
+        One of :data:`BACKENDS`, or ``"auto"``: SCIP for a MILP, HiGHS for a
+        continuous program, DAQP for a mixed-integer QP.
+    **options
+        Back-end options: ``threads`` (HiGHS, SCIP, commercial), ``params``
+        (dict of native parameters), DAQP's ``reg`` (see :class:`DaqpSolver`).
+
+    Returns
+    -------
+    Solver
+    """
+    if backend == "auto":
+        backend = ("daqp" if problem.H is not None else "scip") if problem.is_mip else "highs"
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose 'auto' or one of {BACKENDS}")
+    _require(backend)
+    module = importlib.import_module(f"{__package__}.{backend}")  # one module per back-end
+    cls = getattr(module, {"highs": "HighsSolver", "scip": "ScipSolver", "daqp": "DaqpSolver",
+                           "gurobi": "GurobiSolver", "cplex": "CplexSolver"}[backend])
+    return cls(problem, **options)
+
+
+def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, claim: str, nodes: int) -> MIQPResult:
+    """Re-solve ``p`` with ``backend`` (warm-started with ``w`` when it is feasible) to check a claim that is no proof.
+
+    Returns the verifying solver's result, its message prefixed with the claim that was checked.
+    """
+    if backend not in available_backends():  # pragma: no cover - SCIP and HiGHS are requirements
+        return _result(p, "time_limit" if w is not None else "error", w, -np.inf, nodes, t0, solver.name,
+                       f"{claim}, not a proof, and {backend!r} is not installed to verify it")
+    left = None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
+    ws = w if (w is not None and p.violation(w) <= FEAS_TOL) else None
+    opts = {k: v for k, v in solver.options.items() if k == "threads"}
+    out = make_solver(p, backend, **opts).solve(warm_start=ws, time_limit=left, gap=gap)
+    out.message = f"{claim}, not a proof: verified by {backend}: {out.message}"
+    out.nodes += int(nodes)
+    out.backend = solver.name
+    out.time = time.perf_counter() - t0
+    return out

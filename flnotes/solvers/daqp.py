@@ -1,0 +1,257 @@
+"""DAQP back-end: dual active-set QP with its own branch and bound over binaries; only exit flag 1 is a proof.
+
+Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and the tolerance policy).
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .base import Solver, _confirm, _require
+from .problem import _INF, FEAS_TOL, Array, MIQPResult, _result
+
+
+# ---------------------------------------------------------------------------
+# DAQP
+# ---------------------------------------------------------------------------
+class DaqpSolver(Solver):
+    """DAQP (Arnström, Bemporad & Axehill 2022): dual active-set QP with branch and bound over binaries.
+
+    Every variable's bounds become DAQP's "simple bounds"; a binary variable
+    gets the ``BINARY`` sense (16: one of its two bounds must hold with
+    equality), an equality row or a fixed variable the ``EQUALITY`` sense (5).
+    DAQP's branch and bound is depth first and prunes every node whose
+    relaxation is not better than ``fval_bound``.
+
+    Positive semidefinite ``H``. DAQP factors ``H``; for the big-M programs
+    ``H`` is zero on the network's variables. With ``reg=delta`` (default
+    ``1e-6``) ``delta`` is added to the zero diagonal: DAQP solves the
+    perturbed problem ``J_r(w) = J(w) + 0.5 delta sum w_i^2`` with a positive
+    definite ``H`` (its exit flag 1 is then a proof for ``J_r``) and, with
+    ``B = 0.5 delta sum max(lb_i^2, ub_i^2)`` over the perturbed variables,
+    ``J <= J_r <= J + B`` on the box, so ``J* >= J_r(w) - B``: the returned
+    point is certified optimal when ``B`` is within the requested gap (the
+    result's ``bound``), and verified by SCIP otherwise. With ``reg=None``
+    DAQP's proximal-point iterations (``eps_prox``) handle the singular
+    directions instead; they end with the undocumented exit flag 4, which is
+    no proof (measured up to 12x sub-optimal on the CLF-CBF programs), so
+    every such answer is verified.
+
+    Warm start. A feasible warm start ``w_ws`` gives the incumbent bound
+    ``fval_bound = J(w_ws) + B``: DAQP then only explores nodes that can beat
+    it. If none does (exit flag -1 under the bound), ``w_ws`` is optimal
+    provided DAQP's branch and bound is right, which on the degenerate big-M
+    rows it has not always been: an exit flag -1 on a mixed-integer program
+    (with or without warm start) is verified by SCIP unless the option
+    ``verify_infeasible=False`` is given (``make bench`` measures both).
+    """
+
+    name = "daqp"
+
+    def _build(self) -> None:
+        daqp = _require("daqp")
+        p = self.problem
+        bad = np.flatnonzero((p.integrality == 1) & ((p.lb < 0) | (p.ub > 1)) & (p.lb < p.ub))
+        if bad.size:
+            raise ValueError(f"the 'daqp' back-end supports binary integers only (bounds within [0, 1]); "
+                             f"variable {bad[0]} has bounds [{p.lb[bad[0]]}, {p.ub[bad[0]]}]: use backend='scip' or 'highs'")
+        self._daqp = daqp
+        reg = self.options.get("reg", 1e-6)
+        H = np.zeros((p.n, p.n)) if p.H is None else p.H.toarray()
+        self._eps_prox = 0.0
+        self._dreg = np.zeros(p.n)  # the diagonal added to H (reg mode)
+        if p.H is None or not _is_pd(H):
+            if reg:
+                d = (np.abs(np.diag(H)) <= 1e-12).astype(float)
+                self._dreg = float(reg) * d
+                if not _is_pd(H + np.diag(self._dreg)):
+                    self._dreg = self._dreg + float(reg)
+                H = H + np.diag(self._dreg)
+            else:
+                self._eps_prox = float(self.options.get("eps_prox", 1e-6))
+                if p.H is None:
+                    H = None if self._eps_prox else H
+        self._H = H
+        self._Ad = p.A.toarray()
+        self._model = None
+        # the big-M rows are degenerate: DAQP's default cycling guard (10 iterations without progress)
+        # stops too early on them
+        self._settings = dict(eps_prox=self._eps_prox, primal_tol=float(self.options.get("primal_tol", 1e-7)),
+                              cycle_tol=1000, progress_tol=1e-10)
+        self._settings.update(self.options.get("params", {}))
+
+    def _sense(self) -> Array:
+        p = self.problem
+        s = np.zeros(p.n + p.m, dtype=np.int32)
+        binary = (p.integrality == 1) & (p.lb < p.ub)
+        s[:p.n][binary] = 16
+        s[:p.n][p.lb == p.ub] = 5
+        s[p.n:][p.rl == p.ru] = 5
+        return s
+
+    def _bounds(self) -> tuple[Array, Array]:
+        p = self.problem
+        lb, ub = p.lb.copy(), p.ub.copy()
+        ib = p.integrality == 1
+        lb[ib], ub[ib] = np.ceil(lb[ib] - 1e-9), np.floor(ub[ib] + 1e-9)
+        bu, bl = np.concatenate([ub, p.ru]), np.concatenate([lb, p.rl])
+        bu[bu >= _INF] = np.inf
+        bl[bl <= -_INF] = -np.inf
+        return bu, bl
+
+    def _push(self, changed: dict) -> None:
+        if "A" in changed:
+            self._Ad[self._Arow[changed["A"]], self._Acol[changed["A"]]] = self.problem.A.data[changed["A"]]
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        p = self.problem
+        incumbent = None
+        if ws is not None and p.is_mip:
+            w0 = ws.copy()
+            ib = p.integrality == 1
+            w0[ib] = np.round(w0[ib])
+            if self._warm_ok(w0):
+                incumbent = w0
+        res = self._attempt(incumbent, time_limit, t0, eps_prox=None, gap=gap)
+        if res.status == "error" and "retry" not in res.message:
+            # DAQP may cycle on the degenerate big-M rows: once more with a stronger proximal term
+            retry = self._attempt(incumbent, time_limit, t0, eps_prox=1e-4, gap=gap)
+            if retry.status != "error":
+                retry.message += " (after a retry with eps_prox=1e-4)"
+                res = retry
+        verifier = "scip" if p.is_mip else "highs"
+        if res.status == "unproven":
+            return _confirm(self, p, verifier, res.w, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
+        if res.status == "infeasible" and ((p.is_mip and self.options.get("verify_infeasible", True)) or self._eps_prox):
+            # DAQP's branch and bound (and its proximal iterations on a singular H) have declared feasible
+            # big-M programs infeasible, or found nothing below a warm start that was not optimal
+            return _confirm(self, p, verifier, incumbent, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
+        if res.status == "error":
+            fb = self.options.get("fallback", "scip")
+            if fb and fb != "daqp":
+                return _confirm(self, p, fb if p.is_mip else "highs", incumbent, time_limit, gap, t0,
+                                f"daqp failed ({res.message})", res.nodes)
+        return res
+
+    def _attempt(self, incumbent, time_limit, t0, eps_prox=None, gap: float = 1e-6) -> MIQPResult:
+        """One DAQP call on the program with its fixed variables substituted out."""
+        daqp, p = self._daqp, self.problem
+        bu_all, bl_all = self._bounds()
+        lbv, ubv = bl_all[: p.n], bu_all[: p.n]
+        fixed = lbv == ubv
+        free = np.flatnonzero(~fixed)
+        xf = np.where(fixed, lbv, 0.0)
+        H = self._H
+        c_r = p.c[free].copy()
+        if H is not None and fixed.any():
+            c_r += H[np.ix_(free, np.flatnonzero(fixed))] @ xf[fixed]
+        Hr = None if H is None else H[np.ix_(free, free)]
+        A = self._Ad
+        shift = A @ xf if p.m else np.zeros(0)
+        Ar = A[:, free] if p.m else np.zeros((0, free.size))
+        ru, rl = bu_all[p.n:] - shift, bl_all[p.n:] - shift
+        keep = np.any(Ar != 0.0, axis=1) if p.m else np.zeros(0, bool)
+        if p.m and np.any(~keep & ((rl > 1e-9) | (ru < -1e-9))):
+            return _result(p, "infeasible", None, np.inf, 0, t0, self.name, "a row without free variables is violated")
+        Ar, ru, rl = Ar[keep], ru[keep], rl[keep]
+        bu = np.r_[ubv[free], ru]
+        bl = np.r_[lbv[free], rl]
+        sense = np.zeros(bu.size, dtype=np.int32)
+        sense[: free.size][(p.integrality[free] == 1)] = 16
+        sense[free.size:][rl == ru] = 5
+        settings = dict(self._settings)
+        if eps_prox is not None:
+            settings["eps_prox"] = eps_prox
+        elif self._eps_prox and Hr is not None and free.size and np.all(np.abs(np.diag(Hr)) > 0):
+            try:  # the fixed variables may have carried all the singular directions
+                np.linalg.cholesky(Hr)
+                settings["eps_prox"] = 0.0
+            except np.linalg.LinAlgError:
+                pass
+        if Hr is None and not settings.get("eps_prox"):
+            Hr = np.zeros((free.size, free.size))
+        if time_limit:
+            settings["time_limit"] = max(float(time_limit) - (time.perf_counter() - t0), 1e-3)
+        # reg mode: DAQP minimizes J_r(w) = J(w) + 0.5 sum_i dreg_i w_i^2 with J <= J_r <= J + B on the box
+        dr = self._dreg
+        B = 0.0
+        if np.any(dr > 0):
+            big = np.maximum(np.abs(lbv), np.abs(ubv))[dr > 0]
+            B = float(0.5 * np.sum(dr[dr > 0] * big ** 2)) if np.all(np.isfinite(big)) else np.inf
+        if incumbent is not None and np.isfinite(B):
+            # the reduced objective of the incumbent: the full objective minus the constant of the fixed part.
+            # Any w better than the incumbent has J_r(w) < J(incumbent) + B: nodes above that are pruned.
+            J_full = p.objective(incumbent)
+            const = p.c0 + p.c[fixed] @ xf[fixed] + (0.5 * xf @ (H @ xf) if H is not None else 0.0)
+            J = J_full + B - const
+            settings["fval_bound"] = J - 1e-9 * max(1.0, abs(J_full))
+        if free.size == 0:
+            w = xf.copy()
+            ok = p.violation(w) <= 1e-6
+            return _result(p, "optimal" if ok else "infeasible", w if ok else None, np.nan, 0, t0, self.name,
+                           "every variable is fixed")
+        x, fval, flag, info = daqp.solve(Hr, c_r, Ar, bu, bl, sense, **settings)
+        nodes = int(info.get("nodes", 0)) if p.is_mip else 0
+
+        def full(xr):
+            w = xf.copy()
+            w[free] = np.asarray(xr, float)
+            ib = p.integrality == 1
+            w[ib] = np.round(w[ib])
+            return w
+
+        retry_note = "" if eps_prox is None else " retry"
+        status = DAQP_STATUS.get(int(flag), "unproven" if flag > 0 else "error")
+        msg = f"exitflag {flag} ({_DAQP_FLAGS.get(int(flag), 'not documented')}){retry_note}"
+        if status in ("optimal", "unproven"):
+            w = full(x)
+            if p.violation(w) > FEAS_TOL:
+                w = None
+                msg += " but the point violates the program"
+            cand = [v for v in (w, incumbent) if v is not None]
+            best = min(cand, key=p.objective) if cand else None
+            if status == "optimal" and w is not None and B > 0:
+                # certificate of the perturbed problem: J* >= J_r(w) - B
+                bound = p.objective(w) + 0.5 * float(dr @ w ** 2) - B
+                if incumbent is not None:
+                    bound = min(bound, p.objective(incumbent))
+                J_best = p.objective(best)
+                if abs(J_best - bound) <= gap * max(1.0, abs(J_best)):
+                    return _result(p, "optimal", best, bound, nodes, t0, self.name,
+                                   msg + f" (regularized by {float(dr.max()):.0e}: gap certified {B:.1e})")
+                return _result(p, "unproven", best, bound, nodes, t0, self.name,
+                               msg + f" (regularized: perturbation {B:.1e} above the gap)")
+            if status == "optimal" and w is not None:
+                return _result(p, "optimal", best, np.nan, nodes, t0, self.name, msg)
+            return _result(p, "unproven" if best is not None else "error", best, -np.inf, nodes, t0, self.name, msg)
+        if status == "infeasible":
+            if incumbent is not None:  # nothing better than the warm start under fval_bound
+                return _result(p, "infeasible", incumbent, np.nan, nodes, t0, self.name,
+                               msg + ": nothing better than the warm start")
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, msg)
+        if status == "time_limit":
+            return _result(p, "time_limit", incumbent, -np.inf, nodes, t0, self.name, msg)
+        return _result(p, "error", None, -np.inf, nodes, t0, self.name, msg)
+
+
+#: DAQP exit flag -> status. Only flag 1 is a proof. Flag 2 ("soft optimal": soft constraints were relaxed; none
+#: are declared here) and every undocumented positive flag (4 is returned after proximal-point iterations on a
+#: singular H) give a point without proof, verified by another solver (:meth:`DaqpSolver._solve`); -1 is a claim
+#: of infeasibility, verified on mixed-integer programs.
+DAQP_STATUS = {1: "optimal", 2: "unproven", -1: "infeasible", -2: "error", -3: "error", -4: "error", -5: "error",
+               -6: "error", -7: "time_limit", -8: "error"}
+
+
+_DAQP_FLAGS = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling", -3: "unbounded",
+               -4: "iteration limit", -5: "nonconvex", -6: "overdetermined initial active set",
+               -7: "time limit reached", -8: "unsupported problem"}
+
+
+def _is_pd(H: Array) -> bool:
+    try:
+        np.linalg.cholesky(H + 0.0)
+    except np.linalg.LinAlgError:
+        return False
+    d = np.linalg.eigvalsh(H)
+    return bool(d.min() > 1e-10 * max(1.0, d.max()))

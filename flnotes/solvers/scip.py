@@ -1,0 +1,218 @@
+"""SCIP back-end (PySCIPOpt): MILPs and mixed-integer QPs (epigraph of the quadratic cost), the reference solver.
+
+Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and the tolerance policy).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .base import Solver, _require, make_solver
+from .problem import _INF, FEAS_TOL, MIQP, Array, MIQPResult, _result
+
+#: SCIP status -> result status. "optimal" and "gaplimit" (the requested gap is proven) are proofs; the limits
+#: return the incumbent without proof; "unbounded", "inforunbd", "unknown", "terminate" are errors.
+SCIP_STATUS = {"optimal": "optimal", "gaplimit": "optimal", "infeasible": "infeasible",
+               "timelimit": "time_limit", "nodelimit": "time_limit", "totalnodelimit": "time_limit",
+               "stallnodelimit": "time_limit", "memlimit": "time_limit", "sollimit": "time_limit",
+               "bestsollimit": "time_limit", "restartlimit": "time_limit", "userinterrupt": "time_limit",
+               "primallimit": "time_limit", "duallimit": "time_limit",
+               "unbounded": "error", "inforunbd": "error", "unknown": "error", "terminate": "error"}
+
+
+class _quiet_c_output:
+    """Silence file descriptors 1 and 2 (C-level output of a solver library) inside a ``with`` block."""
+
+    def __enter__(self):
+        import os
+        import sys
+
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            self._null = os.open(os.devnull, os.O_WRONLY)
+            self._saved = (os.dup(1), os.dup(2))
+            os.dup2(self._null, 1)
+            os.dup2(self._null, 2)
+        except OSError:
+            self._saved = None
+        return self
+
+    def __exit__(self, *exc):
+        import os
+
+        if self._saved is not None:
+            os.dup2(self._saved[0], 1)
+            os.dup2(self._saved[1], 2)
+            for fd in (*self._saved, self._null):
+                os.close(fd)
+        return False
+
+
+def _hinf(a: Array) -> Array:
+    from highspy import kHighsInf
+    out = np.asarray(a, float).copy()
+    out[out >= _INF] = kHighsInf
+    out[out <= -_INF] = -kHighsInf
+    return out
+
+
+# ---------------------------------------------------------------------------
+# SCIP
+# ---------------------------------------------------------------------------
+class ScipSolver(Solver):
+    """SCIP (Bestuzheva et al. 2021) through PySCIPOpt: the reference solver for mixed-integer QPs.
+
+    The quadratic objective is written with an epigraph variable,
+    ``min t + c'w + c0`` s.t. ``0.5 w'Hw <= t``, which SCIP recognizes as a
+    convex quadratic constraint. The model is persistent: between solves it
+    is returned to the problem stage (``freeTransform``) and bounds, row
+    sides and coefficients are changed in place (``chgVarLb/Ub``,
+    ``chgLhs/chgRhs``, ``chgCoefLinear``); the linear objective is reset with
+    ``setObjective``. A warm start is added as a solution (``addSol``).
+    """
+
+    name = "scip"
+
+    def _build(self) -> None:
+        scip = _require("scip")
+        p = self.problem
+        m = scip.Model()
+        m.hideOutput()
+        m.setParam("parallel/maxnthreads", int(self.options.get("threads", 1)))
+        # tighter than SCIP's default 1e-6: the comparisons between back-ends are at 1e-6 relative
+        m.setParam("numerics/feastol", float(self.options.get("feastol", 1e-9)))
+        for k, v in self.options.get("params", {}).items():
+            m.setParam(k, v)
+        self._inf = m.infinity()
+        self._x = [m.addVar(name=f"w{i}", vtype="I" if p.integrality[i] else "C", lb=self._s(p.lb[i]),
+                            ub=self._s(p.ub[i])) for i in range(p.n)]
+        A = p.A
+        self._cons = []
+        for r in range(p.m):
+            s, e = A.indptr[r], A.indptr[r + 1]
+            expr = scip.quicksum(float(a) * self._x[j] for a, j in zip(A.data[s:e], A.indices[s:e]))
+            cons = m.addCons(self._range(expr, p.rl[r], p.ru[r]), name=f"r{r}")
+            self._cons.append(cons)
+        self._t = None
+        if p.H is not None:
+            self._t = m.addVar(name="t", lb=None, ub=None)
+            Hu = sp.triu(p.H, format="coo")
+            quad = scip.quicksum((0.5 if i == j else 1.0) * float(v) * self._x[i] * self._x[j]
+                                 for i, j, v in zip(Hu.row, Hu.col, Hu.data))
+            m.addCons(quad - self._t <= 0, name="epigraph")
+        self._m, self._scip = m, scip
+        self._polisher = None  # a HiGHS QP with the integers fixed, built at the first polish
+        self._set_objective()
+
+    def _s(self, v: float):
+        return None if abs(v) >= _INF else float(v)
+
+    def _range(self, expr, lo: float, hi: float):
+        if lo == hi:
+            return expr == float(lo)
+        lo_f, hi_f = lo > -_INF, hi < _INF
+        if lo_f and hi_f:
+            return (float(lo) <= expr) <= float(hi)
+        if lo_f:
+            return expr >= float(lo)
+        if hi_f:
+            return expr <= float(hi)
+        return expr <= self._inf
+
+    def _set_objective(self) -> None:
+        p, scip = self.problem, self._scip
+        nz = np.flatnonzero(p.c)
+        obj = scip.quicksum(float(p.c[i]) * self._x[i] for i in nz)
+        if self._t is not None:
+            obj = obj + self._t
+        self._m.setObjective(obj, "minimize", clear=True)
+
+    def _push(self, changed: dict) -> None:
+        m, p = self._m, self.problem
+        m.freeTransform()
+        if "c" in changed:
+            self._set_objective()
+        if "bounds" in changed:
+            for i in range(p.n):
+                # widen first, so that lb <= ub holds at every moment
+                m.chgVarLb(self._x[i], None)
+                m.chgVarUb(self._x[i], None)
+                m.chgVarLb(self._x[i], self._s(p.lb[i]))
+                m.chgVarUb(self._x[i], self._s(p.ub[i]))
+        if "rows" in changed:
+            for r, cons in enumerate(self._cons):
+                m.chgLhs(cons, None)
+                m.chgRhs(cons, None)
+                m.chgLhs(cons, self._s(p.rl[r]))
+                m.chgRhs(cons, self._s(p.ru[r]))
+        if "A" in changed:
+            vals = p.A.data
+            for k in changed["A"]:
+                m.chgCoefLinear(self._cons[int(self._Arow[k])], self._x[int(self._Acol[k])], float(vals[k]))
+
+    def _solve(self, ws, time_limit, gap, t0) -> MIQPResult:
+        m, p = self._m, self.problem
+        m.freeTransform()
+        m.setParam("limits/time", float(time_limit) if time_limit else 1e20)
+        m.setParam("limits/gap", 0.5 * gap)  # SCIP divides by min(|primal|, |dual|): keep a margin
+        m.setParam("limits/absgap", 0.5 * gap)
+        if ws is not None and self._warm_ok(ws):
+            sol = m.createSol()
+            for i in range(p.n):
+                m.setSolVal(sol, self._x[i], float(ws[i]))
+            if self._t is not None:
+                m.setSolVal(sol, self._t, float(0.5 * ws @ (p.H @ ws)) + 1e-9)
+            m.addSol(sol, free=True)
+        with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
+            m.optimize()
+        st = m.getStatus()
+        nodes = m.getNNodes() if p.is_mip else 0
+        w = None
+        if m.getNSols() > 0:
+            best = m.getBestSol()
+            w = np.array([m.getSolVal(best, x) for x in self._x])
+        try:
+            bound = m.getDualbound() + p.c0
+        except Exception:
+            bound = -np.inf
+        if abs(bound) >= 1e19:
+            bound = -np.inf
+        if w is not None and p.H is not None:
+            w = self._polish(w)
+        status = SCIP_STATUS.get(st, "error")
+        if status == "optimal" and (w is None or p.violation(w) > FEAS_TOL):
+            status = "error"
+            st += ": no point" if w is None else f": the point violates the program by {p.violation(w):.1e}"
+        if status == "time_limit" and w is not None and p.violation(w) > FEAS_TOL:
+            w = None
+        if status == "infeasible":
+            return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, st)
+        return _result(p, status, w if status in ("optimal", "time_limit") else None,
+                       bound if status != "error" else -np.inf, nodes, t0, self.name, st)
+
+    def _polish(self, w: Array) -> Array:
+        """The QP optimum with the integers fixed at ``w``'s (HiGHS), when it is better than ``w``.
+
+        SCIP enforces the epigraph ``0.5 w'Hw <= t`` through cutting planes, to
+        a tolerance that is relative: near a zero optimum its point can be off
+        by 1e-5 in the objective. Re-solving the convex QP of the same integer
+        assignment removes that error and never makes the point worse.
+        """
+        p = self.problem
+        ints = p.integrality == 1
+        lb, ub = p.lb.copy(), p.ub.copy()
+        lb[ints] = ub[ints] = np.clip(np.round(w[ints]), p.lb[ints], p.ub[ints])
+        try:
+            if self._polisher is None:
+                self._polisher = make_solver(MIQP(p.H, p.c, p.c0, p.A, p.rl, p.ru, lb, ub,
+                                                  np.zeros(p.n, int)), "highs")
+            else:
+                self._polisher.update(c=p.c, c0=p.c0, rl=p.rl, ru=p.ru, lb=lb, ub=ub, A=p.A)
+            r = self._polisher.solve()
+        except Exception:  # polishing is an improvement, never a requirement
+            return w
+        if r.status == "optimal" and r.w is not None and r.objective < p.objective(w) \
+                and p.violation(r.w) <= 1e-7:
+            return r.w
+        return w
