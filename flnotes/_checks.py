@@ -52,3 +52,30 @@ def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]
     for t in range(len(lo2)):
         check_box(lo2[t], hi2[t], n)
     return lo2, hi2, batch
+
+
+def weight_matrix(W, n: int, name: str, definite: bool = False) -> np.ndarray:
+    """A weight matrix (Q, R, P of eq. MPC_form_miqp_a) from a scalar, a diagonal or a matrix.
+
+    Symmetric positive semidefinite, or positive definite with ``definite=True``; else a ValueError naming ``name``.
+    """
+    W = np.asarray(W, float)
+    if W.ndim == 0:
+        W = W * np.eye(n)
+    elif W.ndim == 1:
+        if W.shape != (n,):
+            raise ValueError(f"{name} as a vector must have shape ({n},) (its diagonal), got {W.shape}")
+        W = np.diag(W)
+    if W.shape != (n, n):
+        raise ValueError(f"{name} must have shape ({n}, {n}), got {W.shape}")
+    if not np.all(np.isfinite(W)):
+        raise ValueError(f"{name} contains NaN or inf")
+    if not np.allclose(W, W.T):
+        raise ValueError(f"{name} must be symmetric, got {W.tolist()}")
+    lam = float(np.min(np.linalg.eigvalsh(W)))
+    if definite and lam <= 0:
+        raise ValueError(f"{name} must be positive definite (smallest eigenvalue {lam:g}): give every input a "
+                         f"positive weight, e.g. {name}=0.0175")
+    if lam < -1e-12:
+        raise ValueError(f"{name} must be positive semidefinite (smallest eigenvalue {lam:g})")
+    return W

@@ -98,7 +98,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import as_vector
+from ._checks import as_vector, weight_matrix
 from .bounds import NodeBounds, fbbt
 from .encoding import bigm_form, encode
 from .network import ReLUNet
@@ -671,9 +671,9 @@ class MPC:
         if np.any(self.eps < 0) or np.any(self.u_eps <= 0):
             raise ValueError(f"need 0 <= eps < u_max: eps = {self.eps}, u_max = {system.u_max} leaves no admissible "
                              f"input (u_max - eps = {self.u_eps})")
-        self.Q = _weight(Q if Q is not None else np.eye(self.n_z), self.n_z, "Q")
-        self.R = _weight(R if R is not None else np.eye(self.m), self.m, "R", definite=True)
-        self.P = _weight(P, self.n_z, "P") if P is not None else np.zeros((self.n_z, self.n_z))
+        self.Q = weight_matrix(Q if Q is not None else np.eye(self.n_z), self.n_z, "Q")
+        self.R = weight_matrix(R if R is not None else np.eye(self.m), self.m, "R", definite=True)
+        self.P = weight_matrix(P, self.n_z, "P") if P is not None else np.zeros((self.n_z, self.n_z))
         self.discretization = discretization
         self.Ad, self.Bd = system.discretize(self.ts, discretization)
         self.z_lo, self.z_hi = system.lo[: self.n_z].copy(), system.hi[: self.n_z].copy()
@@ -1419,30 +1419,6 @@ def _objective(prog, w: Array) -> float:
     """``0.5 w'Hw + c'w + c0`` of a program's matrix form."""
     w = np.asarray(w, float)
     return float(0.5 * w @ (prog.H @ w) + prog.c @ w + prog.c0)
-
-
-def _weight(W, n: int, name: str, definite: bool = False) -> Array:
-    """A weight matrix from a scalar, a diagonal or a matrix; symmetric positive (semi)definite, else ValueError."""
-    W = np.asarray(W, float)
-    if W.ndim == 0:
-        W = W * np.eye(n)
-    elif W.ndim == 1:
-        if W.shape != (n,):
-            raise ValueError(f"{name} as a vector must have shape ({n},) (its diagonal), got {W.shape}")
-        W = np.diag(W)
-    if W.shape != (n, n):
-        raise ValueError(f"{name} must have shape ({n}, {n}), got {W.shape}")
-    if not np.all(np.isfinite(W)):
-        raise ValueError(f"{name} contains NaN or inf")
-    if not np.allclose(W, W.T):
-        raise ValueError(f"{name} must be symmetric, got {W.tolist()}")
-    lam = float(np.min(np.linalg.eigvalsh(W)))
-    if definite and lam <= 0:
-        raise ValueError(f"{name} must be positive definite (smallest eigenvalue {lam:g}): give every input a "
-                         f"positive weight, e.g. {name}=0.0175")
-    if lam < -1e-12:
-        raise ValueError(f"{name} must be positive semidefinite (smallest eigenvalue {lam:g})")
-    return W
 
 
 def _status(s) -> str:

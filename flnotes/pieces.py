@@ -134,6 +134,17 @@ def _project(V: Array, c: Array) -> Array:
 # ---------------------------------------------------------------------------
 # Linear regions of the network in v
 # ---------------------------------------------------------------------------
+def _two_input_state(net: ReLUNet, z: Array, who: str) -> Array:
+    """``z`` as a vector, checked against a network over ``(z, v)`` with two inputs ``v`` and a hidden layer."""
+    z = np.asarray(z, float).reshape(-1)
+    if net.n_in != len(z) + 2:
+        raise ValueError(f"{who} works in the plane of two inputs v: the network has n_in = {net.n_in} inputs and z "
+                         f"has {len(z)} entries (need n_in = len(z) + 2)")
+    if net.K < 2:
+        raise ValueError(f"{who} needs a network with at least one hidden layer (an affine map has one region)")
+    return z
+
+
 @dataclass
 class LinearRegions:
     """``Phi_NN(z, v) = A[r] v + c[r]`` on the convex polygon ``polygons[r]`` (fixed ``z``, two inputs).
@@ -190,12 +201,7 @@ def network_regions(net: ReLUNet, z: Array, v_lo: Array, v_hi: Array,
     -------
     LinearRegions
     """
-    z = np.asarray(z, float).reshape(-1)
-    if net.n_in != len(z) + 2:
-        raise ValueError(f"network_regions lists regions in a plane of two inputs v: the network has n_in = "
-                         f"{net.n_in} inputs and z has {len(z)} entries (need n_in = len(z) + 2)")
-    if net.K < 2:
-        raise ValueError("network_regions needs a network with at least one hidden layer (an affine map has one region)")
+    z = _two_input_state(net, z, "network_regions")
     v_lo, v_hi = as_vector(v_lo, 2, "v_lo"), as_vector(v_hi, 2, "v_hi")
     if np.any(v_lo >= v_hi):
         raise ValueError(f"need v_lo < v_hi, got {v_lo} and {v_hi}")
@@ -511,12 +517,7 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
     -------
     (v, delta, objective), or None when the program is infeasible.
     """
-    z = np.asarray(z, float).reshape(-1)
-    if net.n_in != len(z) + 2:
-        raise ValueError(f"solve_exact_2d needs two inputs v: the network has n_in = {net.n_in} and z has "
-                         f"{len(z)} entries (need n_in = len(z) + 2)")
-    if net.K < 2:
-        raise ValueError("solve_exact_2d needs a network with at least one hidden layer")
+    z = _two_input_state(net, z, "solve_exact_2d")
     if cost not in ("linear", "quadratic"):
         raise ValueError(f"cost must be 'linear' or 'quadratic', got {cost!r}")
     bound = as_vector(bound, net.n_out, "bound")

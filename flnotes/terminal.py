@@ -46,7 +46,7 @@ import scipy.sparse as sp
 from scipy.linalg import solve_discrete_are
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
-from ._checks import as_batch, as_vector
+from ._checks import as_batch, as_vector, weight_matrix
 from .bounds import NodeBounds, fbbt
 from .encoding import bigm_form
 from .network import ReLUNet
@@ -84,7 +84,7 @@ def lqr(Ad: Array, Bd: Array, Q: Array, R: Array) -> tuple[Array, Array]:
     """
     Ad, Bd = _pair(Ad, Bd)
     n, m = Bd.shape
-    Q, R = _weight(Q, n, "Q"), _weight(R, m, "R")
+    Q, R = weight_matrix(Q, n, "Q"), weight_matrix(R, m, "R", definite=True)
     if np.min(np.linalg.eigvalsh(R)) <= 0:
         raise ValueError("R must be positive definite (the LQR gain needs (R + B'PB)^{-1})")
     if np.min(np.linalg.eigvalsh(Q)) < -1e-12:
@@ -504,8 +504,9 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
                                f"(alpha in [{lo:.3g}, {hi:.3g}])")
         alpha, a_fail = lo, hi
     return TerminalSet(K=K, P=P, F=F, g=g, alpha=alpha, u_eps=u_eps, certificate=best, failed=failed,
-                       alpha_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd, Q=_weight(Q, n, "Q"),
-                       R=_weight(R, m, "R"), ts=float(ts), z_lo=z_lo, z_hi=z_hi, v_lo=v_lo, v_hi=v_hi, tol=tol,
+                       alpha_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd,
+                       Q=weight_matrix(Q, n, "Q"), R=weight_matrix(R, m, "R", definite=True), ts=float(ts),
+                       z_lo=z_lo, z_hi=z_hi, v_lo=v_lo, v_hi=v_hi, tol=tol,
                        discretization=discretization, time_s=time.perf_counter() - t0)
 
 
@@ -836,16 +837,3 @@ def _pair(Ad: Array, Bd: Array) -> tuple[Array, Array]:
     return Ad, Bd
 
 
-def _weight(W, n: int, name: str) -> Array:
-    a = np.asarray(W, float)
-    if a.ndim == 0:
-        a = a * np.eye(n)
-    elif a.ndim == 1:
-        if a.shape != (n,):
-            raise ValueError(f"{name} must be a scalar, a vector of length {n} or an ({n}, {n}) matrix, got shape {a.shape}")
-        a = np.diag(a)
-    if a.shape != (n, n):
-        raise ValueError(f"{name} must be a scalar, a vector of length {n} or an ({n}, {n}) matrix, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or inf")
-    return 0.5 * (a + a.T)

@@ -41,6 +41,18 @@ class _NetController:
         return fl.StepResult(v=v, status="optimal")
 
 
+class _Spy(_NetController):
+    """Records the times at which the simulation called the controller."""
+
+    def __init__(self, net):
+        super().__init__(net)
+        self.calls = []
+
+    def step(self, z, t, reference=None):
+        self.calls.append(t)
+        return super().step(z, t, reference)
+
+
 @pytest.fixture(scope="module")
 def msd():
     sysm = fl.msd()
@@ -51,17 +63,12 @@ def msd():
 @pytest.mark.parametrize("kw, name", [(dict(z0=[0.0, 6.0]), "z0"), (dict(x0=[-5.5, 0.0]), "x0")])
 def test_simulate_start_outside_the_domain_box_raises_before_the_first_step(msd, kw, name):
     sysm, net = msd
-    calls = []
-
-    class Spy(_NetController):
-        def step(self, z, t, reference=None):
-            calls.append(t)
-            return super().step(z, t, reference)
+    spy = _Spy(net)
 
     with pytest.raises(ValueError, match=rf"{name} = .* outside the domain box") as err:
-        fl.simulate(sysm, Spy(net), t_final=0.2, ts=0.1, **kw)
+        fl.simulate(sysm, spy, t_final=0.2, ts=0.1, **kw)
     assert "lo = [-5. -5.]" in str(err.value) and "hi = [5. 5.]" in str(err.value)
-    assert calls == []  # raised before the first step
+    assert spy.calls == []  # raised before the first step
 
 
 def test_simulate_start_outside_the_box_with_a_real_controller(msd):
@@ -127,16 +134,11 @@ def test_mpc_with_a_missing_solver_fails_at_construction(msd):
 ])
 def test_simulate_rejects_a_bad_reference_before_the_first_step(msd, reference, exc, match):
     sysm, net = msd
-    calls = []
-
-    class Spy(_NetController):
-        def step(self, z, t, reference=None):
-            calls.append(t)
-            return super().step(z, t, reference)
+    spy = _Spy(net)
 
     with pytest.raises(exc, match=match):
-        fl.simulate(sysm, Spy(net), t_final=0.3, ts=0.1, z0=[0.0, 1.0], reference=reference)
-    assert calls == []
+        fl.simulate(sysm, spy, t_final=0.3, ts=0.1, z0=[0.0, 1.0], reference=reference)
+    assert spy.calls == []
 
 
 def test_simulate_accepts_vectorized_and_constant_references(msd):
