@@ -86,6 +86,24 @@ def _snap(s: Array, scale: float) -> Array:
     return np.where(np.abs(s) <= _TOL * scale, 0.0, s)
 
 
+def _split_along(polygons: list, a: Array, b: float, scale: Optional[float] = None) -> list:
+    """Every convex polygon cut in two by the line ``a^T v + b = 0`` where the line crosses it.
+
+    Values within rounding of zero (``_TOL * scale``; by default the size of
+    ``a^T v + b`` on the polygon) count as on the line, so no sliver is made.
+    """
+    out = []
+    for Q in polygons:
+        s = Q @ a + b
+        sc = (1.0 + np.abs(Q).max() * np.abs(a).sum() + abs(b)) if scale is None else scale
+        s = _snap(s, sc)
+        if s.min() < 0 < s.max():
+            out.extend(_cut(Q, s))
+        else:
+            out.append(Q)
+    return out
+
+
 def clip_polygon(V: Array, a: Array, b: float) -> Array:
     """The part of the convex polygon ``V`` (k, 2) where ``a^T v + b <= 0``; (0, 2) when empty."""
     V = np.asarray(V, float).reshape(-1, 2)
@@ -228,16 +246,7 @@ def network_regions(net: ReLUNet, z: Array, v_lo: Array, v_hi: Array,
             js = np.flatnonzero((S.min(0) < 0) & (S.max(0) > 0))
             parts = [V]
             for j in js:
-                nxt = []
-                for Q in parts:
-                    s = Q @ P[j] + p[j]
-                    s = np.where(np.abs(s) <= _TOL * sc[j], 0.0, s)
-                    if s.min() < 0 < s.max():
-                        a, b = _cut(Q, s)
-                        nxt.append(a), nxt.append(b)
-                    else:
-                        nxt.append(Q)
-                parts = nxt
+                parts = _split_along(parts, P[j], p[j], scale=sc[j])
             for Q in parts:
                 on = (Q.mean(0) @ P.T + p) > 0
                 DP, Dp = P * on[:, None], p * on
@@ -418,16 +427,7 @@ def _best_soft(V: Array, A: Array, c: Array, d: dict, cost: str, bound: Array, r
     G, e, w = np.vstack(Gs), np.concatenate(es), np.concatenate(ws)
     cells = [V]
     for g, ej in zip(G, e):
-        nxt = []
-        for Q in cells:
-            s = Q @ g + ej
-            s = np.where(np.abs(s) <= _TOL * (1.0 + np.abs(Q).max() * np.abs(g).sum() + abs(ej)), 0.0, s)
-            if s.min() < 0 < s.max():
-                a, b = _cut(Q, s)
-                nxt.append(a), nxt.append(b)
-            else:
-                nxt.append(Q)
-        cells = nxt
+        cells = _split_along(cells, g, ej)
     best, fbest = None, np.inf
     for Q in cells:
         on = (G @ Q.mean(0) + e) > 0

@@ -17,6 +17,15 @@ SETTINGS = {"Quad-1D": dict(Q=[10.0, 1.0, 1.0], R=0.0175), "MSD": dict(Q=[10.0, 
 TS = 0.1
 
 
+@pytest.fixture(scope="module")
+def quad_terminal():
+    """The Quad-1D system, its shipped network and eps, and its terminal ingredients."""
+    system = fl.quad1d()
+    net, _ = fl.paper_net("Quad-1D")
+    eps = fl.paper_eps("Quad-1D").upper
+    return system, net, eps, term.terminal_set(system, net, eps, TS, **SETTINGS["Quad-1D"])
+
+
 @pytest.fixture(scope="module", params=["Quad-1D", "MSD"])
 def setup(request):
     name = request.param
@@ -91,11 +100,8 @@ def test_alpha_is_largest_within_tolerance(setup):
     assert max(h[0] for h in passed) == T.alpha
 
 
-def test_recursive_feasibility_by_shifted_plan():
-    system = fl.quad1d()
-    net, _ = fl.paper_net("Quad-1D")
-    eps = fl.paper_eps("Quad-1D").upper
-    T = term.terminal_set(system, net, eps, TS, **SETTINGS["Quad-1D"])
+def test_recursive_feasibility_by_shifted_plan(quad_terminal):
+    system, net, eps, T = quad_terminal
     N = 5
     prog = term.HorizonFeasibility(system, net, eps, TS, N, T.constraint())
     free = term.HorizonFeasibility(system, net, eps, TS, N, None)
@@ -127,11 +133,8 @@ def test_recursive_feasibility_by_shifted_plan():
         assert prog.solve(z)[0]
 
 
-def test_horizon_milp_agrees_with_candidates():
-    system = fl.quad1d()
-    net, _ = fl.paper_net("Quad-1D")
-    eps = fl.paper_eps("Quad-1D").upper
-    T = term.terminal_set(system, net, eps, TS, **SETTINGS["Quad-1D"])
+def test_horizon_milp_agrees_with_candidates(quad_terminal):
+    system, net, eps, T = quad_terminal
     N = 5
     for terminal in (None, T.constraint()):
         fast = term.HorizonFeasibility(system, net, eps, TS, N, terminal, gains=(T.K,))
@@ -241,13 +244,10 @@ def test_max_admissible_set_small_cases_and_bad_input():
         term.terminal_set(fl.msd(), fl.paper_net("MSD")[0], 5.0, TS, [10.0, 1.0], 0.1)
 
 
-def test_shifted_plan_closes_the_loop_on_the_true_plant():
+def test_shifted_plan_closes_the_loop_on_the_true_plant(quad_terminal):
     # the proof's candidate used as the control law on the true plant (v held, exact linearization): it stays
     # admissible at every sample, enters Z_f after N_p steps and then converges under v = K z
-    system = fl.quad1d()
-    net, _ = fl.paper_net("Quad-1D")
-    eps = fl.paper_eps("Quad-1D").upper
-    T = term.terminal_set(system, net, eps, TS, **SETTINGS["Quad-1D"])
+    system, net, eps, T = quad_terminal
     N = 5
     prog = term.HorizonFeasibility(system, net, eps, TS, N, T.constraint(), gains=(T.K,))
     roa = term.region_of_attraction(system, net, eps, T, horizon=N, n_grid=5, limits=((-1.0, 1.0), (-1.0, 1.0)))

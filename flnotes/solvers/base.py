@@ -152,7 +152,7 @@ class Solver:
         t0 = time.perf_counter()
         try:
             return self._solve(ws, time_limit, float(gap), t0)
-        except (ValueError, ImportError):
+        except (ValueError, TypeError, ImportError):  # a programming error stops with its message
             raise
         except Exception as exc:  # a solver failure is a result, not a crash of the control loop
             return _result(self.problem, "error", None, -np.inf, 0, t0, self.name, f"{type(exc).__name__}: {exc}")
