@@ -44,19 +44,20 @@ CLF-CBF program exactly for two inputs.
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
 from . import interval as iv
 from ._checks import as_batch, as_vector
+from .control import Certificate
 from .systems import FLSystem, brunovsky
 
 Array = np.ndarray
 
 __all__ = ["two_link_arm", "arm_parameters", "arm_mass_matrix", "arm_bias", "arm_net", "make_arm_reference",
            "ARM_REFERENCE", "ARM_SETTINGS", "ARM_EPS_SETTINGS",
-           "arm_joint_positions"]
+           "arm_joint_positions", "arm_link_points", "links_distance", "ArmPointCBF", "arm_obstacle_cbfs"]
 
 #: Name of the shipped reference network of :func:`two_link_arm` (see :func:`arm_net`).
 ARM_REFERENCE = "Arm2"
@@ -252,3 +253,150 @@ def arm_net():
         raise ValueError(f"the shipped reference {ARM_REFERENCE!r} has no certified bracket; rewrite it "
                          f"with flnotes.arm.make_arm_reference()")
     return ref.net, np.asarray(ref.bracket["upper"], float), ref
+
+
+# ---------------------------------------------------------------------------
+# An obstacle in the workspace, as a barrier on the joint state
+# ---------------------------------------------------------------------------
+def arm_link_points(q: Array, fractions: Sequence[float], p: Optional[dict] = None) -> Array:
+    """Points of the second link at the given fractions of its length (0 = elbow, 1 = hand): (N, k, 2).
+
+    ``r_s(q) = l_1 (sin q_1, -cos q_1) + s l_2 (sin(q_1 + q_2), -cos(q_1 + q_2))``.
+    """
+    p = arm_parameters(**_DEFAULTS) if p is None else p
+    Q = as_batch(q, 2, "q")
+    s = np.asarray(fractions, float).reshape(-1)
+    if np.any((s < 0) | (s > 1)):
+        raise ValueError(f"fractions must lie in [0, 1] (0 = elbow, 1 = hand), got {s.tolist()}")
+    elbow = p["l1"] * np.column_stack([np.sin(Q[:, 0]), -np.cos(Q[:, 0])])
+    q12 = Q[:, 0] + Q[:, 1]
+    d2 = p["l2"] * np.column_stack([np.sin(q12), -np.cos(q12)])
+    return elbow[:, None, :] + s[None, :, None] * d2[:, None, :]
+
+
+def links_distance(q: Array, center: Array, p: Optional[dict] = None) -> Array:
+    """Distance from ``center`` (2,) to the arm (both links as segments) at joint angles ``q`` (N, 2): (N,)."""
+    p = arm_parameters(**_DEFAULTS) if p is None else p
+    Q = as_batch(q, 2, "q")
+    c = as_vector(center, 2, "center")
+    elbow, hand = arm_joint_positions(Q, p)
+    out = np.full(len(Q), np.inf)
+    for a, b in ((np.zeros_like(elbow), elbow), (elbow, hand)):
+        e = b - a
+        t = np.clip(np.einsum("ij,ij->i", c - a, e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+        out = np.minimum(out, np.linalg.norm(a + t[:, None] * e - c, axis=1))
+    return out
+
+
+class ArmPointCBF(Certificate):
+    """A disc obstacle in the workspace kept away from one point of the second link: a CBF on ``z``.
+
+    The point ``r_s(q)`` of the second link at fraction ``s`` of its length
+    (:func:`arm_link_points`) must stay outside the disc of centre ``c`` and
+    radius ``R``: ``h(q) = ||r_s(q) - c||^2 - R^2 >= 0``. ``h`` depends on the
+    angles only, so on the chains ``z = (q_1, q_1', q_2, q_2')`` it has relative
+    degree two (``grad h^T B = 0``) and, like :class:`flnotes.ExponentialCBF`
+    for an affine ``h``, the controller is given
+
+        H_2(z) = dh/dt + k_1 h = 2 (r_s - c)^T J_s(q) q' + k_1 h(q),
+
+    with ``J_s = dr_s/dq``. Its gradient in ``z``: ``dH_2/dq' = 2 J_s^T (r_s - c)``
+    (so ``grad H_2^T B v = 2 (r_s - c)^T J_s v``, zero only where the point
+    cannot move away from ``c``), and
+    ``dH_2/dq_i = 2 (J_s e_i)^T J_s q' + 2 (r_s - c)^T (dJ_s/dq_i) q' + 2 k_1 (r_s - c)^T J_s e_i``.
+    If the condition (CLF_CBF_d) keeps ``H_2 >= 0`` along the closed loop and
+    ``h(z(0)) >= 0``, then ``dh/dt >= -k_1 h`` and ``h`` stays nonnegative.
+
+    Parameters
+    ----------
+    center
+        Centre ``c`` of the disc (m), shape (2,).
+    radius
+        Its radius ``R`` (m), > 0.
+    fraction
+        ``s`` in [0, 1]: 0 the elbow, 1 the hand.
+    k1
+        Gain > 0 of the inner condition ``dh/dt >= -k_1 h``.
+    params
+        The arm's constants (:func:`arm_parameters`); default the shipped arm's.
+    """
+
+    name = "H2"
+
+    def __init__(self, center: Array, radius: float, fraction: float = 1.0, k1: float = 2.0,
+                 params: Optional[dict] = None):
+        self.c = as_vector(center, 2, "center")
+        if not (np.isfinite(radius) and radius > 0):
+            raise ValueError(f"radius must be positive, got {radius!r}")
+        if not (0.0 <= fraction <= 1.0):
+            raise ValueError(f"fraction must lie in [0, 1] (0 = elbow, 1 = hand), got {fraction!r}")
+        if not (np.isfinite(k1) and k1 > 0):
+            raise ValueError(f"k1 must be a positive gain, got {k1!r}")
+        self.R, self.s, self.k1 = float(radius), float(fraction), float(k1)
+        self.p = arm_parameters(**_DEFAULTS) if params is None else params
+
+    def _geometry(self, Z: Array):
+        q1, w1, q2, w2 = Z.T
+        l1, sl2 = self.p["l1"], self.s * self.p["l2"]
+        q12 = q1 + q2
+        u1, u12 = np.column_stack([np.cos(q1), np.sin(q1)]), np.column_stack([np.cos(q12), np.sin(q12)])
+        n1, n12 = np.column_stack([-np.sin(q1), np.cos(q1)]), np.column_stack([-np.sin(q12), np.cos(q12)])
+        e = l1 * np.column_stack([np.sin(q1), -np.cos(q1)]) + sl2 * np.column_stack([np.sin(q12), -np.cos(q12)]) \
+            - self.c
+        J1, J2 = l1 * u1 + sl2 * u12, sl2 * u12                    # columns of J_s = dr_s/dq
+        rdot = J1 * w1[:, None] + J2 * w2[:, None]                  # J_s q'
+        dJ1 = l1 * n1 * w1[:, None] + sl2 * n12 * (w1 + w2)[:, None]   # (dJ_s/dq_1) q'
+        dJ2 = sl2 * n12 * (w1 + w2)[:, None]                        # (dJ_s/dq_2) q'
+        return e, J1, J2, rdot, dJ1, dJ2
+
+    def value(self, Z: Array) -> Array:
+        """``H_2(z)`` on a batch (N, 4) -> (N,)."""
+        Z = as_batch(Z, 4, "z")
+        e, _, _, rdot, _, _ = self._geometry(Z)
+        return 2 * np.einsum("ij,ij->i", e, rdot) + self.k1 * (np.einsum("ij,ij->i", e, e) - self.R**2)
+
+    def h(self, Z: Array) -> Array:
+        """The barrier ``h(q) = ||r_s(q) - c||^2 - R^2`` on a batch (N, 4) -> (N,)."""
+        e = self._geometry(as_batch(Z, 4, "z"))[0]
+        return np.einsum("ij,ij->i", e, e) - self.R**2
+
+    def grad(self, z: Array) -> Array:
+        """``grad H_2(z)`` in the order of ``z = (q_1, q_1', q_2, q_2')``, shape (4,)."""
+        e, J1, J2, rdot, dJ1, dJ2 = (a[0] for a in self._geometry(as_batch(z, 4, "z")))
+        g_q1 = 2 * J1 @ rdot + 2 * e @ dJ1 + 2 * self.k1 * e @ J1
+        g_q2 = 2 * J2 @ rdot + 2 * e @ dJ2 + 2 * self.k1 * e @ J2
+        return np.array([g_q1, 2 * e @ J1, g_q2, 2 * e @ J2])
+
+    def __repr__(self) -> str:
+        return f"ArmPointCBF(center={self.c.tolist()}, radius={self.R}, fraction={self.s}, k1={self.k1})"
+
+
+def arm_obstacle_cbfs(center: Array, radius: float, n_points: int = 5, k1: float = 2.0,
+                      params: Optional[dict] = None) -> list:
+    """Barriers keeping the whole second link out of a disc obstacle of radius ``r``: one :class:`ArmPointCBF` each.
+
+    ``n_points`` points at equal spacing ``delta = l_2 / (n_points - 1)`` along
+    the second link (elbow to hand) are kept out of the inflated disc of radius
+    ``R = sqrt(r^2 + (delta / 2)^2)``. Then the segment between two neighbouring
+    points stays out of the disc of radius ``r``: the point of a chord of length
+    ``delta`` nearest the centre is within ``delta / 2`` of one end along the
+    chord, so its distance is at least ``sqrt(R^2 - (delta/2)^2) = r``. (The first
+    link must not reach the disc: ``||c|| > l_1 + r``; checked.)
+
+    Returns
+    -------
+    list of ArmPointCBF
+        Pass it as ``H`` to :class:`flnotes.ClfCbfController` (one condition (CLF_CBF_d) each).
+    """
+    p = arm_parameters(**_DEFAULTS) if params is None else params
+    c = as_vector(center, 2, "center")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ValueError(f"radius must be positive, got {radius!r}")
+    if not (isinstance(n_points, (int, np.integer)) and n_points >= 2):
+        raise ValueError(f"n_points must be an integer >= 2 (elbow and hand at least), got {n_points!r}")
+    if np.linalg.norm(c) <= p["l1"] + radius:
+        raise ValueError(f"the first link reaches the disc (||center|| = {np.linalg.norm(c):.3g} <= l1 + radius = "
+                         f"{p['l1'] + radius:.3g}): these barriers guard the second link only; move the obstacle")
+    delta = p["l2"] / (n_points - 1)
+    R = float(np.hypot(radius, delta / 2))
+    return [ArmPointCBF(c, R, s, k1, p) for s in np.linspace(0.0, 1.0, n_points)]

@@ -630,7 +630,8 @@ def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7
         its reported objective), ``same_status`` (count), ``fallback`` (count, first controller),
         ``boundary_optima`` (count), and per controller the wall-clock and CPU
         times per step in ms (``{name}_ms_min``, ``_median``, ``_max``,
-        ``{name}_cpu_ms_max``).
+        ``{name}_cpu_ms_max``); ``times_s``, the wall-clock times per step in seconds
+        (``{"exact": (N,), "mip": (N,)}``, for :func:`flnotes.time_stats`).
     """
     Z = np.atleast_2d(np.asarray(Z, float))
     if Z.shape[1] != exact.system.n_z:
@@ -654,7 +655,7 @@ def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7
             bnd += bool(np.min(np.abs(y - exact.u_eps)) <= boundary_tol)
     out = dict(states=len(Z), max_rel_objective_gap=float(np.max(gaps)),
                max_rel_objective_gap_hard=float(np.max(hard)) if hard else np.nan, same_status=same, fallback=fb,
-               boundary_optima=bnd)
+               boundary_optima=bnd, times_s={k: np.array(v) * 1e-3 for k, v in t.items()})
     for name in ("exact", "mip"):
         ms, c = np.array(t[name]), np.array(cpu[name])
         out.update({f"{name}_ms_min": float(ms.min()), f"{name}_ms_median": float(np.median(ms)),

@@ -4,11 +4,11 @@ from __future__ import annotations
 from typing import Optional, Sequence
 
 import numpy as np
-from matplotlib.patches import Polygon as _Patch
+from matplotlib.patches import Circle, Polygon as _Patch
 
-from .style import COLORS, new_axes
+from .style import COLORS, bound_lines, new_axes
 
-__all__ = ["input_sets_plot"]
+__all__ = ["input_sets_plot", "arm_workspace_plot", "arm_torques_plot"]
 
 
 def input_sets_plot(sets: Sequence[dict], axes=None, regions: bool = True,
@@ -71,4 +71,85 @@ def input_sets_plot(sets: Sequence[dict], axes=None, regions: bool = True,
         ax.set_title(titles[i] if titles is not None else
                      "z = (" + ", ".join(f"{x:.2g}" for x in S["z"]) + ")" + f"\n{S['regions'].n_regions} regions",
                      fontsize=8.5)
+    return fig, axes
+
+
+def arm_workspace_plot(logs: dict, center: Sequence[float], radius: float, frames: int = 6, ax=None,
+                       inflated: Optional[float] = None, colors: Optional[dict] = None):
+    """The arm in its workspace at a few instants of each run, the hand's path and the disc obstacle.
+
+    Parameters
+    ----------
+    logs
+        ``{label: SimLog}`` of runs of :func:`flnotes.two_link_arm` (``z = (q_1, q_1', q_2, q_2')``).
+    center, radius
+        The obstacle (m).
+    frames
+        Arm configurations drawn per run, equally spaced in time (the last one in full colour).
+    inflated
+        Optional radius of the inflated disc the barriers keep the link's points out of (dashed).
+    colors
+        Optional ``{label: colour}``.
+
+    Returns
+    -------
+    (fig, ax)
+    """
+    from ..arm import arm_joint_positions
+
+    if ax is None:
+        fig, ax = new_axes(figsize=(4.6, 4.4))
+    else:
+        fig = ax.figure
+    ax.add_patch(Circle(center, radius, fc=COLORS["unsafe"], alpha=0.35, ec=COLORS["unsafe"], label="obstacle"))
+    if inflated is not None:
+        ax.add_patch(Circle(center, inflated, fill=False, ec=COLORS["unsafe"], ls="--", lw=0.8))
+    palette = [COLORS["qcost"], COLORS["lcost"], COLORS["nominal"], COLORS["true"], COLORS["nn"]]
+    for j, (name, log) in enumerate(logs.items()):
+        col = (colors or {}).get(name, palette[j % len(palette)])
+        q = np.asarray(log.z)[:, [0, 2]]
+        elbow, hand = arm_joint_positions(q)
+        ax.plot(hand[:, 0], hand[:, 1], color=col, lw=1.2, label=f"{name}: hand")
+        idx = np.unique(np.linspace(0, len(q) - 1, frames).round().astype(int))
+        for i, k in enumerate(idx):
+            a = 0.15 + 0.85 * (i + 1) / len(idx)
+            ax.plot([0, elbow[k, 0], hand[k, 0]], [0, elbow[k, 1], hand[k, 1]], "-o", color=col, alpha=a, lw=2.2,
+                    ms=3)
+    ax.plot(0, 0, "ks", ms=6)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="upper right", fontsize=7)
+    return fig, ax
+
+
+def arm_torques_plot(logs: dict, eps: Optional[Sequence[float]] = None, axes=None):
+    """The true torques ``tau_i(t)`` each run applied (held between samples), with ``±tau_max,i`` and ``±(tau_max,i - eps_i)``.
+
+    Parameters
+    ----------
+    logs
+        ``{label: SimLog}`` of runs of the arm.
+    eps
+        Optional certified ``eps`` per output, to draw ``u_max^eps``.
+
+    Returns
+    -------
+    (fig, axes)
+    """
+    if axes is None:
+        fig, axes = new_axes(1, 2, figsize=(8.0, 2.8))
+        axes = np.atleast_1d(axes).ravel()
+    else:
+        axes = np.atleast_1d(axes).ravel()
+        fig = axes[0].figure
+    palette = [COLORS["qcost"], COLORS["lcost"], COLORS["nominal"], COLORS["true"], COLORS["nn"]]
+    for i, ax in enumerate(axes[:2]):
+        for j, (name, log) in enumerate(logs.items()):
+            ax.plot(log.t_fine, log.u_fine[:, i], color=palette[j % len(palette)], lw=1.1, label=name)
+        u_max = float(next(iter(logs.values())).system.u_max[i])
+        bound_lines(ax, u_max, None if eps is None else float(eps[i]), label=(i == 0))
+        ax.set_xlabel("t (s)")
+        ax.set_ylabel(f"$\\tau_{i + 1}$ (N m)")
+    axes[0].legend(loc="lower right", fontsize=7, ncol=2)
     return fig, axes

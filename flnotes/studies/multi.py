@@ -1,0 +1,295 @@
+"""Chapter 10 (several inputs): the two-link arm through the whole pipeline.
+
+The settings of the chapter's runs (:data:`ARM_CLF_CBF`, :data:`ARM_MPC`) and the
+functions behind its checks and tables: the shipped network's report, a dense
+sampling of its error, the exact two-input CLF-CBF method against a MIP back-end
+on many states, the CLF-CBF closed loop around an obstacle in the workspace and
+the MPC closed loop, with the true torques checked at every sample.
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from ..arm import arm_net, arm_obstacle_cbfs, links_distance
+from ..control import ClfCbfController, QuadraticCLF
+from ..mpc import MPC
+from ..network import ReLUNet
+from ..pieces import compare_exact_mip
+from ..simulate import SimLog, simulate
+from ..systems import FLSystem
+from ..tables import Table, time_stats
+
+Array = np.ndarray
+
+__all__ = ["identity_residual", "ARM_CLF_CBF", "ARM_MPC", "shipped_network", "sampled_error", "arm_clf_cbf", "comparison_states",
+           "exact_vs_mip", "nominal_run", "obstacle_run", "torque_checks", "setpoint_reference", "mpc_run"]
+
+#: The CLF-CBF setting of the chapter: CLF ``z^T P z``, nominal law ``k(z) = -K z``, a disc obstacle of radius
+#: ``radius`` (m) at ``center`` in the workspace kept away from the second link (``n_points`` barriers, gain ``k1``),
+#: the start ``z0``, sampling time ``ts`` and length ``t_final`` (s).
+ARM_CLF_CBF = dict(
+    P=np.diag([2.0, 0.5, 2.0, 0.5]) + np.diag([0.4, 0, 0.4], 1) + np.diag([0.4, 0, 0.4], -1),
+    K=np.array([[6.0, 4.0, 0.0, 0.0], [0.0, 0.0, 6.0, 4.0]]),
+    z0=np.array([0.8, 0.0, -0.3, 0.0]), center=np.array([0.31, -0.95]), radius=0.06, n_points=5, k1=3.0,
+    beta=0.001, kappa=4.0, ts=0.02, t_final=5.0,
+)
+
+#: The MPC setting of the chapter: horizon, sampling time, weights, and a reference through two set points
+#: of the joint angles (switching at ``t_switch``), from rest at ``z0``.
+ARM_MPC = dict(horizon=5, ts=0.1, Q=np.array([100.0, 1.0, 100.0, 1.0]), R=np.array([1e-3, 1e-3]),
+               setpoints=np.array([[0.6, 0.0], [-0.3, 0.8]]), t_switch=3.0, t_final=6.0, z0=np.zeros(4))
+
+
+def identity_residual(system: FLSystem, n: int = 200, seed: int = 0) -> float:
+    """Largest ``|to_z(f(x, Phi(z, v))) - (A z + B v)|`` at ``n`` random ``(x, v)`` of the box (eq. coor_Phi).
+
+    The feedback-linearization identity checked on the true plant: with
+    ``u = Phi(z, v)`` the plant's vector field read in ``z`` (a permutation of
+    ``x`` for the arm, so ``d/dt to_z(x) = to_z(x')``) is the Brunovsky chain.
+    """
+    if not (isinstance(n, (int, np.integer)) and n > 0):
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    rng = np.random.default_rng(seed)
+    Z = rng.uniform(system.lo[: system.n_z], system.hi[: system.n_z], (n, system.n_z))
+    V = rng.uniform(system.lo[system.n_z:], system.hi[system.n_z:], (n, system.m))
+    U = system.Phi(Z, V)
+    res = [system.to_z(system.f(system.to_x(z), u)) - (system.A @ z + system.B @ v) for z, v, u in zip(Z, V, U)]
+    return float(np.abs(res).max())
+
+
+def shipped_network() -> dict:
+    """What the shipped report says of the arm's network: architecture, training time, certified ``eps`` bracket.
+
+    Quoted, not recomputed: the network was trained with
+    :data:`flnotes.arm.ARM_SETTINGS` and ``eps`` certified per output by
+    :func:`flnotes.certify_error` (interval branch and bound) when the
+    reference was written (:func:`flnotes.arm.make_arm_reference`).
+
+    Returns
+    -------
+    dict
+        ``net``, ``eps`` (shape (2,)), ``widths``, ``n_train``, ``n_grid``, ``train_s``,
+        ``grid_max_error``, ``lower``, ``upper`` (the bracket, shape (2,)), ``cert_s``
+        (seconds per output), ``n_boxes``, ``rtol``, ``converged``, ``method``.
+    """
+    net, eps, ref = arm_net()
+    rep, br = ref.report, ref.bracket
+    return dict(net=net, eps=eps, widths=tuple(rep.widths), n_train=int(rep.n_train), n_grid=int(rep.n_grid),
+                train_s=float(rep.time_s), grid_max_error=np.asarray(rep.grid_max_error, float),
+                lower=np.asarray(br["lower"], float), upper=np.asarray(br["upper"], float),
+                cert_s=np.asarray(br["time_s"], float), n_boxes=np.asarray(br["n_boxes"], int),
+                rtol=float(br["rtol"]), converged=bool(np.all(br["converged"])), method=str(br["method"]))
+
+
+def sampled_error(system: FLSystem, net: ReLUNet, n: int, seed: int = 0, chunk: int = 200_000) -> dict:
+    """Largest sampled ``|Phi - Phi_NN|`` per output at ``n`` uniform points of the domain box and a grid.
+
+    A lower bound of the true maximum (eq. approx_err), to set against the
+    certified ``eps``: the points are uniform in the box plus the box's grid of 5
+    points per axis (its faces and corners).
+
+    Returns
+    -------
+    dict
+        ``n`` (points), ``max_error`` (per output) and ``argmax`` (the point of each, (m, n_in)).
+    """
+    if not (isinstance(n, (int, np.integer)) and n > 0):
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    rng = np.random.default_rng(seed)
+    best, arg = np.full(system.m, -np.inf), np.zeros((system.m, system.n_in))
+    batches = [system.grid(5)] + [None] * int(np.ceil(n / chunk))
+    done = 0
+    for X in batches:
+        if X is None:
+            k = min(chunk, n - done)
+            X, done = rng.uniform(system.lo, system.hi, (k, system.n_in)), done + k
+        E = np.abs(system.phi_stacked(X) - net(X))
+        i = E.argmax(0)
+        better = E[i, np.arange(system.m)] > best
+        best = np.where(better, E[i, np.arange(system.m)], best)
+        arg[better] = X[i[better]]
+    return dict(n=int(n + len(batches[0])), max_error=best, argmax=arg)
+
+
+def arm_clf_cbf(system: FLSystem, net: ReLUNet, eps, cost: str = "quadratic", backend: str = "exact",
+                obstacle: bool = True, setting: Optional[dict] = None) -> ClfCbfController:
+    """The chapter's CLF-CBF controller (eq. CLF_CBF) for the arm, with the obstacle's barriers.
+
+    ``H`` is the list of :func:`flnotes.arm.arm_obstacle_cbfs` (one condition
+    (CLF_CBF_d) per point of the second link); ``obstacle=False`` leaves them out.
+    """
+    S = dict(ARM_CLF_CBF, **(setting or {}))
+    H = arm_obstacle_cbfs(S["center"], S["radius"], S["n_points"], S["k1"]) if obstacle else None
+    K = S["K"]
+    return ClfCbfController(system, net, eps, QuadraticCLF(S["P"]), H, k=lambda z: -K @ z, cost=cost,
+                            backend=backend, beta=S["beta"], kappa=S["kappa"])
+
+
+def comparison_states(ctrl: ClfCbfController, n: int, seed: int = 0, boundary_share: float = 0.5,
+                      tol: float = 1e-7) -> tuple[Array, Array]:
+    """Random safe states for comparing back-ends, a share of them with the optimum on the network's bound.
+
+    States are drawn uniformly in the domain box among those where every
+    barrier of ``ctrl`` is nonnegative (the states a safe closed loop visits).
+    ``boundary_share`` of them are states where ``ctrl``'s optimum ``v*`` has
+    ``| |Phi_NN,i(z, v*)| - u_max^eps_i | <= tol`` for some ``i``: the optimum lies on
+    the boundary of the network's input set (the hard case, where screening does
+    not decide); the rest are the first other states drawn.
+
+    Returns
+    -------
+    Z, on_boundary
+        States (n, n_z) and, per state, whether ``ctrl``'s optimum is on the bound.
+    """
+    if not (isinstance(n, (int, np.integer)) and n > 0):
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    if not 0.0 <= boundary_share <= 1.0:
+        raise ValueError(f"boundary_share must lie in [0, 1], got {boundary_share!r}")
+    s = ctrl.system
+    rng = np.random.default_rng(seed)
+    n_b = int(round(boundary_share * n))
+    bnd, rest = [], []
+    for _ in range(200):
+        Z = rng.uniform(s.lo[: s.n_z], s.hi[: s.n_z], (max(4 * n, 200), s.n_z))
+        for h in ctrl.H:
+            Z = Z[h.value(Z) >= 0]
+        for z in Z:
+            if len(bnd) >= n_b and len(rest) >= n - n_b:
+                break
+            r = ctrl.step(z)
+            on = (not r.fallback) and bool(np.min(np.abs(np.abs(r.info["phi_nn"]) - ctrl.u_eps)) <= tol)
+            if on and len(bnd) < n_b:
+                bnd.append(z)
+            elif not on and len(rest) < n - n_b:
+                rest.append(z)
+        if len(bnd) >= n_b and len(rest) >= n - n_b:
+            break
+    else:
+        raise ValueError(f"found {len(bnd)} of {n_b} boundary states: lower boundary_share")
+    ctrl.reset()
+    Z = np.array(bnd + rest).reshape(-1, s.n_z)
+    return Z, np.r_[np.ones(len(bnd), bool), np.zeros(len(rest), bool)]
+
+
+def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip: str = "scip",
+                 costs: Sequence[str] = ("linear", "quadratic")) -> tuple[Table, dict]:
+    """The exact two-input method against a MIP back-end at the same states, for both costs.
+
+    For each cost, the chapter's controller (:func:`arm_clf_cbf`, ``backend="exact"``)
+    and its ``with_backend(mip)`` solve eq. (CLF_CBF) at the ``n`` states of
+    :func:`comparison_states` (half with the optimum on the network's bound);
+    :func:`flnotes.pieces.compare_exact_mip` compares the optima.
+
+    Returns
+    -------
+    table, results
+        One row per (cost, back-end) with :func:`flnotes.time_stats` of the time
+        per step; ``results[cost]`` is the dict of :func:`compare_exact_mip` plus
+        ``boundary_states``.
+    """
+    rows, out = [], {}
+    for cost in costs:
+        ex = arm_clf_cbf(system, net, eps, cost=cost, backend="exact")
+        Z, on = comparison_states(ex, n, seed=seed)
+        other = ex.with_backend(mip)
+        r = compare_exact_mip(ex, other, Z)
+        r["boundary_states"] = int(on.sum())
+        out[cost] = r
+        name = "Lcost" if cost == "linear" else "Qcost"
+        for be, key in (("exact", "exact"), (mip, "mip")):
+            st = time_stats(r["times_s"][key], percentiles=(50, 99))
+            rows.append({"cost": name, "backend": be, "states": r["states"], "min ms": st["min_ms"],
+                         "median ms": st["median_ms"], "p99 ms": st["p99_ms"], "max ms": st["max_ms"],
+                         "max rel. gap": r["max_rel_objective_gap_hard"] if key == "mip" else None})
+    return Table(rows), out
+
+
+def nominal_run(system: FLSystem, setting: Optional[dict] = None) -> SimLog:
+    """The nominal law ``k(z) = -K z`` (clipped to the ``v``-box) alone on the true plant, from the chapter's start."""
+    S = dict(ARM_CLF_CBF, **(setting or {}))
+    K, lo, hi = S["K"], system.lo[system.n_z:], system.hi[system.n_z:]
+    return simulate(system, lambda z: np.clip(-K @ z, lo, hi), t_final=S["t_final"], ts=S["ts"], z0=S["z0"],
+                    hold="u", progress=False)
+
+
+def torque_checks(log: SimLog) -> dict:
+    """The true torques of a run against ``tau_max``: at the samples and between them.
+
+    Returns ``ratio_samples`` and ``ratio_between`` (per joint, ``max_k |tau_i| / tau_max,i``),
+    ``within`` (every sample and every recorded point between samples ``<= tau_max``, to 1e-9).
+    """
+    u_max = log.system.u_max
+    rs = np.abs(log.u).max(0) / u_max
+    rb = np.abs(log.u_fine).max(0) / u_max if len(log.u_fine) else rs
+    return dict(ratio_samples=rs, ratio_between=rb,
+                within=bool(np.all(np.abs(log.u) <= u_max + 1e-9) and np.all(np.abs(log.u_fine) <= u_max + 1e-9)))
+
+
+def obstacle_run(system: FLSystem, net: ReLUNet, eps, cost: str = "quadratic", backend: str = "exact",
+                 t_final: Optional[float] = None, setting: Optional[dict] = None) -> tuple[SimLog, dict]:
+    """The CLF-CBF closed loop around the obstacle on the true plant (``u`` held between samples).
+
+    Returns
+    -------
+    log, checks
+        ``checks``: :func:`torque_checks`, ``min_distance`` (m, the links to the
+        obstacle's centre, :func:`flnotes.arm.links_distance`, at the samples),
+        ``radius``, ``min_h`` (the barriers ``h`` at the samples), ``fallback_steps``,
+        ``left_domain_steps``, ``final_norm_z``, ``times`` (:func:`flnotes.time_stats`).
+    """
+    S = dict(ARM_CLF_CBF, **(setting or {}))
+    ctrl = arm_clf_cbf(system, net, eps, cost=cost, backend=backend, setting=setting)
+    log = simulate(system, ctrl, t_final=S["t_final"] if t_final is None else t_final, ts=S["ts"], z0=S["z0"],
+                   hold="u", net=net, progress=False)
+    s = log.summary()
+    checks = dict(torque_checks(log), min_distance=float(links_distance(log.z[:, [0, 2]], S["center"]).min()),
+                  radius=float(S["radius"]), min_h=float(min(h.h(log.z).min() for h in ctrl.H)),
+                  fallback_steps=s["fallback_steps"], left_domain_steps=s["left_domain_steps"],
+                  final_norm_z=s["final_norm_z"], times=time_stats(log.solve_time))
+    return log, checks
+
+
+def setpoint_reference(setpoints: Array, t_switch: float) -> Callable[[Array], Array]:
+    """``t -> z_ref(t)``: joint angles at rest at ``setpoints[j]`` for ``j t_switch <= t < (j+1) t_switch``.
+
+    ``setpoints`` (J, 2) are angles ``(q_1, q_2)``; the reference is vectorized,
+    (T,) -> (T, 4) in the order ``z = (q_1, q_1', q_2, q_2')``; it stays at the last set point.
+    """
+    Sp = np.asarray(setpoints, float)
+    if Sp.ndim != 2 or Sp.shape[1] != 2:
+        raise ValueError(f"setpoints must have shape (J, 2) (joint angles), got {Sp.shape}")
+    if not t_switch > 0:
+        raise ValueError(f"t_switch must be positive, got {t_switch!r}")
+
+    def ref(t):
+        j = np.minimum((np.atleast_1d(np.asarray(t, float)) // t_switch).astype(int), len(Sp) - 1)
+        q = Sp[np.maximum(j, 0)]
+        return np.column_stack([q[:, 0], np.zeros(len(q)), q[:, 1], np.zeros(len(q))])
+
+    return ref
+
+
+def mpc_run(system: FLSystem, net: ReLUNet, eps, t_final: Optional[float] = None,
+            setting: Optional[dict] = None, **mpc_options) -> tuple[SimLog, dict]:
+    """The MPC closed loop (eq. MPC_form) tracking the set-point reference on the true plant (``u`` held).
+
+    ``fl.MPC`` with its default options unless ``mpc_options`` change them.
+
+    Returns
+    -------
+    log, checks
+        ``checks``: :func:`torque_checks`, ``fallback_steps``, ``non_optimal_steps``,
+        ``final_error`` (``max |z - z_ref|`` over the last second), ``times`` (:func:`flnotes.time_stats`).
+    """
+    S = dict(ARM_MPC, **(setting or {}))
+    mpc = MPC(system, net, eps, horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], **mpc_options)
+    ref = setpoint_reference(S["setpoints"], S["t_switch"])
+    log = simulate(system, mpc, t_final=S["t_final"] if t_final is None else t_final, ts=S["ts"], z0=S["z0"],
+                   reference=ref, hold="u", net=net, progress=False)
+    s = log.summary()
+    last = log.t >= log.t[-1] - 1.0
+    checks = dict(torque_checks(log), fallback_steps=s["fallback_steps"], non_optimal_steps=s["non_optimal_steps"],
+                  final_error=float(np.abs(log.z[last] - ref(log.t[last])).max()), times=time_stats(log.solve_time))
+    return log, checks
