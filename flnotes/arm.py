@@ -44,6 +44,7 @@ CLF-CBF program exactly for two inputs.
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Sequence
 
 import numpy as np
@@ -362,9 +363,18 @@ class ArmPointCBF(Certificate):
 
     def grad(self, z: Array) -> Array:
         """``grad H_2(z)`` in the order of ``z = (q_1, q_1', q_2, q_2')``, shape (4,)."""
-        e, J1, J2, rdot, dJ1, dJ2 = (a[0] for a in self._geometry(as_batch(z, 4, "z")))
-        g_q1 = 2 * J1 @ rdot + 2 * e @ dJ1 + 2 * self.k1 * e @ J1
-        g_q2 = 2 * J2 @ rdot + 2 * e @ dJ2 + 2 * self.k1 * e @ J2
+        z = as_vector(z, 4, "z")
+        q1, w1, q2, w2 = (float(x) for x in z)
+        l1, sl2, k1 = self.p["l1"], self.s * self.p["l2"], self.k1
+        c1, s1, c12, s12 = math.cos(q1), math.sin(q1), math.cos(q1 + q2), math.sin(q1 + q2)
+        e = np.array([l1 * s1 + sl2 * s12 - self.c[0], -l1 * c1 - sl2 * c12 - self.c[1]])
+        J2 = np.array([sl2 * c12, sl2 * s12])                     # columns of J_s = dr_s/dq
+        J1 = np.array([l1 * c1, l1 * s1]) + J2
+        rdot = J1 * w1 + J2 * w2                                   # J_s q'
+        dJ2 = np.array([-sl2 * s12, sl2 * c12]) * (w1 + w2)        # (dJ_s/dq_2) q'
+        dJ1 = np.array([-l1 * s1, l1 * c1]) * w1 + dJ2             # (dJ_s/dq_1) q'
+        g_q1 = 2 * J1 @ rdot + 2 * e @ dJ1 + 2 * k1 * e @ J1
+        g_q2 = 2 * J2 @ rdot + 2 * e @ dJ2 + 2 * k1 * e @ J2
         return np.array([g_q1, 2 * e @ J1, g_q2, 2 * e @ J2])
 
     def __repr__(self) -> str:

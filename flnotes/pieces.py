@@ -58,6 +58,11 @@ _TOL = 1e-11
 # ---------------------------------------------------------------------------
 # Convex polygons
 # ---------------------------------------------------------------------------
+def _next(a: Array) -> Array:
+    """``a`` shifted by one along its first axis (``np.roll(a, -1, axis=0)``, without its overhead)."""
+    return np.concatenate((a[1:], a[:1]))
+
+
 def _box_polygon(v_lo: Array, v_hi: Array) -> Array:
     (a, b), (c, d) = v_lo, v_hi
     return np.array([[a, b], [c, b], [c, d], [a, d]], float)
@@ -69,9 +74,9 @@ def _cut(V: Array, s: Array) -> tuple[Array, Array]:
     Returns the parts where ``s <= 0`` and ``s >= 0`` (each (k, 2), possibly empty),
     both counter-clockwise like ``V``; the new vertices lie on the line ``s = 0``.
     """
-    sn = np.roll(s, -1)
+    sn = _next(s)
     cross = s * sn < 0
-    Vn = np.roll(V, -1, axis=0)
+    Vn = _next(V)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(cross, s / (s - sn), 0.0)
     X = V + t[:, None] * (Vn - V)
@@ -125,7 +130,7 @@ def polygon_area(V: Array) -> float:
     if len(V) < 3:
         return 0.0
     x, y = V[:, 0], V[:, 1]
-    return 0.5 * float(x @ np.roll(y, -1) - y @ np.roll(x, -1))
+    return 0.5 * float(x @ _next(y) - y @ _next(x))
 
 
 def _clip_all(V: Array, G: Array, h: Array) -> Array:
@@ -139,7 +144,7 @@ def _clip_all(V: Array, G: Array, h: Array) -> Array:
 
 def _project(V: Array, c: Array) -> Array:
     """The point of the convex polygon ``V`` nearest to ``c`` (``V`` may be degenerate: a segment or a point)."""
-    E = np.roll(V, -1, axis=0) - V
+    E = _next(V) - V
     D = c - V
     if len(V) >= 3 and polygon_area(V) > 1e-14 and np.all(E[:, 0] * D[:, 1] - E[:, 1] * D[:, 0] >= 0):
         return c.copy()
@@ -608,7 +613,7 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
 # ---------------------------------------------------------------------------
 # The back-end for ClfCbfController
 # ---------------------------------------------------------------------------
-def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7) -> dict:
+def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7, fresh: bool = False) -> dict:
     """Solve eq. (CLF_CBF) at every state of ``Z`` with two controllers of the same program and compare.
 
     Parameters
@@ -620,6 +625,13 @@ def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7
         States, shape (N, n_z).
     boundary_tol
         An optimum counts as on the network's bound when ``min_i | |Phi_NN,i| - u_max^eps_i | <= boundary_tol``.
+    fresh
+        Solve each state with a new copy of ``mip`` (``mip.with_backend(mip.backend)``, built
+        outside the timed step). A persistent MIP model tightens ``u_max^eps`` by a small
+        margin whenever its solver's tolerance lets a point through the forward-pass check, and
+        keeps that margin for the states that follow; over a long sequence of unrelated states
+        its optima then belong to a slightly smaller program. A fresh model per state
+        solves the program itself.
 
     Returns
     -------
@@ -640,7 +652,8 @@ def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7
     t = {"exact": [], "mip": []}
     cpu = {"exact": [], "mip": []}
     for z in Z:
-        a, b = exact.step(z), mip.step(z)
+        other = mip.with_backend(mip.backend) if fresh else mip
+        a, b = exact.step(z), other.step(z)
         for name, r in (("exact", a), ("mip", b)):
             t[name].append(r.solve_time * 1e3)
             cpu[name].append(r.info["cpu_time"] * 1e3)

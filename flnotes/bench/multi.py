@@ -35,7 +35,7 @@ def _clf_cbf_rows(sysm: FLSystem, net, eps, n: int, notes: list) -> list:
         name = "Lcost" if cost == "linear" else "Qcost"
         ex = study.arm_clf_cbf(sysm, net, eps, cost=cost, backend="exact")
         Z, on = study.comparison_states(ex, n, seed=0)
-        ref = compare_exact_mip(ex, ex.with_backend("scip"), Z)
+        ref = compare_exact_mip(ex, ex.with_backend("scip"), Z, fresh=True)
         for be, key in (("exact", "exact"), ("scip", "mip")):
             st = time_stats(ref["times_s"][key], percentiles=(50, 99))
             rows.append(_row(what=f"CLF-CBF {name}", backend=be, states=len(Z), boundary_states=int(on.sum()),
@@ -53,7 +53,7 @@ def _clf_cbf_rows(sysm: FLSystem, net, eps, n: int, notes: list) -> list:
             notes.append(f"CLF-CBF {name}/daqp: not run ({type(exc).__name__}: {exc})")
             continue
         m = min(len(Z), 100 if n >= 100 else n)
-        r = compare_exact_mip(ex, daqp, Z[:m])
+        r = compare_exact_mip(ex, daqp, Z[:m], fresh=True)
         st = time_stats(r["times_s"]["mip"], percentiles=(50, 99))
         rows.append(_row(what=f"CLF-CBF {name}", backend="daqp", states=m, boundary_states=int(on[:m].sum()),
                          min_ms=st["min_ms"], median_ms=st["median_ms"], p99_ms=st["p99_ms"], max_ms=st["max_ms"],

@@ -180,7 +180,9 @@ def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip
     For each cost, the chapter's controller (:func:`arm_clf_cbf`, ``backend="exact"``)
     and its ``with_backend(mip)`` solve eq. (CLF_CBF) at the ``n`` states of
     :func:`comparison_states` (half with the optimum on the network's bound);
-    :func:`flnotes.pieces.compare_exact_mip` compares the optima.
+    :func:`flnotes.pieces.compare_exact_mip` compares the optima, with a fresh MIP
+    model per state (``fresh=True``: the program itself, without the tightening margin
+    a persistent model accumulates over unrelated states).
 
     Returns
     -------
@@ -194,7 +196,7 @@ def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip
         ex = arm_clf_cbf(system, net, eps, cost=cost, backend="exact")
         Z, on = comparison_states(ex, n, seed=seed)
         other = ex.with_backend(mip)
-        r = compare_exact_mip(ex, other, Z)
+        r = compare_exact_mip(ex, other, Z, fresh=True)
         r["boundary_states"] = int(on.sum())
         out[cost] = r
         name = "Lcost" if cost == "linear" else "Qcost"
@@ -236,8 +238,9 @@ def obstacle_run(system: FLSystem, net: ReLUNet, eps, cost: str = "quadratic", b
     log, checks
         ``checks``: :func:`torque_checks`, ``min_distance`` (m, the links to the
         obstacle's centre, :func:`flnotes.arm.links_distance`, at the samples),
-        ``radius``, ``min_h`` (the barriers ``h`` at the samples), ``fallback_steps``,
-        ``left_domain_steps``, ``final_norm_z``, ``times`` (:func:`flnotes.time_stats`).
+        ``radius``, ``min_h`` (the barriers ``h`` at the samples), ``final_h`` (the smallest
+        ``h`` at the last state), ``final_delta`` (the CLF slack of the last step),
+        ``fallback_steps``, ``left_domain_steps``, ``final_norm_z``, ``times`` (:func:`flnotes.time_stats`).
     """
     S = dict(ARM_CLF_CBF, **(setting or {}))
     ctrl = arm_clf_cbf(system, net, eps, cost=cost, backend=backend, setting=setting)
@@ -246,6 +249,8 @@ def obstacle_run(system: FLSystem, net: ReLUNet, eps, cost: str = "quadratic", b
     s = log.summary()
     checks = dict(torque_checks(log), min_distance=float(links_distance(log.z[:, [0, 2]], S["center"]).min()),
                   radius=float(S["radius"]), min_h=float(min(h.h(log.z).min() for h in ctrl.H)),
+                  final_h=float(min(h.h(log.z[-1:])[0] for h in ctrl.H)),
+                  final_delta=float(log.steps[-1].info["delta"]) if log.steps else float("nan"),
                   fallback_steps=s["fallback_steps"], left_domain_steps=s["left_domain_steps"],
                   final_norm_z=s["final_norm_z"], times=time_stats(log.solve_time))
     return log, checks
@@ -281,7 +286,9 @@ def mpc_run(system: FLSystem, net: ReLUNet, eps, t_final: Optional[float] = None
     -------
     log, checks
         ``checks``: :func:`torque_checks`, ``fallback_steps``, ``non_optimal_steps``,
-        ``final_error`` (``max |z - z_ref|`` over the last second), ``times`` (:func:`flnotes.time_stats`).
+        ``final_error`` (``max |z - z_ref|`` over the last second), ``settle_errors`` (the same over the
+        last second before each set-point switch and the end, one per set point reached), ``times``
+        (:func:`flnotes.time_stats`).
     """
     S = dict(ARM_MPC, **(setting or {}))
     mpc = MPC(system, net, eps, horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], **mpc_options)
@@ -289,7 +296,10 @@ def mpc_run(system: FLSystem, net: ReLUNet, eps, t_final: Optional[float] = None
     log = simulate(system, mpc, t_final=S["t_final"] if t_final is None else t_final, ts=S["ts"], z0=S["z0"],
                    reference=ref, hold="u", net=net, progress=False)
     s = log.summary()
-    last = log.t >= log.t[-1] - 1.0
+    err = np.abs(log.z - ref(log.t)).max(1)
+    ends = [t for t in S["t_switch"] * np.arange(1, len(S["setpoints"])) if t <= log.t[-1] + 1e-9] + [log.t[-1]]
+    settle = [float(err[(log.t >= t - 1.0) & (log.t < t - 1e-9 if t < log.t[-1] else log.t <= t)].max()) for t in ends]
     checks = dict(torque_checks(log), fallback_steps=s["fallback_steps"], non_optimal_steps=s["non_optimal_steps"],
-                  final_error=float(np.abs(log.z[last] - ref(log.t[last])).max()), times=time_stats(log.solve_time))
+                  final_error=float(err[log.t >= log.t[-1] - 1.0].max()), settle_errors=settle,
+                  times=time_stats(log.solve_time))
     return log, checks
