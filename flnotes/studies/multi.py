@@ -287,7 +287,7 @@ def mpc_run(system: FLSystem, net: ReLUNet, eps, t_final: Optional[float] = None
     log, checks
         ``checks``: :func:`torque_checks`, ``fallback_steps``, ``non_optimal_steps``,
         ``final_error`` (``max |z - z_ref|`` over the last second), ``settle_errors`` (the same over the
-        last second before each set-point switch and the end, one per set point reached), ``times``
+        last second at each set point: before the prediction horizon reaches the next one, and at the end), ``times``
         (:func:`flnotes.time_stats`).
     """
     S = dict(ARM_MPC, **(setting or {}))
@@ -297,8 +297,11 @@ def mpc_run(system: FLSystem, net: ReLUNet, eps, t_final: Optional[float] = None
                    reference=ref, hold="u", net=net, progress=False)
     s = log.summary()
     err = np.abs(log.z - ref(log.t)).max(1)
-    ends = [t for t in S["t_switch"] * np.arange(1, len(S["setpoints"])) if t <= log.t[-1] + 1e-9] + [log.t[-1]]
-    settle = [float(err[(log.t >= t - 1.0) & (log.t < t - 1e-9 if t < log.t[-1] else log.t <= t)].max()) for t in ends]
+    # the MPC sees the reference over its horizon and leaves a set point N_p t_s before the switch
+    lead = S["horizon"] * S["ts"]
+    ends = [t - lead for t in S["t_switch"] * np.arange(1, len(S["setpoints"])) if t <= log.t[-1] + 1e-9]
+    settle = [float(err[(log.t >= t - 1.0) & (log.t < t - 1e-9)].max()) for t in ends]
+    settle.append(float(err[log.t >= log.t[-1] - 1.0].max()))
     checks = dict(torque_checks(log), fallback_steps=s["fallback_steps"], non_optimal_steps=s["non_optimal_steps"],
                   final_error=float(err[log.t >= log.t[-1] - 1.0].max()), settle_errors=settle,
                   times=time_stats(log.solve_time))
