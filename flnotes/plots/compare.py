@@ -61,7 +61,7 @@ def plot_methods_run(logs: Mapping[str, object], reference: Callable[[Array], Ar
     ax_u.set_ylabel("true input u")
     ax_u.set_xlabel("t [s]  (dots: sampling instants, lines: between them)")
     ax_x.legend(loc="upper center", bbox_to_anchor=(0.5, 1.32), ncol=3)
-    ax_u.legend(loc="lower right", ncol=2)
+    ax_u.legend(loc="upper right", ncol=2, fontsize=7.5)
     if title:
         fig.suptitle(title)
     return fig
@@ -81,14 +81,18 @@ def plot_monte_carlo(rows: Sequence[dict], methods: Sequence[str], u_max: float,
     pos = np.arange(len(methods))
     base = {r["scenario"]: r["cost"] for r in rows if r["method"] == "network"}
     rng = np.random.default_rng(0)  # horizontal jitter of the dots, drawing only
+    ratios: list = []
     for i, mth in enumerate(methods):
         rr = [r for r in rows if r["method"] == mth]
         col = METHOD_COLORS.get(mth)
         jit = rng.uniform(-0.15, 0.15, len(rr))
         a.plot(i + jit - 0.18, [r["max_abs_u_samples"] for r in rr], "o", color=col, ms=3.5)
         a.plot(i + jit + 0.18, [r["max_abs_u_between"] for r in rr], "o", mfc="none", color=col, ms=3.5)
-        b.bar(i, np.mean([r["plan_violation_fraction"] for r in rr if np.isfinite(r["plan_violation_fraction"])] or [0]),
-              color=col)
+        frac = float(np.mean([r["plan_violation_fraction"] for r in rr if np.isfinite(r["plan_violation_fraction"])]
+                             or [0.0]))
+        b.bar(i, frac, color=col)
+        b.text(i, frac, f"{frac:.2f}", ha="center", va="bottom", fontsize=8)
+        ratios += [r["cost"] / base[r["scenario"]] for r in rr if base.get(r["scenario"], 0) > 0]
         ratio = [r["cost"] / base[r["scenario"]] for r in rr if base.get(r["scenario"], 0) > 0]
         if ratio:
             c.boxplot(ratio, positions=[i], widths=0.5, showfliers=True,
@@ -104,8 +108,10 @@ def plot_monte_carlo(rows: Sequence[dict], methods: Sequence[str], u_max: float,
     a.set_ylabel("largest |u| in a run")
     a.legend(loc="upper left", fontsize=7.5)
     b.set_ylabel("plans violating the true bound\n(fraction of steps, mean over runs)")
+    b.set_ylim(0.0, max(0.1, 1.15 * max([p.get_height() for p in b.patches] or [0.0])))
     c.axhline(1.0, color="0.5", lw=0.8)
-    c.set_yscale("log")
+    if ratios and max(ratios) / max(min(ratios), 1e-12) > 20:
+        c.set_yscale("log")
     c.set_ylabel("tracking cost / MIQP's")
     d.set_yscale("log")
     d.plot([], [], "o", color="0.3", ms=3.5, label="median per run")

@@ -264,14 +264,15 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
 
 # ----------------------------------------------------------------------------------- runs
 def run_methods(s: dict, z0: Array, reference: Callable[[Array], Array], t_final: float,
-                methods: Sequence[str] = METHODS, iterations: int = 1) -> dict:
+                methods: Optional[Sequence[str]] = None, iterations: int = 1) -> dict:
     """Run each method once in closed loop on the true plant; returns ``{method: log}``.
 
     Every controller is wrapped in :class:`Timed` (the same timing for all) and runs with the
     hold its prediction assumes (:func:`make_controller`); every run checks the domain box.
+    ``methods`` defaults to :data:`METHODS`.
     """
     logs = {}
-    for mth in methods:
+    for mth in (METHODS if methods is None else methods):
         ctrl, hold = make_controller(mth, s, iterations)
         logs[mth] = simulate(s["system"], Timed(ctrl), t_final, s["ts"], z0=z0, reference=reference, hold=hold,
                              net=s["net"] if mth != "nmpc" else None, check_domain=True, progress=False)
@@ -279,7 +280,7 @@ def run_methods(s: dict, z0: Array, reference: Callable[[Array], Array], t_final
     return logs
 
 
-def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Sequence[str] = METHODS,
+def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence[str]] = None,
                 band: float = 0.1, iterations: int = 1) -> list[dict]:
     """Every method on every scenario: one row of :func:`run_metrics` per (scenario, method).
 
@@ -297,7 +298,7 @@ def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Seq
     return rows
 
 
-def method_table(rows: Sequence[dict], methods: Sequence[str] = METHODS, only_active: bool = False) -> list[dict]:
+def method_table(rows: Sequence[dict], methods: Optional[Sequence[str]] = None, only_active: bool = False) -> list[dict]:
     """One line per method from the rows of :func:`monte_carlo` (or of single runs).
 
     Columns: scenarios, runs that completed, the largest ``|u|`` at the samples and between
@@ -309,7 +310,7 @@ def method_table(rows: Sequence[dict], methods: Sequence[str] = METHODS, only_ac
     """
     base = {r["scenario"]: r["cost"] for r in rows if r["method"] == "network"}
     out = []
-    for mth in methods:
+    for mth in (METHODS if methods is None else methods):
         rr = [r for r in rows if r["method"] == mth and (r["bound_active"] or not only_active)]
         if not rr:
             continue
@@ -340,8 +341,8 @@ def cost_vs_miqp(s: dict, log, indices: Sequence[int]) -> list[dict]:
     clipped to ``+-u_max``). Both programs have the same cost function of the predicted ``z``
     and ``v``; the MIQP holds ``v`` over a sample (its plan is exact for the plant under
     ``hold="v"``) and keeps ``eps`` of margin, the NMPC holds ``u``. Returns one row per
-    instant: the MIQP's objective, the two NMPC objectives and statuses, and their relative
-    differences to the MIQP.
+    instant: the MIQP's objective and status, the two NMPC objectives and statuses, and their
+    relative differences to the MIQP (compare only where all three are ``"optimal"``).
     """
     sysm = s["system"]
     rows = []
@@ -357,7 +358,7 @@ def cost_vs_miqp(s: dict, log, indices: Sequence[int]) -> list[dict]:
             nm = NonlinearMPC(sysm, s["horizon"], s["ts"], s["Q"], s["R"], rk4_steps=s["rk4_steps"], to_z=s["to_z_sym"])
             guess = sysm.Phi(np.asarray(Z)[:-1], np.asarray(V)) if start == "miqp plan" else None
             res[start] = nm.solve(x0, R, u_guess=guess)
-        rows.append(dict(step=int(k), t=float(log.t[int(k)]), miqp=float(obj),
+        rows.append(dict(step=int(k), t=float(log.t[int(k)]), miqp=float(obj), miqp_status=str(log.status[int(k)]),
                          nmpc_cold=res["cold"]["objective"], nmpc_from_miqp=res["miqp plan"]["objective"],
                          status_cold=res["cold"]["status"], status_from_miqp=res["miqp plan"]["status"],
                          rel_cold=(res["cold"]["objective"] - obj) / max(abs(obj), 1e-12),
