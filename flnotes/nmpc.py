@@ -33,7 +33,7 @@ import numpy as np
 
 from ._checks import as_vector, weight_matrix
 from .errors import SolverFailure
-from .simulate import StepResult
+from .result import StepResult
 from .systems import FLSystem
 
 Array = np.ndarray

@@ -157,3 +157,56 @@ def test_study_on_one_short_scenario(quad_setting):
     table = C.method_table(rows, ("network", "nmpc"))
     assert [r["method"] for r in table] == [C.LABELS["network"], C.LABELS["nmpc"]]
     assert table[0]["cost_vs_miqp"] == 1.0
+
+
+# ------------------------------------------------------------------ the linear input models (one MPC engine)
+@pytest.fixture(scope="module")
+def quad_net():
+    net, _ = fl.paper_net("Quad-1D")
+    return net, float(fl.paper.paper_eps("Quad-1D").upper[0])
+
+
+def test_constant_extension_plan_satisfies_its_own_bounds(quad, quad_net):
+    net, eps = quad_net
+    mpc = fl.MPC(quad, net, eps, horizon=6, ts=0.1, Q=S["Q"], R=S["R"], constraint="measured")
+    z = np.asarray(S["z0"], float)
+    st = mpc(z, np.array([4.0, 0.0, 0.0]))  # a far set point: the bound binds
+    assert st.status == "optimal" and not st.fallback
+    u_measured = quad.Phi(np.repeat(z[None], 6, axis=0), st.v_pred)  # the rows: Phi at the measured state
+    assert np.all(np.abs(u_measured) <= quad.u_max + 1e-6)
+    assert np.abs(u_measured).max() >= quad.u_max[0] - 1e-6, "premise: the bound is active in this plan"
+
+
+def test_previous_prediction_plan_satisfies_its_own_bounds(quad, quad_net):
+    net, eps = quad_net
+    N = 6
+    mpc = fl.MPC(quad, net, eps, horizon=N, ts=0.1, Q=S["Q"], R=S["R"], constraint="previous")
+    target = np.array([4.0, 0.0, 0.0])  # a far set point: the bound binds
+    first = mpc(np.asarray(S["z0"], float), target)
+    z1 = first.z_pred[1]  # the nominal next state
+    second = mpc(z1, target)
+    assert second.status == "optimal" and not second.fallback
+    zbar = np.vstack([z1[None], first.z_pred[2:N + 1]])  # the previous plan, shifted (Kurtz & Henson)
+    u_rows = quad.Phi(zbar, second.v_pred)
+    assert np.all(np.abs(u_rows) <= quad.u_max + 1e-6)
+    assert np.abs(u_rows).max() >= quad.u_max[0] - 1e-6, "premise: the bound is active in this plan"
+
+
+def test_saturated_linear_mpc_clips_in_closed_loop(quad, quad_net):
+    net, eps = quad_net
+    inner = fl.MPC(quad, net, eps, horizon=6, ts=0.1, Q=S["Q"], R=S["R"], constraint="none")
+    far = lambda t: np.tile([4.0, 0.0, 0.0], (np.size(t), 1))  # a far set point: the bound binds
+    log = fl.simulate(quad, SaturatedInput(inner, quad), 1.0, 0.1, z0=S["z0"], reference=far, net=net, progress=False)
+    assert any(s.info["clipped"] for s in log.steps), "premise: the unconstrained MPC asks for more than u_max"
+    assert np.all(np.abs(log.u) <= quad.u_max + 1e-12)
+
+
+def test_all_five_methods_on_one_short_scenario(quad_setting):
+    sc = C.draw_scenarios("Quad-1D", 2, seed=0)[1]
+    rows = C.monte_carlo(quad_setting, [sc], 1.0)
+    by = {r["method"]: r for r in rows}
+    assert set(by) == set(C.METHODS) and all(r["steps"] == 10 for r in rows)
+    for m in ("network", "measured", "previous", "saturated", "nmpc"):
+        assert by[m]["fallback_steps"] > 0 or by[m]["violating_samples"] == 0, f"{m}: |u| <= u_max at the samples"
+    assert by["network"]["plans_violating"] == 0
+    assert len(C.method_table(rows)) == 5
