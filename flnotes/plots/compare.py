@@ -106,7 +106,7 @@ def plot_monte_carlo(rows: Sequence[dict], methods: Sequence[str], u_max: float,
     a.plot([], [], "o", color="0.3", ms=3.5, label="at the samples")
     a.plot([], [], "o", mfc="none", color="0.3", ms=3.5, label="between samples")
     a.set_ylabel("largest |u| in a run")
-    a.legend(loc="upper left", fontsize=7.5)
+    a.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=3, fontsize=7)
     b.set_ylabel("plans violating the true bound\n(fraction of steps, mean over runs)")
     b.set_ylim(0.0, max(0.1, 1.15 * max([p.get_height() for p in b.patches] or [0.0])))
     c.axhline(1.0, color="0.5", lw=0.8)
