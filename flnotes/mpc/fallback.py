@@ -65,8 +65,8 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
 
     Safety first, in this order:
 
-    1. the previous plan shifted by one step (``shifted``, from :meth:`flnotes.MPC.shifted_plan`), if it satisfies the whole program
-       from the measured ``z``;
+    1. the previous plan shifted by one step (``shifted``, from :meth:`flnotes.MPC.shifted_plan`), if it
+       satisfies the whole program from the measured ``z``;
     2. a plan repaired step by step (:func:`repair_plan`) from the shifted plan, then from zero inputs,
        if one satisfies the whole program;
     3. otherwise only the first input is made safe: if any ``v`` with ``|Phi_NN(z, v)| <= u_max^eps``
