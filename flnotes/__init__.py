@@ -13,7 +13,8 @@ Layers, lowest first (a module imports only from layers below it)::
     solvers      solvers/ (MIQP, one module per back-end; numpy, scipy and the solver libraries only)
     constraint   bounds, tightening, encoding (big-M), error (eps), pieces, simulate (owns time)
     controllers  control (CLF-CBF), mpc/ (the one MPC engine: options, prediction, program, levers,
-                 engine, reference, linear, fallback, controller), terminal, intersample, arm
+                 engine, reference, linear, fallback, controller), nmpc (CasADi/IPOPT on the plant),
+                 terminal, intersample, arm
     chapters     paper, studies/ (the only importers of paper, with bench/), plots/, widgets, grading
 
 ``import flnotes as fl`` gives every public name below, re-exported by name
@@ -38,6 +39,8 @@ from .control import (Certificate, QuadraticCLF, DistanceCBF, as_certificate, Pi
                       exact_1d_feasible_set, solve_exact_1d, ClfCbfController, CLF_CBF_BACKENDS, AffineCBF,
                       ExponentialCBF, cbf_condition_fails)
 from .mpc import MPC, MPC_BACKENDS, MPCOptions, sine_reference
+from . import nmpc
+from .nmpc import NonlinearMPC, SaturatedInput, input_to_v
 from . import paper
 from .paper import paper_net, paper_eps
 from . import studies
@@ -59,7 +62,8 @@ __all__ = [
     'make_solver', 'EmptyBoxError', 'lp_bounds', 'horizon_boxes', 'intersect', 'propagate', 'LPTightener',
     'ellipsoid_box', 'Certificate', 'QuadraticCLF', 'DistanceCBF', 'as_certificate', 'PiecewiseAffine1D',
     'network_pieces_1d', 'exact_1d_feasible_set', 'solve_exact_1d', 'ClfCbfController', 'CLF_CBF_BACKENDS', 'AffineCBF',
-    'ExponentialCBF', 'cbf_condition_fails', 'MPC', 'MPCOptions', 'MPC_BACKENDS', 'sine_reference', 'paper', 'paper_net',
+    'ExponentialCBF', 'cbf_condition_fails', 'MPC', 'MPCOptions', 'MPC_BACKENDS', 'sine_reference',
+    'nmpc', 'NonlinearMPC', 'SaturatedInput', 'input_to_v', 'paper', 'paper_net',
     'paper_eps', 'studies', 'two_link_arm', 'arm_net', 'arm', 'pieces', 'intersample', 'terminal',
     'RegionOfAttraction', 'TerminalSet', 'region_of_attraction', 'terminal_set', 'DriftBound', 'drift_curve',
     'intersample_drift'

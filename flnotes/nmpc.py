@@ -38,10 +38,7 @@ from .systems import FLSystem
 
 Array = np.ndarray
 
-__all__ = ["NonlinearMPC", "SaturatedInput", "input_to_v", "affine_input_map"]
-
-#: Relative tolerance of the affinity check of ``Phi`` in ``v`` (round-off of the map's own arithmetic).
-AFFINE_RTOL = 1e-7
+__all__ = ["NonlinearMPC", "SaturatedInput", "input_to_v"]
 
 #: IPOPT return statuses read as a solved program.
 _SOLVED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -57,47 +54,6 @@ def _record(**fields) -> StepResult:
     if rest and "info" in names:
         kw["info"] = {**kw.get("info", {}), **rest}
     return StepResult(**kw)
-
-
-def affine_input_map(system: FLSystem, z: Array) -> tuple[Array, Array]:
-    """``a(z)``, ``b(z)`` with ``Phi(z, v) = a(z) + b(z) v`` (eq. coor_Phi), checked at ``z``.
-
-    Parameters
-    ----------
-    system
-        The system; its ``Phi`` must be affine in ``v`` at ``z``.
-    z
-        State, shape (n_z,).
-
-    Returns
-    -------
-    a, b
-        Shapes (m,) and (m, m): ``a = Phi(z, 0)`` and column ``j`` of ``b`` is
-        ``Phi(z, e_j) - Phi(z, 0)``.
-
-    Raises
-    ------
-    ValueError
-        If ``Phi(z, .)`` is not affine in ``v`` (checked at ``v = 2 e_j`` and at
-        ``v = -sum_j e_j``), or ``b(z)`` is singular.
-    """
-    if not isinstance(system, FLSystem):
-        raise TypeError(f"system must be a flnotes.FLSystem, got {type(system).__name__}")
-    z = as_vector(z, system.n_z, "z")
-    m = system.m
-    E = np.vstack([np.zeros(m), np.eye(m), 2 * np.eye(m), -np.ones(m)])
-    U = system.Phi(np.repeat(z[None], len(E), axis=0), E)
-    a = U[0]
-    b = (U[1:m + 1] - a).T
-    pred = a + E[m + 1:] @ b.T
-    scale = 1.0 + np.abs(U).max()
-    if np.abs(pred - U[m + 1:]).max() > AFFINE_RTOL * scale:
-        raise ValueError(f"Phi(z, v) of {system.name} is not affine in v at z = {np.array2string(z, precision=4)}: "
-                         f"the input u cannot be turned into a unique v; these baselines need u = a(z) + b(z) v")
-    if not np.all(np.isfinite(b)) or abs(np.linalg.det(b)) < 1e-12 * max(1.0, np.abs(b).max()) ** m:
-        raise ValueError(f"dPhi/dv of {system.name} is singular at z = {np.array2string(z, precision=4)}: "
-                         f"no v realizes a given u there")
-    return a, b
 
 
 def input_to_v(system: FLSystem, z: Array, u: Array) -> Array:
@@ -117,7 +73,12 @@ def input_to_v(system: FLSystem, z: Array, u: Array) -> Array:
     v
         Shape (m,).
     """
-    a, b = affine_input_map(system, z)
+    if not isinstance(system, FLSystem):
+        raise TypeError(f"system must be a flnotes.FLSystem, got {type(system).__name__}")
+    a, b = system.input_map(z)  # ValueError when Phi is not affine in v
+    if not np.all(np.isfinite(b)) or abs(np.linalg.det(b)) < 1e-12 * max(1.0, np.abs(b).max()) ** system.m:
+        raise ValueError(f"dPhi/dv of {system.name} is singular at z = {np.array2string(np.asarray(z), precision=4)}: "
+                         "no v realizes a given u there")
     u = as_vector(u, system.m, "u")
     return np.linalg.solve(b, u - a)
 

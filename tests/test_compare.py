@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import flnotes as fl
-from flnotes.nmpc import NonlinearMPC, SaturatedInput, affine_input_map, input_to_v
+from flnotes.nmpc import NonlinearMPC, SaturatedInput, input_to_v
 from flnotes.studies import compare as C
 
 S = fl.paper.QUAD_SETTING
@@ -29,7 +29,7 @@ def test_input_to_v_inverts_phi(quad):
         u = rng.uniform(-0.2, 0.2, 1)
         v = input_to_v(quad, z, u)
         assert np.allclose(quad.Phi(z, v), u, atol=1e-12)
-    a, b = affine_input_map(fl.msd(), np.array([1.0, 0.5]))
+    a, b = fl.msd().input_map(np.array([1.0, 0.5]))
     assert np.allclose(b, [[1.0]]) and np.isclose(a[0], 1.0 + fl.systems.stribeck(np.array(0.5)))
 
 

@@ -166,7 +166,7 @@ class MPC:
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
         self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
         if o.constraint != "network":
-            self.solver = LinearModel(self.pred, o, system.Phi, system.u_max)
+            self.solver = LinearModel(self.pred, o, system)
         elif o.is_reference:
             self.solver = ReferenceProgram(self.pred, o, self.box_bounds)
         else:

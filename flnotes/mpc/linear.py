@@ -21,32 +21,16 @@ which is the point of the comparison with the network constraint of eq. (MPC_for
 from __future__ import annotations
 
 import time
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 
 from ..result import StepResult
+from ..systems import FLSystem
 from .options import MPCOptions
 from .prediction import Prediction
 
 Array = np.ndarray
-
-
-def affine_in_v(Phi: Callable[[Array, Array], Array], z: Array, m: int, v_lo: Array, v_hi: Array,
-                u_scale: float = 1.0) -> tuple[Array, Array]:
-    """``a, B`` with ``Phi(z, v) = a + B v`` for every ``v``; ``ValueError`` when ``Phi`` is not affine in ``v``.
-
-    ``a = Phi(z, 0)``, the columns of ``B`` from unit steps, checked at two further points of the ``v`` box.
-    """
-    z = np.asarray(z, float)
-    a = np.asarray(Phi(z, np.zeros(m)), float).reshape(m)
-    B = np.column_stack([np.asarray(Phi(z, e), float).reshape(m) - a for e in np.eye(m)])
-    for v in (np.asarray(v_lo, float), np.asarray(v_hi, float)):
-        err = np.abs(np.asarray(Phi(z, v), float).reshape(m) - (a + B @ v))
-        if np.any(err > 1e-8 * max(1.0, u_scale, float(np.max(np.abs(a + B @ v))))):
-            raise ValueError(f"Phi(z, v) is not affine in v at z = {z} (error {err.max():.2e}): the linear input "
-                             "models ('measured', 'previous') need u = a(z) + B(z) v, as feedback linearization gives")
-    return a, B
 
 
 class LinearModel:
@@ -58,14 +42,13 @@ class LinearModel:
         The prediction model (cost, boxes, terminal rows).
     opts
         Validated options with ``constraint`` in ``("measured", "previous", "none")``.
-    Phi
-        The exact linearizing map ``Phi(z, v) -> u`` (the system's).
-    u_max
-        The true input bound (m,).
+    system
+        The system: its exact map ``Phi`` (affine in ``v``, :meth:`flnotes.FLSystem.input_map`) and ``u_max``.
     """
 
-    def __init__(self, pred: Prediction, opts: MPCOptions, Phi: Callable[[Array, Array], Array], u_max: Array):
-        self.pred, self.opts, self.Phi, self.u_max = pred, opts, Phi, np.asarray(u_max, float)
+    def __init__(self, pred: Prediction, opts: MPCOptions, system: FLSystem):
+        self.pred, self.opts, self.system = pred, opts, system
+        self.u_max = np.asarray(system.u_max, float)
 
     def rows(self, zbar: Array) -> tuple[Array, Array, Array]:
         """Rows ``g_lo <= G V <= g_hi`` of ``|Phi(zbar_k, v(k))| <= u_max`` for the states ``zbar`` (N_p, n_z)."""
@@ -74,7 +57,7 @@ class LinearModel:
         G = np.zeros((N * m, N * m))
         g_lo, g_hi = np.zeros(N * m), np.zeros(N * m)
         for k in range(N):
-            a, B = affine_in_v(self.Phi, zbar[k], m, p.v_lo, p.v_hi, float(np.max(self.u_max)))
+            a, B = self.system.input_map(zbar[k])
             G[k * m:(k + 1) * m, k * m:(k + 1) * m] = B
             g_lo[k * m:(k + 1) * m], g_hi[k * m:(k + 1) * m] = -self.u_max - a, self.u_max - a
         return G, g_lo, g_hi
