@@ -7,7 +7,7 @@ import numpy as np
 
 from .style import COLORS, new_axes
 
-__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve"]
+__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve", "plot_terminal_sweep"]
 
 
 def plot_terminal_bisection(term, ax=None):
@@ -90,3 +90,39 @@ def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Opti
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left")
     return ax
+
+
+def plot_terminal_sweep(runs: dict, plant: str = "true", box: Optional[float] = None, title: Optional[str] = None):
+    """``|z(t)|`` (left) and the optimal cost ``J(z_k)`` per step (right), without (dashed) and with (solid)
+    the terminal ingredients, one colour per horizon.
+
+    Parameters
+    ----------
+    runs
+        The first output of :func:`flnotes.studies.guarantees.terminal_sweep`.
+    plant
+        ``"nominal"`` or ``"true"``: which runs to draw.
+    box
+        Optional value of ``|z|`` to mark (e.g. the state box's half-width); a run that stops early left the box.
+    """
+    fig, (a1, a2) = new_axes(1, 2, figsize=(9.0, 3.4))
+    horizons = sorted({k[0] for k in runs if k[2] == plant})
+    cmap = [COLORS["nn"], COLORS["true"], COLORS["lcost"], COLORS["qcost"], COLORS["nominal"]]
+    for i, N in enumerate(horizons):
+        c = cmap[i % len(cmap)]
+        for with_t, ls in ((False, "--"), (True, "-")):
+            r = runs.get((N, with_t, plant))
+            if r is None:
+                continue
+            lab = rf"$N_p = {N}$, " + ("with $P$, $Z_f$" if with_t else "none")
+            a1.plot(r["t"], np.linalg.norm(r["z"], axis=1), ls=ls, color=c, label=lab)
+            if r["box_exit"]:
+                a1.plot(r["t"][-1], np.linalg.norm(r["z"][-1]), "x", color=COLORS["unsafe"], ms=8)
+            J = r["objective"]
+            a2.semilogy(r["t"][: len(J)], np.where(J > 0, J, np.nan), ls=ls, color=c)
+    if box is not None:
+        a1.axhline(box, color=COLORS["unsafe"], ls=":", lw=1)
+    a1.set(xlabel="t [s]", ylabel=r"$\|z(t)\|$", title=title or f"closed loop ({plant} plant); x: left the box")
+    a2.set(xlabel="t [s]", ylabel=r"optimal cost $J(z_k)$", title="cost per step (solid: decreasing by the theorem)")
+    a1.legend(loc="upper right", fontsize=7)
+    return fig
