@@ -36,20 +36,25 @@ def _stage_costs(Z: Array, V: Array, Q: Array, R: Array) -> Array:
     return np.einsum("ij,jk,ik->i", Z, Q, Z) + np.einsum("ij,jk,ik->i", V, R, V)
 
 
-def nominal_loop(mpc: MPC, z0: Array, n_steps: int, z_ref: Optional[Array] = None) -> dict:
+def nominal_loop(mpc: MPC, z0: Array, n_steps: int, Ad: Array, Bd: Array, z_box: tuple,
+                 z_ref: Optional[Array] = None) -> dict:
     """The MPC in closed loop with its own prediction model ``z+ = A_d z + B_d v`` (eq. MPC_form_miqp_c).
 
-    The run stops early when the state leaves the state box (the MPC's domain box): the controller is not
-    defined there. Every step's record (:attr:`flnotes.MPC.history`) is kept.
+    The run stops early when the state leaves the state box ``z_box``: the controller is not defined there.
+    The controller's previous plan is cleared first (``mpc.reset()``); every step's record is kept.
 
     Parameters
     ----------
     mpc
-        The controller (it is reset first).
+        The controller.
     z0
         Initial state, (n_z,).
     n_steps
         Number of sampling steps.
+    Ad, Bd
+        The MPC's discrete model, (n_z, n_z) and (n_z, m).
+    z_box
+        ``(z_lo, z_hi)``, the state box.
     z_ref
         Constant reference, (n_z,); default the origin.
 
@@ -59,26 +64,29 @@ def nominal_loop(mpc: MPC, z0: Array, n_steps: int, z_ref: Optional[Array] = Non
         ``t`` (K+1,), ``z`` (K+1, n_z), ``v`` (K, m), ``steps`` (the K step records), ``box_exit`` (bool) and
         ``time_s``, with ``K <= n_steps`` the steps applied.
     """
-    z = np.asarray(z0, float).reshape(mpc.n_z)
-    ref = np.zeros(mpc.n_z) if z_ref is None else np.asarray(z_ref, float).reshape(mpc.n_z)
+    Ad, Bd = np.asarray(Ad, float), np.asarray(Bd, float)
+    n, m = Bd.shape
+    z = np.asarray(z0, float).reshape(n)
+    z_lo, z_hi = (np.asarray(b, float).reshape(n) for b in z_box)
+    ref = np.zeros(n) if z_ref is None else np.asarray(z_ref, float).reshape(n)
     mpc.reset()
     Z, V, steps, box_exit = [z], [], [], False
     t0 = time.perf_counter()
     for _ in range(int(n_steps)):
         step = mpc(z, ref)
         steps.append(step)
-        z = mpc.Ad @ z + mpc.Bd @ step.v
+        z = Ad @ z + Bd @ step.v
         Z.append(z), V.append(step.v)
-        if np.any(z < mpc.z_lo) or np.any(z > mpc.z_hi):
+        if np.any(z < z_lo) or np.any(z > z_hi):
             box_exit = True
             break
-    return dict(t=mpc.ts * np.arange(len(Z)), z=np.array(Z), v=np.array(V).reshape(len(V), mpc.m), steps=steps,
+    return dict(t=mpc.ts * np.arange(len(Z)), z=np.array(Z), v=np.array(V).reshape(len(V), m), steps=steps,
                 box_exit=box_exit, time_s=time.perf_counter() - t0)
 
 
-def _summarize(run: dict, mpc: MPC, system: FLSystem, n_planned: int) -> dict:
+def _summarize(run: dict, Q: Array, R: Array, system: FLSystem, n_planned: int) -> dict:
     Z, V, steps = run["z"], run["v"], run["steps"]
-    stage = _stage_costs(Z, V, mpc.Q, mpc.R)
+    stage = _stage_costs(Z, V, Q, R)
     J = np.array([s.objective if (s.status == "optimal" and not s.fallback) else np.nan for s in steps])
     # the Lyapunov decrease of the proof: J(z_{k+1}) <= J(z_k) - l(z_k, v_k) between consecutive optimal steps
     dec = J[1:] - J[:-1] + stage[: len(J) - 1]
@@ -128,17 +136,16 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
             mpc = MPC(system, net, eps, horizon=int(N), **common, **extra)
             for plant in plants:
                 if plant == "nominal":
-                    run = nominal_loop(mpc, z0, n_steps)
+                    run = nominal_loop(mpc, z0, n_steps, terminal.Ad, terminal.Bd, (terminal.z_lo, terminal.z_hi))
                 else:
-                    mpc.reset()
                     t0 = time.perf_counter()
                     log = simulate(system, mpc, t_final=n_steps * terminal.ts, ts=terminal.ts, z0=z0, reference=zero,
                                    net=net, progress=False)
-                    run = dict(t=log.t, z=log.z, v=log.v, steps=list(mpc.history),
+                    run = dict(t=log.t, z=log.z, v=log.v, steps=list(mpc.history[-log.n_steps:]),
                                box_exit="left the domain box" in (log.message or ""),
                                time_s=time.perf_counter() - t0, log=log)
                 row = dict(N_p=int(N), ingredients="P and Z_f" if with_terminal else "none", plant=plant,
-                           **_summarize(run, mpc, system, n_steps))
+                           **_summarize(run, terminal.Q, terminal.R, system, n_steps))
                 run["objective"] = np.array([s.objective if (s.status == "optimal" and not s.fallback) else np.nan
                                              for s in run["steps"]])
                 runs[(int(N), with_terminal, plant)] = run
