@@ -105,7 +105,8 @@ def plot_terminal_sweep(runs: dict, plant: str = "true", box: Optional[float] = 
     box
         Optional value of ``|z|`` to mark (e.g. the state box's half-width); a run that stops early left the box.
     """
-    fig, (a1, a2) = new_axes(1, 2, figsize=(9.0, 3.4))
+    fig, axes = new_axes(1, 2, figsize=(9.0, 3.4))
+    a1, a2 = axes[0]
     horizons = sorted({k[0] for k in runs if k[2] == plant})
     cmap = [COLORS["nn"], COLORS["true"], COLORS["lcost"], COLORS["qcost"], COLORS["nominal"]]
     for i, N in enumerate(horizons):

@@ -27,7 +27,7 @@ from ..terminal import TerminalSet
 
 Array = np.ndarray
 
-__all__ = ["nominal_loop", "terminal_sweep", "fallback_table", "margin_study"]
+__all__ = ["nominal_loop", "plan_costs", "terminal_sweep", "fallback_table", "margin_study"]
 
 
 def _stage_costs(Z: Array, V: Array, Q: Array, R: Array) -> Array:
@@ -40,7 +40,8 @@ def nominal_loop(mpc: MPC, z0: Array, n_steps: int, Ad: Array, Bd: Array, z_box:
                  z_ref: Optional[Array] = None) -> dict:
     """The MPC in closed loop with its own prediction model ``z+ = A_d z + B_d v`` (eq. MPC_form_miqp_c).
 
-    The run stops early when the state leaves the state box ``z_box``: the controller is not defined there.
+    The run stops early, as :func:`flnotes.simulate` does, when a sampled state lies outside the state box
+    ``z_box``: the controller is not defined there.
     The controller's previous plan is cleared first (``mpc.reset()``); every step's record is kept.
 
     Parameters
@@ -73,21 +74,35 @@ def nominal_loop(mpc: MPC, z0: Array, n_steps: int, Ad: Array, Bd: Array, z_box:
     Z, V, steps, box_exit = [z], [], [], False
     t0 = time.perf_counter()
     for _ in range(int(n_steps)):
+        if np.any(z < z_lo) or np.any(z > z_hi):  # a measured state outside the box: the loop stops there
+            box_exit = True
+            break
         step = mpc(z, ref)
         steps.append(step)
         z = Ad @ z + Bd @ step.v
         Z.append(z), V.append(step.v)
-        if np.any(z < z_lo) or np.any(z > z_hi):
-            box_exit = True
-            break
     return dict(t=mpc.ts * np.arange(len(Z)), z=np.array(Z), v=np.array(V).reshape(len(V), m), steps=steps,
                 box_exit=box_exit, time_s=time.perf_counter() - t0)
 
 
-def _summarize(run: dict, Q: Array, R: Array, system: FLSystem, n_planned: int) -> dict:
+def plan_costs(steps: Sequence, Q: Array, R: Array, P: Optional[Array] = None) -> Array:
+    """The cost of eq. (MPC_form_miqp_a) (plus ``z(N_p)'P z(N_p)``) of each step's plan, regulation to the origin.
+
+    Computed from the plan itself (``z_pred``, ``v_pred``); NaN for a step without a proven optimal plan of its own
+    (status other than ``"optimal"``, or a fallback).
+    """
+    out = np.full(len(steps), np.nan)
+    for k, s in enumerate(steps):
+        if s.status == "optimal" and not s.fallback:
+            Z, V = np.asarray(s.z_pred, float), np.asarray(s.v_pred, float)
+            out[k] = _stage_costs(Z, V, Q, R).sum() + (0.0 if P is None else float(Z[-1] @ P @ Z[-1]))
+    return out
+
+
+def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSystem, n_planned: int) -> dict:
     Z, V, steps = run["z"], run["v"], run["steps"]
     stage = _stage_costs(Z, V, Q, R)
-    J = np.array([s.objective if (s.status == "optimal" and not s.fallback) else np.nan for s in steps])
+    J = plan_costs(steps, Q, R, P)
     # the Lyapunov decrease of the proof: J(z_{k+1}) <= J(z_k) - l(z_k, v_k) between consecutive optimal steps
     dec = J[1:] - J[:-1] + stage[: len(J) - 1]
     ok = np.isfinite(dec)
@@ -115,8 +130,8 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
     Returns
     -------
     runs, rows
-        ``runs[(N_p, with_terminal, plant)]``: dict with ``t``, ``z``, ``v``, ``objective`` (the optimal cost per
-        step, NaN where the step had no proven plan); ``rows``: one dict per run with the number of steps applied,
+        ``runs[(N_p, with_terminal, plant)]``: dict with ``t``, ``z``, ``v``, ``steps``, ``objective`` (the optimal
+        cost per step from its plan, :func:`plan_costs`); ``rows``: one dict per run with the number of steps applied,
         whether the run completed, the infeasible and fallback steps, the steps whose applied input was not
         admissible, whether the state left the box, the closed-loop cost ``sum_k l(z_k, v_k)``, the final ``|z|``,
         ``max_cost_increase`` (largest ``(J_{k+1} - J_k + l(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
@@ -145,9 +160,8 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
                                box_exit="left the domain box" in (log.message or ""),
                                time_s=time.perf_counter() - t0, log=log)
                 row = dict(N_p=int(N), ingredients="P and Z_f" if with_terminal else "none", plant=plant,
-                           **_summarize(run, terminal.Q, terminal.R, system, n_steps))
-                run["objective"] = np.array([s.objective if (s.status == "optimal" and not s.fallback) else np.nan
-                                             for s in run["steps"]])
+                           **_summarize(run, terminal.Q, terminal.R, extra.get("P"), system, n_steps))
+                run["objective"] = plan_costs(run["steps"], terminal.Q, terminal.R, extra.get("P"))
                 runs[(int(N), with_terminal, plant)] = run
                 rows.append(row)
     return runs, rows
