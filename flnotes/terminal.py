@@ -587,8 +587,9 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     """The set of initial states from which eq. (MPC_form_miqp) has an admissible plan, on a 2-D slice.
 
     Decided by the MPC itself (:class:`flnotes.MPC`, the one program builder): at every grid state a fresh
-    controller step (no previous plan) is solved without and with the terminal ingredients (``P=terminal.P``,
-    ``terminal=terminal``); the state is feasible when the step ends with a plan of its own (status
+    controller step (no previous plan) is solved without and with the terminal constraint
+    (``terminal=terminal``; the terminal weight is left out, since the cost does not change the feasible set); the
+    state is feasible when the step ends with a plan of its own (status
     ``"optimal"``, or ``"time_limit"`` with an admissible incumbent, and ``fallback`` False), infeasible when
     the status is ``"infeasible"``, and undecided (NaN) otherwise (the time limit hit without an admissible
     incumbent, or a solver error). With the terminal constraint the feasible set is the region of attraction
@@ -643,7 +644,9 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     common = dict(horizon=int(horizon), ts=terminal.ts, Q=terminal.Q, R=terminal.R,
                   discretization=terminal.discretization, v_box=(terminal.v_lo, terminal.v_hi),
                   time_limit=time_limit, **mpc_kwargs)
-    mpcs = [MPC(system, net, eps, **common), MPC(system, net, eps, P=terminal.P, terminal=terminal, **common)]
+    # feasibility does not depend on the cost: both programs keep the stage cost only (the terminal weight P
+    # changes the optimum, not the feasible set, and makes each solve slower)
+    mpcs = [MPC(system, net, eps, **common), MPC(system, net, eps, terminal=terminal, **common)]
     out = [np.full((ny, nx), np.nan), np.full((ny, nx), np.nan)]
     roa = RegionOfAttraction(x=x, y=y, axes=axes, z_fixed=z_fixed, feasible=out[0], feasible_terminal=out[1],
                              horizon=int(horizon), ts=terminal.ts, terminal=terminal, time_s=0.0)
