@@ -156,7 +156,7 @@ def test_region_of_attraction_decided_by_the_engine(quad_terminal):
     assert np.all(roa.feasible_terminal <= roa.feasible)
     assert roa.feasible_terminal.sum() >= 1 and roa.feasible_terminal.sum() < roa.feasible.sum()
     # each verdict is the engine's: re-solve a feasible and an infeasible grid state with the terminal option
-    mpc = _terminal_mpc(system, net, eps, T, N)
+    mpc = fl.MPC(system, net, eps, horizon=N, ts=T.ts, Q=T.Q, R=T.R, terminal=T, time_limit=60.0)
     Z = roa.points()
     for verdict in (1.0, 0.0):
         z = Z[roa.feasible_terminal == verdict][0]
