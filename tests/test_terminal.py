@@ -118,7 +118,7 @@ def test_recursive_feasibility_in_nominal_closed_loop(quad_terminal):
     system, net, eps, T = quad_terminal
     N = 5
     mpc = _terminal_mpc(system, net, eps, T, N)
-    z = np.array([-1.0, 1.5, 1.0])
+    z = np.array([-1.0, 1.0, 1.0])
     assert not T.contains(z)[0], "premise: the start is outside Z_f"
     F, g = T.constraint()
     u_eps = system.u_max - eps
@@ -160,6 +160,7 @@ def test_region_of_attraction_decided_by_the_engine(quad_terminal):
     Z = roa.points()
     for verdict in (1.0, 0.0):
         z = Z[roa.feasible_terminal == verdict][0]
+        mpc.reset()
         step = mpc(z, np.zeros(3))
         assert (step.status == "optimal" and not step.fallback) == bool(verdict)
         if not verdict:
@@ -202,7 +203,7 @@ def test_shifted_plan_closes_the_loop_on_the_true_plant(quad_terminal):
     # admissible at every sample, enters Z_f after N_p steps and then converges under v = K z
     system, net, eps, T = quad_terminal
     N = 5
-    z0 = np.array([-1.0, 1.5, 1.0])
+    z0 = np.array([-1.0, 1.0, 1.0])
     assert not T.contains(z0)[0], "premise: the start is outside Z_f"
     step = _terminal_mpc(system, net, eps, T, N)(z0, np.zeros(3))
     assert step.status == "optimal" and not step.fallback
