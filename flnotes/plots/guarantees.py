@@ -42,32 +42,48 @@ def _slice_mask(term, roa, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
     """Initial states (a 2-D slice) from which the horizon program is feasible, without and with ``z(N_p) in Z_f``.
 
+    Each grid state is a cell: light grey feasible without the terminal constraint only, green feasible with it,
+    white infeasible, a red cross undecided (time limit); the terminal set's slice is outlined.
+
     Parameters
     ----------
     roa
         A :class:`flnotes.terminal.RegionOfAttraction`.
     """
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
     if ax is None:
         _, ax = new_axes(figsize=(5.0, 4.2))
     x, y = roa.x, roa.y
+    level = np.where(roa.feasible_terminal == 1, 2.0, np.where(roa.feasible == 1, 1.0, 0.0))
+    level = np.ma.masked_invalid(np.where(np.isnan(roa.feasible) | np.isnan(roa.feasible_terminal), np.nan, level))
+    cmap = ListedColormap(["white", "0.82", COLORS["nominal"]])
+    ax.pcolormesh(x, y, level, cmap=cmap, vmin=-0.5, vmax=2.5, shading="nearest", zorder=1)
+    handles = [Patch(color="0.82", label="feasible, no terminal set"),
+               Patch(color=COLORS["nominal"], label=r"feasible with $z(N_p) \in Z_f$")]
     X, Y = np.meshgrid(x, y)
-    for F, color, label, size in ((roa.feasible, COLORS["ref"], "feasible, no terminal set", 40),
-                                  (roa.feasible_terminal, COLORS["nominal"], r"feasible with $z(N_p) \in Z_f$", 16)):
-        sel = F == 1
-        ax.scatter(X[sel], Y[sel], s=size, color=color, label=label, zorder=2)
-    bad = np.isnan(roa.feasible) | np.isnan(roa.feasible_terminal)
+    bad = np.ma.getmaskarray(level)
     if bad.any():
-        ax.scatter(X[bad], Y[bad], s=30, marker="x", color=COLORS["unsafe"], label="undecided (time limit)", zorder=3)
+        handles.append(ax.scatter(X[bad], Y[bad], s=30, marker="x", color=COLORS["unsafe"],
+                                  label="undecided (time limit)", zorder=3))
     xf, yf = np.linspace(x[0], x[-1], 300), np.linspace(y[0], y[-1], 300)
     Xf, Yf = np.meshgrid(xf, yf)
     M = _slice_mask(roa.terminal, roa, Xf, Yf)
     if M.any():
-        ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4)
-        ax.plot([], [], color=COLORS["true"], label=r"terminal set $Z_f$ (slice)")
+        ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4, zorder=2)
+        handles.append(_line(COLORS["true"], r"terminal set $Z_f$ (slice)"))
     ax.set(xlabel=f"$z_{roa.axes[0] + 1}$", ylabel=f"$z_{roa.axes[1] + 1}$",
            title=title or rf"region of attraction, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
-    ax.legend(loc="upper right", fontsize=7.5)
+    ax.legend(handles=handles, loc="upper right", fontsize=7.5, framealpha=0.9, frameon=True)
     return ax
+
+
+def _line(color, label):
+    """A legend handle for a line."""
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], color=color, label=label)
 
 
 def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Optional[str] = None):
