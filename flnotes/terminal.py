@@ -32,9 +32,11 @@ candidate; :func:`region_of_attraction` draws the set of states from which the
 horizon program is feasible, with and without the terminal constraint, as decided
 by :class:`flnotes.MPC` itself.
 
-Functions the MPC engine calls: :func:`terminal_set` (the whole construction),
-then ``TerminalSet.P`` (terminal weight on ``z(N_p)``) and
-``TerminalSet.constraint()`` (``F_f z(N_p) <= g_f``).
+Use: ``term = terminal_set(...)`` (the whole construction), then
+``flnotes.MPC(..., P=term.P, terminal=term)``: the MPC reads ``TerminalSet.P``
+(terminal weight on ``z(N_p)``), ``TerminalSet.constraint()`` (``F_f z(N_p) <= g_f``)
+and ``TerminalSet.K`` (the last input ``K z(N_p)`` of its shifted warm start, the
+candidate of the proof).
 """
 from __future__ import annotations
 
