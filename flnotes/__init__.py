@@ -6,6 +6,16 @@ The data flow, one direction::
        |                                  |                                                   ^
        +------------phi, box--------------+--> pso_max_error / certify_error ------eps--------+
 
+Layers, lowest first (a module imports only from layers below it)::
+
+    base         config, _checks, errors, tables (Table, time_stats), result (StepResult, STATUSES)
+    models       systems, network, reference (shipped data), interval
+    solvers      solvers/ (MIQP, one module per back-end; numpy, scipy and the solver libraries only)
+    constraint   bounds, tightening, encoding (big-M), error (eps), pieces, simulate (owns time)
+    controllers  control (CLF-CBF), mpc/ (the one MPC engine: options, prediction, program, levers,
+                 engine, reference, linear, fallback, controller), terminal, intersample, arm
+    chapters     paper, studies/ (the only importers of paper, with bench/), plots/, widgets, grading
+
 ``import flnotes as fl`` gives every public name below, re-exported by name
 (see ``__all__``); the modules and which equation each owns are listed in
 the README's architecture section.

@@ -170,3 +170,23 @@ def test_warm_starts_and_backends_agree_on_random_states():
         if checked == 4:
             break
     assert checked >= 3, "the premise: random states where the network constraint is active"
+
+
+def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
+    """With (almost) no time, the controller returns the warm start if it is feasible, never a plan that breaks
+    the program, and its gap is measured against a true lower bound (the QP without the network)."""
+    sysm, net, problems, J = recorded
+    mpc = MPC(sysm, net, EPS, time_limit=1e-9, **COMMON)
+    kept = 0
+    for (z, R, prev), J_ref in zip(problems, J):
+        mpc.set_previous_plan(prev)
+        s = mpc(z, R)
+        assert s.status in ("time_limit", "optimal")
+        if s.fallback:
+            continue
+        kept += 1
+        assert mpc.plan_feasible(s.z_pred, s.v_pred)
+        assert s.bound <= J_ref + 1e-9 * max(1.0, J_ref) <= s.objective + 2e-9 * max(1.0, J_ref)
+        if s.status == "time_limit":
+            assert np.isfinite(s.gap) and abs(s.gap - (s.objective - s.bound) / max(1.0, abs(s.objective))) < 1e-12
+    assert kept >= 1, "the premise: the shifted closed-loop plan is feasible at a recorded state"

@@ -11,6 +11,7 @@ Layout (imports point down the list):
   warm start);
 * :mod:`.reference`: the paper's program written with :func:`flnotes.encode`, solved cold by SCIP;
 * :mod:`.linear`: the linear models of the exact constraint used by the QP-based MPCs of the comparison;
+* :mod:`.fallback`: what is applied when a solve gives no plan, and the step-by-step repairs;
 * :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history).
 """
 from .controller import MPC, sine_reference

@@ -19,6 +19,7 @@ from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box
 from ..solvers.base import _require
 from ..systems import FLSystem
+from . import fallback
 from .engine import NetworkEngine
 from .linear import LinearModel
 from .options import MPCOptions
@@ -323,7 +324,7 @@ class MPC:
     # ------------------------------------------------------------------ the fallback
     def _fallback(self, z: Array, R: Array, step: StepResult, shifted) -> StepResult:
         """No plan from this solve: apply :meth:`fallback_plan`, flagged, the solve's status and message kept."""
-        Z, V, what, ok = self.fallback_plan(z, shifted)
+        Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)
         step.fallback, step.input_admissible = True, ok
@@ -346,136 +347,20 @@ class MPC:
         return self.predict(z, V), V
 
     def repair_plan(self, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
-        """A plan built step by step from ``v_guess`` (N_p, m), each input replaced by :meth:`feasible_tail`.
+        """:func:`flnotes.mpc.fallback.repair_plan`: a plan built step by step from ``v_guess``."""
+        return fallback.repair_plan(self.pred, z, v_guess, first)
 
-        With ``first=False`` the first input is kept as given. Check the result with :meth:`plan_feasible`.
-        """
-        V = np.array(v_guess, float).reshape(self.N, self.m)
-        zk = np.asarray(z, float)
-        for k in range(self.N):
-            if first or k:
-                V[k] = self.feasible_tail(zk, V[k], last=k == self.N - 1)
-            zk = self.Ad @ zk + self.Bd @ V[k]
-        return self.predict(z, V), V
+    def feasible_tail(self, z: Array, v_guess: Array, last: bool = False) -> Array:
+        """:func:`flnotes.mpc.fallback.feasible_tail`: an admissible input closest to ``v_guess`` at ``z``."""
+        return fallback.feasible_tail(self.pred, z, v_guess, last=last)
 
-    def feasible_tail(self, z: Array, v_guess: Array, n_grid: int = 2001, last: bool = False) -> Array:
-        """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box (and, for the
-        ``last`` step, in the terminal set), closest to ``v_guess``.
-
-        Searched on a grid of the ``v``-range (single input), checked with the forward pass; ``v_guess`` is
-        returned unchanged when it is admissible or when no grid point is.
-        """
-        v_guess = np.asarray(v_guess, float)
-        z = np.asarray(z, float)
-
-        def admissible(cand: Array) -> Array:
-            u = self.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))
-            nxt = z @ self.Ad.T + cand @ self.Bd.T
-            ok = (np.all(np.abs(u) <= self.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= self.z_lo, axis=1)
-                  & np.all(nxt <= self.z_hi, axis=1))
-            if last and self.pred.F is not None:
-                ok &= np.all(nxt @ self.pred.F.T <= self.pred.g, axis=1)
-            return ok
-
-        if self.m != 1 or admissible(v_guess[None])[0]:
-            return v_guess
-        cand = np.linspace(self.v_lo[0], self.v_hi[0], n_grid)[:, None]
-        i = np.flatnonzero(admissible(cand))
-        if not i.size:
-            return v_guess
-        return cand[i[np.argmin(np.abs(cand[i] - v_guess).sum(axis=1))]].copy()
-
-    def fallback_plan(self, z: Array, shifted=None) -> tuple[Array, Array, str, bool]:
-        """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
-
-        Safety first, in this order:
-
-        1. the previous plan shifted by one step (:meth:`shifted_plan`), if it satisfies the whole program
-           from the measured ``z``;
-        2. a plan repaired step by step (:meth:`repair_plan`) from the shifted plan, then from zero inputs,
-           if one satisfies the whole program;
-        3. otherwise only the first input is made safe: if any ``v`` with ``|Phi_NN(z, v)| <= u_max^eps``
-           exists at ``z`` (:meth:`safe_input`), the closest to the plan's is applied (flagged: the rest of
-           the plan violates the program);
-        4. when none exists, the least-violation input (``input_admissible=False``).
-
-        For the QP-based constraint models (``constraint`` other than ``"network"``) the same order applies
-        with the network as the judge of admissibility: the fallback never claims more than it checks.
-        Returns ``(z_pred, v_pred, what, admissible)``.
-        """
-        z = np.asarray(z, float)
-        shifted = self.shifted_plan(z) if shifted is None else shifted
-        if shifted is not None and self.plan_feasible(*shifted):
-            return shifted[0], shifted[1], "the previous plan shifted by one step", True
-        guesses = ([(shifted[1], "the shifted previous plan")] if shifted is not None else [])
-        guesses.append((np.zeros((self.N, self.m)), "zero inputs"))
-        for V, what in guesses:
-            plan = self.repair_plan(z, V)
-            if self.plan_feasible(*plan):
-                return plan[0], plan[1], f"{what} repaired step by step", True
-        V = np.array(guesses[0][0], float)
-        V[0], ok = self.safe_input(z, V[0])
-        Zr, Vr = self.repair_plan(z, V, first=False)
-        if ok:
-            return Zr, Vr, ("an admissible first input (|Phi_NN(z, v)| <= u_max^eps at the measured state); "
-                            "the rest of the plan violates the program"), True
-        return Zr, Vr, ("the least-violation input: no v satisfies |Phi_NN(z, v)| <= u_max^eps at the measured "
-                        "state (input bound violated, flagged)"), False
+    def fallback_plan(self, z: Array) -> tuple[Array, Array, str, bool]:
+        """:func:`flnotes.mpc.fallback.fallback_plan` from the measured ``z`` and the shifted previous plan."""
+        return fallback.fallback_plan(self.pred, np.asarray(z, float), self.shifted_plan(z))
 
     def safe_input(self, z: Array, v_guess: Array) -> tuple[Array, bool]:
-        """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` closest to ``v_guess``, or the least-violation one.
-
-        Exact for one input (:func:`flnotes.exact_1d_feasible_set`, inputs keeping ``A_d z + B_d v`` in the
-        state box preferred) and for two (convex polygons over the network's linear regions,
-        :func:`flnotes.pieces.network_polygons`); for more inputs, and for the least-violation input of two
-        or more when nothing is admissible, a seeded sample of the ``v`` box (4096 points). Returns
-        ``(v, admissible)``.
-        """
-        from ..control import exact_1d_feasible_set, network_pieces_1d
-
-        z, v_guess = np.asarray(z, float), np.asarray(v_guess, float).reshape(self.m)
-        phi_ok = lambda v: bool(np.all(np.abs(self.net(np.r_[z, v])) <= self.u_eps + BOUND_TOL))  # noqa: E731
-        if self.m == 1:
-            lo, hi = float(self.v_lo[0]), float(self.v_hi[0])
-            iv = exact_1d_feasible_set(self.net, z, lo, hi, float(self.u_eps[0]))
-            a, b, Bc = self.z_lo - self.Ad @ z, self.z_hi - self.Ad @ z, self.Bd[:, 0]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                l1 = np.where(Bc > 0, a / Bc, np.where(Bc < 0, b / Bc, -np.inf))
-                u1 = np.where(Bc > 0, b / Bc, np.where(Bc < 0, a / Bc, np.inf))
-            s_lo, s_hi = float(np.max(l1)), float(np.min(u1))
-            for keep_state in (True, False):
-                cand = []
-                for lo_i, hi_i in np.asarray(iv).reshape(-1, 2):
-                    if keep_state:
-                        lo_i, hi_i = max(lo_i, s_lo), min(hi_i, s_hi)
-                    if lo_i <= hi_i:
-                        cand += [np.clip(v_guess[0], lo_i, hi_i), 0.5 * (lo_i + hi_i)]
-                for v in sorted(cand, key=lambda v: abs(v - v_guess[0])):
-                    if phi_ok([v]):
-                        return np.array([v]), True
-            pw = network_pieces_1d(self.net, z, lo, hi)
-            v0, y0, sl = pw.knots[:-1], pw.values[:-1], pw.slope
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cross = np.where(sl != 0, v0 - y0 / sl, v0)
-            cand = np.r_[pw.knots, np.clip(cross, pw.knots[:-1], pw.knots[1:])]
-            v = float(cand[np.argmin(np.abs(self.net(np.c_[np.repeat(z[None], cand.size, 0), cand])[:, 0]))])
-            return np.array([v]), False
-        if self.m == 2:
-            from ..pieces import _project, network_polygons, network_regions
-
-            regions = network_regions(self.net, z, self.v_lo, self.v_hi)
-            polys = network_polygons(self.net, z, self.v_lo, self.v_hi, self.u_eps, regions=regions)
-            cand = [_project(P, v_guess) for P in polys]
-            cand = [v for v in sorted(cand, key=lambda v: float(np.sum((v - v_guess) ** 2))) if phi_ok(v)]
-            if cand:
-                return np.asarray(cand[0], float).copy(), True
-        rng = np.random.default_rng(0)
-        cand = np.vstack([v_guess, rng.uniform(self.v_lo, self.v_hi, (4096, self.m))])
-        excess = np.max(np.abs(self.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))) - self.u_eps, axis=1)
-        ok = np.flatnonzero(excess <= BOUND_TOL)
-        if ok.size:
-            return cand[ok[np.argmin(np.abs(cand[ok] - v_guess).sum(axis=1))]].copy(), True
-        return cand[int(np.argmin(excess))].copy(), False
+        """:func:`flnotes.mpc.fallback.safe_input`: an admissible input, or the least-violation one."""
+        return fallback.safe_input(self.pred, z, v_guess)
 
     # ------------------------------------------------------------------ statistics
     def stats(self) -> dict:

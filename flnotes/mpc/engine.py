@@ -97,7 +97,9 @@ class NetworkEngine:
         """Solve at the measured ``z0`` for ``z_ref`` (N_p + 1, n_z); ``incumbent`` is a plan ``V`` known feasible.
 
         Returns a :class:`flnotes.StepResult` with the plan (``v`` is ``None`` when there is none:
-        infeasible, time limit without a plan, solver failure); the caller applies its fallback then.
+        infeasible, time limit without a plan, solver failure); the caller applies its fallback then. At a
+        time limit the plan is the best feasible one found and ``bound`` is the optimum of the QP without
+        the network (a lower bound on eq. MPC_form_miqp), so ``gap`` is an honest optimality gap.
         """
         pred, o = self.pred, self.opts
         t0 = time.perf_counter()
@@ -150,7 +152,7 @@ class NetworkEngine:
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
         while True:
             if time_limit is not None and time.perf_counter() - t0 > time_limit:
-                return done("time_limit", inc_V, -np.inf, "time limit: " + (
+                return done("time_limit", inc_V, J_c, "time limit: " + (
                     "the warm start is returned" if inc_V is not None else "no feasible plan"))
             lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
             if level:
@@ -228,8 +230,8 @@ class NetworkEngine:
             elif status == "time_limit":
                 cand = res.w[: N * m] if res.w is not None else None
                 if cand is not None and pred.feasible(z0, cand) and pred.cost(cand, f, c0) < inc_J:
-                    return done("time_limit", cand, -np.inf, f"time limit: {res.message}")
-                return done("time_limit", inc_V, -np.inf, f"time limit: {res.message}")
+                    return done("time_limit", cand, J_c, f"time limit: {res.message}")
+                return done("time_limit", inc_V, J_c, f"time limit: {res.message}")
             else:
                 return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
             if J_up >= inc_J or full:  # nothing below J_up in the restricted program

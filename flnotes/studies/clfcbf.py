@@ -12,7 +12,7 @@ from ..tables import Table, time_stats
 
 Array = np.ndarray
 
-__all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table"]
+__all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms"]
 
 
 def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
@@ -116,3 +116,8 @@ def solve_time_table(logs: dict, system: str = "MSD") -> Table:
                          cpu_median=float(np.nanmedian(cpu)) if np.isfinite(cpu).any() else None,
                          paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
     return rows
+
+
+def paper_mean_ms(system: str = "MSD") -> dict:
+    """The paper's mean time per step (Table 2, ms) of each controller of ``system``, by name."""
+    return {name: ref["mean"] for (sysname, name), ref in paper.TABLE2_MS.items() if sysname == system}
