@@ -68,7 +68,7 @@ __all__ = [
 ]
 
 #: Backends of :class:`ClfCbfController`; the persistent ones need :mod:`flnotes.solvers`.
-BACKENDS = ("auto", "exact", "cvxpy", "highs", "scip", "gurobi", "daqp")
+CLF_CBF_BACKENDS = ("auto", "exact", "cvxpy", "highs", "scip", "gurobi", "daqp")
 
 
 # ---------------------------------------------------------------------------
@@ -685,8 +685,8 @@ class ClfCbfController:
         self.time_limit, self.gap = time_limit, float(gap)
         self.screening = bool(screening)
         self.name = name or ("Lcost" if cost == "linear" else "Qcost")
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if backend not in CLF_CBF_BACKENDS:
+            raise ValueError(f"backend must be one of {CLF_CBF_BACKENDS}, got {backend!r}")
         if backend == "auto":
             backend = "exact" if m <= 2 else "scip"
         self.backend = backend
@@ -765,7 +765,7 @@ class ClfCbfController:
         ``v``: ``"softened program"`` or ``"k(z) clipped to the v box"``.
         A solver's point is checked with the network's forward pass: one that
         exceeds ``u_max^eps`` (beyond round-off) is an error, never applied as a
-        solution. ``info["input_admissible"]`` says whether the applied ``v``
+        solution. ``input_admissible`` says whether the applied ``v``
         satisfies ``|Phi_NN(z, v)| <= u_max^eps``: on the softened program's
         fallback the input bound carries the largest penalty ``rho_u`` (given
         up last, an exact penalty once ``rho_u`` exceeds its multiplier), and
@@ -805,16 +805,19 @@ class ClfCbfController:
                 rule = "k(z) clipped to the v box"
                 sol = _Solution(status=sol.status, v=np.clip(d["k"], self.v_lo, self.v_hi), detail=sol.detail)
         v = np.asarray(sol.v, float).reshape(self.system.m)
-        info = dict(backend=self.backend, objective=sol.objective, delta=sol.delta,
-                    phi_nn=self.net(np.concatenate([z, v])), V=d["V"], H=d["H"], solver_time=sol.solver_time,
-                    n_binaries=getattr(self._impl, "n_binaries", None), nodes=sol.nodes,
-                    slack_u=sol.slack_u, slack_H=sol.slack_H, detail=first.detail, screened=first.screened,
+        info = dict(delta=sol.delta, phi_nn=self.net(np.concatenate([z, v])), V=d["V"], H=d["H"],
+                    solver_time=sol.solver_time, slack_u=sol.slack_u, slack_H=sol.slack_H,
                     z_in_domain=bool(self.system.in_domain(z)[0]))
         if fallback:
             info.update(fallback_rule=rule, fallback_detail=sol.detail)
-        info["input_admissible"] = self._admissible(z, v)
         info["cpu_time"] = time.thread_time() - c0
-        res = StepResult(v=v, status=status, solve_time=time.perf_counter() - t0, fallback=fallback, info=info)
+        message = first.detail
+        if status.startswith("error"):  # one set of status words (flnotes.STATUSES); the details go to the message
+            status, message = "error", (status[len("error"):].lstrip(": ") + (f" ({first.detail})" if first.detail else ""))
+        res = StepResult(v=v, status=status, objective=sol.objective, nodes=int(sol.nodes or 0),
+                         solve_time=time.perf_counter() - t0, fallback=fallback,
+                         input_admissible=self._admissible(z, v), screened=first.screened, backend=self.backend,
+                         message=message, n_binaries=int(getattr(self._impl, "n_binaries", 0) or 0), info=info)
         self.history.append(res)
         return res
 

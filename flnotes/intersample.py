@@ -48,8 +48,8 @@ and takes lower values only at points proved admissible. The result is a bracket
 grows with ``t_s`` and vanishes as ``t_s -> 0`` (for a locally Lipschitz
 ``Phi``, about linearly): :func:`drift_curve` computes it on a list of ``t_s``.
 
-Function the MPC engine calls: :func:`margin` (``u_max^{eps+delta}``), with
-``delta = intersample_drift(system, ts).upper``.
+Use: ``delta = intersample_drift(system, ts).upper`` and ``flnotes.MPC(system, net, eps + delta, ...)``
+(the MPC's bound is then ``u_max^{eps+delta}``, :func:`margin`, which refuses ``eps + delta >= u_max``).
 """
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ from ._checks import as_vector
 from .error import ErrorBracket, certify_error
 from .interval import Interval
 from .network import ReLUNet
-from .simulate import StepResult
+from .result import StepResult
 from .systems import FLSystem
 
 Array = np.ndarray

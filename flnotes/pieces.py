@@ -657,7 +657,7 @@ def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7
         for name, r in (("exact", a), ("mip", b)):
             t[name].append(r.solve_time * 1e3)
             cpu[name].append(r.info["cpu_time"] * 1e3)
-        oa, ob = a.info["objective"], b.info["objective"]
+        oa, ob = a.objective, b.objective
         gaps.append(abs(oa - ob) / max(1.0, abs(ob)))
         if not (a.fallback or b.fallback):
             hard.append(gaps[-1])

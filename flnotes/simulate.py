@@ -42,41 +42,13 @@ from scipy.integrate import solve_ivp
 from ._checks import as_vector
 from .errors import SolverFailure
 from .network import ReLUNet
+from .result import StepResult
 from .systems import FLSystem
 
 Array = np.ndarray
 
 #: Exceptions that signal a mistake in the code or the call, never a place the plant cannot go: always raised.
 _PROGRAMMING_ERRORS = (TypeError, AttributeError, NameError, ImportError, KeyError, IndexError, NotImplementedError)
-
-
-@dataclass
-class StepResult:
-    """A controller's answer at one sampling instant.
-
-    Attributes
-    ----------
-    v
-        The virtual input to apply, shape (m,).
-    status
-        ``"optimal"`` when the program was solved to optimality, ``"nominal"``
-        for a plain feedback law; anything else (``"infeasible"``,
-        ``"time_limit"``, ``"error"``, ...) says why ``v`` is not an optimum.
-    solve_time
-        Wall-clock seconds spent by the controller.
-    fallback
-        True when ``v`` comes from the controller's documented fallback rather
-        than from a solved program.
-    info
-        Anything else worth logging: objective, gap, nodes, predicted
-        trajectories, ``Phi_NN`` at the solution, ...
-    """
-
-    v: Array
-    status: str = "optimal"
-    solve_time: float = 0.0
-    fallback: bool = False
-    info: dict = field(default_factory=dict)
 
 
 @runtime_checkable
@@ -196,7 +168,7 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         :class:`flnotes.SolverFailure` (infeasible program, time limit without
         an admissible incumbent, solver failure); default: the previous ``v``
         (zero at the first step). Such steps are flagged (``log.fallback``),
-        their status reads ``"error: SolverFailure: <message>"`` and
+        their status reads ``"error"`` (the message ``"SolverFailure: <message>"``) and
         ``log.steps[k].info`` holds ``solver_status`` and ``fallback_rule``.
         Any other exception of the controller (``ValueError``, ``TypeError``,
         ``ImportError``, ...) is a mistake, not a solver outcome: it stops the
@@ -285,7 +257,7 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         except SolverFailure as exc:  # the documented solver outcome: the documented fallback, flagged
             v = as_vector(fallback(z), m, "fallback(z)") if fallback is not None else v_prev.copy()
             rule = "fallback(z)" if fallback is not None else ("the previous v" if k else "v = 0 (first step)")
-            res = StepResult(v=v, status=f"error: {type(exc).__name__}: {exc}", solve_time=np.nan, fallback=True,
+            res = StepResult(v=v, status="error", solve_time=np.nan, fallback=True, message=f"{type(exc).__name__}: {exc}",
                              info=dict(solver_status=exc.status, fallback_rule=f"simulate applied {rule}"))
         if not isinstance(res, StepResult):
             raise TypeError(f"controller.step(z, t, reference) must return a flnotes.StepResult, got "

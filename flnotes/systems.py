@@ -239,6 +239,31 @@ class FLSystem:
             raise ValueError(f"phi returned shape {U.shape}, expected {(len(Z), self.m)}")
         return U[0] if single else U
 
+    def input_map(self, z: Array, rtol: float = 1e-9) -> tuple[Array, Array]:
+        """``a(z)``, ``B(z)`` with ``Phi(z, v) = a(z) + B(z) v`` for every ``v`` (eq. coor_Phi), at one ``z``.
+
+        Feedback linearization of a plant affine in its input (``x' = f_0(x) + g(x) u``) gives a map affine
+        in ``v``: ``a = Phi(z, 0)``, column ``j`` of ``B`` is ``Phi(z, e_j) - Phi(z, 0)``. Checked at eight
+        seeded points of the ``v``-box; a map that is not affine in ``v`` raises ``ValueError``.
+
+        Returns
+        -------
+        a, B
+            Shapes (m,) and (m, m).
+        """
+        z = as_vector(z, self.n_z, "z")
+        m = self.m
+        U = self.Phi(np.repeat(z[None], m + 1, axis=0), np.vstack([np.zeros(m), np.eye(m)]))
+        a, B = U[0], (U[1:] - U[0]).T
+        Vt = np.random.default_rng(0).uniform(self.lo[self.n_z:], self.hi[self.n_z:], (8, m))
+        Ut = self.Phi(np.repeat(z[None], 8, axis=0), Vt)
+        err = np.abs(Ut - (a + Vt @ B.T))
+        if np.any(err > rtol * (1.0 + np.abs(Ut))):
+            raise ValueError(f"Phi of {self.name} is not affine in v at z = {np.array2string(z, precision=4)} "
+                             f"(deviation {err.max():.3g}): u = a(z) + B(z) v does not hold, so its input set is not "
+                             "a polytope in v and u cannot be turned into a unique v")
+        return a, B
+
     def stack(self, z: Array, v: Array) -> Array:
         """The network input ``y^0 = [z, v]`` of eq. (MIP_general_a), shape (N, n_z + m)."""
         Z, V, single = self._pair(z, v)

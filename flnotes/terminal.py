@@ -29,11 +29,14 @@ is feasible at ``z``, the shifted plan ``(v(1), ..., v(N_p-1), K z(N_p))`` is
 feasible at ``A_d z + B_d v(0)`` (A2, A3), and its cost shows that the optimal
 cost decreases by at least ``l(z, v(0))`` (A4). :func:`shifted_plan` builds that
 candidate; :func:`region_of_attraction` draws the set of states from which the
-horizon program is feasible, with and without the terminal constraint.
+horizon program is feasible, with and without the terminal constraint, as decided
+by :class:`flnotes.MPC` itself.
 
-Functions the MPC engine calls: :func:`terminal_set` (the whole construction),
-then ``TerminalSet.P`` (terminal weight on ``z(N_p)``) and
-``TerminalSet.constraint()`` (``F_f z(N_p) <= g_f``).
+Use: ``term = terminal_set(...)`` (the whole construction), then
+``flnotes.MPC(..., P=term.P, terminal=term)``: the MPC reads ``TerminalSet.P``
+(terminal weight on ``z(N_p)``), ``TerminalSet.constraint()`` (``F_f z(N_p) <= g_f``)
+and ``TerminalSet.K`` (the last input ``K z(N_p)`` of its shifted warm start, the
+candidate of the proof).
 """
 from __future__ import annotations
 
@@ -47,7 +50,7 @@ from scipy.linalg import solve_discrete_are
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
 from ._checks import as_batch, as_vector, weight_matrix
-from .bounds import NodeBounds, fbbt
+from .bounds import fbbt
 from .encoding import bigm_form
 from .network import ReLUNet
 from .systems import FLSystem
@@ -55,7 +58,7 @@ from .systems import FLSystem
 Array = np.ndarray
 
 __all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "TerminalSet", "terminal_set",
-           "shifted_plan", "HorizonFeasibility", "RegionOfAttraction", "region_of_attraction"]
+           "shifted_plan", "RegionOfAttraction", "region_of_attraction"]
 
 
 # ============================================================================ terminal cost
@@ -533,182 +536,6 @@ def shifted_plan(term: TerminalSet, z_pred: Array, v_pred: Array) -> tuple[Array
     return np.vstack([Z[1:], term.A_cl @ Z[-1]]), np.vstack([V[1:], vN])
 
 
-class HorizonFeasibility:
-    """Feasibility of the horizon program of eq. (MPC_form_miqp) at a given ``z(0)``, as one MILP.
-
-    Variables: per step ``k = 0..N_p-1`` the big-M encoding of eq. (MIP_general) of
-    ``Phi_NN(z(k), v(k))`` (:func:`flnotes.bigm_form`; node bounds by
-    :func:`flnotes.fbbt` over the box reachable from ``z(0)`` in ``k`` steps
-    with ``v`` in its box, intersected with the state box, so the encoding is
-    exact on every feasible plan), and ``z(N_p)``. Constraints:
-    ``|Phi_NN(z(k), v(k))| <= u_max^eps`` (MPC_form_miqp_b), the dynamics
-    (MPC_form_miqp_c), ``z(k)`` in the state box for ``k = 1..N_p`` and ``v(k)``
-    in the v-box (MPC_form_miqp_d), and optionally ``F_f z(N_p) <= g_f``. The
-    equality constraints are built once; :meth:`solve` fixes ``z(0)`` and writes the big-M constants.
-
-    Parameters
-    ----------
-    system, net, eps, ts, horizon
-        As for :class:`flnotes.MPC`.
-    terminal
-        ``None`` (no terminal constraint) or ``(F_f, g_f)`` (e.g.
-        :meth:`TerminalSet.constraint`).
-    discretization, z_box, v_box
-        As for :func:`terminal_set`.
-    time_limit
-        Seconds per MILP; a point not decided in time is reported as undecided.
-    gains
-        Gains ``K`` (m, n_z) of greedy candidate plans tried before the MILP
-        (single-input systems): at each step the ``v`` of a grid of the v-box
-        nearest to ``K z`` among those with ``|Phi_NN(z, v)| <= u_max^eps`` (forward
-        pass). A candidate that meets every constraint proves feasibility
-        without a MILP; infeasibility is only ever concluded by the MILP (or
-        by an empty reachable box). ``v = 0``'s nearest admissible neighbour
-        (``K = 0``) is always tried.
-    n_v
-        Grid points of the v-box for those candidates.
-    candidates
-        ``False``: decide every point by the MILP alone (no greedy candidates).
-    """
-
-    def __init__(self, system: FLSystem, net: ReLUNet, eps, ts: float, horizon: int,
-                 terminal: Optional[tuple] = None, *, discretization: str = "rk4", z_box: Optional[tuple] = None,
-                 v_box: Optional[tuple] = None, time_limit: Optional[float] = 10.0, gains: Sequence = (),
-                 n_v: int = 801, candidates: bool = True):
-        if int(horizon) != horizon or horizon < 1:
-            raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
-        if net.n_in != system.n_in or net.n_out != system.m:
-            raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but {system.name} needs R^{system.n_in} -> R^{system.m}")
-        n, m, N = system.n_z, system.m, int(horizon)
-        self.n, self.m, self.N = n, m, N
-        eps = as_vector(eps, m, "eps")
-        self.u_eps = system.u_max - eps
-        if np.any(self.u_eps <= 0):
-            raise ValueError(f"eps = {eps} leaves no admissible input (u_max = {system.u_max})")
-        zb = (system.lo[:n], system.hi[:n]) if z_box is None else z_box
-        vb = (system.lo[n:], system.hi[n:]) if v_box is None else v_box
-        self.z_lo, self.z_hi = as_vector(zb[0], n, "z_box[0]"), as_vector(zb[1], n, "z_box[1]")
-        self.v_lo, self.v_hi = as_vector(vb[0], m, "v_box[0]"), as_vector(vb[1], m, "v_box[1]")
-        self.Ad, self.Bd = system.discretize(ts, discretization)
-        self.net, self.time_limit = net, time_limit
-        nb = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
-        self.form = form = bigm_form(net, nb)
-        nf = form.n
-        self.nvar = N * nf + n
-        off = [k * nf for k in range(N)]
-        self.iz = [form.x[:n] + o for o in off] + [np.arange(N * nf, N * nf + n)]
-        self.iv = [form.x[n:] + o for o in off]
-        self.iout = [form.out + o for o in off]
-        self.integrality = np.r_[np.tile(form.integrality, N), np.zeros(n, int)]
-        self._pad = lambda M: sp.hstack([M, sp.csr_matrix((M.shape[0], n))]).tocsr()  # noqa: E731
-        A_eq = self._pad(sp.block_diag([form.A_eq] * N))
-        dyn = sp.lil_matrix((N * n, self.nvar))
-        for k in range(N):  # z(k+1) - Ad z(k) - Bd v(k) = 0   (MPC_form_miqp_c)
-            r = slice(k * n, (k + 1) * n)
-            dyn[r, self.iz[k + 1]] = np.eye(n)
-            dyn[r, self.iz[k]] = -self.Ad
-            dyn[r, self.iv[k]] = -self.Bd
-        self.cons = [LinearConstraint(A_eq, np.tile(form.b_eq, N), np.tile(form.b_eq, N)),
-                     LinearConstraint(dyn.tocsr(), 0.0, 0.0)]
-        # reachable boxes: z(k) = Ad^k z0 + sum_j Ad^(k-1-j) Bd v(j), one column block per v(j)
-        self._Apow = [np.linalg.matrix_power(self.Ad, k) for k in range(N + 1)]
-        self.gains = [np.zeros((m, n))] + [np.atleast_2d(np.asarray(K, float)) for K in gains] if candidates else []
-        if any(K.shape != (m, n) for K in self.gains):
-            raise ValueError(f"every gain must have shape ({m}, {n})")
-        self.v_grid = np.linspace(self.v_lo[0], self.v_hi[0], int(n_v))[:, None] if m == 1 else None
-        self.terminal, self.Ff, self.gf = terminal, None, None
-        self.last_method = ""
-        if terminal is not None:
-            Ff, gf = np.asarray(terminal[0], float), np.asarray(terminal[1], float).reshape(-1)
-            if Ff.ndim != 2 or Ff.shape != (len(gf), n):
-                raise ValueError(f"terminal must be (F_f, g_f) with F_f of shape (p, {n}) and g_f (p,), got "
-                                 f"{Ff.shape} and {gf.shape}")
-            self.Ff, self.gf = Ff, gf
-            T = sp.lil_matrix((len(gf), self.nvar))
-            T[:, self.iz[N]] = Ff
-            self.cons.append(LinearConstraint(T.tocsr(), -np.inf, gf))
-
-    def feasible_plan(self, z_pred: Array, v_pred: Array, tol: float = 0.0) -> bool:
-        """Does the plan meet every constraint of the program (network by its forward pass)?"""
-        Z, V = np.asarray(z_pred, float), np.asarray(v_pred, float)
-        ok = (np.all(Z[1:] >= self.z_lo - tol) and np.all(Z[1:] <= self.z_hi + tol)
-              and np.all(V >= self.v_lo - tol) and np.all(V <= self.v_hi + tol)
-              and np.all(np.abs(self.net(np.hstack([Z[:-1], V]))) <= self.u_eps + tol)
-              and np.allclose(Z[1:], Z[:-1] @ self.Ad.T + V @ self.Bd.T, rtol=1e-9, atol=1e-9))
-        if ok and self.Ff is not None:
-            ok = bool(np.all(self.Ff @ Z[-1] <= self.gf + tol))
-        return bool(ok)
-
-    def _greedy(self, z0: Array, K: Array) -> Optional[tuple[Array, Array]]:
-        if self.v_grid is None:
-            return None
-        Z, V, z = [z0], [], z0
-        for _ in range(self.N):
-            X = np.hstack([np.repeat(z[None], len(self.v_grid), 0), self.v_grid])
-            ok = np.all(np.abs(self.net(X)) <= self.u_eps, axis=1)
-            if not ok.any():
-                return None
-            cand = self.v_grid[ok]
-            v = cand[np.argmin(np.abs(cand[:, 0] - float(K[0] @ z)))]
-            z = self.Ad @ z + self.Bd @ v
-            Z.append(z), V.append(v)
-        Z, V = np.array(Z), np.array(V)
-        return (Z, V) if self.feasible_plan(Z, V) else None
-
-    def solve(self, z0: Array) -> tuple[Optional[bool], Optional[tuple[Array, Array]]]:
-        """Is the program feasible at ``z0``? ``(True, (z_pred, v_pred))``, ``(False, None)`` or ``(None, None)`` (undecided).
-
-        ``last_method`` records how it was decided: ``"candidate"`` (a greedy
-        plan met every constraint), ``"reach"`` (a reachable box left the state
-        box), ``"milp"`` or ``"undecided"``.
-        """
-        z0 = as_vector(z0, self.n, "z0")
-        for K in self.gains:
-            plan = self._greedy(z0, K)
-            if plan is not None:
-                self.last_method = "candidate"
-                return True, plan
-        N, form = self.N, self.form
-        # node bounds per step by fbbt over the box reachable from z0 (intersected with the state box): with z(0)
-        # fixed the first steps have few unstable neurons, and the encoding stays exact on every feasible plan
-        zl, zh = [z0], [z0]
-        for k in range(1, N + 1):
-            c = self._Apow[k] @ z0
-            lo_k, hi_k = c.copy(), c.copy()
-            for j in range(k):
-                G = self._Apow[k - 1 - j] @ self.Bd
-                lo_k += np.minimum(G * self.v_lo, G * self.v_hi).sum(1)
-                hi_k += np.maximum(G * self.v_lo, G * self.v_hi).sum(1)
-            zl.append(np.maximum(lo_k, self.z_lo)), zh.append(np.minimum(hi_k, self.z_hi))
-        if any(np.any(l > h) for l, h in zip(zl, zh)):
-            self.last_method = "reach"
-            return False, None
-        nb = fbbt(self.net, np.hstack([np.array(zl[:N]), np.tile(self.v_lo, (N, 1))]),
-                  np.hstack([np.array(zh[:N]), np.tile(self.v_hi, (N, 1))]))
-        A_ub, b_ub, lb, ub = [], [], [], []
-        for k in range(N):
-            A_k, b_k, lb_k, ub_k = form.update(NodeBounds([L[k] for L in nb.L], [U[k] for U in nb.U],
-                                                          nb.out_L[k], nb.out_U[k]))
-            lb_k[form.x], ub_k[form.x] = np.r_[zl[k], self.v_lo], np.r_[zh[k], self.v_hi]
-            lb_k[form.out], ub_k[form.out] = -self.u_eps, self.u_eps
-            A_ub.append(A_k), b_ub.append(b_k), lb.append(lb_k), ub.append(ub_k)
-        lb, ub = np.r_[np.concatenate(lb), zl[N]], np.r_[np.concatenate(ub), zh[N]]
-        cons = self.cons + [LinearConstraint(self._pad(sp.block_diag(A_ub)), -np.inf, np.concatenate(b_ub))]
-        opts = {} if self.time_limit is None else dict(time_limit=float(self.time_limit))
-        res = milp(np.zeros(self.nvar), integrality=self.integrality, bounds=Bounds(lb, ub), constraints=cons,
-                   options=opts)
-        if res.status == 2:
-            self.last_method = "milp"
-            return False, None
-        if res.x is None:
-            self.last_method = "undecided"
-            return None, None
-        self.last_method = "milp"
-        Z = np.array([res.x[i] for i in self.iz])
-        V = np.array([res.x[i] for i in self.iv])
-        return True, (Z, V)
-
-
 @dataclass
 class RegionOfAttraction:
     """Feasibility of the horizon program on a 2-D grid of initial states.
@@ -756,22 +583,28 @@ class RegionOfAttraction:
 
 
 def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, horizon: int,
-                         axes: Sequence[int] = (0, 1), z_fixed: Optional[Array] = None, n_grid: int = 15,
-                         limits: Optional[tuple] = None, time_limit: Optional[float] = 10.0) -> RegionOfAttraction:
-    """The set of initial states from which eq. (MPC_form_miqp) is feasible, on a 2-D slice.
+                         axes: Sequence[int] = (0, 1), z_fixed: Optional[Array] = None, n_grid=15,
+                         limits: Optional[tuple] = None, time_limit: Optional[float] = 10.0,
+                         **mpc_kwargs) -> RegionOfAttraction:
+    """The set of initial states from which eq. (MPC_form_miqp) has an admissible plan, on a 2-D slice.
 
-    Each grid point is one feasibility MILP (:class:`HorizonFeasibility`), with
-    and without the terminal constraint ``z(N_p) in Z_f``. With it, the feasible
-    set is the region of attraction of the MPC: from any of its states the loop
-    stays feasible and converges (Mayne et al. 2000, Thm. 1). Without it, a
-    feasible state may lead to an infeasible one later.
+    Decided by the MPC itself (:class:`flnotes.MPC`, the one program builder): at every grid state a fresh
+    controller step (no previous plan) is solved without and with the terminal constraint
+    (``terminal=terminal``; the terminal weight is left out, since the cost does not change the feasible set); the
+    state is feasible when the step ends with a plan of its own (status
+    ``"optimal"``, or ``"time_limit"`` with an admissible incumbent, and ``fallback`` False), infeasible when
+    the status is ``"infeasible"``, and undecided (NaN) otherwise (the time limit hit without an admissible
+    incumbent, or a solver error). With the terminal constraint the feasible set is the region of attraction
+    of the MPC: from any of its states the loop stays feasible and converges (Mayne et al. 2000, Thm. 1).
+    Without it, a feasible state may lead to an infeasible one later.
 
     Parameters
     ----------
     system, net, eps
         As for :class:`flnotes.MPC`.
     terminal
-        The terminal ingredients (:func:`terminal_set`); its ``ts``, boxes and model are used.
+        The terminal ingredients (:func:`terminal_set`); its ``ts``, ``Q``, ``R``, discretization and v-box
+        are the MPC's. Its state box must be the domain box (the MPC keeps its predictions there).
     horizon
         ``N_p``.
     axes
@@ -783,15 +616,22 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     limits
         ``((x_lo, x_hi), (y_lo, y_hi))``; default the state box.
     time_limit
-        Seconds per MILP.
+        Seconds per MPC step.
+    mpc_kwargs
+        Further options of :class:`flnotes.MPC` (back-end, bounds, ...).
 
     Returns
     -------
     RegionOfAttraction
     """
+    from .mpc import MPC  # the engine sits above this module
+
     if not isinstance(terminal, TerminalSet):
         raise TypeError(f"terminal must be a flnotes.terminal.TerminalSet (from terminal_set), got {type(terminal).__name__}")
     n = system.n_z
+    if not (np.allclose(terminal.z_lo, system.lo[:n]) and np.allclose(terminal.z_hi, system.hi[:n])):
+        raise ValueError("terminal was built for a state box other than the domain box: the MPC keeps its predictions "
+                         "in the domain box, so build the terminal set with the default z_box")
     axes = tuple(int(a) for a in axes)
     if len(axes) != 2 or axes[0] == axes[1] or not all(0 <= a < n for a in axes):
         raise ValueError(f"axes must be two different coordinates of z in 0..{n - 1}, got {axes}")
@@ -803,26 +643,36 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
         limits = ((terminal.z_lo[axes[0]], terminal.z_hi[axes[0]]), (terminal.z_lo[axes[1]], terminal.z_hi[axes[1]]))
     x, y = np.linspace(*limits[0], nx), np.linspace(*limits[1], ny)
     t0 = time.perf_counter()
-    common = dict(discretization=terminal.discretization, z_box=(terminal.z_lo, terminal.z_hi),
-                  v_box=(terminal.v_lo, terminal.v_hi),
-                  time_limit=time_limit, gains=(terminal.K,))
-    eps_v = as_vector(eps, system.m, "eps")
-    progs = [HorizonFeasibility(system, net, eps_v, terminal.ts, horizon, None, **common),
-             HorizonFeasibility(system, net, eps_v, terminal.ts, horizon, terminal.constraint(), **common)]
+    common = dict(horizon=int(horizon), ts=terminal.ts, Q=terminal.Q, R=terminal.R,
+                  discretization=terminal.discretization, v_box=(terminal.v_lo, terminal.v_hi),
+                  time_limit=time_limit, **mpc_kwargs)
+    # feasibility does not depend on the cost: both programs keep the stage cost only (the terminal weight P
+    # changes the optimum, not the feasible set, and makes each solve slower)
+    mpcs = [MPC(system, net, eps, **common), MPC(system, net, eps, terminal=terminal, **common)]
     out = [np.full((ny, nx), np.nan), np.full((ny, nx), np.nan)]
     roa = RegionOfAttraction(x=x, y=y, axes=axes, z_fixed=z_fixed, feasible=out[0], feasible_terminal=out[1],
                              horizon=int(horizon), ts=terminal.ts, terminal=terminal, time_s=0.0)
     Z = roa.points()
+    zero = np.zeros(n)
     for i in range(ny):
         for j in range(nx):
-            for k, p in enumerate(progs):
+            for k, mpc in enumerate(mpcs):
                 if k == 1 and out[0][i, j] == 0:  # the terminal constraint only removes plans
                     out[1][i, j] = 0.0
                     continue
-                ok, _ = p.solve(Z[i, j])
-                out[k][i, j] = np.nan if ok is None else float(ok)
+                mpc.reset()
+                out[k][i, j] = _decided(mpc(Z[i, j], zero))
     roa.time_s = time.perf_counter() - t0
     return roa
+
+
+def _decided(step) -> float:
+    """1 (an admissible plan of the program's own), 0 (proved infeasible) or NaN (undecided) for one MPC step."""
+    if step.status in ("optimal", "time_limit") and not step.fallback:
+        return 1.0
+    if step.status == "infeasible":
+        return 0.0
+    return np.nan
 
 
 # ============================================================================ helpers

@@ -170,7 +170,8 @@ def test_simulate_falls_back_only_on_a_solver_failure_and_says_so(msd):
             raise fl.SolverFailure(f"no admissible v at t = {t:.1f}", status="infeasible")
 
     log = fl.simulate(sysm, Infeasible(), t_final=0.3, ts=0.1, z0=[0.0, 1.0], fallback=lambda z: np.zeros(1))
-    assert log.fallback.all() and all("SolverFailure: no admissible v" in s for s in log.status)
+    assert log.fallback.all() and all(s == "error" for s in log.status)
+    assert all("SolverFailure: no admissible v" in st.message for st in log.steps)
     assert all(st.info["solver_status"] == "infeasible" for st in log.steps)
 
 

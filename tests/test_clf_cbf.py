@@ -104,7 +104,7 @@ def test_mip_backends_match_the_exact_enumeration(msd, cost, backend):
     for z in states:
         r, rx = ctrl.step(z), ex.step(z)
         assert r.status == rx.status and r.fallback == rx.fallback
-        assert rel(r.info["objective"], rx.info["objective"]) <= 1e-6, (z, r.info, rx.info)
+        assert rel(r.objective, rx.objective) <= 1e-6, (z, r.info, rx.info)
         # whenever the program is feasible the applied v satisfies (CLF_CBF_b)-(CLF_CBF_d) up to tolerances
         if not r.fallback:
             d = ctrl.program_data(z)
@@ -126,8 +126,8 @@ def test_mip_optimum_matches_the_exact_enumeration_on_many_states(msd, backend, 
     for z in states:
         r, rx = ctrl.step(z), ex.step(z)
         assert r.status == rx.status, (z, r.status, rx.status)
-        worst = max(worst, rel(r.info["objective"], rx.info["objective"]))
-        assert worst <= 1e-6, (z, r.v, rx.v, r.info["objective"], rx.info["objective"])
+        worst = max(worst, rel(r.objective, rx.objective))
+        assert worst <= 1e-6, (z, r.v, rx.v, r.objective, rx.objective)
 
 
 def test_persistent_model_matches_bigm_form_update(msd):
@@ -163,8 +163,8 @@ def test_mip_optimum_at_states_where_a_solver_was_wrong(msd, backend):
     for z in HARD_STATES:
         r, rx = ctrl.step(z), ex.step(z)
         assert r.status == rx.status == "optimal", (z, r.status, rx.status)
-        assert rel(r.info["objective"], rx.info["objective"]) <= 1e-6, (z, r.v, rx.v, r.info["objective"],
-                                                                          rx.info["objective"])
+        assert rel(r.objective, rx.objective) <= 1e-6, (z, r.v, rx.v, r.objective,
+                                                                          rx.objective)
 
 
 @pytest.mark.parametrize("cost", ["linear", "quadratic"])
@@ -180,8 +180,8 @@ def test_screening_is_exact(msd, cost):
     for z in states:
         r, rx = ctrl.step(z), ex.step(z)
         assert r.status == rx.status, (z, r.status, rx.status)
-        assert rel(r.info["objective"], rx.info["objective"]) <= 1e-6, (z, r.v, rx.v)
-        screened += r.info["screened"]
+        assert rel(r.objective, rx.objective) <= 1e-6, (z, r.v, rx.v)
+        screened += r.screened
     assert 0 < screened < len(states)
 
 
@@ -282,12 +282,13 @@ def test_closed_loop_with_too_small_u_max_reports_infeasibility_and_never_crashe
     for i in np.flatnonzero(log.fallback)[:3]:
         r = ctrl_milp.step(log.z[i])
         assert r.status == "infeasible" and r.fallback
-        assert rel(r.info["objective"], log.steps[i].info["objective"]) <= 1e-6
+        assert rel(r.objective, log.steps[i].objective) <= 1e-6
     # a solver that raises is caught by the controller, not by the simulation
     ctrl_bad = ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="exact")
     ctrl_bad._impl.solve = lambda *a, **kw: (_ for _ in ()).throw(RuntimeError("boom"))
     r = ctrl_bad.step(np.array([1.0, 1.0]))
-    assert r.fallback and r.status.startswith("error: RuntimeError") and r.info["fallback_rule"].startswith("k(z)")
+    assert r.fallback and r.status == "error" and r.message.startswith("RuntimeError")
+    assert r.info["fallback_rule"].startswith("k(z)")
 
 
 @pytest.mark.parametrize("cost, backend, screening", [("linear", "highs", True), ("linear", "auto", True),
@@ -312,7 +313,7 @@ def test_multi_input_system_works_with_the_milp(msd, cost, backend, screening):
     for z in states:
         r, rr = ctrl.step(z), ref.step(z)
         assert r.v.shape == (2,) and r.status == rr.status
-        assert rel(r.info["objective"], rr.info["objective"]) <= 1e-6
+        assert rel(r.objective, rr.objective) <= 1e-6
         assert np.all(np.abs(r.info["phi_nn"]) <= 5.0 - 0.1 + 1e-6) or r.fallback
 
 

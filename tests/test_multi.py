@@ -192,7 +192,7 @@ def test_exact_method_equals_mip(arm, shipped, cost):
         a, b = ex.step(z), mip.step(z)
         assert a.status == b.status, (z, a.status, b.status)
         assert a.fallback == b.fallback
-        oa, ob = a.info["objective"], b.info["objective"]
+        oa, ob = a.objective, b.objective
         assert abs(oa - ob) <= 1e-6 * max(1.0, abs(ob)), (z, oa, ob, a.v, b.v)
         y = net(np.concatenate([z, a.v]))
         if not a.fallback:
@@ -234,7 +234,7 @@ def test_softened_program_equals_mip(arm, shipped, cost):
         # (rho_u = 1e6 also magnifies the rounding of the network's output, ~1e-13, hence the absolute term)
         fa, fb = _soft_value(ex, z, a.v), _soft_value(ex, z, b.v)
         tol = 1e-9 * max(1.0, abs(fb)) + 1e-11 * sum(ex.penalty)
-        assert abs(a.info["objective"] - fa) <= tol
+        assert abs(a.objective - fa) <= tol
         assert fa <= fb + tol, (z, fa, fb)
         assert abs(fa - fb) <= 1e-6 * max(1.0, abs(fb)), (z, fa, fb, a.v, b.v)
         # the input bound is given up last: the network's output still meets it

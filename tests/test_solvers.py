@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from flnotes.solvers import BACKENDS, MIQP, available_backends, make_solver
+from flnotes.solvers import SOLVER_BACKENDS, MIQP, available_backends, make_solver
 
 OPEN = [b for b in ("highs", "scip", "daqp") if b in available_backends()]
 MIQP_BACKENDS = [b for b in OPEN if b != "highs"]
@@ -217,7 +217,7 @@ def test_bad_shapes_name_the_argument():
 def test_commercial_backends_are_optional():
     p = random_program(1, quad=False)
     for b in ("gurobi", "cplex"):
-        assert b in BACKENDS
+        assert b in SOLVER_BACKENDS
         if b in available_backends():
             try:
                 r = make_solver(p, b).solve()
@@ -238,106 +238,6 @@ def test_daqp_rejects_general_integers():
         make_solver(q, "daqp")
     r = make_solver(q, "scip").solve()  # SCIP takes general integers
     assert r.status == "optimal"
-
-
-# ---------------------------------------------------------------------------
-# The MPC program: every lever returns the same global optimum
-# ---------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def horizon_setup():
-    import flnotes as fl
-
-    s = fl.quad1d()
-    net, _ = fl.fit_relu(s.phi_stacked, s.lo, s.hi, widths=(6, 6), n_per_axis=9, max_iter=1500, seed=2)
-    Ad, Bd = s.discretize(0.1, "rk4")
-    u_eps = 0.1745 - 0.0322
-    common = dict(z_lo=s.lo[:3], z_hi=s.hi[:3], v_lo=s.lo[3:], v_hi=s.hi[3:], u_eps=u_eps)
-    N = 6
-    cases = []
-    rng = np.random.default_rng(0)
-    for _ in range(40):
-        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
-        zr = np.zeros((N + 1, 3))
-        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
-        cases.append((z0, zr))
-    # keep the states where the QP without the network violates it (plus two easy ones)
-    probe = _hz((net, Ad, Bd, N, common, None))
-    hard = [c for c in cases if not probe.solve(*c).screened]
-    easy = [c for c in cases if probe.solve(*c).screened]
-    return net, Ad, Bd, N, common, hard[:8] + easy[:2]
-
-
-def _hz(setup, **kw):
-    from flnotes.levelset import HorizonMIQP
-
-    net, Ad, Bd, N, common, _ = setup
-    return HorizonMIQP(net, Ad, Bd, N, np.diag([10.0, 1.0, 1.0]), [[0.0175]], **common, **kw)
-
-
-def test_every_lever_combination_returns_the_reference_optimum(horizon_setup):
-    cases = horizon_setup[-1]
-    # the reference: no lever at all (domain-box bounds, every step encoded, no screening, every neuron a binary)
-    ref = _hz(horizon_setup, bounds="box", encode="all", screening=False, eliminate_stable=False)
-    scip = _hz(horizon_setup, backend="scip", bounds="horizon", encode="all", screening=False)
-    levers = [dict(bounds=b, encode=e, screening=sc, eliminate_stable=el, lazy=lz)
-              for b in ("box", "horizon", "lp", "levelset") for e in ("all", "needed")
-              for sc in (True, False) for el in (True, False) for lz in (True, False)]
-    daqp_hz = [_hz(horizon_setup, **lv) for lv in levers]
-    hard = 0
-    for i, (z0, zr) in enumerate(cases[:6]):
-        r_ref = ref.solve(z0, zr)
-        assert r_ref.status in ("optimal", "infeasible")
-        if r_ref.status == "infeasible":
-            continue
-        if i < 2:  # an independent solver on the same states
-            r_scip = scip.solve(z0, zr)
-            assert r_scip.status == "optimal" and rel(r_scip.objective, r_ref.objective) <= RTOL
-        screened = _hz(horizon_setup).solve(z0, zr).screened
-        hard += not screened
-        for lv, hz in zip(levers, daqp_hz):
-            r = hz.solve(z0, zr)
-            assert r.status == "optimal", (lv, r.message)
-            assert rel(r.objective, r_ref.objective) <= RTOL, (lv, r.objective, r_ref.objective)
-            assert hz.feasible(z0, r.v_pred, tol=1e-6)
-            assert np.isclose(r.objective, hz.cost(r.v_pred, *hz._linear(z0, zr)))
-    assert hard >= 3  # the comparison must include states where the network constraint is active
-
-
-def test_warm_start_and_backends_give_the_same_optimum(horizon_setup):
-    cases = horizon_setup[-1]
-    fast = _hz(horizon_setup)
-    scip = _hz(horizon_setup, backend="scip", bounds="levelset")
-    checked = 0
-    for z0, zr in cases:
-        cold = fast.solve(z0, zr)
-        if cold.status != "optimal" or cold.screened:
-            continue
-        checked += 1
-        # warm start: the optimum itself, and a feasible but worse plan (the optimum of another reference)
-        again = fast.solve(z0, zr, warm_start=cold.v_pred)
-        assert again.status == "optimal" and rel(again.objective, cold.objective) <= RTOL
-        other = fast.solve(z0, zr + np.array([1.0, 0, 0]))
-        if other.status == "optimal":
-            w = fast.solve(z0, zr, warm_start=other.v_pred)
-            assert w.status == "optimal" and rel(w.objective, cold.objective) <= RTOL
-        r = scip.solve(z0, zr)
-        assert r.status == "optimal" and rel(r.objective, cold.objective) <= RTOL
-    assert checked >= 2
-
-
-def test_horizon_miqp_checks_its_arguments(horizon_setup):
-    net, Ad, Bd, N, common, cases = horizon_setup
-    from flnotes.levelset import HorizonMIQP
-
-    with pytest.raises(ValueError, match="bounds"):
-        _hz(horizon_setup, bounds="nonsense")
-    with pytest.raises(ValueError, match="encode"):
-        _hz(horizon_setup, encode="some")
-    with pytest.raises(ValueError, match="net"):
-        HorizonMIQP(net, np.eye(2), np.ones((2, 1)), N, np.eye(2), [[1.0]], z_lo=[-1, -1], z_hi=[1, 1],
-                    v_lo=[-1], v_hi=[1], u_eps=0.1)
-    with pytest.raises(ValueError, match="z_ref"):
-        _hz(horizon_setup).solve(cases[0][0], np.zeros((N + 3, 3)))
 
 
 def test_every_solver_status_is_mapped_and_only_proofs_are_optimal():

@@ -1,16 +1,15 @@
-"""Terminal ingredients (flnotes.terminal) and the bound between samples (flnotes.intersample).
+"""Terminal ingredients (flnotes.terminal) and the MPC with them.
 
-Properties checked: P solves the Riccati equation; the terminal set is positively invariant and inside the
-boxes; its MILP certificate is never below the dense-sampling maximum and is within u_max^eps; the level
-alpha is the largest within tolerance; the shifted plan of the recursive-feasibility proof is feasible along
-a closed loop; delta's certified upper bound is never below sampled drifts; and with the margin
-u_max^{eps+delta} the true input stays within u_max at every instant of a closed loop on the true plant.
+Properties checked: P solves the Riccati equation; the terminal set is positively invariant (by sampling and by
+LPs) and inside the boxes; its MILP certificate is never below the dense-sampling maximum and is within
+u_max^eps; the level alpha is the largest within tolerance; the MPC with the terminal option is recursively
+feasible in a nominal closed loop, its plans end in Z_f and its optimal cost decreases Lyapunov-wise; its
+region of attraction is decided by the MPC itself; the shifted plan closes the loop on the true plant.
 """
 import numpy as np
 import pytest
 
 import flnotes as fl
-from flnotes import intersample as isb
 from flnotes import terminal as term
 
 SETTINGS = {"Quad-1D": dict(Q=[10.0, 1.0, 1.0], R=0.0175), "MSD": dict(Q=[10.0, 1.0], R=0.1)}
@@ -60,8 +59,11 @@ def test_terminal_set_invariant_and_in_boxes(setup):
     assert len(Z) == 20_000 and np.all(T.contains(Z))
     # positively invariant under z+ = (Ad + Bd K) z
     assert np.all(T.contains(Z @ T.A_cl.T, tol=1e-9)), f"{name}: a point of Z_f leaves it under Ad + Bd K"
-    # inside the state box and K z inside the v-box: exactly, by LPs over the polytope
+    # positively invariant, exactly: max over Z_f of each face of (Ad + Bd K) z, one LP per face
     F, g = T.constraint()
+    for i in range(len(g)):
+        assert term._lp_max(F[i] @ T.A_cl, F, g) <= g[i] + 1e-9 * (1 + abs(g[i])), f"{name}: face {i} not invariant"
+    # inside the state box and K z inside the v-box: exactly, by LPs over the polytope
     lo, hi = term._bounding_box(F, g)
     assert np.all(lo >= T.z_lo - 1e-9) and np.all(hi <= T.z_hi + 1e-9)
     for i in range(system.m):
@@ -100,122 +102,74 @@ def test_alpha_is_largest_within_tolerance(setup):
     assert max(h[0] for h in passed) == T.alpha
 
 
-def test_recursive_feasibility_by_shifted_plan(quad_terminal):
+def _plan_cost(T, Z, V):
+    """The program's cost with the terminal cost: sum_k l(z(k), v(k)) + z(N)'P z(N) (regulation to 0)."""
+    return float(np.einsum("ij,jk,ik->", Z[:-1], T.Q, Z[:-1]) + np.einsum("ij,jk,ik->", V, T.R, V)
+                 + Z[-1] @ T.P @ Z[-1])
+
+
+def _terminal_mpc(system, net, eps, T, N):
+    return fl.MPC(system, net, eps, horizon=N, ts=T.ts, Q=T.Q, R=T.R, P=T.P, terminal=T, time_limit=60.0)
+
+
+def test_recursive_feasibility_in_nominal_closed_loop(quad_terminal):
+    # the theorem: from a feasible start every step of the nominal closed loop is feasible, the plan ends in Z_f,
+    # the shifted plan (the proof's candidate) is feasible, and the optimal cost falls by at least l(z_k, v_k)
     system, net, eps, T = quad_terminal
     N = 5
-    prog = term.HorizonFeasibility(system, net, eps, TS, N, T.constraint())
-    free = term.HorizonFeasibility(system, net, eps, TS, N, None)
-    roa = term.region_of_attraction(system, net, eps, T, horizon=N, n_grid=4, limits=((-1.0, 1.0), (-1.0, 1.0)))
-    # the terminal constraint only removes plans
-    assert np.all(roa.feasible_terminal <= roa.feasible)
-    starts = roa.points()[roa.feasible_terminal == 1]
-    assert len(starts) >= 1, "premise: some grid state must be feasible with the terminal constraint"
+    mpc = _terminal_mpc(system, net, eps, T, N)
+    z = np.array([-1.0, 1.0, 1.0])
+    assert not T.contains(z)[0], "premise: the start is outside Z_f"
+    F, g = T.constraint()
     u_eps = system.u_max - eps
-    for z in starts[:2]:
-        ok, plan = prog.solve(z)
-        assert ok
-        Zp, Vp = plan
-        for _ in range(6):
-            # the candidate of the proof is feasible: boxes, network constraint, dynamics, terminal set
-            Zc, Vc = term.shifted_plan(T, Zp, Vp)
-            assert np.all(Zc >= T.z_lo - 1e-7) and np.all(Zc <= T.z_hi + 1e-7)
-            assert np.all(Vc >= T.v_lo - 1e-7) and np.all(Vc <= T.v_hi + 1e-7)
+    J_prev, l_prev, cand, J_first = None, None, None, None
+    for k in range(fl.scale(25, 12)):
+        step = mpc(z, np.zeros(3))
+        assert step.status == "optimal" and not step.fallback and step.input_admissible, \
+            f"step {k} at z = {z}: {step.status}, fallback {step.fallback}: {step.message}"
+        Zp, Vp = step.z_pred, step.v_pred
+        assert np.allclose(Zp[0], z)
+        assert np.all(F @ Zp[-1] <= g + 1e-6), f"step {k}: the plan's last state violates F z(N_p) <= g"
+        assert np.all(np.abs(net(np.hstack([Zp[:-1], Vp]))) <= u_eps + 1e-6)
+        assert np.all(Zp >= T.z_lo - 1e-6) and np.all(Zp <= T.z_hi + 1e-6)
+        J = _plan_cost(T, Zp, Vp)
+        if J_prev is not None:
+            # the candidate of the proof is feasible here, so the optimum is at most its cost J_prev - l_prev
+            Zc, Vc = cand
+            assert np.allclose(Zc[0], z) and np.all(F @ Zc[-1] <= g + 1e-6)
             assert np.all(np.abs(net(np.hstack([Zc[:-1], Vc]))) <= u_eps + 1e-6)
-            assert np.allclose(Zc[1:], Zc[:-1] @ T.Ad.T + Vc @ T.Bd.T)
-            assert T.contains(Zc[-1], tol=1e-7)[0]
-            # and the program is feasible at the next state (with and without the terminal constraint)
-            ok, plan = prog.solve(Zc[0])
-            assert ok, f"infeasible at {Zc[0]} although the shifted plan is feasible"
-            assert free.solve(Zc[0])[0]
-            Zp, Vp = plan
-    # every state of Z_f is feasible with the terminal constraint (the terminal law is a feasible plan)
-    for z in T.sample(5, seed=5):
-        assert prog.solve(z)[0]
+            assert J <= J_prev - l_prev + 1e-5 * (1 + J_prev), f"step {k}: no Lyapunov decrease ({J} > {J_prev - l_prev})"
+        cand = term.shifted_plan(T, Zp, Vp)
+        J_first = J if J_first is None else J_first
+        J_prev, l_prev = J, float(z @ T.Q @ z + step.v @ T.R @ step.v)
+        z = T.Ad @ z + T.Bd @ step.v
+    assert J_prev < 0.5 * J_first, "the optimal cost (a Lyapunov function) must have fallen along the run"
 
 
-def test_horizon_milp_agrees_with_candidates(quad_terminal):
+def test_region_of_attraction_decided_by_the_engine(quad_terminal):
     system, net, eps, T = quad_terminal
-    N = 5
-    for terminal in (None, T.constraint()):
-        fast = term.HorizonFeasibility(system, net, eps, TS, N, terminal, gains=(T.K,))
-        milp_only = term.HorizonFeasibility(system, net, eps, TS, N, terminal, candidates=False)
-        for z in ([0.0, 0.0, 0.0], [0.5, -0.5, 0.0], [-4.0, -4.0, 0.0], [4.5, 4.5, 0.0], [1.0, 1.0, 0.0]):
-            ok_fast, _ = fast.solve(z)
-            ok_milp, plan = milp_only.solve(z)
-            assert ok_milp is not None
-            assert ok_fast == ok_milp, f"z0 = {z}: candidates/reach say {ok_fast}, the MILP says {ok_milp}"
-            if ok_milp:
-                # the MILP's plan meets every constraint (network by its forward pass), up to solver tolerances
-                assert milp_only.feasible_plan(*plan, tol=1e-6)
-                assert np.allclose(plan[0][0], z)
-
-
-def test_flow_is_the_exact_discretization():
-    for system in (fl.msd(), fl.quad1d()):
-        rng = np.random.default_rng(3)
-        Z, V = rng.normal(size=(50, system.n_z)), rng.normal(size=(50, system.m))
-        for ts in (0.02, 0.1):
-            Ad, Bd = fl.discretize(system.A, system.B, ts, "exact")
-            assert np.allclose(isb.flow(system, Z, V, np.full(50, ts)), Z @ Ad.T + V @ Bd.T, atol=1e-12)
-
-
-@pytest.mark.parametrize("name", ["MSD", "Quad-1D"])
-def test_delta_bounds_sampled_drift(name):
-    system = fl.paper.system(name)
-    ts = 0.05
-    d_all = isb.intersample_drift(system, ts, admissible=False)
-    d_adm = isb.intersample_drift(system, ts)
-    n, m = system.n_z, system.m
-    rng = np.random.default_rng(4)
-    X = rng.uniform(system.lo, system.hi, (400_000, n + m))
-    X[:50_000] = np.where(rng.random((50_000, n + m)) < 0.5, system.lo, system.hi)  # corners of the box
-    tau = rng.uniform(0, ts, len(X))
-    tau[: len(X) // 2] = ts
-    Z, V = X[:, :n], X[:, n:]
-    drift = np.abs(system.Phi(isb.flow(system, Z, V, tau), V) - system.Phi(Z, V))
-    admissible = np.all(np.abs(system.Phi(Z, V)) <= system.u_max, axis=1)
-    assert admissible.sum() > 1000, "premise: many samples are admissible"
-    # the certified upper ends are never below the sampled drifts (whole box, admissible samples)
-    assert np.all(drift.max(0) <= d_all.upper), f"{name}: sampled drift {drift.max(0)} > certified {d_all.upper}"
-    assert np.all(drift[admissible].max(0) <= d_adm.upper), (
-        f"{name}: sampled admissible drift {drift[admissible].max(0)} > certified {d_adm.upper}")
-    assert np.all(d_adm.upper <= d_all.upper)
-    for d in (d_all, d_adm):
-        assert np.all(d.lower <= d.upper) and np.all(d.lower > 0)
-        # the lower end is attained at a point of the box (and of the admissible set when restricted)
-        za, va, ta = d.argmax[0, :n], d.argmax[0, n:n + m], d.argmax[0, -1]
-        assert np.all(za >= system.lo[:n]) and np.all(za <= system.hi[:n]) and 0 <= ta <= ts
-        at = np.abs(system.Phi(isb.flow(system, za[None], va[None], [ta]), va[None]) - system.Phi(za[None], va[None]))
-        assert at[0, 0] >= d.lower[0] * (1 - 1e-9)
-    assert np.all(np.abs(system.Phi(d_adm.argmax[:, :n], d_adm.argmax[:, n:n + m])) <= system.u_max)
-    # a shorter hold cannot drift more: the certified lower end at t_s / 2 stays below the upper end at t_s
-    assert np.all(isb.intersample_drift(system, ts / 2).lower <= d_adm.upper)
-
-
-def test_margin_refuses_an_empty_input_set():
-    system = fl.quad1d()
-    with pytest.raises(ValueError, match="shorten t_s"):
-        isb.margin(system, 0.1, 0.1)
-
-
-@pytest.mark.parametrize("name, ts, z0", [("MSD", 0.1, [2.0, 2.0]), ("Quad-1D", 0.05, [-0.5, -0.15, -0.2])])
-def test_true_input_within_bound_between_samples(name, ts, z0):
-    system = fl.paper.system(name)
-    net, _ = fl.paper_net(name)
-    eps = fl.paper_eps(name).upper
-    delta = isb.intersample_drift(system, ts).upper
-    bound = isb.margin(system, eps, delta)
-    K, _ = term.lqr(*system.discretize(ts), SETTINGS[name]["Q"], SETTINGS[name]["R"])
-    law = isb.AdmissibleLaw(system, net, bound, lambda z: K @ z)
-    log = fl.simulate(system, law, t_final=2.0, ts=ts, z0=z0, net=net, n_fine=40, check_domain=True)
-    # premise of the guarantee: every sample (z_k, v_k) in the domain box, the whole run done
-    assert log.message == "" and log.n_steps == int(round(2.0 / ts))
-    assert np.all(system.in_domain(log.z[:-1], log.v))
-    assert np.all(np.abs(log.u_nn) <= bound + 1e-12)
-    assert not log.fallback.any()
-    # |u(t)| <= u_max at every instant of the fine grid (a tiny slack for the ODE solver's tolerance)
-    assert np.all(np.abs(log.u_fine) <= system.u_max + 1e-7), (
-        f"{name}: max |u| between samples {np.abs(log.u_fine).max()} > u_max {system.u_max}")
+    N = 3
+    roa = term.region_of_attraction(system, net, eps, T, horizon=N, n_grid=fl.scale(5, 3),
+                                    limits=((-4.0, 4.0), (-4.0, 4.0)), time_limit=60.0)
+    assert not np.isnan(roa.feasible).any() and not np.isnan(roa.feasible_terminal).any()
+    # the terminal constraint only removes plans, and it does remove some here
+    assert np.all(roa.feasible_terminal <= roa.feasible)
+    assert roa.feasible_terminal.sum() >= 1 and roa.feasible_terminal.sum() < roa.feasible.sum()
+    # each verdict is the engine's: re-solve a feasible and an infeasible grid state with the terminal option
+    mpc = fl.MPC(system, net, eps, horizon=N, ts=T.ts, Q=T.Q, R=T.R, terminal=T, time_limit=60.0)
+    Z = roa.points()
+    for verdict in (1.0, 0.0):
+        z = Z[roa.feasible_terminal == verdict][0]
+        mpc.reset()
+        step = mpc(z, np.zeros(3))
+        assert (step.status == "optimal" and not step.fallback) == bool(verdict)
+        if not verdict:
+            assert step.status == "infeasible"
+    # every state of Z_f is feasible with the terminal constraint (the terminal law is a feasible plan)
+    for z in T.sample(3, seed=5):
+        mpc.reset()
+        step = mpc(z, np.zeros(3))
+        assert step.status == "optimal" and not step.fallback
 
 
 def test_max_admissible_set_small_cases_and_bad_input():
@@ -249,14 +203,11 @@ def test_shifted_plan_closes_the_loop_on_the_true_plant(quad_terminal):
     # admissible at every sample, enters Z_f after N_p steps and then converges under v = K z
     system, net, eps, T = quad_terminal
     N = 5
-    prog = term.HorizonFeasibility(system, net, eps, TS, N, T.constraint(), gains=(T.K,))
-    roa = term.region_of_attraction(system, net, eps, T, horizon=N, n_grid=5, limits=((-1.0, 1.0), (-1.0, 1.0)))
-    pts = roa.points()[roa.feasible_terminal == 1]
-    pts = pts[~T.contains(pts)]
-    assert len(pts) >= 1, "premise: a grid state outside Z_f from which the program is feasible"
-    z0 = pts[np.argmax(np.linalg.norm(pts, axis=1))]
-    ok, plan = prog.solve(z0)
-    assert ok
+    z0 = np.array([-1.0, 1.0, 1.0])
+    assert not T.contains(z0)[0], "premise: the start is outside Z_f"
+    step = _terminal_mpc(system, net, eps, T, N)(z0, np.zeros(3))
+    assert step.status == "optimal" and not step.fallback
+    plan = (step.z_pred, step.v_pred)
 
     class Tail:
         net = None

@@ -84,8 +84,8 @@ def run(fast: bool) -> dict:
             for z in states:
                 r, rx = ctrl.step(z), ex.step(z)
                 ms.append(r.solve_time * 1e3), cpu.append(r.info["cpu_time"] * 1e3)
-                ok = r.status == rx.status and np.isfinite(r.info["objective"])
-                d = _rel(r.info["objective"], rx.info["objective"]) if ok else np.inf
+                ok = r.status == rx.status and np.isfinite(r.objective)
+                d = _rel(r.objective, rx.objective) if ok else np.inf
                 bad += int(not ok or d > 1e-6)
                 worst = max(worst, d)
             ms, cpu = np.array(ms), np.array(cpu)

@@ -157,18 +157,23 @@ def summarize(name: str, rows: list[dict]) -> dict:
 # ----------------------------------------------------------------------------------- MPC
 def mpc_reference(setup: dict, cases: list[dict], time_limit: float = 120.0) -> list:
     """The cold reference at every case: SCIP, every step encoded on the reachable boxes, gap 1e-8."""
-    from .mpc import make_solver
+    from .mpc import make_mpc
 
-    hz = make_solver(setup, backend="scip", bounds="horizon", encode="all", screening=False, warm_start=False,
-                     lazy=False)
-    return [hz.solve(c["z"], c["z_ref"], time_limit=time_limit, gap=1e-8) for c in cases]
+    mpc = make_mpc(setup, backend="scip", bounds="horizon", encode="all", screening=False, warm_start=False,
+                   lazy=False, time_limit=time_limit)
+    mpc.gap = 1e-8
+    out = []
+    for c in cases:
+        mpc.reset()
+        out.append(mpc(c["z"], c["z_ref"]))
+    return out
 
 
 def add_previous_plans(setup: dict, cases: list[dict], refs: list) -> None:
     """A previous plan for every case: the reference's optimum shifted by one step (the warm start of a
     closed loop that followed the prediction), stored as ``case["ws"]`` (``None`` without a plan)."""
     for c, r in zip(cases, refs):
-        c["ws"] = None if r.v_pred is None else np.vstack([r.v_pred[1:], r.v_pred[-1:]])
+        c["ws"] = None if not r.ok else np.vstack([r.v_pred[1:], r.v_pred[-1:]])
 
 
 def mpc_controller_rows(setup: dict, cases: list[dict], refs: list, name: str, warm: bool,
@@ -189,7 +194,7 @@ def mpc_controller_rows(setup: dict, cases: list[dict], refs: list, name: str, w
     rng = np.random.default_rng(7)
     for c, r in zip(cases, refs):
         mpc.reset()
-        if warm and r.v_pred is not None:
+        if warm and r.ok:
             Vp = r.v_pred * (1.0 + 0.05 * rng.standard_normal(r.v_pred.shape))
             V = np.vstack([Vp[-1:], Vp[:-1]])  # its shift is the perturbed optimum
             mpc.set_previous_plan((mpc.predict(c["z"], V), V))
@@ -212,16 +217,16 @@ def clf_rows(ctrl, states, ref_ctrl, exact=None) -> list[dict]:
     for z, cat in states:
         r = ctrl.step(z)
         rr = ref_ctrl.step(z)
-        ref_status, ref_obj = rr.status, rr.info["objective"]
+        ref_status, ref_obj = rr.status, rr.objective
         if exact is not None:  # the exact method decides where SCIP and it disagree
             re = exact.step(z)
-            if re.status == "optimal" and (ref_status != "optimal" or re.info["objective"] < ref_obj):
-                ref_status, ref_obj = re.status, re.info["objective"]
+            if re.status == "optimal" and (ref_status != "optimal" or re.objective < ref_obj):
+                ref_status, ref_obj = re.status, re.objective
         # the softened program's input may violate the bound only when no admissible v exists: flagged
         excess = 0.0 if r.fallback else float(np.max(np.abs(r.info["phi_nn"]) - ctrl.u_eps))
-        row = classify(r.status, r.info["objective"], ref_status, ref_obj, excess)
+        row = classify(r.status, r.objective, ref_status, ref_obj, excess)
         row.update(status=r.status, time=r.solve_time, fallback=r.fallback, category=cat,
-                   flagged_violation=not r.info["input_admissible"])
+                   flagged_violation=not r.input_admissible)
         rows.append(row)
     return rows
 
@@ -262,7 +267,7 @@ def run(fast: bool) -> dict:
     t_ref = time.perf_counter() - t0
     rows.append(dict(program="Quad-1D MPC", config="reference: SCIP, every step encoded, gap 1e-8",
                      programs=len(cases), optimal=int(sum(r.status == "optimal" for r in refs)),
-                     **time_stats([r.time for r in refs])))
+                     **time_stats([r.solve_time for r in refs])))
     from ..mpc import DAQP_OPTIONS
 
     trust = dict(solver_options=dict(DAQP_OPTIONS, verify_infeasible=False))

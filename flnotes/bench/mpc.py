@@ -1,11 +1,11 @@
 """Benchmark: per-step solve time of the Quad-1D MPC, eq. (MPC_form_miqp), and what each lever buys.
 
 The book's run (Sec. IV-B: ``N_p = 10``, ``t_s = 0.1`` s, ``x_ref = 1.5 sin t``, which makes the
-input bound active at many steps) is recorded once with the fast exact solver
-(:class:`flnotes.levelset.HorizonMIQP`, all levers on). Every configuration is then timed on the
-same recorded states (and the same warm starts: the recorded plan of the previous step, shifted),
-and every returned optimum is compared with a slow reference solve by SCIP (every step encoded,
-no screening, no level set, gap 1e-8). Scaling with ``N_p`` and with the width of the network
+input bound active at many steps) is recorded once with :class:`flnotes.MPC` and its default options
+(the same controller and code the chapters run). Every configuration of :class:`flnotes.MPCOptions`
+is then timed on the same recorded states (and the same warm starts: the recorded plan of the previous
+step, shifted), and every returned optimum is compared with a slow reference solve by SCIP (every step
+encoded, no screening, no level set, gap 1e-8). Scaling with ``N_p`` and with the width of the network
 closes the section. Speed is measured here, never asserted in tests; the machine is shared, so
 single timings are noisy.
 """
@@ -17,13 +17,14 @@ from typing import Optional
 import numpy as np
 
 from .. import paper
-from ..levelset import HorizonMIQP
+from ..mpc import MPC, MPCOptions
+from ..mpc.levers import node_bounds
+from ..simulate import simulate
 from ..solvers import available_backends
-from ..simulate import StepResult, simulate
 
 TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
 
-#: The lever configurations compared on the recorded states: name -> HorizonMIQP switches.
+#: The lever configurations compared on the recorded states: name -> :class:`flnotes.MPCOptions` fields.
 #: "paper program" is eq. (MPC_form_miqp) as written: domain-box bounds, every neuron a binary,
 #: every step encoded, no screening, no warm start. Each next row adds one lever.
 CONFIGS = {
@@ -31,16 +32,14 @@ CONFIGS = {
                           lazy=False),
     "+ stable neurons eliminated": dict(bounds="box", eliminate_stable=True, encode="all", screening=False,
                                         warm_start=False, lazy=False),
-    "+ horizon boxes (FBBT)": dict(bounds="horizon", encode="all", screening=False, warm_start=False, lp=False,
-                                   lazy=False),
-    "+ screening QP": dict(bounds="horizon", encode="all", screening=True, warm_start=False, lp=False, lazy=False),
-    "+ only needed steps": dict(bounds="horizon", encode="needed", screening=True, warm_start=False, lp=False,
-                                lazy=False),
+    "+ horizon boxes (FBBT)": dict(bounds="horizon", encode="all", screening=False, warm_start=False, lazy=False),
+    "+ screening QP": dict(bounds="horizon", encode="all", screening=True, warm_start=False, lazy=False),
+    "+ only needed steps": dict(bounds="horizon", encode="needed", screening=True, warm_start=False, lazy=False),
     "+ LP bounds (per step)": dict(bounds="lp", encode="needed", screening=True, warm_start=False, lazy=False),
     "+ warm start": dict(bounds="lp", encode="needed", screening=True, warm_start=True, lazy=False),
     "+ level set": dict(bounds="levelset", encode="needed", screening=True, warm_start=True, lazy=False),
-    "level set (default)": dict(bounds="levelset", encode="needed", screening=True, warm_start=True, lazy=True),
-    "level set, cold": dict(bounds="levelset", encode="needed", screening=True, warm_start=False, lazy=True),
+    "level set (default)": dict(),
+    "level set, cold": dict(warm_start=False),
 }
 
 
@@ -55,11 +54,8 @@ def quad_setup(horizon: Optional[int] = None, net=None, eps: Optional[float] = N
     if net is None:
         net, _ = paper.paper_net("Quad-1D")
         if eps is None:
-            try:
-                eps = float(np.max(paper.paper_eps("Quad-1D").upper))
-                eps_note = "eps = certified upper bound of the book's network (paper_eps)"
-            except Exception as exc:  # pragma: no cover - depends on the cache
-                eps, eps_note = paper.TABLE1["Quad-1D"]["eps"], f"eps = the paper's 0.0322 ({exc})"
+            eps = float(np.max(paper.paper_eps("Quad-1D").upper))
+            eps_note = "eps = certified upper bound of the book's network (paper_eps)"
     if eps is None:
         eps, eps_note = paper.TABLE1["Quad-1D"]["eps"], "eps = the paper's 0.0322"
     ts, N = S["ts"], int(horizon or S["horizon"])
@@ -68,64 +64,37 @@ def quad_setup(horizon: Optional[int] = None, net=None, eps: Optional[float] = N
                 Q=S["Q"], R=S["R"], z0=S["z0"], u_eps=float(sysm.u_max[0] - eps), reference=sine_reference(1.5))
 
 
-def make_solver(setup: dict, backend: str = "daqp", **levers) -> HorizonMIQP:
-    """:class:`HorizonMIQP` for the setup with the given levers (see :data:`CONFIGS`)."""
-    s = setup["system"]
-    return HorizonMIQP(setup["net"], setup["Ad"], setup["Bd"], setup["N"], setup["Q"], setup["R"],
-                       z_lo=s.lo[:3], z_hi=s.hi[:3], v_lo=s.lo[3:], v_hi=s.hi[3:], u_eps=setup["u_eps"],
-                       backend=backend, **levers)
+def make_mpc(setup: dict, backend: str = "daqp", time_limit: Optional[float] = None, **levers) -> MPC:
+    """:class:`flnotes.MPC` for the setup with the given options (see :data:`CONFIGS`)."""
+    return MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
+               R=setup["R"], time_limit=time_limit, options=MPCOptions(backend=backend, **levers))
 
 
-class _Loop:
-    """Closed-loop adapter: :class:`HorizonMIQP` at every sampling instant, warm-started with the shifted plan."""
+def record_run(setup: dict, t_final: float, mpc: Optional[MPC] = None, time_limit: Optional[float] = None) -> dict:
+    """The closed loop on the true plant with an :class:`flnotes.MPC` (default options unless given).
 
-    def __init__(self, hz: HorizonMIQP, setup: dict, time_limit: Optional[float] = None):
-        self.hz, self.setup, self.time_limit = hz, setup, time_limit
-        self.V = None
-        self.records: list = []
-
-    def reset(self) -> None:
-        self.V, self.records = None, []
-
-    def step(self, z, t, reference=None) -> StepResult:
-        N, ts = self.setup["N"], self.setup["ts"]
-        R = np.asarray(reference(t + ts * np.arange(N + 1)), float)
-        ws = None if self.V is None else np.vstack([self.V[1:], self.V[-1:]])
-        t0 = time.perf_counter()
-        r = self.hz.solve(z, R, warm_start=ws, time_limit=self.time_limit)
-        dt = time.perf_counter() - t0
-        fallback = r.v_pred is None or r.status not in ("optimal", "time_limit")
-        if fallback:
-            V = ws if ws is not None else np.zeros((N, 1))
-        else:
-            V = r.v_pred
-        self.records.append(dict(t=t, z=np.asarray(z, float).copy(), R=R, ws=ws, V=np.asarray(V).copy(), result=r))
-        self.V = V
-        return StepResult(v=V[0].copy(), status=r.status, solve_time=dt, fallback=fallback,
-                          info=dict(nodes=r.nodes, n_binaries=r.n_binaries, objective=r.objective))
-
-
-def record_run(setup: dict, t_final: float, hz: Optional[HorizonMIQP] = None, time_limit: Optional[float] = None) -> dict:
-    """The closed loop on the true plant with the fast solver; returns the states, references and plans per step."""
-    hz = hz or make_solver(setup, **CONFIGS["level set (default)"])
-    loop = _Loop(hz, setup, time_limit)
-    log = simulate(setup["system"], loop, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
+    Returns per step the state, the reference over the horizon, the plan, the previous plan (the warm
+    start a replay hands over), the time (ms), status, screened flag and the step records, and the log.
+    """
+    mpc = mpc or make_mpc(setup, time_limit=time_limit)
+    log = simulate(setup["system"], mpc, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
                    reference=setup["reference"], progress=False)
-    rec = loop.records
-    return dict(t=np.array([r["t"] for r in rec]), z=np.array([r["z"] for r in rec]), R=np.array([r["R"] for r in rec]),
-                V=np.array([r["V"] for r in rec]), ws=[r["ws"] for r in rec],
-                ms=np.array([r["result"].time for r in rec]) * 1e3, status=[r["result"].status for r in rec],
-                screened=np.array([r["result"].screened for r in rec]), results=[r["result"] for r in rec], log=log)
+    h = mpc.history
+    prev = [None] + [(s.z_pred, s.v_pred) for s in h[:-1]]
+    return dict(t=log.t[: len(h)], z=log.z[: len(h)], R=np.array([s.info["z_ref"] for s in h]),
+                V=np.array([s.v_pred for s in h]), prev=prev, ms=np.array([s.solve_time for s in h]) * 1e3,
+                status=[s.status for s in h], screened=np.array([s.screened for s in h]),
+                fallback=np.array([s.fallback for s in h]), results=list(h), log=log)
 
 
 # ----------------------------------------------------------------------------------- timing
-def replay(hz: HorizonMIQP, rec: dict, idx, time_limit: Optional[float] = None, gap: float = 1e-6) -> list:
-    """Solve the recorded states ``idx`` with ``hz`` (warm start: the recorded previous plan, shifted)."""
+def replay(mpc: MPC, rec: dict, idx, time_limit: Optional[float] = None, gap: float = 1e-6) -> list:
+    """Solve the recorded states ``idx`` with ``mpc`` (warm start: the recorded previous plan, shifted)."""
+    mpc.time_limit, mpc.gap = time_limit, gap
     out = []
     for i in idx:
-        ws = rec["ws"][i] if hz.warm_start else None
-        r = hz.solve(rec["z"][i], rec["R"][i], warm_start=ws, time_limit=time_limit, gap=gap)
-        out.append(r)
+        mpc.set_previous_plan(rec["prev"][i])
+        out.append(mpc(rec["z"][i], rec["R"][i]))
     return out
 
 
@@ -140,23 +109,24 @@ def pick_states(rec: dict, n_hard: int, n_easy: int) -> np.ndarray:
 
 def reference(setup: dict, rec: dict, idx, time_limit: float = 600.0) -> np.ndarray:
     """Slow reference optimum at the recorded states: SCIP, every step encoded, FBBT horizon bounds, gap 1e-8."""
-    hz = make_solver(setup, backend="scip", bounds="horizon", encode="all", screening=False, warm_start=False)
-    res = replay(hz, rec, idx, time_limit=time_limit, gap=1e-8)
+    mpc = make_mpc(setup, backend="scip", bounds="horizon", encode="all", screening=False, warm_start=False,
+                   lazy=False)
+    res = replay(mpc, rec, idx, time_limit=time_limit, gap=1e-8)
     return np.array([r.objective if r.status == "optimal" else np.nan for r in res]), res
 
 
 def summarize(name: str, backend: str, res: list, ref_obj: np.ndarray, **extra) -> dict:
     """One table row: min/median/max/mean ms per step, nodes, binaries, statuses and the gap to the reference."""
-    ms = np.array([r.time for r in res]) * 1e3
+    ms = np.array([r.solve_time for r in res]) * 1e3
     obj = np.array([r.objective for r in res])
-    opt = np.array([r.status == "optimal" for r in res])
+    opt = np.array([r.status == "optimal" and not r.fallback for r in res])
     ok = np.isfinite(ref_obj) & np.isfinite(obj) & opt  # the gap of the steps the solver calls optimal
     rel = np.abs(obj[ok] - ref_obj[ok]) / np.maximum(1.0, np.abs(ref_obj[ok]))
     below = np.isfinite(ref_obj) & np.isfinite(obj) & (obj < ref_obj - 1e-6 * np.maximum(1, np.abs(ref_obj)))
     return dict(config=name, backend=backend, states=len(res), ms_min=float(ms.min()), ms_median=float(np.median(ms)),
                 ms_max=float(ms.max()), ms_mean=float(ms.mean()), nodes_mean=float(np.mean([r.nodes for r in res])),
                 binaries_max=int(max(r.n_binaries for r in res)),
-                non_optimal=int(sum(r.status != "optimal" for r in res)),
+                non_optimal=int(sum(r.status != "optimal" or r.fallback for r in res)),
                 max_rel_gap_vs_ref=float(rel.max()) if rel.size else np.nan,
                 below_ref=int(below.sum()), source="flnotes", **extra)
 
@@ -175,10 +145,9 @@ def lever_table(setup: dict, rec: dict, idx, ref_obj: np.ndarray, configs: Optio
     for name, lv in configs.items():
         slow = lv.get("bounds") in ("box",) or (lv.get("bounds") == "horizon" and lv.get("encode") == "all")
         use = list(slow_idx) if (slow and slow_idx is not None) else list(idx)
-        hz = make_solver(setup, backend=backend, **lv)
-        res = replay(hz, rec, use, time_limit=time_limit)
+        res = replay(make_mpc(setup, backend=backend, **lv), rec, use, time_limit=time_limit)
         rows.append(summarize(name, backend, res, ref_obj[[pos[int(i)] for i in use]],
-                              levers=", ".join(f"{k}={v}" for k, v in lv.items())))
+                              levers=str(MPCOptions(backend=backend, **lv))))
     return rows
 
 
@@ -201,6 +170,7 @@ def scaling_horizon(horizons, t_final: float, time_limit: Optional[float] = 30.0
                          ms_median=float(np.median(ms)), ms_p95=float(np.percentile(ms, 95)), ms_max=float(ms.max()),
                          ms_mean=float(ms.mean()), screened=int(rec["screened"].sum()),
                          infeasible=int(sum(s == "infeasible" for s in rec["status"])),
+                         fallbacks=int(rec["fallback"].sum()),
                          non_optimal=int(sum(s != "optimal" for s in rec["status"]))))
     return rows
 
@@ -275,28 +245,10 @@ def run(fast: bool) -> dict:
         if be in available_backends():
             sub = ref_idx[:: max(1, len(ref_idx) // 8)]
             try:
-                hz = make_solver(setup, backend=be, **CONFIGS["level set (default)"])
-                res = replay(hz, rec, sub, time_limit=30.0)
+                res = replay(make_mpc(setup, backend=be), rec, sub, time_limit=30.0)
                 rows.append(summarize("level set (default)", be, res, ref_obj[np.searchsorted(ref_idx, sub)]))
             except Exception as exc:  # an installed commercial solver without a license
                 notes.append(f"backend {be} skipped: {type(exc).__name__}: {exc}")
-    # cross-check with the MPC class's own (sparse, persistent) form of the paper's program, solved by SCIP
-    try:
-        from ..mpc import MPC
-
-        sub = np.array(hard[:: max(1, len(hard) // (2 if fast else 4))][: 2 if fast else 4])
-        mpc = MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
-                  R=setup["R"], backend="scip", formulation="sparse", bounds="horizon", lazy=False, screening=False,
-                  warm_start=False, time_limit=120.0)
-        res = []
-        for i in sub:
-            mpc.reset()
-            st = mpc(rec["z"][i], rec["R"][i])
-            res.append(type("R", (), dict(time=st.wall_time, status=st.status, objective=st.objective,
-                                          nodes=st.nodes, n_binaries=st.n_binaries))())
-        rows.append(summarize("fl.MPC sparse program (cross-check)", "scip", res, ref_obj[np.searchsorted(ref_idx, sub)]))
-    except Exception as exc:  # the MPC class is developed alongside; its absence must not stop the bench
-        notes.append(f"fl.MPC cross-check skipped: {type(exc).__name__}: {exc}")
     # targets
     default = [r for r in rows if r.get("config") == "level set (default)" and r.get("backend") == "daqp"][0]
     notes.append(f"targets: max {TARGET_MAX_MS:.0f} ms, median {TARGET_MEDIAN_MS:.0f} ms, gap {TARGET_GAP:g}; "
@@ -332,25 +284,25 @@ def run(fast: bool) -> dict:
 
 
 # ----------------------------------------------------------------------------------- for the chapter
-def binary_counts(setup: dict, z0, z_ref, warm_start=None) -> dict:
+def binary_counts(setup: dict, z0, z_ref, previous=None) -> dict:
     """Binaries of eq. (MPC_form_miqp) at one state under each bounds lever (every step encoded).
 
     ``"paper"`` is ``N_p * sum_k n_k``; the others count the neurons left unstable by FBBT on the
     domain box, FBBT on the reachable boxes, LP-tightened reachable boxes, and the level set of
-    the default solver (which also drops the steps that need no encoding).
+    the default options (which also drops the steps that need no encoding); ``previous`` is the plan
+    ``(z_pred, v_pred)`` of the previous step (the warm start).
     """
-
     net, N = setup["net"], setup["N"]
     out = {"paper: every neuron a binary": N * net.n_hidden}
-    for name, lv in (("domain box, FBBT", dict(bounds="box")), ("reachable boxes, FBBT", dict(bounds="horizon", lp=False)),
-                     ("reachable boxes, LP with |Phi_NN| <= u_max^eps", dict(bounds="lp"))):
-        hz = make_solver(setup, encode="all", **lv)
-        lo, hi = hz._boxes(np.asarray(z0, float))
-        nb = hz._node_bounds(lo, hi)
+    mpc = make_mpc(setup)
+    z0 = np.asarray(z0, float)
+    lo, hi = mpc.pred.boxes(z0)
+    for name, b in (("domain box, FBBT", "box"), ("reachable boxes, FBBT", "horizon"),
+                    ("reachable boxes, LP with |Phi_NN| <= u_max^eps", "lp")):
+        nb = node_bounds(mpc.pred, MPCOptions(bounds=b), mpc.box_bounds, lo, hi)
         out[name] = int(nb.n_unstable) if nb is not None else 0
-    hz = make_solver(setup, **CONFIGS["level set (default)"])
-    r = hz.solve(z0, z_ref, warm_start=warm_start)
-    out["level set (default solver)"] = int(r.n_binaries)
+    mpc.set_previous_plan(previous)
+    out["level set (default options)"] = int(mpc(z0, z_ref).n_binaries)
     return out
 
 
@@ -383,25 +335,3 @@ def backend_overheads(n_repeat: int = 20) -> list:
             rows.append(dict(program=kind, backend=be, n=p.n, binaries=n_b, ms_median=float(np.median(ts)),
                              ms_min=float(np.min(ts))))
     return rows
-
-
-def table(rows, cols=None):
-    """Rows of dicts as an HTML table for a notebook (floats with 4 significant digits)."""
-    from html import escape
-
-    from IPython.display import HTML
-
-    rows = list(rows)
-    if cols is None:
-        cols = []
-        for r in rows:
-            cols += [c for c in r if c not in cols]
-
-    def fmt(v) -> str:
-        if isinstance(v, (float, np.floating)):
-            return "" if not np.isfinite(v) else f"{v:.4g}"
-        return "" if v is None else escape(str(v))
-
-    head = "".join(f"<th>{escape(str(c))}</th>" for c in cols)
-    body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in rows)
-    return HTML(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")

@@ -18,9 +18,11 @@ from .mpc import plot_mpc_tracking, plot_mpc_input, plot_horizon_sweep, plot_int
 from .realtime import step_times, scaling, lever_bars
 from .static import FramePlayer, frame_player
 from .multi import input_sets_plot
-from .guarantees import plot_drift_curve, plot_region_of_attraction, plot_terminal_bisection
+from .compare import METHOD_COLORS, plot_methods_run, plot_monte_carlo
+from .guarantees import plot_drift_curve, plot_region_of_attraction, plot_terminal_bisection, plot_terminal_sweep
 
 __all__ = [
+    'METHOD_COLORS', 'plot_methods_run', 'plot_monte_carlo', 'plot_terminal_sweep',
     'COLORS', 'new_axes', 'bound_lines', 'use_book_style', 'static_feasible_set', 'fl_identity_residual',
     'plot_feasible_set', 'plot_feasible_v', 'explore_feasible_set', 'plot_zeta', 'plot_input_violation',
     'discretization_gap', 'plot_discretization_gap', 'plot_error_slice', 'plot_line_cut', 'plot_width_experiment',

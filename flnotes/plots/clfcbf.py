@@ -168,18 +168,17 @@ def exact_1d_plot(net, z: np.ndarray, bound: float, v_lo: float = -10.0, v_hi: f
     return ax.figure
 
 
-def solve_time_plot(logs: Mapping[str, Any], system: Optional[str] = "MSD", ax=None):
-    """Per-step solve time (ms, log scale) over the run, with the paper's mean (Table 2) as a dashed line."""
-    from ..paper import TABLE2_MS
-
-    paper = {name: ref for (sysname, name), ref in TABLE2_MS.items() if sysname == system}
+def solve_time_plot(logs: Mapping[str, Any], reference_ms: Optional[Mapping[str, float]] = None, ax=None):
+    """Per-step solve time (ms, log scale) over the run; ``reference_ms`` (name -> ms, e.g. the paper's Table 2
+    means from :func:`flnotes.studies.paper_mean_ms`) drawn as dashed lines in the run's color."""
+    reference_ms = dict(reference_ms or {})
     if ax is None:
         fig, ax = new_axes(figsize=(7.0, 3.2))
     for i, (name, log) in enumerate(logs.items()):
         c = _color(name, i)
         ax.semilogy(log.t[:-1], log.solve_time * 1e3, ".", ms=3, color=c, label=name)
-        if name in paper:
-            ax.axhline(paper[name]["mean"], color=c, ls="--", lw=1, label=f"{name}, paper's mean")
+        if name in reference_ms:
+            ax.axhline(reference_ms[name], color=c, ls="--", lw=1, label=f"{name}, paper's mean")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("solve time per step (ms)")
     ax.legend(ncol=3, fontsize=7.5)

@@ -7,7 +7,7 @@ import numpy as np
 
 from .style import COLORS, new_axes
 
-__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve"]
+__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve", "plot_terminal_sweep"]
 
 
 def plot_terminal_bisection(term, ax=None):
@@ -42,32 +42,48 @@ def _slice_mask(term, roa, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
     """Initial states (a 2-D slice) from which the horizon program is feasible, without and with ``z(N_p) in Z_f``.
 
+    Each grid state is a cell: light grey feasible without the terminal constraint only, green feasible with it,
+    white infeasible, a red cross undecided (time limit); the terminal set's slice is outlined.
+
     Parameters
     ----------
     roa
         A :class:`flnotes.terminal.RegionOfAttraction`.
     """
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
     if ax is None:
         _, ax = new_axes(figsize=(5.0, 4.2))
     x, y = roa.x, roa.y
+    level = np.where(roa.feasible_terminal == 1, 2.0, np.where(roa.feasible == 1, 1.0, 0.0))
+    level = np.ma.masked_invalid(np.where(np.isnan(roa.feasible) | np.isnan(roa.feasible_terminal), np.nan, level))
+    cmap = ListedColormap(["white", "0.82", COLORS["nominal"]])
+    ax.pcolormesh(x, y, level, cmap=cmap, vmin=-0.5, vmax=2.5, shading="nearest", zorder=1)
+    handles = [Patch(color="0.82", label="feasible, no terminal set"),
+               Patch(color=COLORS["nominal"], label=r"feasible with $z(N_p) \in Z_f$")]
     X, Y = np.meshgrid(x, y)
-    for F, color, label, size in ((roa.feasible, COLORS["ref"], "feasible, no terminal set", 40),
-                                  (roa.feasible_terminal, COLORS["nominal"], r"feasible with $z(N_p) \in Z_f$", 16)):
-        sel = F == 1
-        ax.scatter(X[sel], Y[sel], s=size, color=color, label=label, zorder=2)
-    bad = np.isnan(roa.feasible) | np.isnan(roa.feasible_terminal)
+    bad = np.ma.getmaskarray(level)
     if bad.any():
-        ax.scatter(X[bad], Y[bad], s=30, marker="x", color=COLORS["unsafe"], label="undecided (time limit)", zorder=3)
+        handles.append(ax.scatter(X[bad], Y[bad], s=30, marker="x", color=COLORS["unsafe"],
+                                  label="undecided (time limit)", zorder=3))
     xf, yf = np.linspace(x[0], x[-1], 300), np.linspace(y[0], y[-1], 300)
     Xf, Yf = np.meshgrid(xf, yf)
     M = _slice_mask(roa.terminal, roa, Xf, Yf)
     if M.any():
-        ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4)
-        ax.plot([], [], color=COLORS["true"], label=r"terminal set $Z_f$ (slice)")
+        ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4, zorder=2)
+        handles.append(_line(COLORS["true"], r"terminal set $Z_f$ (slice)"))
     ax.set(xlabel=f"$z_{roa.axes[0] + 1}$", ylabel=f"$z_{roa.axes[1] + 1}$",
            title=title or rf"region of attraction, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
-    ax.legend(loc="upper right", fontsize=7.5)
+    ax.legend(handles=handles, loc="upper right", fontsize=7.5, framealpha=0.9, frameon=True)
     return ax
+
+
+def _line(color, label):
+    """A legend handle for a line."""
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], color=color, label=label)
 
 
 def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Optional[str] = None):
@@ -90,3 +106,40 @@ def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Opti
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left")
     return ax
+
+
+def plot_terminal_sweep(runs: dict, plant: str = "true", box: Optional[float] = None, title: Optional[str] = None):
+    """``|z(t)|`` (left) and the optimal cost ``J(z_k)`` per step (right), without (dashed) and with (solid)
+    the terminal ingredients, one colour per horizon.
+
+    Parameters
+    ----------
+    runs
+        The first output of :func:`flnotes.studies.guarantees.terminal_sweep`.
+    plant
+        ``"nominal"`` or ``"true"``: which runs to draw.
+    box
+        Optional value of ``|z|`` to mark (e.g. the state box's half-width); a run that stops early left the box.
+    """
+    fig, axes = new_axes(1, 2, figsize=(9.0, 3.4))
+    a1, a2 = axes[0]
+    horizons = sorted({k[0] for k in runs if k[2] == plant})
+    cmap = [COLORS["nn"], COLORS["true"], COLORS["lcost"], COLORS["qcost"], COLORS["nominal"]]
+    for i, N in enumerate(horizons):
+        c = cmap[i % len(cmap)]
+        for with_t, ls in ((False, "--"), (True, "-")):
+            r = runs.get((N, with_t, plant))
+            if r is None:
+                continue
+            lab = rf"$N_p = {N}$, " + ("with $P$, $Z_f$" if with_t else "none")
+            a1.plot(r["t"], np.linalg.norm(r["z"], axis=1), ls=ls, color=c, label=lab)
+            if r["box_exit"]:
+                a1.plot(r["t"][-1], np.linalg.norm(r["z"][-1]), "x", color=COLORS["unsafe"], ms=8)
+            J = r["objective"]
+            a2.semilogy(r["t"][: len(J)], np.where(J > 0, J, np.nan), ls=ls, color=c)
+    if box is not None:
+        a1.axhline(box, color=COLORS["unsafe"], ls=":", lw=1)
+    a1.set(xlabel="t [s]", ylabel=r"$\|z(t)\|$", title=title or f"closed loop ({plant} plant); x: left the box")
+    a2.set(xlabel="t [s]", ylabel=r"optimal cost $J(z_k)$", title="cost per step (solid: decreasing by the theorem)")
+    a1.legend(loc="upper right", fontsize=7)
+    return fig

@@ -66,7 +66,7 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
     log
         Run of :func:`flnotes.simulate` with ``net=`` given (so that
         ``log.u_nn`` holds ``Phi_NN(z_k, v_k)``) and an MPC controller (whose
-        ``StepResult.info["u_nn_pred"]`` holds ``Phi_NN`` along each plan).
+        ``StepResult.u_nn_pred`` holds ``Phi_NN`` along each plan).
     u_max, eps
         The bounds ``±u_max`` (blue) and ``±u_max^eps = ±(u_max - eps)`` (green).
     predictions
@@ -88,7 +88,7 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
         for k, st in enumerate(log.steps):
             if k % max(1, int(every)) or log.t[k] > t_end:
                 continue
-            pred = (st.info or {}).get("u_nn_pred")
+            pred = st.u_nn_pred
             if pred is None:
                 continue
             tk = log.t[k] + ts * np.arange(len(pred))
@@ -107,8 +107,8 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
     bound_lines(ax, u_max, eps)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("u [rad]")
-    ax.set_xlim(0, t_end + (ts * len(log.steps[0].info.get("u_nn_pred", [])) if predictions and log.steps
-                              and log.steps[0].info and t_max is None else 0))
+    ax.set_xlim(0, t_end + (ts * len(log.steps[0].u_nn_pred) if predictions and log.steps
+                              and log.steps[0].u_nn_pred is not None and t_max is None else 0))
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, fontsize=8)
     if title:
         ax.set_title(title)

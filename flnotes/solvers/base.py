@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from .problem import FEAS_TOL, MIQP, Array, MIQPResult, _check_order, _result, _vec
 
 #: Back-ends by name; ``"auto"`` is also accepted by :func:`make_solver`.
-BACKENDS = ("highs", "scip", "daqp", "gurobi", "cplex")
+SOLVER_BACKENDS = ("highs", "scip", "daqp", "gurobi", "cplex")
 
 
 #: What to install for each back-end.
@@ -31,13 +31,13 @@ def _require(backend: str):
         return importlib.import_module(_MODULE[backend])
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError(f"the {backend!r} back-end needs the Python package {_INSTALL[backend]!r}: "
-                          f"pip install {_INSTALL[backend]} (or choose another backend from {BACKENDS})") from exc
+                          f"pip install {_INSTALL[backend]} (or choose another backend from {SOLVER_BACKENDS})") from exc
 
 
 def available_backends() -> tuple[str, ...]:
     """The back-ends whose Python package can be imported here (commercial ones need a license too)."""
     out = []
-    for b in BACKENDS:
+    for b in SOLVER_BACKENDS:
         try:
             importlib.import_module(_MODULE[b])
             out.append(b)
@@ -199,7 +199,7 @@ def make_solver(problem: MIQP, backend: str = "auto", **options) -> Solver:
         integrality) is fixed from now on, its numbers change with
         :meth:`Solver.update`.
     backend
-        One of :data:`BACKENDS`, or ``"auto"``: SCIP for a MILP, HiGHS for a
+        One of :data:`SOLVER_BACKENDS`, or ``"auto"``: SCIP for a MILP, HiGHS for a
         continuous program, DAQP for a mixed-integer QP.
     **options
         Back-end options: ``threads`` (HiGHS, SCIP, commercial), ``params``
@@ -211,8 +211,8 @@ def make_solver(problem: MIQP, backend: str = "auto", **options) -> Solver:
     """
     if backend == "auto":
         backend = ("daqp" if problem.H is not None else "scip") if problem.is_mip else "highs"
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; choose 'auto' or one of {BACKENDS}")
+    if backend not in SOLVER_BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose 'auto' or one of {SOLVER_BACKENDS}")
     _require(backend)
     module = importlib.import_module(f"{__package__}.{backend}")  # one module per back-end
     cls = getattr(module, {"highs": "HighsSolver", "scip": "ScipSolver", "daqp": "DaqpSolver",

@@ -13,15 +13,17 @@ that imports :mod:`flnotes.paper`.
 ``mpc``
     chapters 7 and 8: checks of an MPC run, Table 2's MPC row, horizon sweeps, lever studies.
 """
-from .clfcbf import chapter_eps, clf_cbf_checks, cross_check_exact, solve_time_table
+from . import compare, guarantees
+from .clfcbf import chapter_eps, clf_cbf_checks, cross_check_exact, paper_mean_ms, solve_time_table
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, table2,
                   tracking_error)
 from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
                        width_experiment, write_sweep)
 
-__all__ = ["architecture_sweep", "book_sweep", "estimates_table", "fresh_vs_shipped", "table1_rows",
+__all__ = ["compare", "guarantees", "architecture_sweep", "book_sweep", "estimates_table", "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact",
-           "solve_time_table", "active_fraction", "binaries_per_step", "closed_loop_checks", "compare_to_reference",
+           "solve_time_table", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
+           "compare_to_reference",
            "hardest_steps", "horizon_sweep", "lever_study", "prediction_mismatch", "recorded_problems",
            "run_closed_loop", "table2", "tracking_error"]

@@ -12,7 +12,7 @@ from ..tables import Table, time_stats
 
 Array = np.ndarray
 
-__all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table"]
+__all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms"]
 
 
 def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
@@ -67,7 +67,7 @@ def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
     controller
         The controller that produced ``log`` (single input).
     log
-        Its run; ``log.steps[i].info["objective"]`` is compared with the exact
+        Its run; ``log.steps[i].objective`` is compared with the exact
         optimum at ``log.z[i]`` (of the softened program at fallback steps,
         which both methods solve alike).
 
@@ -81,10 +81,10 @@ def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
     ex = controller.with_backend("exact")
     J, Jx, v, vx, t = [], [], [], [], []
     for z, r in zip(log.z[:-1], log.steps):
-        if "objective" not in r.info or not np.isfinite(r.info["objective"]):
+        if not np.isfinite(r.objective):
             continue
         rx = ex.step(z)
-        J.append(r.info["objective"]), Jx.append(rx.info["objective"])
+        J.append(r.objective), Jx.append(rx.objective)
         v.append(r.v), vx.append(rx.v), t.append(rx.solve_time)
     J, Jx, t = np.array(J), np.array(Jx), np.array(t) * 1e3
     d = np.abs(J - Jx)
@@ -110,9 +110,14 @@ def solve_time_table(logs: dict, system: str = "MSD") -> Table:
         st = time_stats(log.solve_time)
         cpu = np.array([r.info.get("cpu_time", np.nan) for r in log.steps], float) * 1e3
         ref = paper.TABLE2_MS.get((system, name), {})
-        backend = log.steps[0].info.get("backend", "numpy") if log.steps else ""
+        backend = (log.steps[0].backend or "numpy") if log.steps else ""
         rows.append(dict(controller=name, backend=backend, steps=len(log.solve_time),
                          min=st["min_ms"], median=st["median_ms"], max=st["max_ms"], mean=st["mean_ms"],
                          cpu_median=float(np.nanmedian(cpu)) if np.isfinite(cpu).any() else None,
                          paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
     return rows
+
+
+def paper_mean_ms(system: str = "MSD") -> dict:
+    """The paper's mean time per step (Table 2, ms) of each controller of ``system``, by name."""
+    return {name: ref["mean"] for (sysname, name), ref in paper.TABLE2_MS.items() if sysname == system}

@@ -6,7 +6,8 @@ from typing import Callable, Mapping, Optional, Sequence
 import numpy as np
 
 from .. import paper
-from ..mpc import MPC
+from ..mpc import MPC, MPCOptions
+from ..mpc.levers import node_bounds
 from ..network import ReLUNet
 from ..simulate import simulate
 from ..systems import FLSystem
@@ -47,7 +48,7 @@ def closed_loop_checks(log, mpc: "MPC", reference: Optional[Callable[[Array], Ar
     the run), and the steps that hit the time limit, fell back or were not optimal.
     """
     u_max = float(log.system.u_max[0])
-    pred = [np.abs(s.info["u_nn_pred"]).max() for s in log.steps if s.info and s.info.get("u_nn_pred") is not None]
+    pred = [np.abs(s.u_nn_pred).max() for s in log.steps if s.u_nn_pred is not None]
     out = dict(
         u_max=u_max, u_max_eps=float(mpc.u_eps[0]),
         max_abs_u_samples=float(np.abs(log.u).max()), max_abs_u_between=float(np.abs(log.u_fine).max()),
@@ -68,22 +69,27 @@ def closed_loop_checks(log, mpc: "MPC", reference: Optional[Callable[[Array], Ar
     return out
 
 
-def table2(log, mpc: "MPC", label: str = "this book") -> list[dict]:
-    """Table 2's MPC row from a run, next to the paper's, with the binary counts before/after elimination.
+def table2(log, mpc: "MPC", system: str = "Quad-1D", label: str = "this book") -> list[dict]:
+    """Table 2's MPC row for ``system`` from a run, next to the paper's, with the binaries before/after elimination.
 
-    The binary count of eq. (MPC_form_miqp) is ``N_p sum_k n_k`` (the paper's
-    footnote); after elimination it is the number of binaries actually left
-    free in the programs solved (mean and max over the steps that needed one;
-    with ``lazy`` only the encoded steps count).
+    The binary count of eq. (MPC_form_miqp) is ``N_p sum_k n_k`` (the paper's footnote): for the paper's
+    row ``N_p`` of its setting times the hidden neurons of its architecture (Table 1: ``K - 1`` layers of
+    ``n_bar``); after elimination it is the number of binaries actually left free in the programs solved
+    (mean and max over the steps that needed one; with constraint generation only the encoded steps count).
     """
-    ref = paper.TABLE2_MS[("Quad-1D", "MPC (N_p=10)")]
+    key = [k for k in paper.TABLE2_MS if k[0] == system and k[1].startswith("MPC")]
+    if not key:
+        raise ValueError(f"the paper's Table 2 has no MPC row for {system!r}; it has "
+                         f"{sorted({k[0] for k in paper.TABLE2_MS if k[1].startswith('MPC')})}")
+    ref, N_paper = paper.TABLE2_MS[key[0]], paper.QUAD_SETTING["horizon"]
+    t1 = paper.TABLE1[system]
     st = time_stats(log.solve_time)
     mi = [s for s in mpc.history if not s.screened]
     nbin = np.array([s.n_binaries for s in mi]) if mi else np.zeros(1)
     return [
-        dict(source="paper (CPLEX via YALMIP)", N_p=10, min_ms=ref["min"], max_ms=ref["max"], mean_ms=ref["mean"],
-             binaries=10 * 30, binaries_after_mean=None, binaries_after_max=None),
-        dict(source=f"{label} ({mpc.backend}, bounds={mpc.bounds}, lazy={mpc.lazy}, warm={mpc.warm_start})",
+        dict(source="paper (CPLEX via YALMIP)", N_p=N_paper, min_ms=ref["min"], max_ms=ref["max"], mean_ms=ref["mean"],
+             binaries=N_paper * (t1["K"] - 1) * t1["n_bar"], binaries_after_mean=None, binaries_after_max=None),
+        dict(source=f"{label} ({mpc.options})",
              N_p=mpc.N, min_ms=st["min_ms"], max_ms=st["max_ms"], mean_ms=st["mean_ms"], binaries=mpc.n_binaries_full,
              binaries_after_mean=float(nbin.mean()), binaries_after_max=int(nbin.max())),
     ]
@@ -138,15 +144,13 @@ def binaries_per_step(mpc: "MPC", z: Array, bounds: Sequence[str] = ("box", "hor
     One row per switch: the free binaries (unstable neurons) at every step
     ``k = 0..N_p-1`` and their total, against ``sum_k n_k`` per step.
     """
-    rows, keep = [], mpc.bounds
-    try:
-        for b in bounds:
-            mpc.bounds = b
-            nb, _, _ = mpc.node_bounds(mpc._check_z(z))
-            per = np.sum([u.reshape(mpc.N, -1).sum(axis=1) for u in nb.unstable], axis=0).astype(int)
-            rows.append(dict(bounds=b, per_step=per, total=int(per.sum()), full=mpc.n_binaries_full))
-    finally:
-        mpc.bounds = keep
+    z = mpc._check_z(z)
+    lo, hi = mpc.pred.boxes(z)
+    rows = []
+    for b in bounds:
+        nb = node_bounds(mpc.pred, MPCOptions(bounds=b), mpc.box_bounds, lo, hi)
+        per = np.sum([u.reshape(mpc.N, -1).sum(axis=1) for u in nb.unstable], axis=0).astype(int)
+        rows.append(dict(bounds=b, per_step=per, total=int(per.sum()), full=mpc.n_binaries_full))
     return rows
 
 
@@ -171,8 +175,8 @@ def recorded_problems(log, indices: Sequence[int], with_plans: bool = False) -> 
             raise ValueError(f"step {k} of the log has no recorded reference (was it run with flnotes.mpc.MPC?)")
         item = (log.z[k].copy(), np.asarray(info["z_ref"]).copy())
         if with_plans:
-            prev = (log.steps[k - 1].info or {}) if k >= 1 else {}
-            plan = (np.asarray(prev["z_pred"]), np.asarray(prev["v_pred"])) if prev.get("v_pred") is not None else None
+            prev = log.steps[k - 1] if k >= 1 else None
+            plan = (np.asarray(prev.z_pred), np.asarray(prev.v_pred)) if prev is not None and prev.v_pred is not None else None
             item = item + (plan,)
         out.append(item)
     return out
@@ -194,8 +198,8 @@ def compare_to_reference(mpc: "MPC", problems: Sequence[tuple[Array, Array]], **
     (ms) and statuses. ``reference_kwargs`` change the reference controller
     (default ``bounds="horizon"``; any valid bounds give the same optimum).
     """
-    ref = mpc.clone(**{**dict(backend="cvxpy-scip", bounds="horizon", gap=1e-6, time_limit=None, solver_options=None,
-                              formulation="auto"), **reference_kwargs})
+    opts = MPCOptions(backend="cvxpy-scip", **{"bounds": "horizon", **reference_kwargs})
+    ref = mpc.clone(options=opts, gap=1e-6, time_limit=None, solver_options=None)
     rows = []
     for z, R in problems:
         fresh = mpc.clone()
@@ -203,7 +207,7 @@ def compare_to_reference(mpc: "MPC", problems: Sequence[tuple[Array, Array]], **
         b = ref(z, R)
         rel = abs(a.objective - b.objective) / max(1.0, abs(b.objective))
         rows.append(dict(objective=a.objective, scip_objective=b.objective, rel_diff=float(rel),
-                         ms=a.wall_time * 1e3, scip_ms=b.wall_time * 1e3, status=a.status, scip_status=b.status,
+                         ms=a.solve_time * 1e3, scip_ms=b.solve_time * 1e3, status=a.status, scip_status=b.status,
                          binaries=a.n_binaries, scip_binaries=b.n_binaries))
     return rows
 
@@ -231,7 +235,7 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
         obj = np.array([s.objective for s in steps])
         if base is None:
             base = obj
-        ms = np.array([s.wall_time for s in steps]) * 1e3
+        ms = np.array([s.solve_time for s in steps]) * 1e3
         rows.append(dict(configuration=label, mean_ms=float(ms.mean()), max_ms=float(ms.max()),
                          binaries=float(np.mean([s.n_binaries for s in steps])),
                          nodes=float(np.mean([s.nodes for s in steps])),

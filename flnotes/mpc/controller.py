@@ -1,0 +1,396 @@
+"""The MPC of eq. (MPC_form_miqp) as a controller: :class:`MPC` validates, warm-starts, falls back, keeps history.
+
+The solving is done below it: :class:`flnotes.mpc.engine.NetworkEngine` (the network constraint with the
+levers), :class:`flnotes.mpc.reference.ReferenceProgram` (the cold SCIP reference) or
+:class:`flnotes.mpc.linear.LinearModel` (the QP-based methods of the comparison), all on one
+:class:`flnotes.mpc.prediction.Prediction`.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable, Optional
+
+import numpy as np
+
+from .._checks import as_vector, weight_matrix
+from ..bounds import fbbt
+from ..network import ReLUNet
+from ..result import StepResult
+from ..solvers import BOUND_TOL, next_margin, project_to_box
+from ..solvers.base import _require
+from ..systems import FLSystem
+from . import fallback
+from .engine import NetworkEngine
+from .linear import LinearModel
+from .options import MPCOptions
+from .prediction import DAQP_OPTIONS, Prediction
+from .reference import ReferenceProgram
+
+Array = np.ndarray
+
+
+def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, phase: float = 0.0
+                   ) -> Callable[[Array], Array]:
+    """A smooth reference ``x_ref(t) = amplitude sin(omega t + phase)`` with consistent derivatives.
+
+    Returns a vectorized ``t -> z_ref(t)``: times of shape (T,) give (T, n_z)
+    with column ``i`` the ``i``-th time derivative of ``x_ref``, as the
+    Brunovsky state ``z = [x, x', x'', ...]`` requires (the book's reference, Sec. IV-B: ``1.5 sin t``).
+    """
+    if n_z < 1:
+        raise ValueError(f"n_z must be >= 1, got {n_z}")
+
+    def z_ref(t: Array) -> Array:
+        t = np.atleast_1d(np.asarray(t, float))
+        cols = [amplitude * omega**i * np.sin(omega * t + phase + i * np.pi / 2) for i in range(n_z)]
+        return np.stack(cols, axis=-1)
+
+    z_ref.__doc__ = f"x_ref(t) = {amplitude} sin({omega} t + {phase}) and its derivatives, shape (T, {n_z})"
+    return z_ref
+
+
+class MPC:
+    """The MPC of eq. (MPC_form_miqp): the network constraint at every predicted step, solved exactly.
+
+    At each sampling instant
+
+        min   sum_{k=0}^{N_p-1} ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2  (+ ||z(N_p) - z_ref(N_p)||_P^2)
+        s.t.  |Phi_NN(z(k), v(k))| <= u_max^eps = u_max - eps,   k = 0..N_p-1   (MPC_form_miqp_b)
+              z(k+1) = A_d z(k) + B_d v(k)                                       (MPC_form_miqp_c)
+              z(k) in X_z (k = 1..N_p), v(k) in the network's v-range            (MPC_form_miqp_d)
+              F z(N_p) <= g  (optional terminal set)
+
+    ``X_z`` is the network's domain box, where ``|Phi - Phi_NN| <= eps`` (eq. approx_err) holds, so every
+    predicted step satisfies the true bound ``|Phi(z(k), v(k))| <= u_max`` for the nominal model.
+
+    Parameters
+    ----------
+    system
+        The feedback-linearizable system (Brunovsky pair, domain box, ``u_max``, ``Phi``).
+    net
+        ``Phi_NN`` on ``system``'s domain box.
+    eps
+        Error bound of eq. (approx_err), scalar or (m,). A margin such as the intersample drift ``delta``
+        is added here: ``eps + delta`` gives ``u_max^{eps + delta}``.
+    horizon, ts
+        ``N_p`` and the sampling time ``t_s`` (seconds).
+    Q, R, P
+        Stage weights (n_z, n_z), (m, m) and the optional terminal weight on ``z(N_p)`` (the paper's cost
+        stops at ``k = N_p - 1``: ``P=None`` reproduces it). Scalars or vectors are made diagonal.
+    terminal
+        Optional terminal set: ``(F, g)`` for ``F z(N_p) <= g``, or an object with ``constraint() -> (F, g)``
+        (:class:`flnotes.TerminalSet`; its gain ``K`` then gives the shifted plan's last input ``v = K z``).
+    options
+        An :class:`MPCOptions` (the levers and the constraint model); or give its fields as keywords
+        (``backend=``, ``bounds=``, ``screening=``, ``lazy=``, ``warm_start=``, ``encode=``,
+        ``eliminate_stable=``, ``lp=``, ``constraint=``, ``iterations=``), not both.
+    time_limit
+        Seconds per control step, or ``None``. On hit: the best incumbent if it is feasible for the whole
+        program (status ``"time_limit"``), else the fallback plan.
+    gap
+        Relative optimality gap at which a solver stops.
+    discretization
+        ``"rk4"`` (the paper) or ``"exact"``; they coincide for chains of at most four integrators.
+    v_box
+        Range ``(v_lo, v_hi)`` of ``v`` in the program; default the network's domain box.
+    solver_options
+        Passed to :func:`flnotes.solvers.make_solver` (DAQP gets :data:`DAQP_OPTIONS` unless overridden).
+
+    Examples
+    --------
+    >>> mpc = fl.MPC(fl.quad1d(), net, eps=0.0322, horizon=10, ts=0.1, Q=[10, 1, 1], R=0.0175)
+    >>> step = mpc(z, z_ref)            # z_ref of shape (horizon + 1, n_z), or (n_z,) for a constant one
+    >>> step.v, step.z_pred, step.status, step.solve_time
+    """
+
+    def __init__(self, system: FLSystem, net: ReLUNet, eps, horizon: int = 10, ts: float = 0.1,
+                 Q=None, R=None, P=None, *, terminal=None, options: Optional[MPCOptions] = None,
+                 time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
+                 v_box: Optional[tuple] = None, solver_options: Optional[dict] = None, **levers):
+        self._init_args = dict(system=system, net=net, eps=eps, horizon=horizon, ts=ts, Q=Q, R=R, P=P,
+                               terminal=terminal, options=options, time_limit=time_limit, gap=gap,
+                               discretization=discretization, v_box=v_box, solver_options=solver_options, **levers)
+        if options is not None and levers:
+            raise ValueError(f"give either options=MPCOptions(...) or the keywords {sorted(levers)}, not both")
+        if options is None:
+            unknown = sorted(set(levers) - set(MPCOptions.__dataclass_fields__))
+            if unknown:
+                raise TypeError(f"MPC got unexpected keyword(s) {unknown}; the options are "
+                                f"{sorted(MPCOptions.__dataclass_fields__)}")
+            options = MPCOptions(**levers)
+        if not isinstance(options, MPCOptions):
+            raise TypeError(f"options must be an MPCOptions, got {type(options).__name__}")
+        self.options = o = options
+        if net.n_in != system.n_in or net.n_out != system.m:
+            raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but the system needs (z, v) in R^{system.n_in} "
+                             f"-> u in R^{system.m}")
+        if int(horizon) != horizon or horizon < 1:
+            raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
+        if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
+            raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
+        if not (np.isfinite(ts) and ts > 0):
+            raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
+        _require("scip" if o.is_reference else o.backend)  # ImportError naming the package, here, not at a solve
+        if o.is_reference:
+            try:
+                import cvxpy  # noqa: F401
+            except ImportError as exc:  # pragma: no cover - cvxpy is a requirement
+                raise ImportError("backend='cvxpy-scip' needs cvxpy: pip install cvxpy") from exc
+        self.system, self.net = system, net
+        self.n_z, self.m, self.N = system.n_z, system.m, int(horizon)
+        self.ts = float(ts)
+        self.eps = as_vector(eps, self.m, "eps")
+        self.u_eps = system.u_max - self.eps
+        if np.any(self.eps < 0) or np.any(self.u_eps <= 0):
+            raise ValueError(f"need 0 <= eps < u_max: eps = {self.eps}, u_max = {system.u_max} leaves no admissible "
+                             f"input (u_max - eps = {self.u_eps})")
+        self.Q = weight_matrix(Q if Q is not None else np.eye(self.n_z), self.n_z, "Q")
+        self.R = weight_matrix(R if R is not None else np.eye(self.m), self.m, "R", definite=True)
+        self.P = weight_matrix(P, self.n_z, "P") if P is not None else np.zeros((self.n_z, self.n_z))
+        self.discretization = discretization
+        self.Ad, self.Bd = system.discretize(self.ts, discretization)
+        self.z_lo, self.z_hi = system.lo[: self.n_z].copy(), system.hi[: self.n_z].copy()
+        vb = (system.lo[self.n_z:], system.hi[self.n_z:]) if v_box is None else v_box
+        self.v_lo, self.v_hi = as_vector(vb[0], self.m, "v_box[0]"), as_vector(vb[1], self.m, "v_box[1]")
+        self.terminal = terminal
+        Fg = None
+        if terminal is not None:
+            Fg = terminal.constraint() if hasattr(terminal, "constraint") else terminal
+            if not (isinstance(Fg, (tuple, list)) and len(Fg) == 2):
+                raise TypeError("terminal must be (F, g) or an object with constraint() -> (F, g), e.g. fl.TerminalSet")
+        K = getattr(terminal, "K", None)
+        self.K_terminal = None if K is None else np.asarray(K, float).reshape(self.m, self.n_z)
+        self.time_limit, self.gap = time_limit, float(gap)
+        self.solver_options = dict(DAQP_OPTIONS if o.backend == "daqp" else {}, **(solver_options or {}))
+        self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
+                               v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
+        self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
+        if o.constraint != "network":
+            self.solver = LinearModel(self.pred, o, system)
+        elif o.is_reference:
+            self.solver = ReferenceProgram(self.pred, o, self.box_bounds)
+        else:
+            self.solver = NetworkEngine(self.pred, o, self.box_bounds, self.solver_options)
+        #: How much ``u_max^eps`` is tightened in the reference's rows (the engine keeps its own ``margin``).
+        self.margin = 0.0
+        self.history: list[StepResult] = []
+        self._plan: Optional[tuple[Array, Array]] = None
+        self._qp_plan: Optional[Array] = None
+
+    # ------------------------------------------------------------------ state
+    @property
+    def n_binaries_full(self) -> int:
+        """``N_p * sum_k n_k``: the binaries of eq. (MPC_form_miqp) without any elimination (paper, footnote)."""
+        return self.N * self.net.n_hidden
+
+    @property
+    def last(self) -> Optional[StepResult]:
+        """The last step's record."""
+        return self.history[-1] if self.history else None
+
+    @property
+    def backend(self) -> str:
+        return self.options.backend
+
+    @property
+    def bounds(self) -> Optional[str]:
+        return self.options.bounds
+
+    def reset(self) -> None:
+        """Forget the previous plan and the history (called by :func:`flnotes.simulate` at the start of a run)."""
+        self.history = []
+        self._plan = None
+        if isinstance(self.solver, NetworkEngine):
+            self.solver.reset()
+
+    def set_previous_plan(self, plan: Optional[tuple[Array, Array]]) -> None:
+        """Set (or clear, with ``None``) the plan ``(z_pred, v_pred)`` that the next call shifts for its warm start."""
+        if plan is None:
+            self._plan = None
+            return
+        Z, V = np.asarray(plan[0], float), np.asarray(plan[1], float)
+        if Z.shape != (self.N + 1, self.n_z) or V.shape != (self.N, self.m):
+            raise ValueError(f"plan must be (z_pred, v_pred) of shapes ({self.N + 1}, {self.n_z}) and ({self.N}, "
+                             f"{self.m}), got {Z.shape} and {V.shape}")
+        self._plan = (Z, V)
+
+    def clone(self, **changes) -> "MPC":
+        """A new controller with the same settings except ``changes`` (no history, no previous plan)."""
+        args = {**self._init_args, **changes}
+        if "options" in changes and changes["options"] is not None:
+            args = {k: v for k, v in args.items() if k not in MPCOptions.__dataclass_fields__}
+        elif set(changes) & set(MPCOptions.__dataclass_fields__):
+            args["options"] = None
+        return MPC(**args)
+
+    # ------------------------------------------------------------------ the model
+    def predict(self, z: Array, v_pred: Array) -> Array:
+        """Predicted states ``z(0..N_p)`` of eq. (MPC_form_miqp_c) for inputs ``v_pred`` of shape (N_p, m)."""
+        return self.pred.predict(z, v_pred)
+
+    def cost(self, z_pred: Array, v_pred: Array, z_ref: Array) -> float:
+        """Eq. (MPC_form_miqp_a) for a plan."""
+        return self.pred.plan_cost(z_pred, v_pred, z_ref)
+
+    def plan_feasible(self, z_pred: Array, v_pred: Array) -> bool:
+        """Does a plan satisfy eq. (MPC_form_miqp_b)-(d) and the terminal rows (:meth:`Prediction.feasible`)?"""
+        return self.pred.feasible(np.asarray(z_pred)[0], v_pred)
+
+    def problem(self, z: Array, z_ref, steps=None):
+        """The assembled MIQP (:class:`flnotes.solvers.MIQP`) at ``z`` for ``z_ref``, for inspection and benchmarks.
+
+        ``steps`` selects the encoded steps (default: those the options need); node bounds follow the options.
+        """
+        if not isinstance(self.solver, NetworkEngine):
+            raise ValueError(f"problem() shows the program of a persistent back-end; these options are {self.options}")
+        return self.solver.program(self._check_z(z), self._check_ref(z_ref), steps)
+
+    # ------------------------------------------------------------------ checks
+    def _check_z(self, z) -> Array:
+        z = np.asarray(z, float)
+        if z.shape != (self.n_z,):
+            raise ValueError(f"z must be the measured state of shape ({self.n_z},), got shape {z.shape}")
+        if not np.all(np.isfinite(z)):
+            raise ValueError(f"z contains NaN or inf: {z}")
+        self.system.check_domain(z, what="the measured state z")
+        return project_to_box(z, self.z_lo, self.z_hi, "z")  # on the face of the box up to BOX_TOL: on it
+
+    def _check_ref(self, z_ref) -> Array:
+        R = np.asarray(z_ref, float)
+        if R.shape == (self.n_z,):
+            R = np.repeat(R[None], self.N + 1, axis=0)
+        if R.shape != (self.N + 1, self.n_z):
+            raise ValueError(f"z_ref must have shape (horizon + 1, n_z) = ({self.N + 1}, {self.n_z}) (the reference "
+                             f"for k = 0..N_p) or ({self.n_z},) for a constant reference; got shape {R.shape}")
+        if not np.all(np.isfinite(R)):
+            raise ValueError("z_ref contains NaN or inf")
+        return R
+
+    # ------------------------------------------------------------------ solving
+    def __call__(self, z: Array, z_ref) -> StepResult:
+        """Solve at the measured ``z`` (n_z,) for the reference ``z_ref`` ((N_p + 1, n_z) or (n_z,)).
+
+        Returns the :class:`flnotes.StepResult` (appended to :attr:`history`): ``v`` to apply, the plan, status
+        and statistics. A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``). An
+        infeasible program is reported (``status="infeasible"``), not raised.
+        """
+        t0 = time.perf_counter()
+        z = self._check_z(z)
+        R = self._check_ref(z_ref)
+        shifted = self.shifted_plan(z)
+        o = self.options
+        if o.constraint != "network":
+            step = self.solver.solve(z, R, previous=self._plan[0] if self._plan is not None else None)
+        elif o.is_reference:
+            step = self._solve_reference(z, R)
+        else:
+            inc = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
+            step = self.solver.solve(z, R, incumbent=inc, time_limit=self.time_limit, gap=self.gap)
+        if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
+            # never a plan that breaks the program labelled as a solution
+            step.status, step.v = "error", None
+            step.message += "; the returned plan fails the forward-pass check"
+        if step.v is None:
+            step = self._fallback(z, R, step, shifted)
+        step.u_nn_pred = self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))
+        if o.constraint == "network" or step.fallback:
+            step.input_admissible = bool(step.input_admissible and np.all(np.abs(step.u_nn_pred[0]) <= self.u_eps + BOUND_TOL))
+        step.info["z_ref"] = R
+        step.solve_time = time.perf_counter() - t0
+        self._plan = (step.z_pred, step.v_pred)
+        self.history.append(step)
+        return step
+
+    def _solve_reference(self, z: Array, R: Array) -> StepResult:
+        """The cold reference; when SCIP's tolerance lets the plan exceed ``u_max^eps``, the rows are tightened."""
+        for _ in range(6):
+            step = self.solver.solve(z, R, self.u_eps - self.margin, time_limit=self.time_limit, gap=self.gap)
+            if step.v is None or step.status != "optimal":
+                return step
+            ex = float(np.max(np.abs(self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))) - self.u_eps))
+            if ex <= BOUND_TOL:
+                return step
+            self.margin = next_margin(self.margin, ex, float(np.max(self.u_eps)))
+        return step
+
+    def step(self, z: Array, t: float, reference: Optional[Callable[[Array], Array]] = None) -> StepResult:
+        """One sampling instant for :func:`flnotes.simulate`: ``z_ref(k) = reference(t + k t_s)``, k = 0..N_p."""
+        if reference is None:
+            R = np.zeros((self.N + 1, self.n_z))
+        else:
+            R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
+        return self(z, R)
+
+    # ------------------------------------------------------------------ the fallback
+    def _fallback(self, z: Array, R: Array, step: StepResult, shifted) -> StepResult:
+        """No plan from this solve: apply :meth:`fallback_plan`, flagged, the solve's status and message kept."""
+        Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted)
+        step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
+        step.objective = self.cost(Z, V, R)
+        step.fallback, step.input_admissible = True, ok
+        step.message = (step.message + f"; applied {what}").lstrip("; ")
+        return step
+
+    def shifted_plan(self, z: Array) -> Optional[tuple[Array, Array]]:
+        """The previous plan shifted by one step, re-predicted from the measured ``z``.
+
+        Its new last input is ``K z(N_p)`` when a terminal set with a gain ``K`` is given (the candidate of
+        the recursive-feasibility argument), else :meth:`feasible_tail`. ``None`` without a previous plan.
+        """
+        if self._plan is None:
+            return None
+        V = self._plan[1]
+        V = np.vstack([V[1:], V[-1:]])
+        Z = self.predict(z, V)
+        V[-1] = (self.K_terminal @ Z[-2] if self.K_terminal is not None
+                 else self.feasible_tail(Z[-2], V[-1], last=True))
+        return self.predict(z, V), V
+
+    def repair_plan(self, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
+        """:func:`flnotes.mpc.fallback.repair_plan`: a plan built step by step from ``v_guess``."""
+        return fallback.repair_plan(self.pred, z, v_guess, first)
+
+    def feasible_tail(self, z: Array, v_guess: Array, last: bool = False) -> Array:
+        """:func:`flnotes.mpc.fallback.feasible_tail`: an admissible input closest to ``v_guess`` at ``z``."""
+        return fallback.feasible_tail(self.pred, z, v_guess, last=last)
+
+    def fallback_plan(self, z: Array) -> tuple[Array, Array, str, bool]:
+        """:func:`flnotes.mpc.fallback.fallback_plan` from the measured ``z`` and the shifted previous plan."""
+        return fallback.fallback_plan(self.pred, np.asarray(z, float), self.shifted_plan(z))
+
+    def safe_input(self, z: Array, v_guess: Array) -> tuple[Array, bool]:
+        """:func:`flnotes.mpc.fallback.safe_input`: an admissible input, or the least-violation one."""
+        return fallback.safe_input(self.pred, z, v_guess)
+
+    # ------------------------------------------------------------------ statistics
+    def stats(self) -> dict:
+        """Per-step statistics of :attr:`history` as arrays (one entry per call)."""
+        h = self.history
+        return dict(status=[s.status for s in h], wall_ms=np.array([s.solve_time for s in h]) * 1e3,
+                    gap=np.array([s.gap for s in h]), nodes=np.array([s.nodes for s in h]),
+                    n_binaries=np.array([s.n_binaries for s in h]),
+                    encoded=np.array([len(s.encoded_steps) for s in h]), rounds=np.array([s.rounds for s in h]),
+                    screened=np.array([s.screened for s in h], bool), fallback=np.array([s.fallback for s in h], bool),
+                    warm_started=np.array([s.warm_started for s in h], bool))
+
+    def summary(self) -> dict:
+        """Min/max/mean time per step (ms), time-limit hits, fallbacks, screened steps, binaries."""
+        if not self.history:
+            return dict(steps=0)
+        s = self.stats()
+        mi = ~s["screened"]
+        return dict(
+            steps=len(self.history), ms_min=float(s["wall_ms"].min()), ms_max=float(s["wall_ms"].max()),
+            ms_mean=float(s["wall_ms"].mean()), ms_median=float(np.median(s["wall_ms"])),
+            time_limit_hits=int(sum(st == "time_limit" for st in s["status"])),
+            fallbacks=int(s["fallback"].sum()), screened=int(s["screened"].sum()), miqp_steps=int(mi.sum()),
+            nodes_mean=float(s["nodes"][mi].mean()) if mi.any() else 0.0, binaries_full=self.n_binaries_full,
+            binaries_mean=float(s["n_binaries"][mi].mean()) if mi.any() else 0.0,
+            binaries_max=int(s["n_binaries"][mi].max()) if mi.any() else 0,
+            encoded_mean=float(s["encoded"][mi].mean()) if mi.any() else 0.0,
+            non_optimal=int(sum(st != "optimal" for st in s["status"])))
+
+    def __repr__(self) -> str:
+        term = ", terminal set" if self.terminal is not None else ""
+        return (f"MPC({self.system.name}, N_p={self.N}, ts={self.ts}, {self.options}{term}, "
+                f"time_limit={self.time_limit})")

@@ -1,0 +1,269 @@
+"""The solve of eq. (MPC_form_miqp) at one state, with the levers of :class:`flnotes.MPCOptions`.
+
+:class:`NetworkEngine` is the one place where the MIQP is solved by the persistent back-ends: screening QP,
+node bounds (box, reachable boxes, LP, level set), constraint generation, warm start, the solver-margin
+policy. Every lever is exact: the plan returned as ``"optimal"`` is a global optimum of the program.
+
+The level set (``bounds="levelset"``). With ``(V_c, J_c)`` the optimum of the convex QP without the
+network (over a set containing every feasible plan), every feasible ``V`` has
+``J(V) >= J_c + 0.5 ||V - V_c||_H^2`` (:func:`flnotes.ellipsoid_box`). A plan cheaper than a level ``J_up``
+thus lies in an ellipsoid whose projection on each ``(z(k), v(k))`` is a small box; FBBT on these boxes
+leaves few unstable neurons, and steps whose output provably meets the bound are not encoded. The program
+restricted to these boxes contains every plan cheaper than ``J_up`` and nothing infeasible, so its optimum
+is the global one whenever it is below ``J_up``; otherwise ``J_up`` is raised (or, when ``J_up`` is the
+warm start's cost, the warm start is optimal). ``J_up`` starts at the warm start's cost, or at ``J_c`` plus
+a small margin multiplied by 4 per round.
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from ..bounds import NodeBounds, fbbt
+from ..result import StepResult
+from ..solvers import MIQP, make_solver, next_margin
+from ..tightening import EmptyBoxError, intersect
+from .levers import needed_steps, node_bounds
+from .options import MPCOptions
+from .prediction import Prediction
+from .program import compact_program, plan_vector
+
+Array = np.ndarray
+
+#: Solver of the convex relaxation that recentres the level set after LP tightening: it must be the exact
+#: optimum (a perturbed one would shift the ellipsoid), so HiGHS's active-set QP, not DAQP's regularized one.
+_RELAX = "highs"
+
+
+def _status(s: str) -> str:
+    s = str(s).lower()
+    if s in ("optimal", "time_limit", "infeasible"):
+        return s
+    if "time" in s or "limit" in s:
+        return "time_limit"
+    if "infeas" in s:
+        return "infeasible"
+    return "error"
+
+
+class NetworkEngine:
+    """Eq. (MPC_form_miqp) with the network constraint, solved to global optimality with the levers.
+
+    Parameters
+    ----------
+    pred
+        The prediction model (cost, boxes, terminal rows, checks).
+    opts
+        The validated options (``constraint="network"``, a persistent back-end).
+    box
+        FBBT node bounds on the domain box (``bounds="box"``).
+    solver_options
+        Passed to :func:`flnotes.solvers.make_solver`.
+
+    Attributes
+    ----------
+    margin
+        How much ``u_max^eps`` is tightened in the rows handed to a solver (grows when a returned plan's
+        forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of :mod:`flnotes.solvers`).
+    """
+
+    def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None):
+        self.pred, self.opts, self.box = pred, opts, box
+        self.solver_options = dict(solver_options or {})
+        self.margin = 0.0
+        self.active_prev: tuple = ()
+
+    def reset(self) -> None:
+        self.active_prev = ()
+
+    def program(self, z0: Array, z_ref: Array, steps=None, lo: Optional[Array] = None,
+                hi: Optional[Array] = None) -> MIQP:
+        """The assembled program at ``z0`` with the encoded ``steps`` (default: those the options need)."""
+        pred = self.pred
+        f, c0 = pred.linear(z0, z_ref)
+        blo, bhi = pred.boxes(z0)
+        nb = node_bounds(pred, self.opts, self.box, blo, bhi)
+        if nb is None:
+            raise EmptyBoxError("no input of some step's box meets |Phi_NN| <= u_max^eps")
+        if steps is None:
+            steps = needed_steps(nb, pred.u_eps, self.opts.encode) or []
+        return compact_program(pred, z0, f, c0, nb, steps, pred.u_eps - self.margin,
+                               eliminate_stable=self.opts.eliminate_stable, lo=lo, hi=hi)
+
+    def solve(self, z0: Array, z_ref: Array, incumbent: Optional[Array] = None, time_limit: Optional[float] = None,
+              gap: float = 1e-6) -> StepResult:
+        """Solve at the measured ``z0`` for ``z_ref`` (N_p + 1, n_z); ``incumbent`` is a plan ``V`` known feasible.
+
+        Returns a :class:`flnotes.StepResult` with the plan (``v`` is ``None`` when there is none:
+        infeasible, time limit without a plan, solver failure); the caller applies its fallback then. At a
+        time limit the plan is the best feasible one found and ``bound`` is the optimum of the QP without
+        the network (a lower bound on eq. MPC_form_miqp), so ``gap`` is an honest optimality gap.
+        """
+        pred, o = self.pred, self.opts
+        t0 = time.perf_counter()
+        N, m = pred.N, pred.m
+        f, c0 = pred.linear(z0, z_ref)
+        st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=())
+
+        def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
+            res = StepResult(None, status, nodes=st["nodes"], rounds=st["rounds"], n_binaries=st["n_bin"],
+                             encoded_steps=tuple(int(k) for k in st["steps"]), screened=screened,
+                             backend="qp-screening" if screened else o.backend, message=msg,
+                             warm_started=inc_from_warm)
+            if V is not None:
+                V = np.asarray(V, float).reshape(N, m)
+                obj = pred.cost(V, f, c0)
+                bound = min(bound, obj)
+                res.v, res.v_pred, res.z_pred = V[0].copy(), V, pred.predict(z0, V)
+                res.objective, res.bound = obj, bound
+                res.gap = abs(obj - bound) / max(1.0, abs(obj)) if np.isfinite(bound) else np.inf
+            res.solve_time = time.perf_counter() - t0
+            return res
+
+        inc_V, inc_J, inc_from_warm = None, np.inf, False
+        if o.warm_start and incumbent is not None and pred.feasible(z0, incumbent):
+            inc_V, inc_J, inc_from_warm = np.asarray(incumbent, float).reshape(-1), pred.cost(incumbent, f, c0), True
+        # the QP without the network: screening, the first level-set center, the first active steps
+        V_c, J_c = None, -np.inf
+        if o.screening or o.bounds == "levelset" or o.lazy:
+            V_q, fq, flag = pred.qp(f, z0)
+            if V_q is None:
+                if flag == -1:
+                    return done("infeasible", None, np.inf, "the QP without the network constraint is infeasible "
+                                "(the state box or terminal set cannot be kept)")
+            else:
+                V_c, J_c = V_q, fq + c0
+                if o.screening and pred.feasible(z0, V_q):
+                    self.active_prev = ()
+                    return done("optimal", V_q, J_c, "screened: the QP optimum meets the network constraint", True)
+        try:
+            lo_h, hi_h = pred.boxes(z0)
+        except EmptyBoxError as exc:
+            return done("infeasible", None, np.inf, f"infeasible: {exc}")
+        active = set(pred.violated(z0, V_c).tolist()) if V_c is not None else set(range(N))
+        active |= {k - 1 for k in self.active_prev if k >= 1}
+        level = o.bounds == "levelset" and V_c is not None
+
+        def remaining() -> Optional[float]:
+            return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
+
+        delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
+        while True:
+            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                return done("time_limit", inc_V, J_c, "time limit: " + (
+                    "the warm start is returned" if inc_V is not None else "no feasible plan"))
+            lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
+            if level:
+                J_up = min(inc_J, J_c + delta)
+                full = not np.isfinite(J_up) or delta > 1e12 * max(1.0, abs(J_c))
+                if full:  # the level set no longer restricts anything: the whole program
+                    J_up, delta = np.inf, np.inf
+                else:
+                    lo, hi = pred.level_boxes(z0, V_c, max(J_up - J_c, 0.0), lo_h, hi_h)
+                    empty = bool(np.any(lo > hi + 1e-12))
+                    hi = np.maximum(hi, lo)
+                    full = bool(np.all(lo <= lo_h) and np.all(hi >= hi_h))  # the level set cut nothing
+                    if not empty and o.lp:
+                        empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi)
+                    if empty:  # nothing cheaper than J_up
+                        if J_up >= inc_J:
+                            return done("optimal", inc_V, inc_J, "the warm start is optimal (level set empty)")
+                        delta *= 4.0
+                        continue
+            nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi)
+            steps = needed_steps(nb, pred.u_eps, o.encode) if nb is not None else None
+            if steps is None:
+                if full and inc_V is None:
+                    return done("infeasible", None, np.inf, "no admissible plan: the node bounds exclude "
+                                "|Phi_NN| <= u_max^eps over a step's reachable box")
+                if J_up >= inc_J or full:
+                    return done("optimal", inc_V, inc_J, "the warm start is optimal (no admissible output)")
+                delta *= 4.0
+                continue
+            restrict = level and not full
+            enc = sorted(set(steps) & active) if o.lazy else list(steps)
+            while True:  # constraint generation (one round without lazy)
+                prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
+                                       eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
+                                       hi=hi if restrict else None)
+                st["n_bin"], st["steps"] = int(prob.n_integer), tuple(enc)
+                solver = make_solver(prob, o.backend, **self.solver_options)
+                w0 = plan_vector(pred, z0, inc_V, nb, enc, prob, o.eliminate_stable) if inc_V is not None else None
+                res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
+                st["nodes"] += int(res.nodes)
+                st["rounds"] += 1
+                status = _status(res.status)
+                if status != "optimal":
+                    break
+                viol = set(pred.violated(z0, res.w[: N * m]).tolist())
+                if viol & set(enc):
+                    # an encoded step exceeds u_max^eps beyond round-off (the solver's tolerance let it through):
+                    # tighten the bound in the rows and solve again
+                    ex = pred.excess(z0, res.w[: N * m], enc)
+                    if st["tightened"] >= 5:
+                        return done("error", None, -np.inf, f"the optimum exceeds u_max^eps by {ex:.1e} after "
+                                    f"tightening the rows by {self.margin:.1e}")
+                    st["tightened"] += 1
+                    self.margin = next_margin(self.margin, ex, float(np.max(pred.u_eps)))
+                    continue
+                new = sorted(viol - set(enc))
+                if not new or not o.lazy:
+                    break
+                enc = sorted(set(enc) | set(new))
+                active |= set(new)
+            if status == "optimal":
+                V = res.w[: N * m]
+                J = pred.cost(V, f, c0)
+                if not pred.feasible(z0, V):
+                    return done("error", None, -np.inf, "the program's optimum fails the forward-pass check")
+                self.active_prev = tuple(enc)
+                if full or J <= J_up + 1e-9 * max(1.0, abs(J_up)):
+                    bound = res.bound if np.isfinite(res.bound) else J
+                    return done("optimal", V, bound, f"{res.backend}: {res.message}")
+                if J < inc_J:
+                    inc_V, inc_J = V, J
+            elif status == "infeasible":
+                if full and inc_V is None:
+                    return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend})")
+            elif status == "time_limit":
+                cand = res.w[: N * m] if res.w is not None else None
+                if cand is not None and pred.feasible(z0, cand) and pred.cost(cand, f, c0) < inc_J:
+                    return done("time_limit", cand, J_c, f"time limit: {res.message}")
+                return done("time_limit", inc_V, J_c, f"time limit: {res.message}")
+            else:
+                return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
+            if J_up >= inc_J or full:  # nothing below J_up in the restricted program
+                return done("optimal", inc_V, inc_J, "the warm start is optimal (nothing cheaper)")
+            delta *= 4.0
+
+    def _lp_level(self, z0: Array, f: Array, c0: float, V_c: Array, J_c: float, J_up: float, lo: Array,
+                  hi: Array) -> tuple[bool, Array, Array, Optional[NodeBounds]]:
+        """``lp=True``: LP bounds on the level-set boxes, their relaxation as a better center, FBBT again.
+
+        Returns ``(empty, lo, hi, node bounds to use or None)``.
+        """
+        pred, o = self.pred, self.opts
+        nb_lp = node_bounds(pred, o, self.box, lo, hi)
+        if nb_lp is None:
+            return True, lo, hi, None
+        steps = needed_steps(nb_lp, pred.u_eps, o.encode)
+        if steps is None:
+            return True, lo, hi, None
+        if steps:
+            prob = compact_program(pred, z0, f, c0, nb_lp, steps, pred.u_eps - self.margin,
+                                   eliminate_stable=o.eliminate_stable, lo=lo, hi=hi)
+            rr = make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
+                                  np.zeros(prob.n, dtype=int)), _RELAX).solve()
+            if rr.status == "infeasible" or (rr.status == "optimal" and rr.objective > J_up):
+                return True, lo, hi, None
+            if rr.status == "optimal" and rr.objective > J_c:
+                lo, hi = pred.level_boxes(z0, rr.w[: pred.N * pred.m], max(J_up - rr.objective, 0.0), lo, hi)
+                if np.any(lo > hi + 1e-12):
+                    return True, lo, hi, None
+                hi = np.maximum(hi, lo)
+        nb_f = fbbt(pred.net, lo, hi)
+        both = intersect(nb_f, nb_lp, method="lp")
+        both.out_L, both.out_U = nb_f.out_L, nb_f.out_U  # FBBT's: valid on the whole box
+        return False, lo, hi, both

@@ -1,0 +1,153 @@
+"""What the MPC applies when a solve gives no plan, and the step-by-step repairs it is built from.
+
+Safety first: a plan is accepted only when :meth:`flnotes.mpc.prediction.Prediction.feasible` passes it
+(boxes, terminal rows, and the network bound by the forward pass); otherwise only the first input is
+made admissible, and when no admissible input exists at the measured state the least-violation input is
+returned and flagged. See :func:`fallback_plan`.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from ..solvers import BOUND_TOL
+from .prediction import Prediction
+
+Array = np.ndarray
+
+
+
+def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
+    """A plan built step by step from ``v_guess`` (N_p, m), each input replaced by :meth:`feasible_tail`.
+
+    With ``first=False`` the first input is kept as given. Check the result with :meth:`plan_feasible`.
+    """
+    V = np.array(v_guess, float).reshape(pred.N, pred.m)
+    zk = np.asarray(z, float)
+    for k in range(pred.N):
+        if first or k:
+            V[k] = feasible_tail(pred, zk, V[k], last=k == pred.N - 1)
+        zk = pred.Ad @ zk + pred.Bd @ V[k]
+    return pred.predict(z, V), V
+
+
+def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = 2001, last: bool = False) -> Array:
+    """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box (and, for the
+    ``last`` step, in the terminal set), closest to ``v_guess``.
+
+    Searched on a grid of the ``v``-range (single input), checked with the forward pass; ``v_guess`` is
+    returned unchanged when it is admissible or when no grid point is.
+    """
+    v_guess = np.asarray(v_guess, float)
+    z = np.asarray(z, float)
+
+    def admissible(cand: Array) -> Array:
+        u = pred.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))
+        nxt = z @ pred.Ad.T + cand @ pred.Bd.T
+        ok = (np.all(np.abs(u) <= pred.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= pred.z_lo, axis=1)
+              & np.all(nxt <= pred.z_hi, axis=1))
+        if last and pred.F is not None:
+            ok &= np.all(nxt @ pred.F.T <= pred.g, axis=1)
+        return ok
+
+    if pred.m != 1 or admissible(v_guess[None])[0]:
+        return v_guess
+    cand = np.linspace(pred.v_lo[0], pred.v_hi[0], n_grid)[:, None]
+    i = np.flatnonzero(admissible(cand))
+    if not i.size:
+        return v_guess
+    return cand[i[np.argmin(np.abs(cand[i] - v_guess).sum(axis=1))]].copy()
+
+
+def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]]) -> tuple[Array, Array, str, bool]:
+    """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
+
+    Safety first, in this order:
+
+    1. the previous plan shifted by one step (``shifted``, from :meth:`flnotes.MPC.shifted_plan`), if it
+       satisfies the whole program from the measured ``z``;
+    2. a plan repaired step by step (:func:`repair_plan`) from the shifted plan, then from zero inputs,
+       if one satisfies the whole program;
+    3. otherwise only the first input is made safe: if any ``v`` with ``|Phi_NN(z, v)| <= u_max^eps``
+       exists at ``z`` (:func:`safe_input`), the closest to the plan's is applied (flagged: the rest of
+       the plan violates the program);
+    4. when none exists, the least-violation input (``input_admissible=False``).
+
+    For the QP-based constraint models (``constraint`` other than ``"network"``) the same order applies
+    with the network as the judge of admissibility: the fallback never claims more than it checks.
+    Returns ``(z_pred, v_pred, what, admissible)``.
+    """
+    z = np.asarray(z, float)
+    if shifted is not None and pred.feasible(z, shifted[1]):
+        return shifted[0], shifted[1], "the previous plan shifted by one step", True
+    guesses = ([(shifted[1], "the shifted previous plan")] if shifted is not None else [])
+    guesses.append((np.zeros((pred.N, pred.m)), "zero inputs"))
+    for V, what in guesses:
+        plan = repair_plan(pred, z, V)
+        if pred.feasible(z, plan[1]):
+            return plan[0], plan[1], f"{what} repaired step by step", True
+    V = np.array(guesses[0][0], float)
+    V[0], ok = safe_input(pred, z, V[0])
+    Zr, Vr = repair_plan(pred, z, V, first=False)
+    if ok:
+        return Zr, Vr, ("an admissible first input (|Phi_NN(z, v)| <= u_max^eps at the measured state); "
+                        "the rest of the plan violates the program"), True
+    return Zr, Vr, ("the least-violation input: no v satisfies |Phi_NN(z, v)| <= u_max^eps at the measured "
+                    "state (input bound violated, flagged)"), False
+
+
+def safe_input(pred: Prediction, z: Array, v_guess: Array) -> tuple[Array, bool]:
+    """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` closest to ``v_guess``, or the least-violation one.
+
+    Exact for one input (:func:`flnotes.exact_1d_feasible_set`, inputs keeping ``A_d z + B_d v`` in the
+    state box preferred) and for two (convex polygons over the network's linear regions,
+    :func:`flnotes.pieces.network_polygons`); for more inputs, and for the least-violation input of two
+    or more when nothing is admissible, a seeded sample of the ``v`` box (4096 points). Returns
+    ``(v, admissible)``.
+    """
+    from ..control import exact_1d_feasible_set, network_pieces_1d
+
+    z, v_guess = np.asarray(z, float), np.asarray(v_guess, float).reshape(pred.m)
+    phi_ok = lambda v: bool(np.all(np.abs(pred.net(np.r_[z, v])) <= pred.u_eps + BOUND_TOL))  # noqa: E731
+    if pred.m == 1:
+        lo, hi = float(pred.v_lo[0]), float(pred.v_hi[0])
+        iv = exact_1d_feasible_set(pred.net, z, lo, hi, float(pred.u_eps[0]))
+        a, b, Bc = pred.z_lo - pred.Ad @ z, pred.z_hi - pred.Ad @ z, pred.Bd[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            l1 = np.where(Bc > 0, a / Bc, np.where(Bc < 0, b / Bc, -np.inf))
+            u1 = np.where(Bc > 0, b / Bc, np.where(Bc < 0, a / Bc, np.inf))
+        s_lo, s_hi = float(np.max(l1)), float(np.min(u1))
+        for keep_state in (True, False):
+            cand = []
+            for lo_i, hi_i in np.asarray(iv).reshape(-1, 2):
+                if keep_state:
+                    lo_i, hi_i = max(lo_i, s_lo), min(hi_i, s_hi)
+                if lo_i <= hi_i:
+                    cand += [np.clip(v_guess[0], lo_i, hi_i), 0.5 * (lo_i + hi_i)]
+            for v in sorted(cand, key=lambda v: abs(v - v_guess[0])):
+                if phi_ok([v]):
+                    return np.array([v]), True
+        pw = network_pieces_1d(pred.net, z, lo, hi)
+        v0, y0, sl = pw.knots[:-1], pw.values[:-1], pw.slope
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cross = np.where(sl != 0, v0 - y0 / sl, v0)
+        cand = np.r_[pw.knots, np.clip(cross, pw.knots[:-1], pw.knots[1:])]
+        v = float(cand[np.argmin(np.abs(pred.net(np.c_[np.repeat(z[None], cand.size, 0), cand])[:, 0]))])
+        return np.array([v]), False
+    if pred.m == 2:
+        from ..pieces import _project, network_polygons, network_regions
+
+        regions = network_regions(pred.net, z, pred.v_lo, pred.v_hi)
+        polys = network_polygons(pred.net, z, pred.v_lo, pred.v_hi, pred.u_eps, regions=regions)
+        cand = [_project(P, v_guess) for P in polys]
+        cand = [v for v in sorted(cand, key=lambda v: float(np.sum((v - v_guess) ** 2))) if phi_ok(v)]
+        if cand:
+            return np.asarray(cand[0], float).copy(), True
+    rng = np.random.default_rng(0)
+    cand = np.vstack([v_guess, rng.uniform(pred.v_lo, pred.v_hi, (4096, pred.m))])
+    excess = np.max(np.abs(pred.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))) - pred.u_eps, axis=1)
+    ok = np.flatnonzero(excess <= BOUND_TOL)
+    if ok.size:
+        return cand[ok[np.argmin(np.abs(cand[ok] - v_guess).sum(axis=1))]].copy(), True
+    return cand[int(np.argmin(excess))].copy(), False

@@ -1,0 +1,69 @@
+"""The MPC's exact levers on the node bounds and the encoded steps (see :class:`flnotes.MPCOptions`).
+
+* Node bounds of eq. (MIP_general_c) per predicted step (:func:`node_bounds`): the domain box (the
+  paper's setting), the reachable boxes, LP-tightened ones, or the level-set boxes.
+* Which steps need the network at all (:func:`needed_steps`): a step whose output bounds already lie
+  within ``[-u_max^eps, u_max^eps]`` over its box is never encoded.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..bounds import NodeBounds, fbbt
+from ..tightening import EmptyBoxError, lp_bounds
+from .options import MPCOptions
+from .prediction import Prediction
+
+Array = np.ndarray
+
+
+def repeat_bounds(b: NodeBounds, N: int) -> NodeBounds:
+    """The domain-box bounds ``b`` repeated for every predicted step (arrays of shape (N_p, n_k))."""
+    rep = lambda a: np.repeat(np.asarray(a)[None], N, axis=0)  # noqa: E731
+    return NodeBounds([rep(L) for L in b.L], [rep(U) for U in b.U], rep(b.out_L), rep(b.out_U), method="box")
+
+
+def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, hi: Array,
+                steps: Optional[Sequence[int]] = None, use_lp: bool = True) -> Optional[NodeBounds]:
+    """Per-step node bounds for the boxes ``lo, hi`` (N_p, n_z + m) under ``opts.bounds``.
+
+    ``"box"``: ``box`` (FBBT on the domain box) at every step. Otherwise FBBT on the boxes; with
+    ``bounds="lp"`` (or ``bounds="levelset"`` and ``lp=True``) and ``use_lp``, the steps in ``steps``
+    (default all) whose outputs can leave ``[-u_max^eps, u_max^eps]`` are LP-tightened with that output
+    bound (:func:`flnotes.lp_bounds`): valid for every point the program can select there. Returns
+    ``None`` when some step's box holds no input meeting the output bound (the program is infeasible there).
+    """
+    N = pred.N
+    if opts.bounds == "box":
+        return repeat_bounds(box, N)
+    nb = fbbt(pred.net, lo, hi)
+    if use_lp and (opts.bounds == "lp" or opts.lp):
+        c = pred.u_eps
+        todo = range(N) if steps is None else sorted(steps)
+        todo = [k for k in todo if np.any(nb.out_L[k] < -c) or np.any(nb.out_U[k] > c)]
+        if todo:
+            prior = NodeBounds([L[todo] for L in nb.L], [U[todo] for U in nb.U], nb.out_L[todo], nb.out_U[todo])
+            try:
+                t = lp_bounds(pred.net, lo[todo], hi[todo], out_bounds=(-c, c), prior=prior, skip_stable=True)
+            except EmptyBoxError:
+                return None
+            for layer in range(len(nb.L)):
+                nb.L[layer][todo], nb.U[layer][todo] = t.L[layer], t.U[layer]
+            nb.method = "lp"
+    return nb
+
+
+def needed_steps(nb: NodeBounds, u_eps: Array, encode: str) -> Optional[list]:
+    """Steps whose network constraint must be encoded; ``None`` when a step cannot meet it at all.
+
+    With ``encode="all"`` every step; with ``"needed"`` only steps whose output bounds are not already
+    within ``[-u_max^eps, u_max^eps]``.
+    """
+    oL, oU = np.asarray(nb.out_L), np.asarray(nb.out_U)
+    if np.any(np.any(oL > u_eps, axis=1) | np.any(oU < -u_eps, axis=1)):
+        return None
+    if encode == "all":
+        return list(range(oL.shape[0]))
+    return [k for k in range(oL.shape[0]) if np.any(oL[k] < -u_eps) or np.any(oU[k] > u_eps)]

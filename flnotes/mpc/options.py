@@ -1,0 +1,190 @@
+"""The MPC's options as one validated value: :class:`MPCOptions`.
+
+Every field is a lever or a model choice of eq. (MPC_form_miqp); a combination that means nothing is
+rejected with a message that says what to change, never silently ignored. :meth:`MPCOptions.combinations`
+lists every accepted combination (the test suite solves each on recorded states and compares it with the
+cold SCIP reference).
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, fields
+from typing import Iterator, Optional, Sequence
+
+#: Accepted MPC back-ends: the persistent solvers of :mod:`flnotes.solvers` that solve a mixed-integer QP,
+#: and ``"cvxpy-scip"``, the reference (the program written with :func:`flnotes.encode`, solved cold by SCIP).
+MPC_BACKENDS = ("daqp", "scip", "gurobi", "cplex", "cvxpy-scip")
+#: Node bounds of eq. (MIP_general_c) per predicted step (see :mod:`flnotes.mpc.levers`).
+BOUNDS = ("box", "horizon", "lp", "levelset")
+#: The input-constraint model of the program: the network (the book's MIQP), or a linear model of the exact
+#: constraint (a QP; see :mod:`flnotes.mpc.linear`).
+CONSTRAINTS = ("network", "measured", "previous", "none")
+
+_NETWORK_LEVERS = ("bounds", "screening", "lazy", "warm_start", "encode", "eliminate_stable", "lp")
+
+
+@dataclass(frozen=True)
+class MPCOptions:
+    """How :class:`flnotes.MPC` builds and solves its program; every field is exact (none changes the optimum).
+
+    Fields left ``None`` take the default of their context; a field given where it means nothing raises.
+
+    Attributes
+    ----------
+    constraint
+        ``"network"`` (default): ``|Phi_NN(z(k), v(k))| <= u_max^eps`` at every predicted step, the
+        big-M MIQP of eq. (MPC_form_miqp). The others are the linear models a QP-based MPC uses instead
+        (chapter "A comparative study"): ``"measured"`` the exact constraint at the measured state turned into
+        linear bounds on ``v`` and applied at every step (constant extension); ``"previous"`` the exact
+        constraint along the previous prediction, shifted (Kurtz & Henson 1998); ``"none"`` no input
+        constraint (only the boxes of eq. MPC_form_miqp_d).
+    backend
+        One of :data:`MPC_BACKENDS` for ``"network"`` (default ``"daqp"``); the linear models are QPs solved
+        by DAQP (``"daqp"`` only).
+    bounds
+        Node bounds: ``"box"`` (FBBT on the domain box, the paper's setting), ``"horizon"`` (FBBT on the
+        reachable boxes, ``z(0)`` fixed), ``"lp"`` (those, LP-tightened with ``|Phi_NN| <= u_max^eps``),
+        ``"levelset"`` (default; the reachable boxes cut by the level set of the relaxation). The reference
+        back-end accepts ``"box"`` (its default), ``"horizon"`` and ``"lp"``.
+    screening
+        Solve the QP without the network constraint first; its optimum is the MIQP's when it meets the
+        constraint at every step.
+    lazy
+        Constraint generation: encode the network only at steps found violated, add violated ones, repeat.
+        Needs ``encode="needed"``.
+    warm_start
+        The previous plan, shifted, as the first incumbent (and the level set's first level).
+    encode
+        ``"needed"`` (default): only steps whose output bounds do not already lie within
+        ``[-u_max^eps, u_max^eps]``; ``"all"``: every step (the paper's program).
+    eliminate_stable
+        Stable neurons substituted (``y = a`` or ``y = 0``), no binary; ``False`` keeps a fixed binary each
+        (the paper's count, ``N_p sum_k n_k``).
+    lp
+        With ``bounds="levelset"`` only: LP tightening of the encoded steps on the level-set boxes.
+    iterations
+        With ``constraint="previous"`` only: QPs per sampling instant, each linearizing along the last plan
+        (1 is Kurtz & Henson's scheme; more iterate it within the period).
+    """
+
+    constraint: str = "network"
+    backend: Optional[str] = None
+    bounds: Optional[str] = None
+    screening: Optional[bool] = None
+    lazy: Optional[bool] = None
+    warm_start: Optional[bool] = None
+    encode: Optional[str] = None
+    eliminate_stable: Optional[bool] = None
+    lp: Optional[bool] = None
+    iterations: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        given = {f.name for f in fields(self) if getattr(self, f.name) is not None}
+        put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: resolve defaults once
+        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "lp"):
+            if k in given and not isinstance(getattr(self, k), bool):
+                raise TypeError(f"{k} must be True or False, got {getattr(self, k)!r}")
+        if self.constraint not in CONSTRAINTS:
+            raise ValueError(f"constraint must be one of {CONSTRAINTS}, got {self.constraint!r}")
+        if self.constraint != "network":
+            bad = sorted(given & set(_NETWORK_LEVERS))
+            if bad:
+                raise ValueError(f"{', '.join(bad)} only apply to constraint='network' (the MIQP); with "
+                                 f"constraint={self.constraint!r} the program is a QP without the network: drop them")
+            if self.backend not in (None, "daqp"):
+                raise ValueError(f"constraint={self.constraint!r} gives a QP solved by DAQP: backend must be 'daqp', "
+                                 f"got {self.backend!r}")
+            if self.constraint != "previous" and self.iterations is not None:
+                raise ValueError("iterations only applies to constraint='previous' (the linearization along the "
+                                 "previous prediction)")
+            it = 1 if self.iterations is None else self.iterations
+            if isinstance(it, bool) or int(it) != it or it < 1:
+                raise ValueError(f"iterations must be a positive integer, got {self.iterations!r}")
+            put("backend", "daqp")
+            put("iterations", int(it) if self.constraint == "previous" else None)
+            return
+        if self.iterations is not None:
+            raise ValueError("iterations only applies to constraint='previous'")
+        backend = "daqp" if self.backend is None else self.backend
+        if backend == "highs":
+            raise ValueError("HiGHS solves MILPs and convex QPs but not mixed-integer QPs such as eq. (MPC_form_miqp): "
+                             f"choose one of {MPC_BACKENDS}")
+        if backend not in MPC_BACKENDS:
+            raise ValueError(f"backend must be one of {MPC_BACKENDS}, got {backend!r}")
+        put("backend", backend)
+        if backend == "cvxpy-scip":
+            # the reference: the whole program written with fl.encode, solved cold; no lever applies
+            for k, off in (("screening", False), ("lazy", False), ("warm_start", False), ("lp", False),
+                           ("encode", "all"), ("eliminate_stable", True)):
+                if k in given and getattr(self, k) != off:
+                    raise ValueError(f"backend='cvxpy-scip' is the cold reference: every step encoded, no lever; "
+                                     f"{k}={getattr(self, k)!r} does not apply (drop it or choose 'daqp' or 'scip')")
+                put(k, off)
+            bounds = "box" if self.bounds is None else self.bounds
+            if bounds not in ("box", "horizon", "lp"):
+                raise ValueError(f"backend='cvxpy-scip' takes bounds 'box', 'horizon' or 'lp', got {bounds!r} "
+                                 f"('levelset' restricts the program to a level of the cost: a persistent back-end's lever)")
+            put("bounds", bounds)
+            return
+        bounds = "levelset" if self.bounds is None else self.bounds
+        if bounds not in BOUNDS:
+            raise ValueError(f"bounds must be one of {BOUNDS}, got {bounds!r}")
+        put("bounds", bounds)
+        encode = "needed" if self.encode is None else self.encode
+        if encode not in ("needed", "all"):
+            raise ValueError(f"encode must be 'needed' or 'all', got {encode!r}")
+        put("encode", encode)
+        if encode == "all" and self.lazy:
+            raise ValueError("lazy=True (constraint generation) encodes a subset of the steps; encode='all' encodes "
+                             "every step: choose one")
+        put("lazy", encode == "needed" if self.lazy is None else self.lazy)
+        if self.lp and bounds != "levelset":
+            raise ValueError("lp=True tightens the level-set boxes (bounds='levelset'); for LP bounds on the reachable "
+                             "boxes use bounds='lp'")
+        put("lp", bool(self.lp))
+        for k in ("screening", "warm_start", "eliminate_stable"):
+            put(k, True if getattr(self, k) is None else getattr(self, k))
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def is_reference(self) -> bool:
+        """The cold SCIP reference through cvxpy."""
+        return self.backend == "cvxpy-scip"
+
+    @classmethod
+    def combinations(cls, backends: Sequence[str] = ("daqp", "scip", "cvxpy-scip"),
+                     constraints: Sequence[str] = CONSTRAINTS) -> Iterator["MPCOptions"]:
+        """Every accepted combination for the given back-ends and constraint models (each exactly once)."""
+        seen = set()
+        for constraint in constraints:
+            if constraint != "network":
+                for it in ((1, 3) if constraint == "previous" else (None,)):
+                    o = cls(constraint=constraint, iterations=it)
+                    if o not in seen:
+                        seen.add(o)
+                        yield o
+                continue
+            for backend in backends:
+                if backend == "cvxpy-scip":
+                    grid = [dict(bounds=b) for b in ("box", "horizon", "lp")]
+                else:
+                    grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp)
+                            for b, s, w, e, (enc, lz), lp in itertools.product(
+                                BOUNDS, (True, False), (True, False), (True, False),
+                                (("needed", True), ("needed", False), ("all", False)), (False, True))
+                            if not (lp and b != "levelset")]
+                for kw in grid:
+                    o = cls(constraint="network", backend=backend, **kw)
+                    if o not in seen:
+                        seen.add(o)
+                        yield o
+
+    def __str__(self) -> str:
+        if self.constraint != "network":
+            return f"{self.constraint} (QP, DAQP" + (f", {self.iterations} iteration(s))" if self.iterations else ")")
+        if self.is_reference:
+            return f"cvxpy-scip (cold reference), bounds={self.bounds}"
+        on = [k for k in ("screening", "lazy", "warm_start", "lp") if getattr(self, k)]
+        extra = [] if self.eliminate_stable else ["stable neurons kept"]
+        extra += [] if self.encode == "needed" else ["every step encoded"]
+        return f"{self.backend}, bounds={self.bounds}" + "".join(f", {s}" for s in on + extra)

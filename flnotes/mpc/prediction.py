@@ -1,0 +1,188 @@
+"""The prediction model of eq. (MPC_form_miqp): condensing, cost, boxes, terminal rows, feasibility.
+
+One place builds what every program form, lever and fallback of the MPC uses: the condensed prediction
+``z(k) = Sx[k] z(0) + Su[k] V`` (``V = [v(0); ...; v(N_p-1)]``), the cost as a quadratic in ``V``, the
+state box and the optional terminal set as rows in ``V``, the screening QP (the program without the
+network constraint) and the one feasibility check of a plan (boxes to :data:`flnotes.solvers.FEAS_TOL`,
+the network bound by the forward pass to :data:`flnotes.solvers.BOUND_TOL`).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from ..network import ReLUNet
+from ..solvers import BOUND_TOL, FEAS_TOL
+from ..systems import condense
+from ..tightening import ellipsoid_box, horizon_boxes
+
+Array = np.ndarray
+
+#: DAQP settings for the big-M programs: its cycling guard is loosened (the big-M rows are degenerate;
+#: with the defaults DAQP may stop with "cycling" on them).
+DAQP_OPTIONS = {"params": {"cycle_tol": 1000, "progress_tol": 1e-10}}
+
+
+class Prediction:
+    """The condensed model, cost and constraints of eq. (MPC_form_miqp) without the network rows.
+
+    Parameters
+    ----------
+    net
+        ``Phi_NN`` (for the forward-pass checks).
+    Ad, Bd
+        Discrete Brunovsky pair (n_z, n_z), (n_z, m).
+    horizon
+        ``N_p``.
+    Q, R, P
+        Weights of ``sum_k ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2 + ||z(N_p) - z_ref(N_p)||_P^2``.
+    z_lo, z_hi, v_lo, v_hi
+        The state box ``X_z`` (eq. MPC_form_miqp_d), imposed on ``z(1..N_p)``, and the input range.
+    u_eps
+        ``u_max^eps = u_max - eps`` (m,), eq. (Phi_NN_ep).
+    terminal
+        Optional ``(F, g)``: the terminal constraint ``F z(N_p) <= g``.
+
+    Attributes
+    ----------
+    Sx, Su, H
+        ``z(k) = Sx[k] z0 + Su[k] V`` and the Hessian of the cost in ``V`` (positive definite).
+    T
+        (N_p, n_z + m, N_p m): the network input ``[z(k); v(k)] = T[k] V + [Sx[k] z0; 0]``.
+    """
+
+    def __init__(self, net: ReLUNet, Ad: Array, Bd: Array, horizon: int, Q: Array, R: Array, P: Array, *,
+                 z_lo: Array, z_hi: Array, v_lo: Array, v_hi: Array, u_eps: Array,
+                 terminal: Optional[tuple[Array, Array]] = None):
+        self.net, self.N = net, int(horizon)
+        self.Ad, self.Bd = np.asarray(Ad, float), np.asarray(Bd, float)
+        self.nz, self.m = self.Bd.shape
+        self.Q, self.R, self.P = Q, R, P
+        self.z_lo, self.z_hi, self.v_lo, self.v_hi = z_lo, z_hi, v_lo, v_hi
+        self.u_eps = np.asarray(u_eps, float)
+        N, nz, m = self.N, self.nz, self.m
+        self.Sx, self.Su, self.H = condense(self.Ad, self.Bd, N, Q, R, P)
+        self.Wk = [Q] * N + [P]
+        self.H_inv = np.linalg.inv(self.H)
+        T = np.zeros((N, nz + m, N * m))
+        for k in range(N):
+            T[k, :nz] = self.Su[k]
+            T[k, nz:, k * m:(k + 1) * m] = np.eye(m)
+        self.T = T
+        self.F = self.g = None
+        rows = [self.Su[1:].reshape(N * nz, N * m)]
+        if terminal is not None:
+            F, g = (np.atleast_2d(np.asarray(a, float)) for a in terminal)
+            g = g.reshape(-1)
+            if F.ndim != 2 or F.shape[1] != nz or g.shape != (F.shape[0],):
+                raise ValueError(f"terminal must be (F, g) with F of shape (r, {nz}) and g of shape (r,), got "
+                                 f"{F.shape} and {g.shape}")
+            if not (np.all(np.isfinite(F)) and np.all(np.isfinite(g))):
+                raise ValueError("terminal (F, g) contains NaN or inf")
+            self.F, self.g = F, g
+            rows.append(F @ self.Su[N])
+        #: The state rows in ``V``: ``z(1..N_p)`` in the box, then ``F z(N_p) <= g``; see :meth:`state_bounds`.
+        self.A_state = np.vstack(rows)
+
+    # ------------------------------------------------------------------ the model and the cost
+    def predict(self, z0: Array, V: Array) -> Array:
+        """``z(0..N_p)`` of eq. (MPC_form_miqp_c) for the plan ``V`` ((N_p, m) or flat), shape (N_p + 1, n_z)."""
+        return self.Sx @ np.asarray(z0, float) + self.Su @ np.asarray(V, float).reshape(-1)
+
+    def linear(self, z0: Array, z_ref: Array) -> tuple[Array, float]:
+        """``f``, ``c0`` of the cost ``J(V) = 0.5 V'HV + f'V + c0`` (eq. MPC_form_miqp_a) for ``z0`` and ``z_ref``."""
+        E = self.Sx @ z0 - z_ref
+        f = 2 * sum(self.Su[k].T @ self.Wk[k] @ E[k] for k in range(self.N + 1))
+        c0 = float(sum(E[k] @ self.Wk[k] @ E[k] for k in range(self.N + 1)))
+        return f, c0
+
+    def cost(self, V: Array, f: Array, c0: float) -> float:
+        """``J(V) = 0.5 V'HV + f'V + c0``."""
+        V = np.asarray(V, float).reshape(-1)
+        return float(0.5 * V @ self.H @ V + f @ V + c0)
+
+    def plan_cost(self, Z: Array, V: Array, z_ref: Array) -> float:
+        """Eq. (MPC_form_miqp_a) for a plan given as trajectories."""
+        E = np.asarray(Z) - np.asarray(z_ref)
+        return float(sum(E[k] @ self.Wk[k] @ E[k] for k in range(self.N + 1))
+                     + sum(v @ self.R @ v for v in np.asarray(V).reshape(self.N, self.m)))
+
+    # ------------------------------------------------------------------ constraints
+    def state_bounds(self, z0: Array) -> tuple[Array, Array]:
+        """Lower and upper bounds of ``A_state V``: the state box for ``k = 1..N_p`` and the terminal rows."""
+        Zf = (self.Sx @ z0)[1:].reshape(-1)
+        lo, hi = np.tile(self.z_lo, self.N) - Zf, np.tile(self.z_hi, self.N) - Zf
+        if self.F is not None:
+            lo = np.r_[lo, np.full(self.g.size, -np.inf)]
+            hi = np.r_[hi, self.g - self.F @ (self.Sx[self.N] @ z0)]
+        return lo, hi
+
+    def violated(self, z0: Array, V: Array, tol: float = BOUND_TOL) -> Array:
+        """Predicted steps ``k`` with ``|Phi_NN(z(k), v(k))| > u_max^eps + tol`` (forward pass)."""
+        V = np.asarray(V, float).reshape(self.N, self.m)
+        u = self.net(np.hstack([self.predict(z0, V)[: self.N], V]))
+        return np.flatnonzero(np.any(np.abs(u) > self.u_eps + tol, axis=1))
+
+    def excess(self, z0: Array, V: Array, steps) -> float:
+        """``max |Phi_NN(z(k), v(k))| - u_max^eps`` over the predicted ``steps`` of the plan ``V``."""
+        V = np.asarray(V, float).reshape(self.N, self.m)
+        X = np.hstack([self.predict(z0, V)[: self.N], V])[list(steps)]
+        return float(np.max(np.abs(self.net(X)) - self.u_eps))
+
+    def feasible(self, z0: Array, V: Array, tol: float = FEAS_TOL, network: bool = True) -> bool:
+        """Does the plan ``V`` satisfy eq. (MPC_form_miqp_b)-(d) (and the terminal rows)?
+
+        The boxes and terminal rows to ``tol`` (a solver's feasibility tolerance), the network bound by the
+        forward pass to :data:`flnotes.solvers.BOUND_TOL` (round-off only; skipped with ``network=False``).
+        """
+        V = np.asarray(V, float).reshape(-1)
+        if V.shape != (self.N * self.m,) or not np.all(np.isfinite(V)):
+            return False
+        lo, hi = self.state_bounds(z0)
+        s = self.A_state @ V
+        if np.any(s < lo - tol) or np.any(s > hi + tol):
+            return False
+        Vm = V.reshape(self.N, self.m)
+        if np.any(Vm < self.v_lo - tol) or np.any(Vm > self.v_hi + tol):
+            return False
+        return (not network) or self.violated(z0, V).size == 0
+
+    def qp(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
+           g_hi: Optional[Array] = None) -> tuple[Optional[Array], float, int]:
+        """The QP ``min J(V)`` over the boxes and terminal rows (no network), plus optional rows ``g_lo <= G V <= g_hi``.
+
+        Solved by DAQP (``H`` is positive definite). Returns ``(V or None, J - c0, DAQP exit flag)``; a plan
+        only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
+        """
+        import daqp
+
+        lo, hi = self.state_bounds(z0)
+        A, bl, bu = self.A_state, lo, hi
+        if G is not None:
+            A, bl, bu = np.vstack([A, G]), np.r_[bl, g_lo], np.r_[bu, g_hi]
+        N = self.N
+        # DAQP: the first N m constraints are simple bounds on V, the rest rows of A
+        bu_all = np.r_[np.tile(self.v_hi, N), np.minimum(bu, 1e30)]
+        bl_all = np.r_[np.tile(self.v_lo, N), np.maximum(bl, -1e30)]
+        x, fval, flag, _ = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
+                                      np.zeros(len(bu_all), dtype=np.int32))
+        if flag not in (1, 2):
+            return None, np.inf, int(flag)
+        return np.asarray(x, float), float(fval), int(flag)
+
+    # ------------------------------------------------------------------ boxes for the node bounds
+    def boxes(self, z0: Array) -> tuple[Array, Array]:
+        """Boxes of ``[z(k); v(k)]``, k = 0..N_p-1, over every admissible plan (:func:`flnotes.horizon_boxes`)."""
+        return horizon_boxes(self.Ad, self.Bd, z0, self.z_lo, self.z_hi, self.v_lo, self.v_hi, self.N)
+
+    def level_boxes(self, z0: Array, V_c: Array, delta: float, lo: Array, hi: Array) -> tuple[Array, Array]:
+        """``lo, hi`` cut by the ellipsoid ``0.5 ||V - V_c||_H^2 <= delta`` projected on each ``[z(k); v(k)]``."""
+        off = np.zeros(self.nz + self.m)
+        lo2, hi2 = lo.copy(), hi.copy()
+        Zf = self.Sx @ z0
+        for k in range(self.N):
+            off[: self.nz] = Zf[k]
+            a, b = ellipsoid_box(self.T[k], self.H_inv, V_c, off, delta)
+            lo2[k], hi2[k] = np.maximum(lo2[k], a - 1e-9), np.minimum(hi2[k], b + 1e-9)
+        return lo2, hi2

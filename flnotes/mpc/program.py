@@ -1,0 +1,151 @@
+"""The program form of eq. (MPC_form_miqp) handed to a solver: condensed, with the free binaries only.
+
+The predicted states are eliminated (``z(k) = Sx[k] z0 + Su[k] V``), the stable neurons substituted
+(``y = a`` or ``y = 0``), and the network encoded only at the steps asked for. Because which neurons are
+stable and which steps are encoded change with the measured state, the rows are assembled for each state
+from matrices built once (:class:`flnotes.mpc.prediction.Prediction`); see :func:`compact_program`.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..bounds import NodeBounds
+from ..solvers import MIQP
+from .prediction import Prediction
+
+Array = np.ndarray
+
+
+def _encoded(L: Array, U: Array, eliminate_stable: bool) -> Array:
+    """Neurons that keep a variable and a binary: the unstable ones (``L < 0 < U``), or all of them."""
+    return ((L < 0) & (U > 0)) if eliminate_stable else np.ones(L.size, bool)
+
+
+def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBounds, steps: Sequence[int],
+                    u_in: Array, *, eliminate_stable: bool = True, lo: Optional[Array] = None,
+                    hi: Optional[Array] = None) -> MIQP:
+    """The condensed big-M program with the network encoded at ``steps``.
+
+    Variables ``w = [V | y (encoded neurons) | alpha (encoded neurons)]``. Per encoded neuron with
+    pre-activation ``a`` (affine in ``w``): ``y >= 0``, ``y >= a``, ``y <= U alpha``,
+    ``y <= a - L (1 - alpha)``, i.e. eq. (MIP_general_b)-(MIP_general_c) with ``yund = y - a``; a stable
+    neuron is ``y = a`` (``L >= 0``) or ``y = 0`` (``U <= 0``) plus the row ``L <= a <= U`` that keeps the
+    substitution exact; ``|y^K| <= u_in`` per encoded step (eq. Phi_NN_ep, ``u_in = u_max^eps`` less the
+    solver margin); the state box and terminal rows; optional boxes ``lo <= [z(k); v(k)] <= hi`` for every
+    step (the level-set restriction). With ``eliminate_stable=False`` every neuron keeps a variable and a
+    binary (fixed by its bounds when stable).
+
+    Parameters
+    ----------
+    pred
+        The prediction model.
+    z0
+        Measured state (n_z,).
+    f, c0
+        The cost's linear part and constant (:meth:`Prediction.linear`).
+    nb
+        Node bounds per predicted step, arrays of shape (N_p, n_k) (eq. MIP_general_c).
+    steps
+        Predicted steps whose network constraint is encoded.
+    u_in
+        The output bound written in the rows, (m,).
+    """
+    net, N, nz, m = pred.net, pred.N, pred.nz, pred.m
+    nV = N * m
+    Zf = pred.Sx @ z0
+    steps = list(steps)
+    n_y = sum(int(_encoded(np.asarray(nb.L[layer])[k], np.asarray(nb.U[layer])[k], eliminate_stable).sum())
+              for k in steps for layer in range(net.K - 1))
+    n = nV + 2 * n_y
+    lb = np.r_[np.tile(pred.v_lo, N), np.zeros(2 * n_y)]
+    ub = np.r_[np.tile(pred.v_hi, N), np.full(n_y, np.inf), np.ones(n_y)]
+    integ = np.r_[np.zeros(nV + n_y, dtype=int), np.ones(n_y, dtype=int)]
+    s_lo, s_hi = pred.state_bounds(z0)
+    rows = [np.hstack([pred.A_state, np.zeros((pred.A_state.shape[0], n - nV))])]
+    rl, ru = [s_lo], [s_hi]
+    if lo is not None:
+        Tb = np.zeros((N * (nz + m), n))
+        Tb[:, :nV] = pred.T.reshape(N * (nz + m), nV)
+        off = np.hstack([Zf[:N], np.zeros((N, m))]).reshape(-1)
+        rows.append(Tb)
+        rl.append(lo.reshape(-1) - off)
+        ru.append(hi.reshape(-1) - off)
+    iy_next, ia_next = nV, nV + n_y
+    for k in steps:
+        Y = np.zeros((net.n_in, n))
+        Y[:, :nV] = pred.T[k]
+        y0 = np.r_[Zf[k], np.zeros(m)]
+        for layer, (W, b) in enumerate(zip(net.W[:-1], net.b[:-1])):
+            Aa, a0 = W @ Y, W @ y0 + b
+            L, U = np.asarray(nb.L[layer], float)[k], np.asarray(nb.U[layer], float)[k]
+            var = _encoded(L, U, eliminate_stable)
+            idx = np.flatnonzero(var)
+            r = np.arange(idx.size)
+            iy, ia = iy_next + r, ia_next + r
+            iy_next += idx.size
+            ia_next += idx.size
+            Yn, yn0 = np.zeros_like(Aa), np.zeros_like(a0)
+            sub = (L >= 0) & ~var                                # substituted active neurons: y = a
+            Yn[sub], yn0[sub] = Aa[sub], a0[sub]
+            Yn[idx, iy] = 1.0
+            Up, Lm = np.maximum(U[idx], 0.0), np.minimum(L[idx], 0.0)
+            R1 = Aa[idx].copy()
+            R1[r, iy] -= 1.0                                     # a - y <= 0
+            R2 = np.zeros((idx.size, n))
+            R2[r, iy], R2[r, ia] = 1.0, -Up                      # y - U alpha <= 0
+            R3 = -Aa[idx]
+            R3[r, iy] += 1.0
+            R3[r, ia] -= Lm                                      # y - a - L alpha <= -L
+            rows += [R1, R2, R3]
+            rl += [np.full(idx.size, -np.inf)] * 3
+            ru += [-a0[idx], np.zeros(idx.size), a0[idx] - Lm]
+            ub[iy] = Up
+            lb[ia], ub[ia] = np.where(L[idx] >= 0, 1.0, 0.0), np.where(U[idx] <= 0, 0.0, 1.0)
+            st = np.flatnonzero(~var)                            # L <= a <= U keeps the substitution exact
+            if st.size:
+                rows.append(Aa[st])
+                rl.append(L[st] - a0[st])
+                ru.append(U[st] - a0[st])
+            Y, y0 = Yn, yn0
+        rows.append(net.W[-1] @ Y)
+        o0 = net.W[-1] @ y0 + net.b[-1]
+        rl.append(-u_in - o0)
+        ru.append(u_in - o0)                                     # eq. (Phi_NN_ep)
+    H = sp.block_diag([sp.csc_matrix(pred.H), sp.csc_matrix((n - nV, n - nV))], format="csc")
+    return MIQP(H, np.r_[f, np.zeros(n - nV)], c0, sp.csr_matrix(np.vstack(rows)), np.concatenate(rl),
+                np.concatenate(ru), lb, ub, integ)
+
+
+def plan_vector(pred: Prediction, z0: Array, V: Array, nb: NodeBounds, steps: Sequence[int], prob: MIQP,
+                eliminate_stable: bool = True) -> Array:
+    """The program's ``w`` for a plan ``V`` (the hidden values from the network's forward pass): a warm start."""
+    N, m = pred.N, pred.m
+    V = np.asarray(V, float).reshape(N, m)
+    w = np.zeros(prob.n)
+    w[: N * m] = V.reshape(-1)
+    steps = list(steps)
+    if not steps:
+        return w
+    Z = pred.predict(z0, V)
+    _, pre = pred.net.forward(np.hstack([Z[steps], V[steps]]))
+    n_y = (prob.n - N * m) // 2
+    iy, ia = N * m, N * m + n_y
+    for s, k in enumerate(steps):
+        for layer in range(pred.net.K - 1):
+            L, U = np.asarray(nb.L[layer])[k], np.asarray(nb.U[layer])[k]
+            var = _encoded(L, U, eliminate_stable)
+            a = pre[layer][s][var]
+            w[iy:iy + a.size] = np.maximum(a, 0.0)
+            w[ia:ia + a.size] = np.clip((a > 0).astype(float), (L[var] >= 0).astype(float), (U[var] > 0).astype(float))
+            iy += a.size
+            ia += a.size
+    return w
+
+
+def objective(prob: MIQP, w: Array) -> float:
+    """``0.5 w'Hw + c'w + c0`` of a program."""
+    w = np.asarray(w, float)
+    return float(0.5 * w @ (prob.H @ w) + prob.c @ w + prob.c0)

@@ -1,0 +1,233 @@
+"""Studies of chapter 9: closed loops with and without terminal ingredients, and the margin between samples.
+
+``terminal_sweep``
+    the MPC regulating to the origin for several horizons, without terminal ingredients (the paper's program) and
+    with the terminal cost and set of :mod:`flnotes.terminal`, on the nominal model and on the true plant;
+``nominal_loop``
+    one closed loop on the nominal model ``z+ = A_d z + B_d v`` (eq. MPC_form_miqp_c);
+``fallback_table``
+    the steps of a run that had no admissible plan, as the MPC recorded them;
+``margin_study``
+    closed loops with ``u_max^eps`` and ``u_max^{eps+delta}`` for several sampling times: the true input on a
+    fine grid between the samples, the tracking and the feasibility.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from ..intersample import intersample_drift
+from ..mpc import MPC
+from ..network import ReLUNet
+from ..simulate import simulate
+from ..systems import FLSystem
+from ..terminal import TerminalSet
+
+Array = np.ndarray
+
+__all__ = ["nominal_loop", "plan_costs", "terminal_sweep", "fallback_table", "margin_study"]
+
+
+def _stage_costs(Z: Array, V: Array, Q: Array, R: Array) -> Array:
+    """``l(z_k, v_k) = z_k'Q z_k + v_k'R v_k`` for the applied steps (regulation to the origin)."""
+    Z, V = Z[: len(V)], np.asarray(V, float).reshape(len(V), -1)
+    return np.einsum("ij,jk,ik->i", Z, Q, Z) + np.einsum("ij,jk,ik->i", V, R, V)
+
+
+def nominal_loop(mpc: MPC, z0: Array, n_steps: int, Ad: Array, Bd: Array, z_box: tuple,
+                 z_ref: Optional[Array] = None) -> dict:
+    """The MPC in closed loop with its own prediction model ``z+ = A_d z + B_d v`` (eq. MPC_form_miqp_c).
+
+    The run stops early, as :func:`flnotes.simulate` does, when a sampled state lies outside the state box
+    ``z_box``: the controller is not defined there.
+    The controller's previous plan is cleared first (``mpc.reset()``); every step's record is kept.
+
+    Parameters
+    ----------
+    mpc
+        The controller.
+    z0
+        Initial state, (n_z,).
+    n_steps
+        Number of sampling steps.
+    Ad, Bd
+        The MPC's discrete model, (n_z, n_z) and (n_z, m).
+    z_box
+        ``(z_lo, z_hi)``, the state box.
+    z_ref
+        Constant reference, (n_z,); default the origin.
+
+    Returns
+    -------
+    dict
+        ``t`` (K+1,), ``z`` (K+1, n_z), ``v`` (K, m), ``steps`` (the K step records), ``box_exit`` (bool) and
+        ``time_s``, with ``K <= n_steps`` the steps applied.
+    """
+    Ad, Bd = np.asarray(Ad, float), np.asarray(Bd, float)
+    n, m = Bd.shape
+    z = np.asarray(z0, float).reshape(n)
+    z_lo, z_hi = (np.asarray(b, float).reshape(n) for b in z_box)
+    ref = np.zeros(n) if z_ref is None else np.asarray(z_ref, float).reshape(n)
+    mpc.reset()
+    Z, V, steps, box_exit = [z], [], [], False
+    t0 = time.perf_counter()
+    for _ in range(int(n_steps)):
+        if np.any(z < z_lo) or np.any(z > z_hi):  # a measured state outside the box: the loop stops there
+            box_exit = True
+            break
+        step = mpc(z, ref)
+        steps.append(step)
+        z = Ad @ z + Bd @ step.v
+        Z.append(z), V.append(step.v)
+    return dict(t=mpc.ts * np.arange(len(Z)), z=np.array(Z), v=np.array(V).reshape(len(V), m), steps=steps,
+                box_exit=box_exit, time_s=time.perf_counter() - t0)
+
+
+def plan_costs(steps: Sequence, Q: Array, R: Array, P: Optional[Array] = None) -> Array:
+    """The cost of eq. (MPC_form_miqp_a) (plus ``z(N_p)'P z(N_p)``) of each step's plan, regulation to the origin.
+
+    Computed from the plan itself (``z_pred``, ``v_pred``); NaN for a step without a proven optimal plan of its own
+    (status other than ``"optimal"``, or a fallback).
+    """
+    out = np.full(len(steps), np.nan)
+    for k, s in enumerate(steps):
+        if s.status == "optimal" and not s.fallback:
+            Z, V = np.asarray(s.z_pred, float), np.asarray(s.v_pred, float)
+            out[k] = _stage_costs(Z, V, Q, R).sum() + (0.0 if P is None else float(Z[-1] @ P @ Z[-1]))
+    return out
+
+
+def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSystem, n_planned: int) -> dict:
+    Z, V, steps = run["z"], run["v"], run["steps"]
+    stage = _stage_costs(Z, V, Q, R)
+    J = plan_costs(steps, Q, R, P)
+    # the Lyapunov decrease of the proof: J(z_{k+1}) <= J(z_k) - l(z_k, v_k) between consecutive optimal steps
+    dec = J[1:] - J[:-1] + stage[: len(J) - 1]
+    ok = np.isfinite(dec)
+    u = system.Phi(Z[: len(V)], V) if len(V) else np.zeros((0, system.m))
+    return dict(steps=len(V), completed=len(V) == n_planned and not run["box_exit"],
+                infeasible=int(sum(s.status == "infeasible" for s in steps)),
+                fallback=int(sum(bool(s.fallback) for s in steps)),
+                not_admissible=int(sum(not s.input_admissible for s in steps)),
+                box_exit=bool(run["box_exit"]), cost=float(stage.sum()),
+                final_norm_z=float(np.linalg.norm(Z[-1])),
+                max_cost_increase=float(np.max(dec[ok] / (1.0 + J[:-1][ok]))) if ok.any() else np.nan,
+                max_abs_u_samples=float(np.abs(u).max()) if len(u) else np.nan, time_s=run["time_s"])
+
+
+def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, horizons: Sequence[int],
+                   z0: Array, t_final: float, plants: Sequence[str] = ("nominal", "true"),
+                   **mpc_kwargs) -> tuple[dict, list[dict]]:
+    """Regulation to the origin for several ``N_p``, without and with the terminal ingredients.
+
+    Without: the paper's program, eq. (MPC_form_miqp) (``P=None``, no terminal constraint). With: terminal cost
+    ``P = terminal.P`` and ``F z(N_p) <= g`` (``terminal=terminal``). Both use the terminal ingredients' ``t_s``,
+    ``Q``, ``R``, discretization and v-box. ``"nominal"`` runs :func:`nominal_loop`, ``"true"`` runs
+    :func:`flnotes.simulate` on the true plant with ``v`` held (which stops when the state leaves the domain box).
+
+    Returns
+    -------
+    runs, rows
+        ``runs[(N_p, with_terminal, plant)]``: dict with ``t``, ``z``, ``v``, ``steps``, ``objective`` (the optimal
+        cost per step from its plan, :func:`plan_costs`); ``rows``: one dict per run with the number of steps applied,
+        whether the run completed, the infeasible and fallback steps, the steps whose applied input was not
+        admissible, whether the state left the box, the closed-loop cost ``sum_k l(z_k, v_k)``, the final ``|z|``,
+        ``max_cost_increase`` (largest ``(J_{k+1} - J_k + l(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
+        steps: ``<= 0`` is the proof's Lyapunov decrease), the largest true ``|u|`` at the samples, and the time.
+    """
+    for p in plants:
+        if p not in ("nominal", "true"):
+            raise ValueError(f"plants must contain 'nominal' and/or 'true', got {p!r}")
+    n_steps = int(round(t_final / terminal.ts))
+    common = dict(ts=terminal.ts, Q=terminal.Q, R=terminal.R, discretization=terminal.discretization,
+                  v_box=(terminal.v_lo, terminal.v_hi), **mpc_kwargs)
+    zero = lambda t: np.zeros((np.size(t), system.n_z))  # noqa: E731
+    runs, rows = {}, []
+    for N in horizons:
+        for with_terminal in (False, True):
+            extra = dict(P=terminal.P, terminal=terminal) if with_terminal else {}
+            mpc = MPC(system, net, eps, horizon=int(N), **common, **extra)
+            for plant in plants:
+                if plant == "nominal":
+                    run = nominal_loop(mpc, z0, n_steps, terminal.Ad, terminal.Bd, (terminal.z_lo, terminal.z_hi))
+                else:
+                    t0 = time.perf_counter()
+                    log = simulate(system, mpc, t_final=n_steps * terminal.ts, ts=terminal.ts, z0=z0, reference=zero,
+                                   net=net, progress=False)
+                    run = dict(t=log.t, z=log.z, v=log.v, steps=list(mpc.history[-log.n_steps:]),
+                               box_exit="left the domain box" in (log.message or ""),
+                               time_s=time.perf_counter() - t0, log=log)
+                row = dict(N_p=int(N), ingredients="P and Z_f" if with_terminal else "none", plant=plant,
+                           **_summarize(run, terminal.Q, terminal.R, extra.get("P"), system, n_steps))
+                run["objective"] = plan_costs(run["steps"], terminal.Q, terminal.R, extra.get("P"))
+                runs[(int(N), with_terminal, plant)] = run
+                rows.append(row)
+    return runs, rows
+
+
+def fallback_table(run: dict) -> list[dict]:
+    """The steps of a run without a proven admissible plan, as the MPC recorded them.
+
+    One row per step with ``fallback`` set: the step index, ``status``, ``input_admissible`` (does the applied
+    ``v`` satisfy ``|Phi_NN(z_k, v)| <= u_max^eps`` at the measured state?), ``|Phi_NN(z_k, v_k)|`` and the
+    MPC's ``message`` (which rule of the fallback gave the input).
+    """
+    rows = []
+    for k, s in enumerate(run["steps"]):
+        if s.fallback:
+            rows.append(dict(k=k, z=np.round(run["z"][k], 3), status=s.status, input_admissible=bool(s.input_admissible),
+                             abs_phi_nn=float(np.abs(s.u_nn_pred[0]).max()), message=s.message))
+    return rows
+
+
+def margin_study(system: FLSystem, net: ReLUNet, eps: float, ts_values: Sequence[float], t_final: float,
+                 reference: Callable[[Array], Array], z0: Array, horizon: Optional[int] = None,
+                 lookahead: Optional[float] = None, n_fine: int = 20, drift: Optional[dict] = None,
+                 **mpc_kwargs) -> tuple[dict, list[dict]]:
+    """Closed loops on the true plant (``v`` held) with ``u_max^eps`` and with ``u_max^{eps+delta(t_s)}``.
+
+    For each ``t_s`` the drift ``delta(t_s)`` is certified (:func:`flnotes.intersample.intersample_drift`, or
+    taken from ``drift[t_s]``), and the MPC (``mpc_kwargs`` as in :class:`flnotes.MPC`) is run with ``eps`` and with
+    ``eps + delta`` as its ``eps``. Give exactly one of ``horizon`` (the same ``N_p`` for every ``t_s``: a shorter
+    ``t_s`` also shortens the look-ahead) and ``lookahead`` (seconds: ``N_p = round(lookahead / t_s)``).
+    When ``eps + delta >= u_max`` no input is admissible at every instant and that run is not made (``run = False`` in its row).
+
+    Returns
+    -------
+    logs, rows
+        ``logs[(t_s, margin)]`` the :class:`flnotes.SimLog` s (``margin`` is ``"eps"`` or ``"eps+delta"``);
+        ``rows``: ``t_s``, ``margin``, ``delta``, the bound ``u_max - eps (- delta)``, whether the run was made and
+        completed, the largest true ``|u|`` at the samples and on the fine grid between them (``n_fine`` points per
+        interval), whether ``|u(t)| <= u_max`` held everywhere, the RMS position error over the second half, and the
+        infeasible, time-limit and fallback steps.
+    """
+    if (horizon is None) == (lookahead is None):
+        raise ValueError("give exactly one of horizon (N_p, steps) and lookahead (seconds)")
+    u_max = float(system.u_max[0])
+    logs, rows = {}, []
+    for ts in ts_values:
+        ts = float(ts)
+        delta = float(np.max(drift[ts].upper if drift and ts in drift else intersample_drift(system, ts).upper))
+        for label, e in (("eps", eps), ("eps+delta", eps + delta)):
+            N = int(horizon) if horizon is not None else max(1, int(round(lookahead / ts)))
+            row = dict(t_s=ts, N_p=N, margin=label, delta=delta, bound=u_max - e, run=bool(e < u_max))
+            if not row["run"]:
+                rows.append(row)
+                continue
+            mpc = MPC(system, net, e, horizon=N, ts=ts, **mpc_kwargs)
+            log = simulate(system, mpc, t_final=t_final, ts=ts, z0=z0, reference=reference, net=net, n_fine=n_fine,
+                           progress=False)
+            err = np.abs(log.z[:, 0] - np.asarray(reference(log.t), float)[:, 0])
+            st = list(log.status)
+            row.update(completed=log.message == "", max_abs_u_samples=float(np.abs(log.u).max()),
+                       max_abs_u_between=float(np.abs(log.u_fine).max()),
+                       within_u_max=bool(np.all(np.abs(log.u_fine) <= u_max + 1e-7)),
+                       rms_x_error_second_half=float(np.sqrt(np.mean(err[len(err) // 2:] ** 2))),
+                       infeasible=int(sum(s == "infeasible" for s in st)),
+                       time_limit=int(sum(s == "time_limit" for s in st)), fallback=int(np.sum(log.fallback)),
+                       mean_ms=float(1e3 * np.mean(log.solve_time)), max_ms=float(1e3 * np.max(log.solve_time)))
+            logs[(ts, label)] = log
+            rows.append(row)
+    return logs, rows

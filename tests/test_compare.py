@@ -1,0 +1,212 @@
+"""The comparative study: nonlinear MPC (CasADi + IPOPT), saturation, the study's metrics."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.nmpc import NonlinearMPC, SaturatedInput, input_to_v
+from flnotes.studies import compare as C
+
+S = fl.paper.QUAD_SETTING
+
+
+@pytest.fixture(scope="module")
+def quad():
+    return fl.quad1d()
+
+
+@pytest.fixture(scope="module")
+def quad_setting():
+    return C.setting("Quad-1D", horizon=6)
+
+
+# ------------------------------------------------------------------ the input map
+def test_input_to_v_inverts_phi(quad):
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        z = rng.uniform(-3, 3, 3)
+        u = rng.uniform(-0.2, 0.2, 1)
+        v = input_to_v(quad, z, u)
+        assert np.allclose(quad.Phi(z, v), u, atol=1e-12)
+    a, b = fl.msd().input_map(np.array([1.0, 0.5]))
+    assert np.allclose(b, [[1.0]]) and np.isclose(a[0], 1.0 + fl.systems.stribeck(np.array(0.5)))
+
+
+def test_input_to_v_rejects_a_map_not_affine_in_v():
+    A, B = fl.brunovsky(2)
+    cubic = fl.FLSystem("cubic", A, B, phi=lambda z, v: v**3 + z[:, :1], lo=[-1, -1, -1], hi=[1, 1, 1], u_max=1.0,
+                        f=lambda x, u: np.array([x[1], u[0]]), to_z=lambda x: x, to_x=lambda z: z)
+    with pytest.raises(ValueError, match="not affine in v"):
+        input_to_v(cubic, np.zeros(2), np.array([0.5]))
+
+
+# ------------------------------------------------------------------ saturated feedback linearization
+def test_saturated_input_clips_the_true_input(quad):
+    big = SaturatedInput(fl.FeedbackLaw(lambda z: np.array([12.0])), quad)
+    small = SaturatedInput(fl.FeedbackLaw(lambda z: np.array([0.1])), quad)
+    z = np.array([0.2, -0.1, 0.3])
+    assert quad.Phi(z, 12.0)[0] > quad.u_max[0]  # premise: the inner law asks for too much
+    r = big.step(z, 0.0)
+    assert np.isclose(quad.Phi(z, r.v)[0], quad.u_max[0], rtol=0, atol=1e-12)
+    r = small.step(z, 0.0)
+    assert abs(quad.Phi(z, 0.1)[0]) < quad.u_max[0] and np.array_equal(r.v, [0.1])  # within the bound: untouched
+    log = fl.simulate(quad, big, 1.0, 0.1, z0=[0.0, 0.0, 0.0], progress=False)
+    assert np.all(np.abs(log.u) <= quad.u_max + 1e-12)
+
+
+# ------------------------------------------------------------------ nonlinear MPC
+def test_nmpc_respects_the_bound_and_satisfies_kkt(quad):
+    nm = NonlinearMPC(quad, horizon=8, ts=0.1, Q=S["Q"], R=S["R"])
+    ref = fl.sine_reference(1.5, 1.0)
+    s = nm(S["z0"], ref(0.1 * np.arange(9)))
+    assert s["status"] == "optimal"
+    assert np.all(np.abs(s["u_pred"]) <= quad.u_max + 1e-12)
+    assert np.abs(s["u_pred"]).max() >= quad.u_max[0] - 1e-6, "premise: the bound is active in this plan"
+    assert s["kkt"]["stationarity"] < 1e-6 and s["kkt"]["primal"] < 1e-6 and s["kkt"]["complementarity"] < 1e-5
+    # the plan is the RK4 rollout of its inputs, and its cost is the NLP's objective
+    assert np.allclose(nm.rollout(s["x_pred"][0], s["u_pred"]), s["x_pred"], atol=1e-6)
+    assert np.isclose(nm.cost(s["x_pred"][0], s["u_pred"], ref(0.1 * np.arange(9))), s["objective"], rtol=1e-6)
+    # v of the plan is the Brunovsky input: Phi(z_k, v_k) = u_k
+    assert np.allclose(quad.Phi(s["z_pred"][:-1], s["v_pred"]), s["u_pred"], atol=1e-9)
+
+
+def test_nmpc_closed_loop_tracks_and_applies_its_input(quad):
+    ref = fl.sine_reference(1.5, 1.0)
+    nm = NonlinearMPC(quad, horizon=8, ts=0.1, Q=S["Q"], R=S["R"])
+    log = fl.simulate(quad, nm, 3.0, 0.1, z0=S["z0"], reference=ref, hold="u", check_domain=True, progress=False)
+    assert not log.message and log.n_steps == 30
+    assert np.all(np.abs(log.u) <= quad.u_max + 1e-9) and np.all(np.abs(log.u_fine) <= quad.u_max + 1e-9)
+    applied = np.array([h["u"] for h in nm.history])
+    assert np.allclose(log.u, applied, atol=1e-12), "simulate applies exactly the NMPC's u"
+    e = np.abs(log.z[:, 0] - ref(log.t)[:, 0])
+    assert e[-5:].max() < 0.5 * e[0], "the position error falls"
+
+
+def test_nmpc_checks_its_symbolic_model():
+    msd = fl.msd()
+    with pytest.raises(ValueError, match="to_z"):
+        NonlinearMPC(msd, horizon=3)  # the MSD's to_z converts with np.asarray(x, float)
+    NonlinearMPC(msd, horizon=3, to_z=lambda x: x)
+    with pytest.raises(ValueError, match="horizon"):
+        NonlinearMPC(msd, horizon=0, to_z=lambda x: x)
+
+
+# ------------------------------------------------------------------ the study's metrics
+def _tiny_log():
+    """A hand-made run of the MSD (Phi = v + s(z2) + z1, u_max = 5): 3 steps, 2 fine points per step."""
+    msd = fl.msd()
+    z = np.array([[1.0, 0.0], [0.5, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    v = np.array([[0.0], [1.0], [-2.0]])
+    u = np.array([[1.0], [6.0], [-2.0]])          # step 1 violates at the sample
+    u_fine = np.array([[1.0], [4.0], [6.0], [5.5], [-2.0], [-5.2]])  # steps 1 and 2 between samples
+    plan_ok = SimpleNamespace(z_pred=np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]), v_pred=np.array([[0.0], [1.0]]))
+    plan_bad = SimpleNamespace(z_pred=np.array([[0.5, 0.0], [4.0, 0.0], [0.0, 0.0]]), v_pred=np.array([[0.0], [1.5]]))
+    no_plan = SimpleNamespace()
+    return fl.SimLog(system=msd, ts=0.1, hold="v", t=np.array([0.0, 0.1, 0.2, 0.3]), x=z, z=z, v=v, u=u, u_nn=None,
+                     solve_time=np.array([0.001, 0.003, 0.002]), status=["optimal", "infeasible", "optimal"],
+                     fallback=np.array([False, True, False]), t_fine=np.arange(6) * 0.05, x_fine=np.zeros((6, 2)),
+                     z_fine=np.zeros((6, 2)), u_fine=u_fine, in_domain=np.ones(4, bool),
+                     steps=[plan_ok, plan_bad, no_plan], message="")
+
+
+def test_run_metrics_on_a_constructed_run():
+    log = _tiny_log()
+    ref = lambda t: np.zeros((np.size(t), 2))
+    Q, R = np.diag([2.0, 1.0]), np.array([[0.5]])
+    m = C.run_metrics(log, ref, Q, R, band=0.6)
+    assert m["steps"] == 3 and m["completed"]
+    assert m["max_abs_u_samples"] == 6.0 and m["max_abs_u_between"] == 6.0
+    assert m["violating_samples"] == 1 and m["violating_intervals"] == 2
+    # plans: the first stays within 5 (Phi(z(1), v(1)) = 2 + 1 = 3), the second reaches 4 + 1.5 = 5.5
+    assert m["plans"] == 2 and m["plans_violating"] == 1 and np.isclose(m["plan_excess_max"], 0.5)
+    assert m["infeasible_steps"] == 1 and m["fallback_steps"] == 1 and m["non_optimal_steps"] == 1
+    # cost: ts * sum_k (2 z1^2 + 0.5 v^2) over k = 0, 1, 2
+    assert np.isclose(m["cost"], 0.1 * ((2 * 1.0 + 0) + (2 * 0.25 + 0.5) + (0 + 0.5 * 4)))
+    assert np.isclose(m["rms_error"], np.sqrt((1 + 0.25) / 4))
+    assert np.isclose(m["settling_s"], 0.1)  # |z1| <= 0.6 from t = 0.1 on
+    assert np.isclose(m["ms_min"], 1.0) and np.isclose(m["ms_median"], 2.0) and np.isclose(m["ms_max"], 3.0)
+
+
+def test_settling_time():
+    t = np.arange(5.0)
+    assert C.settling_time(t, [1.0, 0.5, 0.05, 0.2, 0.01], 0.1) == 4.0
+    assert np.isnan(C.settling_time(t, [1.0, 0.0, 0.0, 0.0, 0.5], 0.1))
+    assert C.settling_time(t, np.zeros(5), 0.1) == 0.0
+
+
+def test_scenarios_are_seeded_and_include_active_bounds():
+    a, b = C.draw_scenarios("Quad-1D", 20, seed=3), C.draw_scenarios("Quad-1D", 20, seed=3)
+    assert all(np.array_equal(x["z0"], y["z0"]) and x["omega"] == y["omega"] for x, y in zip(a, b))
+    assert any(s["bound_active"] for s in a) and not all(s["bound_active"] for s in a)
+    quad = fl.quad1d()
+    assert all(quad.in_domain(s["z0"])[0] for s in a)
+    with pytest.raises(ValueError, match="name"):
+        C.draw_scenarios("Arm2", 3)
+
+
+def test_study_on_one_short_scenario(quad_setting):
+    """The MIQP's plans satisfy the true bound at every predicted step; the NMPC keeps |u| <= u_max everywhere."""
+    sc = C.draw_scenarios("Quad-1D", 2, seed=0)[1]
+    assert sc["bound_active"], "premise: this scenario's reference needs more than u_max"
+    rows = C.monte_carlo(quad_setting, [sc], 1.0, methods=("network", "nmpc"))
+    by = {r["method"]: r for r in rows}
+    assert by["network"]["steps"] == by["nmpc"]["steps"] == 10
+    assert by["network"]["violating_samples"] == 0 and by["network"]["plans_violating"] == 0
+    assert by["nmpc"]["violating_samples"] == 0 and by["nmpc"]["violating_intervals"] == 0
+    table = C.method_table(rows, ("network", "nmpc"))
+    assert [r["method"] for r in table] == [C.LABELS["network"], C.LABELS["nmpc"]]
+    assert table[0]["cost_vs_miqp"] == 1.0
+
+
+# ------------------------------------------------------------------ the linear input models (one MPC engine)
+@pytest.fixture(scope="module")
+def quad_net():
+    net, _ = fl.paper_net("Quad-1D")
+    return net, float(fl.paper.paper_eps("Quad-1D").upper[0])
+
+
+def test_constant_extension_plan_satisfies_its_own_bounds(quad, quad_net):
+    net, eps = quad_net
+    mpc = fl.MPC(quad, net, eps, horizon=6, ts=0.1, Q=S["Q"], R=S["R"], constraint="measured")
+    z = np.asarray(S["z0"], float)
+    st = mpc(z, np.array([4.0, 0.0, 0.0]))  # a far set point: the bound binds
+    assert st.status == "optimal" and not st.fallback
+    u_measured = quad.Phi(np.repeat(z[None], 6, axis=0), st.v_pred)  # the rows: Phi at the measured state
+    assert np.all(np.abs(u_measured) <= quad.u_max + 1e-6)
+    assert np.abs(u_measured).max() >= quad.u_max[0] - 1e-6, "premise: the bound is active in this plan"
+
+
+def test_previous_prediction_plan_satisfies_its_own_bounds(quad, quad_net):
+    net, eps = quad_net
+    N = 6
+    mpc = fl.MPC(quad, net, eps, horizon=N, ts=0.1, Q=S["Q"], R=S["R"], constraint="previous")
+    target = np.array([4.0, 0.0, 0.0])  # a far set point: the bound binds
+    first = mpc(np.asarray(S["z0"], float), target)
+    z1 = first.z_pred[1]  # the nominal next state
+    second = mpc(z1, target)
+    assert second.status == "optimal" and not second.fallback
+    zbar = np.vstack([z1[None], first.z_pred[2:N + 1]])  # the previous plan, shifted (Kurtz & Henson)
+    u_rows = quad.Phi(zbar, second.v_pred)
+    assert np.all(np.abs(u_rows) <= quad.u_max + 1e-6)
+    assert np.abs(u_rows).max() >= quad.u_max[0] - 1e-6, "premise: the bound is active in this plan"
+
+
+def test_saturated_linear_mpc_clips_in_closed_loop(quad, quad_net):
+    net, eps = quad_net
+    inner = fl.MPC(quad, net, eps, horizon=6, ts=0.1, Q=S["Q"], R=S["R"], constraint="none")
+    far = lambda t: np.tile([4.0, 0.0, 0.0], (np.size(t), 1))  # a far set point: the bound binds
+    log = fl.simulate(quad, SaturatedInput(inner, quad), 1.0, 0.1, z0=S["z0"], reference=far, net=net, progress=False)
+    assert any(s.info["clipped"] for s in log.steps), "premise: the unconstrained MPC asks for more than u_max"
+    assert np.all(np.abs(log.u) <= quad.u_max + 1e-12)
+
+
+def test_all_five_methods_on_one_short_scenario(quad_setting):
+    sc = C.draw_scenarios("Quad-1D", 2, seed=0)[1]
+    rows = C.monte_carlo(quad_setting, [sc], 1.0)
+    by = {r["method"]: r for r in rows}
+    assert set(by) == set(C.METHODS) and all(r["steps"] == 10 for r in rows)
+    for m in ("network", "measured", "previous", "saturated", "nmpc"):
+        assert by[m]["fallback_steps"] > 0 or by[m]["violating_samples"] == 0, f"{m}: |u| <= u_max at the samples"
+    assert by["network"]["plans_violating"] == 0
+    assert len(C.method_table(rows)) == 5

@@ -1,0 +1,192 @@
+"""The MPC's options as one validated value, each accepted combination checked against the cold SCIP reference.
+
+Properties: every combination of :class:`flnotes.MPCOptions` that the engine accepts returns, on recorded
+closed-loop states with the warm start they had, the optimum of the cold reference (the paper's program
+written with ``fl.encode`` and solved by SCIP); a meaningless combination raises with a message; the
+terminal set is imposed on the plan; the QP-based constraint models satisfy the linear rows they claim.
+"""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.mpc import MPC, MPCOptions, sine_reference
+from flnotes.studies import recorded_problems
+
+from _nets import test_net
+
+S = fl.paper.QUAD_SETTING
+EPS = 0.03  # above the small network's largest error on its training grid (0.028)
+COMMON = dict(horizon=4, ts=S["ts"], Q=S["Q"], R=S["R"])
+COMBOS = list(MPCOptions.combinations(backends=("daqp", "scip", "cvxpy-scip"), constraints=("network",)))
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    """States of a short closed loop where the screening QP breaks the network constraint, with the
+    previous plans they had, and the cold reference optimum at each."""
+    sysm = fl.quad1d()
+    net, _ = test_net("quad1d-8x8")  # small (16 neurons): every combination, even the paper's program, is quick
+    mpc = MPC(sysm, net, EPS, **COMMON)
+    log = fl.simulate(sysm, mpc, t_final=3.0, ts=S["ts"], z0=S["z0"], reference=sine_reference(1.5), net=net)
+    hard = [k for k, h in enumerate(mpc.history) if not h.screened and k >= 1]
+    assert len(hard) >= 2, "the premise: the run has steps where the network constraint is active"
+    problems = recorded_problems(log, hard[:2], with_plans=True)
+    ref = MPC(sysm, net, EPS, backend="cvxpy-scip", bounds="box", gap=1e-9, **COMMON)
+    J = []
+    for z, R, _ in problems:
+        r = ref(z, R)
+        assert r.status == "optimal" and not r.fallback, r.message
+        J.append(r.objective)
+    return sysm, net, problems, J
+
+
+def test_the_combinations_are_the_accepted_ones():
+    assert len(COMBOS) == len(set(COMBOS)) > 200
+    for o in COMBOS:  # each is a fixed point of the validation
+        assert MPCOptions(**{k: getattr(o, k) for k in o.__dataclass_fields__}) == o
+
+
+@pytest.mark.parametrize("opts", COMBOS, ids=str)
+def test_every_combination_gives_the_reference_optimum(recorded, opts):
+    sysm, net, problems, J = recorded
+    mpc = MPC(sysm, net, EPS, options=opts, **COMMON)
+    for (z, R, prev), J_ref in zip(problems, J):
+        mpc.set_previous_plan(prev)
+        s = mpc(z, R)
+        assert s.status == "optimal" and not s.fallback, (opts, s.message)
+        assert mpc.plan_feasible(s.z_pred, s.v_pred)
+        assert abs(s.objective - J_ref) <= 1e-6 * max(1.0, abs(J_ref)), (opts, s.objective, J_ref)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(backend="highs"), "HiGHS"),
+    (dict(backend="cplexx"), "backend must be one of"),
+    (dict(backend="cvxpy-scip", screening=True), "cold reference"),
+    (dict(backend="cvxpy-scip", bounds="levelset"), "levelset"),
+    (dict(bounds="horizon", lp=True), "lp=True"),
+    (dict(encode="all", lazy=True), "choose one"),
+    (dict(bounds="boxes"), "bounds must be one of"),
+    (dict(constraint="measured", bounds="lp"), "only apply to constraint='network'"),
+    (dict(constraint="none", backend="scip"), "backend must be 'daqp'"),
+    (dict(constraint="measured", iterations=2), "iterations only applies"),
+    (dict(iterations=2), "iterations only applies"),
+    (dict(constraint="previous", iterations=0), "positive integer"),
+    (dict(constraint="nonlinear"), "constraint must be one of"),
+])
+def test_meaningless_combinations_are_errors(kw, match):
+    with pytest.raises(ValueError, match=match):
+        MPCOptions(**kw)
+
+
+def test_options_and_keywords_do_not_mix():
+    sysm, (net, _) = fl.quad1d(), test_net("quad1d-8x8")
+    with pytest.raises(ValueError, match="not both"):
+        MPC(sysm, net, EPS, options=MPCOptions(), bounds="box")
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        MPC(sysm, net, EPS, formulation="sparse")
+    with pytest.raises(TypeError, match="True or False"):
+        MPCOptions(screening="yes")
+
+
+def test_terminal_rows_are_imposed(recorded):
+    """A terminal box around the origin changes the optimum and the plan ends inside it; too small a set is
+    reported as infeasible (with the fallback flagged), never a plan outside it."""
+    sysm, net, problems, J = recorded
+    z, R, _ = problems[0]
+    F = np.vstack([np.eye(3), -np.eye(3)])
+    for half in (2.0, 0.5):
+        g = np.full(6, half)
+        m = MPC(sysm, net, EPS, terminal=(F, g), **COMMON)
+        ref = MPC(sysm, net, EPS, terminal=(F, g), backend="cvxpy-scip", bounds="lp", **COMMON)
+        s, r = m(z, R), ref(z, R)
+        assert s.status == r.status
+        if r.status == "optimal":
+            assert np.all(F @ s.z_pred[-1] <= g + 1e-7) and not s.fallback
+            assert abs(s.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective))
+            assert s.objective >= J[0] - 1e-6 * max(1.0, J[0])  # a restriction cannot lower the optimum
+        else:
+            assert s.fallback
+    with pytest.raises(ValueError, match="terminal must be"):
+        MPC(sysm, net, EPS, terminal=(np.eye(2), np.ones(2)), **COMMON)
+
+
+@pytest.mark.parametrize("constraint, it", [("measured", None), ("previous", 1), ("previous", 3), ("none", None)])
+def test_linear_models_keep_their_own_rows(recorded, constraint, it):
+    """The QP-based models: the plan satisfies the linear rows of the exact constraint at the states they
+    are written at (the measured state; the previous prediction), and ``"none"`` only the boxes."""
+    sysm, net, problems, _ = recorded
+    kw = dict(constraint=constraint) if it is None else dict(constraint=constraint, iterations=it)
+    m = MPC(sysm, net, EPS, **kw, **COMMON)
+    for z, R, prev in problems:
+        m.set_previous_plan(prev)
+        s = m(z, R)
+        assert s.status == "optimal" and not s.fallback, s.message
+        assert m.pred.feasible(z, s.v_pred, network=False)
+        if constraint == "measured":
+            u = np.array([sysm.Phi(z, v) for v in s.v_pred])
+            assert np.all(np.abs(u) <= sysm.u_max + 1e-6)
+        elif constraint == "previous" and it == 1:
+            zbar = np.vstack([z[None], prev[0][2:]])
+            u = np.array([sysm.Phi(zb, v) for zb, v in zip(zbar, s.v_pred)])
+            assert np.all(np.abs(u) <= sysm.u_max + 1e-6)
+        elif constraint == "previous":  # iterated: the rows along its own plan's prediction of the last round
+            assert s.rounds == it
+        # the applied input at the measured state satisfies the exact bound for both linear models
+        if constraint != "none":
+            assert np.all(np.abs(sysm.Phi(z, s.v)) <= sysm.u_max + 1e-6)
+
+
+def test_warm_starts_and_backends_agree_on_random_states():
+    """On random states and references (not a closed loop): the default options cold, warm-started with the
+    optimum itself and with a feasible but worse plan, and SCIP with the level set all give the optimum of the
+    cold reference."""
+    sysm = fl.quad1d()
+    net, _ = test_net("quad1d-6x6")
+    eps = 0.0323 + 1e-4  # above this network's largest error on its training grid
+    kw = dict(horizon=6, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175)
+    fast, scip = MPC(sysm, net, eps, **kw), MPC(sysm, net, eps, backend="scip", **kw)
+    ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(40):
+        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
+        zr = np.zeros((7, 3))
+        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
+        fast.reset()
+        cold = fast(z0, zr)
+        if cold.status != "optimal" or cold.screened:
+            continue
+        checked += 1
+        J = ref(z0, zr).objective
+        assert abs(cold.objective - J) <= 1e-6 * max(1.0, abs(J))
+        other = fast(z0, zr + np.array([1.0, 0.0, 0.0]))  # the optimum for another reference: feasible, worse
+        for plan in ((cold.z_pred, cold.v_pred), (other.z_pred, other.v_pred)):
+            V = np.vstack([plan[1][-1:], plan[1][:-1]])  # so that its shift is the plan itself
+            fast.set_previous_plan((fast.predict(z0, V), V))
+            w = fast(z0, zr)
+            assert w.status == "optimal" and abs(w.objective - J) <= 1e-6 * max(1.0, abs(J))
+        r = scip(z0, zr)
+        assert r.status == "optimal" and abs(r.objective - J) <= 1e-6 * max(1.0, abs(J))
+        if checked == 4:
+            break
+    assert checked >= 3, "the premise: random states where the network constraint is active"
+
+
+def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
+    """With (almost) no time, the controller returns the warm start if it is feasible, never a plan that breaks
+    the program, and its gap is measured against a true lower bound (the QP without the network)."""
+    sysm, net, problems, J = recorded
+    mpc = MPC(sysm, net, EPS, time_limit=1e-9, **COMMON)
+    kept = 0
+    for (z, R, prev), J_ref in zip(problems, J):
+        mpc.set_previous_plan(prev)
+        s = mpc(z, R)
+        assert s.status in ("time_limit", "optimal")
+        if s.fallback:
+            continue
+        kept += 1
+        assert mpc.plan_feasible(s.z_pred, s.v_pred)
+        assert s.bound <= J_ref + 1e-9 * max(1.0, J_ref) <= s.objective + 2e-9 * max(1.0, J_ref)
+        if s.status == "time_limit":
+            assert np.isfinite(s.gap) and abs(s.gap - (s.objective - s.bound) / max(1.0, abs(s.objective))) < 1e-12
+    assert kept >= 1, "the premise: the shifted closed-loop plan is feasible at a recorded state"
