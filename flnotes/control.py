@@ -1023,6 +1023,7 @@ class _CvxpyBackend:
         if c.p:
             self.aH.value, self.bH.value = d["aH"], d["bH"]
             self.cap_H.value = np.full(c.p, self.big if soft else 0.0)
+        self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
         for _ in range(6):
             self.u_in.value = c.u_eps - self.margin
             self.problem.solve(solver=self.solver, **self._opts())
@@ -1197,6 +1198,7 @@ class _MiqpBackend:
             if sol is not None:
                 return sol
         nb = c.node_bounds(z)
+        self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
         for _ in range(6):
             self.solver.update(**self.write(z, d, nb, soft))
             r = self.solver.solve(time_limit=c.time_limit, gap=c.gap)

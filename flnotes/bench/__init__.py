@@ -1,6 +1,6 @@
 """Benchmarks behind ``make bench``: per-step solve times and certification times.
 
-Each section module (``training``, ``error``, ``clfcbf``, ``mpc``, ``exactness``, ``compare``) defines
+Each section module (``training``, ``error``, ``clfcbf``, ``mpc``, ``exactness``, ``compare``, ``multi``) defines
 ``run(fast: bool) -> dict`` returning
 
     {"title": str, "rows": [dict, ...], "notes": [str, ...], "figures": [path, ...]}
@@ -25,7 +25,7 @@ from typing import Optional
 
 from ..tables import Table
 
-SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "compare")
+SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "compare", "multi")
 
 
 def out_dir() -> Path:

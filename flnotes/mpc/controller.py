@@ -171,7 +171,7 @@ class MPC:
             self.solver = ReferenceProgram(self.pred, o, self.box_bounds)
         else:
             self.solver = NetworkEngine(self.pred, o, self.box_bounds, self.solver_options)
-        #: How much ``u_max^eps`` is tightened in the reference's rows (the engine keeps its own ``margin``).
+        #: How much ``u_max^eps`` was tightened in the reference's rows at the last solve (the engine has its own).
         self.margin = 0.0
         self.history: list[StepResult] = []
         self._plan: Optional[tuple[Array, Array]] = None
@@ -303,6 +303,7 @@ class MPC:
 
     def _solve_reference(self, z: Array, R: Array) -> StepResult:
         """The cold reference; when SCIP's tolerance lets the plan exceed ``u_max^eps``, the rows are tightened."""
+        self.margin = 0.0  # per solve, as in the engine
         for _ in range(6):
             step = self.solver.solve(z, R, self.u_eps - self.margin, time_limit=self.time_limit, gap=self.gap)
             if step.v is None or step.status != "optimal":

@@ -65,8 +65,9 @@ class NetworkEngine:
     Attributes
     ----------
     margin
-        How much ``u_max^eps`` is tightened in the rows handed to a solver (grows when a returned plan's
-        forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of :mod:`flnotes.solvers`).
+        How much ``u_max^eps`` was tightened in the rows of the last solve (0 at the start of each solve; grows
+        when a returned plan's forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of
+        :mod:`flnotes.solvers`).
     """
 
     def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None):
@@ -105,6 +106,7 @@ class NetworkEngine:
         t0 = time.perf_counter()
         N, m = pred.N, pred.m
         f, c0 = pred.linear(z0, z_ref)
+        self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
         st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=())
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
