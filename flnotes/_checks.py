@@ -79,3 +79,16 @@ def weight_matrix(W, n: int, name: str, definite: bool = False) -> np.ndarray:
     if lam < -1e-12:
         raise ValueError(f"{name} must be positive semidefinite (smallest eigenvalue {lam:g})")
     return W
+
+
+def horizon_reference(z_ref: Any, horizon: int, n_z: int) -> np.ndarray:
+    """A predictive controller's reference ``z_ref(k)``, k = 0..N_p: shape (N_p + 1, n_z), or (n_z,) repeated."""
+    R = np.asarray(z_ref, float)
+    if R.shape == (n_z,):
+        R = np.repeat(R[None], horizon + 1, axis=0)
+    if R.shape != (horizon + 1, n_z):
+        raise ValueError(f"z_ref must have shape (horizon + 1, n_z) = ({horizon + 1}, {n_z}) (the reference for "
+                         f"k = 0..N_p) or ({n_z},) for a constant reference; got shape {R.shape}")
+    if not np.all(np.isfinite(R)):
+        raise ValueError("z_ref contains NaN or inf")
+    return R

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ._checks import as_vector, weight_matrix
+from ._checks import as_vector, horizon_reference, weight_matrix
 from .errors import SolverFailure
 from .result import StepResult
 from .systems import FLSystem
@@ -337,15 +337,7 @@ class NonlinearMPC:
         return float(self._J(self._pack(X, U), np.r_[np.asarray(x0, float), R.reshape(-1)]))
 
     def _check_ref(self, z_ref) -> Array:
-        R = np.asarray(z_ref, float)
-        if R.shape == (self.n_z,):
-            R = np.repeat(R[None], self.N + 1, axis=0)
-        if R.shape != (self.N + 1, self.n_z):
-            raise ValueError(f"z_ref must have shape (horizon + 1, n_z) = ({self.N + 1}, {self.n_z}) or "
-                             f"({self.n_z},); got {R.shape}")
-        if not np.all(np.isfinite(R)):
-            raise ValueError("z_ref contains NaN or inf")
-        return R
+        return horizon_reference(z_ref, self.N, self.n_z)
 
     def _guess(self, x0: Array, u_guess: Optional[Array] = None) -> Array:
         if u_guess is not None:

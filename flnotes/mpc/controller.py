@@ -12,7 +12,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import as_vector, weight_matrix
+from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
 from ..network import ReLUNet
 from ..result import StepResult
@@ -256,15 +256,7 @@ class MPC:
         return project_to_box(z, self.z_lo, self.z_hi, "z")  # on the face of the box up to BOX_TOL: on it
 
     def _check_ref(self, z_ref) -> Array:
-        R = np.asarray(z_ref, float)
-        if R.shape == (self.n_z,):
-            R = np.repeat(R[None], self.N + 1, axis=0)
-        if R.shape != (self.N + 1, self.n_z):
-            raise ValueError(f"z_ref must have shape (horizon + 1, n_z) = ({self.N + 1}, {self.n_z}) (the reference "
-                             f"for k = 0..N_p) or ({self.n_z},) for a constant reference; got shape {R.shape}")
-        if not np.all(np.isfinite(R)):
-            raise ValueError("z_ref contains NaN or inf")
-        return R
+        return horizon_reference(z_ref, self.N, self.n_z)
 
     # ------------------------------------------------------------------ solving
     def __call__(self, z: Array, z_ref) -> StepResult:
