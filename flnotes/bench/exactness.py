@@ -41,6 +41,7 @@ from typing import Optional
 import numpy as np
 
 from .. import paper
+from ..tables import time_stats
 
 REL_TOL = 1e-6  # relative objective difference that counts as a wrong optimum
 
@@ -118,15 +119,6 @@ def clf_states(system, n: int, seed: int = 0) -> list[tuple[np.ndarray, str]]:
 
 
 # ----------------------------------------------------------------------------------- statistics
-def time_stats(seconds) -> dict:
-    """Median, p90, p99 and max in milliseconds."""
-    ms = np.asarray(seconds, float) * 1e3
-    if ms.size == 0:
-        return dict(ms_median=np.nan, ms_p90=np.nan, ms_p99=np.nan, ms_max=np.nan)
-    return dict(ms_median=float(np.median(ms)), ms_p90=float(np.percentile(ms, 90)),
-                ms_p99=float(np.percentile(ms, 99)), ms_max=float(ms.max()))
-
-
 def classify(status: str, objective: float, ref_status: str, ref_objective: float, excess: float) -> dict:
     """One comparison with the reference (see the module docstring)."""
     feas_ref = ref_status in ("optimal",) and np.isfinite(ref_objective)
@@ -338,6 +330,6 @@ def diverse_time_table(setup: dict, n: int, n_checked: int, seed: int = 2, time_
         out["wrong"] += sm["wrong_optimum"]
         out["false_infeasible"] += sm["false_infeasible"]
         out["max_excess"] = max(out["max_excess"], sm["max_bound_excess"])
-        out[f"{name}_ms_median"], out[f"{name}_ms_p90"], out[f"{name}_ms_max"] = (sm["ms_median"], sm["ms_p90"],
-                                                                                  sm["ms_max"])
+        out[f"{name}_ms_median"], out[f"{name}_ms_p90"], out[f"{name}_ms_max"] = (sm["median_ms"], sm["p90_ms"],
+                                                                                  sm["max_ms"])
     return rows, out

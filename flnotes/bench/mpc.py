@@ -21,6 +21,7 @@ from ..mpc import MPC, MPCOptions
 from ..mpc.levers import node_bounds
 from ..simulate import simulate
 from ..solvers import available_backends
+from ..tables import time_stats
 
 TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
 
@@ -117,14 +118,14 @@ def reference(setup: dict, rec: dict, idx, time_limit: float = 600.0) -> np.ndar
 
 def summarize(name: str, backend: str, res: list, ref_obj: np.ndarray, **extra) -> dict:
     """One table row: min/median/max/mean ms per step, nodes, binaries, statuses and the gap to the reference."""
-    ms = np.array([r.solve_time for r in res]) * 1e3
+    st = time_stats([r.solve_time for r in res])
     obj = np.array([r.objective for r in res])
     opt = np.array([r.status == "optimal" and not r.fallback for r in res])
     ok = np.isfinite(ref_obj) & np.isfinite(obj) & opt  # the gap of the steps the solver calls optimal
     rel = np.abs(obj[ok] - ref_obj[ok]) / np.maximum(1.0, np.abs(ref_obj[ok]))
     below = np.isfinite(ref_obj) & np.isfinite(obj) & (obj < ref_obj - 1e-6 * np.maximum(1, np.abs(ref_obj)))
-    return dict(config=name, backend=backend, states=len(res), ms_min=float(ms.min()), ms_median=float(np.median(ms)),
-                ms_max=float(ms.max()), ms_mean=float(ms.mean()), nodes_mean=float(np.mean([r.nodes for r in res])),
+    return dict(config=name, backend=backend, states=len(res), ms_min=st["min_ms"], ms_median=st["median_ms"],
+                ms_max=st["max_ms"], ms_mean=st["mean_ms"], nodes_mean=float(np.mean([r.nodes for r in res])),
                 binaries_max=int(max(r.n_binaries for r in res)),
                 non_optimal=int(sum(r.status != "optimal" or r.fallback for r in res)),
                 max_rel_gap_vs_ref=float(rel.max()) if rel.size else np.nan,
@@ -165,10 +166,10 @@ def scaling_horizon(horizons, t_final: float, time_limit: Optional[float] = 30.0
     for N in horizons:
         setup = quad_setup(horizon=N, net=base["net"], eps=base["eps"])
         rec = record_run(setup, t_final, time_limit=time_limit)
-        ms = rec["ms"]
-        rows.append(dict(N_p=int(N), binaries_full=int(N * setup["net"].n_hidden), steps=len(ms),
-                         ms_median=float(np.median(ms)), ms_p95=float(np.percentile(ms, 95)), ms_max=float(ms.max()),
-                         ms_mean=float(ms.mean()), screened=int(rec["screened"].sum()),
+        st = time_stats(rec["ms"] / 1e3, percentiles=(50, 95))
+        rows.append(dict(N_p=int(N), binaries_full=int(N * setup["net"].n_hidden), steps=st["n"],
+                         ms_median=st["median_ms"], ms_p95=st["p95_ms"], ms_max=st["max_ms"],
+                         ms_mean=st["mean_ms"], screened=int(rec["screened"].sum()),
                          infeasible=int(sum(s == "infeasible" for s in rec["status"])),
                          fallbacks=int(rec["fallback"].sum()),
                          non_optimal=int(sum(s != "optimal" for s in rec["status"]))))
@@ -197,10 +198,10 @@ def scaling_width(widths, t_final: float, n_per_axis: int = 12, max_iter: int = 
             rows.append(dict(width=int(w), note=f"eps = {eps:.3f} leaves no admissible input"))
             continue
         rec = record_run(setup, t_final, time_limit=time_limit)
-        ms = rec["ms"]
+        st = time_stats(rec["ms"] / 1e3, percentiles=(50, 95))
         rows.append(dict(width=int(w), binaries_full=int(setup["N"] * net.n_hidden), eps_grid=eps,
-                         train_s=t_train, steps=len(ms), ms_median=float(np.median(ms)),
-                         ms_p95=float(np.percentile(ms, 95)), ms_max=float(ms.max()), ms_mean=float(ms.mean()),
+                         train_s=t_train, steps=st["n"], ms_median=st["median_ms"],
+                         ms_p95=st["p95_ms"], ms_max=st["max_ms"], ms_mean=st["mean_ms"],
                          non_optimal=int(sum(st != "optimal" for st in rec["status"]))))
     return rows
 
@@ -331,7 +332,8 @@ def backend_overheads(n_repeat: int = 20) -> list:
             ts = []
             for k in range(n_repeat):
                 s.update(c=p.c * (1 + 0.05 * np.sin(k)))
-                ts.append(s.solve().time * 1e3)
-            rows.append(dict(program=kind, backend=be, n=p.n, binaries=n_b, ms_median=float(np.median(ts)),
-                             ms_min=float(np.min(ts))))
+                ts.append(s.solve().time)
+            st = time_stats(ts)
+            rows.append(dict(program=kind, backend=be, n=p.n, binaries=n_b, ms_median=st["median_ms"],
+                             ms_min=st["min_ms"]))
     return rows
