@@ -23,9 +23,10 @@ where the activation pattern of every hidden neuron is constant) it equals
   convex polygons; the objective ``J(v) + max(0, a_V^T v + b_V)`` (the
   optimal ``delta`` of (CLF_CBF_c)) is minimized on each in closed form (a
   vertex for the linear cost, eq. LP_cost; a projection for the quadratic
-  cost, eq. QP_cost), and the best is kept. The regions are visited depth
-  first and dropped as soon as interval bounds of the output or a lower bound
-  of the cost rule them out, so only a few are ever solved. This is the
+  cost, eq. QP_cost), and the best is kept. The regions are visited best
+  first (least lower bound of the cost) and dropped as soon as interval bounds
+  of the output or a lower bound of the cost rule them out, so only a few are
+  ever solved. This is the
   two-input analogue of :func:`flnotes.solve_exact_1d`;
   :func:`solve_exact_2d` is the solve of :class:`flnotes.ClfCbfController`
   with ``backend="exact"`` (the default) for two inputs, and :func:`compare_exact_mip` checks it
@@ -37,6 +38,8 @@ Polygons are arrays of vertices (k, 2) in counter-clockwise order.
 """
 from __future__ import annotations
 
+import heapq
+import itertools
 from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
@@ -407,53 +410,116 @@ def _best_on_polygon(F: Array, d: dict, cost: str) -> Array:
     return cand[int(np.argmin(vals))]
 
 
-def _soft_objective(v: Array, A: Array, c: Array, d: dict, cost: str, bound: Array,
-                    rho: tuple[float, float]) -> float:
-    f, _ = _objective(v, d, cost)
-    f += rho[0] * float(np.maximum(0.0, np.abs(A @ v + c) - bound).sum())
+def _hinges(A: Array, c: Array, d: dict, bound: Array, rho: tuple[float, float]) -> tuple[Array, Array, Array]:
+    """The hinges ``w_j max(0, G_j v + e_j)`` of the softened objective on a region where ``Phi_NN = A v + c``.
+
+    Rows: the CLF condition (CLF_CBF_c) (weight 1: the optimal ``delta``), the input bound
+    ``+-(A_i v + c_i) - u_max^eps_i`` (weight ``rho_u``) and the CBF rows ``-(a_H v + b_H)`` (``rho_H``).
+    """
+    Gs = [d["aV"][None], A, -A]
+    es = [np.array([d["bV"]]), c - bound, -c - bound]
+    ws = [np.ones(1), np.full(len(c), rho[0]), np.full(len(c), rho[0])]
     if len(d["bH"]):
-        f += rho[1] * float(np.maximum(0.0, -(d["aH"] @ v + d["bH"])).sum())
-    return f
+        Gs.append(-d["aH"])
+        es.append(-d["bH"])
+        ws.append(np.full(len(d["bH"]), rho[1]))
+    return np.vstack(Gs), np.concatenate(es), np.concatenate(ws)
+
+
+def _hinged_values(X: Array, G: Array, e: Array, w: Array, d: dict, cost: str) -> Array:
+    """``J(v) + sum_j w_j max(0, G_j v + e_j)`` at the points ``X`` (n, 2)."""
+    J = X @ d["aV"] + d["Jc"] if cost == "linear" else np.einsum("ij,ij->i", X - d["k"], X - d["k"])
+    return J + np.maximum(0.0, X @ G.T + e) @ w
 
 
 def _best_soft(V: Array, A: Array, c: Array, d: dict, cost: str, bound: Array, rho: tuple[float, float]) -> Array:
     """Minimizer of the softened objective on one linear region ``V`` where ``Phi_NN = A v + c``.
 
-    The objective is ``J(v)`` plus weighted hinges ``w max(0, g^T v + e)``: the CLF
-    row (weight 1), the input bound ``+-(A_i v + c_i) - u_max^eps_i`` (``rho_u``) and
-    the CBF rows ``-(a_H v + b_H)`` (``rho_H``). The region is cut along every hinge's
-    line; on each cell the objective is ``J`` plus an affine function, minimized at a
-    vertex (linear ``J``) or by a projection (``J = ||v - k||^2``).
+    The objective ``f(v) = J(v) + sum_j w_j max(0, G_j v + e_j)`` (:func:`_hinges`) is convex; the
+    hinge lines ``G_j v + e_j = 0`` cut ``V`` into cells where ``f`` is ``J`` plus an affine function.
+    Its minimizer over ``V`` lies in a cell's interior, inside an edge of a cell, or at a vertex. Every
+    cell edge is a piece of a *segment*: a hinge line clipped to ``V`` or an edge of ``V``, cut at the
+    points where the other lines cross it. So the candidates, all computed at once, are
+
+    * on every piece ``[t_a, t_b]`` of a segment ``p + t u``: the minimizer of the piece's smooth function
+      ``J + g^T v`` along the segment, clipped to the piece (a piece endpoint for the linear cost, where
+      ``f`` is affine along the piece); by convexity of ``f`` along the segment, a minimizer at a vertex is
+      the clipped point of the piece on its right or left;
+    * in every cell adjacent to a piece (the active set at the piece's midpoint, with the segment's own
+      hinge off and on): the unconstrained minimizer ``k - g/2`` of ``||v - k||^2 + g^T v`` (quadratic cost),
+      kept when it lies in ``V``.
+
+    Every candidate is a point of ``V``, and the minimizer is among them: the best one is returned (the
+    same point the cell-by-cell enumeration gives, without building the cells).
     """
-    Gs = [d["aV"][None]] + [A, -A] + ([-d["aH"]] if len(d["bH"]) else [])
-    es = [np.array([d["bV"]]), c - bound, -c - bound] + ([-d["bH"]] if len(d["bH"]) else [])
-    ws = [np.ones(1), np.full(len(c), rho[0]), np.full(len(c), rho[0])] + ([np.full(len(d["bH"]), rho[1])]
-                                                                            if len(d["bH"]) else [])
-    G, e, w = np.vstack(Gs), np.concatenate(es), np.concatenate(ws)
-    cells = [V]
-    for g, ej in zip(G, e):
-        cells = _split_along(cells, g, ej)
-    best, fbest = None, np.inf
-    for Q in cells:
-        on = (G @ Q.mean(0) + e) > 0
-        g = (w[on, None] * G[on]).sum(0)
-        if cost == "linear":
-            v = Q[np.argmin(Q @ (d["aV"] + g))]   # J + hinges = (a_V + g)^T v + const on this cell
-        else:
-            v = _project(Q, d["k"] - g / 2)       # ||v - k||^2 + g^T v = ||v - (k - g/2)||^2 + const
-        f = _soft_objective(v, A, c, d, cost, bound, rho)
-        if f < fbest:
-            best, fbest = v, f
-    return best
+    G, e, w = _hinges(A, c, d, bound, rho)
+    V = np.asarray(V, float)
+    # the segments: the edges of V and each hinge line clipped to V
+    P0, P1 = [V], [_next(V)]
+    S = V @ G.T + e                                      # (n_v, L)
+    Sn = _next(S)
+    own = [np.full(len(V), -1)]
+    cross = S * Sn < 0
+    for j in np.flatnonzero(cross.any(0) | ((S == 0).sum(0) >= 2)):
+        t = np.where(cross[:, j], S[:, j] / np.where(cross[:, j], S[:, j] - Sn[:, j], 1.0), np.nan)
+        pts = np.vstack([(V + t[:, None] * (_next(V) - V))[cross[:, j]], V[S[:, j] == 0]])
+        if len(pts) < 2:
+            continue
+        dirn = G[j, ::-1] * np.array([1.0, -1.0])        # along the line
+        s = pts @ dirn
+        P0.append(pts[[np.argmin(s)]])
+        P1.append(pts[[np.argmax(s)]])
+        own.append(np.array([j]))
+    P0, P1, own = np.vstack(P0), np.vstack(P1), np.concatenate(own)
+    U = P1 - P0                                          # (n_s, 2)
+    Gu = U @ G.T                                         # (n_s, L)
+    Gp = P0 @ G.T + e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        T = np.where(np.abs(Gu) > 1e-15, -Gp / Gu, 0.0)
+    T = np.sort(np.clip(np.concatenate([np.zeros((len(U), 1)), T, np.ones((len(U), 1))], axis=1), 0.0, 1.0), axis=1)
+    ta, tb = T[:, :-1], T[:, 1:]                         # the pieces (n_s, L + 1)
+    if cost == "linear":
+        X = P0[:, None, :] + T[:, :, None] * U[:, None, :]
+        X = X.reshape(-1, 2)
+    else:
+        tm = 0.5 * (ta + tb)
+        Mid = P0[:, None, :] + tm[:, :, None] * U[:, None, :]
+        act = (Mid @ G.T + e) > 0                        # (n_s, L + 1, L)
+        if np.any(own >= 0):
+            rows = np.flatnonzero(own >= 0)
+            act[rows, :, own[rows]] = False              # the segment's own hinge: off, then on below
+        g = (act * w) @ G                                # (n_s, L + 1, 2)
+        uu = np.einsum("ij,ij->i", U, U)
+        lin = 2.0 * np.einsum("ij,ij->i", U, P0 - d["k"])[:, None] + np.einsum("skj,sj->sk", g, U)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ts = np.where(uu[:, None] > 0, -lin / (2.0 * uu[:, None]), 0.0)
+        ts = np.clip(ts, ta, tb)
+        on_seg = P0[:, None, :] + ts[:, :, None] * U[:, None, :]
+        cells = [d["k"] - 0.5 * g]
+        if np.any(own >= 0):
+            rows = np.flatnonzero(own >= 0)
+            cells.append(d["k"] - 0.5 * (g[rows] + w[own[rows]][:, None, None] * G[own[rows]][:, None, :]))
+        inner = np.vstack([x.reshape(-1, 2) for x in cells])
+        E = _next(V) - V
+        D = inner[:, None, :] - V[None]
+        inside = np.all(E[None, :, 0] * D[..., 1] - E[None, :, 1] * D[..., 0] >= 0, axis=1)
+        X = np.vstack([on_seg.reshape(-1, 2), inner[inside]])
+    f = _hinged_values(X, G, e, w, d, cost)
+    return X[int(np.argmin(f))]
 
 
-def _tail_bounds(net: ReLUNet, k: int, lo: Array, hi: Array) -> tuple[Array, Array]:
-    """Interval bounds of the output from the pre-activation box ``[lo, hi]`` of hidden layer ``k`` (0-based)."""
+def _tail_bounds(net: ReLUNet, k: int, lo: Array, hi: Array, split: Optional[list] = None) -> tuple[Array, Array]:
+    """Interval bounds of the output from the pre-activation box ``[lo, hi]`` of hidden layer ``k`` (0-based).
+
+    ``split`` may hold ``(max(W, 0), min(W, 0), b)`` of every layer (computed once per solve).
+    """
+    split = split or [(np.maximum(W, 0.0), np.minimum(W, 0.0), b) for W, b in zip(net.W, net.b)]
     lo, hi = np.maximum(lo, 0.0), np.maximum(hi, 0.0)
-    for W, b in zip(net.W[k + 1:], net.b[k + 1:]):
-        Wp, Wn = np.maximum(W, 0.0), np.minimum(W, 0.0)
+    last = len(split) - 1
+    for i in range(k + 1, len(split)):
+        Wp, Wn, b = split[i]
         lo, hi = Wp @ lo + Wn @ hi + b, Wp @ hi + Wn @ lo + b
-        if W is not net.W[-1]:
+        if i < last:
             lo, hi = np.maximum(lo, 0.0), np.maximum(hi, 0.0)
     return lo, hi
 
@@ -485,20 +551,24 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
     projecting ``k(z)`` onto the part where ``a_V^T v + b_V <= 0`` and
     ``k(z) - a_V / 2`` onto the other part. The best region wins.
 
-    The regions are not all listed: they are found by a depth-first branch and
+    The regions are not all listed: they are found by a best-first branch and
     bound over the cuts of :func:`network_regions` (the ``v``-box first cut by
     the CBF rows, which do not depend on the network). A partial region is
     dropped when the interval bounds of the network's output, propagated from
     its exact pre-activation ranges (an affine function's extremes on a
     polygon are at its vertices), exclude ``|Phi_NN| <= u_max^eps``, or when a
-    lower bound of the cost on it cannot beat the best point found. Before any
+    lower bound of the cost on it cannot beat the best point found; the partial
+    region with the least lower bound is split next, so the search stops as soon
+    as no region left can beat the best point. Before any
     of this, the program without (CLF_CBF_b) is solved on the cut box: if its
     optimum satisfies the network bound it is the answer (screening).
 
     With ``soft=True`` the softened program of the fallback is solved instead
     (penalties ``rho = (rho_u, rho_H)`` on the violations of the input bound and
     of the CBF rows): the whole box, each region's objective minimized by
-    :func:`_best_soft`, regions dropped by the same kind of lower bound.
+    :func:`_best_soft` (all candidates of its convex piecewise objective at
+    once), regions ordered and dropped by a lower bound that adds the penalties
+    of the violations the output's interval bounds and the CBF rows already imply.
 
     Parameters
     ----------
@@ -550,12 +620,13 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
     ftol = 1e-9 * np.maximum(1.0, bound)
     best = [None, np.inf]
     W1 = net.W[0]
+    split = [(np.maximum(W, 0.0), np.minimum(W, 0.0), b) for W, b in zip(net.W, net.b)]
 
     def leaf(V: Array, A: Array, c: Array) -> None:
         st["regions"] += 1
         if soft:
             v = _best_soft(V, A, c, d, cost, bound, rho)
-            f = _soft_objective(v, A, c, d, cost, bound, rho)
+            f = float(_hinged_values(v[None], *_hinges(A, c, d, bound, rho), d, cost)[0])
         else:
             F = _clip_all(V, np.vstack([A, -A]), np.r_[c - bound, -c - bound])
             if not len(F):
@@ -573,35 +644,44 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
                 lb += rho[1] * float(np.maximum(0.0, -(V @ d["aH"].T + d["bH"]).max(0)).sum())
         return lb
 
-    def visit(V: Array, k: int, P: Array, p_: Array) -> None:
-        st["nodes"] += 1
+    frontier: list = []
+    count = itertools.count()
+
+    def push(V: Array, k: int, P: Array, p_: Array) -> None:
+        """Bound the partial region ``V`` (layers ``< k`` fixed, layer ``k``'s pre-activations ``P v + p_``)."""
         S = V @ P.T + p_
         sc = scale * (np.abs(P).sum(1) + np.abs(p_) + 1.0)
         S = np.where(np.abs(S) <= _TOL * sc, 0.0, S)
         lo, hi = S.min(0), S.max(0)
-        olo, ohi = _tail_bounds(net, k, lo, hi)
+        olo, ohi = _tail_bounds(net, k, lo, hi, split)
         if not soft and np.any((olo > bound + ftol) | (ohi < -bound - ftol)):
             return                                    # no point of V meets |Phi_NN| <= u_max^eps
-        if lower(V, olo, ohi) >= best[1]:
-            return                                    # cannot beat the best point found
+        lb = lower(V, olo, ohi)
+        if lb < best[1]:
+            heapq.heappush(frontier, (lb, next(count), V, k, P, p_, S, lo, hi))
+
+    # best first: the partial region with the least lower bound is split next; the search stops when no
+    # region left can beat the best point found
+    push(V0, 0, W1[:, -2:], W1[:, :-2] @ z + net.b[0])
+    while frontier:
+        lb, _, V, k, P, p_, S, lo, hi = heapq.heappop(frontier)
+        if lb >= best[1]:
+            break                                     # cannot beat the best point found
+        st["nodes"] += 1
         js = np.flatnonzero((lo < 0) & (hi > 0))
         if len(js):
             j = js[np.argmax(np.minimum(-lo[js], hi[js]) / (hi[js] - lo[js]))]   # the most balanced cut
-            a, b = _cut(V, S[:, j])
-            kids = [Q for Q in (a, b) if len(Q)]
-            kids.sort(key=lambda Q: _lower_bound(Q, d, cost))
-            for Q in kids:
-                visit(Q, k, P, p_)
-            return
+            for Q in _cut(V, S[:, j]):
+                if len(Q):
+                    push(Q, k, P, p_)
+            continue
         on = (V.mean(0) @ P.T + p_) > 0
         Wn, bn = net.W[k + 1], net.b[k + 1]
         P2, p2 = Wn @ (P * on[:, None]), Wn @ (p_ * on) + bn
         if k + 1 == net.K - 1:
             leaf(V, P2, p2)
         else:
-            visit(V, k + 1, P2, p2)
-
-    visit(V0, 0, W1[:, -2:], W1[:, :-2] @ z + net.b[0])
+            push(V, k + 1, P2, p2)
     if stats is not None:
         stats.update(st)
     if best[0] is None:

@@ -315,3 +315,44 @@ def test_mpc_safe_input_is_exact_for_two_inputs():
             best = min(np.sum((fl.pieces._project(P, guess) - guess) ** 2) for P in polys)
             assert np.sum((v - guess) ** 2) <= best + 1e-9
     assert n_ok >= 5
+
+
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_softened_minimizer_on_a_region_equals_a_convex_solver(cost):
+    """The candidate set of the softened objective on one region contains its minimizer.
+
+    On random polygons (the v-box cut by random half-planes) with random affine maps ``A v + c``,
+    CLF and CBF rows and large or small penalties (minimizers at kinks or inside cells), the value at
+    the returned point equals the optimum of the same convex program written with slacks and solved by
+    Clarabel, and the point lies in the polygon.
+    """
+    cp = pytest.importorskip("cvxpy")
+    from flnotes.pieces import _best_soft, _hinged_values, _hinges
+
+    rng = np.random.default_rng(3)
+    for i in range(40):
+        rho = (50.0, 5.0) if i % 2 else (0.3, 0.1)   # minimizers at kinks, and inside cells
+        Vb = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * rng.uniform(0.5, 2.0, 2)
+        G0, h0 = rng.standard_normal((2, 2)), rng.uniform(-0.3, 0.5, 2)
+        V = fl.pieces._clip_all(Vb, G0, -h0)
+        if len(V) < 3:
+            continue
+        A, c = rng.standard_normal((2, 2)), rng.standard_normal(2)
+        d = dict(aV=rng.standard_normal(2), bV=rng.uniform(-1, 1), Jc=0.3, k=rng.standard_normal(2),
+                 aH=rng.standard_normal((3, 2)), bH=rng.uniform(-1, 1, 3))
+        bound = np.array([0.4, 0.6])
+        v = _best_soft(V, A, c, d, cost, bound, rho)
+        G, e, w = _hinges(A, c, d, bound, rho)
+        f = float(_hinged_values(v[None], G, e, w, d, cost)[0])
+        x = cp.Variable(2)
+        s = cp.Variable(len(e), nonneg=True)
+        E = np.roll(V, -1, axis=0) - V
+        inside = [E[i, 0] * (x[1] - V[i, 1]) - E[i, 1] * (x[0] - V[i, 0]) >= 0 for i in range(len(V))]
+        J = d["aV"] @ x + d["Jc"] if cost == "linear" else cp.sum_squares(x - d["k"])
+        prob = cp.Problem(cp.Minimize(J + w @ s), [s >= G @ x + e] + inside)
+        prob.solve(solver="CLARABEL")
+        assert prob.status == "optimal"
+        assert f <= prob.value + 1e-6 * max(1.0, abs(prob.value)), (f, prob.value)
+        assert f >= prob.value - 1e-6 * max(1.0, abs(prob.value))
+        Ev = np.roll(V, -1, axis=0) - V
+        assert np.all(Ev[:, 0] * (v[1] - V[:, 1]) - Ev[:, 1] * (v[0] - V[:, 0]) >= -1e-9)
