@@ -454,23 +454,24 @@ def _best_soft(V: Array, A: Array, c: Array, d: dict, cost: str, bound: Array, r
     """
     G, e, w = _hinges(A, c, d, bound, rho)
     V = np.asarray(V, float)
-    # the segments: the edges of V and each hinge line clipped to V
-    P0, P1 = [V], [_next(V)]
+    # the segments: the edges of V and each hinge line clipped to V (its chord: the extreme points, along the
+    # line, of its crossings with the edges and of the vertices on it)
+    Vn = _next(V)
     S = V @ G.T + e                                      # (n_v, L)
     Sn = _next(S)
-    own = [np.full(len(V), -1)]
     cross = S * Sn < 0
-    for j in np.flatnonzero(cross.any(0) | ((S == 0).sum(0) >= 2)):
-        t = np.where(cross[:, j], S[:, j] / np.where(cross[:, j], S[:, j] - Sn[:, j], 1.0), np.nan)
-        pts = np.vstack([(V + t[:, None] * (_next(V) - V))[cross[:, j]], V[S[:, j] == 0]])
-        if len(pts) < 2:
-            continue
-        dirn = G[j, ::-1] * np.array([1.0, -1.0])        # along the line
-        s = pts @ dirn
-        P0.append(pts[[np.argmin(s)]])
-        P1.append(pts[[np.argmax(s)]])
-        own.append(np.array([j]))
-    P0, P1, own = np.vstack(P0), np.vstack(P1), np.concatenate(own)
+    on = cross | (S == 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(cross, S / np.where(cross, S - Sn, 1.0), 0.0)
+    X = V[:, None, :] + t[..., None] * (Vn - V)[:, None, :]          # (n_v, L, 2)
+    s = np.einsum("vlk,lk->vl", X, np.column_stack([G[:, 1], -G[:, 0]]))   # position along each line
+    i0 = np.argmin(np.where(on, s, np.inf), axis=0)
+    i1 = np.argmax(np.where(on, s, -np.inf), axis=0)
+    L = np.arange(len(e))
+    chord = on.any(0) & (s[i1, L] > s[i0, L])
+    own = np.r_[np.full(len(V), -1), L[chord]]
+    P0 = np.vstack([V, X[i0[chord], L[chord]]])
+    P1 = np.vstack([Vn, X[i1[chord], L[chord]]])
     U = P1 - P0                                          # (n_s, 2)
     Gu = U @ G.T                                         # (n_s, L)
     Gp = P0 @ G.T + e
