@@ -109,61 +109,60 @@ def clfcbf_figure3(logs: Mapping[str, Any], H: Any, eps: float, t_max: Optional[
     return fig
 
 
-def exact_1d_plot(net, z: np.ndarray, bound: float, v_lo: float = -10.0, v_hi: float = 10.0,
-                  controllers: Sequence[Any] = (), ax=None):
+def exact_1d_plot(pieces, intervals: np.ndarray, bound: float, optima: Optional[Mapping[str, Any]] = None,
+                  cbf: Optional[tuple[float, float]] = None, z: Optional[np.ndarray] = None, ax=None):
     """``v -> Phi_NN(z, v)`` at one state: its affine pieces, the feasible intervals and the optima.
+
+    Draws only; the data come from :func:`flnotes.network_pieces_1d`, :func:`flnotes.exact_1d_feasible_set`
+    and the controllers' steps.
 
     Parameters
     ----------
-    net
-        The network ``Phi_NN`` (single input ``v``).
-    z
-        The state.
+    pieces
+        :class:`flnotes.control.PiecewiseAffine1D` of ``Phi_NN(z, .)`` (its knots span the ``v`` shown).
+    intervals
+        The feasible intervals of ``v`` (k, 2), ``|Phi_NN(z, v)| <= u_max^eps``.
     bound
         ``u_max^eps``.
-    v_lo, v_hi
-        The segment of ``v`` shown (the network's domain).
-    controllers
-        :class:`flnotes.ClfCbfController` objects: their CBF condition is
-        drawn as the excluded half-line and their optimum at ``z`` (exact
-        1-D method) is marked.
+    optima
+        Controller name -> its :class:`flnotes.StepResult` at ``z`` (``v`` and ``info["phi_nn"]`` are marked;
+        a fallback is labelled).
+    cbf
+        ``(a_H, b_H)`` of a CBF condition ``a_H v + b_H >= 0`` (CLF_CBF_d): the excluded half-line is shaded.
+    z
+        The state, for the title.
     """
-    from ..control import exact_1d_feasible_set, network_pieces_1d
-
     if ax is None:
         fig, ax = new_axes(figsize=(7.0, 3.6))
-    z = np.asarray(z, float)
-    pw = network_pieces_1d(net, z, v_lo, v_hi)
-    iv = exact_1d_feasible_set(net, z, v_lo, v_hi, bound, pieces=pw)
-    ax.plot(pw.knots, pw.values, color=COLORS["nn"], lw=1.8, label=r"$\Phi_{NN}(z, v)$")
-    ax.plot(pw.knots, pw.values, "o", color=COLORS["nn"], ms=3.5, label=f"breakpoints ({len(pw.knots) - 2} inside)")
+    knots, values = np.asarray(pieces.knots, float), np.asarray(pieces.values, float)
+    v_lo, v_hi = float(knots[0]), float(knots[-1])
+    ax.plot(knots, values, color=COLORS["nn"], lw=1.8, label=r"$\Phi_{NN}(z, v)$")
+    ax.plot(knots, values, "o", color=COLORS["nn"], ms=3.5, label=f"breakpoints ({len(knots) - 2} inside)")
     for s in (1, -1):
         ax.axhline(s * bound, color=COLORS["u_max_eps"], ls=":", lw=1.2,
                    label=r"$\pm u_{\max}^{\varepsilon}$" if s == 1 else None)
-    for j, (a, b) in enumerate(iv):
+    for j, (a, b) in enumerate(np.asarray(intervals, float).reshape(-1, 2)):
         ax.axvspan(a, b, color=COLORS["u_max_eps"], alpha=0.15, lw=0,
                    label=r"$|\Phi_{NN}| \leq u_{\max}^{\varepsilon}$" if j == 0 else None)
-    shown_cbf = False
-    for i, c in enumerate(controllers):
-        d = c.program_data(z)
-        if c.p and not shown_cbf:
-            a, b = d["aH"][0, 0], d["bH"][0]
-            if a != 0:
-                r = -b / a
-                lo, hi = (v_lo, min(r, v_hi)) if a > 0 else (max(r, v_lo), v_hi)
-                if lo < hi:
-                    ax.axvspan(lo, hi, color=COLORS["unsafe"], alpha=0.12, lw=0, hatch="//",
-                               label="CBF condition violated")
-            elif b < 0:
-                ax.axvspan(v_lo, v_hi, color=COLORS["unsafe"], alpha=0.12, lw=0, label="CBF condition violated")
-            shown_cbf = True
-        r = c.with_backend("exact").step(z)
-        ax.plot(r.v[0], r.info["phi_nn"][0], "*", ms=17 - 5 * min(i, 1), color=_color(c.name, i), mec="k", mew=0.6,
-                label=f"{c.name} optimum" + (" (fallback)" if r.fallback else ""), zorder=5)
+    if cbf is not None:
+        a, b = float(cbf[0]), float(cbf[1])
+        if a != 0:
+            r = -b / a
+            lo, hi = (v_lo, min(r, v_hi)) if a > 0 else (max(r, v_lo), v_hi)
+            if lo < hi:
+                ax.axvspan(lo, hi, color=COLORS["unsafe"], alpha=0.12, lw=0, hatch="//", label="CBF condition violated")
+        elif b < 0:
+            ax.axvspan(v_lo, v_hi, color=COLORS["unsafe"], alpha=0.12, lw=0, label="CBF condition violated")
+    for i, (name, r) in enumerate((optima or {}).items()):
+        ax.plot(r.v[0], r.info["phi_nn"][0], "*", ms=17 - 5 * min(i, 1), color=_color(name, i), mec="k", mew=0.6,
+                label=f"{name} optimum" + (" (fallback)" if r.fallback else ""), zorder=5)
     ax.set_xlim(v_lo, v_hi)
     ax.set_xlabel(r"$v$")
     ax.set_ylabel(r"$\Phi_{NN}(z, v)$")
-    ax.set_title(f"z = [{', '.join(f'{x:.3g}' for x in z)}]: {pw.n_pieces} affine pieces")
+    title = f"{pieces.n_pieces} affine pieces"
+    if z is not None:
+        title = f"z = [{', '.join(f'{x:.3g}' for x in np.asarray(z, float).ravel())}]: " + title
+    ax.set_title(title)
     ax.legend(fontsize=7.5, loc="upper left")
     return ax.figure
 
