@@ -73,11 +73,19 @@ def _key(name: str, settings: dict) -> str:
 
 #: The networks shipped with the package (:mod:`flnotes.reference`): reference name -> (system, training
 #: settings). ``"MSD"`` and ``"Quad-1D"`` are the book's networks; ``"MSD-n30"`` is the MSD network on
-#: Table 1's own 30^3 grid, which chapter 5 compares with.
+#: Table 1's own 30^3 grid, which chapter 5 compares with; the other ``"Quad-1D-*"`` are the variants of
+#: chapter 8's study of networks cheaper to encode (:mod:`flnotes.studies.cheap_networks`): another seed,
+#: a weight penalty, other widths.
 REFERENCES: dict[str, tuple[str, dict]] = {
     "MSD": ("MSD", NET_SETTINGS["MSD"]),
     "Quad-1D": ("Quad-1D", NET_SETTINGS["Quad-1D"]),
     "MSD-n30": ("MSD", {**NET_SETTINGS["MSD"], "n_per_axis": 30, "seed": 0}),
+    "Quad-1D-s1": ("Quad-1D", {**NET_SETTINGS["Quad-1D"], "seed": 1}),
+    "Quad-1D-s2": ("Quad-1D", {**NET_SETTINGS["Quad-1D"], "seed": 2}),
+    "Quad-1D-l2": ("Quad-1D", {**NET_SETTINGS["Quad-1D"], "alpha": 3e-3}),
+    "Quad-1D-w8": ("Quad-1D", {**NET_SETTINGS["Quad-1D"], "widths": (8, 8, 8)}),
+    "Quad-1D-w6": ("Quad-1D", {**NET_SETTINGS["Quad-1D"], "widths": (6, 6, 6)}),
+    "Quad-1D-16x2": ("Quad-1D", {**NET_SETTINGS["Quad-1D"], "widths": (16, 16)}),
 }
 
 

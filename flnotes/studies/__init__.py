@@ -12,6 +12,8 @@ that imports :mod:`flnotes.paper`.
     chapter 6: checks of a CLF-CBF run, Table 2's rows, the exact method against a back-end;
 ``mpc``
     chapters 7 and 8: checks of an MPC run, Table 2's MPC row, horizon sweeps, lever studies;
+``cheap_networks``
+    chapter 8: networks cheaper to encode (other seeds, a weight penalty, other widths) against the MPC's work;
 ``guarantees``
     chapter 9: nominal loops with and without terminal ingredients, horizon sweeps, the drift margin;
 ``multi``
@@ -19,7 +21,7 @@ that imports :mod:`flnotes.paper`.
 ``compare``
     chapter 11: the five methods of the comparative study, their metrics and the Monte Carlo.
 """
-from . import compare, guarantees, multi
+from . import cheap_networks, compare, guarantees, multi
 from .clfcbf import chapter_eps, clf_cbf_checks, cross_check_exact, paper_mean_ms, solve_time_table
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, table2,
@@ -27,8 +29,8 @@ from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compar
 from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
                        width_experiment, write_sweep)
 
-__all__ = ["compare", "guarantees", "multi", "architecture_sweep", "book_sweep", "estimates_table", "fresh_vs_shipped",
-           "table1_rows",
+__all__ = ["cheap_networks", "compare", "guarantees", "multi", "architecture_sweep", "book_sweep", "estimates_table",
+           "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact",
            "solve_time_table", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
            "compare_to_reference",
