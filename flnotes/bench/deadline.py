@@ -87,7 +87,23 @@ def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2) -> list[dict]:
         mpc.reset()
         c0 = time.process_time()
         res = mpc(c["z"], c["z_ref"])
-        out.append(dict(step_record(mpc, res, time.process_time() - c0), category=c["category"]))
+        out.append(dict(step_record(mpc, res, time.process_time() - c0), category=c["category"], case=c))
+    return out
+
+
+def decide_misses(setup: dict, recs: Sequence[dict], time_limit: float = 10.0) -> dict:
+    """The limit hits whose plan fails the forward-pass check, solved again with ``time_limit`` seconds: was there an
+    admissible plan to return? Returns counts ``infeasible`` (no: the program is proven infeasible), ``missed``
+    (yes: an optimum exists) and ``undecided`` (the longer solve hit its limit too)."""
+    mpc = make_mpc(setup, time_limit=time_limit)
+    out = dict(infeasible=0, missed=0, undecided=0)
+    for r in recs:
+        if r["status"] == "time_limit" and not r["plan_admissible"]:
+            mpc.reset()
+            s = mpc(r["case"]["z"], r["case"]["z_ref"])
+            key = ("infeasible" if s.status == "infeasible" else "missed" if s.status == "optimal" and not s.fallback
+                   else "undecided")
+            out[key] += 1
     return out
 
 
@@ -103,21 +119,27 @@ def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra
     g = limit_gaps(recs)
     gf = g[np.isfinite(g)]
     q = (lambda p: float(np.quantile(gf, p)) if gf.size else np.nan)
+    no_plan = [r for r in recs if r["status"] == "time_limit" and not r["plan_admissible"]]
     return dict(run=name, N_p=int(N), steps=len(recs), ms_p50=wall["median_ms"], ms_p99=wall["p99_ms"],
                 ms_max=wall["max_ms"], overrun_ms=max(0.0, wall["max_ms"] - 1e3 * t_s),
                 over_t_s=int(sum(r["ms"] > 1e3 * t_s for r in recs)), cpu_ms_p50=cpu["median_ms"],
                 cpu_ms_max=cpu["max_ms"], limit_hits=int(sum(r["status"] == "time_limit" for r in recs)),
+                limit_without_plan=len(no_plan),
                 gap_p50=q(0.5), gap_p90=q(0.9), gap_max=q(1.0),
                 fallbacks=int(sum(r["fallback"] for r in recs)),
                 plans_admissible=int(sum(r["plan_admissible"] for r in recs)),
                 inputs_admissible=int(sum(r["input_ok"] for r in recs)),
                 inputs_flagged=int(sum(r["input_flagged"] for r in recs)),
-                other=int(sum(r["status"] not in ("optimal", "time_limit") for r in recs)), **extra)
+                infeasible=int(sum(r["status"] == "infeasible" for r in recs)),
+                error=int(sum(r["status"] == "error" for r in recs)), **extra)
 
 
 def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0, n_states: int = 60,
-                   t_s: float = T_S, seed: int = 2) -> dict:
+                   t_s: float = T_S, seed: int = 2, check_limit: float = 10.0) -> dict:
     """The closed loop and the diverse states at each ``N_p`` with ``time_limit = t_s``.
+
+    The diverse states whose limit hit returned no admissible plan are solved again with ``check_limit`` seconds
+    (:func:`decide_misses`; ``0`` skips it).
 
     Returns ``rows`` (:func:`summarize`, one per run), ``gaps`` (``{label: gaps at the limit}``), ``times``
     (``{label: answer times in ms}``) and ``checks``: ``plans_not_admissible`` (returned plans failing the
@@ -125,24 +147,32 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
     without the flag), ``u_within`` and ``u_within_between`` (true ``|u| <= u_max`` at the samples and between
     them in every closed loop, :func:`closed_loop`), ``max_overrun_ms``,
     ``negative_gaps`` and ``inconsistent_gaps`` (a recorded gap that does not follow from the objective and
-    the bound).
+    the bound), ``limit_without_plan`` (limit hits whose plan fails the forward pass: only its first input is
+    admissible, or none exists) and, of those on diverse states, ``without_plan_infeasible`` / ``_missed`` /
+    ``_undecided`` (:func:`decide_misses`).
     """
     base = quad_setup()
     rows, gaps, times = [], {}, {}
     checks = dict(plans_not_admissible=0, inputs_not_admissible=0, u_within=True, u_within_between=True,
-                  max_overrun_ms=0.0,
-                  negative_gaps=0, inconsistent_gaps=0)
+                  max_overrun_ms=0.0, negative_gaps=0, inconsistent_gaps=0, limit_without_plan=0, infeasible_programs=0,
+                  without_plan_infeasible=0, without_plan_missed=0, without_plan_undecided=0)
     for N in horizons:
         setup = quad_setup(horizon=int(N), net=base["net"], eps=base["eps"])
         loop, ck = closed_loop(setup, t_final, t_s)
         div = diverse(setup, n_states, t_s, seed) if n_states else []
         checks["u_within"] &= ck["u_within"]
         checks["u_within_between"] &= ck["u_within_between"]
+        miss = decide_misses(setup, div, check_limit) if check_limit else {}
         for name, recs, extra in (("closed loop", loop, dict(cpu_over_wall=ck["cpu_over_wall"])),
-                                  ("diverse states, cold", div, {})):
+                                  ("diverse states, cold", div, {f"without_plan_{k}": v for k, v in miss.items()})):
             if not recs:
                 continue
             row = summarize(name, int(N), recs, t_s, **extra)
+            checks["limit_without_plan"] += row["limit_without_plan"]
+            checks["infeasible_programs"] += int(sum(r["status"] == "infeasible" and not r["plan_admissible"]
+                                                     for r in recs))
+            for k in ("infeasible", "missed", "undecided"):
+                checks[f"without_plan_{k}"] += row.get(f"without_plan_{k}", 0)
             rows.append(row)
             label = f"N_p = {N}, {name}"
             gaps[label], times[label] = limit_gaps(recs), np.array([r["ms"] for r in recs])
@@ -163,7 +193,8 @@ def run(fast: bool) -> dict:
     from . import out_dir
 
     horizons = (10, 20) if fast else (10, 15, 20)
-    res = deadline_study(horizons, t_final=3.0 if fast else 20.0, n_states=6 if fast else 60)
+    res = deadline_study(horizons, t_final=3.0 if fast else 20.0, n_states=6 if fast else 60,
+                         check_limit=2.0 if fast else 10.0)
     figs = []
     hits = {k: v for k, v in res["gaps"].items() if np.isfinite(v).any()}
     if hits:
@@ -172,7 +203,13 @@ def run(fast: bool) -> dict:
     c = res["checks"]
     notes = [f"time_limit = t_s = {T_S} s per step, default options; closed loop: true plant, x_ref = 1.5 sin t; "
              "diverse states: flnotes.bench.exactness.mpc_cases, cold (no previous plan).",
-             f"returned plans failing the forward-pass check: {c['plans_not_admissible']}; applied inputs above "
+             f"returned plans failing the forward-pass check: {c['plans_not_admissible']}: {c['limit_without_plan']} at "
+             f"limit hits, {c['infeasible_programs']} on programs proven infeasible, "
+             f"{c['plans_not_admissible'] - c['limit_without_plan'] - c['infeasible_programs']} otherwise; of the "
+             "diverse states' limit "
+             f"hits without one, {c['without_plan_infeasible']} programs are proven infeasible, "
+             f"{c['without_plan_missed']} have an optimum (a plan the fallback missed) and "
+             f"{c['without_plan_undecided']} are undecided by a solve with a longer limit. Applied inputs above "
              f"u_max^eps without the flag: {c['inputs_not_admissible']}; true |u| <= u_max in every closed loop: "
              f"{c['u_within']} at the samples, {c['u_within_between']} between them (no drift margin here); "
              f"negative or inconsistent gaps: {c['negative_gaps']}, {c['inconsistent_gaps']}.",
