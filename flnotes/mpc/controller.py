@@ -300,6 +300,8 @@ class MPC:
         t_post = time.perf_counter()
         if step.v is None:
             step = self._fallback(z, R, step, shifted)
+        elif step.status == "time_limit" and not np.isfinite(step.bound):
+            self._record_gap(z, R, step, -np.inf)  # the engine had no bound (no QP solved): the QP's
         step.u_nn_pred = self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))
         if o.constraint == "network" or step.fallback:
             step.input_admissible = bool(step.input_admissible and np.all(np.abs(step.u_nn_pred[0]) <= self.u_eps + BOUND_TOL))
@@ -347,7 +349,7 @@ class MPC:
         recorded against a valid lower bound of eq. (MPC_form_miqp): the optimum ``J_c`` of the QP without the
         network, or the engine's bound at a time limit when it is larger. Otherwise ``bound`` and ``gap`` are NaN.
         """
-        f, c0 = self.pred.linear(z, R)
+        f, _ = self.pred.linear(z, R)
         engine_bound = step.bound
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
@@ -356,14 +358,18 @@ class MPC:
         step.message = (step.message + f"; applied {what}").lstrip("; ")
         step.bound, step.gap = np.nan, np.nan
         if self.plan_feasible(Z, V):
-            _, fq, _ = self.pred.qp(f, z)
-            bound = fq + c0
-            if step.status == "time_limit" and np.isfinite(engine_bound):
-                bound = max(bound, engine_bound)
-            if np.isfinite(bound):
-                step.bound = min(bound, step.objective)
-                step.gap = (step.objective - step.bound) / max(1.0, abs(step.objective))
+            self._record_gap(z, R, step, engine_bound if step.status == "time_limit" else -np.inf)
         return step
+
+    def _record_gap(self, z: Array, R: Array, step: StepResult, bound: float) -> None:
+        """``bound`` and ``gap`` of a plan that satisfies the program: the larger of ``bound`` (a valid lower bound,
+        or ``-inf``) and the optimum of the QP without the network, a lower bound of eq. (MPC_form_miqp)."""
+        f, c0 = self.pred.linear(z, R)
+        _, fq, _ = self.pred.qp(f, z)
+        bound = max(fq + c0, bound if np.isfinite(bound) else -np.inf)
+        if np.isfinite(bound):
+            step.bound = min(bound, step.objective)
+            step.gap = (step.objective - step.bound) / max(1.0, abs(step.objective))
 
     def shifted_plan(self, z: Array) -> Optional[tuple[Array, Array]]:
         """The previous plan shifted by one step, re-predicted from the measured ``z``.
