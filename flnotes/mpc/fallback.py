@@ -4,6 +4,11 @@ Safety first: a plan is accepted only when :meth:`flnotes.mpc.prediction.Predict
 (boxes, terminal rows, and the network bound by the forward pass); otherwise only the first input is
 made admissible, and when no admissible input exists at the measured state the least-violation input is
 returned and flagged. See :func:`fallback_plan`.
+
+The repairs (:func:`repair_plan`, :func:`qp_repair`) move one input at a time to an admissible one
+(:func:`feasible_tail`): exact for two inputs, a grid for one; with three or more inputs an input is kept as it
+is, so a repair succeeds there only where the guess already satisfies the program, and :func:`safe_input`
+samples (its flag then means "none found", not "none exists").
 """
 from __future__ import annotations
 
