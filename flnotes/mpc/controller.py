@@ -86,10 +86,10 @@ class MPC:
         ``eliminate_stable=``, ``lp=``, ``constraint=``, ``iterations=``), not both.
     time_limit
         Seconds per control step, or ``None``. The whole step counts: the checks before the solve, the engine
-        (screening QP, node bounds, every round; each solver call gets the time left, and no round starts
-        that the last one's length says cannot end in it) and the fallback after it, for which :attr:`reserve`
-        seconds are kept back. On hit the status is ``"time_limit"`` and the plan is, in this order: the best
-        plan found that passes :meth:`plan_feasible` (the engine's incumbent or the warm start), else
+        (screening QP, node bounds, every round; each solver call gets the time left) and the fallback after
+        it, for which :attr:`reserve` seconds are kept back. On hit the status is ``"time_limit"`` and the plan
+        is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
+        warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
         only when none passes the check, a plan whose first input is admissible, ``info["plan_feasible"]``
         False). ``bound`` is a valid lower bound of eq. (MPC_form_miqp) (the QP without the network, the levels
