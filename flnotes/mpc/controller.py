@@ -85,8 +85,17 @@ class MPC:
         (``backend=``, ``bounds=``, ``screening=``, ``lazy=``, ``warm_start=``, ``encode=``,
         ``eliminate_stable=``, ``lp=``, ``constraint=``, ``iterations=``), not both.
     time_limit
-        Seconds per control step, or ``None``. On hit: the best incumbent if it is feasible for the whole
-        program (status ``"time_limit"``), else the fallback plan.
+        Seconds per control step, or ``None``. The whole step counts: the checks before the solve, the engine
+        (screening QP, node bounds, every round; each solver call gets the time left) and the fallback after
+        it, for which :attr:`reserve` seconds are kept back. On hit the status is ``"time_limit"`` and the plan
+        is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
+        warm start), else
+        :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
+        only when none passes the check, a plan whose first input is admissible, ``info["plan_feasible"]``
+        False). ``bound`` is a valid lower bound of eq. (MPC_form_miqp) (the QP without the network, the levels
+        proven empty, a solver's bound) and ``gap = (objective - bound) / max(1, |objective|)``; both NaN for a
+        plan that fails the check. The answer comes after ``time_limit`` plus the overrun of a solver call
+        that does not stop at its limit (measured by ``python -m flnotes.bench deadline``).
     gap
         Relative optimality gap at which a solver stops.
     discretization
@@ -189,6 +198,12 @@ class MPC:
         return self.history[-1] if self.history else None
 
     @property
+    def reserve(self) -> float:
+        """Seconds of :attr:`time_limit` kept back from the engine for the checks and the fallback after it: 5 % of
+        the limit, at most 10 ms (the fallback took at most 9.4 ms on the Quad-1D at N_p = 20)."""
+        return 0.0 if self.time_limit is None else min(0.05 * float(self.time_limit), 0.01)
+
+    @property
     def backend(self) -> str:
         return self.options.backend
 
@@ -277,18 +292,23 @@ class MPC:
             step = self._solve_reference(z, R)
         else:
             inc = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
-            step = self.solver.solve(z, R, incumbent=inc, time_limit=self.time_limit, gap=self.gap)
+            step = self.solver.solve(z, R, incumbent=inc, time_limit=self._engine_time(t0), gap=self.gap)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
             # never a plan that breaks the program labelled as a solution
             step.status, step.v = "error", None
             step.message += "; the returned plan fails the forward-pass check"
+        t_post = time.perf_counter()
         if step.v is None:
             step = self._fallback(z, R, step, shifted)
+        elif step.status == "time_limit" and not np.isfinite(step.bound):
+            self._record_gap(z, R, step, -np.inf)  # the engine had no bound (no QP solved): the QP's
         step.u_nn_pred = self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))
         if o.constraint == "network" or step.fallback:
             step.input_admissible = bool(step.input_admissible and np.all(np.abs(step.u_nn_pred[0]) <= self.u_eps + BOUND_TOL))
         step.info["z_ref"] = R
+        step.info["plan_feasible"] = self.plan_feasible(step.z_pred, step.v_pred)
         step.solve_time = time.perf_counter() - t0
+        step.info["post_time"] = step.solve_time - (t_post - t0)
         self._plan = (step.z_pred, step.v_pred)
         self.history.append(step)
         return step
@@ -315,14 +335,41 @@ class MPC:
         return self(z, R)
 
     # ------------------------------------------------------------------ the fallback
+    def _engine_time(self, t0: float) -> Optional[float]:
+        """The seconds left for the engine: the time limit less what this step has spent and :attr:`reserve`."""
+        if self.time_limit is None:
+            return None
+        left = self.time_limit - (time.perf_counter() - t0) - self.reserve
+        return max(left, 1e-9)  # positive: the engine then returns at its first check of the time
+
     def _fallback(self, z: Array, R: Array, step: StepResult, shifted) -> StepResult:
-        """No plan from this solve: apply :meth:`fallback_plan`, flagged, the solve's status and message kept."""
-        Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted)
+        """No plan from this solve: apply :meth:`fallback_plan`, flagged, the solve's status and message kept.
+
+        When the fallback plan satisfies the whole program (:meth:`Prediction.feasible`), its optimality gap is
+        recorded against a valid lower bound of eq. (MPC_form_miqp): the optimum ``J_c`` of the QP without the
+        network, or the engine's bound at a time limit when it is larger. Otherwise ``bound`` and ``gap`` are NaN.
+        """
+        f, _ = self.pred.linear(z, R)
+        engine_bound = step.bound
+        Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)
         step.fallback, step.input_admissible = True, ok
         step.message = (step.message + f"; applied {what}").lstrip("; ")
+        step.bound, step.gap = np.nan, np.nan
+        if self.plan_feasible(Z, V):
+            self._record_gap(z, R, step, engine_bound if step.status == "time_limit" else -np.inf)
         return step
+
+    def _record_gap(self, z: Array, R: Array, step: StepResult, bound: float) -> None:
+        """``bound`` and ``gap`` of a plan that satisfies the program: the larger of ``bound`` (a valid lower bound,
+        or ``-inf``) and the optimum of the QP without the network, a lower bound of eq. (MPC_form_miqp)."""
+        f, c0 = self.pred.linear(z, R)
+        _, fq, _ = self.pred.qp(f, z)
+        bound = max(fq + c0, bound if np.isfinite(bound) else -np.inf)
+        if np.isfinite(bound):
+            step.bound = min(bound, step.objective)
+            step.gap = (step.objective - step.bound) / max(1.0, abs(step.objective))
 
     def shifted_plan(self, z: Array) -> Optional[tuple[Array, Array]]:
         """The previous plan shifted by one step, re-predicted from the measured ``z``.

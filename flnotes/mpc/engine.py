@@ -121,6 +121,8 @@ class NetworkEngine:
                 res.v, res.v_pred, res.z_pred = V[0].copy(), V, pred.predict(z0, V)
                 res.objective, res.bound = obj, bound
                 res.gap = abs(obj - bound) / max(1.0, abs(obj)) if np.isfinite(bound) else np.inf
+            elif status == "time_limit":
+                res.bound = bound  # a valid lower bound, for the gap of the caller's fallback plan
             res.solve_time = time.perf_counter() - t0
             return res
 
@@ -152,10 +154,17 @@ class NetworkEngine:
             return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
 
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
+        # time limit: a lower bound of eq. (MPC_form_miqp) for the gap (J_c; each round that ends without a plan
+        # cheaper than its level J_up proves that nothing cheaper exists)
+        lb, J_up, n_round = J_c, -np.inf, 0
         while True:
-            if time_limit is not None and time.perf_counter() - t0 > time_limit:
-                return done("time_limit", inc_V, J_c, "time limit: " + (
-                    "the warm start is returned" if inc_V is not None else "no feasible plan"))
+            if time_limit is not None:
+                if n_round and self.margin == 0.0:
+                    lb = max(lb, J_up)
+                n_round += 1
+                if time.perf_counter() - t0 > time_limit:
+                    return done("time_limit", inc_V, lb, "time limit: " + (
+                        "the warm start is returned" if inc_V is not None else "no feasible plan"))
             lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
             if level:
                 J_up = min(inc_J, J_c + delta)
@@ -220,6 +229,11 @@ class NetworkEngine:
                 new = sorted(viol - set(enc))
                 if not new or not o.lazy:
                     break
+                if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                    # out of time between constraint-generation rounds: this round's optimum is a lower bound
+                    # of the program restricted to the level set (fewer steps encoded: a relaxation)
+                    lb_r = max(lb, min(float(res.objective), J_up)) if self.margin == 0.0 else lb
+                    return done("time_limit", inc_V, lb_r, "time limit between constraint-generation rounds")
                 enc = sorted(set(enc) | set(new))
                 active |= set(new)
             if status == "optimal":
@@ -237,10 +251,15 @@ class NetworkEngine:
                 if full and inc_V is None:
                     return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend})")
             elif status == "time_limit":
+                # the solver's bound holds for the program it solved: a relaxation of eq. (MPC_form_miqp) restricted
+                # to the plans cheaper than J_up (constraint generation encodes fewer steps), unless the rows were
+                # tightened by a solver margin
+                sb = float(res.bound) if res.bound is not None and np.isfinite(res.bound) else -np.inf
+                lb_r = max(lb, min(sb, J_up)) if self.margin == 0.0 else lb
                 cand = res.w[: N * m] if res.w is not None else None
                 if cand is not None and pred.feasible(z0, cand) and pred.cost(cand, f, c0) < inc_J:
-                    return done("time_limit", cand, J_c, f"time limit: {res.message}")
-                return done("time_limit", inc_V, J_c, f"time limit: {res.message}")
+                    return done("time_limit", cand, lb_r, f"time limit: {res.message}")
+                return done("time_limit", inc_V, lb_r, f"time limit: {res.message}")
             else:
                 return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
             if J_up >= inc_J or full:  # nothing below J_up in the restricted program

@@ -4,6 +4,11 @@ Safety first: a plan is accepted only when :meth:`flnotes.mpc.prediction.Predict
 (boxes, terminal rows, and the network bound by the forward pass); otherwise only the first input is
 made admissible, and when no admissible input exists at the measured state the least-violation input is
 returned and flagged. See :func:`fallback_plan`.
+
+The repairs (:func:`repair_plan`, :func:`qp_repair`) move one input at a time to an admissible one
+(:func:`feasible_tail`): exact for two inputs, a grid for one; with three or more inputs an input is kept as it
+is, so a repair succeeds there only where the guess already satisfies the program, and :func:`safe_input`
+samples (its flag then means "none found", not "none exists").
 """
 from __future__ import annotations
 
@@ -32,43 +37,107 @@ def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True) 
     return pred.predict(z, V), V
 
 
+def _admissible(pred: Prediction, z: Array, cand: Array, last: bool) -> Array:
+    """Which rows of ``cand`` (n, m) meet ``|Phi_NN(z, v)| <= u_max^eps`` (forward pass) and keep
+    ``A_d z + B_d v`` in the state box (and, for the ``last`` step, in the terminal set)."""
+    u = pred.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))
+    nxt = z @ pred.Ad.T + cand @ pred.Bd.T
+    ok = (np.all(np.abs(u) <= pred.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= pred.z_lo, axis=1)
+          & np.all(nxt <= pred.z_hi, axis=1))
+    if last and pred.F is not None:
+        ok &= np.all(nxt @ pred.F.T <= pred.g, axis=1)
+    return ok
+
+
+def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, Array]]:
+    """The rows ``G v + h <= 0`` that keep ``A_d z + B_d v`` in the state box (and the terminal set when ``last``).
+
+    Rows that do not involve ``v`` are dropped when they hold and make the result ``None`` when they do not.
+    """
+    Az = pred.Ad @ z
+    G = np.vstack([pred.Bd, -pred.Bd])
+    h = np.r_[Az - pred.z_hi, pred.z_lo - Az]
+    if last and pred.F is not None:
+        G, h = np.vstack([G, pred.F @ pred.Bd]), np.r_[h, pred.F @ Az - pred.g]
+    free = np.any(G != 0.0, axis=1)
+    if np.any(h[~free] > 0.0):
+        return None
+    return G[free], h[free]
+
+
 def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = 2001, last: bool = False) -> Array:
     """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box (and, for the
     ``last`` step, in the terminal set), closest to ``v_guess``.
 
-    Searched on a grid of the ``v``-range (single input), checked with the forward pass; ``v_guess`` is
-    returned unchanged when it is admissible or when no grid point is.
+    One input: searched on a grid of the ``v``-range (``n_grid`` points). Two inputs: exact, over the convex
+    polygons where the network is affine in ``v`` (:func:`flnotes.pieces.network_regions`, cut by the rows of
+    the state box and the terminal set, then by the output bound): the point of each polygon nearest to
+    ``v_guess``. Every candidate is checked with the forward pass. ``v_guess`` is returned unchanged when it is
+    admissible, when no candidate is, and for three or more inputs (no search there: a repair built from such a
+    step is rejected by :meth:`Prediction.feasible`, and :func:`safe_input` handles the first input).
     """
-    v_guess = np.asarray(v_guess, float)
+    v_guess = np.asarray(v_guess, float).reshape(pred.m)
     z = np.asarray(z, float)
-
-    def admissible(cand: Array) -> Array:
-        u = pred.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))
-        nxt = z @ pred.Ad.T + cand @ pred.Bd.T
-        ok = (np.all(np.abs(u) <= pred.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= pred.z_lo, axis=1)
-              & np.all(nxt <= pred.z_hi, axis=1))
-        if last and pred.F is not None:
-            ok &= np.all(nxt @ pred.F.T <= pred.g, axis=1)
-        return ok
-
-    if pred.m != 1 or admissible(v_guess[None])[0]:
+    if pred.m > 2 or _admissible(pred, z, v_guess[None], last)[0]:
         return v_guess
-    cand = np.linspace(pred.v_lo[0], pred.v_hi[0], n_grid)[:, None]
-    i = np.flatnonzero(admissible(cand))
+    if pred.m == 1:
+        cand = np.linspace(pred.v_lo[0], pred.v_hi[0], n_grid)[:, None]
+    else:
+        from ..pieces import _project, network_polygons, network_regions
+
+        rows = _step_rows(pred, z, last)
+        if rows is None:
+            return v_guess
+        regions = network_regions(pred.net, z, pred.v_lo, pred.v_hi, rows[0], rows[1])
+        polys = network_polygons(pred.net, z, pred.v_lo, pred.v_hi, pred.u_eps, regions=regions)
+        if not polys:
+            return v_guess
+        # the nearest point of each polygon, and the same pulled slightly inside (round-off at its edges)
+        near = np.array([_project(P, v_guess) for P in polys])
+        mid = np.array([P.mean(axis=0) for P in polys])
+        cand = np.vstack([near, near + 1e-9 * (mid - near), near + 1e-6 * (mid - near), mid])
+    i = np.flatnonzero(_admissible(pred, z, cand, last))
     if not i.size:
         return v_guess
-    return cand[i[np.argmin(np.abs(cand[i] - v_guess).sum(axis=1))]].copy()
+    return cand[i[np.argmin(np.sum((cand[i] - v_guess) ** 2, axis=1))]].copy()
 
 
-def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]]) -> tuple[Array, Array, str, bool]:
+def qp_repair(pred: Prediction, z: Array, f: Array) -> tuple[Array, Array]:
+    """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
+
+    At step ``k`` the QP ``min J(V)`` over the boxes and terminal rows is solved with ``v(0..k-1)`` fixed
+    (:meth:`Prediction.qp`); its ``v(k)`` is made admissible at ``z(k)`` by :func:`feasible_tail`. The QP keeps the
+    later steps' boxes in view, which a repair of a fixed guess does not. ``f`` is the cost's linear part
+    (:meth:`Prediction.linear`). Check the result with :meth:`Prediction.feasible`.
+    """
+    N, m = pred.N, pred.m
+    z = np.asarray(z, float)
+    V = np.zeros((N, m))
+    guess = np.zeros((N, m))
+    zk = z
+    for k in range(N):
+        G = np.eye(N * m)[: k * m] if k else None
+        fixed = V[:k].reshape(-1)
+        x, _, _ = pred.qp(f, z, G, fixed if k else None, fixed if k else None)
+        if x is not None:
+            guess = np.asarray(x, float).reshape(N, m)
+        V[k] = feasible_tail(pred, zk, guess[k], last=k == N - 1)
+        zk = pred.Ad @ zk + pred.Bd @ V[k]
+    return pred.predict(z, V), V
+
+
+def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]],
+                  f: Optional[Array] = None) -> tuple[Array, Array, str, bool]:
     """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
 
     Safety first, in this order:
 
     1. the previous plan shifted by one step (``shifted``, from :meth:`flnotes.MPC.shifted_plan`), if it
        satisfies the whole program from the measured ``z``;
-    2. a plan repaired step by step (:func:`repair_plan`) from the shifted plan, then from zero inputs,
-       if one satisfies the whole program;
+    2. a plan repaired step by step that satisfies the whole program: the shifted plan repaired
+       (:func:`repair_plan`) and, when the cost's linear part ``f`` is given, the plan built along the QP
+       without the network (:func:`qp_repair`), the cheaper of those that pass :meth:`Prediction.feasible`;
+       then zero inputs repaired;
     3. otherwise only the first input is made safe: if any ``v`` with ``|Phi_NN(z, v)| <= u_max^eps``
        exists at ``z`` (:func:`safe_input`), the closest to the plan's is applied (flagged: the rest of
        the plan violates the program);
@@ -81,13 +150,22 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     z = np.asarray(z, float)
     if shifted is not None and pred.feasible(z, shifted[1]):
         return shifted[0], shifted[1], "the previous plan shifted by one step", True
-    guesses = ([(shifted[1], "the shifted previous plan")] if shifted is not None else [])
-    guesses.append((np.zeros((pred.N, pred.m)), "zero inputs"))
-    for V, what in guesses:
-        plan = repair_plan(pred, z, V)
+    found = []
+    if shifted is not None:
+        found.append((repair_plan(pred, z, shifted[1]), "the shifted previous plan repaired step by step"))
+    if f is not None:
+        found.append((qp_repair(pred, z, f), "the plan built along the QP without the network, repaired step by step"))
+    found = [(plan, what) for plan, what in found if pred.feasible(z, plan[1])]
+    if not found:
+        plan = repair_plan(pred, z, np.zeros((pred.N, pred.m)))
         if pred.feasible(z, plan[1]):
-            return plan[0], plan[1], f"{what} repaired step by step", True
-    V = np.array(guesses[0][0], float)
+            found.append((plan, "zero inputs repaired step by step"))
+    if found:
+        if f is not None:
+            found.sort(key=lambda pw: pred.cost(pw[0][1], f, 0.0))
+        (Zr, Vr), what = found[0]
+        return Zr, Vr, what, True
+    V = np.array(shifted[1] if shifted is not None else np.zeros((pred.N, pred.m)), float)
     V[0], ok = safe_input(pred, z, V[0])
     Zr, Vr = repair_plan(pred, z, V, first=False)
     if ok:

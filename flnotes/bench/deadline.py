@@ -1,0 +1,222 @@
+"""Benchmark: the MPC with a time limit of one sampling period, ``time_limit = t_s``.
+
+What :class:`flnotes.MPC` guarantees under ``time_limit`` (see :meth:`flnotes.MPC.__call__`): every answer is a
+plan checked by the forward pass (:meth:`flnotes.mpc.Prediction.feasible`) whenever the engine's incumbent, the
+shifted previous plan or a repair of it, or the plan built along the QP without the network passes that check;
+otherwise a plan whose first input is admissible, flagged ``input_admissible=False`` only when no admissible input
+exists at the measured state. A step that hits the limit records the cost ``J`` of its plan, a valid lower bound
+``J_lb`` of eq. (MPC_form_miqp) and the gap ``(J - J_lb) / max(1, |J|)``.
+
+Measured here for the Quad-1D of Sec. IV-B at ``N_p = 10, 15, 20`` with ``time_limit = t_s = 0.1`` s, on the
+recorded closed loop with the constraint-active reference (``x_ref = 1.5 sin t``, true plant) and on the
+diverse states of :func:`flnotes.bench.exactness.mpc_cases` (solved cold): the answer time per step (p50, p99,
+max, and the overrun past ``t_s``), the CPU time next to it (the machine is shared: wall clock is noisy), the
+steps that hit the limit and the distribution of their gaps, the forward-pass check of every returned plan and
+of every applied input, and the true ``|u| <= u_max`` of the closed loop. Speed is measured here, never
+asserted in tests (``tests/test_deadline.py`` asserts the properties).
+"""
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import numpy as np
+
+from ..simulate import simulate
+from ..solvers import BOUND_TOL
+from ..tables import time_stats
+from .exactness import mpc_cases
+from .mpc import make_mpc, quad_setup
+
+#: The time limit per step, one sampling period of the Quad-1D (s).
+T_S = 0.1
+
+
+class _Timed:
+    """An MPC for :func:`flnotes.simulate` whose CPU time (``time.process_time``) is recorded per step."""
+
+    def __init__(self, mpc):
+        self.mpc, self.cpu = mpc, []
+
+    def reset(self) -> None:
+        self.mpc.reset()
+        self.cpu = []
+
+    def step(self, z, t, reference=None):
+        c0 = time.process_time()
+        res = self.mpc.step(z, t, reference)
+        self.cpu.append(time.process_time() - c0)
+        return res
+
+
+def step_record(mpc, res, cpu: float) -> dict:
+    """One answer of ``mpc`` checked independently: the plan by the forward pass, the applied input at ``z``."""
+    z = res.z_pred[0]
+    u_nn = mpc.net(np.r_[z, res.v])
+    return dict(ms=1e3 * res.solve_time, cpu_ms=1e3 * cpu, status=res.status, fallback=bool(res.fallback),
+                gap=float(res.gap), objective=float(res.objective), bound=float(res.bound),
+                plan_admissible=bool(mpc.pred.feasible(z, res.v_pred)),
+                input_ok=bool(np.all(np.abs(u_nn) <= mpc.u_eps + BOUND_TOL)),
+                input_flagged=not res.input_admissible)
+
+
+def closed_loop(setup: dict, t_final: float, t_s: float = T_S) -> tuple[list[dict], dict]:
+    """The recorded closed loop (true plant, sine reference) with ``time_limit = t_s``.
+
+    Returns the per-step records (:func:`step_record`) and the run's checks: ``u_within`` (true ``|u| <= u_max``
+    at the samples, to 1e-9: what ``eps`` guarantees), ``u_within_between`` (the same between the samples, which
+    takes the drift margin of the chapter "Guarantees") and ``cpu_over_wall`` (CPU time / wall time over the run).
+    """
+    mpc = make_mpc(setup, time_limit=t_s)
+    timed = _Timed(mpc)
+    w0, c0 = time.perf_counter(), time.process_time()
+    log = simulate(setup["system"], timed, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
+                   reference=setup["reference"], progress=False)
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    s = log.summary()
+    recs = [step_record(mpc, r, c) for r, c in zip(mpc.history, timed.cpu)]
+    return recs, dict(u_within=bool(s["u_within_bound_at_samples"]), u_within_between=bool(s["u_within_bound_between"]),
+                      cpu_over_wall=cpu / max(wall, 1e-12))
+
+
+def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2) -> list[dict]:
+    """``n`` diverse states (:func:`flnotes.bench.exactness.mpc_cases`), each solved cold with ``time_limit = t_s``."""
+    mpc = make_mpc(setup, time_limit=t_s)
+    out = []
+    for c in mpc_cases(setup, n, seed=seed):
+        mpc.reset()
+        c0 = time.process_time()
+        res = mpc(c["z"], c["z_ref"])
+        out.append(dict(step_record(mpc, res, time.process_time() - c0), category=c["category"], case=c))
+    return out
+
+
+def decide_misses(setup: dict, recs: Sequence[dict], time_limit: float = 10.0) -> dict:
+    """The limit hits whose plan fails the forward-pass check, solved again with ``time_limit`` seconds: was there an
+    admissible plan to return? Returns counts ``infeasible`` (no: the program is proven infeasible), ``missed``
+    (yes: an optimum exists) and ``undecided`` (the longer solve hit its limit too)."""
+    mpc = make_mpc(setup, time_limit=time_limit)
+    out = dict(infeasible=0, missed=0, undecided=0)
+    for r in recs:
+        if r["status"] == "time_limit" and not r["plan_admissible"]:
+            mpc.reset()
+            s = mpc(r["case"]["z"], r["case"]["z_ref"])
+            key = ("infeasible" if s.status == "infeasible" else "missed" if s.status == "optimal" and not s.fallback
+                   else "undecided")
+            out[key] += 1
+    return out
+
+
+def limit_gaps(recs: Sequence[dict]) -> np.ndarray:
+    """The gaps of the steps that hit the time limit (NaN where the plan is not admissible: no gap)."""
+    return np.array([r["gap"] if r["plan_admissible"] else np.nan for r in recs if r["status"] == "time_limit"])
+
+
+def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra) -> dict:
+    """One table row: answer times (wall and CPU), overrun past ``t_s``, limit hits, gaps, admissibility."""
+    wall = time_stats([r["ms"] / 1e3 for r in recs], percentiles=(50, 99))
+    cpu = time_stats([r["cpu_ms"] / 1e3 for r in recs], percentiles=(50, 99))
+    g = limit_gaps(recs)
+    gf = g[np.isfinite(g)]
+    q = (lambda p: float(np.quantile(gf, p)) if gf.size else np.nan)
+    no_plan = [r for r in recs if r["status"] == "time_limit" and not r["plan_admissible"]]
+    return dict(run=name, N_p=int(N), steps=len(recs), ms_p50=wall["median_ms"], ms_p99=wall["p99_ms"],
+                ms_max=wall["max_ms"], overrun_ms=max(0.0, wall["max_ms"] - 1e3 * t_s),
+                over_t_s=int(sum(r["ms"] > 1e3 * t_s for r in recs)), cpu_ms_p50=cpu["median_ms"],
+                cpu_ms_max=cpu["max_ms"], limit_hits=int(sum(r["status"] == "time_limit" for r in recs)),
+                limit_without_plan=len(no_plan),
+                gap_p50=q(0.5), gap_p90=q(0.9), gap_max=q(1.0),
+                fallbacks=int(sum(r["fallback"] for r in recs)),
+                plans_admissible=int(sum(r["plan_admissible"] for r in recs)),
+                inputs_admissible=int(sum(r["input_ok"] for r in recs)),
+                inputs_flagged=int(sum(r["input_flagged"] for r in recs)),
+                infeasible=int(sum(r["status"] == "infeasible" for r in recs)),
+                error=int(sum(r["status"] == "error" for r in recs)), **extra)
+
+
+def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0, n_states: int = 60,
+                   t_s: float = T_S, seed: int = 2, check_limit: float = 10.0) -> dict:
+    """The closed loop and the diverse states at each ``N_p`` with ``time_limit = t_s``.
+
+    The diverse states whose limit hit returned no admissible plan are solved again with ``check_limit`` seconds
+    (:func:`decide_misses`; ``0`` skips it).
+
+    Returns ``rows`` (:func:`summarize`, one per run), ``gaps`` (``{label: gaps at the limit}``), ``times``
+    (``{label: answer times in ms}``) and ``checks``: ``plans_not_admissible`` (returned plans failing the
+    forward pass), ``inputs_not_admissible`` (applied inputs exceeding ``u_max^eps`` at the measured state
+    without the flag), ``u_within`` and ``u_within_between`` (true ``|u| <= u_max`` at the samples and between
+    them in every closed loop, :func:`closed_loop`), ``max_overrun_ms``,
+    ``negative_gaps`` and ``inconsistent_gaps`` (a recorded gap that does not follow from the objective and
+    the bound), ``limit_without_plan`` (limit hits whose plan fails the forward pass: only its first input is
+    admissible, or none exists) and, of those on diverse states, ``without_plan_infeasible`` / ``_missed`` /
+    ``_undecided`` (:func:`decide_misses`).
+    """
+    base = quad_setup()
+    rows, gaps, times = [], {}, {}
+    checks = dict(plans_not_admissible=0, inputs_not_admissible=0, u_within=True, u_within_between=True,
+                  max_overrun_ms=0.0, negative_gaps=0, inconsistent_gaps=0, limit_without_plan=0, infeasible_programs=0,
+                  without_plan_infeasible=0, without_plan_missed=0, without_plan_undecided=0)
+    for N in horizons:
+        setup = quad_setup(horizon=int(N), net=base["net"], eps=base["eps"])
+        loop, ck = closed_loop(setup, t_final, t_s)
+        div = diverse(setup, n_states, t_s, seed) if n_states else []
+        checks["u_within"] &= ck["u_within"]
+        checks["u_within_between"] &= ck["u_within_between"]
+        miss = decide_misses(setup, div, check_limit) if check_limit else {}
+        for name, recs, extra in (("closed loop", loop, dict(cpu_over_wall=ck["cpu_over_wall"])),
+                                  ("diverse states, cold", div, {f"without_plan_{k}": v for k, v in miss.items()})):
+            if not recs:
+                continue
+            row = summarize(name, int(N), recs, t_s, **extra)
+            checks["limit_without_plan"] += row["limit_without_plan"]
+            checks["infeasible_programs"] += int(sum(r["status"] == "infeasible" and not r["plan_admissible"]
+                                                     for r in recs))
+            for k in ("infeasible", "missed", "undecided"):
+                checks[f"without_plan_{k}"] += row.get(f"without_plan_{k}", 0)
+            rows.append(row)
+            label = f"N_p = {N}, {name}"
+            gaps[label], times[label] = limit_gaps(recs), np.array([r["ms"] for r in recs])
+            checks["plans_not_admissible"] += row["steps"] - row["plans_admissible"]
+            checks["inputs_not_admissible"] += int(sum(not r["input_ok"] and not r["input_flagged"] for r in recs))
+            checks["max_overrun_ms"] = max(checks["max_overrun_ms"], row["overrun_ms"])
+            for r in recs:
+                if np.isfinite(r["gap"]):
+                    checks["negative_gaps"] += int(r["gap"] < 0)
+                    want = (r["objective"] - r["bound"]) / max(1.0, abs(r["objective"]))
+                    checks["inconsistent_gaps"] += int(abs(want - r["gap"]) > 1e-9 or r["bound"] > r["objective"])
+    return dict(rows=rows, gaps=gaps, times=times, checks=checks)
+
+
+def run(fast: bool) -> dict:
+    """``make bench`` section ``deadline``: answer times and gaps at ``time_limit = t_s``."""
+    from ..plots.deadline import answer_times, gap_histogram
+    from . import out_dir
+
+    horizons = (10, 20) if fast else (10, 15, 20)
+    res = deadline_study(horizons, t_final=3.0 if fast else 20.0, n_states=6 if fast else 60,
+                         check_limit=2.0 if fast else 10.0)
+    figs = []
+    hits = {k: v for k, v in res["gaps"].items() if np.isfinite(v).any()}
+    if hits:
+        figs.append(str(gap_histogram(hits, path=out_dir() / "deadline_gaps.png")))
+    figs.append(str(answer_times(res["times"], 1e3 * T_S, path=out_dir() / "deadline_times.png")))
+    c = res["checks"]
+    notes = [f"time_limit = t_s = {T_S} s per step, default options; closed loop: true plant, x_ref = 1.5 sin t; "
+             "diverse states: flnotes.bench.exactness.mpc_cases, cold (no previous plan).",
+             f"returned plans failing the forward-pass check: {c['plans_not_admissible']}: {c['limit_without_plan']} at "
+             f"limit hits, {c['infeasible_programs']} on programs proven infeasible, "
+             f"{c['plans_not_admissible'] - c['limit_without_plan'] - c['infeasible_programs']} otherwise; of the "
+             "diverse states' limit "
+             f"hits without one, {c['without_plan_infeasible']} programs are proven infeasible, "
+             f"{c['without_plan_missed']} have an optimum (a plan the fallback missed) and "
+             f"{c['without_plan_undecided']} are undecided by a solve with a longer limit. Applied inputs above "
+             f"u_max^eps without the flag: {c['inputs_not_admissible']}; true |u| <= u_max in every closed loop: "
+             f"{c['u_within']} at the samples, {c['u_within_between']} between them (no drift margin here); "
+             f"negative or inconsistent gaps: {c['negative_gaps']}, {c['inconsistent_gaps']}.",
+             f"largest overrun past t_s: {c['max_overrun_ms']:.0f} ms (wall clock on a shared machine; cpu_ms next "
+             "to it). The overrun comes from solver calls that do not stop at their limit: DAQP checks its limit "
+             "between branch-and-bound nodes (the first relaxation of a large program is not interrupted) and the "
+             "SCIP check of a DAQP claim builds its model before its limit starts.",
+             "gap = (J - J_lb) / max(1, |J|) at the steps that hit the limit: J the cost of the returned plan, J_lb the "
+             "largest valid lower bound known (the QP without the network, the levels proven empty, a solver's bound)."]
+    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"], notes=notes, figures=figs)

@@ -1,0 +1,145 @@
+"""A guaranteed answer: the MPC under a time limit returns a plan checked by the forward pass, an admissible input
+and an honest optimality gap (the properties; speed is measured in ``python -m flnotes.bench deadline``).
+
+With a limit far below any solve (``TINY``) the engine returns at its first check of the time, so which path each
+step takes depends on the states only, not on the machine's speed.
+"""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.bench import exactness as ex
+from flnotes.bench import mpc as rt
+from flnotes.control import exact_1d_feasible_set
+from flnotes.mpc import MPC
+from flnotes.mpc import fallback as fb
+from flnotes.solvers import BOUND_TOL
+from flnotes.studies import multi as study
+
+TINY = 1e-6
+
+
+@pytest.fixture(scope="module")
+def quad():
+    return rt.quad_setup()
+
+
+def check_step(mpc, s):
+    """The properties of one answer: the plan passes the forward pass, the applied v meets the network bound at the
+    measured state (or is flagged because no v does), the gap follows from the objective and a bound below it."""
+    z = s.z_pred[0]
+    assert s.v is not None and np.allclose(s.v, s.v_pred[0])
+    feasible = mpc.pred.feasible(z, s.v_pred)
+    assert feasible == s.info["plan_feasible"]
+    if s.input_admissible:
+        assert np.all(np.abs(mpc.net(np.r_[z, s.v])) <= mpc.u_eps + BOUND_TOL), s.message
+    if s.status in ("optimal", "time_limit") and feasible:
+        assert np.isfinite(s.bound) and np.isfinite(s.gap), s.message
+        assert s.bound <= s.objective and s.gap >= 0.0
+        assert abs(s.gap - (s.objective - s.bound) / max(1.0, abs(s.objective))) <= 1e-12
+        assert abs(s.objective - mpc.cost(s.z_pred, s.v_pred, s.info["z_ref"])) <= 1e-9 * max(1.0, abs(s.objective))
+    return feasible
+
+
+def test_closed_loop_at_the_limit_returns_admissible_plans(quad):
+    """The book's closed loop with N_p = 20 and a limit far below any solve: every plan passes the forward pass,
+    every input is admissible, the gaps are consistent, and the true |u| <= u_max holds on the plant at the samples."""
+    setup = rt.quad_setup(horizon=20, net=quad["net"], eps=quad["eps"])
+    mpc = rt.make_mpc(setup, time_limit=TINY)
+    log = fl.simulate(setup["system"], mpc, t_final=fl.scale(4.0, 1.5), ts=setup["ts"], z0=setup["z0"],
+                      reference=setup["reference"], progress=False)
+    hits = [s for s in mpc.history if s.status == "time_limit"]
+    assert len(hits) >= 3, "premise: the limit is hit"
+    assert any(s.fallback for s in hits), "premise: some step has no incumbent (the fallback is exercised)"
+    for s in mpc.history:
+        assert s.status in ("optimal", "time_limit")
+        assert check_step(mpc, s), s.message
+        assert s.input_admissible
+    assert log.summary()["u_within_bound_at_samples"]  # between samples it takes the drift margin of chapter 9
+
+
+def test_the_bound_at_the_limit_is_a_lower_bound(quad):
+    """At the limit, bound <= the proven optimum (the MPC without a limit, exact against the cold reference in
+    tests/test_exactness.py) <= the returned plan's cost, on diverse states; an input flagged not admissible only
+    where no admissible v exists (the exact 1-D set is empty)."""
+    cases = ex.mpc_cases(quad, fl.scale(10, 7), seed=5)
+    mpc, exact = rt.make_mpc(quad, time_limit=TINY), rt.make_mpc(quad)
+    hits = 0
+    for c in cases:
+        mpc.reset()
+        s = mpc(c["z"], c["z_ref"])
+        feasible = check_step(mpc, s)
+        if not s.input_admissible:
+            z = s.z_pred[0]
+            assert not len(exact_1d_feasible_set(mpc.net, z, float(mpc.v_lo[0]), float(mpc.v_hi[0]),
+                                                 float(mpc.u_eps[0])))
+        if s.status == "time_limit" and feasible:
+            exact.reset()
+            r = exact(c["z"], c["z_ref"])
+            assert r.status == "optimal", "the returned plan is feasible, so the program has an optimum"
+            hits += 1
+            J = r.objective
+            assert s.bound <= J + 1e-6 * max(1.0, abs(J)) and J <= s.objective + 1e-6 * max(1.0, abs(J))
+    assert hits >= 1, "premise: a limit hit with an admissible plan"
+
+
+def test_a_solver_interrupted_by_the_limit_keeps_an_honest_bound(quad):
+    """Limits that stop the engine inside its rounds (which rounds depends on the machine; the property does not):
+    every answer is checked, and every bound is below the proven optimum."""
+    cases = ex.mpc_cases(quad, fl.scale(6, 3), seed=6)
+    exact, refs = rt.make_mpc(quad), {}
+    for tl in (0.003, 0.02):
+        mpc = rt.make_mpc(quad, time_limit=tl)
+        for j, c in enumerate(cases):
+            mpc.reset()
+            s = mpc(c["z"], c["z_ref"])
+            if check_step(mpc, s) and s.status == "time_limit":
+                exact.reset()
+                r = refs[j] = refs.get(j) or exact(c["z"], c["z_ref"])
+                assert r.status == "optimal" and s.bound <= r.objective + 1e-6 * max(1.0, abs(r.objective))
+
+
+@pytest.fixture(scope="module")
+def arm():
+    net, eps, _ = fl.arm_net()
+    return fl.two_link_arm(), net, eps
+
+
+def test_two_inputs_under_the_limit(arm):
+    """The arm (m = 2) with a limit far below any solve: admissible inputs and plans, true torques within tau_max."""
+    system, net, eps = arm
+    M = study.ARM_MPC
+    mpc = MPC(system, net, eps, horizon=M["horizon"], ts=M["ts"], Q=M["Q"], R=M["R"], time_limit=TINY)
+    log = fl.simulate(system, mpc, t_final=fl.scale(4.0, 3.5), ts=M["ts"], z0=M["z0"],
+                      reference=study.setpoint_reference(M["setpoints"], M["t_switch"]), hold="u", net=net,
+                      progress=False)
+    hits = [s for s in mpc.history if s.status == "time_limit"]
+    assert hits and any(s.fallback for s in hits), "premise: the limit is hit and the fallback is exercised"
+    for s in mpc.history:
+        assert check_step(mpc, s), s.message
+        assert s.input_admissible
+    assert study.torque_checks(log)["within"]
+
+
+def test_feasible_tail_is_exact_for_two_inputs(arm):
+    """feasible_tail for m = 2: an admissible input (network bound by the forward pass, next state in the box)
+    wherever a dense grid finds one, and none of the grid's admissible points is nearer to the guess."""
+    system, net, eps = arm
+    mpc = MPC(system, net, eps, horizon=3, ts=0.1, Q=np.ones(4), R=0.01 * np.ones(2))
+    rng = np.random.default_rng(11)
+    g = np.linspace(0.0, 1.0, 121)
+    G = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2) * (mpc.v_hi - mpc.v_lo) + mpc.v_lo
+    checked = 0
+    for z in rng.uniform(system.lo[:4], system.hi[:4], (12, 4)):
+        guess = rng.uniform(mpc.v_lo, mpc.v_hi)
+        v = fb.feasible_tail(mpc.pred, z, guess)
+        ok_grid = fb._admissible(mpc.pred, z, G, False)
+        ok_v = fb._admissible(mpc.pred, z, v[None], False)[0]
+        if ok_grid.any():
+            assert ok_v, z
+        if ok_v and not np.allclose(v, guess):
+            checked += 1
+            nearest = np.min(np.sum((G[ok_grid] - guess) ** 2, axis=1)) if ok_grid.any() else np.inf
+            # v may be pulled inside its polygon by 1e-6 of the way to its centre (round-off at the edges)
+            assert np.linalg.norm(v - guess) <= np.sqrt(nearest) + 1e-4
+    assert checked >= 3, "premise: guesses that are not admissible"
