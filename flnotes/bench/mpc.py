@@ -5,9 +5,11 @@ input bound active at many steps) is recorded once with :class:`flnotes.MPC` and
 (the same controller and code the chapters run). Every configuration of :class:`flnotes.MPCOptions`
 is then timed on the same recorded states (and the same warm starts: the recorded plan of the previous
 step, shifted), and every returned optimum is compared with a slow reference solve by SCIP (every step
-encoded, no screening, no level set, gap 1e-8). Scaling with ``N_p`` and with the width of the network
-closes the section. Speed is measured here, never asserted in tests; the machine is shared, so
-single timings are noisy.
+encoded, no screening, no level set, gap 1e-8). The exact switches of the DAQP back-end are then turned off
+one at a time on the same states (:func:`daqp_lever_table`, wall-clock and CPU time), the loop is run with
+``N_p = 15`` and ``20`` against the targets (every step within ``t_s``, proven optimal:
+:func:`horizon_targets`), and scaling with ``N_p`` and with the width of the network closes the section.
+Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy.
 """
 from __future__ import annotations
 
