@@ -190,3 +190,19 @@ def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
         if s.status == "time_limit":
             assert np.isfinite(s.gap) and abs(s.gap - (s.objective - s.bound) / max(1.0, abs(s.objective))) < 1e-12
     assert kept >= 1, "the premise: the shifted closed-loop plan is feasible at a recorded state"
+
+
+@pytest.mark.parametrize("daqp_options", [dict(reg_mode="upper"), dict(reg_retry=False),
+                                          dict(verify_feasibility="miqp"), dict(reg=1e-5)], ids=str)
+def test_daqp_switches_give_the_reference_optimum(recorded, daqp_options):
+    """The exact switches of the DAQP back-end (its regularization, the retry when it cycles, how a claim of
+    infeasibility is checked), given to the MPC as solver options, leave the optimum at the reference's."""
+    sysm, net, problems, J = recorded
+    mpc = MPC(sysm, net, EPS, solver_options=daqp_options, **COMMON)
+    for (z, R, prev), J_ref in zip(problems, J):
+        for warm in (prev, None):
+            mpc.reset()
+            mpc.set_previous_plan(warm)
+            s = mpc(z, R)
+            assert s.status == "optimal" and not s.fallback, (daqp_options, s.message)
+            assert abs(s.objective - J_ref) <= 1e-6 * max(1.0, abs(J_ref)), (daqp_options, s.objective, J_ref)

@@ -267,3 +267,23 @@ def test_boundary_point_is_optimal_not_infeasible():
         r = make_solver(p, b).solve()
         assert r.status == "optimal", (b, r)
         assert p.violation(r.w) <= FEAS_TOL and abs(r.objective - (-1.0)) <= 1e-7, (b, r)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_daqp_regularization_modes_and_checks_find_the_brute_force_optimum(seed):
+    """DAQP's exact switches: the secant regularization (default; exact at the bounds, a lower bound inside) and
+    the old upper one, the retry with a stronger regularization, the feasibility MILP that checks a claim of
+    infeasibility: each gives the brute-force optimum (or the infeasibility), with an honest bound."""
+    p = random_program(seed)
+    ref = brute_force(p)
+    A = sp.vstack([p.A, sp.csr_matrix(np.r_[np.zeros(5), [1.0, 1.0, 1.0, 0.0]][None, :])]).tocsr()
+    infeasible = MIQP(p.H, p.c, p.c0, A, np.r_[p.rl, 1.4], np.r_[p.ru, 1.6], p.lb, p.ub, p.integrality)
+    for opts in (dict(reg_mode="secant"), dict(reg_mode="upper"), dict(reg_retry=False),
+                 dict(verify_feasibility="miqp"), dict(reg=1e-4)):
+        r = make_solver(p, "daqp", **opts).solve()
+        assert r.status == "optimal" and rel(r.objective, ref) <= RTOL, (opts, r.message)
+        assert r.bound <= ref + 1e-9 * max(1.0, abs(ref)) and p.violation(r.w) <= 1e-6
+        assert make_solver(infeasible, "daqp", **opts).solve().status == "infeasible", opts
+    for k, v in (("reg_mode", "lower"), ("verify_feasibility", "lp"), ("reg_retry", "yes")):
+        with pytest.raises(ValueError, match=k):
+            make_solver(p, "daqp", **{k: v})

@@ -5,9 +5,11 @@ input bound active at many steps) is recorded once with :class:`flnotes.MPC` and
 (the same controller and code the chapters run). Every configuration of :class:`flnotes.MPCOptions`
 is then timed on the same recorded states (and the same warm starts: the recorded plan of the previous
 step, shifted), and every returned optimum is compared with a slow reference solve by SCIP (every step
-encoded, no screening, no level set, gap 1e-8). Scaling with ``N_p`` and with the width of the network
-closes the section. Speed is measured here, never asserted in tests; the machine is shared, so
-single timings are noisy.
+encoded, no screening, no level set, gap 1e-8). The exact switches of the DAQP back-end are then turned off
+one at a time on the same states (:func:`daqp_lever_table`, wall-clock and CPU time), the loop is run with
+``N_p = 15`` and ``20`` against the targets (every step within ``t_s``, proven optimal:
+:func:`horizon_targets`), and scaling with ``N_p`` and with the width of the network closes the section.
+Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy.
 """
 from __future__ import annotations
 
@@ -65,25 +67,41 @@ def quad_setup(horizon: Optional[int] = None, net=None, eps: Optional[float] = N
                 Q=S["Q"], R=S["R"], z0=S["z0"], u_eps=float(sysm.u_max[0] - eps), reference=sine_reference(1.5))
 
 
-def make_mpc(setup: dict, backend: str = "daqp", time_limit: Optional[float] = None, **levers) -> MPC:
-    """:class:`flnotes.MPC` for the setup with the given options (see :data:`CONFIGS`)."""
+def make_mpc(setup: dict, backend: str = "daqp", time_limit: Optional[float] = None,
+             solver_options: Optional[dict] = None, **levers) -> MPC:
+    """:class:`flnotes.MPC` for the setup with the given options (see :data:`CONFIGS`) and back-end options."""
     return MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
-               R=setup["R"], time_limit=time_limit, options=MPCOptions(backend=backend, **levers))
+               R=setup["R"], time_limit=time_limit, options=MPCOptions(backend=backend, **levers),
+               solver_options=solver_options)
 
 
 def record_run(setup: dict, t_final: float, mpc: Optional[MPC] = None, time_limit: Optional[float] = None) -> dict:
     """The closed loop on the true plant with an :class:`flnotes.MPC` (default options unless given).
 
     Returns per step the state, the reference over the horizon, the plan, the previous plan (the warm
-    start a replay hands over), the time (ms), status, screened flag and the step records, and the log.
+    start a replay hands over), the time (ms, wall clock; ``cpu_ms`` the CPU time of the whole step), status,
+    screened flag and the step records, and the log.
     """
     mpc = mpc or make_mpc(setup, time_limit=time_limit)
-    log = simulate(setup["system"], mpc, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
-                   reference=setup["reference"], progress=False)
+    cpu, step = [], mpc.step
+
+    def timed(*a, **k):  # the CPU time of each step next to its wall-clock time
+        c0 = time.process_time()
+        out = step(*a, **k)
+        cpu.append(time.process_time() - c0)
+        return out
+
+    mpc.step = timed
+    try:
+        log = simulate(setup["system"], mpc, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
+                       reference=setup["reference"], progress=False)
+    finally:
+        del mpc.step
     h = mpc.history
     prev = [None] + [(s.z_pred, s.v_pred) for s in h[:-1]]
     return dict(t=log.t[: len(h)], z=log.z[: len(h)], R=np.array([s.info["z_ref"] for s in h]),
                 V=np.array([s.v_pred for s in h]), prev=prev, ms=np.array([s.solve_time for s in h]) * 1e3,
+                cpu_ms=np.array(cpu[: len(h)]) * 1e3,
                 status=[s.status for s in h], screened=np.array([s.screened for s in h]),
                 fallback=np.array([s.fallback for s in h]), results=list(h), log=log)
 
@@ -156,6 +174,79 @@ def paper_row() -> dict:
     t = paper.TABLE2_MS[("Quad-1D", "MPC (N_p=10)")]
     return dict(config="paper (CPLEX via YALMIP, Table 2)", backend="cplex", states=np.nan, ms_min=t["min"],
                 ms_median=np.nan, ms_max=t["max"], ms_mean=t["mean"], source="paper")
+
+
+# ----------------------------------------------------------------------------------- the DAQP levers
+#: The exact switches of the DAQP back-end (options of :func:`flnotes.solvers.make_solver`, passed by
+#: :class:`flnotes.MPC` as ``solver_options``): name -> options. The first row is the default; each next row
+#: turns one of them off; the last turns all three off (the back-end before them).
+DAQP_LEVERS = {
+    "default (secant regularization, retry, feasibility MILP)": {},
+    "without the secant regularization": dict(reg_mode="upper"),
+    "without the retry with a stronger regularization": dict(reg_retry=False),
+    "without the feasibility MILP (SCIP on the MIQP)": dict(verify_feasibility="miqp"),
+    "none of the three": dict(reg_mode="upper", reg_retry=False, verify_feasibility="miqp"),
+}
+
+
+def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0,
+                     levers: Optional[dict] = None) -> list:
+    """Per-lever effect of :data:`DAQP_LEVERS` on the recorded states ``idx`` (warm starts as recorded).
+
+    The configurations are interleaved state by state (the machine's load hits all alike). Each row gives the
+    wall-clock and CPU time per step (median, p99, max), the steps not proven optimal, and the largest
+    relative difference of the objective to the default configuration's at the steps both prove optimal.
+    """
+    levers = levers or DAQP_LEVERS
+    mpcs = {k: make_mpc(setup, time_limit=time_limit, solver_options=dict(v)) for k, v in levers.items()}
+    out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[]) for k in mpcs}
+    for i in idx:
+        for k, m in mpcs.items():
+            m.set_previous_plan(rec["prev"][i])
+            c0 = time.process_time()
+            r = m(rec["z"][i], rec["R"][i])
+            o = out[k]
+            o["cpu"].append(time.process_time() - c0)
+            o["wall"].append(r.solve_time)
+            o["obj"].append(r.objective)
+            o["ok"].append(r.status == "optimal" and not r.fallback)
+            o["nodes"].append(r.nodes)
+    first = next(iter(out.values()))
+    rows = []
+    for k, o in out.items():
+        w, c = time_stats(o["wall"], percentiles=(50, 99)), time_stats(o["cpu"], percentiles=(50, 99))
+        both = np.array(o["ok"]) & np.array(first["ok"])
+        J, J0 = np.array(o["obj"])[both], np.array(first["obj"])[both]
+        d = np.abs(J - J0) / np.maximum(1.0, np.abs(J0))
+        rows.append(dict(config=k, N_p=setup["N"], states=len(o["wall"]), ms_median=w["median_ms"],
+                         ms_p99=w["p99_ms"], ms_max=w["max_ms"], cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"],
+                         cpu_ms_max=c["max_ms"], cpu_s_total=float(np.sum(o["cpu"])),
+                         nodes_mean=float(np.mean(o["nodes"])), non_optimal=int(len(o["ok"]) - sum(o["ok"])),
+                         max_rel_diff_to_default=float(d.max()) if d.size else np.nan))
+    return rows
+
+
+def horizon_targets(horizons=(15, 20), t_final: float = 6.0, time_limit: Optional[float] = 30.0) -> list:
+    """The recorded loop of Sec. IV-B with longer horizons against the targets (every step <= t_s, proven optimal).
+
+    One closed loop per ``N_p`` with the default options; wall-clock and CPU time per step, steps over
+    ``t_s``, steps not proven optimal (gap above the requested 1e-6, time limit, fallback).
+    """
+    rows = []
+    base = quad_setup()
+    for N in horizons:
+        setup = quad_setup(horizon=N, net=base["net"], eps=base["eps"])
+        rec = record_run(setup, t_final, time_limit=time_limit)
+        w = time_stats(rec["ms"] / 1e3, percentiles=(50, 99))
+        c = time_stats(rec["cpu_ms"] / 1e3, percentiles=(50, 99))
+        ts_ms = 1e3 * setup["ts"]
+        rows.append(dict(N_p=int(N), steps=w["n"], ms_median=w["median_ms"], ms_p99=w["p99_ms"], ms_max=w["max_ms"],
+                         cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"], cpu_ms_max=c["max_ms"],
+                         over_ts=int(np.sum(rec["ms"] > ts_ms)), cpu_over_ts=int(np.sum(rec["cpu_ms"] > ts_ms)),
+                         non_optimal=int(sum(s != "optimal" for s in rec["status"])),
+                         binaries_max=int(max(r.n_binaries for r in rec["results"])),
+                         nodes_max=int(max(r.nodes for r in rec["results"])), target_ms=ts_ms))
+    return rows
 
 
 # ----------------------------------------------------------------------------------- scaling
@@ -257,6 +348,17 @@ def run(fast: bool) -> dict:
                  f"({default['ms_max'] / TARGET_MAX_MS:.2f} x target), median {default['ms_median']:.2f} ms, "
                  f"max rel. gap {default['max_rel_gap_vs_ref']:.1e}, not optimal {default['non_optimal']}.")
     figures.append(str(rp.step_times(rec, path=out_dir() / "mpc_step_times.png")))
+    # the DAQP levers (per-lever effect) on the recorded loop's states where the screening QP was not optimal
+    hard_all = np.flatnonzero(~rec["screened"])
+    for r in daqp_lever_table(setup, rec, hard_all[:: 4 if fast else 1], time_limit=30.0):
+        rows.append(dict(r, config=f"DAQP lever: {r['config']}", backend="daqp"))
+    # longer horizons against the targets
+    for r in horizon_targets((15,) if fast else (15, 20), t_final=2.0 if fast else 6.0):
+        rows.append(dict(config=f"targets N_p = {r['N_p']}", backend="daqp", **{k: v for k, v in r.items() if k != "N_p"}))
+        notes.append(f"N_p = {r['N_p']} (recorded loop, {r['steps']} steps, default options): max {r['ms_max']:.0f} ms "
+                     f"wall / {r['cpu_ms_max']:.0f} ms CPU against t_s = {r['target_ms']:.0f} ms; {r['over_ts']} steps "
+                     f"over t_s (wall), {r['cpu_over_ts']} (CPU); {r['non_optimal']} not proven optimal; up to "
+                     f"{r['binaries_max']} binaries and {r['nodes_max']} nodes in one step")
     # scaling
     horizons = (2, 5, 10) if fast else (2, 4, 6, 8, 10, 15, 20)
     sh = scaling_horizon(horizons, t_final=2.0 if fast else 6.0)

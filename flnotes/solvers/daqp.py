@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from .base import Solver, _confirm, _require
-from .problem import _INF, FEAS_TOL, Array, MIQPResult, _result
+from .problem import _INF, FEAS_TOL, MIQP, Array, MIQPResult, _result
 
 
 # ---------------------------------------------------------------------------
@@ -26,25 +26,42 @@ class DaqpSolver(Solver):
 
     Positive semidefinite ``H``. DAQP factors ``H``; for the big-M programs
     ``H`` is zero on the network's variables. With ``reg=delta`` (default
-    ``1e-6``) ``delta`` is added to the zero diagonal: DAQP solves the
-    perturbed problem ``J_r(w) = J(w) + 0.5 delta sum w_i^2`` with a positive
-    definite ``H`` (its exit flag 1 is then a proof for ``J_r``) and, with
-    ``B = 0.5 delta sum max(lb_i^2, ub_i^2)`` over the perturbed variables,
-    ``J <= J_r <= J + B`` on the box, so ``J* >= J_r(w) - B``: the returned
-    point is certified optimal when ``B`` is within the requested gap (the
-    result's ``bound``), and verified by SCIP otherwise. With ``reg=None``
+    ``1e-6``) ``delta`` is added to the zero diagonal, with the secant of the
+    square as linear correction (``reg_mode="secant"``, the default): DAQP
+    solves ``J_s(w) = J(w) + 0.5 delta sum_i (w_i - l_i)(w_i - u_i)`` over the
+    bounded perturbed variables, which is ``<= J`` on the box and ``= J`` at
+    its bounds, hence at every integer point of a binary. The optimum of
+    ``J_s`` (exit flag 1 is a proof for the positive definite ``J_s``) is then
+    a lower bound on ``J*``, the certified gap at the returned point is
+    ``0.5 delta sum_i (w_i - l_i)(u_i - w_i)`` over its continuous variables
+    only (zero for the binaries and for every variable at a bound), and a
+    point better than an incumbent has ``J_s < J(incumbent)``. The point is
+    certified optimal when that gap is within the requested one (the result's
+    ``bound``), and verified by SCIP otherwise. ``reg_mode="upper"`` is the
+    plain ``J_r = J + 0.5 delta sum_i w_i^2`` with ``J <= J_r <= J + B``,
+    ``B = 0.5 delta sum max(l_i^2, u_i^2)`` (a worst case over the box,
+    binaries included: on the longer horizons it exceeds the gap at almost
+    every step, and each such step was verified by SCIP). With ``reg=None``
     DAQP's proximal-point iterations (``eps_prox``) handle the singular
     directions instead; they end with the undocumented exit flag 4, which is
     no proof (measured up to 12x sub-optimal on the CLF-CBF programs), so
-    every such answer is verified.
+    every such answer is verified. When DAQP stops with an error (cycling on
+    the degenerate big-M rows) it is called once more with the regularization
+    multiplied by 10 (``reg_retry=True``, default), then with
+    ``eps_prox=1e-4``, then the program goes to SCIP.
 
     Warm start. A feasible warm start ``w_ws`` gives the incumbent bound
-    ``fval_bound = J(w_ws) + B``: DAQP then only explores nodes that can beat
+    ``fval_bound = J(w_ws)`` (``+ B`` with ``reg_mode="upper"``): DAQP then only explores nodes that can beat
     it. If none does (exit flag -1 under the bound), ``w_ws`` is optimal
     provided DAQP's branch and bound is right, which on the degenerate big-M
     rows it has not always been: an exit flag -1 on a mixed-integer program
     (with or without warm start) is verified by SCIP unless the option
     ``verify_infeasible=False`` is given (``make bench`` measures both).
+    Without an incumbent the claim is about the feasible set only: it is
+    verified on the MILP with the same rows and a zero objective
+    (``verify_feasibility="milp"``, default; SCIP spends most of its time on
+    the cuts of the quadratic objective), and only a feasible or undecided
+    MILP sends the program itself to SCIP (``"miqp"``: always the program).
     """
 
     name = "daqp"
@@ -57,6 +74,10 @@ class DaqpSolver(Solver):
             raise ValueError(f"the 'daqp' back-end supports binary integers only (bounds within [0, 1]); "
                              f"variable {bad[0]} has bounds [{p.lb[bad[0]]}, {p.ub[bad[0]]}]: use backend='scip' or 'highs'")
         self._daqp = daqp
+        for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("milp", "miqp")),
+                           ("reg_retry", (True, False))):
+            if k in self.options and self.options[k] not in allowed:
+                raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {self.options[k]!r}")
         reg = self.options.get("reg", 1e-6)
         H = np.zeros((p.n, p.n)) if p.H is None else p.H.toarray()
         self._eps_prox = 0.0
@@ -114,8 +135,15 @@ class DaqpSolver(Solver):
             if self._warm_ok(w0):
                 incumbent = w0
         res = self._attempt(incumbent, time_limit, t0, eps_prox=None, gap=gap)
+        if res.status == "error" and np.any(self._dreg > 0) and self.options.get("reg_retry", True):
+            # DAQP may cycle on the degenerate big-M rows; a stronger regularization (its secant gap is
+            # certified or not, as always) usually removes the cycling
+            retry = self._attempt(incumbent, time_limit, t0, gap=gap, reg_scale=10.0)
+            if retry.status != "error":
+                retry.message += " (after a retry with the regularization x10)"
+                res = retry
         if res.status == "error" and "retry" not in res.message:
-            # DAQP may cycle on the degenerate big-M rows: once more with a stronger proximal term
+            # once more with a stronger proximal term
             retry = self._attempt(incumbent, time_limit, t0, eps_prox=1e-4, gap=gap)
             if retry.status != "error":
                 retry.message += " (after a retry with eps_prox=1e-4)"
@@ -126,6 +154,16 @@ class DaqpSolver(Solver):
         if res.status == "infeasible" and ((p.is_mip and self.options.get("verify_infeasible", True)) or self._eps_prox):
             # DAQP's branch and bound (and its proximal iterations on a singular H) have declared feasible
             # big-M programs infeasible, or found nothing below a warm start that was not optimal
+            if incumbent is None and p.is_mip and self.options.get("verify_feasibility", "milp") == "milp":
+                # without an incumbent the claim is about the feasible set only: the MILP with the same rows and
+                # a zero objective decides it (SCIP spends most of its time on the quadratic objective's cuts)
+                feas = MIQP(None, np.zeros(p.n), 0.0, p.A, p.rl, p.ru, p.lb, p.ub, p.integrality)
+                chk = _confirm(self, feas, verifier, None, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
+                if chk.status != "infeasible":  # feasible after all (or undecided): the program itself
+                    return _confirm(self, p, verifier, None, time_limit, gap, t0,
+                                    f"daqp: {res.message} (the feasibility MILP: {chk.status})", chk.nodes)
+                chk.message += " (the feasibility MILP with the same rows)"
+                return chk
             return _confirm(self, p, verifier, incumbent, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
         if res.status == "error":
             fb = self.options.get("fallback", "scip")
@@ -134,8 +172,9 @@ class DaqpSolver(Solver):
                                 f"daqp failed ({res.message})", res.nodes)
         return res
 
-    def _attempt(self, incumbent, time_limit, t0, eps_prox=None, gap: float = 1e-6) -> MIQPResult:
-        """One DAQP call on the program with its fixed variables substituted out."""
+    def _attempt(self, incumbent, time_limit, t0, eps_prox=None, gap: float = 1e-6,
+                 reg_scale: float = 1.0) -> MIQPResult:
+        """One DAQP call on the program with its fixed variables substituted out (regularization x ``reg_scale``)."""
         daqp, p = self._daqp, self.problem
         bu_all, bl_all = self._bounds()
         lbv, ubv = bl_all[: p.n], bu_all[: p.n]
@@ -143,6 +182,8 @@ class DaqpSolver(Solver):
         free = np.flatnonzero(~fixed)
         xf = np.where(fixed, lbv, 0.0)
         H = self._H
+        if reg_scale != 1.0 and H is not None:
+            H = H + np.diag((reg_scale - 1.0) * self._dreg)
         c_r = p.c[free].copy()
         if H is not None and fixed.any():
             c_r += H[np.ix_(free, np.flatnonzero(fixed))] @ xf[fixed]
@@ -173,19 +214,35 @@ class DaqpSolver(Solver):
             Hr = np.zeros((free.size, free.size))
         if time_limit:
             settings["time_limit"] = max(float(time_limit) - (time.perf_counter() - t0), 1e-3)
-        # reg mode: DAQP minimizes J_r(w) = J(w) + 0.5 sum_i dreg_i w_i^2 with J <= J_r <= J + B on the box
-        dr = self._dreg
+        # reg mode. "secant" (default): DAQP minimizes J_s(w) = J(w) + 0.5 sum_i dreg_i (w_i - l_i)(w_i - u_i), which
+        # is <= J on the box and equals J at the bounds (so at every integer point of a binary): J_s's optimum
+        # is a lower bound on J*, its gap at the returned point is 0.5 sum dreg_i (w_i - l_i)(u_i - w_i), and a
+        # point better than the incumbent has J_s < J(incumbent). "upper": J_r(w) = J(w) + 0.5 sum dreg_i w_i^2
+        # with J <= J_r <= J + B on the box.
+        dr = reg_scale * self._dreg
+        pert = dr > 0
+        secant = self.options.get("reg_mode", "secant") == "secant" and bool(np.all(np.isfinite(lbv[pert]))
+                                                                          and np.all(np.isfinite(ubv[pert])))
         B = 0.0
-        if np.any(dr > 0):
-            big = np.maximum(np.abs(lbv), np.abs(ubv))[dr > 0]
-            B = float(0.5 * np.sum(dr[dr > 0] * big ** 2)) if np.all(np.isfinite(big)) else np.inf
+        const = p.objective(xf)
+        if secant and pert.any():
+            lin = np.where(pert, -0.5 * dr * (lbv + ubv), 0.0)
+            lin[fixed] = 0.0
+            c_r += lin[free]
+            const += float(0.5 * np.sum((dr * lbv * ubv)[pert & ~fixed]))
+        elif pert.any():
+            big = np.maximum(np.abs(lbv), np.abs(ubv))[pert]
+            B = float(0.5 * np.sum(dr[pert] * big ** 2)) if np.all(np.isfinite(big)) else np.inf
+
+        def J_s(w):  # DAQP's objective (plus its constant) at a full point w
+            q = dr * (w - lbv) * (w - ubv) if secant else dr * w ** 2
+            return p.objective(w) + 0.5 * float(np.sum(q[pert]))
+
         if incumbent is not None and np.isfinite(B):
-            # the reduced objective of the incumbent: the full objective minus the constant of the fixed part.
-            # Any w better than the incumbent has J_r(w) < J(incumbent) + B: nodes above that are pruned.
+            # Any w better than the incumbent has J_s(w) < J(incumbent) (secant) or J_r(w) < J(incumbent) + B:
+            # nodes above that are pruned.
             J_full = p.objective(incumbent)
-            const = p.c0 + p.c[fixed] @ xf[fixed] + (0.5 * xf @ (H @ xf) if H is not None else 0.0)
-            J = J_full + B - const
-            settings["fval_bound"] = J - 1e-9 * max(1.0, abs(J_full))
+            settings["fval_bound"] = J_full + B - const - 1e-9 * max(1.0, abs(J_full))
         if free.size == 0:
             w = xf.copy()
             ok = p.violation(w) <= 1e-6
@@ -201,7 +258,7 @@ class DaqpSolver(Solver):
             w[ib] = np.round(w[ib])
             return w
 
-        retry_note = "" if eps_prox is None else " retry"
+        retry_note = "" if eps_prox is None and reg_scale == 1.0 else " retry"
         status = DAQP_STATUS.get(int(flag), "unproven" if flag > 0 else "error")
         msg = f"exitflag {flag} ({_DAQP_FLAGS.get(int(flag), 'not documented')}){retry_note}"
         if status in ("optimal", "unproven"):
@@ -211,17 +268,18 @@ class DaqpSolver(Solver):
                 msg += " but the point violates the program"
             cand = [v for v in (w, incumbent) if v is not None]
             best = min(cand, key=p.objective) if cand else None
-            if status == "optimal" and w is not None and B > 0:
-                # certificate of the perturbed problem: J* >= J_r(w) - B
-                bound = p.objective(w) + 0.5 * float(dr @ w ** 2) - B
+            if status == "optimal" and w is not None and (B > 0 or (secant and pert.any())):
+                # certificate of the perturbed problem: J* >= J_s(w) (secant) or J* >= J_r(w) - B
+                bound = min(J_s(w), float(fval) + const) if secant else J_s(w) - B
                 if incumbent is not None:
                     bound = min(bound, p.objective(incumbent))
                 J_best = p.objective(best)
                 if abs(J_best - bound) <= gap * max(1.0, abs(J_best)):
                     return _result(p, "optimal", best, bound, nodes, t0, self.name,
-                                   msg + f" (regularized by {float(dr.max()):.0e}: gap certified {B:.1e})")
+                                   msg + f" (regularized by {float(dr.max()):.0e}: gap certified "
+                                   f"{J_best - bound:.1e})")
                 return _result(p, "unproven", best, bound, nodes, t0, self.name,
-                               msg + f" (regularized: perturbation {B:.1e} above the gap)")
+                               msg + f" (regularized: gap {J_best - bound:.1e} above the requested gap)")
             if status == "optimal" and w is not None:
                 return _result(p, "optimal", best, np.nan, nodes, t0, self.name, msg)
             return _result(p, "unproven" if best is not None else "error", best, -np.inf, nodes, t0, self.name, msg)
