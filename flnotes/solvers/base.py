@@ -228,10 +228,14 @@ def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, cl
     if backend not in available_backends():  # pragma: no cover - SCIP and HiGHS are requirements
         return _result(p, "time_limit" if w is not None else "error", w, -np.inf, nodes, t0, solver.name,
                        f"{claim}, not a proof, and {backend!r} is not installed to verify it")
-    left = None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
     ws = w if (w is not None and p.violation(w) <= FEAS_TOL) else None
     opts = {k: v for k, v in solver.options.items() if k == "threads"}
-    out = make_solver(p, backend, **opts).solve(warm_start=ws, time_limit=left, gap=gap)
+    verifier = make_solver(p, backend, **opts)  # building the model takes time too: the time left is taken after
+    left = None if time_limit is None else time_limit - (time.perf_counter() - t0)
+    if left is not None and left <= 1e-3:
+        return _result(p, "time_limit", ws, -np.inf, nodes, t0, solver.name,
+                       f"{claim}, not a proof, and the time limit came before {backend} could verify it")
+    out = verifier.solve(warm_start=ws, time_limit=left, gap=gap)
     out.message = f"{claim}, not a proof: verified by {backend}: {out.message}"
     out.nodes += int(nodes)
     out.backend = solver.name
