@@ -42,7 +42,7 @@ Array = np.ndarray
 
 __all__ = ["UnseenCase", "CASES", "case", "unseen_system", "unseen_net", "unseen_mpc", "write_unseen_references",
            "definitions_table", "TimedController", "closed_loop", "diverse_cases", "diverse_run", "step_phase",
-           "closed_loop_row", "diverse_row", "unseen_table", "dense_error"]
+           "closed_loop_row", "diverse_row", "unseen_table", "dense_error", "worst_step"]
 
 
 def _identity(x: Array) -> Array:
@@ -356,21 +356,31 @@ def closed_loop(name: str, t_final: Optional[float] = None, options: Optional[MP
     return log, mpc, timed
 
 
+def worst_step(history: Sequence[StepResult], wall: Array) -> dict:
+    """The slowest step: its index, wall time (ms), phase (:func:`step_phase`), binaries, nodes and rounds."""
+    k = int(np.argmax(wall))
+    s = history[k]
+    return dict(worst_step=k, worst_ms=float(wall[k] * 1e3), worst_phase=step_phase(s), worst_binaries=int(s.n_binaries),
+                worst_nodes=int(s.nodes), worst_rounds=int(s.rounds), worst_encoded_steps=len(s.encoded_steps),
+                worst_warm_started=bool(s.warm_started))
+
+
 def _miss(history: Sequence[StepResult], wall: Array, ts: float) -> str:
     """Why the steps over ``t_s`` took long: their binaries, nodes, rounds and phase."""
+    wall = np.asarray(wall, float)
     over = np.flatnonzero(wall > ts)
     if not over.size:
         return ""
-    k = int(over[np.argmax(wall[over])])
-    s = history[k]
+    w = worst_step(history, wall)
     phases = {}
     for j in over:
         p = step_phase(history[j])
         phases[p] = phases.get(p, 0) + 1
-    return (f"{over.size} step(s) over t_s, by up to {wall[k] / ts:.1f} t_s; worst step {k}: {wall[k] * 1e3:.0f} ms, "
-            f"phase {step_phase(s)}, {s.n_binaries} binaries, {s.nodes} nodes, {s.rounds} round(s), "
-            f"{len(s.encoded_steps)} encoded step(s), warm start {'used' if s.warm_started else 'not used'}; "
-            f"phases of the steps over t_s: " + ", ".join(f"{p} {n}" for p, n in sorted(phases.items())))
+    return (f"{over.size} step(s) over t_s, by up to {w['worst_ms'] / 1e3 / ts:.1f} t_s; worst step {w['worst_step']}: "
+            f"{w['worst_ms']:.0f} ms, phase {w['worst_phase']}, {w['worst_binaries']} binaries, {w['worst_nodes']} nodes, "
+            f"{w['worst_rounds']} round(s), {w['worst_encoded_steps']} encoded step(s), warm start "
+            f"{'used' if w['worst_warm_started'] else 'not used'}; phases of the steps over t_s: "
+            + ", ".join(f"{p} {n}" for p, n in sorted(phases.items())))
 
 
 def closed_loop_row(name: str, log, mpc: MPC, timed: TimedController) -> dict:
@@ -391,7 +401,7 @@ def closed_loop_row(name: str, log, mpc: MPC, timed: TimedController) -> dict:
                 screened=int(sum(s.screened for s in h)), miqp_steps=int(sum(not s.screened for s in h)),
                 binaries_max=int(max(s.n_binaries for s in h)), nodes_max=int(max(s.nodes for s in h)),
                 non_optimal=int(sum(s.status != "optimal" for s in h)), fallbacks=int(sum(s.fallback for s in h)),
-                completed=not log.message, miss=_miss(h, wall, c.ts), message=log.message)
+                completed=not log.message, **worst_step(h, wall), miss=_miss(h, wall, c.ts), message=log.message)
 
 
 # ----------------------------------------------------------------------------------- diverse states
@@ -470,15 +480,18 @@ def diverse_row(name: str, steps: Sequence[StepResult], wall: Array, cpu: Array)
                 miss=_miss(steps, np.asarray(wall), c.ts))
 
 
-def unseen_table(names: Optional[Sequence[str]] = None, t_final: Optional[float] = None) -> tuple[list[dict], dict]:
-    """The chapter's table: each case's closed loop with the default MPC, and the logs.
+def unseen_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = None,
+                 horizon: Optional[int] = None) -> tuple[list[dict], dict]:
+    """The chapter's table: each case's closed loop with the default MPC (no time limit), and the runs.
 
     Returns ``(rows, runs)`` with one :func:`closed_loop_row` per case and ``runs[name] = (log, mpc, timed)``.
-    ``t_final`` overrides every case's length (the fast mode of the chapter uses a short one).
+    ``steps`` (sampling instants per case) and ``horizon`` (``N_p``) override the cases' own (the chapter's
+    fast mode runs a few steps at a short horizon).
     """
     rows, runs = [], {}
     for name in (names or list(CASES)):
-        log, mpc, timed = closed_loop(name, t_final=t_final)
+        c = case(name)
+        log, mpc, timed = closed_loop(name, t_final=None if steps is None else steps * c.ts, horizon=horizon)
         runs[name] = (log, mpc, timed)
         rows.append(closed_loop_row(name, log, mpc, timed))
     return rows, runs
