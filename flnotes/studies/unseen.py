@@ -22,7 +22,7 @@ chosen; the *held-out* three are run only with the default options, never to tun
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -169,7 +169,9 @@ class UnseenCase:
     z0
         Start of the closed loop.
     t_final
-        Length of the closed loop (s) at full scale; the fast mode runs a quarter of it.
+        Length of the closed loop (s) in the benchmark (100 sampling instants); its fast mode runs a quarter.
+    dynamics
+        The plant's last equation, for tables.
     """
 
     name: str
@@ -185,7 +187,6 @@ class UnseenCase:
     z0: tuple
     t_final: float
     dynamics: str = ""
-    notes: dict = field(default_factory=dict)
 
     @property
     def reference_name(self) -> str:
@@ -193,6 +194,7 @@ class UnseenCase:
         return f"unseen_{self.name}"
 
     def reference(self) -> Callable[[Array], Array]:
+        """``t -> z_ref(t)``: the sine ``amplitude sin(omega t)`` and its derivatives (:func:`flnotes.mpc.sine_reference`)."""
         return sine_reference(self.amplitude, self.omega, len(self.z0))
 
 
