@@ -127,7 +127,7 @@ def chain4_gain(u_max: float = 1.2) -> FLSystem:
                     params=dict(gain="1.5 + cos x1", u_max=u_max))
 
 
-def cubic3(u_max: float = 2.5) -> FLSystem:
+def cubic3(u_max: float = 1.4) -> FLSystem:
     """A 3rd-order chain with a cubic drift and the input gain ``1 + 0.2 x_2^2``.
 
     ``x_1' = x_2``, ``x_2' = x_3``, ``x_3' = -x_1^3 - x_2 + (1 + 0.2 x_2^2) u``; ``z = x``,
@@ -216,11 +216,11 @@ CASES: dict[str, UnseenCase] = {c.name: c for c in (
                dynamics="x2' = 0.5 (1 - x1^2) x2 - x1 + (1 + 0.3 sin x1) u"),
     UnseenCase("Chain4-gain", "held-out", chain4_gain,
                dict(widths=(12, 12), n_per_axis=14, max_train=60_000, max_iter=3000, seed=0),
-               horizon=10, ts=0.1, Q=(10.0, 1.0, 1.0, 1.0), R=0.01, amplitude=1.2, omega=1.1, z0=(0.0, 0.0, 0.0, 0.0),
+               horizon=10, ts=0.1, Q=(10.0, 1.0, 1.0, 1.0), R=0.01, amplitude=0.8, omega=1.0, z0=(0.0, 0.0, 0.0, 0.0),
                t_final=10.0, dynamics="x4' = -2 sin x1 - 0.5 x4 + (1.5 + cos x1) u"),
     UnseenCase("Cubic3", "held-out", cubic3,
                dict(widths=(10, 10, 10), n_per_axis=20, max_train=60_000, max_iter=3000, seed=0),
-               horizon=6, ts=0.2, Q=(10.0, 1.0, 1.0), R=0.01, amplitude=1.5, omega=1.0, z0=(0.0, 0.0, 0.0),
+               horizon=6, ts=0.2, Q=(10.0, 1.0, 1.0), R=0.01, amplitude=1.0, omega=1.2, z0=(0.0, 0.0, 0.0),
                t_final=20.0, dynamics="x3' = -x1^3 - x2 + (1 + 0.2 x2^2) u"),
 )}
 
