@@ -85,3 +85,11 @@ def test_short_closed_loop_keeps_true_input_within_bound(name):
 def test_unknown_case_is_refused():
     with pytest.raises(ValueError, match="unknown system"):
         U.case("Pendulum")
+
+
+def test_step_phase_reads_the_step_record():
+    v = np.zeros(1)
+    assert U.step_phase(fl.StepResult(v, screened=True)) == "screening"
+    assert U.step_phase(fl.StepResult(v, message="the warm start is optimal (level set empty)")) == "confirmation"
+    assert U.step_phase(fl.StepResult(v, rounds=2, nodes=10, message="daqp: optimal")) == "levels"
+    assert U.step_phase(fl.StepResult(v, status="infeasible", fallback=True)) == "fallback"
