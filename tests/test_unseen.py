@@ -1,0 +1,95 @@
+"""Systems not in the book (flnotes.studies.unseen): shipped networks, certified eps, exact MPC, true |u| <= u_max."""
+import json
+
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.mpc import MPCOptions
+from flnotes.reference import DATA_DIR, load_reference, weights_sha256
+from flnotes.studies import unseen as U
+
+NAMES = list(U.CASES)
+
+
+def test_cases_have_both_roles_and_three_held_out():
+    roles = [c.role for c in U.CASES.values()]
+    assert roles.count("tuning") == 2 and roles.count("held-out") >= 3
+    assert len({(U.case(n).horizon, U.case(n).ts, U.unseen_system(n).n_z) for n in NAMES}) >= 4  # not one setting
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_shipped_network_loads_with_checksum(name, tmp_path):
+    ref = load_reference(U.case(name).reference_name)
+    assert weights_sha256(ref.net) == ref.meta["sha256"]
+    s = U.unseen_system(name)
+    assert (ref.net.n_in, ref.net.n_out) == (s.n_in, s.m)
+    assert ref.meta["eps_settings"] == U.EPS_SETTINGS and ref.bracket["lower"] <= ref.bracket["upper"]
+    # a damaged copy is refused
+    stem = U.case(name).reference_name
+    (tmp_path / f"{stem}.json").write_text((DATA_DIR / f"{stem}.json").read_text())
+    W = [w.copy() for w in ref.net.W]
+    W[0][0, 0] += 1e-9
+    fl.ReLUNet(W, [b.copy() for b in ref.net.b]).save(tmp_path / f"{stem}.npz")
+    with pytest.raises(ValueError, match="checksum"):
+        load_reference(stem, folder=tmp_path)
+    assert json.loads((DATA_DIR / f"{stem}.json").read_text())["name"] == stem
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_certified_eps_bounds_the_error_on_dense_samples(name):
+    _, eps, ref = U.unseen_net(name)
+    err = U.dense_error(name, n=fl.scale(400_000, 100_000), seed=1)
+    assert 0.0 < err <= eps
+    assert eps < U.unseen_system(name).u_max[0]  # an admissible input is left
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_mpc_optimum_equals_cold_reference(name):
+    """Default options against the cold SCIP reference on diverse states (N_p = 4 keeps the reference quick)."""
+    c = U.case(name)
+    net, eps, _ = U.unseen_net(name)
+    mk = lambda o: fl.MPC(c.make(), net, eps, horizon=4, ts=c.ts, Q=list(c.Q), R=c.R, options=o)
+    mpc, ref = mk(None), mk(MPCOptions(backend="cvxpy-scip"))
+    compared = 0
+    for cs in U.diverse_cases(name, 4, seed=0, horizon=4):  # one state of each category
+        mpc.reset()
+        s, r = mpc(cs["z"], cs["z_ref"]), ref(cs["z"], cs["z_ref"])
+        if s.status == "optimal":
+            assert np.all(np.abs(net(np.hstack([s.z_pred[:4], s.v_pred]))) <= mpc.u_eps + 1e-6)  # forward pass
+        if r.status == "optimal" and not r.fallback:
+            assert s.status == "optimal" and not s.fallback, (name, cs["category"], s.message)
+            assert s.objective == pytest.approx(r.objective, rel=1e-5, abs=1e-6), (name, cs["category"])
+            compared += not s.screened
+        elif r.status == "infeasible":
+            assert s.status == "infeasible", (name, cs["category"], s.message)
+    assert compared >= 1, f"{name}: no state where the network constraint mattered was compared"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_short_closed_loop_keeps_true_input_within_bound(name):
+    """The case's scenario on the true plant, N_p = 4 (the guarantee does not depend on the horizon)."""
+    c = U.case(name)
+    steps = 10
+    log, mpc, timed = U.closed_loop(name, t_final=steps * c.ts, horizon=4)
+    assert log.n_steps == steps and not log.message
+    assert any(not s.screened for s in mpc.history), "premise: the network constraint binds at some step"
+    u_max = U.unseen_system(name).u_max
+    assert np.all(np.abs(log.u) <= u_max + 1e-9)
+    assert np.all(np.abs(log.u_nn) <= mpc.u_eps + 1e-6)
+    assert len(timed.wall) == len(timed.cpu) == steps
+    row = U.closed_loop_row(name, log, mpc, timed)
+    assert row["max_u_over_u_max"] <= 1.0
+
+
+def test_unknown_case_is_refused():
+    with pytest.raises(ValueError, match="unknown system"):
+        U.case("Pendulum")
+
+
+def test_step_phase_reads_the_step_record():
+    v = np.zeros(1)
+    assert U.step_phase(fl.StepResult(v, screened=True)) == "screening"
+    assert U.step_phase(fl.StepResult(v, message="the warm start is optimal (level set empty)")) == "confirmation"
+    assert U.step_phase(fl.StepResult(v, rounds=2, nodes=10, message="daqp: optimal")) == "levels"
+    assert U.step_phase(fl.StepResult(v, status="infeasible", fallback=True)) == "fallback"
