@@ -59,6 +59,7 @@ bench: venv
 reference: venv
 	$(PY) -c "import flnotes.paper as p, flnotes.studies as s; print(*p.write_references(), sep='\n'); s.write_sweep()"
 	$(PY) -c "from flnotes.arm import make_arm_reference; print(make_arm_reference())"
+	$(PY) -c "from flnotes.studies.unseen import write_unseen_references as w; print(*w(), sep='\n')"
 
 # Students' notebooks, autograder bundles and reference solutions of the otter-grader
 # master notebooks (book/assignments/master) into _build/assignments; refreshes the

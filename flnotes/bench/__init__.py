@@ -25,7 +25,7 @@ from typing import Optional
 
 from ..tables import Table
 
-SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "compare", "multi")
+SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "unseen", "compare", "multi")
 
 
 def out_dir() -> Path:

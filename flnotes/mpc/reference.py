@@ -23,6 +23,9 @@ from .prediction import Prediction
 
 Array = np.ndarray
 
+#: SCIP's default feasibility tolerance (``numerics/feastol``).
+_SCIP_FEASTOL = 1e-6
+
 
 class ReferenceProgram:
     """Eq. (MPC_form_miqp) written with cvxpy and :func:`flnotes.encode`, solved cold by SCIP."""
@@ -106,6 +109,11 @@ class ReferenceProgram:
                          encoded_steps=tuple(range(p.N)), backend="cvxpy-scip", message=f"SCIP status {scip_status}")
         if status in ("optimal", "time_limit") and cv["v"].value is not None:
             V = np.asarray(cv["v"].value, float)
+            # SCIP keeps variable bounds to its feasibility tolerance (1e-6): a plan up to that far outside the
+            # v-box is moved onto it (the checks that follow see the plan the controller would apply)
+            out = np.maximum(V - p.v_hi, p.v_lo - V)
+            if np.all(out <= _SCIP_FEASTOL):
+                V = np.clip(V, p.v_lo, p.v_hi)
             f, c0 = p.linear(z0, z_ref)
             res.v, res.v_pred, res.z_pred = V[0].copy(), V, p.predict(z0, V)
             res.objective = p.cost(V, f, c0)

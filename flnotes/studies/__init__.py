@@ -14,6 +14,8 @@ that imports :mod:`flnotes.paper`.
     chapters 7 and 8: checks of an MPC run, Table 2's MPC row, horizon sweeps, lever studies;
 ``cheap_networks``
     chapter 8: networks cheaper to encode (other seeds, a weight penalty, other widths) against the MPC's work;
+``unseen``
+    chapter 8: five systems not in the book, their shipped networks, the default MPC on them;
 ``guarantees``
     chapter 9: nominal loops with and without terminal ingredients, horizon sweeps, the drift margin;
 ``multi``
@@ -21,7 +23,7 @@ that imports :mod:`flnotes.paper`.
 ``compare``
     chapter 11: the five methods of the comparative study, their metrics and the Monte Carlo.
 """
-from . import cheap_networks, compare, guarantees, multi
+from . import cheap_networks, compare, guarantees, multi, unseen
 from .clfcbf import chapter_eps, clf_cbf_checks, cross_check_exact, paper_mean_ms, solve_time_table
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, table2,
@@ -29,7 +31,7 @@ from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compar
 from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
                        width_experiment, write_sweep)
 
-__all__ = ["cheap_networks", "compare", "guarantees", "multi", "architecture_sweep", "book_sweep", "estimates_table",
+__all__ = ["cheap_networks", "compare", "guarantees", "multi", "unseen", "architecture_sweep", "book_sweep", "estimates_table",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact",
            "solve_time_table", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
