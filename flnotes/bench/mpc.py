@@ -226,6 +226,14 @@ def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 
     return rows
 
 
+def _horizon_runs(horizons, t_final: float, time_limit: Optional[float]):
+    """``(N_p, setup, recorded run)`` of the book's loop with the book's network for each ``N_p``."""
+    base = quad_setup()
+    for N in horizons:
+        setup = quad_setup(horizon=N, net=base["net"], eps=base["eps"])
+        yield N, setup, record_run(setup, t_final, time_limit=time_limit)
+
+
 def horizon_targets(horizons=(15, 20), t_final: float = 6.0, time_limit: Optional[float] = 30.0) -> list:
     """The recorded loop of Sec. IV-B with longer horizons against the targets (every step <= t_s, proven optimal).
 
@@ -233,10 +241,7 @@ def horizon_targets(horizons=(15, 20), t_final: float = 6.0, time_limit: Optiona
     ``t_s``, steps not proven optimal (gap above the requested 1e-6, time limit, fallback).
     """
     rows = []
-    base = quad_setup()
-    for N in horizons:
-        setup = quad_setup(horizon=N, net=base["net"], eps=base["eps"])
-        rec = record_run(setup, t_final, time_limit=time_limit)
+    for N, setup, rec in _horizon_runs(horizons, t_final, time_limit):
         w = time_stats(rec["ms"] / 1e3, percentiles=(50, 99))
         c = time_stats(rec["cpu_ms"] / 1e3, percentiles=(50, 99))
         ts_ms = 1e3 * setup["ts"]
@@ -253,10 +258,7 @@ def horizon_targets(horizons=(15, 20), t_final: float = 6.0, time_limit: Optiona
 def scaling_horizon(horizons, t_final: float, time_limit: Optional[float] = 30.0) -> list:
     """Closed-loop per-step times of the default configuration for each ``N_p``."""
     rows = []
-    base = quad_setup()
-    for N in horizons:
-        setup = quad_setup(horizon=N, net=base["net"], eps=base["eps"])
-        rec = record_run(setup, t_final, time_limit=time_limit)
+    for N, setup, rec in _horizon_runs(horizons, t_final, time_limit):
         st = time_stats(rec["ms"] / 1e3, percentiles=(50, 95))
         rows.append(dict(N_p=int(N), binaries_full=int(N * setup["net"].n_hidden), steps=st["n"],
                          ms_median=st["median_ms"], ms_p95=st["p95_ms"], ms_max=st["max_ms"],

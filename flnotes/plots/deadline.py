@@ -1,22 +1,13 @@
 """Figures of the book: the MPC under a time limit (answer times and the optimality gaps at the limit)."""
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Mapping, Optional, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
-from .style import COLORS, new_axes
+from .style import COLORS, saved, series_axes
 
 __all__ = ["gap_histogram", "answer_times"]
-
-
-def _save(fig, path) -> Optional[Path]:
-    if path is None:
-        return None
-    path = Path(path)
-    fig.savefig(path, bbox_inches="tight")
-    return path
 
 
 def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None, ax=None):
@@ -33,12 +24,7 @@ def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None
     path
         Where to save the figure (returns the path), or ``None`` (returns the figure).
     """
-    if not isinstance(gaps, Mapping) or not gaps:
-        raise ValueError("gaps must be a non-empty mapping {label: sequence of gaps}")
-    if ax is None:
-        fig, ax = new_axes(figsize=(6.4, 3.0))
-    else:
-        fig = ax.figure
+    fig, ax = series_axes(gaps, "gaps", ax)
     data = {k: np.asarray(v, float)[np.isfinite(np.asarray(v, float))] for k, v in gaps.items()}
     top = max([float(d.max()) for d in data.values() if d.size] + [1e-12])
     edges = np.linspace(0.0, top * 1.0001, int(bins) + 1)
@@ -47,7 +33,7 @@ def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None
     ax.set_xlabel("optimality gap at the time limit, (J - J_lb) / max(1, |J|)")
     ax.set_ylabel("steps")
     ax.legend(loc="upper right", fontsize=7.5)
-    return _save(fig, path) or fig
+    return saved(fig, path)
 
 
 def answer_times(times_ms: Mapping[str, Sequence[float]], t_s_ms: float, path=None, ax=None):
@@ -62,12 +48,7 @@ def answer_times(times_ms: Mapping[str, Sequence[float]], t_s_ms: float, path=No
     path
         Where to save the figure (returns the path), or ``None`` (returns the figure).
     """
-    if not isinstance(times_ms, Mapping) or not times_ms:
-        raise ValueError("times_ms must be a non-empty mapping {label: sequence of times in ms}")
-    if ax is None:
-        fig, ax = new_axes(figsize=(6.4, 3.0))
-    else:
-        fig = ax.figure
+    fig, ax = series_axes(times_ms, "times_ms", ax)
     for i, (lab, t) in enumerate(times_ms.items()):
         t = np.sort(np.asarray(t, float))
         ax.semilogy(100.0 * np.arange(1, t.size + 1) / max(t.size, 1), t, lw=1.2, color=f"C{i}", label=lab)
@@ -75,4 +56,4 @@ def answer_times(times_ms: Mapping[str, Sequence[float]], t_s_ms: float, path=No
     ax.set_xlabel("steps [%] (sorted)")
     ax.set_ylabel("answer time [ms]")
     ax.legend(loc="upper left", fontsize=7.5)
-    return _save(fig, path) or fig
+    return saved(fig, path)

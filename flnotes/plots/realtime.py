@@ -1,22 +1,13 @@
 """Figures of the book: realtime part (per-step solve times and how they scale)."""
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 
-from .style import COLORS, new_axes
+from .style import COLORS, new_axes, saved
 
 __all__ = ["step_times", "scaling", "lever_bars"]
-
-
-def _save(fig, path) -> Optional[Path]:
-    if path is None:
-        return None
-    path = Path(path)
-    fig.savefig(path, bbox_inches="tight")
-    return path
 
 
 def step_times(rec: dict, series: Optional[dict] = None, target_ms: float = 100.0, paper_max_ms: Optional[float] = None,
@@ -54,7 +45,7 @@ def step_times(rec: dict, series: Optional[dict] = None, target_ms: float = 100.
     ax.set_xlabel("t [s]")
     ax.set_ylabel("solve time per step [ms]")
     ax.legend(loc="upper right", fontsize=7.5)
-    return _save(fig, path) or fig
+    return saved(fig, path)
 
 
 def scaling(rows_horizon: Sequence[dict], rows_width: Sequence[dict] = (), target_ms: float = 100.0, path=None):
@@ -73,7 +64,7 @@ def scaling(rows_horizon: Sequence[dict], rows_width: Sequence[dict] = (), targe
         ax.set_xlabel(label)
         ax.set_ylabel("ms per step")
         ax.legend(fontsize=7.5)
-    return _save(fig, path) or fig
+    return saved(fig, path)
 
 
 def lever_bars(rows: Sequence[dict], target_ms: float = 100.0, path=None):
@@ -88,4 +79,4 @@ def lever_bars(rows: Sequence[dict], target_ms: float = 100.0, path=None):
     ax.axvline(target_ms, color=COLORS["unsafe"], ls="--", lw=1, label="sampling period")
     ax.set_xlabel("ms per step")
     ax.legend(fontsize=7.5, loc="lower right")
-    return _save(fig, path) or fig
+    return saved(fig, path)

@@ -1,6 +1,7 @@
 """One look for every figure of the book."""
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Optional, Sequence
 
 import matplotlib as mpl
@@ -38,3 +39,23 @@ def bound_lines(ax, u_max: float, eps: Optional[float] = None, label: bool = Tru
         if eps is not None:
             ax.axhline(s * (u_max - eps), color=COLORS["u_max_eps"], ls=":", lw=1.2,
                        label=r"$\pm u_{\max}^{\varepsilon}$" if (label and s == 1) else None)
+
+
+def saved(fig, path=None):
+    """``fig`` saved to ``path`` (returns the path), or ``fig`` itself when ``path`` is ``None``."""
+    if path is None:
+        return fig
+    path = Path(path)
+    fig.savefig(path, bbox_inches="tight")
+    return path
+
+
+def series_axes(data, what: str, ax=None):
+    """Check that ``data`` is a non-empty mapping ``{label: values}`` and return ``(fig, ax)`` for drawing it."""
+    from collections.abc import Mapping
+
+    if not isinstance(data, Mapping) or not data:
+        raise ValueError(f"{what} must be a non-empty mapping {{label: sequence}}")
+    if ax is None:
+        return new_axes(figsize=(6.4, 3.0))
+    return ax.figure, ax
