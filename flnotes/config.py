@@ -41,3 +41,23 @@ def cache_dir() -> Path:
         path = repo / "_build" / "flnotes-cache" if (repo / "_toc.yml").exists() else Path.home() / ".cache" / "flnotes"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+_POOLS = None
+
+
+def one_blas_thread():
+    """A context in which the BLAS libraries loaded by numpy and scipy use one thread (:mod:`threadpoolctl`).
+
+    A controller step works on small matrices. With several BLAS threads on a busy machine each product
+    waits for the other threads to be scheduled: with two threads, two processes on two cores made steps of
+    the book's MPC that take about 0.1 s take 1 to 3 s. :class:`flnotes.MPC` and
+    :class:`flnotes.ClfCbfController` run every step inside this context, so their time per step does not
+    depend on the machine's thread settings.
+    """
+    global _POOLS
+    if _POOLS is None:
+        from threadpoolctl import ThreadpoolController
+
+        _POOLS = ThreadpoolController()
+    return _POOLS.limit(limits=1, user_api="blas")

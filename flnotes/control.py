@@ -53,6 +53,7 @@ import scipy.sparse as sp
 
 from ._checks import as_vector
 from .bounds import NodeBounds, fbbt
+from .config import one_blas_thread
 from .network import ReLUNet
 from .pieces import solve_exact_2d
 from .simulate import StepResult
@@ -774,8 +775,13 @@ class ClfCbfController:
         Raises ``ValueError`` when ``z`` lies outside the network's domain box
         (beyond :data:`flnotes.solvers.BOX_TOL`; closer, it is projected onto the
         box), as :class:`flnotes.MPC` does: the error bound eps, hence
-        ``|u| <= u_max``, is only guaranteed inside it.
+        ``|u| <= u_max``, is only guaranteed inside it. The step runs with one
+        BLAS thread (:func:`flnotes.config.one_blas_thread`).
         """
+        with one_blas_thread():
+            return self._solve_step(z)
+
+    def _solve_step(self, z: Array) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
         z = as_vector(z, self.system.n_z, "z")
         self.system.check_domain(z, what="the measured state z")

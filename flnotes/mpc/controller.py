@@ -14,6 +14,7 @@ import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
+from ..config import one_blas_thread
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box
@@ -279,8 +280,13 @@ class MPC:
 
         Returns the :class:`flnotes.StepResult` (appended to :attr:`history`): ``v`` to apply, the plan, status
         and statistics. A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``). An
-        infeasible program is reported (``status="infeasible"``), not raised.
+        infeasible program is reported (``status="infeasible"``), not raised. The step runs with one BLAS
+        thread (:func:`flnotes.config.one_blas_thread`).
         """
+        with one_blas_thread():
+            return self._solve_step(z, z_ref)
+
+    def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0 = time.perf_counter()
         z = self._check_z(z)
         R = self._check_ref(z_ref)
