@@ -172,6 +172,50 @@ def test_warm_starts_and_backends_agree_on_random_states():
     assert checked >= 3, "the premise: random states where the network constraint is active"
 
 
+def test_auto_lp_rounds_give_the_reference_optimum(monkeypatch):
+    """``lp="auto"`` with every level-set round counted as large (threshold 0): the LP-tightened rounds, and the
+    LP bounds of the steps that constraint generation adds to them, leave the optimum at the cold reference's on
+    random states. (On the small programs of the other tests no round reaches the real threshold.)"""
+    import flnotes.mpc.engine as engine
+
+    monkeypatch.setattr(engine, "LP_AUTO_BINARIES", 0)
+    calls = {"_lp_level": 0, "_lp_steps": 0}
+    for name in calls:
+        orig = getattr(engine.NetworkEngine, name)
+
+        def spy(self, *a, _orig=orig, _name=name, **k):
+            calls[_name] += 1
+            return _orig(self, *a, **k)
+
+        monkeypatch.setattr(engine.NetworkEngine, name, spy)
+    sysm = fl.quad1d()
+    net, _ = test_net("quad1d-6x6")
+    eps = 0.0323 + 1e-4  # above this network's largest error on its training grid
+    kw = dict(horizon=10, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175)
+    auto = MPC(sysm, net, eps, lp="auto", **kw)
+    ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(60):
+        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
+        zr = np.zeros((11, 3))
+        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
+        auto.reset()
+        s = auto(z0, zr)
+        if s.screened:
+            continue
+        r = ref(z0, zr)
+        assert s.status == r.status, (s.message, r.message)
+        if r.status == "optimal":
+            checked += 1
+            assert not s.fallback and auto.plan_feasible(s.z_pred, s.v_pred)
+            assert abs(s.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (s.objective, r.objective)
+        if checked >= 4 and calls["_lp_steps"]:
+            break
+    assert checked >= 3, "the premise: random states where the network constraint is active"
+    assert calls["_lp_level"] and calls["_lp_steps"], f"the premise: both LP paths ran ({calls})"
+
+
 def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
     """With (almost) no time, the controller returns the warm start if it is feasible, never a plan that breaks
     the program, and its gap is measured against a true lower bound (the QP without the network)."""

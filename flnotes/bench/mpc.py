@@ -8,7 +8,8 @@ step, shifted), and every returned optimum is compared with a slow reference sol
 encoded, no screening, no level set, gap 1e-8). The exact switches of the DAQP back-end are then turned off
 one at a time on the same states (:func:`daqp_lever_table`, wall-clock and CPU time), the loop is run with
 ``N_p = 15`` and ``20`` against the targets (every step within ``t_s``, proven optimal:
-:func:`horizon_targets`), and scaling with ``N_p`` and with the width of the network closes the section.
+:func:`horizon_targets`) and its slowest states replayed with and without the LP bounds of the level-set rounds
+(:func:`lp_lever_table`), and scaling with ``N_p`` and with the width of the network closes the section.
 Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy.
 """
 from __future__ import annotations
@@ -191,15 +192,40 @@ DAQP_LEVERS = {
 
 def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0,
                      levers: Optional[dict] = None) -> list:
-    """Per-lever effect of :data:`DAQP_LEVERS` on the recorded states ``idx`` (warm starts as recorded).
+    """Per-lever effect of :data:`DAQP_LEVERS` (DAQP back-end options) on the recorded states ``idx``
+    (warm starts as recorded); see :func:`interleaved_table` for the columns."""
+    levers = levers or DAQP_LEVERS
+    return interleaved_table(setup, rec, idx, {k: dict(solver_options=dict(v)) for k, v in levers.items()},
+                             time_limit)
+
+
+#: ``MPCOptions.lp`` compared on the recorded states of a longer horizon (:func:`lp_lever_table`); the default
+#: first (the others are compared with it).
+LP_LEVERS = {
+    "lp='auto' (default)": dict(),
+    "lp=False (FBBT bounds only)": dict(lp=False),
+    "lp=True (LP bounds every round)": dict(lp=True),
+}
+
+
+def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
+    """The LP tightening of the level-set rounds (:data:`LP_LEVERS`) on the recorded states ``idx``; see
+    :func:`interleaved_table` for the columns."""
+    return interleaved_table(setup, rec, idx, {k: dict(levers=v) for k, v in LP_LEVERS.items()}, time_limit)
+
+
+def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Optional[float] = 30.0) -> list:
+    """Configurations of :func:`make_mpc` (name -> ``dict(levers=..., solver_options=...)``) on the recorded
+    states ``idx``, warm-started as recorded.
 
     The configurations are interleaved state by state (the machine's load hits all alike). Each row gives the
-    wall-clock and CPU time per step (median, p99, max), the steps not proven optimal, and the largest
-    relative difference of the objective to the default configuration's at the steps both prove optimal.
+    wall-clock and CPU time per step (median, p99, max), the mean nodes and the largest number of binaries, the
+    steps not proven optimal, and the largest relative difference of the objective to the first configuration's
+    at the steps both prove optimal.
     """
-    levers = levers or DAQP_LEVERS
-    mpcs = {k: make_mpc(setup, time_limit=time_limit, solver_options=dict(v)) for k, v in levers.items()}
-    out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[]) for k in mpcs}
+    mpcs = {k: make_mpc(setup, time_limit=time_limit, solver_options=v.get("solver_options"), **v.get("levers", {}))
+            for k, v in configs.items()}
+    out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[], nbin=[]) for k in mpcs}
     for i in idx:
         for k, m in mpcs.items():
             m.set_previous_plan(rec["prev"][i])
@@ -211,6 +237,7 @@ def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 
             o["obj"].append(r.objective)
             o["ok"].append(r.status == "optimal" and not r.fallback)
             o["nodes"].append(r.nodes)
+            o["nbin"].append(r.n_binaries)
     first = next(iter(out.values()))
     rows = []
     for k, o in out.items():
@@ -221,7 +248,8 @@ def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 
         rows.append(dict(config=k, N_p=setup["N"], states=len(o["wall"]), ms_median=w["median_ms"],
                          ms_p99=w["p99_ms"], ms_max=w["max_ms"], cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"],
                          cpu_ms_max=c["max_ms"], cpu_s_total=float(np.sum(o["cpu"])),
-                         nodes_mean=float(np.mean(o["nodes"])), non_optimal=int(len(o["ok"]) - sum(o["ok"])),
+                         nodes_mean=float(np.mean(o["nodes"])), binaries_max=int(max(o["nbin"])),
+                         non_optimal=int(len(o["ok"]) - sum(o["ok"])),
                          max_rel_diff_to_default=float(d.max()) if d.size else np.nan))
     return rows
 
@@ -237,21 +265,23 @@ def _horizon_runs(horizons, t_final: float, time_limit: Optional[float]):
 def horizon_targets(horizons=(15, 20), t_final: float = 6.0, time_limit: Optional[float] = 30.0) -> list:
     """The recorded loop of Sec. IV-B with longer horizons against the targets (every step <= t_s, proven optimal).
 
-    One closed loop per ``N_p`` with the default options; wall-clock and CPU time per step, steps over
-    ``t_s``, steps not proven optimal (gap above the requested 1e-6, time limit, fallback).
+    One closed loop per ``N_p`` with the default options; one :func:`horizon_row` each.
     """
-    rows = []
-    for N, setup, rec in _horizon_runs(horizons, t_final, time_limit):
-        w = time_stats(rec["ms"] / 1e3, percentiles=(50, 99))
-        c = time_stats(rec["cpu_ms"] / 1e3, percentiles=(50, 99))
-        ts_ms = 1e3 * setup["ts"]
-        rows.append(dict(N_p=int(N), steps=w["n"], ms_median=w["median_ms"], ms_p99=w["p99_ms"], ms_max=w["max_ms"],
-                         cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"], cpu_ms_max=c["max_ms"],
-                         over_ts=int(np.sum(rec["ms"] > ts_ms)), cpu_over_ts=int(np.sum(rec["cpu_ms"] > ts_ms)),
-                         non_optimal=int(sum(s != "optimal" for s in rec["status"])),
-                         binaries_max=int(max(r.n_binaries for r in rec["results"])),
-                         nodes_max=int(max(r.nodes for r in rec["results"])), target_ms=ts_ms))
-    return rows
+    return [horizon_row(setup, rec) for _, setup, rec in _horizon_runs(horizons, t_final, time_limit)]
+
+
+def horizon_row(setup: dict, rec: dict) -> dict:
+    """A recorded loop (:func:`record_run`) against the targets: wall-clock and CPU time per step, steps over
+    ``t_s``, steps not proven optimal (gap above the requested 1e-6, time limit, fallback), binaries, nodes."""
+    w = time_stats(rec["ms"] / 1e3, percentiles=(50, 99))
+    c = time_stats(rec["cpu_ms"] / 1e3, percentiles=(50, 99))
+    ts_ms = 1e3 * setup["ts"]
+    return dict(N_p=int(setup["N"]), steps=w["n"], ms_median=w["median_ms"], ms_p99=w["p99_ms"], ms_max=w["max_ms"],
+                cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"], cpu_ms_max=c["max_ms"],
+                over_ts=int(np.sum(rec["ms"] > ts_ms)), cpu_over_ts=int(np.sum(rec["cpu_ms"] > ts_ms)),
+                non_optimal=int(sum(s != "optimal" for s in rec["status"])),
+                binaries_max=int(max(r.n_binaries for r in rec["results"])),
+                nodes_max=int(max(r.nodes for r in rec["results"])), target_ms=ts_ms)
 
 
 # ----------------------------------------------------------------------------------- scaling
@@ -354,9 +384,13 @@ def run(fast: bool) -> dict:
     hard_all = np.flatnonzero(~rec["screened"])
     for r in daqp_lever_table(setup, rec, hard_all[:: 4 if fast else 1], time_limit=30.0):
         rows.append(dict(r, config=f"DAQP lever: {r['config']}", backend="daqp"))
-    # longer horizons against the targets
-    for r in horizon_targets((15,) if fast else (15, 20), t_final=2.0 if fast else 6.0):
+    # longer horizons against the targets, and the LP tightening of the level-set rounds on their hardest states
+    for N, s_N, rec_N in _horizon_runs((15,) if fast else (15, 20), t_final=2.0 if fast else 6.0, time_limit=30.0):
+        r = horizon_row(s_N, rec_N)
         rows.append(dict(config=f"targets N_p = {r['N_p']}", backend="daqp", **{k: v for k, v in r.items() if k != "N_p"}))
+        worst = np.argsort(-rec_N["cpu_ms"])[: 4 if fast else 12]
+        for lr in lp_lever_table(s_N, rec_N, np.sort(worst), time_limit=30.0):
+            rows.append(dict(lr, config=f"LP lever N_p = {N}: {lr['config']}", backend="daqp"))
         notes.append(f"N_p = {r['N_p']} (recorded loop, {r['steps']} steps, default options): max {r['ms_max']:.0f} ms "
                      f"wall / {r['cpu_ms_max']:.0f} ms CPU against t_s = {r['target_ms']:.0f} ms; {r['over_ts']} steps "
                      f"over t_s (wall), {r['cpu_over_ts']} (CPU); {r['non_optimal']} not proven optimal; up to "

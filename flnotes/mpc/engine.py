@@ -25,7 +25,7 @@ from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
 from ..solvers import MIQP, make_solver, next_margin
 from ..tightening import EmptyBoxError, intersect
-from .levers import needed_steps, node_bounds
+from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
 from .program import compact_program, plan_vector
@@ -107,13 +107,14 @@ class NetworkEngine:
         N, m = pred.N, pred.m
         f, c0 = pred.linear(z0, z_ref)
         self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
-        st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=())
+        st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=(), lp_rounds=0)
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
             res = StepResult(None, status, nodes=st["nodes"], rounds=st["rounds"], n_binaries=st["n_bin"],
                              encoded_steps=tuple(int(k) for k in st["steps"]), screened=screened,
                              backend="qp-screening" if screened else o.backend, message=msg,
                              warm_started=inc_from_warm)
+            res.info["lp_rounds"] = st["lp_rounds"]  # level-set rounds whose node bounds were LP-tightened
             if V is not None:
                 V = np.asarray(V, float).reshape(N, m)
                 obj = pred.cost(V, f, c0)
@@ -166,6 +167,7 @@ class NetworkEngine:
                     return done("time_limit", inc_V, lb, "time limit: " + (
                         "the warm start is returned" if inc_V is not None else "no feasible plan"))
             lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
+            lp_done = None  # lp="auto" on a large round: the steps whose bounds are LP-tightened
             if level:
                 J_up = min(inc_J, J_c + delta)
                 full = not np.isfinite(J_up) or delta > 1e12 * max(1.0, abs(J_c))
@@ -176,8 +178,17 @@ class NetworkEngine:
                     empty = bool(np.any(lo > hi + 1e-12))
                     hi = np.maximum(hi, lo)
                     full = bool(np.all(lo <= lo_h) and np.all(hi >= hi_h))  # the level set cut nothing
-                    if not empty and o.lp:
+                    if not empty and o.lp == "auto":  # FBBT first; LP only when it leaves a large program
+                        override = node_bounds(pred, o, self.box, lo, hi, use_lp=False)
+                        st_f = needed_steps(override, pred.u_eps, o.encode)
+                        enc_f = (sorted(set(st_f) & active) if o.lazy else st_f) if st_f is not None else []
+                        if st_f is not None and unstable_count(override, enc_f) > LP_AUTO_BINARIES:
+                            empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, enc_f)
+                            lp_done = set(enc_f)
+                            st["lp_rounds"] += 1
+                    elif not empty and o.lp:
                         empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi)
+                        st["lp_rounds"] += 1
                     if empty:  # nothing cheaper than J_up
                         if J_up >= inc_J:
                             return done("optimal", inc_V, inc_J, "the warm start is optimal (level set empty)")
@@ -234,6 +245,9 @@ class NetworkEngine:
                     # of the program restricted to the level set (fewer steps encoded: a relaxation)
                     lb_r = max(lb, min(float(res.objective), J_up)) if self.margin == 0.0 else lb
                     return done("time_limit", inc_V, lb_r, "time limit between constraint-generation rounds")
+                if lp_done is not None and set(new) - lp_done:
+                    nb = self._lp_steps(nb, lo, hi, sorted(set(new) - lp_done))
+                    lp_done |= set(new)
                 enc = sorted(set(enc) | set(new))
                 active |= set(new)
             if status == "optimal":
@@ -266,6 +280,20 @@ class NetworkEngine:
                 return done("optimal", inc_V, inc_J, "the warm start is optimal (nothing cheaper)")
             delta *= 4.0
 
+    def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list) -> NodeBounds:
+        """``nb`` with the bounds of ``steps`` LP-tightened on the boxes ``lo, hi`` (steps that constraint
+        generation adds to an LP-tightened round). When the LP finds a step's box without an admissible
+        input, ``nb`` is kept: its FBBT bounds are valid, and the branch and bound proves the same."""
+        t = node_bounds(self.pred, self.opts, self.box, lo, hi, steps=steps, use_lp=True)
+        if t is None:
+            return nb
+        L = [a.copy() for a in nb.L]
+        U = [a.copy() for a in nb.U]
+        for layer in range(len(L)):
+            L[layer][steps] = np.maximum(L[layer][steps], t.L[layer][steps])
+            U[layer][steps] = np.minimum(U[layer][steps], t.U[layer][steps])
+        return NodeBounds(L, U, nb.out_L, nb.out_U, method=nb.method)
+
     @staticmethod
     def _polish(prob: MIQP, res, gap: float):
         """The tightened program with the binaries of ``res`` fixed: a convex QP (HiGHS, exact active set).
@@ -290,13 +318,15 @@ class NetworkEngine:
         return r
 
     def _lp_level(self, z0: Array, f: Array, c0: float, V_c: Array, J_c: float, J_up: float, lo: Array,
-                  hi: Array) -> tuple[bool, Array, Array, Optional[NodeBounds]]:
-        """``lp=True``: LP bounds on the level-set boxes, their relaxation as a better center, FBBT again.
+                  hi: Array, lp_steps=None) -> tuple[bool, Array, Array, Optional[NodeBounds]]:
+        """LP bounds on the level-set boxes, their relaxation as a better center, FBBT again.
 
+        ``lp=True``: every needed step is LP-tightened; ``lp="auto"`` (a large round): ``lp_steps``, the steps
+        encoded first (:meth:`_lp_steps` adds the ones constraint generation brings in).
         Returns ``(empty, lo, hi, node bounds to use or None)``.
         """
         pred, o = self.pred, self.opts
-        nb_lp = node_bounds(pred, o, self.box, lo, hi)
+        nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True)
         if nb_lp is None:
             return True, lo, hi, None
         steps = needed_steps(nb_lp, pred.u_eps, o.encode)

@@ -26,11 +26,12 @@ def repeat_bounds(b: NodeBounds, N: int) -> NodeBounds:
 
 
 def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, hi: Array,
-                steps: Optional[Sequence[int]] = None, use_lp: bool = True) -> Optional[NodeBounds]:
+                steps: Optional[Sequence[int]] = None, use_lp: Optional[bool] = None) -> Optional[NodeBounds]:
     """Per-step node bounds for the boxes ``lo, hi`` (N_p, n_z + m) under ``opts.bounds``.
 
-    ``"box"``: ``box`` (FBBT on the domain box) at every step. Otherwise FBBT on the boxes; with
-    ``bounds="lp"`` (or ``bounds="levelset"`` and ``lp=True``) and ``use_lp``, the steps in ``steps``
+    ``"box"``: ``box`` (FBBT on the domain box) at every step. Otherwise FBBT on the boxes; with ``use_lp``
+    (default: ``bounds="lp"``, or ``bounds="levelset"`` and ``lp=True``; the engine decides ``lp="auto"``), the
+    steps in ``steps``
     (default all) whose outputs can leave ``[-u_max^eps, u_max^eps]`` are LP-tightened with that output
     bound (:func:`flnotes.lp_bounds`): valid for every point the program can select there. Returns
     ``None`` when some step's box holds no input meeting the output bound (the program is infeasible there).
@@ -39,7 +40,9 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
     if opts.bounds == "box":
         return repeat_bounds(box, N)
     nb = fbbt(pred.net, lo, hi)
-    if use_lp and (opts.bounds == "lp" or opts.lp):
+    if use_lp is None:
+        use_lp = opts.bounds == "lp" or opts.lp is True
+    if use_lp:
         c = pred.u_eps
         todo = range(N) if steps is None else sorted(steps)
         todo = [k for k in todo if np.any(nb.out_L[k] < -c) or np.any(nb.out_U[k] > c)]
@@ -53,6 +56,20 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
                 nb.L[layer][todo], nb.U[layer][todo] = t.L[layer], t.U[layer]
             nb.method = "lp"
     return nb
+
+
+#: ``lp="auto"``: a level-set round is LP-tightened when FBBT leaves more unstable neurons than this in the steps
+#: it encodes. Measured on the book's Quad-1D programs (chapter "Making it real-time"): with at most ~40 the
+#: branch and bound took a few ms, less than the LPs (0.2 ms each, two per unstable neuron and step); with 60 or
+#: more it took 0.1 to 5 s, and the LP bounds cut it 4 to 10 times.
+LP_AUTO_BINARIES = 48
+
+
+def unstable_count(nb: NodeBounds, steps: Sequence[int]) -> int:
+    """Unstable neurons (``L < 0 < U``, one binary each) of the node bounds ``nb`` at the predicted ``steps``."""
+    steps = list(steps)
+    return int(sum(np.count_nonzero((np.asarray(L)[steps] < 0) & (np.asarray(U)[steps] > 0))
+                   for L, U in zip(nb.L, nb.U))) if steps else 0
 
 
 def needed_steps(nb: NodeBounds, u_eps: Array, encode: str) -> Optional[list]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, fields
-from typing import Iterator, Optional, Sequence
+from typing import Iterator, Optional, Sequence, Union
 
 #: Accepted MPC back-ends: the persistent solvers of :mod:`flnotes.solvers` that solve a mixed-integer QP,
 #: and ``"cvxpy-scip"``, the reference (the program written with :func:`flnotes.encode`, solved cold by SCIP).
@@ -61,7 +61,10 @@ class MPCOptions:
         Stable neurons substituted (``y = a`` or ``y = 0``), no binary; ``False`` keeps a fixed binary each
         (the paper's count, ``N_p sum_k n_k``).
     lp
-        With ``bounds="levelset"`` only: LP tightening of the encoded steps on the level-set boxes.
+        With ``bounds="levelset"`` only: LP tightening (:func:`flnotes.lp_bounds`) of the needed steps on the
+        level-set boxes, each round. ``"auto"`` (default): only in the rounds where FBBT leaves more than
+        :data:`flnotes.mpc.levers.LP_AUTO_BINARIES` unstable neurons in the steps to encode (below that the
+        branch and bound was measured cheaper than the LPs); ``True``: every round; ``False``: never.
     iterations
         With ``constraint="previous"`` only: QPs per sampling instant, each linearizing along the last plan
         (1 is Kurtz & Henson's scheme; more iterate it within the period).
@@ -75,15 +78,17 @@ class MPCOptions:
     warm_start: Optional[bool] = None
     encode: Optional[str] = None
     eliminate_stable: Optional[bool] = None
-    lp: Optional[bool] = None
+    lp: Optional[Union[bool, str]] = None
     iterations: Optional[int] = None
 
     def __post_init__(self) -> None:
         given = {f.name for f in fields(self) if getattr(self, f.name) is not None}
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: resolve defaults once
-        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "lp"):
+        for k in ("screening", "lazy", "warm_start", "eliminate_stable"):
             if k in given and not isinstance(getattr(self, k), bool):
                 raise TypeError(f"{k} must be True or False, got {getattr(self, k)!r}")
+        if "lp" in given and not (isinstance(self.lp, bool) or self.lp == "auto"):
+            raise TypeError(f"lp must be True, False or 'auto', got {self.lp!r}")
         if self.constraint not in CONSTRAINTS:
             raise ValueError(f"constraint must be one of {CONSTRAINTS}, got {self.constraint!r}")
         if self.constraint != "network":
@@ -139,9 +144,9 @@ class MPCOptions:
                              "every step: choose one")
         put("lazy", encode == "needed" if self.lazy is None else self.lazy)
         if self.lp and bounds != "levelset":
-            raise ValueError("lp=True tightens the level-set boxes (bounds='levelset'); for LP bounds on the reachable "
-                             "boxes use bounds='lp'")
-        put("lp", bool(self.lp))
+            raise ValueError(f"lp={self.lp!r} tightens the level-set boxes (bounds='levelset'); for LP bounds on the "
+                             "reachable boxes use bounds='lp'")
+        put("lp", ("auto" if bounds == "levelset" else False) if self.lp is None else self.lp)
         for k in ("screening", "warm_start", "eliminate_stable"):
             put(k, True if getattr(self, k) is None else getattr(self, k))
 
@@ -171,7 +176,7 @@ class MPCOptions:
                     grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp)
                             for b, s, w, e, (enc, lz), lp in itertools.product(
                                 BOUNDS, (True, False), (True, False), (True, False),
-                                (("needed", True), ("needed", False), ("all", False)), (False, True))
+                                (("needed", True), ("needed", False), ("all", False)), (False, True, "auto"))
                             if not (lp and b != "levelset")]
                 for kw in grid:
                     o = cls(constraint="network", backend=backend, **kw)
@@ -184,7 +189,8 @@ class MPCOptions:
             return f"{self.constraint} (QP, DAQP" + (f", {self.iterations} iteration(s))" if self.iterations else ")")
         if self.is_reference:
             return f"cvxpy-scip (cold reference), bounds={self.bounds}"
-        on = [k for k in ("screening", "lazy", "warm_start", "lp") if getattr(self, k)]
+        on = [k for k in ("screening", "lazy", "warm_start") if getattr(self, k)]
+        on += {True: ["lp"], "auto": ["lp when large"], False: []}[self.lp]
         extra = [] if self.eliminate_stable else ["stable neurons kept"]
         extra += [] if self.encode == "needed" else ["every step encoded"]
         return f"{self.backend}, bounds={self.bounds}" + "".join(f", {s}" for s in on + extra)
