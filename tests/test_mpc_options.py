@@ -136,22 +136,32 @@ def test_linear_models_keep_their_own_rows(recorded, constraint, it):
             assert np.all(np.abs(sysm.Phi(z, s.v)) <= sysm.u_max + 1e-6)
 
 
+def _small_quad(horizon: int):
+    """The Quad-1D with a small test network (6x6) and the book's weights: system, net, eps, MPC keywords."""
+    net, _ = test_net("quad1d-6x6")
+    eps = 0.0323 + 1e-4  # above this network's largest error on its training grid
+    return fl.quad1d(), net, eps, dict(horizon=horizon, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175)
+
+
+def _random_problems(n: int, horizon: int, seed: int = 0):
+    """``n`` random states in a part of the box and constant references ``(z0, z_ref)`` (seeded)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
+        zr = np.zeros((horizon + 1, 3))
+        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
+        yield z0, zr
+
+
 def test_warm_starts_and_backends_agree_on_random_states():
     """On random states and references (not a closed loop): the default options cold, warm-started with the
     optimum itself and with a feasible but worse plan, and SCIP with the level set all give the optimum of the
     cold reference."""
-    sysm = fl.quad1d()
-    net, _ = test_net("quad1d-6x6")
-    eps = 0.0323 + 1e-4  # above this network's largest error on its training grid
-    kw = dict(horizon=6, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175)
+    sysm, net, eps, kw = _small_quad(horizon=6)
     fast, scip = MPC(sysm, net, eps, **kw), MPC(sysm, net, eps, backend="scip", **kw)
     ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
-    rng = np.random.default_rng(0)
     checked = 0
-    for _ in range(40):
-        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
-        zr = np.zeros((7, 3))
-        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
+    for z0, zr in _random_problems(40, horizon=6):
         fast.reset()
         cold = fast(z0, zr)
         if cold.status != "optimal" or cold.screened:
@@ -188,18 +198,11 @@ def test_auto_lp_rounds_give_the_reference_optimum(monkeypatch):
             return _orig(self, *a, **k)
 
         monkeypatch.setattr(engine.NetworkEngine, name, spy)
-    sysm = fl.quad1d()
-    net, _ = test_net("quad1d-6x6")
-    eps = 0.0323 + 1e-4  # above this network's largest error on its training grid
-    kw = dict(horizon=10, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175)
+    sysm, net, eps, kw = _small_quad(horizon=10)
     auto = MPC(sysm, net, eps, lp="auto", **kw)
     ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
-    rng = np.random.default_rng(0)
     checked = 0
-    for _ in range(60):
-        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
-        zr = np.zeros((11, 3))
-        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
+    for z0, zr in _random_problems(60, horizon=10):
         auto.reset()
         s = auto(z0, zr)
         if s.screened:
