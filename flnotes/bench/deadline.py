@@ -187,6 +187,18 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
     return dict(rows=rows, gaps=gaps, times=times, checks=checks)
 
 
+def deadline_numbers(study: dict) -> dict:
+    """The numbers chapter 8 quotes from :func:`deadline_study`, as Python numbers: the checks on misses and
+    overrun, and ``loop_<column>`` of the closed loop at the longest horizon."""
+    c = study["checks"]
+    py = lambda x: x.item() if hasattr(x, "item") else x  # noqa: E731 - numpy scalars to Python numbers
+    out = {k: py(c[k]) for k in ("max_overrun_ms", "limit_without_plan", "without_plan_infeasible",
+                                 "without_plan_missed", "without_plan_undecided")}
+    loop = [r for r in study["rows"] if r["run"] == "closed loop"][-1]
+    out.update({f"loop_{k}": py(loop[k]) for k in ("N_p", "steps", "limit_hits", "gap_p50", "gap_max", "cpu_ms_max")})
+    return out
+
+
 def run(fast: bool) -> dict:
     """``make bench`` section ``deadline``: answer times and gaps at ``time_limit = t_s``."""
     from ..plots.deadline import answer_times, gap_histogram

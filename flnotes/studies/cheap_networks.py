@@ -21,7 +21,7 @@ from ..mpc import MPC, sine_reference
 from ..simulate import simulate
 from ..tables import time_stats
 
-__all__ = ["VARIANTS", "variant_network", "network_rows"]
+__all__ = ["VARIANTS", "variant_network", "network_rows", "network_numbers"]
 
 #: The Quad-1D networks compared: label -> the settings changed from :data:`flnotes.paper.NET_SETTINGS`.
 #: Each is a shipped reference (same weights and certified ``eps`` on every machine).
@@ -78,3 +78,24 @@ def network_rows(t_final: float, labels: Optional[Sequence[str]] = None) -> list
                      "nodes": int(sum(s.nodes for s in h)), "median ms": st["median_ms"], "max ms": st["max_ms"],
                      "max |u|/u_max": float(np.abs(log.u).max() / sysm.u_max[0])})
     return rows
+
+
+def network_numbers(rows: Sequence[dict]) -> dict:
+    """What chapter 8 quotes from :func:`network_rows`, as Python numbers.
+
+    ``rank``: Spearman's rank correlation of ``eps`` and the screened steps (ties averaged); ``seed_lo`` and
+    ``seed_hi``: the range of ``eps`` over the book's network and the other seeds; ``small_<column>`` and
+    ``book_<column>`` for the network with the fewest hidden neurons and the book's (the first row).
+    """
+    from scipy.stats import spearmanr
+
+    eps = np.array([r["eps"] for r in rows], float)
+    screened = np.array([r["screened"] for r in rows], float)
+    seeds = [float(r["eps"]) for r in rows if r["network"].startswith("book") or "seed" in r["network"]]
+    small = min(rows, key=lambda r: r["hidden"])
+    out = dict(rank=float(spearmanr(eps, screened).statistic), seed_lo=min(seeds), seed_hi=max(seeds))
+    for key, r in (("small", small), ("book", rows[0])):
+        for col in ("hidden", "unstable on box", "eps", "screened", "nodes"):
+            v = r[col]
+            out[f"{key}_{col.replace(' ', '_')}"] = v.item() if hasattr(v, "item") else v
+    return out

@@ -42,7 +42,7 @@ Array = np.ndarray
 
 __all__ = ["UnseenCase", "CASES", "case", "unseen_system", "unseen_net", "unseen_mpc", "write_unseen_references",
            "definitions_table", "TimedController", "closed_loop", "diverse_cases", "diverse_run", "step_phase",
-           "closed_loop_row", "diverse_row", "unseen_table", "dense_error", "worst_step"]
+           "closed_loop_row", "diverse_row", "unseen_table", "unseen_numbers", "dense_error", "worst_step"]
 
 
 def _identity(x: Array) -> Array:
@@ -497,3 +497,21 @@ def unseen_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = N
         runs[name] = (log, mpc, timed)
         rows.append(closed_loop_row(name, log, mpc, timed))
     return rows, runs
+
+
+def unseen_numbers(rows: Sequence[dict]) -> dict:
+    """What chapter 8 quotes from :func:`unseen_table`'s rows, as Python numbers (and the worst system's name).
+
+    ``steps`` (all systems), ``max_u`` (largest true ``|u| / u_max`` at a sample), ``active_max`` (largest share
+    of steps with the bound active, %), ``over`` and ``systems_over`` (steps and systems over ``t_s``, wall
+    clock), and for the step slowest relative to its ``t_s``: ``worst_system``, ``worst_step``, ``worst_ms``,
+    ``worst_phase``, ``worst_ratio``, ``worst_binaries``, ``worst_nodes``.
+    """
+    py = lambda x: x.item() if hasattr(x, "item") else x  # noqa: E731 - numpy scalars to Python numbers
+    worst = max(rows, key=lambda r: r["wall_max_ms"] / r["t_s_ms"])
+    return dict(steps=py(sum(r["steps"] for r in rows)), max_u=py(max(r["max_u_over_u_max"] for r in rows)),
+                active_max=py(100 * max(r["active_share"] for r in rows)),
+                over=py(sum(r["over_ts_wall"] for r in rows)), systems_over=int(sum(r["over_ts_wall"] > 0 for r in rows)),
+                worst_system=worst["system"], worst_step=py(worst["worst_step"]), worst_ms=py(worst["worst_ms"]),
+                worst_phase=worst["worst_phase"], worst_ratio=py(worst["wall_max_ms"] / worst["t_s_ms"]),
+                worst_binaries=py(worst["worst_binaries"]), worst_nodes=py(worst["worst_nodes"]))
