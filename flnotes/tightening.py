@@ -24,6 +24,7 @@ two valid bounds (:func:`intersect`) is valid too.
 """
 from __future__ import annotations
 
+import time
 from typing import Optional, Sequence
 
 import numpy as np
@@ -35,6 +36,10 @@ from .network import ReLUNet
 Array = np.ndarray
 
 __all__ = ["EmptyBoxError", "lp_bounds", "horizon_boxes", "intersect", "propagate", "LPTightener", "ellipsoid_box"]
+
+
+class DeadlineReached(RuntimeError):
+    """LP tightening stopped at the caller's deadline (a controller's time limit); no bounds are returned."""
 
 
 class EmptyBoxError(ValueError):
@@ -247,12 +252,13 @@ class LPTightener:
         return lo + b[j], hi + b[j]
 
     def tighten(self, lo: Array, hi: Array, prior: Optional[NodeBounds] = None, output: bool = True,
-                skip_stable: bool = False) -> NodeBounds:
+                skip_stable: bool = False, deadline: Optional[float] = None) -> NodeBounds:
         """Bounds for the input box ``[lo, hi]`` (one box), starting from FBBT (intersected with ``prior``).
 
         ``skip_stable=True`` solves LPs only for neurons that are still unstable when their
         layer is reached (a stable neuron needs no binary; its bounds only feed the interval
-        bounds of later layers): about half the LPs for the same binaries.
+        bounds of later layers): about half the LPs for the same binaries. With ``deadline`` (a
+        ``time.perf_counter()`` value), :class:`DeadlineReached` is raised before an LP that would start after it.
         """
         net = self.net
         start = fbbt(net, lo, hi)
@@ -266,6 +272,8 @@ class LPTightener:
             for j in range(len(L[k])):
                 if skip_stable and (L[k][j] >= 0 or U[k][j] <= 0):
                     continue
+                if deadline is not None and time.perf_counter() > deadline:
+                    raise DeadlineReached("LP tightening stopped at the deadline")
                 a_lo, a_hi = self.preactivation_range(k, j)
                 if a_lo is None:
                     raise EmptyBoxError("the LP relaxation is infeasible: no input in the box gives an output "
@@ -308,7 +316,8 @@ def _tightener(net: ReLUNet, out_bounds, tol: float) -> LPTightener:
 
 
 def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Array, Array]] = None,
-              prior: Optional[NodeBounds] = None, tol: float = 1e-7, skip_stable: bool = False) -> NodeBounds:
+              prior: Optional[NodeBounds] = None, tol: float = 1e-7, skip_stable: bool = False,
+              deadline: Optional[float] = None) -> NodeBounds:
     """Node bounds by LP-based tightening (Grimstad & Andersson 2019), eq. (MIP_general) relaxed.
 
     Parameters
@@ -332,6 +341,8 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     skip_stable
         Solve LPs only for neurons still unstable when reached (faster, same
         binaries; stable neurons keep their interval bounds).
+    deadline
+        A ``time.perf_counter()`` value (a controller's time limit): no LP starts after it.
 
     Returns
     -------
@@ -343,6 +354,8 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     ------
     EmptyBoxError
         When ``out_bounds`` cannot be met by any input of the box.
+    DeadlineReached
+        When ``deadline`` passes before the last LP.
     """
     lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
     tightener = _tightener(net, out_bounds, tol)
@@ -352,7 +365,7 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
         if prior is not None:
             pr = prior if np.ndim(prior.L[0]) == 1 else NodeBounds([a[t] for a in prior.L], [a[t] for a in prior.U],
                                                                    prior.out_L[t], prior.out_U[t], prior.method)
-        res.append(tightener.tighten(lo2[t], hi2[t], prior=pr, skip_stable=skip_stable))
+        res.append(tightener.tighten(lo2[t], hi2[t], prior=pr, skip_stable=skip_stable, deadline=deadline))
     method = "lp+out" if out_bounds is not None else "lp"
     if not batch:
         b = res[0]

@@ -178,3 +178,35 @@ def test_intersect_is_valid_and_tighter(small_net):
     assert _not_looser(c, a) and _not_looser(c, b)
     _, _, pre = _samples(net, s.lo, s.hi, n=20_000, seed=4)
     assert _contains(c, pre)
+
+
+def test_lp_bounds_stop_at_the_deadline(small_net):
+    """A deadline in the past stops LP tightening before its first LP (a controller's time limit); a deadline far
+    ahead changes nothing beyond the LP solver's tolerance (the persistent LP is warm-started)."""
+    import time
+
+    from flnotes.tightening import DeadlineReached
+
+    sysm, net = small_net
+    lo, hi = sysm.lo, sysm.hi
+    with pytest.raises(DeadlineReached):
+        lp_bounds(net, lo, hi, deadline=time.perf_counter() - 1.0)
+    a, b = lp_bounds(net, lo, hi), lp_bounds(net, lo, hi, deadline=time.perf_counter() + 1e6)
+    for x, y in zip(a.L + a.U, b.L + b.U):
+        assert np.allclose(x, y, rtol=1e-6, atol=1e-6)
+
+
+def test_mpc_time_limit_during_lp_bounds_returns_an_admissible_answer():
+    """With LP bounds on every level-set round and almost no time, the MPC stops in the LP bounds or before them and
+    still answers: the warm start when it is feasible, or a flagged fallback; never an exception."""
+    from flnotes.mpc import MPC, sine_reference
+
+    sysm = fl.quad1d()
+    net, _ = test_net("quad1d-6x6")
+    kw = dict(horizon=10, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175)
+    mpc = MPC(sysm, net, 0.0324, lp=True, time_limit=1e-4, **kw)
+    fl.simulate(sysm, mpc, t_final=1.0, ts=0.1, z0=[0.0, 0.0, 0.0], reference=sine_reference(1.5), net=net)
+    assert all(s.status in ("optimal", "time_limit", "infeasible") for s in mpc.history)
+    assert any(s.status == "time_limit" for s in mpc.history), "the premise: the limit stops some step"
+    for s in mpc.history:
+        assert (not s.info["plan_feasible"]) or mpc.plan_feasible(s.z_pred, s.v_pred)

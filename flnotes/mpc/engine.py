@@ -24,7 +24,7 @@ import numpy as np
 from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
 from ..solvers import MIQP, make_solver, next_margin
-from ..tightening import EmptyBoxError, intersect
+from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
@@ -154,6 +154,8 @@ class NetworkEngine:
         def remaining() -> Optional[float]:
             return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
 
+        deadline = None if time_limit is None else t0 + time_limit  # no LP of the node bounds starts after it
+
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
         # time limit: a lower bound of eq. (MPC_form_miqp) for the gap (J_c; each round that ends without a plan
         # cheaper than its level J_up proves that nothing cheaper exists)
@@ -178,17 +180,22 @@ class NetworkEngine:
                     empty = bool(np.any(lo > hi + 1e-12))
                     hi = np.maximum(hi, lo)
                     full = bool(np.all(lo <= lo_h) and np.all(hi >= hi_h))  # the level set cut nothing
-                    if not empty and o.lp == "auto":  # FBBT first; LP only when it leaves a large program
-                        override = node_bounds(pred, o, self.box, lo, hi, use_lp=False)
-                        st_f = needed_steps(override, pred.u_eps, o.encode)
-                        enc_f = (sorted(set(st_f) & active) if o.lazy else st_f) if st_f is not None else []
-                        if st_f is not None and unstable_count(override, enc_f) > LP_AUTO_BINARIES:
-                            empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, enc_f)
-                            lp_done = set(enc_f)
+                    try:
+                        if not empty and o.lp == "auto":  # FBBT first; LP only when it leaves a large program
+                            override = node_bounds(pred, o, self.box, lo, hi, use_lp=False)
+                            st_f = needed_steps(override, pred.u_eps, o.encode)
+                            enc_f = (sorted(set(st_f) & active) if o.lazy else st_f) if st_f is not None else []
+                            if st_f is not None and unstable_count(override, enc_f) > LP_AUTO_BINARIES:
+                                empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, enc_f,
+                                                                         deadline, remaining())
+                                lp_done = set(enc_f)
+                                st["lp_rounds"] += 1
+                        elif not empty and o.lp:
+                            empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, None,
+                                                                     deadline, remaining())
                             st["lp_rounds"] += 1
-                    elif not empty and o.lp:
-                        empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi)
-                        st["lp_rounds"] += 1
+                    except DeadlineReached:
+                        return done("time_limit", inc_V, lb, "time limit during the LP bounds of a level-set round")
                     if empty:  # nothing cheaper than J_up
                         if J_up >= inc_J:
                             return done("optimal", inc_V, inc_J, "the warm start is optimal (level set empty)")
@@ -246,7 +253,10 @@ class NetworkEngine:
                     lb_r = max(lb, min(float(res.objective), J_up)) if self.margin == 0.0 else lb
                     return done("time_limit", inc_V, lb_r, "time limit between constraint-generation rounds")
                 if lp_done is not None and set(new) - lp_done:
-                    nb = self._lp_steps(nb, lo, hi, sorted(set(new) - lp_done))
+                    try:
+                        nb = self._lp_steps(nb, lo, hi, sorted(set(new) - lp_done), deadline)
+                    except DeadlineReached:
+                        return done("time_limit", inc_V, lb, "time limit during the LP bounds of added steps")
                     lp_done |= set(new)
                 enc = sorted(set(enc) | set(new))
                 active |= set(new)
@@ -280,11 +290,12 @@ class NetworkEngine:
                 return done("optimal", inc_V, inc_J, "the warm start is optimal (nothing cheaper)")
             delta *= 4.0
 
-    def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list) -> NodeBounds:
+    def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list,
+                  deadline: Optional[float] = None) -> NodeBounds:
         """``nb`` with the bounds of ``steps`` LP-tightened on the boxes ``lo, hi`` (steps that constraint
         generation adds to an LP-tightened round). When the LP finds a step's box without an admissible
         input, ``nb`` is kept: its FBBT bounds are valid, and the branch and bound proves the same."""
-        t = node_bounds(self.pred, self.opts, self.box, lo, hi, steps=steps, use_lp=True)
+        t = node_bounds(self.pred, self.opts, self.box, lo, hi, steps=steps, use_lp=True, deadline=deadline)
         if t is None:
             return nb
         L = [a.copy() for a in nb.L]
@@ -318,15 +329,18 @@ class NetworkEngine:
         return r
 
     def _lp_level(self, z0: Array, f: Array, c0: float, V_c: Array, J_c: float, J_up: float, lo: Array,
-                  hi: Array, lp_steps=None) -> tuple[bool, Array, Array, Optional[NodeBounds]]:
+                  hi: Array, lp_steps=None, deadline: Optional[float] = None, time_limit: Optional[float] = None
+                  ) -> tuple[bool, Array, Array, Optional[NodeBounds]]:
         """LP bounds on the level-set boxes, their relaxation as a better center, FBBT again.
 
         ``lp=True``: every needed step is LP-tightened; ``lp="auto"`` (a large round): ``lp_steps``, the steps
-        encoded first (:meth:`_lp_steps` adds the ones constraint generation brings in).
+        encoded first (:meth:`_lp_steps` adds the ones constraint generation brings in). Under a time limit no LP
+        starts after ``deadline`` (:class:`flnotes.tightening.DeadlineReached`) and the relaxation that recenters
+        the level set gets ``time_limit`` seconds (without its optimum the level set is not recentered).
         Returns ``(empty, lo, hi, node bounds to use or None)``.
         """
         pred, o = self.pred, self.opts
-        nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True)
+        nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True, deadline=deadline)
         if nb_lp is None:
             return True, lo, hi, None
         steps = needed_steps(nb_lp, pred.u_eps, o.encode)
@@ -336,7 +350,7 @@ class NetworkEngine:
             prob = compact_program(pred, z0, f, c0, nb_lp, steps, pred.u_eps - self.margin,
                                    eliminate_stable=o.eliminate_stable, lo=lo, hi=hi)
             rr = make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
-                                  np.zeros(prob.n, dtype=int)), _RELAX).solve()
+                                  np.zeros(prob.n, dtype=int)), _RELAX).solve(time_limit=time_limit)
             if rr.status == "infeasible" or (rr.status == "optimal" and rr.objective > J_up):
                 return True, lo, hi, None
             if rr.status == "optimal" and rr.objective > J_c:

@@ -26,7 +26,8 @@ def repeat_bounds(b: NodeBounds, N: int) -> NodeBounds:
 
 
 def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, hi: Array,
-                steps: Optional[Sequence[int]] = None, use_lp: Optional[bool] = None) -> Optional[NodeBounds]:
+                steps: Optional[Sequence[int]] = None, use_lp: Optional[bool] = None,
+                deadline: Optional[float] = None) -> Optional[NodeBounds]:
     """Per-step node bounds for the boxes ``lo, hi`` (N_p, n_z + m) under ``opts.bounds``.
 
     ``"box"``: ``box`` (FBBT on the domain box) at every step. Otherwise FBBT on the boxes; with ``use_lp``
@@ -35,6 +36,7 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
     (default all) whose outputs can leave ``[-u_max^eps, u_max^eps]`` are LP-tightened with that output
     bound (:func:`flnotes.lp_bounds`): valid for every point the program can select there. Returns
     ``None`` when some step's box holds no input meeting the output bound (the program is infeasible there).
+    ``deadline`` (a ``time.perf_counter()`` value) stops the LPs: :class:`flnotes.tightening.DeadlineReached`.
     """
     N = pred.N
     if opts.bounds == "box":
@@ -49,7 +51,8 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
         if todo:
             prior = NodeBounds([L[todo] for L in nb.L], [U[todo] for U in nb.U], nb.out_L[todo], nb.out_U[todo])
             try:
-                t = lp_bounds(pred.net, lo[todo], hi[todo], out_bounds=(-c, c), prior=prior, skip_stable=True)
+                t = lp_bounds(pred.net, lo[todo], hi[todo], out_bounds=(-c, c), prior=prior, skip_stable=True,
+                              deadline=deadline)
             except EmptyBoxError:
                 return None
             for layer in range(len(nb.L)):
