@@ -335,8 +335,9 @@ class NetworkEngine:
 
         ``lp=True``: every needed step is LP-tightened; ``lp="auto"`` (a large round): ``lp_steps``, the steps
         encoded first (:meth:`_lp_steps` adds the ones constraint generation brings in). Under a time limit no LP
-        starts after ``deadline`` (:class:`flnotes.tightening.DeadlineReached`) and the relaxation that recenters
-        the level set gets ``time_limit`` seconds (without its optimum the level set is not recentered).
+        starts after ``deadline`` (:class:`flnotes.tightening.DeadlineReached`), and the level set is not
+        recentered: that relaxation is a QP solved by HiGHS, which was measured to overrun its time limit by
+        tens of ms.
         Returns ``(empty, lo, hi, node bounds to use or None)``.
         """
         pred, o = self.pred, self.opts
@@ -346,11 +347,11 @@ class NetworkEngine:
         steps = needed_steps(nb_lp, pred.u_eps, o.encode)
         if steps is None:
             return True, lo, hi, None
-        if steps:
+        if steps and time_limit is None:  # the relaxation (HiGHS) does not stop at a time limit: no recentering then
             prob = compact_program(pred, z0, f, c0, nb_lp, steps, pred.u_eps - self.margin,
                                    eliminate_stable=o.eliminate_stable, lo=lo, hi=hi)
             rr = make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
-                                  np.zeros(prob.n, dtype=int)), _RELAX).solve(time_limit=time_limit)
+                                  np.zeros(prob.n, dtype=int)), _RELAX).solve()
             if rr.status == "infeasible" or (rr.status == "optimal" and rr.objective > J_up):
                 return True, lo, hi, None
             if rr.status == "optimal" and rr.objective > J_c:
