@@ -17,7 +17,7 @@ from _nets import test_net
 S = fl.paper.QUAD_SETTING
 EPS = 0.03  # above the small network's largest error on its training grid (0.028)
 COMMON = dict(horizon=4, ts=S["ts"], Q=S["Q"], R=S["R"])
-COMBOS = list(MPCOptions.combinations(backends=("daqp", "scip", "cvxpy-scip"), constraints=("network",)))
+COMBOS = list(MPCOptions.combinations(backends=("auto", "daqp", "scip", "cvxpy-scip"), constraints=("network",)))
 
 
 @pytest.fixture(scope="module")
@@ -219,6 +219,44 @@ def test_auto_lp_rounds_give_the_reference_optimum(monkeypatch):
     assert calls["_lp_level"] and calls["_lp_steps"], f"the premise: both LP paths ran ({calls})"
 
 
+@pytest.mark.parametrize("threshold, expect", [(0, "scip"), (10_000, "daqp")])
+def test_auto_backend_gives_the_reference_optimum(monkeypatch, threshold, expect):
+    """``backend="auto"`` with the threshold moved so that every program goes to SCIP (0) or to DAQP: both
+    branches return the cold reference's optimum on random states, and each step names the solver it used."""
+    import flnotes.mpc.levers as levers
+
+    monkeypatch.setattr(levers, "AUTO_DAQP_BINARIES", threshold)
+    sysm, net, eps, kw = _small_quad(horizon=10)
+    auto = MPC(sysm, net, eps, **kw)
+    assert auto.options.backend == "auto"
+    ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
+    checked = 0
+    for z0, zr in _random_problems(80, horizon=10):
+        auto.reset()
+        s = auto(z0, zr)
+        if s.screened or s.n_binaries == 0:
+            continue
+        r = ref(z0, zr)
+        assert s.status == r.status, (s.message, r.message)
+        if r.status == "optimal":
+            checked += 1
+            assert s.backend == expect, (s.backend, s.message)
+            assert not s.fallback and auto.plan_feasible(s.z_pred, s.v_pred)
+            assert abs(s.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (s.objective, r.objective)
+        if checked >= 4:
+            break
+    assert checked >= 3, "the premise: random states where the network constraint is active"
+
+
+def test_auto_backend_takes_options_per_backend():
+    sysm, net, eps, kw = _small_quad(horizon=4)
+    with pytest.raises(ValueError, match="per back-end"):
+        MPC(sysm, net, eps, solver_options=dict(reg=1e-5), **kw)
+    mpc = MPC(sysm, net, eps, solver_options={"daqp": dict(reg=1e-5), "scip": dict(miqp_params="default")}, **kw)
+    assert mpc.solver_options["daqp"]["reg"] == 1e-5 and "params" in mpc.solver_options["daqp"]
+    assert mpc.solver_options["scip"] == dict(miqp_params="default")
+
+
 def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
     """With (almost) no time, the controller returns the warm start if it is feasible, never a plan that breaks
     the program, and its gap is measured against a true lower bound (the QP without the network)."""
@@ -245,7 +283,7 @@ def test_daqp_switches_give_the_reference_optimum(recorded, daqp_options):
     """The exact switches of the DAQP back-end (its regularization, the retry when it cycles, how a claim of
     infeasibility is checked), given to the MPC as solver options, leave the optimum at the reference's."""
     sysm, net, problems, J = recorded
-    mpc = MPC(sysm, net, EPS, solver_options=daqp_options, **COMMON)
+    mpc = MPC(sysm, net, EPS, backend="daqp", solver_options=daqp_options, **COMMON)
     for (z, R, prev), J_ref in zip(problems, J):
         for warm in (prev, None):
             mpc.reset()

@@ -287,3 +287,51 @@ def test_daqp_regularization_modes_and_checks_find_the_brute_force_optimum(seed)
     for k, v in (("reg_mode", "lower"), ("verify_feasibility", "lp"), ("reg_retry", "yes")):
         with pytest.raises(ValueError, match=k):
             make_solver(p, "daqp", **{k: v})
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_scip_objective_formulations_and_settings_find_the_brute_force_optimum(seed):
+    """SCIP's options for a quadratic objective (the separable extended formulation or one epigraph; the lean
+    settings or SCIP's defaults) are the same program: each combination gives the brute-force optimum, warm-started
+    or not, with an honest bound; on an MILP they mean nothing and raise."""
+    p = random_program(seed)
+    ref = brute_force(p)
+    for objective in ("separable", "epigraph"):
+        for params in ("lean", "default"):
+            s = make_solver(p, "scip", objective=objective, miqp_params=params)
+            for ws in (None, s.solve().w):
+                r = s.solve(warm_start=ws)
+                assert r.status == "optimal" and rel(r.objective, ref) <= RTOL, (objective, params, r.message)
+                assert r.bound <= ref + 1e-9 * max(1.0, abs(ref)) and p.violation(r.w) <= 1e-6
+    for k, v in (("objective", "soc"), ("miqp_params", "fast")):
+        with pytest.raises(ValueError, match=k):
+            make_solver(p, "scip", **{k: v})
+    milp = random_program(seed, quad=False)
+    with pytest.raises(ValueError, match="quadratic objective"):
+        make_solver(milp, "scip", objective="separable")
+
+
+def test_daqp_hands_its_scip_options_to_the_verification():
+    """DAQP's ``scip_options`` reach the SCIP model that checks a claim (here every claim of infeasibility of a
+    warm-started MIQP), and a bad value is an error that names the option."""
+    from flnotes.solvers import scip as scip_module
+
+    p = random_program(0)
+    best = make_solver(p, "scip").solve()
+    seen = []
+    orig = scip_module.ScipSolver._build
+
+    def spy(self):
+        seen.append(dict(self.options))
+        return orig(self)
+
+    scip_module.ScipSolver._build = spy
+    try:
+        r = make_solver(p, "daqp", scip_options=dict(objective="epigraph", miqp_params="default")).solve(
+            warm_start=best.w)
+    finally:
+        scip_module.ScipSolver._build = orig
+    assert r.status == "optimal" and rel(r.objective, best.objective) <= RTOL
+    assert seen and all(o.get("objective") == "epigraph" for o in seen), seen
+    with pytest.raises(ValueError, match="scip_options"):
+        make_solver(p, "daqp", scip_options="lean")

@@ -262,8 +262,9 @@ def run(fast: bool) -> dict:
                      **time_stats([r.solve_time for r in refs])))
     from ..mpc import DAQP_OPTIONS
 
-    trust = dict(solver_options=dict(DAQP_OPTIONS, verify_infeasible=False))
-    before = dict(solver_options=dict(DAQP_OPTIONS, reg_mode="upper", reg_retry=False, verify_feasibility="miqp"))
+    trust = dict(solver_options={"daqp": dict(DAQP_OPTIONS, verify_infeasible=False)})
+    before = dict(solver_options={"daqp": dict(DAQP_OPTIONS, reg_mode="upper", reg_retry=False,
+                                               verify_feasibility="miqp")})
     for name, kw, warm in (("default, cold", {}, False), ("default, warm (previous plan)", {}, True),
                            ("default, cold, time limit 5 s", dict(time_limit=5.0), False),
                            ("default, warm, time limit 5 s", dict(time_limit=5.0), True),

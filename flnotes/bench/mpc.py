@@ -9,7 +9,9 @@ encoded, no screening, no level set, gap 1e-8). The exact switches of the DAQP b
 one at a time on the same states (:func:`daqp_lever_table`, wall-clock and CPU time), the loop is run with
 ``N_p = 15`` and ``20`` against the targets (every step within ``t_s``, proven optimal:
 :func:`horizon_targets`) and its slowest states replayed with and without the LP bounds of the level-set rounds
-(:func:`lp_lever_table`), and scaling with ``N_p`` and with the width of the network closes the section.
+(:func:`lp_lever_table`) and with each solver setting (:func:`solver_lever_table`: ``backend="auto"``, DAQP for
+every program, SCIP's checks at SCIP's own settings), and scaling with ``N_p`` and with the width of the network
+closes the section.
 Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy.
 """
 from __future__ import annotations
@@ -68,7 +70,7 @@ def quad_setup(horizon: Optional[int] = None, net=None, eps: Optional[float] = N
                 Q=S["Q"], R=S["R"], z0=S["z0"], u_eps=float(sysm.u_max[0] - eps), reference=sine_reference(1.5))
 
 
-def make_mpc(setup: dict, backend: str = "daqp", time_limit: Optional[float] = None,
+def make_mpc(setup: dict, backend: Optional[str] = None, time_limit: Optional[float] = None,
              solver_options: Optional[dict] = None, **levers) -> MPC:
     """:class:`flnotes.MPC` for the setup with the given options (see :data:`CONFIGS`) and back-end options."""
     return MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
@@ -152,7 +154,7 @@ def summarize(name: str, backend: str, res: list, ref_obj: np.ndarray, **extra) 
 
 
 def lever_table(setup: dict, rec: dict, idx, ref_obj: np.ndarray, configs: Optional[dict] = None,
-                backend: str = "daqp", time_limit: Optional[float] = 30.0, slow_idx=None) -> list:
+                backend: str = "auto", time_limit: Optional[float] = 30.0, slow_idx=None) -> list:
     """Rows for each lever configuration on the recorded states ``idx``.
 
     Configurations without the bound levers are slow: they run on ``slow_idx`` (a subset,
@@ -195,7 +197,7 @@ def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 
     """Per-lever effect of :data:`DAQP_LEVERS` (DAQP back-end options) on the recorded states ``idx``
     (warm starts as recorded); see :func:`interleaved_table` for the columns."""
     levers = levers or DAQP_LEVERS
-    return interleaved_table(setup, rec, idx, {k: dict(solver_options=dict(v)) for k, v in levers.items()},
+    return interleaved_table(setup, rec, idx, {k: dict(solver_options={"daqp": dict(v)}) for k, v in levers.items()},
                              time_limit)
 
 
@@ -212,6 +214,28 @@ def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30
     """The LP tightening of the level-set rounds (:data:`LP_LEVERS`) on the recorded states ``idx``; see
     :func:`interleaved_table` for the columns."""
     return interleaved_table(setup, rec, idx, {k: dict(levers=v) for k, v in LP_LEVERS.items()}, time_limit)
+
+
+#: Which solver takes a program (``MPCOptions.backend``) and how SCIP is set up, on the recorded states of a
+#: longer horizon (:func:`solver_lever_table`); the default first.
+SOLVER_LEVERS = {
+    "backend='auto' (default: DAQP up to 40 binaries, SCIP above)": dict(),
+    "backend='daqp' (DAQP for every program)": dict(levers=dict(backend="daqp")),
+    "backend='daqp', SCIP's checks with SCIP's settings and one epigraph": dict(
+        levers=dict(backend="daqp"), solver_options=dict(scip_options=dict(objective="epigraph",
+                                                                           miqp_params="default"))),
+}
+
+
+def solver_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
+    """The solver levers (:data:`SOLVER_LEVERS`) on the recorded states ``idx``; see :func:`interleaved_table`."""
+    return interleaved_table(setup, rec, idx, SOLVER_LEVERS, time_limit)
+
+
+def cases_record(cases: list) -> dict:
+    """Diverse states (:func:`flnotes.bench.exactness.mpc_cases`) as a record for :func:`interleaved_table`: solved
+    cold (no previous plan)."""
+    return dict(z=[c["z"] for c in cases], R=[c["z_ref"] for c in cases], prev=[None] * len(cases))
 
 
 def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Optional[float] = 30.0) -> list:
@@ -356,7 +380,7 @@ def run(fast: bool) -> dict:
     ref_obj, ref_res = reference(setup, rec, ref_idx)
     notes.append(f"reference: SCIP on {len(ref_idx)} recorded states in {time.perf_counter() - t0:.0f} s "
                  f"({sum(r.status != 'optimal' for r in ref_res)} not proven optimal)")
-    rows.append(summarize("recorded closed loop (level set, default)", "daqp", rec["results"], np.full(n, np.nan)))
+    rows.append(summarize("recorded closed loop (level set, default)", "auto", rec["results"], np.full(n, np.nan)))
     # lever table on the states with a reference
     hard = [i for i in ref_idx if not rec["screened"][i]]
     slow_idx = np.array(hard[:: max(1, len(hard) // (3 if fast else 6))])
@@ -365,7 +389,7 @@ def run(fast: bool) -> dict:
                  f"{5 if fast else 10} s limit per state")
     rows += lever_table(setup, rec, ref_idx, ref_obj, slow_idx=slow_idx, time_limit=5.0 if fast else 10.0)
     # other back-ends for the default configuration
-    for be in ("scip", "gurobi", "cplex"):
+    for be in ("daqp", "scip", "gurobi", "cplex"):
         if be in available_backends():
             sub = ref_idx[:: max(1, len(ref_idx) // 8)]
             try:
@@ -374,7 +398,7 @@ def run(fast: bool) -> dict:
             except Exception as exc:  # an installed commercial solver without a license
                 notes.append(f"backend {be} skipped: {type(exc).__name__}: {exc}")
     # targets
-    default = [r for r in rows if r.get("config") == "level set (default)" and r.get("backend") == "daqp"][0]
+    default = [r for r in rows if r.get("config") == "level set (default)" and r.get("backend") == "auto"][0]
     notes.append(f"targets: max {TARGET_MAX_MS:.0f} ms, median {TARGET_MEDIAN_MS:.0f} ms, gap {TARGET_GAP:g}; "
                  f"default configuration on {default['states']} states: max {default['ms_max']:.1f} ms "
                  f"({default['ms_max'] / TARGET_MAX_MS:.2f} x target), median {default['ms_median']:.2f} ms, "
@@ -383,14 +407,16 @@ def run(fast: bool) -> dict:
     # the DAQP levers (per-lever effect) on the recorded loop's states where the screening QP was not optimal
     hard_all = np.flatnonzero(~rec["screened"])
     for r in daqp_lever_table(setup, rec, hard_all[:: 4 if fast else 1], time_limit=30.0):
-        rows.append(dict(r, config=f"DAQP lever: {r['config']}", backend="daqp"))
+        rows.append(dict(r, config=f"DAQP lever: {r['config']}", backend="auto"))
     # longer horizons against the targets, and the LP tightening of the level-set rounds on their hardest states
     for N, s_N, rec_N in _horizon_runs((15,) if fast else (15, 20), t_final=2.0 if fast else 6.0, time_limit=30.0):
         r = horizon_row(s_N, rec_N)
-        rows.append(dict(config=f"targets N_p = {r['N_p']}", backend="daqp", **{k: v for k, v in r.items() if k != "N_p"}))
+        rows.append(dict(config=f"targets N_p = {r['N_p']}", backend="auto", **{k: v for k, v in r.items() if k != "N_p"}))
         worst = np.argsort(-rec_N["cpu_ms"])[: 4 if fast else 12]
         for lr in lp_lever_table(s_N, rec_N, np.sort(worst), time_limit=30.0):
-            rows.append(dict(lr, config=f"LP lever N_p = {N}: {lr['config']}", backend="daqp"))
+            rows.append(dict(lr, config=f"LP lever N_p = {N}: {lr['config']}", backend="auto"))
+        for sr in solver_lever_table(s_N, rec_N, np.sort(worst), time_limit=30.0):
+            rows.append(dict(sr, config=f"solver lever N_p = {N}: {sr['config']}"))
         notes.append(f"N_p = {r['N_p']} (recorded loop, {r['steps']} steps, default options): max {r['ms_max']:.0f} ms "
                      f"wall / {r['cpu_ms_max']:.0f} ms CPU against t_s = {r['target_ms']:.0f} ms; {r['over_ts']} steps "
                      f"over t_s (wall), {r['cpu_over_ts']} (CPU); {r['non_optimal']} not proven optimal; up to "
@@ -399,7 +425,7 @@ def run(fast: bool) -> dict:
     horizons = (2, 5, 10) if fast else (2, 4, 6, 8, 10, 15, 20)
     sh = scaling_horizon(horizons, t_final=2.0 if fast else 6.0)
     for r in sh:
-        rows.append(dict(config=f"scaling N_p = {r['N_p']}", backend="daqp", **{k: v for k, v in r.items() if k != "N_p"}))
+        rows.append(dict(config=f"scaling N_p = {r['N_p']}", backend="auto", **{k: v for k, v in r.items() if k != "N_p"}))
     for r in sh:
         if r["infeasible"]:
             notes.append(f"N_p = {r['N_p']}: {r['infeasible']} of {r['steps']} steps infeasible: the closed loop left "
@@ -414,7 +440,7 @@ def run(fast: bool) -> dict:
     sw = scaling_width(widths, t_final=2.0 if fast else 6.0, n_per_axis=9 if fast else 12,
                        max_iter=300 if fast else 600)
     for r in sw:
-        rows.append(dict(config=f"scaling width {r['width']}", backend="daqp", **{k: v for k, v in r.items() if k != "width"}))
+        rows.append(dict(config=f"scaling width {r['width']}", backend="auto", **{k: v for k, v in r.items() if k != "width"}))
     ok = [r for r in sw if "ms_median" in r]
     notes.append(growth_note([r["width"] for r in ok], [r["ms_median"] for r in ok], "median time per step vs width"))
     figures.append(str(rp.scaling(sh, sw, path=out_dir() / "mpc_scaling.png")))

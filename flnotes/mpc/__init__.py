@@ -16,9 +16,9 @@ Layout (imports point down the list):
 """
 from .controller import MPC, sine_reference
 from .engine import NetworkEngine
-from .levers import LP_AUTO_BINARIES
+from .levers import AUTO_DAQP_BINARIES, LP_AUTO_BINARIES
 from .options import BOUNDS, CONSTRAINTS, MPC_BACKENDS, MPCOptions
 from .prediction import DAQP_OPTIONS, Prediction
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
-           "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES"]
+           "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES"]

@@ -50,6 +50,24 @@ def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, pha
     return z_ref
 
 
+def _per_backend(backend: str, used: tuple, solver_options: Optional[dict]) -> dict:
+    """``solver_options`` as ``{back-end: options}`` for the solvers the engine may call (DAQP gets
+    :data:`DAQP_OPTIONS` under the given ones)."""
+    given = dict(solver_options or {})
+    if backend == "auto" and given:
+        bad = sorted(k for k, v in given.items() if k not in used or not isinstance(v, dict))
+        if bad:
+            raise ValueError(f"backend='auto' calls DAQP or SCIP per program: give solver_options per back-end, "
+                             f"e.g. {{'daqp': {{...}}, 'scip': {{...}}}} (got the keys {sorted(given)}), or choose "
+                             f"backend='daqp' or 'scip' for flat options")
+        per = {b: dict(given.get(b, {})) for b in used}
+    else:
+        per = {b: dict(given) for b in used}
+    if "daqp" in per:
+        per["daqp"] = dict(DAQP_OPTIONS, **per["daqp"])
+    return per
+
+
 class MPC:
     """The MPC of eq. (MPC_form_miqp): the network constraint at every predicted step, solved exactly.
 
@@ -104,7 +122,8 @@ class MPC:
     v_box
         Range ``(v_lo, v_hi)`` of ``v`` in the program; default the network's domain box.
     solver_options
-        Passed to :func:`flnotes.solvers.make_solver` (DAQP gets :data:`DAQP_OPTIONS` unless overridden).
+        Passed to :func:`flnotes.solvers.make_solver` (DAQP gets :data:`DAQP_OPTIONS` unless overridden). With
+        ``backend="auto"`` (two solvers) give them per back-end: ``{"daqp": {...}, "scip": {...}}``.
 
     Examples
     --------
@@ -140,7 +159,9 @@ class MPC:
             raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
         if not (np.isfinite(ts) and ts > 0):
             raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
-        _require("scip" if o.is_reference else o.backend)  # ImportError naming the package, here, not at a solve
+        used = ("daqp", "scip") if o.backend == "auto" else ("scip",) if o.is_reference else (o.backend,)
+        for b in used:
+            _require(b)  # ImportError naming the package, here, not at a solve
         if o.is_reference:
             try:
                 import cvxpy  # noqa: F401
@@ -171,7 +192,7 @@ class MPC:
         K = getattr(terminal, "K", None)
         self.K_terminal = None if K is None else np.asarray(K, float).reshape(self.m, self.n_z)
         self.time_limit, self.gap = time_limit, float(gap)
-        self.solver_options = dict(DAQP_OPTIONS if o.backend == "daqp" else {}, **(solver_options or {}))
+        self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
         self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])

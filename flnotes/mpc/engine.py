@@ -25,7 +25,7 @@ from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
 from ..solvers import MIQP, make_solver, next_margin
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
-from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, unstable_count
+from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
 from .program import compact_program, plan_vector
@@ -60,7 +60,7 @@ class NetworkEngine:
     box
         FBBT node bounds on the domain box (``bounds="box"``).
     solver_options
-        Passed to :func:`flnotes.solvers.make_solver`.
+        Per back-end, passed to :func:`flnotes.solvers.make_solver`: ``{"daqp": {...}, "scip": {...}}``.
 
     Attributes
     ----------
@@ -72,7 +72,7 @@ class NetworkEngine:
 
     def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None):
         self.pred, self.opts, self.box = pred, opts, box
-        self.solver_options = dict(solver_options or {})
+        self.solver_options = {k: dict(v) for k, v in (solver_options or {}).items()}
         self.margin = 0.0
         self.active_prev: tuple = ()
 
@@ -107,12 +107,12 @@ class NetworkEngine:
         N, m = pred.N, pred.m
         f, c0 = pred.linear(z0, z_ref)
         self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
-        st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=(), lp_rounds=0)
+        st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=(), lp_rounds=0, backend=o.backend)
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
             res = StepResult(None, status, nodes=st["nodes"], rounds=st["rounds"], n_binaries=st["n_bin"],
                              encoded_steps=tuple(int(k) for k in st["steps"]), screened=screened,
-                             backend="qp-screening" if screened else o.backend, message=msg,
+                             backend="qp-screening" if screened else st["backend"], message=msg,
                              warm_started=inc_from_warm)
             res.info["lp_rounds"] = st["lp_rounds"]  # level-set rounds whose node bounds were LP-tightened
             if V is not None:
@@ -218,7 +218,8 @@ class NetworkEngine:
                                        eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
                                        hi=hi if restrict else None)
                 st["n_bin"], st["steps"] = int(prob.n_integer), tuple(enc)
-                solver = make_solver(prob, o.backend, **self.solver_options)
+                st["backend"] = backend = pick_backend(o.backend, int(prob.n_integer))
+                solver = make_solver(prob, backend, **self.solver_options.get(backend, {}))
                 w0 = plan_vector(pred, z0, inc_V, nb, enc, prob, o.eliminate_stable) if inc_V is not None else None
                 res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
                 st["nodes"] += int(res.nodes)

@@ -68,6 +68,21 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
 LP_AUTO_BINARIES = 48
 
 
+#: ``backend="auto"``: a program with more binaries than this goes to SCIP, one with at most this many to DAQP.
+#: Measured on the book's Quad-1D programs (chapter "Making it real-time", ``python -m flnotes.bench mpc``): below
+#: ~35 binaries DAQP's branch and bound took a few to tens of ms and SCIP about twice as long; from ~40 on SCIP was
+#: faster on most programs, and above 60 by 4 to 100 times (DAQP: up to 50 s; SCIP: at most 0.8 s).
+AUTO_DAQP_BINARIES = 40
+
+
+def pick_backend(backend: str, n_binaries: int) -> str:
+    """The solver of one assembled program: ``backend``, or for ``"auto"`` DAQP up to :data:`AUTO_DAQP_BINARIES`
+    binaries and SCIP above."""
+    if backend != "auto":
+        return backend
+    return "daqp" if n_binaries <= AUTO_DAQP_BINARIES else "scip"
+
+
 def unstable_count(nb: NodeBounds, steps: Sequence[int]) -> int:
     """Unstable neurons (``L < 0 < U``, one binary each) of the node bounds ``nb`` at the predicted ``steps``."""
     steps = list(steps)

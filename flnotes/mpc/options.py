@@ -11,9 +11,11 @@ import itertools
 from dataclasses import dataclass, fields
 from typing import Iterator, Optional, Sequence, Union
 
-#: Accepted MPC back-ends: the persistent solvers of :mod:`flnotes.solvers` that solve a mixed-integer QP,
-#: and ``"cvxpy-scip"``, the reference (the program written with :func:`flnotes.encode`, solved cold by SCIP).
-MPC_BACKENDS = ("daqp", "scip", "gurobi", "cplex", "cvxpy-scip")
+#: Accepted MPC back-ends: ``"auto"`` (DAQP for a program with at most
+#: :data:`flnotes.mpc.levers.AUTO_DAQP_BINARIES` binaries, SCIP above), the persistent solvers of
+#: :mod:`flnotes.solvers` that solve a mixed-integer QP, and ``"cvxpy-scip"``, the reference (the program written
+#: with :func:`flnotes.encode`, solved cold by SCIP).
+MPC_BACKENDS = ("auto", "daqp", "scip", "gurobi", "cplex", "cvxpy-scip")
 #: Node bounds of eq. (MIP_general_c) per predicted step (see :mod:`flnotes.mpc.levers`).
 BOUNDS = ("box", "horizon", "lp", "levelset")
 #: The input-constraint model of the program: the network (the book's MIQP), or a linear model of the exact
@@ -39,8 +41,11 @@ class MPCOptions:
         constraint along the previous prediction, shifted (Kurtz & Henson 1998); ``"none"`` no input
         constraint (only the boxes of eq. MPC_form_miqp_d).
     backend
-        One of :data:`MPC_BACKENDS` for ``"network"`` (default ``"daqp"``); the linear models are QPs solved
-        by DAQP (``"daqp"`` only).
+        One of :data:`MPC_BACKENDS` for ``"network"``. ``"auto"`` (default): each program assembled in a solve
+        goes to DAQP when it has at most :data:`flnotes.mpc.levers.AUTO_DAQP_BINARIES` binaries (its branch and
+        bound was measured fastest on small programs) and to SCIP above (faster on large ones, measured in the
+        chapter "Making it real-time"); ``"daqp"`` or ``"scip"`` use one solver for every program. The linear
+        models are QPs solved by DAQP (``"daqp"`` only).
     bounds
         Node bounds: ``"box"`` (FBBT on the domain box, the paper's setting), ``"horizon"`` (FBBT on the
         reachable boxes, ``z(0)`` fixed), ``"lp"`` (those, LP-tightened with ``|Phi_NN| <= u_max^eps``),
@@ -96,8 +101,9 @@ class MPCOptions:
             if bad:
                 raise ValueError(f"{', '.join(bad)} only apply to constraint='network' (the MIQP); with "
                                  f"constraint={self.constraint!r} the program is a QP without the network: drop them")
-            if self.backend not in (None, "daqp"):
-                raise ValueError(f"constraint={self.constraint!r} gives a QP solved by DAQP: backend must be 'daqp', "
+            if self.backend not in (None, "daqp", "auto"):
+                raise ValueError(f"constraint={self.constraint!r} gives a QP solved by DAQP: backend must be 'daqp' "
+                                 "(or 'auto', which picks it), "
                                  f"got {self.backend!r}")
             if self.constraint != "previous" and self.iterations is not None:
                 raise ValueError("iterations only applies to constraint='previous' (the linearization along the "
@@ -110,7 +116,7 @@ class MPCOptions:
             return
         if self.iterations is not None:
             raise ValueError("iterations only applies to constraint='previous'")
-        backend = "daqp" if self.backend is None else self.backend
+        backend = "auto" if self.backend is None else self.backend
         if backend == "highs":
             raise ValueError("HiGHS solves MILPs and convex QPs but not mixed-integer QPs such as eq. (MPC_form_miqp): "
                              f"choose one of {MPC_BACKENDS}")
@@ -157,7 +163,7 @@ class MPCOptions:
         return self.backend == "cvxpy-scip"
 
     @classmethod
-    def combinations(cls, backends: Sequence[str] = ("daqp", "scip", "cvxpy-scip"),
+    def combinations(cls, backends: Sequence[str] = ("auto", "daqp", "scip", "cvxpy-scip"),
                      constraints: Sequence[str] = CONSTRAINTS) -> Iterator["MPCOptions"]:
         """Every accepted combination for the given back-ends and constraint models (each exactly once)."""
         seen = set()

@@ -17,7 +17,8 @@ between calls:
 * ``"highs"``: HiGHS through highspy (MILPs and continuous QPs; HiGHS has no
   mixed-integer QP solver);
 * ``"scip"``: SCIP through PySCIPOpt, the reference MIQP solver (the quadratic
-  objective becomes an epigraph constraint ``t >= 0.5 w'Hw``);
+  objective becomes one epigraph ``s_i >= 0.5 lam_i y_i^2`` per eigenvalue of ``H``,
+  with lean settings for a mixed-integer QP; see :class:`ScipSolver`);
 * ``"daqp"``: DAQP, a dual active-set QP solver with its own depth-first
   branch and bound over binary constraints, written for hybrid MPC
   (Arnström, Bemporad & Axehill 2022);

@@ -230,6 +230,9 @@ def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, cl
                        f"{claim}, not a proof, and {backend!r} is not installed to verify it")
     ws = w if (w is not None and p.violation(w) <= FEAS_TOL) else None
     opts = {k: v for k, v in solver.options.items() if k == "threads"}
+    if backend == "scip":  # the caller's options for SCIP (DAQP's ``scip_options``); the MIQP-only ones not on an MILP
+        opts.update({k: v for k, v in solver.options.get("scip_options", {}).items()
+                     if p.H is not None or k not in ("objective", "miqp_params")})
     verifier = make_solver(p, backend, **opts)  # building the model takes time too: the time left is taken after
     left = None if time_limit is None else time_limit - (time.perf_counter() - t0)
     if left is not None and left <= 1e-3:

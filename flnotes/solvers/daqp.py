@@ -62,6 +62,10 @@ class DaqpSolver(Solver):
     (``verify_feasibility="milp"``, default; SCIP spends most of its time on
     the cuts of the quadratic objective), and only a feasible or undecided
     MILP sends the program itself to SCIP (``"miqp"``: always the program).
+    ``scip_options`` (a dict) is passed to every SCIP model built to verify a
+    claim or to take over after a failure (:class:`flnotes.solvers.ScipSolver`;
+    its ``objective`` and ``miqp_params`` apply to the MIQPs, not to the
+    feasibility MILP).
     """
 
     name = "daqp"
@@ -78,6 +82,9 @@ class DaqpSolver(Solver):
                            ("reg_retry", (True, False))):
             if k in self.options and self.options[k] not in allowed:
                 raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {self.options[k]!r}")
+        if not isinstance(self.options.get("scip_options", {}), dict):
+            raise ValueError(f"the DAQP option scip_options must be a dict of SCIP options (see ScipSolver), got "
+                             f"{self.options['scip_options']!r}")
         reg = self.options.get("reg", 1e-6)
         H = np.zeros((p.n, p.n)) if p.H is None else p.H.toarray()
         self._eps_prox = 0.0
