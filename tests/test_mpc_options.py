@@ -278,7 +278,8 @@ def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
 
 
 @pytest.mark.parametrize("daqp_options", [dict(reg_mode="upper"), dict(reg_retry=False),
-                                          dict(verify_feasibility="miqp"), dict(reg=1e-5)], ids=str)
+                                          dict(verify_feasibility="milp"), dict(verify_feasibility="miqp"),
+                                          dict(reg=1e-5)], ids=str)
 def test_daqp_switches_give_the_reference_optimum(recorded, daqp_options):
     """The exact switches of the DAQP back-end (its regularization, the retry when it cycles, how a claim of
     infeasibility is checked), given to the MPC as solver options, leave the optimum at the reference's."""

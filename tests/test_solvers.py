@@ -279,7 +279,7 @@ def test_daqp_regularization_modes_and_checks_find_the_brute_force_optimum(seed)
     A = sp.vstack([p.A, sp.csr_matrix(np.r_[np.zeros(5), [1.0, 1.0, 1.0, 0.0]][None, :])]).tocsr()
     infeasible = MIQP(p.H, p.c, p.c0, A, np.r_[p.rl, 1.4], np.r_[p.ru, 1.6], p.lb, p.ub, p.integrality)
     for opts in (dict(reg_mode="secant"), dict(reg_mode="upper"), dict(reg_retry=False),
-                 dict(verify_feasibility="miqp"), dict(reg=1e-4)):
+                 dict(verify_feasibility="milp"), dict(verify_feasibility="miqp"), dict(reg=1e-4)):
         r = make_solver(p, "daqp", **opts).solve()
         assert r.status == "optimal" and rel(r.objective, ref) <= RTOL, (opts, r.message)
         assert r.bound <= ref + 1e-9 * max(1.0, abs(ref)) and p.violation(r.w) <= 1e-6

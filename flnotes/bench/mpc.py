@@ -184,9 +184,10 @@ def paper_row() -> dict:
 #: :class:`flnotes.MPC` as ``solver_options``): name -> options. The first row is the default; each next row
 #: turns one of them off; the last turns all three off (the back-end before them).
 DAQP_LEVERS = {
-    "default (secant regularization, retry, feasibility MILP)": {},
+    "default (secant regularization, retry, relaxation and feasibility MILP)": {},
     "without the secant regularization": dict(reg_mode="upper"),
     "without the retry with a stronger regularization": dict(reg_retry=False),
+    "without the relaxation check (the feasibility MILP by SCIP)": dict(verify_feasibility="milp"),
     "without the feasibility MILP (SCIP on the MIQP)": dict(verify_feasibility="miqp"),
     "none of the three": dict(reg_mode="upper", reg_retry=False, verify_feasibility="miqp"),
 }

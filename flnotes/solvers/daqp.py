@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from .base import Solver, _confirm, _require
+from .base import Solver, _confirm, _require, make_solver
 from .problem import _INF, FEAS_TOL, MIQP, Array, MIQPResult, _result
 
 
@@ -57,10 +57,12 @@ class DaqpSolver(Solver):
     rows it has not always been: an exit flag -1 on a mixed-integer program
     (with or without warm start) is verified by SCIP unless the option
     ``verify_infeasible=False`` is given (``make bench`` measures both).
-    Without an incumbent the claim is about the feasible set only: it is
-    verified on the MILP with the same rows and a zero objective
-    (``verify_feasibility="milp"``, default; SCIP spends most of its time on
-    the cuts of the quadratic objective), and only a feasible or undecided
+    Without an incumbent the claim is about the feasible set only: with
+    ``verify_feasibility="relaxation"`` (default) an infeasible continuous
+    relaxation (an LP solved by HiGHS, a millisecond where building a SCIP model
+    takes ten or more) proves it; otherwise, and with ``"milp"``, it is verified
+    on the MILP with the same rows and a zero objective (SCIP spends most of its
+    time on the cuts of the quadratic objective), and only a feasible or undecided
     MILP sends the program itself to SCIP (``"miqp"``: always the program).
     ``scip_options`` (a dict) is passed to every SCIP model built to verify a
     claim or to take over after a failure (:class:`flnotes.solvers.ScipSolver`;
@@ -78,7 +80,7 @@ class DaqpSolver(Solver):
             raise ValueError(f"the 'daqp' back-end supports binary integers only (bounds within [0, 1]); "
                              f"variable {bad[0]} has bounds [{p.lb[bad[0]]}, {p.ub[bad[0]]}]: use backend='scip' or 'highs'")
         self._daqp = daqp
-        for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("milp", "miqp")),
+        for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("relaxation", "milp", "miqp")),
                            ("reg_retry", (True, False))):
             if k in self.options and self.options[k] not in allowed:
                 raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {self.options[k]!r}")
@@ -161,9 +163,20 @@ class DaqpSolver(Solver):
         if res.status == "infeasible" and ((p.is_mip and self.options.get("verify_infeasible", True)) or self._eps_prox):
             # DAQP's branch and bound (and its proximal iterations on a singular H) have declared feasible
             # big-M programs infeasible, or found nothing below a warm start that was not optimal
-            if incumbent is None and p.is_mip and self.options.get("verify_feasibility", "milp") == "milp":
+            how = self.options.get("verify_feasibility", "relaxation")
+            if incumbent is None and p.is_mip and how in ("relaxation", "milp"):
                 # without an incumbent the claim is about the feasible set only: the MILP with the same rows and
                 # a zero objective decides it (SCIP spends most of its time on the quadratic objective's cuts)
+                if how == "relaxation":
+                    # an infeasible continuous relaxation proves it (HiGHS, feasibility tolerance 1e-7: looser than
+                    # SCIP's 1e-9, so no point that SCIP would accept is missed)
+                    lp = MIQP(None, np.zeros(p.n), 0.0, p.A, p.rl, p.ru, p.lb, p.ub, np.zeros(p.n, dtype=int))
+                    rel = make_solver(lp, "highs").solve(time_limit=None if time_limit is None else max(
+                        time_limit - (time.perf_counter() - t0), 1e-3))
+                    if rel.status == "infeasible":
+                        return _result(p, "infeasible", None, np.inf, res.nodes, t0, self.name,
+                                       f"daqp: {res.message}, not a proof: verified: the continuous relaxation is "
+                                       "infeasible (HiGHS)")
                 feas = MIQP(None, np.zeros(p.n), 0.0, p.A, p.rl, p.ru, p.lb, p.ub, p.integrality)
                 chk = _confirm(self, feas, verifier, None, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
                 if chk.status != "infeasible":  # feasible after all (or undecided): the program itself
