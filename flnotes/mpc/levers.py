@@ -70,8 +70,9 @@ LP_AUTO_BINARIES = 48
 
 #: ``backend="auto"``: a program with more binaries than this goes to SCIP, one with at most this many to DAQP.
 #: Measured on the book's Quad-1D programs (chapter "Making it real-time", ``python -m flnotes.bench mpc``): below
-#: ~35 binaries DAQP's branch and bound took a few to tens of ms and SCIP about twice as long; from ~40 on SCIP was
-#: faster on most programs, and above 60 by 4 to 100 times (DAQP: up to 50 s; SCIP: at most 0.8 s).
+#: ~35 binaries DAQP's branch and bound took a few to tens of ms and SCIP two to three times as long; from 40 to 50
+#: the two were even in sum; above 60 SCIP was faster on every program measured (DAQP: up to 50 s; SCIP: at most
+#: 2.7 s).
 AUTO_DAQP_BINARIES = 40
 
 
