@@ -124,7 +124,8 @@ class ScipSolver(Solver):
             lam, Q = np.linalg.eigh(H[np.ix_(S, S)])
             keep = lam > 1e-12 * max(float(lam.max(initial=0.0)), 1e-300)
             if np.any(lam[~keep] < -1e-9 * max(float(np.abs(lam).max(initial=0.0)), 1.0)):
-                raise ValueError("H is not positive semidefinite: SCIP's convex formulation needs a convex objective")
+                raise ValueError("H is not positive semidefinite: objective='separable' needs a convex objective; "
+                                 "objective='epigraph' hands a nonconvex one to SCIP's spatial branch and bound")
             self._lam, self._Q, self._S = lam[keep], Q[:, keep], S
             for i in range(self._lam.size):  # y_i = q_i' w_S and 0.5 lam_i y_i^2 <= s_i
                 y = m.addVar(name=f"y{i}", lb=None, ub=None)
