@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from typing import Optional, Sequence
 
 import numpy as np
@@ -100,7 +101,7 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
                 if progress:
                     print(rows[-1], flush=True)
     if cache:
-        tmp = path.with_suffix(".tmp")
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp")  # one per process: parallel runs never share it
         tmp.write_text(json.dumps(rows))
         tmp.replace(path)
     if ship_to is not None:
