@@ -11,6 +11,8 @@ STAMP   := $(VENV)/.installed
 
 # seconds per notebook under nbmake (the fast mode is meant to take far less)
 NBMAKE_TIMEOUT ?= 900
+# pytest-xdist workers for `make test` (auto: one per CPU core); 0 runs everything in one process
+TEST_JOBS ?= auto
 
 .PHONY: all venv book book-instructor test bench assignments reference clean help
 
@@ -44,11 +46,16 @@ book: venv
 	env -u FLNOTES_FAST -u MPLBACKEND $(JB) build . --all -W -n --keep-going
 	@echo "book written to _build/html/index.html"
 
-# Unit tests and every notebook under book/ through nbmake, in fast mode.
+# Unit tests and every notebook under book/ through nbmake, in fast mode, on TEST_JOBS
+# pytest-xdist workers: a test module or a notebook stays on one worker (its module
+# fixtures are built once), the longest first (tests/conftest.py orders them), and
+# one BLAS thread per worker so that the workers do not compete for the cores.
 test: venv
 	$(VENV)/bin/ruff check .
 	env FLNOTES_FAST=1 MPLBACKEND=Agg PYTHONDONTWRITEBYTECODE=1 \
+	  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
 	  $(PY) -m pytest tests/ --nbmake book/ --nbmake-timeout=$(NBMAKE_TIMEOUT) \
+	  -n $(TEST_JOBS) --dist loadscope --no-loadscope-reorder \
 	  --ignore-glob="**/.ipynb_checkpoints/*" -p no:cacheprovider -ra
 
 bench: venv
