@@ -129,13 +129,13 @@ def pick_states(rec: dict, n_hard: int, n_easy: int) -> np.ndarray:
     return np.sort(np.r_[pick(hard, n_hard), pick(easy, n_easy)]).astype(int)
 
 
-def reference(setup: dict, rec: dict, idx, time_limit: float = 600.0, lazy: bool = False) -> np.ndarray:
+def reference(setup: dict, rec: dict, idx, time_limit: float = 600.0, lazy: bool = False) -> tuple[np.ndarray, list]:
     """Slow reference optimum at the recorded states: SCIP, FBBT horizon bounds, no warm start, gap 1e-8.
 
     Every step is encoded at once, or with ``lazy=True`` (for long horizons, where that program is
     too large for SCIP within minutes) by constraint generation without the level set: the steps
     found violated are encoded and the program is solved again until the plan meets the network
-    constraint at every step.
+    constraint at every step. Returns the optima (NaN where not proven optimal) and the step results.
     """
     enc = dict(encode="needed", lazy=True) if lazy else dict(encode="all", lazy=False)
     mpc = make_mpc(setup, backend="scip", bounds="horizon", screening=False, warm_start=False, **enc)
@@ -320,10 +320,10 @@ def horizon_gap_row(setup: dict, rec: dict, idx, time_limit: float = 600.0, lazy
 
     The reference solves each recorded program again from nothing: SCIP, every step of the
     horizon encoded (or by constraint generation, ``lazy=True``), FBBT bounds along the horizon,
-    no warm start, no screening, gap 1e-8. The
-    row reports the largest relative gap ``|J - J_ref| / max(1, |J_ref|)`` of the loop's optima
-    (the steps the loop proved optimal), the steps below the reference (which would mean the
-    reference is not optimal), and the reference solves that did not finish within ``time_limit``.
+    no warm start, no screening, gap 1e-8. The row reports the largest relative gap
+    ``|J - J_ref| / max(1, |J_ref|)`` of the loop's optima (the steps the loop proved optimal),
+    the steps below the reference (which would mean the reference is not optimal), and the
+    reference solves that did not finish within ``time_limit``.
     """
     ref_obj, ref_res = reference(setup, rec, idx, time_limit=time_limit, lazy=lazy)
     row = summarize(f"gap N_p = {int(setup['N'])} vs cold reference", "auto", [rec["results"][i] for i in idx], ref_obj)
