@@ -284,6 +284,14 @@ def test_daqp_regularization_modes_and_checks_find_the_brute_force_optimum(seed)
         assert r.status == "optimal" and rel(r.objective, ref) <= RTOL, (opts, r.message)
         assert r.bound <= ref + 1e-9 * max(1.0, abs(ref)) and p.violation(r.w) <= 1e-6
         assert make_solver(infeasible, "daqp", **opts).solve().status == "infeasible", opts
+    # how the claim of infeasibility was proven: the relaxation (default) only when it is infeasible itself
+    relaxed_too = MIQP(p.H, p.c, p.c0, A, np.r_[p.rl, 3.5], np.r_[p.ru, 4.0], p.lb, p.ub, p.integrality)
+    r = make_solver(relaxed_too, "daqp").solve()
+    assert r.status == "infeasible" and "continuous relaxation is infeasible" in r.message, r.message
+    r = make_solver(infeasible, "daqp").solve()  # relaxation feasible (a sum of 1.5): the MILP decides
+    assert r.status == "infeasible" and "continuous relaxation" not in r.message, r.message
+    r = make_solver(relaxed_too, "daqp", verify_feasibility="milp").solve()
+    assert r.status == "infeasible" and "continuous relaxation" not in r.message, r.message
     for k, v in (("reg_mode", "lower"), ("verify_feasibility", "lp"), ("reg_retry", "yes")):
         with pytest.raises(ValueError, match=k):
             make_solver(p, "daqp", **{k: v})
