@@ -41,16 +41,23 @@ def check_step(mpc, s):
     return feasible
 
 
-def test_closed_loop_at_the_limit_returns_admissible_plans(quad):
+@pytest.mark.parametrize("repair", [False, True])
+def test_closed_loop_at_the_limit_returns_admissible_plans(quad, repair):
     """The book's closed loop with N_p = 20 and a limit far below any solve: every plan passes the forward pass,
-    every input is admissible, the gaps are consistent, and the true |u| <= u_max holds on the plant at the samples."""
+    every input is admissible, the gaps are consistent, and the true |u| <= u_max holds on the plant at the samples.
+    Without the repaired incumbent the first step has no plan (the fallback is exercised); with it (the default)
+    that step returns the repaired relaxation."""
     setup = rt.quad_setup(horizon=20, net=quad["net"], eps=quad["eps"])
-    mpc = rt.make_mpc(setup, time_limit=TINY)
+    mpc = rt.make_mpc(setup, time_limit=TINY, repair=repair)
     log = fl.simulate(setup["system"], mpc, t_final=fl.scale(4.0, 1.5), ts=setup["ts"], z0=setup["z0"],
                       reference=setup["reference"], progress=False)
     hits = [s for s in mpc.history if s.status == "time_limit"]
     assert len(hits) >= 3, "premise: the limit is hit"
-    assert any(s.fallback for s in hits), "premise: some step has no incumbent (the fallback is exercised)"
+    if repair:
+        assert any(s.info.get("incumbent") == "repaired relaxation" and not s.fallback for s in hits), \
+            "premise: some step returns the repaired relaxation at the limit"
+    else:
+        assert any(s.fallback for s in hits), "premise: some step has no incumbent (the fallback is exercised)"
     for s in mpc.history:
         assert s.status in ("optimal", "time_limit")
         assert check_step(mpc, s), s.message
@@ -105,16 +112,23 @@ def arm():
     return fl.two_link_arm(), net, eps
 
 
-def test_two_inputs_under_the_limit(arm):
-    """The arm (m = 2) with a limit far below any solve: admissible inputs and plans, true torques within tau_max."""
+@pytest.mark.parametrize("repair", [False, True])
+def test_two_inputs_under_the_limit(arm, repair):
+    """The arm (m = 2) with a limit far below any solve: admissible inputs and plans, true torques within tau_max;
+    without the repaired incumbent the fallback is exercised, with it some step returns the repaired relaxation."""
     system, net, eps = arm
     M = study.ARM_MPC
-    mpc = MPC(system, net, eps, horizon=M["horizon"], ts=M["ts"], Q=M["Q"], R=M["R"], time_limit=TINY)
+    mpc = MPC(system, net, eps, horizon=M["horizon"], ts=M["ts"], Q=M["Q"], R=M["R"], time_limit=TINY,
+              repair=repair)
     log = fl.simulate(system, mpc, t_final=fl.scale(4.0, 3.5), ts=M["ts"], z0=M["z0"],
                       reference=study.setpoint_reference(M["setpoints"], M["t_switch"]), hold="u", net=net,
                       progress=False)
     hits = [s for s in mpc.history if s.status == "time_limit"]
-    assert hits and any(s.fallback for s in hits), "premise: the limit is hit and the fallback is exercised"
+    if repair:
+        assert any(s.info.get("incumbent") == "repaired relaxation" and not s.fallback for s in hits), \
+            "premise: the limit is hit and some step returns the repaired relaxation"
+    else:
+        assert hits and any(s.fallback for s in hits), "premise: the limit is hit and the fallback is exercised"
     for s in mpc.history:
         assert check_step(mpc, s), s.message
         assert s.input_admissible

@@ -72,6 +72,11 @@ def test_every_combination_gives_the_reference_optimum(recorded, opts):
     (dict(iterations=2), "iterations only applies"),
     (dict(constraint="previous", iterations=0), "positive integer"),
     (dict(constraint="nonlinear"), "constraint must be one of"),
+    (dict(bounds="lp", first_level="incumbent"), "first_level"),
+    (dict(first_level="warm"), "first_level must be one of"),
+    (dict(backend="cvxpy-scip", first_level="relaxation"), "first_level"),
+    (dict(backend="cvxpy-scip", repair=True), "cold reference"),
+    (dict(constraint="measured", repair=True), "only apply to constraint='network'"),
 ])
 def test_meaningless_combinations_are_errors(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -180,6 +185,39 @@ def test_warm_starts_and_backends_agree_on_random_states():
         if checked == 4:
             break
     assert checked >= 3, "the premise: random states where the network constraint is active"
+
+
+@pytest.mark.parametrize("first_level", ["incumbent", "relaxation"])
+def test_repaired_incumbent_and_first_level_give_the_reference_optimum(first_level):
+    """Cold diverse states (no warm start; feasible and infeasible programs): the relaxation's optimum repaired
+    step by step is the first incumbent only when it passes the forward-pass check, the level-set rounds start at
+    its cost or at the relaxation's, and status and optimum are the cold reference's, with and without the
+    repair."""
+    from flnotes.bench.exactness import mpc_cases
+
+    sysm, net, eps, kw = _small_quad(horizon=8)
+    on = MPC(sysm, net, eps, first_level=first_level, **kw)
+    off = MPC(sysm, net, eps, first_level=first_level, repair=False, **kw)
+    ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
+    repaired = rejected = checked = 0
+    for c in mpc_cases(dict(system=sysm, N=8, ts=kw["ts"]), 40, seed=5):
+        on.reset()
+        off.reset()
+        s = on(c["z"], c["z_ref"])
+        if s.screened:
+            continue
+        t, r = off(c["z"], c["z_ref"]), ref(c["z"], c["z_ref"])
+        assert s.status == t.status == r.status, (s.message, t.message, r.message)
+        assert t.info.get("incumbent") is None  # no warm start, no repair: no incumbent
+        repaired += s.info.get("incumbent") == "repaired relaxation"
+        rejected += r.status == "infeasible"  # no admissible plan exists: a repaired plan must be rejected
+        if r.status == "optimal":
+            checked += 1
+            for x in (s, t):
+                assert not x.fallback and on.plan_feasible(x.z_pred, x.v_pred)
+                assert abs(x.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (x.objective, r.objective)
+    assert checked >= 3 and repaired >= 2, f"the premise: optimal states, admissible repairs ({checked}, {repaired})"
+    assert rejected >= 2, f"the premise: infeasible programs whose repaired plan the check rejects ({rejected})"
 
 
 def test_auto_lp_rounds_give_the_reference_optimum(monkeypatch):

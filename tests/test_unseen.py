@@ -90,6 +90,6 @@ def test_unknown_case_is_refused():
 def test_step_phase_reads_the_step_record():
     v = np.zeros(1)
     assert U.step_phase(fl.StepResult(v, screened=True)) == "screening"
-    assert U.step_phase(fl.StepResult(v, message="the warm start is optimal (level set empty)")) == "confirmation"
+    assert U.step_phase(fl.StepResult(v, message="the incumbent is optimal (warm start; level set empty)")) == "confirmation"
     assert U.step_phase(fl.StepResult(v, rounds=2, nodes=10, message="daqp: optimal")) == "levels"
     assert U.step_phase(fl.StepResult(v, status="infeasible", fallback=True)) == "fallback"

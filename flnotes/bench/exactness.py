@@ -277,6 +277,19 @@ def run(fast: bool) -> dict:
         tl = kw.pop("time_limit", None)
         res = mpc_controller_rows(setup, cases, refs, name, warm, time_limit=tl, **kw)
         rows.append(dict(program="Quad-1D MPC", **summarize(name, res)))
+        if name.startswith("default, ") and "DAQP" not in name:
+            split = {k: [r["time"] for r, ref in zip(res, refs) if (ref.status == "infeasible") == (k == "infeasible")]
+                     for k in ("feasible", "infeasible")}
+            notes.append(f"{name}: " + "; ".join(
+                f"{len(t)} programs the reference finds {k}: p99 {np.percentile(t, 99) * 1e3:.0f} ms, "
+                f"max {max(t) * 1e3:.0f} ms" for k, t in split.items() if t))
+    from .mpc import cases_record, level_lever_table
+
+    for r in level_lever_table(setup, cases_record(cases), range(len(cases)), time_limit=30.0):
+        rows.append(dict(program="Quad-1D MPC", config=f"level lever, cold: {r['config']}", programs=r["states"],
+                         median_ms=r["ms_median"], p99_ms=r["ms_p99"], max_ms=r["ms_max"], cpu_ms_p99=r["cpu_ms_p99"],
+                         cpu_s_total=r["cpu_s_total"], non_optimal=r["non_optimal"],
+                         max_rel_diff_to_default=r["max_rel_diff_to_default"]))
     for r in rows:
         if r.get("program") == "Quad-1D MPC" and str(r.get("config", "")).startswith("default, "):
             notes.append(f"target p99 <= t_s = {1e3 * setup['ts']:.0f} ms at N_p = {setup['N']} on diverse states: "

@@ -231,12 +231,32 @@ SOLVER_LEVERS = {
     "backend='daqp', SCIP's checks with SCIP's settings and one epigraph": dict(
         levers=dict(backend="daqp"), solver_options=dict(scip_options=dict(objective="epigraph",
                                                                            miqp_params="default"))),
+    "backend='auto', SCIP lean but presolving until nothing changes": dict(
+        solver_options=dict(scip=dict(params={"presolving/maxrounds": -1}),
+                            daqp=dict(scip_options=dict(params={"presolving/maxrounds": -1})))),
 }
 
 
 def solver_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
     """The solver levers (:data:`SOLVER_LEVERS`) on the recorded states ``idx``; see :func:`interleaved_table`."""
     return interleaved_table(setup, rec, idx, SOLVER_LEVERS, time_limit)
+
+
+#: Where the level-set rounds start (``MPCOptions.first_level``) and the repaired relaxation as a first incumbent
+#: (``MPCOptions.repair``), compared by :func:`level_lever_table`; the default first, the engine before them last.
+LEVEL_LEVERS = {
+    "first_level='incumbent', repair (default)": dict(),
+    "first_level='relaxation'": dict(levers=dict(first_level="relaxation")),
+    "repair=False": dict(levers=dict(repair=False)),
+    "first_level='relaxation', repair=False (before)": dict(levers=dict(first_level="relaxation", repair=False)),
+}
+
+
+def level_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
+    """The first level and the repaired incumbent (:data:`LEVEL_LEVERS`) on the states ``idx`` of ``rec`` (a
+    recorded loop, warm-started as recorded, or :func:`cases_record` of diverse states, cold); see
+    :func:`interleaved_table` for the columns."""
+    return interleaved_table(setup, rec, idx, LEVEL_LEVERS, time_limit)
 
 
 def cases_record(cases: list) -> dict:
@@ -251,12 +271,12 @@ def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Op
 
     The configurations are interleaved state by state (the machine's load hits all alike). Each row gives the
     wall-clock and CPU time per step (median, p99, max), the mean nodes and the largest number of binaries, the
-    steps not proven optimal, and the largest relative difference of the objective to the first configuration's
+    mixed-integer programs solved in all (level-set and constraint-generation rounds), the steps not proven optimal, and the largest relative difference of the objective to the first configuration's
     at the steps both prove optimal.
     """
     mpcs = {k: make_mpc(setup, time_limit=time_limit, solver_options=v.get("solver_options"), **v.get("levers", {}))
             for k, v in configs.items()}
-    out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[], nbin=[]) for k in mpcs}
+    out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[], nbin=[], rounds=[]) for k in mpcs}
     for i in idx:
         for k, m in mpcs.items():
             m.set_previous_plan(rec["prev"][i])
@@ -269,6 +289,7 @@ def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Op
             o["ok"].append(r.status == "optimal" and not r.fallback)
             o["nodes"].append(r.nodes)
             o["nbin"].append(r.n_binaries)
+            o["rounds"].append(r.rounds)
     first = next(iter(out.values()))
     rows = []
     for k, o in out.items():
@@ -280,6 +301,7 @@ def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Op
                          ms_p99=w["p99_ms"], ms_max=w["max_ms"], cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"],
                          cpu_ms_max=c["max_ms"], cpu_s_total=float(np.sum(o["cpu"])),
                          nodes_mean=float(np.mean(o["nodes"])), binaries_max=int(max(o["nbin"])),
+                         programs_solved=int(sum(o["rounds"])),
                          non_optimal=int(len(o["ok"]) - sum(o["ok"])),
                          max_rel_diff_to_default=float(d.max()) if d.size else np.nan))
     return rows
@@ -440,6 +462,8 @@ def run(fast: bool) -> dict:
             rows.append(dict(lr, config=f"LP lever N_p = {N}: {lr['config']}", backend="auto"))
         for sr in solver_lever_table(s_N, rec_N, np.sort(worst), time_limit=30.0):
             rows.append(dict(sr, config=f"solver lever N_p = {N}: {sr['config']}"))
+        for lr in level_lever_table(s_N, rec_N, np.sort(worst), time_limit=30.0):
+            rows.append(dict(lr, config=f"level lever N_p = {N}: {lr['config']}", backend="auto"))
         gap_idx = np.union1d(worst, pick_states(rec_N, n_hard=4 if fast else 12, n_easy=2))
         g = horizon_gap_row(s_N, rec_N, gap_idx, lazy=N > 15)  # N_p = 20 encoded at once: SCIP > 5 min per state
         rows.append(g)

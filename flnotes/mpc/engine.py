@@ -11,8 +11,10 @@ thus lies in an ellipsoid whose projection on each ``(z(k), v(k))`` is a small b
 leaves few unstable neurons, and steps whose output provably meets the bound are not encoded. The program
 restricted to these boxes contains every plan cheaper than ``J_up`` and nothing infeasible, so its optimum
 is the global one whenever it is below ``J_up``; otherwise ``J_up`` is raised (or, when ``J_up`` is the
-warm start's cost, the warm start is optimal). ``J_up`` starts at the warm start's cost, or at ``J_c`` plus
-a small margin multiplied by 4 per round.
+incumbent's cost, the incumbent is optimal). The incumbent is the warm start, or without one the relaxation's
+optimum repaired step by step (``repair``). ``J_up`` starts at the incumbent's cost (``first_level="incumbent"``:
+one round holds the optimum), or at ``J_c`` plus a small margin multiplied by 4 per round
+(``first_level="relaxation"``, and whenever there is no incumbent).
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
+from .fallback import repair_plan
 from .program import compact_program, plan_vector
 
 Array = np.ndarray
@@ -115,6 +118,7 @@ class NetworkEngine:
                              backend="qp-screening" if screened else st["backend"], message=msg,
                              warm_started=inc_from_warm)
             res.info["lp_rounds"] = st["lp_rounds"]  # level-set rounds whose node bounds were LP-tightened
+            res.info["incumbent"] = st.get("incumbent")  # where the first incumbent came from (None: none)
             if V is not None:
                 V = np.asarray(V, float).reshape(N, m)
                 obj = pred.cost(V, f, c0)
@@ -132,7 +136,7 @@ class NetworkEngine:
             inc_V, inc_J, inc_from_warm = np.asarray(incumbent, float).reshape(-1), pred.cost(incumbent, f, c0), True
         # the QP without the network: screening, the first level-set center, the first active steps
         V_c, J_c = None, -np.inf
-        if o.screening or o.bounds == "levelset" or o.lazy:
+        if o.screening or o.bounds == "levelset" or o.lazy or o.repair:
             V_q, fq, flag = pred.qp(f, z0)
             if V_q is None:
                 if flag == -1:
@@ -143,6 +147,12 @@ class NetworkEngine:
                 if o.screening and pred.feasible(z0, V_q):
                     self.active_prev = ()
                     return done("optimal", V_q, J_c, "screened: the QP optimum meets the network constraint", True)
+        incumbent_from = "warm start" if inc_V is not None else None
+        if o.repair and inc_V is None and V_c is not None:
+            _, V_r = repair_plan(pred, z0, V_c.reshape(N, m))
+            if pred.feasible(z0, V_r):
+                inc_V, inc_J, incumbent_from = V_r.reshape(-1), pred.cost(V_r, f, c0), "repaired relaxation"
+        st["incumbent"] = incumbent_from
         try:
             lo_h, hi_h = pred.boxes(z0)
         except EmptyBoxError as exc:
@@ -157,6 +167,8 @@ class NetworkEngine:
         deadline = None if time_limit is None else t0 + time_limit  # no LP of the node bounds starts after it
 
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
+        if level and o.first_level == "incumbent" and np.isfinite(inc_J):
+            delta = max(delta, inc_J - J_c)  # the first level set holds the incumbent, hence the optimum
         # time limit: a lower bound of eq. (MPC_form_miqp) for the gap (J_c; each round that ends without a plan
         # cheaper than its level J_up proves that nothing cheaper exists)
         lb, J_up, n_round = J_c, -np.inf, 0
@@ -167,7 +179,7 @@ class NetworkEngine:
                 n_round += 1
                 if time.perf_counter() - t0 > time_limit:
                     return done("time_limit", inc_V, lb, "time limit: " + (
-                        "the warm start is returned" if inc_V is not None else "no feasible plan"))
+                        f"the incumbent ({incumbent_from}) is returned" if inc_V is not None else "no feasible plan"))
             lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
             lp_done = None  # lp="auto" on a large round: the steps whose bounds are LP-tightened
             if level:
@@ -198,7 +210,8 @@ class NetworkEngine:
                         return done("time_limit", inc_V, lb, "time limit during the LP bounds of a level-set round")
                     if empty:  # nothing cheaper than J_up
                         if J_up >= inc_J:
-                            return done("optimal", inc_V, inc_J, "the warm start is optimal (level set empty)")
+                            return done("optimal", inc_V, inc_J,
+                                        f"the incumbent is optimal ({incumbent_from}; level set empty)")
                         delta *= 4.0
                         continue
             nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi)
@@ -208,7 +221,8 @@ class NetworkEngine:
                     return done("infeasible", None, np.inf, "no admissible plan: the node bounds exclude "
                                 "|Phi_NN| <= u_max^eps over a step's reachable box")
                 if J_up >= inc_J or full:
-                    return done("optimal", inc_V, inc_J, "the warm start is optimal (no admissible output)")
+                    return done("optimal", inc_V, inc_J,
+                                f"the incumbent is optimal ({incumbent_from}; no admissible output)")
                 delta *= 4.0
                 continue
             restrict = level and not full
@@ -271,7 +285,7 @@ class NetworkEngine:
                     bound = res.bound if np.isfinite(res.bound) else J
                     return done("optimal", V, bound, f"{res.backend}: {res.message}")
                 if J < inc_J:
-                    inc_V, inc_J = V, J
+                    inc_V, inc_J, incumbent_from = V, J, "an earlier round"
             elif status == "infeasible":
                 if full and inc_V is None:
                     return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend})")
@@ -288,7 +302,8 @@ class NetworkEngine:
             else:
                 return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
             if J_up >= inc_J or full:  # nothing below J_up in the restricted program
-                return done("optimal", inc_V, inc_J, "the warm start is optimal (nothing cheaper)")
+                return done("optimal", inc_V, inc_J,
+                            f"the incumbent is optimal ({incumbent_from}; nothing cheaper)")
             delta *= 4.0
 
     def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list,

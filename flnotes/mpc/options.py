@@ -22,7 +22,10 @@ BOUNDS = ("box", "horizon", "lp", "levelset")
 #: constraint (a QP; see :mod:`flnotes.mpc.linear`).
 CONSTRAINTS = ("network", "measured", "previous", "none")
 
-_NETWORK_LEVERS = ("bounds", "screening", "lazy", "warm_start", "encode", "eliminate_stable", "lp")
+_NETWORK_LEVERS = ("bounds", "screening", "lazy", "warm_start", "encode", "eliminate_stable", "lp", "first_level",
+                   "repair")
+#: The first level ``J_up`` of the level-set rounds (``bounds="levelset"``; see :mod:`flnotes.mpc.engine`).
+FIRST_LEVELS = ("incumbent", "relaxation")
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,16 @@ class MPCOptions:
         level-set boxes, each round. ``"auto"`` (default): only in the rounds where FBBT leaves more than
         :data:`flnotes.mpc.levers.LP_AUTO_BINARIES` unstable neurons in the steps to encode (below that the
         branch and bound was measured cheaper than the LPs); ``True``: every round; ``False``: never.
+    first_level
+        With ``bounds="levelset"`` only: the level ``J_up`` of the first level-set round. ``"incumbent"``
+        (default): the cost of the incumbent (the warm start, or the repaired plan of ``repair``), so one round
+        holds the optimum; without an incumbent, as ``"relaxation"``. ``"relaxation"``: the relaxation's
+        optimum ``J_c`` plus ``1e-3 max(1, |J_c|)``, the margin multiplied by 4 per round until a plan is found
+        (fewer unstable neurons per round, more rounds).
+    repair
+        Without a feasible warm start: the relaxation's optimum repaired step by step
+        (:func:`flnotes.mpc.fallback.repair_plan`: each input moved to the nearest admissible one) is the first
+        incumbent when it passes the program's check (:meth:`flnotes.mpc.prediction.Prediction.feasible`).
     iterations
         With ``constraint="previous"`` only: QPs per sampling instant, each linearizing along the last plan
         (1 is Kurtz & Henson's scheme; more iterate it within the period).
@@ -84,12 +97,14 @@ class MPCOptions:
     encode: Optional[str] = None
     eliminate_stable: Optional[bool] = None
     lp: Optional[Union[bool, str]] = None
+    first_level: Optional[str] = None
+    repair: Optional[bool] = None
     iterations: Optional[int] = None
 
     def __post_init__(self) -> None:
         given = {f.name for f in fields(self) if getattr(self, f.name) is not None}
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: resolve defaults once
-        for k in ("screening", "lazy", "warm_start", "eliminate_stable"):
+        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "repair"):
             if k in given and not isinstance(getattr(self, k), bool):
                 raise TypeError(f"{k} must be True or False, got {getattr(self, k)!r}")
         if "lp" in given and not (isinstance(self.lp, bool) or self.lp == "auto"):
@@ -125,8 +140,11 @@ class MPCOptions:
         put("backend", backend)
         if backend == "cvxpy-scip":
             # the reference: the whole program written with fl.encode, solved cold; no lever applies
+            if "first_level" in given:
+                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set: first_level does "
+                                 "not apply (drop it or choose 'daqp' or 'scip')")
             for k, off in (("screening", False), ("lazy", False), ("warm_start", False), ("lp", False),
-                           ("encode", "all"), ("eliminate_stable", True)):
+                           ("encode", "all"), ("eliminate_stable", True), ("repair", False)):
                 if k in given and getattr(self, k) != off:
                     raise ValueError(f"backend='cvxpy-scip' is the cold reference: every step encoded, no lever; "
                                      f"{k}={getattr(self, k)!r} does not apply (drop it or choose 'daqp' or 'scip')")
@@ -153,7 +171,15 @@ class MPCOptions:
             raise ValueError(f"lp={self.lp!r} tightens the level-set boxes (bounds='levelset'); for LP bounds on the "
                              "reachable boxes use bounds='lp'")
         put("lp", ("auto" if bounds == "levelset" else False) if self.lp is None else self.lp)
-        for k in ("screening", "warm_start", "eliminate_stable"):
+        if "first_level" in given:
+            if bounds != "levelset":
+                raise ValueError(f"first_level={self.first_level!r} sets the first level of the level set "
+                                 f"(bounds='levelset'); with bounds={bounds!r} drop it")
+            if self.first_level not in FIRST_LEVELS:
+                raise ValueError(f"first_level must be one of {FIRST_LEVELS}, got {self.first_level!r}")
+        put("first_level", ("incumbent" if bounds == "levelset" else None) if self.first_level is None
+            else self.first_level)
+        for k in ("screening", "warm_start", "eliminate_stable", "repair"):
             put(k, True if getattr(self, k) is None else getattr(self, k))
 
     # ------------------------------------------------------------------ helpers
@@ -179,11 +205,13 @@ class MPCOptions:
                 if backend == "cvxpy-scip":
                     grid = [dict(bounds=b) for b in ("box", "horizon", "lp")]
                 else:
-                    grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp)
-                            for b, s, w, e, (enc, lz), lp in itertools.product(
+                    grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp,
+                                 first_level=fl, repair=rp)
+                            for b, s, w, e, (enc, lz), lp, fl, rp in itertools.product(
                                 BOUNDS, (True, False), (True, False), (True, False),
-                                (("needed", True), ("needed", False), ("all", False)), (False, True, "auto"))
-                            if not (lp and b != "levelset")]
+                                (("needed", True), ("needed", False), ("all", False)), (False, True, "auto"),
+                                FIRST_LEVELS + (None,), (True, False))
+                            if not (lp and b != "levelset") and (fl is None) == (b != "levelset")]
                 for kw in grid:
                     o = cls(constraint="network", backend=backend, **kw)
                     if o not in seen:
@@ -197,6 +225,8 @@ class MPCOptions:
             return f"cvxpy-scip (cold reference), bounds={self.bounds}"
         on = [k for k in ("screening", "lazy", "warm_start") if getattr(self, k)]
         on += {True: ["lp"], "auto": ["lp when large"], False: []}[self.lp]
+        on += ["repair"] if self.repair else []
+        on += ["first level: relaxation"] if self.first_level == "relaxation" else []
         extra = [] if self.eliminate_stable else ["stable neurons kept"]
         extra += [] if self.encode == "needed" else ["every step encoded"]
         return f"{self.backend}, bounds={self.bounds}" + "".join(f", {s}" for s in on + extra)

@@ -328,15 +328,16 @@ class TimedController:
 def step_phase(s: StepResult) -> str:
     """Where a step's time went, from its :class:`flnotes.StepResult`.
 
-    ``"screening"``: the QP without the network was optimal; ``"confirmation"``: the warm start was proven
-    optimal without a better plan (an empty level set); ``"levels"``: mixed-integer programs on the level
-    set were solved (``rounds`` of them, ``nodes`` in all); ``"fallback"``: no plan.
+    ``"screening"``: the QP without the network was optimal; ``"confirmation"``: the incumbent (warm start or
+    repaired relaxation) was proven optimal without a better plan (an empty level set); ``"levels"``:
+    mixed-integer programs on the level set were solved (``rounds`` of them, ``nodes`` in all); ``"fallback"``:
+    no plan.
     """
     if s.fallback:
         return "fallback"
     if s.screened:
         return "screening"
-    if "warm start is optimal" in s.message:
+    if "incumbent is optimal" in s.message:
         return "confirmation"
     return "levels"
 
