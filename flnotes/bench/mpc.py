@@ -271,8 +271,9 @@ def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Op
 
     The configurations are interleaved state by state (the machine's load hits all alike). Each row gives the
     wall-clock and CPU time per step (median, p99, max), the mean nodes and the largest number of binaries, the
-    mixed-integer programs solved in all (level-set and constraint-generation rounds), the steps not proven optimal, and the largest relative difference of the objective to the first configuration's
-    at the steps both prove optimal.
+    mixed-integer programs solved in all (level-set and constraint-generation rounds), the steps not proven
+    optimal, and the largest relative difference of the objective to the first configuration's at the steps
+    both prove optimal.
     """
     mpcs = {k: make_mpc(setup, time_limit=time_limit, solver_options=v.get("solver_options"), **v.get("levers", {}))
             for k, v in configs.items()}
