@@ -76,9 +76,10 @@ class MPCOptions:
     first_level
         With ``bounds="levelset"`` only: the level ``J_up`` of the first level-set round. ``"incumbent"``
         (default): the cost of the incumbent (the warm start, or the repaired plan of ``repair``), so one round
-        holds the optimum; without an incumbent, as ``"relaxation"``. ``"relaxation"``: the relaxation's
-        optimum ``J_c`` plus ``1e-3 max(1, |J_c|)``, the margin multiplied by 4 per round until a plan is found
-        (fewer unstable neurons per round, more rounds).
+        holds the optimum; without an incumbent (most often an infeasible program), ``J_c + max(1, |J_c|)``
+        (:data:`flnotes.mpc.engine.FIRST_LEVEL_NO_INCUMBENT`). ``"relaxation"``: the relaxation's optimum
+        ``J_c`` plus ``1e-3 max(1, |J_c|)``. Either margin is multiplied by 4 per round until a plan is found
+        (a small level: fewer unstable neurons per round, more rounds).
     repair
         Without a feasible warm start: the relaxation's optimum repaired step by step
         (:func:`flnotes.mpc.fallback.repair_plan`: each input moved to the nearest admissible one) is the first
