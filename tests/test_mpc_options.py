@@ -77,6 +77,9 @@ def test_every_combination_gives_the_reference_optimum(recorded, opts):
     (dict(backend="cvxpy-scip", first_level="relaxation"), "first_level"),
     (dict(backend="cvxpy-scip", repair=True), "cold reference"),
     (dict(constraint="measured", repair=True), "only apply to constraint='network'"),
+    (dict(backend="scip", branching="layers"), "branching"),
+    (dict(branching="depth"), "branching must be one of"),
+    (dict(backend="cvxpy-scip", branching="steps"), "branching"),
 ])
 def test_meaningless_combinations_are_errors(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -218,6 +221,35 @@ def test_repaired_incumbent_and_first_level_give_the_reference_optimum(first_lev
                 assert abs(x.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (x.objective, r.objective)
     assert checked >= 3 and repaired >= 2, f"the premise: optimal states, admissible repairs ({checked}, {repaired})"
     assert rejected >= 2, f"the premise: infeasible programs whose repaired plan the check rejects ({rejected})"
+
+
+def test_branching_orders_lay_out_the_same_program(recorded):
+    """``branching="layers"`` and ``"steps"`` only permute the columns: the same size and binaries, the same
+    relaxation optimum, and the warm start of a feasible plan (:func:`flnotes.mpc.program.plan_vector`, laid out in
+    the program's order) satisfies each program with the plan's cost."""
+    from flnotes.mpc.program import plan_vector
+    from flnotes.solvers import MIQP, make_solver
+
+    sysm, net, problems, J = recorded
+    for z, R, _ in problems:
+        ref = MPC(sysm, net, EPS, backend="cvxpy-scip", bounds="box", gap=1e-9, **COMMON)(z, R)
+        out = {}
+        for order in ("layers", "steps"):
+            mpc = MPC(sysm, net, EPS, bounds="horizon", branching=order, **COMMON)
+            eng = mpc.solver
+            f, c0 = mpc.pred.linear(z, R)
+            lo, hi = mpc.pred.boxes(z)
+            nb = fl.mpc.levers.node_bounds(mpc.pred, mpc.options, eng.box, lo, hi)
+            steps = list(range(mpc.N))
+            p = eng.program(z, R, steps=steps)
+            w = plan_vector(mpc.pred, z, ref.v_pred, nb, steps, p, True, order)
+            assert p.violation(w) <= 1e-7, (order, p.violation(w))
+            assert abs(p.objective(w) - ref.objective) <= 1e-9 * max(1.0, abs(ref.objective))
+            rel = make_solver(MIQP(p.H, p.c, p.c0, p.A, p.rl, p.ru, p.lb, p.ub, np.zeros(p.n, int)), "highs").solve()
+            out[order] = (p.n, p.n_integer, p.m, rel.objective)
+        (n1, b1, m1, r1), (n2, b2, m2, r2) = out["layers"], out["steps"]
+        assert (n1, b1, m1) == (n2, b2, m2) and b1 > 0
+        assert abs(r1 - r2) <= 1e-7 * max(1.0, abs(r1))
 
 
 def test_auto_lp_rounds_give_the_reference_optimum(monkeypatch):

@@ -23,7 +23,7 @@ import numpy as np
 
 from .. import paper
 from ..mpc import MPC, MPCOptions
-from ..mpc.levers import node_bounds
+from ..mpc.levers import AUTO_DAQP_BINARIES, node_bounds
 from ..simulate import simulate
 from ..solvers import available_backends
 from ..tables import time_stats
@@ -226,7 +226,8 @@ def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30
 #: Which solver takes a program (``MPCOptions.backend``) and how SCIP is set up, on the recorded states of a
 #: longer horizon (:func:`solver_lever_table`); the default first.
 SOLVER_LEVERS = {
-    "backend='auto' (default: DAQP up to 40 binaries, SCIP above)": dict(),
+    f"backend='auto' (default: DAQP up to {AUTO_DAQP_BINARIES} binaries, SCIP above)": dict(),
+    "branching='steps' (DAQP branches step by step)": dict(levers=dict(branching="steps")),
     "backend='daqp' (DAQP for every program)": dict(levers=dict(backend="daqp")),
     "backend='daqp', SCIP's checks with SCIP's settings and one epigraph": dict(
         levers=dict(backend="daqp"), solver_options=dict(scip_options=dict(objective="epigraph",

@@ -84,6 +84,7 @@ class NetworkEngine:
         self.solver_options = {k: dict(v) for k, v in (solver_options or {}).items()}
         self.margin = 0.0
         self.active_prev: tuple = ()
+        self.order = opts.branching or "layers"  # the binaries' column order (DAQP's branching order)
 
     def reset(self) -> None:
         self.active_prev = ()
@@ -100,7 +101,7 @@ class NetworkEngine:
         if steps is None:
             steps = needed_steps(nb, pred.u_eps, self.opts.encode) or []
         return compact_program(pred, z0, f, c0, nb, steps, pred.u_eps - self.margin,
-                               eliminate_stable=self.opts.eliminate_stable, lo=lo, hi=hi)
+                               eliminate_stable=self.opts.eliminate_stable, lo=lo, hi=hi, order=self.order)
 
     def solve(self, z0: Array, z_ref: Array, incumbent: Optional[Array] = None, time_limit: Optional[float] = None,
               gap: float = 1e-6) -> StepResult:
@@ -238,11 +239,12 @@ class NetworkEngine:
             while True:  # constraint generation (one round without lazy)
                 prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
                                        eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
-                                       hi=hi if restrict else None)
+                                       hi=hi if restrict else None, order=self.order)
                 st["n_bin"], st["steps"] = int(prob.n_integer), tuple(enc)
                 st["backend"] = backend = pick_backend(o.backend, int(prob.n_integer))
                 solver = make_solver(prob, backend, **self.solver_options.get(backend, {}))
-                w0 = plan_vector(pred, z0, inc_V, nb, enc, prob, o.eliminate_stable) if inc_V is not None else None
+                w0 = (plan_vector(pred, z0, inc_V, nb, enc, prob, o.eliminate_stable, self.order)
+                      if inc_V is not None else None)
                 res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
                 st["nodes"] += int(res.nodes)
                 st["rounds"] += 1
@@ -261,7 +263,7 @@ class NetworkEngine:
                     self.margin = next_margin(self.margin, ex, float(np.max(pred.u_eps)))
                     prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
                                            eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
-                                           hi=hi if restrict else None)
+                                           hi=hi if restrict else None, order=self.order)
                     polished = self._polish(prob, res, gap)
                     if polished is None or set(pred.violated(z0, polished.w[: N * m]).tolist()) & set(enc):
                         continue  # the tightened program solved from scratch

@@ -69,11 +69,12 @@ LP_AUTO_BINARIES = 48
 
 
 #: ``backend="auto"``: a program with more binaries than this goes to SCIP, one with at most this many to DAQP.
-#: Measured on the book's Quad-1D programs (chapter "Making it real-time", ``python -m flnotes.bench mpc``): below
-#: ~35 binaries DAQP's branch and bound took a few to tens of ms and SCIP two to three times as long; from 40 to 50
-#: the two were even in sum; above 60 SCIP was faster on every program measured (DAQP: up to 50 s; SCIP: at most
-#: 2.7 s).
-AUTO_DAQP_BINARIES = 40
+#: Measured on the programs of the book's Quad-1D loops at N_p = 15 and 20 with DAQP branching layer by layer
+#: (``branching="layers"``; chapter "Making it real-time", ``python -m flnotes.bench mpc``): from 20 to 49 binaries
+#: DAQP took 2 to 6 times less time in sum than SCIP, from 50 to 59 the two were even, from 60 on SCIP was faster
+#: on every program (DAQP: up to 10 s; SCIP: at most 2.4 s). The loops with thresholds 40, 50 and 55 took 5.7,
+#: 5.7 and 6.1 s (N_p = 15) and 19.6, 17.5 and 18.4 s (N_p = 20).
+AUTO_DAQP_BINARIES = 50
 
 
 def pick_backend(backend: str, n_binaries: int) -> str:

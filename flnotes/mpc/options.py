@@ -23,7 +23,9 @@ BOUNDS = ("box", "horizon", "lp", "levelset")
 CONSTRAINTS = ("network", "measured", "previous", "none")
 
 _NETWORK_LEVERS = ("bounds", "screening", "lazy", "warm_start", "encode", "eliminate_stable", "lp", "first_level",
-                   "repair")
+                   "repair", "branching")
+#: DAQP's branching order (the binaries' column order, :data:`flnotes.mpc.program.ORDERS`).
+BRANCHINGS = ("layers", "steps")
 #: The first level ``J_up`` of the level-set rounds (``bounds="levelset"``; see :mod:`flnotes.mpc.engine`).
 FIRST_LEVELS = ("incumbent", "relaxation")
 
@@ -84,6 +86,11 @@ class MPCOptions:
         Without a feasible warm start: the relaxation's optimum repaired step by step
         (:func:`flnotes.mpc.fallback.repair_plan`: each input moved to the nearest admissible one) is the first
         incumbent when it passes the program's check (:meth:`flnotes.mpc.prediction.Prediction.feasible`).
+    branching
+        With a back-end that runs DAQP (``"auto"``, ``"daqp"``) only: DAQP branches on the first fractional binary
+        in column order, so the order of the binaries is its branching order. ``"layers"`` (default): the
+        first hidden layer's binaries of every encoded step (early steps first) before the second layer's;
+        ``"steps"``: step by step, each step's layers in order.
     iterations
         With ``constraint="previous"`` only: QPs per sampling instant, each linearizing along the last plan
         (1 is Kurtz & Henson's scheme; more iterate it within the period).
@@ -100,6 +107,7 @@ class MPCOptions:
     lp: Optional[Union[bool, str]] = None
     first_level: Optional[str] = None
     repair: Optional[bool] = None
+    branching: Optional[str] = None
     iterations: Optional[int] = None
 
     def __post_init__(self) -> None:
@@ -141,9 +149,9 @@ class MPCOptions:
         put("backend", backend)
         if backend == "cvxpy-scip":
             # the reference: the whole program written with fl.encode, solved cold; no lever applies
-            if "first_level" in given:
-                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set: first_level does "
-                                 "not apply (drop it or choose 'daqp' or 'scip')")
+            if "first_level" in given or "branching" in given:
+                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set or DAQP: first_level "
+                                 "and branching do not apply (drop them or choose 'daqp' or 'auto')")
             for k, off in (("screening", False), ("lazy", False), ("warm_start", False), ("lp", False),
                            ("encode", "all"), ("eliminate_stable", True), ("repair", False)):
                 if k in given and getattr(self, k) != off:
@@ -180,6 +188,14 @@ class MPCOptions:
                 raise ValueError(f"first_level must be one of {FIRST_LEVELS}, got {self.first_level!r}")
         put("first_level", ("incumbent" if bounds == "levelset" else None) if self.first_level is None
             else self.first_level)
+        if "branching" in given:
+            if backend not in ("auto", "daqp"):
+                raise ValueError(f"branching={self.branching!r} orders DAQP's branch and bound; backend={backend!r} "
+                                 "branches by its own rules: drop it or choose backend 'auto' or 'daqp'")
+            if self.branching not in BRANCHINGS:
+                raise ValueError(f"branching must be one of {BRANCHINGS}, got {self.branching!r}")
+        put("branching", ("layers" if backend in ("auto", "daqp") else None) if self.branching is None
+            else self.branching)
         for k in ("screening", "warm_start", "eliminate_stable", "repair"):
             put(k, True if getattr(self, k) is None else getattr(self, k))
 
@@ -207,12 +223,13 @@ class MPCOptions:
                     grid = [dict(bounds=b) for b in ("box", "horizon", "lp")]
                 else:
                     grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp,
-                                 first_level=fl, repair=rp)
-                            for b, s, w, e, (enc, lz), lp, fl, rp in itertools.product(
+                                 first_level=fl, repair=rp, branching=br)
+                            for b, s, w, e, (enc, lz), lp, fl, rp, br in itertools.product(
                                 BOUNDS, (True, False), (True, False), (True, False),
                                 (("needed", True), ("needed", False), ("all", False)), (False, True, "auto"),
-                                FIRST_LEVELS + (None,), (True, False))
-                            if not (lp and b != "levelset") and (fl is None) == (b != "levelset")]
+                                FIRST_LEVELS + (None,), (True, False), BRANCHINGS + (None,))
+                            if not (lp and b != "levelset") and (fl is None) == (b != "levelset")
+                            and (br is None) == (backend not in ("auto", "daqp"))]
                 for kw in grid:
                     o = cls(constraint="network", backend=backend, **kw)
                     if o not in seen:
@@ -228,6 +245,7 @@ class MPCOptions:
         on += {True: ["lp"], "auto": ["lp when large"], False: []}[self.lp]
         on += ["repair"] if self.repair else []
         on += ["first level: relaxation"] if self.first_level == "relaxation" else []
+        on += ["branching step by step"] if self.branching == "steps" else []
         extra = [] if self.eliminate_stable else ["stable neurons kept"]
         extra += [] if self.encode == "needed" else ["every step encoded"]
         return f"{self.backend}, bounds={self.bounds}" + "".join(f", {s}" for s in on + extra)

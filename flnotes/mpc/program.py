@@ -19,14 +19,36 @@ from .prediction import Prediction
 Array = np.ndarray
 
 
+#: Orders of the binaries (and their ``y``) in the program's columns (``MPCOptions.branching``): DAQP branches on the
+#: first fractional binary in column order. ``"layers"``: every encoded step's first-layer neurons (steps in order),
+#: then the second layer's, and so on; ``"steps"``: step by step, each step's layers in order.
+ORDERS = ("layers", "steps")
+
+
 def _encoded(L: Array, U: Array, eliminate_stable: bool) -> Array:
     """Neurons that keep a variable and a binary: the unstable ones (``L < 0 < U``), or all of them."""
     return ((L < 0) & (U > 0)) if eliminate_stable else np.ones(L.size, bool)
 
 
+def _offsets(nb: NodeBounds, steps: Sequence[int], n_layers: int, eliminate_stable: bool, order: str
+             ) -> tuple[dict, int]:
+    """Where the ``y`` (and ``alpha``) of each (step, hidden layer) start in their block, and the block's size."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    count = {(k, layer): int(_encoded(np.asarray(nb.L[layer])[k], np.asarray(nb.U[layer])[k], eliminate_stable).sum())
+             for k in steps for layer in range(n_layers)}
+    keys = ([(k, layer) for layer in range(n_layers) for k in steps] if order == "layers"
+            else [(k, layer) for k in steps for layer in range(n_layers)])
+    off, at = {}, 0
+    for key in keys:
+        off[key] = at
+        at += count[key]
+    return off, at
+
+
 def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBounds, steps: Sequence[int],
                     u_in: Array, *, eliminate_stable: bool = True, lo: Optional[Array] = None,
-                    hi: Optional[Array] = None) -> MIQP:
+                    hi: Optional[Array] = None, order: str = "layers") -> MIQP:
     """The condensed big-M program with the network encoded at ``steps``.
 
     Variables ``w = [V | y (encoded neurons) | alpha (encoded neurons)]``. Per encoded neuron with
@@ -36,7 +58,8 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
     substitution exact; ``|y^K| <= u_in`` per encoded step (eq. Phi_NN_ep, ``u_in = u_max^eps`` less the
     solver margin); the state box and terminal rows; optional boxes ``lo <= [z(k); v(k)] <= hi`` for every
     step (the level-set restriction). With ``eliminate_stable=False`` every neuron keeps a variable and a
-    binary (fixed by its bounds when stable).
+    binary (fixed by its bounds when stable). ``order`` (one of :data:`ORDERS`) places the binaries in the
+    columns: the program is the same, DAQP's branching order is not.
 
     Parameters
     ----------
@@ -57,8 +80,7 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
     nV = N * m
     Zf = pred.Sx @ z0
     steps = list(steps)
-    n_y = sum(int(_encoded(np.asarray(nb.L[layer])[k], np.asarray(nb.U[layer])[k], eliminate_stable).sum())
-              for k in steps for layer in range(net.K - 1))
+    col0, n_y = _offsets(nb, steps, net.K - 1, eliminate_stable, order)
     n = nV + 2 * n_y
     lb = np.r_[np.tile(pred.v_lo, N), np.zeros(2 * n_y)]
     ub = np.r_[np.tile(pred.v_hi, N), np.full(n_y, np.inf), np.ones(n_y)]
@@ -73,7 +95,6 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
         rows.append(Tb)
         rl.append(lo.reshape(-1) - off)
         ru.append(hi.reshape(-1) - off)
-    iy_next, ia_next = nV, nV + n_y
     for k in steps:
         Y = np.zeros((net.n_in, n))
         Y[:, :nV] = pred.T[k]
@@ -84,9 +105,8 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
             var = _encoded(L, U, eliminate_stable)
             idx = np.flatnonzero(var)
             r = np.arange(idx.size)
-            iy, ia = iy_next + r, ia_next + r
-            iy_next += idx.size
-            ia_next += idx.size
+            iy = nV + col0[(k, layer)] + r
+            ia = iy + n_y
             Yn, yn0 = np.zeros_like(Aa), np.zeros_like(a0)
             sub = (L >= 0) & ~var                                # substituted active neurons: y = a
             Yn[sub], yn0[sub] = Aa[sub], a0[sub]
@@ -120,8 +140,9 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
 
 
 def plan_vector(pred: Prediction, z0: Array, V: Array, nb: NodeBounds, steps: Sequence[int], prob: MIQP,
-                eliminate_stable: bool = True) -> Array:
-    """The program's ``w`` for a plan ``V`` (the hidden values from the network's forward pass): a warm start."""
+                eliminate_stable: bool = True, order: str = "layers") -> Array:
+    """The program's ``w`` for a plan ``V`` (the hidden values from the network's forward pass): a warm start
+    (``steps``, ``eliminate_stable`` and ``order`` as the program was built with)."""
     N, m = pred.N, pred.m
     V = np.asarray(V, float).reshape(N, m)
     w = np.zeros(prob.n)
@@ -131,17 +152,19 @@ def plan_vector(pred: Prediction, z0: Array, V: Array, nb: NodeBounds, steps: Se
         return w
     Z = pred.predict(z0, V)
     _, pre = pred.net.forward(np.hstack([Z[steps], V[steps]]))
-    n_y = (prob.n - N * m) // 2
-    iy, ia = N * m, N * m + n_y
+    col0, n_y = _offsets(nb, steps, pred.net.K - 1, eliminate_stable, order)
+    if N * m + 2 * n_y != prob.n:
+        raise ValueError(f"the program has {prob.n} variables, the layout of these steps and bounds {N * m + 2 * n_y}: "
+                         "pass the steps, bounds, eliminate_stable and order the program was built with")
     for s, k in enumerate(steps):
         for layer in range(pred.net.K - 1):
             L, U = np.asarray(nb.L[layer])[k], np.asarray(nb.U[layer])[k]
             var = _encoded(L, U, eliminate_stable)
             a = pre[layer][s][var]
+            iy = N * m + col0[(k, layer)]
+            ia = iy + n_y
             w[iy:iy + a.size] = np.maximum(a, 0.0)
             w[ia:ia + a.size] = np.clip((a > 0).astype(float), (L[var] >= 0).astype(float), (U[var] > 0).astype(float))
-            iy += a.size
-            ia += a.size
     return w
 
 
