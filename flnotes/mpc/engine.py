@@ -27,10 +27,10 @@ from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
 from ..solvers import MIQP, make_solver, next_margin
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
+from .fallback import repair_plan
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
-from .fallback import repair_plan
 from .program import compact_program, plan_vector
 
 Array = np.ndarray
