@@ -210,3 +210,21 @@ def test_all_five_methods_on_one_short_scenario(quad_setting):
         assert by[m]["fallback_steps"] > 0 or by[m]["violating_samples"] == 0, f"{m}: |u| <= u_max at the samples"
     assert by["network"]["plans_violating"] == 0
     assert len(C.method_table(rows)) == 5
+
+
+def test_cost_vs_miqp_solves_the_miqp_without_the_runs_time_limit(quad_setting):
+    """The comparison's MIQP optimum does not depend on how fast the run was: it is solved again, exactly."""
+    s = dict(quad_setting, time_limit=1e-4)  # every step of the run stops at its limit
+    sc = C.draw_scenarios("Quad-1D", 2, seed=0)[1]
+    log = C.run_methods(s, sc["z0"], C.scenario_reference(s["system"], sc), 0.5, methods=("network",))["network"]
+    assert any(st != "optimal" for st in log.status), "premise: the run's steps hit their time limit"
+    rows = C.cost_vs_miqp(s, log, range(log.n_steps))
+    assert [r["miqp_status"] for r in rows] == ["optimal"] * log.n_steps
+    exact = fl.MPC(s["system"], s["net"], s["eps"], horizon=s["horizon"], ts=s["ts"], Q=s["Q"], R=s["R"],
+                   backend="scip", warm_start=False)
+    for r, k in zip(rows, range(log.n_steps)):
+        ref = exact(log.z[k], C.step_field(log.steps[k], "z_ref"))
+        assert ref.status == "optimal" and abs(r["miqp"] - ref.objective) <= 1e-5 * max(1.0, abs(ref.objective))
+        assert r["status_cold"] == "optimal" and r["status_from_miqp"] == "optimal"
+    with pytest.raises(ValueError, match="z_ref"):
+        C.cost_vs_miqp(s, SimpleNamespace(steps=[SimpleNamespace(info={})], z=log.z, t=log.t), [0])

@@ -335,30 +335,36 @@ def method_table(rows: Sequence[dict], methods: Optional[Sequence[str]] = None, 
 def cost_vs_miqp(s: dict, log, indices: Sequence[int]) -> list[dict]:
     """The NMPC's local optimum against the MIQP's optimum on the same states.
 
-    For each sampling instant ``k`` of an MIQP run (``log`` from :func:`run_methods`), the
-    NMPC is solved at the same state and reference twice: cold (constant state, ``u = 0``) and
-    started from the MIQP's plan turned into true inputs (``u_k = Phi(z_pred[k], v_pred[k])``
-    clipped to ``+-u_max``). Both programs have the same cost function of the predicted ``z``
-    and ``v``; the MIQP holds ``v`` over a sample (its plan is exact for the plant under
-    ``hold="v"``) and keeps ``eps`` of margin, the NMPC holds ``u``. Returns one row per
-    instant: the MIQP's objective and status, the two NMPC objectives and statuses, and their
-    relative differences to the MIQP (compare only where all three are ``"optimal"``).
+    For each sampling instant ``k`` of a closed-loop run (``log`` from :func:`run_methods`, whose
+    MPC steps record the horizon's reference ``z_ref``), the MIQP of eq. (MPC_form_miqp) is
+    solved again at the logged state ``z_k`` and reference, *without a time limit*: its optimum
+    and status do not depend on how fast the machine ran the loop. The NMPC is then solved at
+    the same state and reference twice: cold (constant state, ``u = 0``) and started from the
+    MIQP's plan turned into true inputs (``u_k = Phi(z_pred[k], v_pred[k])``). Both programs have
+    the same cost function of the predicted ``z`` and ``v``; the MIQP holds ``v`` over a sample
+    (its plan is exact for the plant under ``hold="v"``) and keeps ``eps`` of margin, the NMPC
+    holds ``u``. Returns one row per instant: the MIQP's objective and status, the two NMPC
+    objectives and statuses, and their relative differences to the MIQP (compare only where all
+    three are ``"optimal"``).
     """
     sysm = s["system"]
+    miqp, _ = make_controller("network", dict(s, time_limit=None))
     rows = []
     for k in indices:
-        st = log.steps[int(k)]
-        Z, V, R = step_field(st, "z_pred"), step_field(st, "v_pred"), step_field(st, "z_ref")
-        obj = step_field(st, "objective")
-        if Z is None or V is None or R is None or obj is None:
-            raise ValueError(f"step {k} of the log has no plan, reference or objective: pass an MIQP run of run_methods")
+        R = step_field(log.steps[int(k)], "z_ref")
+        if R is None:
+            raise ValueError(f"step {k} of the log has no reference z_ref: pass a run of run_methods with an MPC")
         x0 = np.asarray(sysm.to_x(log.z[int(k)]), float)
+        exact = miqp(log.z[int(k)], R)
+        obj = float(exact.objective)
         res = {}
         for start in ("cold", "miqp plan"):
             nm = NonlinearMPC(sysm, s["horizon"], s["ts"], s["Q"], s["R"], rk4_steps=s["rk4_steps"], to_z=s["to_z_sym"])
-            guess = sysm.Phi(np.asarray(Z)[:-1], np.asarray(V)) if start == "miqp plan" else None
+            guess = None
+            if start == "miqp plan" and exact.v_pred is not None:
+                guess = sysm.Phi(np.asarray(exact.z_pred)[:-1], np.asarray(exact.v_pred))
             res[start] = nm.solve(x0, R, u_guess=guess)
-        rows.append(dict(step=int(k), t=float(log.t[int(k)]), miqp=float(obj), miqp_status=str(log.status[int(k)]),
+        rows.append(dict(step=int(k), t=float(log.t[int(k)]), miqp=obj, miqp_status=str(exact.status),
                          nmpc_cold=res["cold"]["objective"], nmpc_from_miqp=res["miqp plan"]["objective"],
                          status_cold=res["cold"]["status"], status_from_miqp=res["miqp plan"]["status"],
                          rel_cold=(res["cold"]["objective"] - obj) / max(abs(obj), 1e-12),
