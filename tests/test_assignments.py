@@ -1,7 +1,8 @@
 """The assignments and their grader.
 
 * ``otter assign`` turns every master notebook into a students' notebook and an
-  autograder bundle (it runs each master's own tests first);
+  autograder bundle; with ``run_tests`` it runs the master's own tests first and stops
+  on a reference solution that fails them;
 * each reference solution scores full marks, each students' version scores zero;
 * the students' files (notebooks, the book's pages, the students' edition of the
   book as HTML) hold neither a reference solution nor a hidden test;
@@ -35,9 +36,14 @@ MARKER = "REFSOL"  # planted in every reference solution of the masters
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    """``{name: (student, bundle, solution)}`` written by ``otter assign`` (the masters' tests run first)."""
+    """``{name: (student, bundle, solution)}`` written by ``otter assign``.
+
+    otter's own run of each master's tests is skipped here: grading every reference solution with its
+    bundle (:func:`test_reference_solution_scores_full_marks`) checks the same and more, and
+    :func:`test_assign_runs_the_masters_tests_and_stops_on_a_failing_solution` checks that run itself.
+    """
     out = tmp_path_factory.mktemp("assignments")
-    written = grading.assign_all(grading.MASTER_DIR, out)
+    written = grading.assign_all(grading.MASTER_DIR, out, run_tests=False)
     return {s.stem: (s, b, out / "solution" / s.name) for s, b in written}
 
 
@@ -139,6 +145,23 @@ def test_reference_solution_scores_full_marks(name, built):
     report = _grade(bundle, solution)
     assert not report.error and not report.cell_errors, report.table()
     assert report.possible > 0 and report.score == report.possible, report.table()
+
+
+def test_assign_runs_the_masters_tests_and_stops_on_a_failing_solution(tmp_path):
+    master = grading.MASTER_DIR / "a1_derive_phi.ipynb"
+    nb = _nb(master)
+    cells = [c for c in nb.cells if c.cell_type == "code" and MARKER in c.source]
+    assert cells, "premise: the master has a marked reference solution"
+    cells[0].source = cells[0].source.replace("return m * l**2 * v", "return 2 * m * l**2 * v")
+    assert "2 * m * l**2" in cells[0].source, "premise: the reference solution was broken"
+    broken = tmp_path / "master" / master.name
+    broken.parent.mkdir()
+    nbformat.write(nb, broken)
+    with pytest.raises(RuntimeError, match="otter assign failed on a1_derive_phi") as err:
+        grading.assign(broken, tmp_path / "bad")
+    assert "phi differs from the reference" in str(err.value), "the failing hidden test is what stopped it"
+    assert not (tmp_path / "bad" / "autograder").exists(), "nothing is written for a failing master"
+    grading.assign(broken, tmp_path / "unchecked", run_tests=False)  # without the run the same master passes
 
 
 @pytest.mark.parametrize("name", IDS)
