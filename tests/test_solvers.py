@@ -343,3 +343,36 @@ def test_daqp_hands_its_scip_options_to_the_verification():
     assert seen and all(o.get("objective") == "epigraph" for o in seen), seen
     with pytest.raises(ValueError, match="scip_options"):
         make_solver(p, "daqp", scip_options="lean")
+
+
+# ------------------------------------------------------------------ HiGHS's QP solver never runs without end
+def _cycling_qp() -> MIQP:
+    """The relaxation of an MPC program (Quad-1D, N_p = 10, a diverse state) on which HiGHS's QP solver cycled."""
+    from pathlib import Path
+
+    d = np.load(Path(__file__).parent / "data" / "highs-qp-cycle.npz")
+    n, m = (int(x) for x in d["shape"])
+    H = sp.csc_matrix((d["H_val"], (d["H_row"], d["H_col"])), shape=(n, n))
+    A = sp.csr_matrix((d["A_val"], (d["A_row"], d["A_col"])), shape=(m, n))
+    return MIQP(H, d["c"], float(d["c0"]), A, d["rl"], d["ru"], d["lb"], d["ub"], np.zeros(n, dtype=int))
+
+
+def test_highs_qp_that_cycled_is_solved_within_its_iteration_limit():
+    p = _cycling_qp()
+    ref = make_solver(p, "daqp").solve()
+    assert ref.status == "optimal"
+    r = make_solver(p, "highs").solve(time_limit=60.0)  # before the iteration limit: 'time_limit' after 60 s
+    assert r.status == "optimal", r.message
+    assert abs(r.objective - ref.objective) <= 1e-6 * max(1.0, abs(ref.objective)) and p.violation(r.w) <= 1e-7
+
+
+def test_highs_qp_at_its_iteration_limit_is_an_error_not_an_endless_solve():
+    from flnotes.solvers.highs import qp_iteration_limit
+
+    p = _cycling_qp()
+    assert qp_iteration_limit(p.n, p.m) < 10_000
+    r = make_solver(p, "highs", params={"qp_iteration_limit": 20}).solve()  # too few iterations for any QP
+    assert r.status == "error" and "iteration limit" in r.message and r.w is None
+    mip = random_program(0, quad=False)  # a MILP
+    assert make_solver(mip, "highs", params={"qp_iteration_limit": 20}).solve().status == "optimal", \
+        "the QP iteration limit is not a MILP's"
