@@ -157,3 +157,57 @@ def test_feasible_tail_is_exact_for_two_inputs(arm):
             # v may be pulled inside its polygon by 1e-6 of the way to its centre (round-off at the edges)
             assert np.linalg.norm(v - guess) <= np.sqrt(nearest) + 1e-4
     assert checked >= 3, "premise: guesses that are not admissible"
+
+
+def test_qp_repair_from_the_relaxation_is_the_full_rebuild(quad):
+    """qp_repair started from the relaxation's optimum (the QP solved again only after a moved step) gives the plan
+    of the rebuild that solves the QP at every step, on diverse states."""
+    pred, moved = rt.make_mpc(quad).pred, 0
+    for c in ex.mpc_cases(quad, fl.scale(12, 6), seed=7):
+        f, _ = pred.linear(c["z"], c["z_ref"])
+        V_c, _, _ = pred.qp(f, c["z"])
+        if V_c is None:
+            continue
+        _, V_fast = fb.qp_repair(pred, c["z"], f, V_c)
+        _, V_all = fb.qp_repair(pred, c["z"], f)
+        assert np.allclose(V_fast, V_all, atol=1e-7), np.max(np.abs(V_fast - V_all))
+        moved += not np.allclose(V_fast.reshape(-1), V_c)
+    assert moved >= 2, "premise: states where the repair moves some input"
+
+
+def test_at_the_limit_the_first_incumbent_is_returned(quad):
+    """A limit far below any solve: each step returns its first incumbent, the cheaper (both checked by the forward
+    pass) of the shifted previous plan and the relaxation's optimum repaired along the QP, then optimized over the
+    network's linear regions around it (flnotes.mpc.region); so a dear warm start is not carried from step to
+    step."""
+    from flnotes.mpc import region as rg
+
+    setup = rt.quad_setup(horizon=15, net=quad["net"], eps=quad["eps"])
+    mpc = rt.make_mpc(setup, time_limit=TINY)
+    pred, z = mpc.pred, np.asarray(setup["z0"], float)
+    seen = {"warm start": 0, "repaired relaxation": 0, "region": 0}
+    for k in range(fl.scale(30, 12)):
+        R = setup["reference"](setup["ts"] * (k + np.arange(setup["N"] + 1)))
+        shifted = mpc.shifted_plan(z)
+        s = mpc(z, R)
+        f, c0 = pred.linear(z, R)
+        cands = []
+        if shifted is not None and pred.feasible(z, shifted[1]):
+            cands.append((pred.cost(shifted[1], f, c0), shifted[1].reshape(-1)))
+        V_c, _, _ = pred.qp(f, z)
+        if V_c is not None:
+            _, V_r = fb.qp_repair(pred, z, f, V_c)
+            if pred.feasible(z, V_r):
+                cands.append((pred.cost(V_r, f, c0), V_r.reshape(-1)))
+        assert check_step(mpc, s), s.message
+        if s.status == "time_limit" and not s.fallback:
+            assert cands
+            J, V = min(cands, key=lambda jv: jv[0])
+            V_p = rg.region_qp(pred, z, f, V, rg.REGION_MOVES)
+            if V_p is not None and pred.feasible(z, V_p):
+                J = min(J, pred.cost(V_p, f, c0))
+            assert abs(s.objective - J) <= 1e-9 * max(1.0, abs(J)), (s.objective, J)
+            seen[s.info["incumbent"]] += 1
+            seen["region"] += bool(s.info["region_improved"])
+        z = pred.Ad @ z + pred.Bd @ s.v  # the prediction model as the plant: the states depend on no timing
+    assert seen["repaired relaxation"] >= 3 and seen["region"] >= 3, f"premise: repairs and region QPs ({seen})"

@@ -26,7 +26,7 @@ from ..simulate import simulate
 from ..solvers import BOUND_TOL
 from ..tables import time_stats
 from .exactness import mpc_cases
-from .mpc import make_mpc, quad_setup
+from .mpc import TARGET_GAP, make_mpc, quad_setup
 
 #: The time limit per step, one sampling period of the Quad-1D (s).
 T_S = 0.1
@@ -74,7 +74,8 @@ def closed_loop(setup: dict, t_final: float, t_s: float = T_S) -> tuple[list[dic
                    reference=setup["reference"], progress=False)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     s = log.summary()
-    recs = [step_record(mpc, r, c) for r, c in zip(mpc.history, timed.cpu)]
+    recs = [dict(step_record(mpc, r, c), case=dict(z=r.z_pred[0], z_ref=r.info["z_ref"]))
+            for r, c in zip(mpc.history, timed.cpu)]
     return recs, dict(u_within=bool(s["u_within_bound_at_samples"]), u_within_between=bool(s["u_within_bound_between"]),
                       cpu_over_wall=cpu / max(wall, 1e-12))
 
@@ -107,6 +108,20 @@ def decide_misses(setup: dict, recs: Sequence[dict], time_limit: float = 10.0) -
     return out
 
 
+def optimum_gaps(setup: dict, recs: Sequence[dict], time_limit: float = 30.0) -> None:
+    """How far the plans returned at the limit are from the optimum: each limit hit whose plan passes the forward
+    pass is solved again without the step's limit (the default MPC, cold, with ``time_limit`` seconds; its optimum
+    is checked against the cold reference in ``tests/test_exactness.py``), and ``opt_gap = (J - J*) / max(1, |J*|)``
+    is written into the record (NaN when that solve proves no optimum in ``time_limit``)."""
+    exact = make_mpc(setup, time_limit=time_limit)
+    for r in recs:
+        if r["status"] == "time_limit" and r["plan_admissible"]:
+            exact.reset()
+            s = exact(r["case"]["z"], r["case"]["z_ref"])
+            ok = s.status == "optimal" and not s.fallback
+            r["opt_gap"] = (r["objective"] - s.objective) / max(1.0, abs(s.objective)) if ok else np.nan
+
+
 def limit_gaps(recs: Sequence[dict]) -> np.ndarray:
     """The gaps of the steps that hit the time limit (NaN where the plan is not admissible: no gap)."""
     return np.array([r["gap"] if r["plan_admissible"] else np.nan for r in recs if r["status"] == "time_limit"])
@@ -120,6 +135,9 @@ def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra
     gf = g[np.isfinite(g)]
     q = (lambda p: float(np.quantile(gf, p)) if gf.size else np.nan)
     no_plan = [r for r in recs if r["status"] == "time_limit" and not r["plan_admissible"]]
+    og = np.array([r["opt_gap"] for r in recs if "opt_gap" in r], float)
+    opt = dict(opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else np.nan,
+               opt_gap_over=int(np.sum(og > TARGET_GAP)), opt_undecided=int(np.sum(np.isnan(og))))
     return dict(run=name, N_p=int(N), steps=len(recs), ms_p50=wall["median_ms"], ms_p99=wall["p99_ms"],
                 ms_max=wall["max_ms"], overrun_ms=max(0.0, wall["max_ms"] - 1e3 * t_s),
                 over_t_s=int(sum(r["ms"] > 1e3 * t_s for r in recs)), cpu_ms_p50=cpu["median_ms"],
@@ -131,15 +149,18 @@ def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra
                 inputs_admissible=int(sum(r["input_ok"] for r in recs)),
                 inputs_flagged=int(sum(r["input_flagged"] for r in recs)),
                 infeasible=int(sum(r["status"] == "infeasible" for r in recs)),
-                error=int(sum(r["status"] == "error" for r in recs)), **extra)
+                error=int(sum(r["status"] == "error" for r in recs)), **opt, **extra)
 
 
 def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0, n_states: int = 60,
-                   t_s: float = T_S, seed: int = 2, check_limit: float = 10.0) -> dict:
+                   t_s: float = T_S, seed: int = 2, check_limit: float = 10.0, optimum_limit: float = 30.0) -> dict:
     """The closed loop and the diverse states at each ``N_p`` with ``time_limit = t_s``.
 
     The diverse states whose limit hit returned no admissible plan are solved again with ``check_limit`` seconds
-    (:func:`decide_misses`; ``0`` skips it).
+    (:func:`decide_misses`; ``0`` skips it), and every limit hit with an admissible plan with ``optimum_limit``
+    seconds (:func:`optimum_gaps`; ``0`` skips it): the rows' ``opt_gap_max`` is the largest distance of such a
+    plan from the optimum, ``opt_gap_over`` the hits above the target 1e-4 and ``opt_undecided`` those whose
+    optimum was not proven in ``optimum_limit``.
 
     Returns ``rows`` (:func:`summarize`, one per run), ``gaps`` (``{label: gaps at the limit}``), ``times``
     (``{label: answer times in ms}``) and ``checks``: ``plans_not_admissible`` (returned plans failing the
@@ -163,6 +184,8 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
         checks["u_within"] &= ck["u_within"]
         checks["u_within_between"] &= ck["u_within_between"]
         miss = decide_misses(setup, div, check_limit) if check_limit else {}
+        if optimum_limit:
+            optimum_gaps(setup, loop + div, optimum_limit)
         for name, recs, extra in (("closed loop", loop, dict(cpu_over_wall=ck["cpu_over_wall"])),
                                   ("diverse states, cold", div, {f"without_plan_{k}": v for k, v in miss.items()})):
             if not recs:
@@ -195,7 +218,8 @@ def deadline_numbers(study: dict) -> dict:
     out = {k: py(c[k]) for k in ("max_overrun_ms", "limit_without_plan", "without_plan_infeasible",
                                  "without_plan_missed", "without_plan_undecided")}
     loop = [r for r in study["rows"] if r["run"] == "closed loop"][-1]
-    out.update({f"loop_{k}": py(loop[k]) for k in ("N_p", "steps", "limit_hits", "gap_p50", "gap_max", "cpu_ms_max")})
+    out.update({f"loop_{k}": py(loop[k]) for k in ("N_p", "steps", "limit_hits", "gap_p50", "gap_max", "cpu_ms_max",
+                                                    "opt_gap_max", "opt_gap_over", "opt_undecided")})
     return out
 
 
@@ -230,5 +254,7 @@ def run(fast: bool) -> dict:
              "between branch-and-bound nodes (the first relaxation of a large program is not interrupted) and the "
              "SCIP check of a DAQP claim builds its model before its limit starts.",
              "gap = (J - J_lb) / max(1, |J|) at the steps that hit the limit: J the cost of the returned plan, J_lb the "
-             "largest valid lower bound known (the QP without the network, the levels proven empty, a solver's bound)."]
+             "largest valid lower bound known (the QP without the network, the levels proven empty, a solver's bound).",
+             "opt_gap = (J - J*) / max(1, |J*|) at the same steps, J* the optimum proven by the MPC without the step's "
+             "limit (cold); opt_gap_over counts the hits above 1e-4, opt_undecided those without a proven J*."]
     return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"], notes=notes, figures=figs)

@@ -1,17 +1,19 @@
 """The one MPC engine of the book: eq. (MPC_form_miqp) with the network constraint at every predicted step.
 
-Layout (imports point down the list):
+Layout (a module imports only modules above it in this list):
 
 * :mod:`.options`: :class:`MPCOptions`, the levers and the constraint model as one validated value;
 * :mod:`.prediction`: :class:`Prediction`, condensing, cost, boxes, terminal rows, the screening QP and
   the one feasibility check;
 * :mod:`.program`: the program form handed to a solver (condensed, free binaries only);
 * :mod:`.levers`: node bounds per option, the steps that need encoding;
+* :mod:`.fallback`: what is applied when a solve gives no plan, and the step-by-step repairs;
+* :mod:`.region`: the program on one activation region of the network (a convex QP), the first incumbent's
+  last improvement;
 * :mod:`.engine`: :class:`NetworkEngine`, the exact solve with the levers (level set, constraint generation,
   warm start);
 * :mod:`.reference`: the paper's program written with :func:`flnotes.encode`, solved cold by SCIP;
 * :mod:`.linear`: the linear models of the exact constraint used by the QP-based MPCs of the comparison;
-* :mod:`.fallback`: what is applied when a solve gives no plan, and the step-by-step repairs;
 * :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history).
 """
 from .controller import MPC, sine_reference

@@ -11,10 +11,12 @@ thus lies in an ellipsoid whose projection on each ``(z(k), v(k))`` is a small b
 leaves few unstable neurons, and steps whose output provably meets the bound are not encoded. The program
 restricted to these boxes contains every plan cheaper than ``J_up`` and nothing infeasible, so its optimum
 is the global one whenever it is below ``J_up``; otherwise ``J_up`` is raised (or, when ``J_up`` is the
-incumbent's cost, the incumbent is optimal). The incumbent is the warm start, or without one the relaxation's
-optimum repaired step by step (``repair``). ``J_up`` starts at the incumbent's cost (``first_level="incumbent"``:
-one round holds the optimum; without an incumbent at ``J_c + max(1, |J_c|)``), or at ``J_c`` plus a small margin
-(``first_level="relaxation"``); the margin is multiplied by 4 per round that finds nothing below it.
+incumbent's cost, the incumbent is optimal). The incumbent is the cheaper of the warm start and the relaxation's
+optimum repaired step by step along the QP without the network, then optimized over the network's linear region
+around it and its neighbours (``repair``; :mod:`flnotes.mpc.region`). ``J_up`` starts at the incumbent's cost
+(``first_level="incumbent"``: one round holds the optimum; without an incumbent at ``J_c + max(1, |J_c|)``), or
+at ``J_c`` plus a small margin (``first_level="relaxation"``); the margin is multiplied by 4 per round
+that finds nothing below it.
 """
 from __future__ import annotations
 
@@ -27,7 +29,8 @@ from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
 from ..solvers import MIQP, make_solver, next_margin
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
-from .fallback import repair_plan
+from .fallback import qp_repair
+from .region import REGION_MOVES, region_qp
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
@@ -126,6 +129,7 @@ class NetworkEngine:
                              warm_started=inc_from_warm)
             res.info["lp_rounds"] = st["lp_rounds"]  # level-set rounds whose node bounds were LP-tightened
             res.info["incumbent"] = st.get("incumbent")  # where the first incumbent came from (None: none)
+            res.info["region_improved"] = st.get("region", False)  # the region QP made it cheaper
             if V is not None:
                 V = np.asarray(V, float).reshape(N, m)
                 obj = pred.cost(V, f, c0)
@@ -155,10 +159,8 @@ class NetworkEngine:
                     self.active_prev = ()
                     return done("optimal", V_q, J_c, "screened: the QP optimum meets the network constraint", True)
         incumbent_from = "warm start" if inc_V is not None else None
-        if o.repair and inc_V is None and V_c is not None:
-            _, V_r = repair_plan(pred, z0, V_c.reshape(N, m))
-            if pred.feasible(z0, V_r):
-                inc_V, inc_J, incumbent_from = V_r.reshape(-1), pred.cost(V_r, f, c0), "repaired relaxation"
+        if o.repair and V_c is not None:
+            inc_V, inc_J, incumbent_from, st["region"] = self._improve(z0, f, c0, V_c, inc_V, inc_J, incumbent_from)
         st["incumbent"] = incumbent_from
         try:
             lo_h, hi_h = pred.boxes(z0)
@@ -315,6 +317,27 @@ class NetworkEngine:
                 return done("optimal", inc_V, inc_J,
                             f"the incumbent is optimal ({incumbent_from}; nothing cheaper)")
             delta *= 4.0
+
+    def _improve(self, z0: Array, f: Array, c0: float, V_c: Array, inc_V: Optional[Array], inc_J: float,
+                 inc_from: Optional[str]) -> tuple[Optional[Array], float, Optional[str], bool]:
+        """The first incumbent of ``repair``: the cheaper of the warm start and the relaxation's optimum ``V_c``
+        repaired along the QP (:func:`flnotes.mpc.fallback.qp_repair`), then optimized over its linear region and
+        its neighbours (:func:`flnotes.mpc.region.region_qp`). Each candidate counts only if it passes the
+        forward-pass check. Returns ``(V, J, where it came from, whether the region QP made it cheaper)``."""
+        pred = self.pred
+        _, V_r = qp_repair(pred, z0, f, V_c)
+        if pred.feasible(z0, V_r):
+            J_r = pred.cost(V_r, f, c0)
+            if J_r < inc_J:
+                inc_V, inc_J, inc_from = V_r.reshape(-1), J_r, "repaired relaxation"
+        if inc_V is None:
+            return None, np.inf, inc_from, False
+        V_p = region_qp(pred, z0, f, inc_V, REGION_MOVES)
+        if V_p is not None and pred.feasible(z0, V_p):
+            J_p = pred.cost(V_p, f, c0)
+            if J_p < inc_J:
+                return V_p, J_p, inc_from, True
+        return inc_V, inc_J, inc_from, False
 
     def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list,
                   deadline: Optional[float] = None) -> NodeBounds:

@@ -102,26 +102,31 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = 2001
     return cand[i[np.argmin(np.sum((cand[i] - v_guess) ** 2, axis=1))]].copy()
 
 
-def qp_repair(pred: Prediction, z: Array, f: Array) -> tuple[Array, Array]:
+def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None) -> tuple[Array, Array]:
     """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
 
     At step ``k`` the QP ``min J(V)`` over the boxes and terminal rows is solved with ``v(0..k-1)`` fixed
     (:meth:`Prediction.qp`); its ``v(k)`` is made admissible at ``z(k)`` by :func:`feasible_tail`. The QP keeps the
     later steps' boxes in view, which a repair of a fixed guess does not. ``f`` is the cost's linear part
-    (:meth:`Prediction.linear`). Check the result with :meth:`Prediction.feasible`.
+    (:meth:`Prediction.linear`); ``V_qp`` the QP's optimum without fixed steps when the caller has it. The QP is
+    solved again only after a step whose ``v(k)`` was moved: fixing ``v(k)`` at the QP's own value leaves its
+    (unique: ``H`` is positive definite) optimum where it is. Check the result with :meth:`Prediction.feasible`.
     """
     N, m = pred.N, pred.m
     z = np.asarray(z, float)
     V = np.zeros((N, m))
-    guess = np.zeros((N, m))
+    guess = np.zeros((N, m)) if V_qp is None else np.asarray(V_qp, float).reshape(N, m)
+    resolve = V_qp is None
     zk = z
     for k in range(N):
-        G = np.eye(N * m)[: k * m] if k else None
-        fixed = V[:k].reshape(-1)
-        x, _, _ = pred.qp(f, z, G, fixed if k else None, fixed if k else None)
-        if x is not None:
-            guess = np.asarray(x, float).reshape(N, m)
+        if resolve:
+            G = np.eye(N * m)[: k * m] if k else None
+            fixed = V[:k].reshape(-1)
+            x, _, _ = pred.qp(f, z, G, fixed if k else None, fixed if k else None)
+            if x is not None:
+                guess = np.asarray(x, float).reshape(N, m)
         V[k] = feasible_tail(pred, zk, guess[k], last=k == N - 1)
+        resolve = not np.array_equal(V[k], guess[k])
         zk = pred.Ad @ zk + pred.Bd @ V[k]
     return pred.predict(z, V), V
 

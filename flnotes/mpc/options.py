@@ -83,9 +83,13 @@ class MPCOptions:
         ``J_c`` plus ``1e-3 max(1, |J_c|)``. Either margin is multiplied by 4 per round until a plan is found
         (a small level: fewer unstable neurons per round, more rounds).
     repair
-        Without a feasible warm start: the relaxation's optimum repaired step by step
-        (:func:`flnotes.mpc.fallback.repair_plan`: each input moved to the nearest admissible one) is the first
-        incumbent when it passes the program's check (:meth:`flnotes.mpc.prediction.Prediction.feasible`).
+        The relaxation's optimum repaired step by step along the QP without the network
+        (:func:`flnotes.mpc.fallback.qp_repair`: at step ``k`` the QP with ``v(0..k-1)`` fixed, its ``v(k)`` moved
+        to the nearest admissible input) is the first incumbent when it passes the program's check
+        (:meth:`flnotes.mpc.prediction.Prediction.feasible`) and is cheaper than the warm start; the cheaper of the
+        two is then optimized over the network's linear region around it and its neighbours
+        (:func:`flnotes.mpc.region.region_qp`, a convex QP per region). Under a time limit this is the plan returned
+        when the branch and bound does not finish, so a poor warm start is not carried from step to step.
     branching
         With a back-end that runs DAQP (``"auto"``, ``"daqp"``) only: DAQP branches on the first fractional binary
         in column order, so the order of the binaries is its branching order. ``"layers"`` (default): the

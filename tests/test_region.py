@@ -1,0 +1,97 @@
+"""The program on one activation region of the network (flnotes.mpc.region): the network is affine there, the
+region QP returns a feasible plan no dearer than its start, and as the MPC's first incumbent it changes no optimum."""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.bench import exactness as ex
+from flnotes.bench import mpc as rt
+from flnotes.mpc import fallback as fb
+from flnotes.mpc import region as rg
+
+
+@pytest.fixture(scope="module")
+def quad15():
+    q = rt.quad_setup()
+    setup = rt.quad_setup(horizon=15, net=q["net"], eps=q["eps"])
+    return setup, rt.make_mpc(setup).pred
+
+
+def _repaired(setup, pred, n, seed):
+    """Diverse states whose relaxation violates the network bound and whose repaired plan passes the check."""
+    out = []
+    for c in ex.mpc_cases(setup, n, seed=seed):
+        f, c0 = pred.linear(c["z"], c["z_ref"])
+        V_c, _, _ = pred.qp(f, c["z"])
+        if V_c is None or pred.feasible(c["z"], V_c):
+            continue
+        _, V_r = fb.qp_repair(pred, c["z"], f, V_c)
+        if pred.feasible(c["z"], V_r):
+            out.append((c, f, c0, V_r.reshape(-1)))
+    return out
+
+
+def test_the_network_is_affine_on_the_region(quad15):
+    """Plans near a repaired plan that keep its activation pattern satisfy its sign rows, and the output rows give
+    the forward pass there: u_max^eps - margin - (row value) equals u_max^eps - margin - Phi_NN(z(k), v(k))."""
+    setup, pred = quad15
+    rng = np.random.default_rng(3)
+    checked = 0
+    for c, f, c0, V in _repaired(setup, pred, fl.scale(10, 6), seed=2)[:3]:
+        G, h, pat = rg.region_rows(pred, c["z"], V)
+        n_sign = sum(p.size for p in pat)
+        N = pred.N
+        assert np.all(G[:n_sign] @ V <= h[:n_sign] + 1e-12), "V violates its own sign rows"
+        for Vp in V + 1e-4 * rng.standard_normal((40, V.size)):
+            X = np.hstack([pred.predict(c["z"], Vp)[:N], Vp.reshape(N, pred.m)])
+            pre = pred.net.preactivations(X)
+            if not all(np.array_equal(a > 0, p) for a, p in zip(pre, pat)):
+                continue
+            checked += 1
+            assert np.all(G[:n_sign] @ Vp <= h[:n_sign] + 1e-12)
+            u = pred.net(X).reshape(-1)
+            upper = G[n_sign:n_sign + N * pred.m] @ Vp - h[n_sign:n_sign + N * pred.m]
+            np.testing.assert_allclose(upper, u - (pred.u_eps[0] - rg.REGION_MARGIN), atol=1e-9)
+    assert checked >= 10, "premise: perturbed plans inside the region"
+
+
+def test_region_qp_is_feasible_and_no_dearer(quad15):
+    """From repaired plans: the region QP's plan passes the forward-pass check and costs at most the repaired plan;
+    the moves to neighbouring regions cost at most the first region's optimum."""
+    setup, pred = quad15
+    cases = _repaired(setup, pred, fl.scale(16, 8), seed=4)
+    better = 0
+    for c, f, c0, V in cases:
+        J = pred.cost(V, f, c0)
+        V1 = rg.region_qp(pred, c["z"], f, V, max_moves=0)
+        V2 = rg.region_qp(pred, c["z"], f, V, max_moves=rg.REGION_MOVES)
+        for W in (V1, V2):
+            assert W is not None and pred.feasible(c["z"], W)
+        J1, J2 = pred.cost(V1, f, c0), pred.cost(V2, f, c0)
+        assert J1 <= J + 1e-9 * max(1.0, abs(J)) and J2 <= J1 + 1e-9 * max(1.0, abs(J1))
+        better += J1 < J - 1e-6 * max(1.0, abs(J))
+    assert len(cases) >= 3 and better >= 2, f"premise: states where the region QP improves ({len(cases)}, {better})"
+
+
+def test_the_first_incumbent_changes_no_optimum(quad15):
+    """Cold diverse states with and without repair (the region QP is part of it) reach the cold reference's
+    status and optimum; with repair the region QP improved the incumbent on some of them."""
+    setup, _ = quad15
+    small = rt.quad_setup()
+    on, off = rt.make_mpc(small), rt.make_mpc(small, repair=False)
+    ref = rt.make_mpc(small, backend="cvxpy-scip", bounds="lp")
+    improved = checked = 0
+    for c in ex.mpc_cases(small, fl.scale(16, 8), seed=8):
+        on.reset()
+        off.reset()
+        s = on(c["z"], c["z_ref"])
+        if s.screened:
+            continue
+        t, r = off(c["z"], c["z_ref"]), ref(c["z"], c["z_ref"])
+        assert s.status == t.status == r.status, (s.message, t.message, r.message)
+        improved += bool(s.info.get("region_improved"))
+        if r.status == "optimal":
+            checked += 1
+            for x in (s, t):
+                assert abs(x.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (x.objective, r.objective)
+    assert checked >= 3 and improved >= 1, f"premise: optimal states, region improvements ({checked}, {improved})"
