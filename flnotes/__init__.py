@@ -13,7 +13,7 @@ Layers, lowest first (a module imports only from layers below it)::
     solvers      solvers/ (MIQP, one module per back-end; numpy, scipy and the solver libraries only)
     constraint   bounds, tightening, encoding (big-M), error (eps), pieces, simulate (owns time)
     controllers  control (CLF-CBF), mpc/ (the one MPC engine: options, prediction, program, levers,
-                 engine, reference, linear, fallback, controller), nmpc (CasADi/IPOPT on the plant),
+                 engine, reference, linear, fallback, region, controller), nmpc (CasADi/IPOPT on the plant),
                  terminal, intersample, arm
     chapters     paper, studies/ (the only importers of paper, with bench/), plots/, widgets, grading
 

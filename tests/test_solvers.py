@@ -376,3 +376,34 @@ def test_highs_qp_at_its_iteration_limit_is_an_error_not_an_endless_solve():
     mip = random_program(0, quad=False)  # a MILP
     assert make_solver(mip, "highs", params={"qp_iteration_limit": 20}).solve().status == "optimal", \
         "the QP iteration limit is not a MILP's"
+
+
+def test_no_verification_model_is_built_without_the_time_to_use_it(monkeypatch):
+    """A claim checked under a time limit with less than VERIFY_MIN_LEFT seconds left: no SCIP model is built (building
+    one took longer than that), and the answer is "time_limit" with the candidate, not a late verification."""
+    import time
+
+    from flnotes.solvers import base
+
+    p = random_program(0, quad=True)
+    solver = make_solver(p, "daqp")
+    monkeypatch.setattr(base, "make_solver", lambda *a, **k: pytest.fail("a verification model was built"))
+    t0 = time.perf_counter()
+    r = base._confirm(solver, p, "scip", None, 0.5 * base.VERIFY_MIN_LEFT, 1e-6, t0, "a claim", 0)
+    assert r.status == "time_limit" and "came before scip could verify it" in r.message
+
+
+def test_scip_does_not_polish_an_incumbent_after_its_time_limit(monkeypatch):
+    """SCIP stopped by its time limit returns its incumbent at once: the HiGHS polish (which took 5 to 14 ms on
+    level-set programs) is for proven optima, not for an answer that is already late."""
+    from flnotes.solvers import scip
+
+    p = random_program(1, quad=True, n_c=8, n_b=14, m_in=12)
+    w_feas = make_solver(p, "daqp").solve().w
+    polished = []
+    monkeypatch.setattr(scip.ScipSolver, "_polish", lambda self, w: polished.append(1) or w)
+    r = make_solver(p, "scip").solve(warm_start=w_feas, time_limit=1e-6)
+    assert r.status == "time_limit", f"premise: the limit stops SCIP ({r.status})"
+    assert r.w is not None and p.violation(r.w) <= 1e-7 and not polished
+    make_solver(p, "scip").solve(warm_start=w_feas)
+    assert polished, "an optimum is polished"

@@ -122,6 +122,53 @@ def optimum_gaps(setup: dict, recs: Sequence[dict], time_limit: float = 30.0) ->
             r["opt_gap"] = (r["objective"] - s.objective) / max(1.0, abs(s.objective)) if ok else np.nan
 
 
+def incumbent_quality(setup: dict, cases: Sequence[dict], time_limit: float = 30.0) -> list[dict]:
+    """The first incumbent of ``repair=True`` against the proven optimum, step by step of its construction.
+
+    For each case (``z``, ``z_ref``, ``category``) whose relaxation violates the network bound and whose program the
+    MPC without a time limit (cold, ``time_limit`` seconds) proves optimal with ``J*``: the relative distance
+    ``(J - J*) / max(1, |J*|)`` of the relaxation's optimum repaired along the QP
+    (:func:`flnotes.mpc.fallback.qp_repair`), of that plan optimized over its linear region
+    (:func:`flnotes.mpc.region.region_qp` without moves) and with the moves to neighbouring regions
+    (:data:`flnotes.mpc.region.REGION_MOVES`), NaN where a plan fails the forward-pass check; and ``certified``,
+    the gap ``(J - J_c) / max(1, |J|)`` of the last plan against the relaxation's optimum ``J_c``, the bound a step
+    stopped at once by its time limit can certify.
+    """
+    from ..mpc.fallback import qp_repair
+    from ..mpc.region import REGION_MOVES, region_qp
+
+    exact = make_mpc(setup, time_limit=time_limit)
+    pred, rows = exact.pred, []
+    for c in cases:
+        z, R = np.asarray(c["z"], float), c["z_ref"]
+        f, c0 = pred.linear(z, R)
+        V_c, fq, _ = pred.qp(f, z)
+        if V_c is None or pred.feasible(z, V_c):
+            continue
+        exact.reset()
+        s = exact(z, R)
+        if s.status != "optimal" or s.fallback:
+            continue
+        J_opt = s.objective
+        dist = lambda V: (pred.cost(V, f, c0) - J_opt) / max(1.0, abs(J_opt))  # noqa: E731
+        _, V_r = qp_repair(pred, z, f, V_c)
+        ok_r = pred.feasible(z, V_r)
+        row = dict(category=c.get("category", ""), repaired=dist(V_r) if ok_r else np.nan, region=np.nan,
+                   region_moves=np.nan, certified=np.nan)
+        last = V_r if ok_r else None
+        for key, moves in (("region", 0), ("region_moves", REGION_MOVES)):
+            V_p = region_qp(pred, z, f, V_r, moves) if ok_r else None
+            if V_p is not None and pred.feasible(z, V_p):
+                row[key] = dist(V_p)
+                if key == "region_moves":
+                    last = V_p
+        if last is not None:
+            J = pred.cost(last, f, c0)
+            row["certified"] = (J - (fq + c0)) / max(1.0, abs(J))
+        rows.append(row)
+    return rows
+
+
 def limit_gaps(recs: Sequence[dict]) -> np.ndarray:
     """The gaps of the steps that hit the time limit (NaN where the plan is not admissible: no gap)."""
     return np.array([r["gap"] if r["plan_admissible"] else np.nan for r in recs if r["status"] == "time_limit"])

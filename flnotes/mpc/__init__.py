@@ -21,6 +21,8 @@ from .engine import NetworkEngine
 from .levers import AUTO_DAQP_BINARIES, LP_AUTO_BINARIES
 from .options import BOUNDS, CONSTRAINTS, MPC_BACKENDS, MPCOptions
 from .prediction import DAQP_OPTIONS, Prediction
+from .region import REGION_MOVES, region_qp, region_rows
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
-           "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES"]
+           "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "REGION_MOVES", "region_qp",
+           "region_rows"]

@@ -4,6 +4,8 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -233,9 +235,10 @@ class ScipSolver(Solver):
             bound = -np.inf
         if abs(bound) >= 1e19:
             bound = -np.inf
-        if w is not None and p.H is not None:
-            w = self._polish(w)
         status = SCIP_STATUS.get(st, "error")
+        out_of_time = status == "time_limit" and time_limit and time.perf_counter() - t0 >= time_limit
+        if w is not None and p.H is not None and not out_of_time:  # at the time limit an incumbent is not polished
+            w = self._polish(w)
         if status == "optimal" and (w is None or p.violation(w) > FEAS_TOL):
             status = "error"
             st += ": no point" if w is None else f": the point violates the program by {p.violation(w):.1e}"
