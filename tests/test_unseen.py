@@ -93,3 +93,14 @@ def test_step_phase_reads_the_step_record():
     assert U.step_phase(fl.StepResult(v, message="the incumbent is optimal (warm start; level set empty)")) == "confirmation"
     assert U.step_phase(fl.StepResult(v, rounds=2, nodes=10, message="daqp: optimal")) == "levels"
     assert U.step_phase(fl.StepResult(v, status="infeasible", fallback=True)) == "fallback"
+
+
+def test_plans_at_the_time_limit_are_checked_and_never_below_the_optimum():
+    """VdP-gain (held out) with time_limit = t_s: every plan passes the forward-pass check, the true input stays
+    within u_max, and a plan returned at the limit is never cheaper than the optimum proven without the limit
+    (its distance is >= 0: the heuristic plan is feasible, the optimum is the optimum)."""
+    r = U.deadline_row("VdP-gain", steps=fl.scale(12, 8), horizon=6, optimum_limit=30.0)
+    assert r["plans_admissible"] == r["steps"] and r["max_u_over_u_max"] <= 1.0
+    assert r["opt_undecided"] == 0
+    if r["limit_hits"]:
+        assert r["opt_gap_max"] >= -1e-6

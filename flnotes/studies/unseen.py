@@ -500,6 +500,44 @@ def unseen_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = N
     return rows, runs
 
 
+def deadline_row(name: str, steps: Optional[int] = None, horizon: Optional[int] = None,
+                 optimum_limit: float = 30.0) -> dict:
+    """The case's closed loop with ``time_limit = t_s``: answer time against ``t_s`` and the plans at the limit.
+
+    Each step that hit the limit with a plan passing the forward-pass check is solved again without the limit
+    (cold, ``optimum_limit`` seconds): ``opt_gap_max`` is the largest ``(J - J*) / max(1, |J*|)`` of those plans,
+    ``opt_gap_over`` how many are above 1e-4, ``opt_undecided`` how many optima that solve did not prove.
+    ``wall_max_over_ts`` is the slowest answer (wall clock) over ``t_s``.
+    """
+    c = case(name)
+    log, mpc, timed = closed_loop(name, t_final=None if steps is None else steps * c.ts, time_limit=c.ts,
+                                  horizon=horizon)
+    wall, h = np.array(timed.wall), mpc.history
+    exact = unseen_mpc(name, horizon=horizon, time_limit=optimum_limit)
+    og = []
+    for s in h:
+        if s.status == "time_limit" and s.info.get("plan_feasible"):
+            exact.reset()
+            r = exact(s.z_pred[0], s.info["z_ref"])
+            ok = r.status == "optimal" and not r.fallback
+            og.append((s.objective - r.objective) / max(1.0, abs(r.objective)) if ok else np.nan)
+    og = np.array(og, float)
+    return dict(system=name, role=c.role, N_p=mpc.N, t_s_ms=c.ts * 1e3, steps=log.n_steps,
+                limit_hits=int(sum(s.status == "time_limit" for s in h)), over_ts_wall=int(np.sum(wall > c.ts)),
+                wall_max_over_ts=float(wall.max() / c.ts), cpu_max_over_ts=float(np.max(timed.cpu) / c.ts),
+                opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else np.nan,
+                opt_gap_over=int(np.sum(og > 1e-4)), opt_undecided=int(np.sum(np.isnan(og))),
+                plans_admissible=int(sum(bool(s.info.get("plan_feasible")) for s in h)),
+                fallbacks=int(sum(s.fallback for s in h)), max_u_over_u_max=float(np.abs(log.u).max() / float(
+                    mpc.system.u_max[0])))
+
+
+def deadline_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = None,
+                   horizon: Optional[int] = None, optimum_limit: float = 30.0) -> list[dict]:
+    """:func:`deadline_row` for each case (default: all)."""
+    return [deadline_row(name, steps, horizon, optimum_limit) for name in (names or list(CASES))]
+
+
 def unseen_numbers(rows: Sequence[dict]) -> dict:
     """What chapter 8 quotes from :func:`unseen_table`'s rows, as Python numbers (and the worst system's name).
 
