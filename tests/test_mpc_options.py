@@ -195,14 +195,14 @@ def test_repaired_incumbent_and_first_level_give_the_reference_optimum(first_lev
     """Cold diverse states (no warm start; feasible and infeasible programs): the relaxation's optimum repaired
     step by step is the first incumbent only when it passes the forward-pass check, the level-set rounds start at
     its cost or at the relaxation's, and status and optimum are the cold reference's, with and without the
-    repair."""
+    repair (which includes the QP of the repaired plan's linear region, flnotes.mpc.region)."""
     from flnotes.bench.exactness import mpc_cases
 
     sysm, net, eps, kw = _small_quad(horizon=8)
     on = MPC(sysm, net, eps, first_level=first_level, **kw)
     off = MPC(sysm, net, eps, first_level=first_level, repair=False, **kw)
     ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
-    repaired = rejected = checked = 0
+    repaired = rejected = checked = improved = 0
     for c in mpc_cases(dict(system=sysm, N=8, ts=kw["ts"]), 40, seed=5):
         on.reset()
         off.reset()
@@ -213,6 +213,7 @@ def test_repaired_incumbent_and_first_level_give_the_reference_optimum(first_lev
         assert s.status == t.status == r.status, (s.message, t.message, r.message)
         assert t.info.get("incumbent") is None  # no warm start, no repair: no incumbent
         repaired += s.info.get("incumbent") == "repaired relaxation"
+        improved += bool(s.info.get("region_improved"))
         rejected += r.status == "infeasible"  # no admissible plan exists: a repaired plan must be rejected
         if r.status == "optimal":
             checked += 1
@@ -221,6 +222,7 @@ def test_repaired_incumbent_and_first_level_give_the_reference_optimum(first_lev
                 assert abs(x.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (x.objective, r.objective)
     assert checked >= 3 and repaired >= 2, f"the premise: optimal states, admissible repairs ({checked}, {repaired})"
     assert rejected >= 2, f"the premise: infeasible programs whose repaired plan the check rejects ({rejected})"
+    assert improved >= 1, "the premise: states where the region QP improved the incumbent"
 
 
 def test_branching_orders_lay_out_the_same_program(recorded):
