@@ -58,8 +58,10 @@ class StepResult:
     warm_started
         True when a previous plan was handed to the solver as a first incumbent.
     info
-        Controller-specific extras (e.g. the CLF-CBF's slack ``delta`` and certificate values, the MPC's
-        reference ``z_ref`` over the horizon).
+        Controller-specific extras (e.g. the CLF-CBF's slack ``delta`` and certificate values; the MPC's
+        reference ``z_ref`` over the horizon, ``plan_feasible`` (the forward-pass check of the plan),
+        ``incumbent`` (where the first incumbent came from: ``"warm start"``, ``"repaired relaxation"`` or
+        ``None``), ``region_improved`` (the QP of its linear region made it cheaper) and ``lp_rounds``).
     """
 
     v: Optional[Array]
