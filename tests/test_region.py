@@ -72,3 +72,22 @@ def test_region_qp_is_feasible_and_no_dearer(quad15):
         assert J1 <= J + 1e-9 * max(1.0, abs(J)) and J2 <= J1 + 1e-9 * max(1.0, abs(J1))
         better += J1 < J - 1e-6 * max(1.0, abs(J))
     assert len(cases) >= 3 and better >= 2, f"premise: states where the region QP improves ({len(cases)}, {better})"
+
+
+def test_a_solver_point_over_the_bound_is_made_exact_on_its_region():
+    """The book's loop at N_p = 10: where a solver's optimum exceeded u_max^eps by its tolerance, the engine took the
+    QP of that point's linear region instead of tightening the rows (no margin), and that plan is the cold
+    reference's optimum."""
+    setup = rt.quad_setup()
+    mpc = rt.make_mpc(setup)
+    fl.simulate(setup["system"], mpc, t_final=fl.scale(6.0, 4.0), ts=setup["ts"], z0=setup["z0"],
+                reference=setup["reference"], progress=False)
+    made = [s for s in mpc.history if "made exact on its linear region" in s.message]
+    assert made, "premise: a step whose solver point exceeded the bound by its tolerance"
+    ref = rt.make_mpc(setup, backend="cvxpy-scip", bounds="lp")
+    for s in made[:3]:
+        assert s.status == "optimal" and s.info["plan_feasible"]
+        assert s.info["tightened"] == 0
+        r = ref(s.z_pred[0], s.info["z_ref"])
+        assert r.status == "optimal"
+        assert abs(s.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (s.objective, r.objective)
