@@ -211,3 +211,27 @@ def test_at_the_limit_the_first_incumbent_is_returned(quad):
             seen["region"] += bool(s.info["region_improved"])
         z = pred.Ad @ z + pred.Bd @ s.v  # the prediction model as the plant: the states depend on no timing
     assert seen["repaired relaxation"] >= 3 and seen["region"] >= 3, f"premise: repairs and region QPs ({seen})"
+
+
+def test_the_fallback_skips_a_plan_along_the_qp_the_engine_saw_fail(quad):
+    """Where the plan along the QP fails the forward-pass check, the fallback told so (qp_repair_failed) returns the
+    same plan as the fallback that builds it again; and the controller then keeps back at least that fallback's
+    time from the engine (reserve), at most half its limit."""
+    pred, same = rt.make_mpc(quad).pred, 0
+    for c in ex.mpc_cases(quad, fl.scale(16, 10), seed=2):
+        f, _ = pred.linear(c["z"], c["z_ref"])
+        if pred.feasible(c["z"], fb.qp_repair(pred, c["z"], f)[1]):
+            continue
+        a = fb.fallback_plan(pred, c["z"], None, f=f)
+        b = fb.fallback_plan(pred, c["z"], None, f=f, qp_repair_failed=True)
+        assert np.array_equal(a[1], b[1]) and a[2:] == b[2:]
+        same += 1
+    assert same >= 2, "premise: states where the plan along the QP fails the check"
+    mpc = rt.make_mpc(quad, time_limit=0.2)
+    for c in ex.mpc_cases(quad, fl.scale(16, 10), seed=2):
+        mpc.reset()
+        if mpc(c["z"], c["z_ref"]).fallback:
+            break
+    else:
+        pytest.fail("premise: a state that needs the fallback")
+    assert mpc._fallback_s > 0 and mpc.reserve == min(max(0.01, mpc._fallback_s), 0.1)

@@ -192,6 +192,7 @@ class MPC:
         K = getattr(terminal, "K", None)
         self.K_terminal = None if K is None else np.asarray(K, float).reshape(self.m, self.n_z)
         self.time_limit, self.gap = time_limit, float(gap)
+        self._fallback_s = 0.0  # the longest fallback run so far (s): see reserve
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
@@ -222,8 +223,12 @@ class MPC:
     @property
     def reserve(self) -> float:
         """Seconds of :attr:`time_limit` kept back from the engine for the checks and the fallback after it: 5 % of
-        the limit, at most 10 ms (the fallback took at most 9.4 ms on the Quad-1D at N_p = 20)."""
-        return 0.0 if self.time_limit is None else min(0.05 * float(self.time_limit), 0.01)
+        the limit (at most 10 ms), or the longest fallback this controller has run (on cold states of the Quad-1D at
+        N_p = 20 whose program has no feasible plan it took 25 to 35 ms), at most half the limit."""
+        if self.time_limit is None:
+            return 0.0
+        tl = float(self.time_limit)
+        return min(max(min(0.05 * tl, 0.01), self._fallback_s), 0.5 * tl)
 
     @property
     def backend(self) -> str:
@@ -378,7 +383,10 @@ class MPC:
         """
         f, _ = self.pred.linear(z, R)
         engine_bound = step.bound
-        Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f)
+        t_fb = time.perf_counter()
+        Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,
+                                                qp_repair_failed=bool(step.info.get("repair_failed")))
+        self._fallback_s = max(self._fallback_s, time.perf_counter() - t_fb)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)
         step.fallback, step.input_admissible = True, ok

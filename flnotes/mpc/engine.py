@@ -132,6 +132,7 @@ class NetworkEngine:
             res.info["incumbent"] = st.get("incumbent")  # where the first incumbent came from (None: none)
             res.info["region_improved"] = st.get("region", False)  # the region QP made it cheaper
             res.info["tightened"] = st["tightened"]  # times u_max^eps was tightened in the rows (solver tolerance)
+            res.info["repair_failed"] = st.get("repair_failed", False)  # the plan along the QP failed the check
             if V is not None:
                 V = np.asarray(V, float).reshape(N, m)
                 obj = pred.cost(V, f, c0)
@@ -162,7 +163,8 @@ class NetworkEngine:
                     return done("optimal", V_q, J_c, "screened: the QP optimum meets the network constraint", True)
         incumbent_from = "warm start" if inc_V is not None else None
         if o.repair and V_c is not None:
-            inc_V, inc_J, incumbent_from, st["region"] = self._improve(z0, f, c0, V_c, inc_V, inc_J, incumbent_from)
+            inc_V, inc_J, incumbent_from, st["region"], st["repair_failed"] = self._improve(
+                z0, f, c0, V_c, inc_V, inc_J, incumbent_from)
         st["incumbent"] = incumbent_from
         try:
             lo_h, hi_h = pred.boxes(z0)
@@ -325,25 +327,27 @@ class NetworkEngine:
             delta *= 4.0
 
     def _improve(self, z0: Array, f: Array, c0: float, V_c: Array, inc_V: Optional[Array], inc_J: float,
-                 inc_from: Optional[str]) -> tuple[Optional[Array], float, Optional[str], bool]:
+                 inc_from: Optional[str]) -> tuple[Optional[Array], float, Optional[str], bool, bool]:
         """The first incumbent of ``repair``: the cheaper of the warm start and the relaxation's optimum ``V_c``
         repaired along the QP (:func:`flnotes.mpc.fallback.qp_repair`), then optimized over its linear region and
         its neighbours (:func:`flnotes.mpc.region.region_qp`). Each candidate counts only if it passes the
-        forward-pass check. Returns ``(V, J, where it came from, whether the region QP made it cheaper)``."""
+        forward-pass check. Returns ``(V, J, where it came from, whether the region QP made it cheaper, whether the
+        repaired plan failed the check)``."""
         pred = self.pred
         _, V_r = qp_repair(pred, z0, f, V_c)
-        if pred.feasible(z0, V_r):
+        failed = not pred.feasible(z0, V_r)
+        if not failed:
             J_r = pred.cost(V_r, f, c0)
             if J_r < inc_J:
                 inc_V, inc_J, inc_from = V_r.reshape(-1), J_r, "repaired relaxation"
         if inc_V is None:
-            return None, np.inf, inc_from, False
+            return None, np.inf, inc_from, False, failed
         V_p = region_qp(pred, z0, f, inc_V, REGION_MOVES)
         if V_p is not None and pred.feasible(z0, V_p):
             J_p = pred.cost(V_p, f, c0)
             if J_p < inc_J:
-                return V_p, J_p, inc_from, True
-        return inc_V, inc_J, inc_from, False
+                return V_p, J_p, inc_from, True, failed
+        return inc_V, inc_J, inc_from, False, failed
 
     def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list,
                   deadline: Optional[float] = None) -> NodeBounds:

@@ -65,6 +65,11 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
     return G[free], h[free]
 
 
+#: Grid points of a one-input search (:func:`feasible_tail`) checked first, the nearest to the guess; the rest only
+#: when none of them is admissible.
+_NEAR = 128
+
+
 def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = 2001, last: bool = False) -> Array:
     """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box (and, for the
     ``last`` step, in the terminal set), closest to ``v_guess``.
@@ -81,21 +86,28 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = 2001
     if pred.m > 2 or _admissible(pred, z, v_guess[None], last)[0]:
         return v_guess
     if pred.m == 1:
+        # the grid in order of distance from the guess (ties in grid order), the nearest _NEAR points first: the
+        # first admissible point in that order is the nearest admissible one, as over the whole grid
         cand = np.linspace(pred.v_lo[0], pred.v_hi[0], n_grid)[:, None]
-    else:
-        from ..pieces import _project, network_polygons, network_regions
+        order = np.argsort(np.abs(cand[:, 0] - v_guess[0]), kind="stable")
+        for part in (order[:_NEAR], order[_NEAR:]):
+            ok = _admissible(pred, z, cand[part], last)
+            if ok.any():
+                return cand[part[int(np.argmax(ok))]].copy()
+        return v_guess
+    from ..pieces import _project, network_polygons, network_regions
 
-        rows = _step_rows(pred, z, last)
-        if rows is None:
-            return v_guess
-        regions = network_regions(pred.net, z, pred.v_lo, pred.v_hi, rows[0], rows[1])
-        polys = network_polygons(pred.net, z, pred.v_lo, pred.v_hi, pred.u_eps, regions=regions)
-        if not polys:
-            return v_guess
-        # the nearest point of each polygon, and the same pulled slightly inside (round-off at its edges)
-        near = np.array([_project(P, v_guess) for P in polys])
-        mid = np.array([P.mean(axis=0) for P in polys])
-        cand = np.vstack([near, near + 1e-9 * (mid - near), near + 1e-6 * (mid - near), mid])
+    rows = _step_rows(pred, z, last)
+    if rows is None:
+        return v_guess
+    regions = network_regions(pred.net, z, pred.v_lo, pred.v_hi, rows[0], rows[1])
+    polys = network_polygons(pred.net, z, pred.v_lo, pred.v_hi, pred.u_eps, regions=regions)
+    if not polys:
+        return v_guess
+    # the nearest point of each polygon, and the same pulled slightly inside (round-off at its edges)
+    near = np.array([_project(P, v_guess) for P in polys])
+    mid = np.array([P.mean(axis=0) for P in polys])
+    cand = np.vstack([near, near + 1e-9 * (mid - near), near + 1e-6 * (mid - near), mid])
     i = np.flatnonzero(_admissible(pred, z, cand, last))
     if not i.size:
         return v_guess
@@ -132,7 +144,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
 
 
 def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]],
-                  f: Optional[Array] = None) -> tuple[Array, Array, str, bool]:
+                  f: Optional[Array] = None, qp_repair_failed: bool = False) -> tuple[Array, Array, str, bool]:
     """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
 
     Safety first, in this order:
@@ -148,6 +160,9 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
        the plan violates the program);
     4. when none exists, the least-violation input (``input_admissible=False``).
 
+    ``qp_repair_failed``: the caller has already built the plan along the QP for this ``z`` and ``f`` and seen it
+    fail the check (the MPC engine's first incumbent), so it is not built again.
+
     For the QP-based constraint models (``constraint`` other than ``"network"``) the same order applies
     with the network as the judge of admissibility: the fallback never claims more than it checks.
     Returns ``(z_pred, v_pred, what, admissible)``.
@@ -158,7 +173,7 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     found = []
     if shifted is not None:
         found.append((repair_plan(pred, z, shifted[1]), "the shifted previous plan repaired step by step"))
-    if f is not None:
+    if f is not None and not qp_repair_failed:
         found.append((qp_repair(pred, z, f), "the plan built along the QP without the network, repaired step by step"))
     found = [(plan, what) for plan, what in found if pred.feasible(z, plan[1])]
     if not found:
