@@ -162,6 +162,10 @@ class MPC:
         used = ("daqp", "scip") if o.backend == "auto" else ("scip",) if o.is_reference else (o.backend,)
         for b in used:
             _require(b)  # ImportError naming the package, here, not at a solve
+        if o.constraint == "network" and not o.is_reference:
+            _require("highs")  # the engine's LP bounds and QPs: imported here, not during the first timed step (60 ms)
+        with one_blas_thread():  # its thread controller is built here too (it inspects the loaded libraries)
+            pass
         if o.is_reference:
             try:
                 import cvxpy  # noqa: F401
