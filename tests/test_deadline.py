@@ -12,6 +12,7 @@ from flnotes.bench import exactness as ex
 from flnotes.bench import mpc as rt
 from flnotes.control import exact_1d_feasible_set
 from flnotes.mpc import MPC
+from flnotes.mpc.controller import RESERVE_SHARE
 from flnotes.mpc import fallback as fb
 from flnotes.solvers import BOUND_TOL
 from flnotes.studies import multi as study
@@ -234,4 +235,34 @@ def test_the_fallback_skips_a_plan_along_the_qp_the_engine_saw_fail(quad):
             break
     else:
         pytest.fail("premise: a state that needs the fallback")
-    assert mpc._fallback_s > 0 and mpc.reserve == min(max(0.01, mpc._fallback_s), 0.1)
+    assert mpc._fallback_s > 0
+    assert mpc.reserve == min(max(RESERVE_SHARE * 0.2, mpc._late_s + mpc._fallback_s), 0.1)
+
+
+def test_the_warm_up_changes_no_answer(quad):
+    """A time-limited controller solves once when it is built (the process's one-off costs): it keeps no history,
+    no previous plan and no active steps, and its answers equal those of a controller built without the warm-up."""
+    import weakref
+
+    from flnotes.solvers import release_retired, retire
+
+    mpc = rt.make_mpc(quad, time_limit=60.0)
+    assert mpc.history == [] and mpc._plan is None and mpc.solver.active_prev == ()
+    ref = rt.make_mpc(quad)
+    for c in ex.mpc_cases(quad, fl.scale(6, 3), seed=5):
+        mpc.reset(), ref.reset()
+        a, b = mpc(c["z"], c["z_ref"]), ref(c["z"], c["z_ref"])
+        assert a.status == b.status
+        if b.status == "optimal":
+            assert abs(a.objective - b.objective) <= 1e-6 * max(1.0, abs(b.objective))
+
+    class Model:  # stands for a solver model a step kept alive
+        pass
+
+    m = Model()
+    dead = weakref.ref(m)
+    retire(m)
+    del m
+    mpc(ex.mpc_cases(quad, 1, seed=5)[0]["z"], np.zeros(quad["system"].n_z))
+    assert dead() is None, "the next step frees the models the last one kept"
+    release_retired()

@@ -401,9 +401,42 @@ def test_scip_does_not_polish_an_incumbent_after_its_time_limit(monkeypatch):
     p = random_program(1, quad=True, n_c=8, n_b=14, m_in=12)
     w_feas = make_solver(p, "daqp").solve().w
     polished = []
-    monkeypatch.setattr(scip.ScipSolver, "_polish", lambda self, w: polished.append(1) or w)
+    monkeypatch.setattr(scip.ScipSolver, "_polish", lambda self, w, time_limit=None: polished.append(1) or (w, False))
     r = make_solver(p, "scip").solve(warm_start=w_feas, time_limit=1e-6)
     assert r.status == "time_limit", f"premise: the limit stops SCIP ({r.status})"
     assert r.w is not None and p.violation(r.w) <= 1e-7 and not polished
     make_solver(p, "scip").solve(warm_start=w_feas)
     assert polished, "an optimum is polished"
+
+
+def test_scip_optimum_without_the_time_to_polish_it_is_not_called_optimal(monkeypatch):
+    """Under a time limit, an optimum SCIP proved but that could not be polished in the time left (its objective can
+    be off by the epigraph's tolerance) is returned as "time_limit" with its point; without a limit it is polished."""
+    from flnotes.solvers import scip
+
+    p = random_program(2, quad=True)
+    assert make_solver(p, "scip").solve().status == "optimal"
+    monkeypatch.setattr(scip, "POLISH_MIN_LEFT", 1e9)  # never enough time left
+    r = make_solver(p, "scip").solve(time_limit=100.0)
+    assert r.status == "time_limit" and "before the point was polished" in r.message
+    assert r.w is not None and p.violation(r.w) <= 1e-7
+
+
+def test_retired_models_live_until_released():
+    """A model kept by retire() is freed by release_retired(), not before (a time-limited step frees the models it
+    built at the start of the next step)."""
+    import gc
+    import weakref
+
+    from flnotes.solvers import release_retired, retire
+
+    release_retired()
+    s = make_solver(random_program(0, quad=False), "scip")
+    ref = weakref.ref(s)
+    retire(s)
+    del s
+    gc.collect()
+    assert ref() is not None, "freed before the release"
+    assert release_retired() == 1 and release_retired() == 0
+    gc.collect()
+    assert ref() is None

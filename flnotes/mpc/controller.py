@@ -17,7 +17,7 @@ from ..bounds import fbbt
 from ..config import one_blas_thread
 from ..network import ReLUNet
 from ..result import StepResult
-from ..solvers import BOUND_TOL, next_margin, project_to_box
+from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
 from ..solvers.base import _require
 from ..systems import FLSystem
 from . import fallback
@@ -28,6 +28,10 @@ from .prediction import DAQP_OPTIONS, Prediction
 from .reference import ReferenceProgram
 
 Array = np.ndarray
+
+
+#: Share of :attr:`MPC.time_limit` that :attr:`MPC.reserve` keeps back from the engine at least.
+RESERVE_SHARE = 0.1
 
 
 def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, phase: float = 0.0
@@ -113,8 +117,10 @@ class MPC:
         only when none passes the check, a plan whose first input is admissible, ``info["plan_feasible"]``
         False). ``bound`` is a valid lower bound of eq. (MPC_form_miqp) (the QP without the network, the levels
         proven empty, a solver's bound) and ``gap = (objective - bound) / max(1, |objective|)``; both NaN for a
-        plan that fails the check. The answer comes after ``time_limit`` plus the overrun of a solver call
-        that does not stop at its limit (measured by ``python -m flnotes.bench deadline``).
+        plan that fails the check. A solver call that does not stop at its limit can still make the answer late:
+        :attr:`reserve` grows to what this controller has measured of it, and ``python -m flnotes.bench deadline``
+        reports the answers after the limit. With a time limit, the controller solves once when it is built
+        (:meth:`NetworkEngine.warm_up`), so that its first step does not pay the process's one-off costs.
     gap
         Relative optimality gap at which a solver stops.
     discretization
@@ -197,6 +203,7 @@ class MPC:
         self.K_terminal = None if K is None else np.asarray(K, float).reshape(self.m, self.n_z)
         self.time_limit, self.gap = time_limit, float(gap)
         self._fallback_s = 0.0  # the longest fallback run so far (s): see reserve
+        self._late_s = 0.0  # the engine's largest answer after its budget so far (s): see reserve
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
@@ -207,6 +214,8 @@ class MPC:
             self.solver = ReferenceProgram(self.pred, o, self.box_bounds)
         else:
             self.solver = NetworkEngine(self.pred, o, self.box_bounds, self.solver_options)
+            if time_limit is not None:  # the one-off costs of a first solve are paid here, not in the first step
+                self.solver.warm_up()
         #: How much ``u_max^eps`` was tightened in the reference's rows at the last solve (the engine has its own).
         self.margin = 0.0
         self.history: list[StepResult] = []
@@ -226,13 +235,18 @@ class MPC:
 
     @property
     def reserve(self) -> float:
-        """Seconds of :attr:`time_limit` kept back from the engine for the checks and the fallback after it: 5 % of
-        the limit (at most 10 ms), or the longest fallback this controller has run (on cold states of the Quad-1D at
-        N_p = 20 whose program has no feasible plan it took 25 to 35 ms), at most half the limit."""
+        """Seconds of :attr:`time_limit` kept back from the engine, for the answer it gives after its budget and the
+        fallback after it: :data:`RESERVE_SHARE` of the limit, or what this controller has measured so far when that
+        is more (the engine's latest answer after its budget plus the longest fallback it ran), at most half the limit.
+
+        The engine answers after its budget by what a solver call overran its time limit (DAQP's branch and bound
+        stopped up to 13 % after its limit on the systems of the benchmark, SCIP 1 to 2 ms); the fallback of a cold
+        state without a feasible plan took 25 to 35 ms on the Quad-1D at N_p = 20.
+        """
         if self.time_limit is None:
             return 0.0
         tl = float(self.time_limit)
-        return min(max(min(0.05 * tl, 0.01), self._fallback_s), 0.5 * tl)
+        return min(max(RESERVE_SHARE * tl, self._late_s + self._fallback_s), 0.5 * tl)
 
     @property
     def backend(self) -> str:
@@ -318,6 +332,7 @@ class MPC:
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0 = time.perf_counter()
+        release_retired()  # the solver models the last step kept alive are freed here, inside this step's budget
         z = self._check_z(z)
         R = self._check_ref(z_ref)
         shifted = self.shifted_plan(z)
@@ -328,7 +343,10 @@ class MPC:
             step = self._solve_reference(z, R)
         else:
             inc = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
-            step = self.solver.solve(z, R, incumbent=inc, time_limit=self._engine_time(t0), gap=self.gap)
+            budget = self._engine_time(t0)
+            step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
+            if budget is not None:  # how late the engine answered after its budget (see reserve)
+                self._late_s = max(self._late_s, step.solve_time - budget)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
             # never a plan that breaks the program labelled as a solution
             step.status, step.v = "error", None

@@ -28,7 +28,8 @@ import numpy as np
 
 from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
-from ..solvers import MIQP, make_solver, next_margin
+from ..solvers import MIQP, available_backends, make_solver, next_margin, release_retired, retire
+from ..solvers.base import VERIFY_MIN_LEFT
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .fallback import qp_repair
 from .region import REGION_MOVES, region_qp
@@ -44,6 +45,14 @@ Array = np.ndarray
 #: whose repaired relaxation failed the check): factors from 0.25 to 4 took 3.8 to 4.0 s in all on the programs
 #: without an incumbent, against 6.5 s with the relaxation's margin of 1e-3 and 4.2 s for the whole program at once.
 FIRST_LEVEL_NO_INCUMBENT = 1.0
+
+#: Seconds of the time limit that must be left to start a solver or a round: with less, the step returns its
+#: incumbent (a solver started then answered after the limit by its start-up and its overrun).
+SOLVE_MIN_LEFT = 0.002
+
+#: Seconds that must be left to polish a round's optimum under a tightened bound (:meth:`NetworkEngine._polish`: a
+#: HiGHS model built and solved, 4 to 6 ms on the systems of the benchmark).
+POLISH_MIN_LEFT = 0.008
 
 #: Solver of the convex relaxation that recentres the level set after LP tightening: it must be the exact
 #: optimum (a perturbed one would shift the ellipsoid), so HiGHS's active-set QP, not DAQP's regularized one.
@@ -92,6 +101,31 @@ class NetworkEngine:
 
     def reset(self) -> None:
         self.active_prev = ()
+
+    def warm_up(self, time_limit: float = 0.05) -> None:
+        """Solve once at the centre of the domain box (reference zero, at most ``time_limit`` seconds) and forget it.
+
+        A process's first solve pays one-off costs that later ones do not: on the pendulum of the benchmark the first
+        program assembly took 62 ms in Python's type checks of the sparse matrices alone (cached after it), more than
+        its sampling time. :class:`flnotes.MPC` calls this when it is given a time limit, so its first timed step
+        does not pay them.
+        """
+        pred = self.pred
+        z_c = 0.5 * (pred.z_lo + pred.z_hi)
+        R = np.zeros((pred.N + 1, pred.nz))
+        self.solve(z_c, R, time_limit=time_limit)  # at the centre the QP's optimum is often admissible (screened)
+        try:  # so the program with every step encoded, by each solver a step may call
+            prob = self.program(z_c, R, steps=list(range(pred.N)))
+        except EmptyBoxError:
+            prob = None
+        if prob is not None:
+            for backend in dict.fromkeys((pick_backend(self.opts.backend, int(prob.n_integer)), "daqp", "scip")):
+                if backend in available_backends() and (backend != "daqp" or prob.n_integer):
+                    make_solver(prob, backend, **self.solver_options.get(backend, {})).solve(time_limit=time_limit)
+            make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
+                             np.zeros(prob.n, dtype=int)), _RELAX).solve(time_limit=time_limit)
+        release_retired()
+        self.reset()
 
     def program(self, z0: Array, z_ref: Array, steps=None, lo: Optional[Array] = None,
                 hi: Optional[Array] = None) -> MIQP:
@@ -177,6 +211,9 @@ class NetworkEngine:
         def remaining() -> Optional[float]:
             return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
 
+        def out_of_time(need: float = SOLVE_MIN_LEFT) -> bool:  # less than ``need`` seconds of the time limit left
+            return time_limit is not None and time_limit - (time.perf_counter() - t0) < need
+
         deadline = None if time_limit is None else t0 + time_limit  # no LP of the node bounds starts after it
 
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
@@ -192,7 +229,7 @@ class NetworkEngine:
                 if n_round and self.margin == 0.0:
                     lb = max(lb, J_up)
                 n_round += 1
-                if time.perf_counter() - t0 > time_limit:
+                if out_of_time():
                     return done("time_limit", inc_V, lb, "time limit: " + (
                         f"the incumbent ({incumbent_from}) is returned" if inc_V is not None else "no feasible plan"))
             lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
@@ -230,6 +267,8 @@ class NetworkEngine:
                         delta *= 4.0
                         continue
             nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi)
+            if out_of_time():  # the node bounds (an LP each under lp) took the rest of the time
+                return done("time_limit", inc_V, lb, "time limit after the node bounds of a round")
             steps = needed_steps(nb, pred.u_eps, o.encode) if nb is not None else None
             if steps is None:
                 if full and inc_V is None:
@@ -243,15 +282,23 @@ class NetworkEngine:
             restrict = level and not full
             enc = sorted(set(steps) & active) if o.lazy else list(steps)
             while True:  # constraint generation (one round without lazy)
+                if out_of_time():  # before building anything (a tightened program comes back here)
+                    return done("time_limit", inc_V, lb, "time limit before the round's program was built")
                 prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
                                        eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
                                        hi=hi if restrict else None, order=self.order)
                 st["n_bin"], st["steps"] = int(prob.n_integer), tuple(enc)
                 st["backend"] = backend = pick_backend(o.backend, int(prob.n_integer))
+                if backend == "scip" and out_of_time(VERIFY_MIN_LEFT):  # a SCIP model takes 10 ms and more to build
+                    return done("time_limit", inc_V, lb, "time limit: too little time left to build a SCIP model")
                 solver = make_solver(prob, backend, **self.solver_options.get(backend, {}))
                 w0 = (plan_vector(pred, z0, inc_V, nb, enc, prob, o.eliminate_stable, self.order)
                       if inc_V is not None else None)
+                if out_of_time():  # no solver starts without time left (it would answer after the limit)
+                    return done("time_limit", inc_V, lb, "time limit before the round's solver started")
                 res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
+                if time_limit is not None and backend != "daqp":
+                    retire(solver)  # a SCIP or HiGHS model is freed at the next step, not inside this one
                 st["nodes"] += int(res.nodes)
                 st["rounds"] += 1
                 status = _status(res.status)
@@ -274,7 +321,10 @@ class NetworkEngine:
                     prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
                                            eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
                                            hi=hi if restrict else None, order=self.order)
-                    polished = self._polish(prob, res, gap)
+                    if out_of_time(POLISH_MIN_LEFT):
+                        return done("time_limit", inc_V, lb, "time limit: too little time left to re-solve the "
+                                    "round under the tightened bound")
+                    polished = self._polish(prob, res, gap, remaining())
                     if polished is None or set(pred.violated(z0, polished.w[: N * m]).tolist()) & set(enc):
                         continue  # the tightened program solved from scratch
                     res = polished
@@ -391,7 +441,7 @@ class NetworkEngine:
         return out
 
     @staticmethod
-    def _polish(prob: MIQP, res, gap: float):
+    def _polish(prob: MIQP, res, gap: float, time_limit: Optional[float] = None):
         """The tightened program with the binaries of ``res`` fixed: a convex QP (HiGHS, exact active set).
 
         ``res`` solved the program before tightening; its objective is a lower bound on that program's optimum
@@ -399,13 +449,14 @@ class NetworkEngine:
         activation pattern whose cost is within ``gap`` of that bound is therefore optimal to ``gap`` for the
         untightened program too, and it satisfies the bound with the margin: it replaces a second branch and
         bound. Returns the polished result (status ``"optimal"``, ``bound`` the earlier objective), or ``None``
-        when the pattern is infeasible under the tightened bound or the cost moved by more than ``gap``.
+        when the pattern is infeasible under the tightened bound, the cost moved by more than ``gap`` or
+        ``time_limit`` stopped the QP.
         """
         ib = np.flatnonzero(prob.integrality == 1)
         lb, ub = prob.lb.copy(), prob.ub.copy()
         lb[ib] = ub[ib] = np.round(res.w[ib])
         r = make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, lb, ub,
-                             np.zeros(prob.n, dtype=int)), _RELAX).solve()
+                             np.zeros(prob.n, dtype=int)), _RELAX).solve(time_limit=time_limit)
         J1 = float(res.objective)
         if r.status != "optimal" or r.w is None or not r.objective <= J1 + gap * max(1.0, abs(J1)):
             return None

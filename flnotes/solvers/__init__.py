@@ -64,12 +64,12 @@ module per back-end (:mod:`.highs`, :mod:`.scip`, :mod:`.daqp`, :mod:`.gurobi`,
 numpy, scipy and the solver libraries only, never a controller; a back-end
 fix never touches MPC or CLF-CBF logic.
 """
-from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver
+from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver, release_retired, retire
 from .daqp import DAQP_STATUS, DaqpSolver
 from .highs import HIGHS_STATUS, HighsSolver
 from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, MIQPResult, next_margin, project_to_box
 from .scip import SCIP_STATUS, ScipSolver
 
-__all__ = ["SOLVER_BACKENDS", "Solver", "available_backends", "make_solver", "DAQP_STATUS", "DaqpSolver", "HIGHS_STATUS",
-           "HighsSolver", "BOUND_TOL", "BOX_TOL", "FEAS_TOL", "MIQP", "MIQPResult", "next_margin", "project_to_box",
-           "SCIP_STATUS", "ScipSolver"]
+__all__ = ["SOLVER_BACKENDS", "Solver", "available_backends", "make_solver", "release_retired", "retire",
+           "DAQP_STATUS", "DaqpSolver", "HIGHS_STATUS", "HighsSolver", "BOUND_TOL", "BOX_TOL", "FEAS_TOL", "MIQP",
+           "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver"]

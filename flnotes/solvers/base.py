@@ -221,6 +221,27 @@ def make_solver(problem: MIQP, backend: str = "auto", **options) -> Solver:
     return cls(problem, **options)
 
 
+#: Solver models whose release is deferred (:func:`retire`): freeing a SCIP model took 1 to 6 ms on the Quad-1D's
+#: programs at N_p = 20, which a time-limited step spent after its solver had stopped.
+_RETIRED: list = []
+
+
+def retire(solver: "Solver") -> None:
+    """Keep ``solver`` alive until :func:`release_retired`: its model is freed then, not when the caller returns.
+
+    A time-limited control step answers first and frees the models it built at the start of its next step, inside
+    that step's budget (:class:`flnotes.MPC`).
+    """
+    _RETIRED.append(solver)
+
+
+def release_retired() -> int:
+    """Free the models kept by :func:`retire`; returns how many there were."""
+    n = len(_RETIRED)
+    _RETIRED.clear()
+    return n
+
+
 #: Seconds a verification needs at least to start under a time limit: with less time left no model is built (SCIP's
 #: took 10 to 17 ms for the level-set programs of the Quad-1D at N_p = 20, and the steps that built one with less
 #: time left answered that much after their limit).
@@ -249,6 +270,8 @@ def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, cl
         return _result(p, "time_limit", ws, -np.inf, nodes, t0, solver.name,
                        f"{claim}, not a proof, and the time limit came before {backend} could verify it")
     out = verifier.solve(warm_start=ws, time_limit=left, gap=gap)
+    if time_limit is not None:
+        retire(verifier)  # freed at the next release, not inside this time-limited call
     out.message = f"{claim}, not a proof: verified by {backend}: {out.message}"
     out.nodes += int(nodes)
     out.backend = solver.name
