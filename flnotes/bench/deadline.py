@@ -11,7 +11,8 @@ Measured here for the Quad-1D of Sec. IV-B at ``N_p = 10, 15, 20`` with ``time_l
 recorded closed loop with the constraint-active reference (``x_ref = 1.5 sin t``, true plant) and on the
 diverse states of :func:`flnotes.bench.exactness.mpc_cases` (solved cold): the answer time per step (p50, p99,
 max, and the overrun past ``t_s``), the CPU time next to it (the machine is shared: wall clock is noisy), the
-steps that hit the limit and the distribution of their gaps, the forward-pass check of every returned plan and
+steps that hit the limit and the distribution of their gaps, the distance of their plans from the optimum (proven
+by the MPC without the limit and, for the closed loops, by the cold reference), the forward-pass check of every returned plan and
 of every applied input, and the true ``|u| <= u_max`` of the closed loop. Speed is measured here, never
 asserted in tests (``tests/test_deadline.py`` asserts the properties).
 """
@@ -22,10 +23,11 @@ from typing import Sequence
 
 import numpy as np
 
+from ..mpc import RESERVE_SHARE
 from ..simulate import simulate
 from ..solvers import BOUND_TOL
 from ..tables import time_stats
-from .exactness import mpc_cases
+from .exactness import mpc_cases, mpc_reference
 from .mpc import TARGET_GAP, make_mpc, quad_setup
 
 #: The time limit per step, one sampling period of the Quad-1D (s).
@@ -122,6 +124,18 @@ def optimum_gaps(setup: dict, recs: Sequence[dict], time_limit: float = 30.0) ->
             r["opt_gap"] = (r["objective"] - s.objective) / max(1.0, abs(s.objective)) if ok else np.nan
 
 
+def reference_gaps(setup: dict, recs: Sequence[dict], time_limit: float = 60.0) -> None:
+    """The plans returned at the limit against the cold reference itself: each limit hit whose plan passes the
+    forward pass is solved by :func:`flnotes.bench.exactness.mpc_reference` (SCIP, every step encoded on the
+    reachable boxes, no lever, gap 1e-8, ``time_limit`` seconds), and ``ref_gap = (J - J_ref) / max(1, |J_ref|)``
+    is written into the record (NaN when the reference proves no optimum in ``time_limit``)."""
+    for r in recs:
+        if r["status"] == "time_limit" and r["plan_admissible"]:
+            s = mpc_reference(setup, [r["case"]], time_limit)[0]
+            ok = s.status == "optimal"
+            r["ref_gap"] = (r["objective"] - s.objective) / max(1.0, abs(s.objective)) if ok else np.nan
+
+
 def incumbent_quality(setup: dict, cases: Sequence[dict], time_limit: float = 30.0) -> list[dict]:
     """The first incumbent of ``repair=True`` against the proven optimum, step by step of its construction.
 
@@ -185,6 +199,10 @@ def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra
     og = np.array([r["opt_gap"] for r in recs if "opt_gap" in r], float)
     opt = dict(opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else np.nan,
                opt_gap_over=int(np.sum(og > TARGET_GAP)), opt_undecided=int(np.sum(np.isnan(og))))
+    rg = np.array([r["ref_gap"] for r in recs if "ref_gap" in r], float)
+    if rg.size:  # only where reference_gaps ran
+        opt.update(ref_gap_max=float(np.nanmax(rg)) if np.isfinite(rg).any() else np.nan,
+                   ref_gap_over=int(np.sum(rg > TARGET_GAP)), ref_undecided=int(np.sum(np.isnan(rg))))
     return dict(run=name, N_p=int(N), steps=len(recs), ms_p50=wall["median_ms"], ms_p99=wall["p99_ms"],
                 ms_max=wall["max_ms"], overrun_ms=max(0.0, wall["max_ms"] - 1e3 * t_s),
                 over_t_s=int(sum(r["ms"] > 1e3 * t_s for r in recs)), cpu_ms_p50=cpu["median_ms"],
@@ -200,14 +218,17 @@ def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra
 
 
 def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0, n_states: int = 60,
-                   t_s: float = T_S, seed: int = 2, check_limit: float = 10.0, optimum_limit: float = 30.0) -> dict:
+                   t_s: float = T_S, seed: int = 2, check_limit: float = 10.0, optimum_limit: float = 30.0,
+                   reference_limit: float = 0.0) -> dict:
     """The closed loop and the diverse states at each ``N_p`` with ``time_limit = t_s``.
 
     The diverse states whose limit hit returned no admissible plan are solved again with ``check_limit`` seconds
     (:func:`decide_misses`; ``0`` skips it), and every limit hit with an admissible plan with ``optimum_limit``
     seconds (:func:`optimum_gaps`; ``0`` skips it): the rows' ``opt_gap_max`` is the largest distance of such a
     plan from the optimum, ``opt_gap_over`` the hits above the target 1e-4 and ``opt_undecided`` those whose
-    optimum was not proven in ``optimum_limit``.
+    optimum was not proven in ``optimum_limit``. With ``reference_limit > 0`` the closed loops' limit hits are also
+    solved by the cold reference itself (:func:`reference_gaps`, ``reference_limit`` seconds each: 5 to 17 s per
+    state at N_p = 20): columns ``ref_gap_max``, ``ref_gap_over`` and ``ref_undecided``.
 
     Returns ``rows`` (:func:`summarize`, one per run), ``gaps`` (``{label: gaps at the limit}``), ``times``
     (``{label: answer times in ms}``) and ``checks``: ``plans_not_admissible`` (returned plans failing the
@@ -235,6 +256,8 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
         miss = decide_misses(setup, div, check_limit) if check_limit else {}
         if optimum_limit:
             optimum_gaps(setup, loop + div, optimum_limit)
+        if reference_limit:
+            reference_gaps(setup, loop, reference_limit)
         for name, recs, extra in (("closed loop", loop, dict(cpu_over_wall=ck["cpu_over_wall"])),
                                   ("diverse states, cold", div, {f"without_plan_{k}": v for k, v in miss.items()})):
             if not recs:
@@ -282,7 +305,7 @@ def run(fast: bool) -> dict:
 
     horizons = (10, 20) if fast else (10, 15, 20)
     res = deadline_study(horizons, t_final=3.0 if fast else 20.0, n_states=6 if fast else 60,
-                         check_limit=2.0 if fast else 10.0)
+                         check_limit=2.0 if fast else 10.0, reference_limit=0.0 if fast else 60.0)
     figs = []
     hits = {k: v for k, v in res["gaps"].items() if np.isfinite(v).any()}
     if hits:
@@ -304,11 +327,16 @@ def run(fast: bool) -> dict:
              f"answers after t_s: {c['over_t_s']} of {c['answers']}; the slowest took {c['max_ms']:.1f} ms (wall clock "
              "on a shared machine; cpu_ms next to it). An answer comes late when a solver call does not stop at its "
              "limit: DAQP reads its clock every 32 iterations of one node's active-set solve (a search of short nodes "
-             "runs on), SCIP at its own pace. The controller keeps back from the engine 10 % of t_s, or the lateness "
-             "and fallback time it has measured so far (MPC.reserve); no solver or round starts without time left, no "
-             "SCIP model is built with less than 20 ms left, and the models a step built are freed at the next step.",
+             "runs on), SCIP at its own pace. The controller keeps back from the engine "
+             f"{100 * RESERVE_SHARE:.0f} % of t_s, or the lateness and fallback time it has measured so far "
+             "(MPC.reserve); no solver or round starts without time left, no SCIP model is built with less than 20 ms "
+             "left, and the models a step built are freed at the next step.",
              "gap = (J - J_lb) / max(1, |J|) at the steps that hit the limit: J the cost of the returned plan, J_lb the "
              "largest valid lower bound known (the QP without the network, the levels proven empty, a solver's bound).",
              "opt_gap = (J - J*) / max(1, |J*|) at the same steps, J* the optimum proven by the MPC without the step's "
              "limit (cold); opt_gap_over counts the hits above 1e-4, opt_undecided those without a proven J*."]
+    if not fast:
+        notes.append("ref_gap (closed loops only) = (J - J_ref) / max(1, |J_ref|) at the same steps, J_ref the optimum of "
+                     "the cold reference (SCIP, every step encoded on the reachable boxes, no lever, gap 1e-8, 60 s "
+                     "per state); ref_gap_over counts the hits above 1e-4, ref_undecided those it did not prove.")
     return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"], notes=notes, figures=figs)

@@ -16,7 +16,7 @@ Layout (a module imports only modules above it in this list):
 * :mod:`.linear`: the linear models of the exact constraint used by the QP-based MPCs of the comparison;
 * :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history).
 """
-from .controller import MPC, sine_reference
+from .controller import MPC, RESERVE_SHARE, sine_reference
 from .engine import NetworkEngine
 from .levers import AUTO_DAQP_BINARIES, LP_AUTO_BINARIES
 from .options import BOUNDS, CONSTRAINTS, MPC_BACKENDS, MPCOptions
@@ -25,4 +25,4 @@ from .region import REGION_MOVES, region_qp, region_rows
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
            "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "REGION_MOVES", "region_qp",
-           "region_rows"]
+           "region_rows", "RESERVE_SHARE"]

@@ -103,27 +103,31 @@ class NetworkEngine:
         self.active_prev = ()
 
     def warm_up(self, time_limit: float = 0.05) -> None:
-        """Solve once at the centre of the domain box (reference zero, at most ``time_limit`` seconds) and forget it.
+        """Solve once at the centre of the domain box (reference zero, at most ``time_limit`` seconds per solve) and
+        forget it.
 
         A process's first solve pays one-off costs that later ones do not: on the pendulum of the benchmark the first
-        program assembly took 62 ms in Python's type checks of the sparse matrices alone (cached after it), more than
-        its sampling time. :class:`flnotes.MPC` calls this when it is given a time limit, so its first timed step
-        does not pay them.
+        program assembly took 62 ms in Python's type checks of the sparse matrices alone (cached after it), and the
+        first DAQP call 70 ms, more than its sampling time. So the whole step is solved once, then a program with
+        the last predicted step encoded (at the centre the QP's optimum is often admissible: no branch and bound)
+        by each solver a step may call. :class:`flnotes.MPC` calls this when it is given a time limit.
         """
         pred = self.pred
         z_c = 0.5 * (pred.z_lo + pred.z_hi)
         R = np.zeros((pred.N + 1, pred.nz))
-        self.solve(z_c, R, time_limit=time_limit)  # at the centre the QP's optimum is often admissible (screened)
-        try:  # so the program with every step encoded, by each solver a step may call
-            prob = self.program(z_c, R, steps=list(range(pred.N)))
+        self.solve(z_c, R, time_limit=time_limit)
+        try:
+            prob = self.program(z_c, R, steps=[pred.N - 1])
         except EmptyBoxError:
             prob = None
         if prob is not None:
-            for backend in dict.fromkeys((pick_backend(self.opts.backend, int(prob.n_integer)), "daqp", "scip")):
-                if backend in available_backends() and (backend != "daqp" or prob.n_integer):
-                    make_solver(prob, backend, **self.solver_options.get(backend, {})).solve(time_limit=time_limit)
-            make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
-                             np.zeros(prob.n, dtype=int)), _RELAX).solve(time_limit=time_limit)
+            relaxed = MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
+                           np.zeros(prob.n, dtype=int))
+            backends = [b for b in dict.fromkeys((pick_backend(self.opts.backend, int(prob.n_integer)), "daqp", "scip"))
+                        if b in available_backends() and (b != "daqp" or prob.n_integer)]
+            for backend in backends:
+                make_solver(prob, backend, **self.solver_options.get(backend, {})).solve(time_limit=time_limit)
+            make_solver(relaxed, _RELAX).solve(time_limit=time_limit)
         release_retired()
         self.reset()
 

@@ -155,6 +155,13 @@ class Prediction:
         Solved by DAQP (``H`` is positive definite). Returns ``(V or None, J - c0, DAQP exit flag)``; a plan
         only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
         """
+        V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi)
+        return V, fval, flag
+
+    def qp_multipliers(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
+                       g_hi: Optional[Array] = None) -> tuple[Optional[Array], float, int, Optional[Array]]:
+        """:meth:`qp` and the multipliers of the rows ``G`` at its optimum (DAQP's: positive on an active upper
+        bound ``g_hi``, negative on an active lower bound, zero on an inactive row); ``None`` without a plan."""
         import daqp
 
         lo, hi = self.state_bounds(z0)
@@ -165,11 +172,12 @@ class Prediction:
         # DAQP: the first N m constraints are simple bounds on V, the rest rows of A
         bu_all = np.r_[np.tile(self.v_hi, N), np.minimum(bu, 1e30)]
         bl_all = np.r_[np.tile(self.v_lo, N), np.maximum(bl, -1e30)]
-        x, fval, flag, _ = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
-                                      np.zeros(len(bu_all), dtype=np.int32))
+        x, fval, flag, info = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
+                                         np.zeros(len(bu_all), dtype=np.int32))
         if flag not in (1, 2):
-            return None, np.inf, int(flag)
-        return np.asarray(x, float), float(fval), int(flag)
+            return None, np.inf, int(flag), None
+        lam = None if G is None else np.asarray(info["lam"], float)[len(bu_all) - len(G):]
+        return np.asarray(x, float), float(fval), int(flag), lam
 
     # ------------------------------------------------------------------ boxes for the node bounds
     def boxes(self, z0: Array) -> tuple[Array, Array]:

@@ -63,17 +63,9 @@ def region_rows(pred: Prediction, z0: Array, V: Array, pattern: Optional[list] =
 
 
 def _region_solve(pred: Prediction, z0: Array, f: Array, G: Array, h: Array):
-    import daqp
-
-    lo, hi = pred.state_bounds(z0)
-    N = pred.N
-    A = np.vstack([pred.A_state, G])
-    bu = np.r_[np.tile(pred.v_hi, N), np.minimum(hi, 1e30), h]
-    bl = np.r_[np.tile(pred.v_lo, N), np.maximum(lo, -1e30), np.full(h.size, -1e30)]
-    x, _, flag, info = daqp.solve(pred.H, np.asarray(f, float), A, bu, bl, np.zeros(bu.size, dtype=np.int32))
-    if flag not in (1, 2):
-        return None, None
-    return np.asarray(x, float), np.asarray(info["lam"], float)[N * pred.m + A.shape[0] - G.shape[0]:]
+    """The QP of :func:`region_qp` on the rows ``G V <= h``: the optimum and the rows' multipliers, or ``None``s."""
+    x, _, _, lam = pred.qp_multipliers(f, z0, G, np.full(h.size, -np.inf), h)
+    return x, lam
 
 
 def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 0) -> Optional[Array]:
