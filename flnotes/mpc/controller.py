@@ -237,7 +237,7 @@ class MPC:
     def reserve(self) -> float:
         """Seconds of :attr:`time_limit` kept back from the engine, for the answer it gives after its budget and the
         fallback after it: :data:`RESERVE_SHARE` of the limit, or what this controller has measured so far when that
-        is more (the latest answer after a limit plus the longest fallback it ran), at most half the limit.
+        is more (the engine's largest lateness after its budget plus the longest fallback it ran), at most half the limit.
 
         The engine answers after its budget by what a solver call overran its time limit: DAQP reads its clock every
         32 iterations of one node's active-set solve, so a search of short nodes runs on (up to 9 ms past a 25 ms
