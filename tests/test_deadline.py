@@ -11,8 +11,7 @@ import flnotes as fl
 from flnotes.bench import exactness as ex
 from flnotes.bench import mpc as rt
 from flnotes.control import exact_1d_feasible_set
-from flnotes.mpc import MPC
-from flnotes.mpc.controller import RESERVE_SHARE
+from flnotes.mpc import MPC, RESERVE_SHARE
 from flnotes.mpc import fallback as fb
 from flnotes.solvers import BOUND_TOL
 from flnotes.studies import multi as study

@@ -12,8 +12,8 @@ recorded closed loop with the constraint-active reference (``x_ref = 1.5 sin t``
 diverse states of :func:`flnotes.bench.exactness.mpc_cases` (solved cold): the answer time per step (p50, p99,
 max, and the overrun past ``t_s``), the CPU time next to it (the machine is shared: wall clock is noisy), the
 steps that hit the limit and the distribution of their gaps, the distance of their plans from the optimum (proven
-by the MPC without the limit and, for the closed loops, by the cold reference), the forward-pass check of every returned plan and
-of every applied input, and the true ``|u| <= u_max`` of the closed loop. Speed is measured here, never
+by the MPC without the limit and, for the closed loops, by the cold reference), the forward-pass check of every
+returned plan and of every applied input, and the true ``|u| <= u_max`` of the closed loop. Speed is measured here, never
 asserted in tests (``tests/test_deadline.py`` asserts the properties).
 """
 from __future__ import annotations

@@ -52,7 +52,7 @@ SOLVE_MIN_LEFT = 0.002
 
 #: Seconds that must be left to polish a round's optimum under a tightened bound (:meth:`NetworkEngine._polish`: a
 #: HiGHS model built and solved, 4 to 6 ms on the systems of the benchmark).
-POLISH_MIN_LEFT = 0.008
+TIGHTENED_QP_MIN_LEFT = 0.008
 
 #: Solver of the convex relaxation that recentres the level set after LP tightening: it must be the exact
 #: optimum (a perturbed one would shift the ellipsoid), so HiGHS's active-set QP, not DAQP's regularized one.
@@ -325,7 +325,7 @@ class NetworkEngine:
                     prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
                                            eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
                                            hi=hi if restrict else None, order=self.order)
-                    if out_of_time(POLISH_MIN_LEFT):
+                    if out_of_time(TIGHTENED_QP_MIN_LEFT):
                         return done("time_limit", inc_V, lb, "time limit: too little time left to re-solve the "
                                     "round under the tightened bound")
                     polished = self._polish(prob, res, gap, remaining())
