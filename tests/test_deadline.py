@@ -283,3 +283,26 @@ def test_plans_at_the_limit_are_measured_against_the_cold_reference(quad):
         assert abs(r["ref_gap"] - r["opt_gap"]) <= 1e-6, r
     row = dl.summarize("diverse", quad["N"], recs, dl.T_S)
     assert row["ref_gap_max"] == max(r["ref_gap"] for r in both)
+    # the reference's lower bound bounds the distance from above, also when the reference stops at its limit
+    for r in both:
+        assert r["ref_bound_gap"] >= r["ref_gap"] - 1e-9, r
+    proven = [r for r in recs if "ref_gap" in r and (r["ref_gap"] <= dl.TARGET_GAP or r["ref_bound_gap"] <= dl.TARGET_GAP)]
+    assert row["ref_unproven"] == sum("ref_gap" in r for r in recs) - len(proven)
+    full = {id(r): r["ref_gap"] for r in both}
+    dl.reference_gaps(quad, recs, TINY)
+    stopped = [r for r in recs if id(r) in full and np.isnan(r["ref_gap"]) and np.isfinite(r["ref_bound_gap"])]
+    assert stopped, "premise: a reference stopped by its limit that returns a lower bound"
+    for r in stopped:
+        assert r["ref_bound_gap"] >= full[id(r)] - 1e-9, r
+
+
+def test_late_answers_are_told_apart_by_their_cpu_time():
+    """An answer after t_s counts as late by its own work only when its step also used more than t_s of CPU time."""
+    from flnotes.bench import deadline as dl
+
+    t = 1e3 * dl.T_S
+    recs = [dict(ms=t + 50.0, cpu_ms=t - 40.0), dict(ms=t + 50.0, cpu_ms=t + 10.0), dict(ms=t - 1.0, cpu_ms=t - 2.0)]
+    assert [dl.late_by_cpu(r) for r in recs] == [False, True, False]
+    base = dict(status="optimal", gap=0.0, fallback=False, plan_admissible=True, input_ok=True, input_flagged=False)
+    row = dl.summarize("synthetic", 10, [dict(base, **r) for r in recs])
+    assert (row["over_t_s"], row["over_t_s_cpu"]) == (2, 1)

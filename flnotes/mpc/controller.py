@@ -240,8 +240,9 @@ class MPC:
         is more (the engine's largest lateness after its budget plus the longest fallback it ran), at most half the limit.
 
         The engine answers after its budget by what a solver call overran its time limit: DAQP reads its clock every
-        32 iterations of one node's active-set solve, so a search of short nodes runs on (up to 9 ms past a 25 ms
-        limit on the systems of the benchmark), SCIP by 1 to 2 ms. The lateness is measured after every step; the
+        32 iterations of a node's active-set solve and every 32 nodes of its branch and bound, so a search of short
+        nodes runs on by up to 32 of them (up to 9 ms past a 25 ms limit on the systems of the benchmark), SCIP by 1
+        to 2 ms. The lateness is measured after every step; the
         fallback of a cold state without a feasible plan took 25 to 35 ms on the Quad-1D at N_p = 20.
         """
         if self.time_limit is None:
