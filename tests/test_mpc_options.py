@@ -80,6 +80,10 @@ def test_every_combination_gives_the_reference_optimum(recorded, opts):
     (dict(backend="scip", branching="layers"), "branching"),
     (dict(branching="depth"), "branching must be one of"),
     (dict(backend="cvxpy-scip", branching="steps"), "branching"),
+    (dict(bounds="box", bound_cache=True), "no LP bound"),
+    (dict(bounds="horizon", bound_cache=False), "no LP bound"),
+    (dict(lp=False, bound_cache=True), "no LP bound"),
+    (dict(backend="cvxpy-scip", bounds="lp", bound_cache=True), "bound_cache"),
 ])
 def test_meaningless_combinations_are_errors(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -94,6 +98,8 @@ def test_options_and_keywords_do_not_mix():
         MPC(sysm, net, EPS, formulation="sparse")
     with pytest.raises(TypeError, match="True or False"):
         MPCOptions(screening="yes")
+    with pytest.raises(TypeError, match="True or False"):
+        MPCOptions(bound_cache=1)
 
 
 def test_terminal_rows_are_imposed(recorded):

@@ -17,7 +17,7 @@ Speed is measured here, never asserted in tests; the machine is shared, so singl
 from __future__ import annotations
 
 import time
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -101,9 +101,8 @@ def record_run(setup: dict, t_final: float, mpc: Optional[MPC] = None, time_limi
     finally:
         del mpc.step
     h = mpc.history
-    prev = [None] + [(s.z_pred, s.v_pred) for s in h[:-1]]
     return dict(t=log.t[: len(h)], z=log.z[: len(h)], R=np.array([s.info["z_ref"] for s in h]),
-                V=np.array([s.v_pred for s in h]), prev=prev, ms=np.array([s.solve_time for s in h]) * 1e3,
+                V=np.array([s.v_pred for s in h]), prev=history_record(h)["prev"], ms=np.array([s.solve_time for s in h]) * 1e3,
                 cpu_ms=np.array(cpu[: len(h)]) * 1e3,
                 status=[s.status for s in h], screened=np.array([s.screened for s in h]),
                 fallback=np.array([s.fallback for s in h]), results=list(h), log=log)
@@ -268,16 +267,23 @@ def cases_record(cases: list) -> dict:
 
 def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Optional[float] = 30.0) -> list:
     """Configurations of :func:`make_mpc` (name -> ``dict(levers=..., solver_options=...)``) on the recorded
-    states ``idx``, warm-started as recorded.
-
-    The configurations are interleaved state by state (the machine's load hits all alike). Each row gives the
-    wall-clock and CPU time per step (median, p99, max), the mean nodes and the largest number of binaries, the
-    mixed-integer programs solved in all (level-set and constraint-generation rounds), the steps not proven
-    optimal, and the largest relative difference of the objective to the first configuration's at the steps
-    both prove optimal.
-    """
+    states ``idx``, warm-started as recorded (:func:`interleaved_rows`)."""
     mpcs = {k: make_mpc(setup, time_limit=time_limit, solver_options=v.get("solver_options"), **v.get("levers", {}))
             for k, v in configs.items()}
+    return interleaved_rows(mpcs, rec, idx)
+
+
+def interleaved_rows(mpcs: dict, rec: dict, idx) -> list:
+    """The controllers ``mpcs`` (name -> :class:`flnotes.MPC`) on the recorded states ``idx`` in order, each
+    warm-started with the recorded previous plan.
+
+    The controllers are interleaved state by state (the machine's load hits all alike) and none is reset in
+    between (the kept LP bounds of ``MPCOptions.bound_cache`` carry over as along the loop). Each row gives the
+    wall-clock and CPU time per step (median, p99, max, and the CPU time in all), the mean nodes and the largest
+    number of binaries, the mixed-integer programs solved in all (level-set and constraint-generation rounds), the
+    steps not proven optimal, the largest relative difference of the objective to the first controller's at the
+    steps both prove optimal, and with kept LP bounds the boxes they served and the boxes asked for.
+    """
     out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[], nbin=[], rounds=[]) for k in mpcs}
     for i in idx:
         for k, m in mpcs.items():
@@ -296,16 +302,59 @@ def interleaved_table(setup: dict, rec: dict, idx, configs: dict, time_limit: Op
     rows = []
     for k, o in out.items():
         w, c = time_stats(o["wall"], percentiles=(50, 99)), time_stats(o["cpu"], percentiles=(50, 99))
-        both = np.array(o["ok"]) & np.array(first["ok"])
-        J, J0 = np.array(o["obj"])[both], np.array(first["obj"])[both]
+        both = np.array(o["ok"], bool) & np.array(first["ok"], bool)
+        J, J0 = np.array(o["obj"], float)[both], np.array(first["obj"], float)[both]
         d = np.abs(J - J0) / np.maximum(1.0, np.abs(J0))
-        rows.append(dict(config=k, N_p=setup["N"], states=len(o["wall"]), ms_median=w["median_ms"],
+        cache = getattr(mpcs[k].solver, "cache", None)
+        rows.append(dict(config=k, N_p=mpcs[k].N, states=len(o["wall"]), ms_median=w["median_ms"],
                          ms_p99=w["p99_ms"], ms_max=w["max_ms"], cpu_ms_median=c["median_ms"], cpu_ms_p99=c["p99_ms"],
                          cpu_ms_max=c["max_ms"], cpu_s_total=float(np.sum(o["cpu"])),
-                         nodes_mean=float(np.mean(o["nodes"])), binaries_max=int(max(o["nbin"])),
+                         nodes_mean=float(np.mean(o["nodes"])) if o["nodes"] else np.nan,
+                         binaries_max=int(max(o["nbin"], default=0)),
                          programs_solved=int(sum(o["rounds"])),
                          non_optimal=int(len(o["ok"]) - sum(o["ok"])),
-                         max_rel_diff_to_default=float(d.max()) if d.size else np.nan))
+                         max_rel_diff_to_default=float(d.max()) if d.size else np.nan,
+                         boxes_served=None if cache is None else cache.served,
+                         boxes_asked=None if cache is None else cache.asked))
+    return rows
+
+
+def history_record(history) -> dict:
+    """What a replay needs of a recorded loop (:func:`record_run`'s ``z``, ``R``, ``prev``, ``screened``), from the
+    :class:`flnotes.StepResult` history of any :class:`flnotes.MPC`."""
+    h = list(history)
+    return dict(z=np.array([s.z_pred[0] for s in h]), R=np.array([s.info["z_ref"] for s in h]),
+                prev=[None] + [(s.z_pred, s.v_pred) for s in h[:-1]], screened=np.array([s.screened for s in h]))
+
+
+#: The kept LP bounds (``MPCOptions.bound_cache``) on and off, compared by :func:`cache_lever_table`; the default
+#: first.
+CACHE_LEVERS = {"bound_cache=True (default)": dict(), "bound_cache=False": dict(bound_cache=False)}
+
+
+def cache_lever_table(horizons: Sequence[int] = (15, 20), t_final: float = 6.0,
+                      unseen: Optional[Sequence[str]] = None, steps: Optional[int] = None,
+                      time_limit: Optional[float] = 30.0) -> list:
+    """The kept LP bounds (:data:`CACHE_LEVERS`) along closed loops: the book's Quad-1D at each ``N_p`` of
+    ``horizons`` (``t_final`` seconds) and the systems ``unseen`` of :mod:`flnotes.studies.unseen` (default all of
+    them; ``steps`` steps each, default their own length), each recorded with the default options and replayed
+    state by state in order (the states where the screening QP was not optimal) with the bounds kept and not kept
+    (:func:`interleaved_rows`, ``time_limit`` seconds per solve). One row per loop and setting, with ``system``."""
+    from ..studies import unseen as un
+
+    rows = []
+    base = quad_setup()
+    for N in horizons:
+        setup = quad_setup(horizon=int(N), net=base["net"], eps=base["eps"])
+        rec = record_run(setup, t_final)
+        mpcs = {k: make_mpc(setup, time_limit=time_limit, **v) for k, v in CACHE_LEVERS.items()}
+        rows += [dict(system="Quad-1D", **r) for r in interleaved_rows(mpcs, rec, np.flatnonzero(~rec["screened"]))]
+    for name in list(un.CASES) if unseen is None else unseen:
+        c = un.case(name)
+        _, mpc, _ = un.closed_loop(name, t_final=None if steps is None else steps * c.ts)
+        rec = history_record(mpc.history)
+        mpcs = {k: un.unseen_mpc(name, options=MPCOptions(**v), time_limit=time_limit) for k, v in CACHE_LEVERS.items()}
+        rows += [dict(system=name, **r) for r in interleaved_rows(mpcs, rec, np.flatnonzero(~rec["screened"]))]
     return rows
 
 
@@ -477,6 +526,10 @@ def run(fast: bool) -> dict:
                      f"wall / {r['cpu_ms_max']:.0f} ms CPU against t_s = {r['target_ms']:.0f} ms; {r['over_ts']} steps "
                      f"over t_s (wall), {r['cpu_over_ts']} (CPU); {r['non_optimal']} not proven optimal; up to "
                      f"{r['binaries_max']} binaries and {r['nodes_max']} nodes in one step")
+    # the LP bounds kept along the loop, on the longer horizons and the systems not in the book
+    for r in cache_lever_table(horizons=(15,) if fast else (15, 20), t_final=2.0 if fast else 6.0,
+                               unseen=("VdP-gain",) if fast else None, steps=8 if fast else 40):
+        rows.append(dict(r, config=f"kept LP bounds, {r['system']} N_p = {r['N_p']}: {r['config']}", backend="auto"))
     # scaling
     horizons = (2, 5, 10) if fast else (2, 4, 6, 8, 10, 15, 20)
     sh = scaling_horizon(horizons, t_final=2.0 if fast else 6.0)

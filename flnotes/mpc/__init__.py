@@ -6,6 +6,7 @@ Layout (a module imports only modules above it in this list):
 * :mod:`.prediction`: :class:`Prediction`, condensing, cost, boxes, terminal rows, the screening QP and
   the one feasibility check;
 * :mod:`.program`: the program form handed to a solver (condensed, free binaries only);
+* :mod:`.bound_cache`: :class:`BoundCache`, LP node bounds kept for the later boxes they contain;
 * :mod:`.levers`: node bounds per option, the steps that need encoding;
 * :mod:`.fallback`: what is applied when a solve gives no plan, and the step-by-step repairs;
 * :mod:`.region`: the program on one activation region of the network (a convex QP), the first incumbent's
@@ -16,6 +17,7 @@ Layout (a module imports only modules above it in this list):
 * :mod:`.linear`: the linear models of the exact constraint used by the QP-based MPCs of the comparison;
 * :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history).
 """
+from .bound_cache import CACHE_BOXES, BoundCache
 from .controller import MPC, RESERVE_SHARE, sine_reference
 from .engine import NetworkEngine
 from .levers import AUTO_DAQP_BINARIES, LP_AUTO_BINARIES
@@ -25,4 +27,4 @@ from .region import REGION_MOVES, region_qp, region_rows
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
            "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "REGION_MOVES", "region_qp",
-           "region_rows", "RESERVE_SHARE"]
+           "region_rows", "RESERVE_SHARE", "BoundCache", "CACHE_BOXES"]

@@ -259,7 +259,8 @@ class MPC:
         return self.options.bounds
 
     def reset(self) -> None:
-        """Forget the previous plan and the history (called by :func:`flnotes.simulate` at the start of a run)."""
+        """Forget the previous plan, the history and the kept LP bounds (``MPCOptions.bound_cache``); called by
+        :func:`flnotes.simulate` at the start of a run."""
         self.history = []
         self._plan = None
         if isinstance(self.solver, NetworkEngine):

@@ -31,6 +31,7 @@ from ..result import StepResult
 from ..solvers import MIQP, available_backends, make_solver, next_margin, release_retired, retire
 from ..solvers.base import VERIFY_MIN_LEFT
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
+from .bound_cache import BoundCache
 from .fallback import qp_repair
 from .region import REGION_MOVES, region_qp
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
@@ -90,6 +91,8 @@ class NetworkEngine:
         How much ``u_max^eps`` was tightened in the rows of the last solve (0 at the start of each solve; grows
         when a returned plan's forward pass exceeds ``u_max^eps`` beyond round-off; the tolerance policy of
         :mod:`flnotes.solvers`).
+    cache
+        The kept LP bounds (:class:`flnotes.mpc.bound_cache.BoundCache`) with ``opts.bound_cache``, else ``None``.
     """
 
     def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None):
@@ -98,9 +101,13 @@ class NetworkEngine:
         self.margin = 0.0
         self.active_prev: tuple = ()
         self.order = opts.branching or "layers"  # the binaries' column order (DAQP's branching order)
+        self.cache = BoundCache() if opts.bound_cache else None  # LP bounds kept for later boxes
 
     def reset(self) -> None:
+        """Forget the steps encoded last and the kept LP bounds: the next solve is cold."""
         self.active_prev = ()
+        if self.cache is not None:
+            self.cache.clear()
 
     def warm_up(self, time_limit: float = 0.05) -> None:
         """Solve once at the centre of the domain box (reference zero, at most ``time_limit`` seconds per solve) and
@@ -270,7 +277,7 @@ class NetworkEngine:
                                         f"the incumbent is optimal ({incumbent_from}; level set empty)")
                         delta *= 4.0
                         continue
-            nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi)
+            nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi, cache=self.cache)
             if out_of_time():  # the node bounds (an LP each under lp) took the rest of the time
                 return done("time_limit", inc_V, lb, "time limit after the node bounds of a round")
             steps = needed_steps(nb, pred.u_eps, o.encode) if nb is not None else None
@@ -408,7 +415,8 @@ class NetworkEngine:
         """``nb`` with the bounds of ``steps`` LP-tightened on the boxes ``lo, hi`` (steps that constraint
         generation adds to an LP-tightened round). When the LP finds a step's box without an admissible
         input, ``nb`` is kept: its FBBT bounds are valid, and the branch and bound proves the same."""
-        t = node_bounds(self.pred, self.opts, self.box, lo, hi, steps=steps, use_lp=True, deadline=deadline)
+        t = node_bounds(self.pred, self.opts, self.box, lo, hi, steps=steps, use_lp=True, deadline=deadline,
+                        cache=self.cache)
         if t is None:
             return nb
         L = [a.copy() for a in nb.L]
@@ -481,7 +489,8 @@ class NetworkEngine:
         Returns ``(empty, lo, hi, node bounds to use or None)``.
         """
         pred, o = self.pred, self.opts
-        nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True, deadline=deadline)
+        nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True, deadline=deadline,
+                            cache=self.cache)
         if nb_lp is None:
             return True, lo, hi, None
         steps = needed_steps(nb_lp, pred.u_eps, o.encode)

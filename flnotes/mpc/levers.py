@@ -13,6 +13,7 @@ import numpy as np
 
 from ..bounds import NodeBounds, fbbt
 from ..tightening import EmptyBoxError, lp_bounds
+from .bound_cache import BoundCache
 from .options import MPCOptions
 from .prediction import Prediction
 
@@ -27,7 +28,7 @@ def repeat_bounds(b: NodeBounds, N: int) -> NodeBounds:
 
 def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, hi: Array,
                 steps: Optional[Sequence[int]] = None, use_lp: Optional[bool] = None,
-                deadline: Optional[float] = None) -> Optional[NodeBounds]:
+                deadline: Optional[float] = None, cache: Optional[BoundCache] = None) -> Optional[NodeBounds]:
     """Per-step node bounds for the boxes ``lo, hi`` (N_p, n_z + m) under ``opts.bounds``.
 
     ``"box"``: ``box`` (FBBT on the domain box) at every step. Otherwise FBBT on the boxes; with ``use_lp``
@@ -37,6 +38,8 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
     bound (:func:`flnotes.lp_bounds`): valid for every point the program can select there. Returns
     ``None`` when some step's box holds no input meeting the output bound (the program is infeasible there).
     ``deadline`` (a ``time.perf_counter()`` value) stops the LPs: :class:`flnotes.tightening.DeadlineReached`.
+    With a ``cache`` (``opts.bound_cache``) the LPs start from the bounds kept for boxes containing a step's box, and
+    their results are kept (:class:`flnotes.mpc.bound_cache.BoundCache`).
     """
     N = pred.N
     if opts.bounds == "box":
@@ -50,11 +53,15 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
         todo = [k for k in todo if np.any(nb.out_L[k] < -c) or np.any(nb.out_U[k] > c)]
         if todo:
             prior = NodeBounds([L[todo] for L in nb.L], [U[todo] for U in nb.U], nb.out_L[todo], nb.out_U[todo])
+            if cache is not None:
+                prior = cache.prior(lo[todo], hi[todo], prior)
             try:
                 t = lp_bounds(pred.net, lo[todo], hi[todo], out_bounds=(-c, c), prior=prior, skip_stable=True,
                               deadline=deadline)
             except EmptyBoxError:
                 return None
+            if cache is not None:
+                cache.add(lo[todo], hi[todo], t)
             for layer in range(len(nb.L)):
                 nb.L[layer][todo], nb.U[layer][todo] = t.L[layer], t.U[layer]
             nb.method = "lp"

@@ -23,7 +23,7 @@ BOUNDS = ("box", "horizon", "lp", "levelset")
 CONSTRAINTS = ("network", "measured", "previous", "none")
 
 _NETWORK_LEVERS = ("bounds", "screening", "lazy", "warm_start", "encode", "eliminate_stable", "lp", "first_level",
-                   "repair", "branching")
+                   "repair", "branching", "bound_cache")
 #: DAQP's branching order (the binaries' column order, :data:`flnotes.mpc.program.ORDERS`).
 BRANCHINGS = ("layers", "steps")
 #: The first level ``J_up`` of the level-set rounds (``bounds="levelset"``; see :mod:`flnotes.mpc.engine`).
@@ -95,6 +95,12 @@ class MPCOptions:
         in column order, so the order of the binaries is its branching order. ``"layers"`` (default): the
         first hidden layer's binaries of every encoded step (early steps first) before the second layer's;
         ``"steps"``: step by step, each step's layers in order.
+    bound_cache
+        Where LP bounds are computed (``bounds="lp"``, or ``"levelset"`` with ``lp`` ``True`` or ``"auto"``) only:
+        keep them and start the LPs of a later box from the kept bounds of every box that contains it
+        (:class:`flnotes.mpc.bound_cache.BoundCache`; valid there, so exact). Default ``True`` there. The kept bounds
+        hold for the network and ``u_max^eps``, not for a state, so they serve every later step;
+        :meth:`flnotes.MPC.reset` forgets them.
     iterations
         With ``constraint="previous"`` only: QPs per sampling instant, each linearizing along the last plan
         (1 is Kurtz & Henson's scheme; more iterate it within the period).
@@ -112,12 +118,13 @@ class MPCOptions:
     first_level: Optional[str] = None
     repair: Optional[bool] = None
     branching: Optional[str] = None
+    bound_cache: Optional[bool] = None
     iterations: Optional[int] = None
 
     def __post_init__(self) -> None:
         given = {f.name for f in fields(self) if getattr(self, f.name) is not None}
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: resolve defaults once
-        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "repair"):
+        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "repair", "bound_cache"):
             if k in given and not isinstance(getattr(self, k), bool):
                 raise TypeError(f"{k} must be True or False, got {getattr(self, k)!r}")
         if "lp" in given and not (isinstance(self.lp, bool) or self.lp == "auto"):
@@ -153,9 +160,10 @@ class MPCOptions:
         put("backend", backend)
         if backend == "cvxpy-scip":
             # the reference: the whole program written with fl.encode, solved cold; no lever applies
-            if "first_level" in given or "branching" in given:
-                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set or DAQP: first_level "
-                                 "and branching do not apply (drop them or choose 'daqp' or 'auto')")
+            if "first_level" in given or "branching" in given or "bound_cache" in given:
+                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set, DAQP or kept LP "
+                                 "bounds: first_level, branching and bound_cache do not apply (drop them or choose "
+                                 "'daqp' or 'auto')")
             for k, off in (("screening", False), ("lazy", False), ("warm_start", False), ("lp", False),
                            ("encode", "all"), ("eliminate_stable", True), ("repair", False)):
                 if k in given and getattr(self, k) != off:
@@ -200,6 +208,12 @@ class MPCOptions:
                 raise ValueError(f"branching must be one of {BRANCHINGS}, got {self.branching!r}")
         put("branching", ("layers" if backend in ("auto", "daqp") else None) if self.branching is None
             else self.branching)
+        lp_runs = bounds == "lp" or (bounds == "levelset" and self.lp is not False)
+        if "bound_cache" in given and not lp_runs:
+            raise ValueError(f"bound_cache={self.bound_cache!r} keeps LP bounds, and with bounds={bounds!r}"
+                             + (", lp=False" if bounds == "levelset" else "") + " no LP bound is computed: drop it, "
+                             "or choose bounds='lp' or bounds='levelset' with lp=True or 'auto'")
+        put("bound_cache", (True if lp_runs else None) if self.bound_cache is None else self.bound_cache)
         for k in ("screening", "warm_start", "eliminate_stable", "repair"):
             put(k, True if getattr(self, k) is None else getattr(self, k))
 
@@ -227,13 +241,14 @@ class MPCOptions:
                     grid = [dict(bounds=b) for b in ("box", "horizon", "lp")]
                 else:
                     grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp,
-                                 first_level=fl, repair=rp, branching=br)
-                            for b, s, w, e, (enc, lz), lp, fl, rp, br in itertools.product(
+                                 first_level=fl, repair=rp, branching=br, bound_cache=bc)
+                            for b, s, w, e, (enc, lz), lp, fl, rp, br, bc in itertools.product(
                                 BOUNDS, (True, False), (True, False), (True, False),
                                 (("needed", True), ("needed", False), ("all", False)), (False, True, "auto"),
-                                FIRST_LEVELS + (None,), (True, False), BRANCHINGS + (None,))
+                                FIRST_LEVELS + (None,), (True, False), BRANCHINGS + (None,), (True, False, None))
                             if not (lp and b != "levelset") and (fl is None) == (b != "levelset")
-                            and (br is None) == (backend not in ("auto", "daqp"))]
+                            and (br is None) == (backend not in ("auto", "daqp"))
+                            and (bc is None) == (b not in ("lp", "levelset") or (b == "levelset" and lp is False))]
                 for kw in grid:
                     o = cls(constraint="network", backend=backend, **kw)
                     if o not in seen:
@@ -250,6 +265,7 @@ class MPCOptions:
         on += ["repair"] if self.repair else []
         on += ["first level: relaxation"] if self.first_level == "relaxation" else []
         on += ["branching step by step"] if self.branching == "steps" else []
+        on += ["LP bounds not kept"] if self.bound_cache is False else []
         extra = [] if self.eliminate_stable else ["stable neurons kept"]
         extra += [] if self.encode == "needed" else ["every step encoded"]
         return f"{self.backend}, bounds={self.bounds}" + "".join(f", {s}" for s in on + extra)
