@@ -59,6 +59,13 @@ TIGHTENED_QP_MIN_LEFT = 0.008
 #: optimum (a perturbed one would shift the ellipsoid), so HiGHS's active-set QP, not DAQP's regularized one.
 _RELAX = "highs"
 
+#: QP iterations the recentring relaxation of an LP-tightened round gets (HiGHS; its default limit is
+#: :func:`flnotes.solvers.highs.qp_iteration_limit`, thousands on these programs). Measured on the closed loops of
+#: the book's Quad-1D at N_p = 15 and 20 and of the VdP system: every recentring that changed the search finished
+#: within it (the same nodes with 500, 2000 and no cap), while those that ran into the default limit took 0.1 to
+#: 0.5 s each and gave no center. A relaxation stopped by the cap leaves the level set as it is (exact either way).
+RECENTER_QP_ITERATIONS = 500
+
 
 def _status(s: str) -> str:
     s = str(s).lower()
@@ -500,7 +507,8 @@ class NetworkEngine:
             prob = compact_program(pred, z0, f, c0, nb_lp, steps, pred.u_eps - self.margin,
                                    eliminate_stable=o.eliminate_stable, lo=lo, hi=hi)
             rr = make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
-                                  np.zeros(prob.n, dtype=int)), _RELAX).solve()
+                                  np.zeros(prob.n, dtype=int)), _RELAX,
+                             params={"qp_iteration_limit": RECENTER_QP_ITERATIONS}).solve()
             if rr.status == "infeasible" or (rr.status == "optimal" and rr.objective > J_up):
                 return True, lo, hi, None
             if rr.status == "optimal" and rr.objective > J_c:
