@@ -33,6 +33,10 @@ from .mpc import TARGET_GAP, make_mpc, quad_setup
 #: The time limit per step, one sampling period of the Quad-1D (s).
 T_S = 0.1
 
+#: Seconds the cold reference gets per limit hit of the closed loops in the full benchmark (:func:`reference_gaps`).
+#: On the N_p = 20 loop it took 1 to 298 s per state; with 60 s it left about a quarter of them undecided.
+REFERENCE_LIMIT = 600.0
+
 
 class _Timed:
     """An MPC for :func:`flnotes.simulate` whose CPU time (``time.process_time``) is recorded per step."""
@@ -124,7 +128,7 @@ def optimum_gaps(setup: dict, recs: Sequence[dict], time_limit: float = 30.0) ->
             r["opt_gap"] = (r["objective"] - s.objective) / max(1.0, abs(s.objective)) if ok else np.nan
 
 
-def reference_gaps(setup: dict, recs: Sequence[dict], time_limit: float = 60.0) -> None:
+def reference_gaps(setup: dict, recs: Sequence[dict], time_limit: float = REFERENCE_LIMIT) -> None:
     """The plans returned at the limit against the cold reference itself: each limit hit whose plan passes the
     forward pass is solved by :func:`flnotes.bench.exactness.mpc_reference` (SCIP, every step encoded on the
     reachable boxes, no lever, gap 1e-8, ``time_limit`` seconds), and ``ref_gap = (J - J_ref) / max(1, |J_ref|)``
@@ -244,10 +248,10 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
     seconds (:func:`optimum_gaps`; ``0`` skips it): the rows' ``opt_gap_max`` is the largest distance of such a
     plan from the optimum, ``opt_gap_over`` the hits above the target 1e-4 and ``opt_undecided`` those whose
     optimum was not proven in ``optimum_limit``. With ``reference_limit > 0`` the closed loops' limit hits are also
-    solved by the cold reference itself (:func:`reference_gaps`, ``reference_limit`` seconds each: 5 to 17 s per
-    state at N_p = 20): columns ``ref_gap_max``, ``ref_gap_over`` and ``ref_undecided``, ``ref_bound_gap_max`` (the
-    largest distance bound from the reference's lower bound) and ``ref_unproven`` (hits whose distance from the optimum
-    the reference proves neither by its optimum nor by its bound to be at most 1e-4).
+    solved by the cold reference itself (:func:`reference_gaps`, ``reference_limit`` seconds each: 1 to 298 s per
+    state at N_p = 20, :data:`REFERENCE_LIMIT`): columns ``ref_gap_max``, ``ref_gap_over`` and ``ref_undecided``,
+    ``ref_bound_gap_max`` (the largest distance bound from the reference's lower bound) and ``ref_unproven`` (hits
+    whose distance from the optimum the reference proves neither by its optimum nor by its bound to be at most 1e-4).
 
     Returns ``rows`` (:func:`summarize`, one per run), ``gaps`` (``{label: gaps at the limit}``), ``times``
     (``{label: answer times in ms}``) and ``checks``: ``plans_not_admissible`` (returned plans failing the
@@ -330,7 +334,7 @@ def run(fast: bool) -> dict:
 
     horizons = (10, 20) if fast else (10, 15, 20)
     res = deadline_study(horizons, t_final=3.0 if fast else 20.0, n_states=6 if fast else 60,
-                         check_limit=2.0 if fast else 10.0, reference_limit=0.0 if fast else 60.0)
+                         check_limit=2.0 if fast else 10.0, reference_limit=0.0 if fast else REFERENCE_LIMIT)
     figs = []
     hits = {k: v for k, v in res["gaps"].items() if np.isfinite(v).any()}
     if hits:
@@ -365,7 +369,8 @@ def run(fast: bool) -> dict:
              "limit (cold); opt_gap_over counts the hits above 1e-4, opt_undecided those without a proven J*."]
     if not fast:
         notes.append("ref_gap (closed loops only) = (J - J_ref) / max(1, |J_ref|) at the same steps, J_ref the optimum of "
-                     "the cold reference (SCIP, every step encoded on the reachable boxes, no lever, gap 1e-8, 60 s "
+                     "the cold reference (SCIP, every step encoded on the reachable boxes, no lever, gap 1e-8, "
+                     f"{REFERENCE_LIMIT:.0f} s "
                      "per state); ref_gap_over counts the hits above 1e-4, ref_undecided those it did not prove; "
                      "ref_bound_gap = (J - J_lb) / max(1, J_lb) with J_lb the reference's lower bound bounds ref_gap "
                      "from above also when it stopped at its limit; ref_unproven counts the hits that the reference "
