@@ -108,3 +108,18 @@ def test_bound_cache_changes_no_optimum_along_a_closed_loop():
         assert abs(a - b) <= 1e-6 * max(1.0, abs(b)), (a, b)
     mpc.reset()
     assert len(mpc.solver.cache) == 0
+
+
+def test_the_chapters_numbers_pair_each_loop_with_and_without():
+    from flnotes.bench import mpc as rt
+
+    row = lambda system, N, cpu, served=None, asked=None: dict(system=system, N_p=N, cpu_s_total=cpu,  # noqa: E731
+                                                               boxes_served=served, boxes_asked=asked)
+    rows = [row("Quad-1D", 15, 3.0, 30, 100), row("Quad-1D", 15, 3.5), row("Quad-1D", 20, 6.0, 190, 200),
+            row("Quad-1D", 20, 8.0), row("A", 8, 1.0, 5, 10), row("A", 8, 1.5), row("B", 6, 2.0, 0, 0),
+            row("B", 6, 2.0)]
+    n = rt.cache_lever_numbers(rows)
+    assert (n["served"], n["asked"], n["q_N_p"], n["q_served"], n["q_cpu_off"]) == (225, 310, 20, 190, 8.0)
+    assert (n["n_lp_sys"], n["n_other"], n["ratio_min"], n["ratio_max"]) == (1, 1, 1.5, 1.5)
+    with pytest.raises(ValueError, match="one row with the bounds kept and one without"):
+        rt.cache_lever_numbers(rows[:-1])

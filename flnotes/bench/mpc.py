@@ -358,6 +358,29 @@ def cache_lever_table(horizons: Sequence[int] = (15, 20), t_final: float = 6.0,
     return rows
 
 
+def cache_lever_numbers(rows: Sequence[dict]) -> dict:
+    """The numbers chapter 8 quotes from :func:`cache_lever_table`: boxes ``served`` from kept bounds of the ``asked``
+    (all loops), the same and the CPU time in all with and without (``q_cpu_on``, ``q_cpu_off``) for the Quad-1D
+    loop at the longest horizon (``q_N_p``), and of the systems not in the book ``n_lp_sys`` that LP-tightened
+    boxes, ``n_other`` that did not, and the range of their CPU time without over with (``ratio_min``,
+    ``ratio_max``; NaN when none)."""
+    on = [r for r in rows if r["boxes_served"] is not None]
+    off = {(r["system"], r["N_p"]): r for r in rows if r["boxes_served"] is None}
+    if len(on) != len(off) or any((r["system"], r["N_p"]) not in off for r in on):
+        raise ValueError("each loop needs one row with the bounds kept and one without (cache_lever_table's rows)")
+    quad = [r for r in on if r["system"] == "Quad-1D"]
+    q = max(quad, key=lambda r: r["N_p"]) if quad else None
+    lp = [r for r in on if r["system"] != "Quad-1D" and r["boxes_asked"] > 0]
+    ratio = [off[(r["system"], r["N_p"])]["cpu_s_total"] / r["cpu_s_total"] for r in lp]
+    out = dict(served=int(sum(r["boxes_served"] for r in on)), asked=int(sum(r["boxes_asked"] for r in on)),
+               n_lp_sys=len(lp), n_other=len(on) - len(quad) - len(lp),
+               ratio_min=min(ratio) if ratio else np.nan, ratio_max=max(ratio) if ratio else np.nan)
+    if q is not None:
+        out.update(q_N_p=int(q["N_p"]), q_served=int(q["boxes_served"]), q_asked=int(q["boxes_asked"]),
+                   q_cpu_on=q["cpu_s_total"], q_cpu_off=off[("Quad-1D", q["N_p"])]["cpu_s_total"])
+    return out
+
+
 def _horizon_runs(horizons, t_final: float, time_limit: Optional[float]):
     """``(N_p, setup, recorded run)`` of the book's loop with the book's network for each ``N_p``."""
     base = quad_setup()

@@ -81,9 +81,9 @@ class BoundCache:
             return NodeBounds(L, U, nb.out_L, nb.out_U, method=nb.method)
         if self.lo.shape[1] != lo.shape[1]:
             raise ValueError(f"the boxes have {lo.shape[1]} inputs, the kept ones {self.lo.shape[1]}")
-        tol = 1e-12 * (1.0 + np.abs(lo))
-        inside = (np.all(self.lo[None] <= lo[:, None] + tol[:, None], axis=2)
-                  & np.all(self.hi[None] >= hi[:, None] - tol[:, None], axis=2))  # (boxes asked, boxes kept)
+        t_lo, t_hi = 1e-12 * (1.0 + np.abs(lo)), 1e-12 * (1.0 + np.abs(hi))  # round-off of the box arithmetic
+        inside = (np.all(self.lo[None] <= (lo + t_lo)[:, None], axis=2)
+                  & np.all(self.hi[None] >= (hi - t_hi)[:, None], axis=2))  # (boxes asked, boxes kept)
         for t in np.flatnonzero(inside.any(axis=1)):
             m = inside[t]
             nL = [np.maximum(L[k][t], self.L[k][m].max(axis=0)) for k in range(len(L))]
