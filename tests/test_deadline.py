@@ -1,8 +1,10 @@
 """A guaranteed answer: the MPC under a time limit returns a plan checked by the forward pass, an admissible input
 and an honest optimality gap (the properties; speed is measured in ``python -m flnotes.bench deadline``).
 
-With a limit far below any solve (``TINY``) the engine returns at its first check of the time, so which path each
-step takes depends on the states only, not on the machine's speed.
+With a limit far below any solve (``TINY``) and ``cut_off=False`` the engine returns at its first check of the time,
+so which path each step takes depends on the states only, not on the machine's speed. With the cut-off (the default
+under a time limit) the step answers while the engine runs on in its thread; the tests of the cut-off hold the
+solver in a gate, so that what they check does not depend on thread timing either.
 """
 import numpy as np
 import pytest
@@ -48,7 +50,7 @@ def test_closed_loop_at_the_limit_returns_admissible_plans(quad, repair):
     Without the repaired incumbent the first step has no plan (the fallback is exercised); with it (the default)
     that step returns the repaired relaxation."""
     setup = rt.quad_setup(horizon=20, net=quad["net"], eps=quad["eps"])
-    mpc = rt.make_mpc(setup, time_limit=TINY, repair=repair)
+    mpc = rt.make_mpc(setup, time_limit=TINY, repair=repair, cut_off=False)
     log = fl.simulate(setup["system"], mpc, t_final=fl.scale(4.0, 1.5), ts=setup["ts"], z0=setup["z0"],
                       reference=setup["reference"], progress=False)
     hits = [s for s in mpc.history if s.status == "time_limit"]
@@ -70,7 +72,7 @@ def test_the_bound_at_the_limit_is_a_lower_bound(quad):
     tests/test_exactness.py) <= the returned plan's cost, on diverse states; an input flagged not admissible only
     where no admissible v exists (the exact 1-D set is empty)."""
     cases = ex.mpc_cases(quad, fl.scale(10, 7), seed=5)
-    mpc, exact = rt.make_mpc(quad, time_limit=TINY), rt.make_mpc(quad)
+    mpc, exact = rt.make_mpc(quad, time_limit=TINY, cut_off=False), rt.make_mpc(quad)
     hits = 0
     for c in cases:
         mpc.reset()
@@ -119,7 +121,7 @@ def test_two_inputs_under_the_limit(arm, repair):
     system, net, eps = arm
     M = study.ARM_MPC
     mpc = MPC(system, net, eps, horizon=M["horizon"], ts=M["ts"], Q=M["Q"], R=M["R"], time_limit=TINY,
-              repair=repair)
+              repair=repair, cut_off=False)
     log = fl.simulate(system, mpc, t_final=fl.scale(4.0, 3.5), ts=M["ts"], z0=M["z0"],
                       reference=study.setpoint_reference(M["setpoints"], M["t_switch"]), hold="u", net=net,
                       progress=False)
@@ -183,7 +185,7 @@ def test_at_the_limit_the_first_incumbent_is_returned(quad):
     from flnotes.mpc import region as rg
 
     setup = rt.quad_setup(horizon=15, net=quad["net"], eps=quad["eps"])
-    mpc = rt.make_mpc(setup, time_limit=TINY)
+    mpc = rt.make_mpc(setup, time_limit=TINY, cut_off=False)
     pred, z = mpc.pred, np.asarray(setup["z0"], float)
     seen = {"warm start": 0, "repaired relaxation": 0, "region": 0}
     for k in range(fl.scale(30, 12)):
@@ -306,3 +308,145 @@ def test_late_answers_are_told_apart_by_their_cpu_time():
     base = dict(status="optimal", gap=0.0, fallback=False, plan_admissible=True, input_ok=True, input_flagged=False)
     row = dl.summarize("synthetic", 10, [dict(base, **r) for r in recs])
     assert (row["over_t_s"], row["over_t_s_cpu"]) == (2, 1)
+
+
+class Gate:
+    """Holds the engine's first solver call (``calls`` of them) until :meth:`release`: a solver that overruns its
+    limit by as long as the test wants, without any timing in the test. ``then`` replaces the held call's result
+    (e.g. an exception to raise)."""
+
+    def __init__(self, monkeypatch, calls: int = 1, then=None):
+        import threading
+
+        from flnotes.mpc import engine
+
+        self.entered, self.released, self.left, self.then = threading.Event(), threading.Event(), calls, then
+        real = engine.make_solver
+
+        def make_solver(prob, backend, **kw):
+            solver = real(prob, backend, **kw)
+            if self.left <= 0:
+                return solver
+            self.left -= 1
+            solve = solver.solve
+
+            def held(*a, **k):
+                self.entered.set()
+                assert self.released.wait(120.0), "the test never released the gate"
+                if self.then is not None:
+                    raise self.then
+                return solve(*a, **k)
+
+            solver.solve = held
+            return solver
+
+        monkeypatch.setattr(engine, "make_solver", make_solver)
+
+    def release(self):
+        self.released.set()
+
+
+def engine_state(quad, horizon=15):
+    """A state of the book's loop where the engine reaches a solver call with an incumbent (not screened)."""
+    setup = rt.quad_setup(horizon=horizon, net=quad["net"], eps=quad["eps"])
+    probe = rt.make_mpc(setup)
+    z = np.asarray(setup["z0"], float)
+    for k in range(40):
+        R = setup["reference"](setup["ts"] * (k + np.arange(setup["N"] + 1)))
+        prev = probe._plan
+        s = probe(z, R)
+        if s.rounds >= 1 and s.info.get("incumbent") is not None:
+            return setup, z, R, prev, s
+        z = probe.pred.Ad @ z + probe.pred.Bd @ s.v
+    pytest.fail("premise: a state of the loop that needs a solver call")
+
+
+def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatch):
+    """A solver call held past the limit: the step answers anyway, with the engine's incumbent (checked by the
+    forward pass, honest gap, status time_limit, flagged cut_off), while the call is still held; the next step waits
+    for the held solve to end, and then solves to the same optimum as a controller without a limit."""
+    setup, z, R, prev, exact = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.5)
+    assert mpc.cut_off, "the cut-off is on by default under a time limit"
+    gate = Gate(monkeypatch)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert gate.entered.is_set() and not gate.released.is_set(), "premise: the answer came while the solver was held"
+    assert s.status == "time_limit" and s.info["cut_off"], s.message
+    assert check_step(mpc, s) and not s.fallback and s.input_admissible, s.message
+    assert s.objective >= exact.objective - 1e-6 * max(1.0, abs(exact.objective))  # never below the optimum
+    assert s.bound <= exact.objective + 1e-6 * max(1.0, abs(exact.objective))
+    assert mpc._running is not None, "the held solve is still running"
+    gate.release()
+    mpc.set_previous_plan(prev)
+    again = mpc(z, R)  # waits for the held solve first
+    assert mpc._running is None and not again.info["cut_off"]
+    assert again.status == "optimal", again.message
+    assert abs(again.objective - exact.objective) <= 1e-6 * max(1.0, abs(exact.objective))
+    mpc.solver.go()  # what a step does before it starts a solve: an answer read then has no plan of an earlier state
+    assert mpc.solver.answer_now().v is None
+
+
+def test_an_error_in_a_cut_off_solve_is_raised_at_the_next_step(quad, monkeypatch):
+    """The solve a step answered at its cut-off fails after the answer: the error is raised by the next call, with a
+    note saying where it came from (never dropped)."""
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.5)
+    gate = Gate(monkeypatch, then=RuntimeError("the solver broke"))
+    mpc.set_previous_plan(prev)
+    assert mpc(z, R).info["cut_off"]
+    gate.release()
+    with pytest.raises(RuntimeError, match="the solver broke") as err:
+        mpc(z, R)
+    assert any("cut-off" in n for n in getattr(err.value, "__notes__", []))
+
+
+def test_cut_off_closed_loop_keeps_every_property(quad):
+    """The book's loop at N_p = 20 with a limit far below any solve and the cut-off on: steps answer while the
+    engine runs on (which answer depends on thread timing), and every answer still passes the checks: the plan's
+    forward pass, an admissible input, an honest gap, and the true |u| <= u_max on the plant at the samples."""
+    setup = rt.quad_setup(horizon=20, net=quad["net"], eps=quad["eps"])
+    mpc = rt.make_mpc(setup, time_limit=TINY)
+    log = fl.simulate(setup["system"], mpc, t_final=fl.scale(4.0, 1.5), ts=setup["ts"], z0=setup["z0"],
+                      reference=setup["reference"], progress=False)
+    assert sum(bool(s.info.get("cut_off")) for s in mpc.history) >= 3, "premise: steps answered at the cut-off"
+    for s in mpc.history:
+        assert s.status in ("optimal", "time_limit")
+        assert check_step(mpc, s), s.message
+        assert s.input_admissible
+    assert log.summary()["u_within_bound_at_samples"]
+
+
+def test_cut_off_is_validated(quad):
+    """cut_off means something only with a time limit and the network engine; anything else is an error that says
+    what to change; a clone without a time limit drops it."""
+    with pytest.raises(ValueError, match="time_limit"):
+        rt.make_mpc(quad, cut_off=True)
+    with pytest.raises(ValueError, match="time_limit"):
+        rt.make_mpc(quad, cut_off=False)
+    with pytest.raises(TypeError, match="cut_off"):
+        rt.make_mpc(quad, time_limit=1.0, cut_off=1)
+    with pytest.raises(ValueError, match="network engine"):
+        rt.make_mpc(quad, backend="cvxpy-scip", time_limit=1.0, cut_off=True)
+    ref = rt.make_mpc(quad, backend="cvxpy-scip", time_limit=1.0)
+    assert not ref.cut_off, "the cold reference waits for its solver"
+    mpc = rt.make_mpc(quad, time_limit=1.0, cut_off=False)
+    assert not mpc.cut_off and not mpc.clone(time_limit=None).cut_off
+    assert mpc.clone(cut_off=None).cut_off
+
+
+def test_cut_off_study_compares_the_two_settings(quad):
+    """The bench's cut-off lever: the same loop with no share kept back, without and with the cut-off; every plan
+    passes the forward pass, no answer is flagged as cut off without the cut-off, and a share outside [0, 0.5] is an
+    error that says so."""
+    from flnotes.bench import deadline as dl
+
+    off, on = dl.cut_off_study(quad, t_final=fl.scale(2.0, 0.5))
+    assert off["run"].startswith("cut_off=False") and on["run"].startswith("cut_off=True")
+    assert off["cut_offs"] == 0 and off["steps"] == on["steps"]
+    for r in (off, on):
+        assert r["plans_admissible"] == r["steps"] and r["u_within"] and r["error"] == 0
+    mpc = rt.make_mpc(quad, time_limit=0.1)
+    mpc.reserve_share = 0.7
+    with pytest.raises(ValueError, match="reserve_share"):
+        mpc.reserve

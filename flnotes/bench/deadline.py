@@ -19,7 +19,7 @@ asserted in tests (``tests/test_deadline.py`` asserts the properties).
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -63,17 +63,21 @@ def step_record(mpc, res, cpu: float) -> dict:
                 gap=float(res.gap), objective=float(res.objective), bound=float(res.bound),
                 plan_admissible=bool(mpc.pred.feasible(z, res.v_pred)),
                 input_ok=bool(np.all(np.abs(u_nn) <= mpc.u_eps + BOUND_TOL)),
-                input_flagged=not res.input_admissible)
+                input_flagged=not res.input_admissible, cut_off=bool(res.info.get("cut_off", False)))
 
 
-def closed_loop(setup: dict, t_final: float, t_s: float = T_S) -> tuple[list[dict], dict]:
-    """The recorded closed loop (true plant, sine reference) with ``time_limit = t_s``.
+def closed_loop(setup: dict, t_final: float, t_s: float = T_S, cut_off: Optional[bool] = None,
+                reserve_share: Optional[float] = None) -> tuple[list[dict], dict]:
+    """The recorded closed loop (true plant, sine reference) with ``time_limit = t_s`` (and the MPC's ``cut_off``
+    and ``reserve_share`` when given).
 
     Returns the per-step records (:func:`step_record`) and the run's checks: ``u_within`` (true ``|u| <= u_max``
     at the samples, to 1e-9: what ``eps`` guarantees), ``u_within_between`` (the same between the samples, which
     takes the drift margin of the chapter "Guarantees") and ``cpu_over_wall`` (CPU time / wall time over the run).
     """
-    mpc = make_mpc(setup, time_limit=t_s)
+    mpc = make_mpc(setup, time_limit=t_s, cut_off=cut_off)
+    if reserve_share is not None:
+        mpc.reserve_share = reserve_share
     timed = _Timed(mpc)
     w0, c0 = time.perf_counter(), time.process_time()
     log = simulate(setup["system"], timed, t_final=t_final, ts=setup["ts"], z0=setup["z0"],
@@ -84,6 +88,21 @@ def closed_loop(setup: dict, t_final: float, t_s: float = T_S) -> tuple[list[dic
             for r, c in zip(mpc.history, timed.cpu)]
     return recs, dict(u_within=bool(s["u_within_bound_at_samples"]), u_within_between=bool(s["u_within_bound_between"]),
                       cpu_over_wall=cpu / max(wall, 1e-12))
+
+
+def cut_off_study(setup: dict, t_final: float, t_s: float = T_S, reserve_share: float = 0.0) -> list[dict]:
+    """The cut-off as a lever: the closed loop with ``time_limit = t_s`` and ``reserve_share`` (default none: the
+    reserve is only what the controller has measured), without and with ``cut_off``, one run after the other.
+
+    One :func:`summarize` row per setting (``run`` says which), with ``u_within`` of the loop. Without a share kept
+    back, a solver call that overruns its limit makes the answer late unless the step answers at its cut-off.
+    """
+    rows = []
+    for cut in (False, True):
+        recs, chk = closed_loop(setup, t_final, t_s, cut_off=cut, reserve_share=reserve_share)
+        rows.append(summarize(f"cut_off={cut}, reserve_share={reserve_share:g}", setup["N"], recs, t_s,
+                              u_within=chk["u_within"]))
+    return rows
 
 
 def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2) -> list[dict]:
@@ -206,7 +225,8 @@ def late_by_cpu(rec: dict, t_s: float = T_S) -> bool:
 
 def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra) -> dict:
     """One table row: answer times (wall and CPU), overrun past ``t_s`` (``over_t_s`` answers after it, of which
-    ``over_t_s_cpu`` late by their own CPU time: :func:`late_by_cpu`), limit hits, gaps, admissibility."""
+    ``over_t_s_cpu`` late by their own CPU time: :func:`late_by_cpu`), limit hits (``cut_offs`` of them answered at
+    the cut-off while the engine ran on), gaps, admissibility."""
     wall = time_stats([r["ms"] / 1e3 for r in recs], percentiles=(50, 99))
     cpu = time_stats([r["cpu_ms"] / 1e3 for r in recs], percentiles=(50, 99))
     g = limit_gaps(recs)
@@ -228,7 +248,7 @@ def summarize(name: str, N: int, recs: Sequence[dict], t_s: float = T_S, **extra
                 over_t_s=int(sum(r["ms"] > 1e3 * t_s for r in recs)), over_t_s_cpu=int(sum(late_by_cpu(r, t_s) for r in recs)),
                 cpu_ms_p50=cpu["median_ms"],
                 cpu_ms_max=cpu["max_ms"], limit_hits=int(sum(r["status"] == "time_limit" for r in recs)),
-                limit_without_plan=len(no_plan),
+                cut_offs=int(sum(r.get("cut_off", False) for r in recs)), limit_without_plan=len(no_plan),
                 gap_p50=q(0.5), gap_p90=q(0.9), gap_max=q(1.0),
                 fallbacks=int(sum(r["fallback"] for r in recs)),
                 plans_admissible=int(sum(r["plan_admissible"] for r in recs)),
@@ -259,7 +279,8 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
     without the flag), ``u_within`` and ``u_within_between`` (true ``|u| <= u_max`` at the samples and between
     them in every closed loop, :func:`closed_loop`), ``max_overrun_ms``, ``max_ms`` and ``max_ms_cpu`` (the slowest
     answer, and the CPU time of its step), ``answers``, ``over_t_s`` and ``over_t_s_cpu`` (how many answers in all,
-    after ``t_s``, and of those late by their own CPU time: :func:`late_by_cpu`),
+    after ``t_s``, and of those late by their own CPU time: :func:`late_by_cpu`), ``cut_offs`` (answers given at
+    the cut-off while the engine's solve ran on: :class:`flnotes.MPC` ``cut_off``),
     ``negative_gaps`` and ``inconsistent_gaps`` (a recorded gap that does not follow from the objective and
     the bound), ``limit_without_plan`` (limit hits whose plan fails the forward pass: only its first input is
     admissible, or none exists) and, of those on diverse states, ``without_plan_infeasible`` / ``_missed`` /
@@ -268,7 +289,7 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
     base = quad_setup()
     rows, gaps, times = [], {}, {}
     checks = dict(plans_not_admissible=0, inputs_not_admissible=0, u_within=True, u_within_between=True,
-                  max_overrun_ms=0.0, max_ms=0.0, max_ms_cpu=0.0, answers=0, over_t_s=0, over_t_s_cpu=0,
+                  max_overrun_ms=0.0, max_ms=0.0, max_ms_cpu=0.0, answers=0, over_t_s=0, over_t_s_cpu=0, cut_offs=0,
                   negative_gaps=0, inconsistent_gaps=0,
                   limit_without_plan=0, infeasible_programs=0,
                   without_plan_infeasible=0, without_plan_missed=0, without_plan_undecided=0)
@@ -305,6 +326,7 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
             checks["answers"] += row["steps"]
             checks["over_t_s"] += row["over_t_s"]
             checks["over_t_s_cpu"] += row["over_t_s_cpu"]
+            checks["cut_offs"] += row["cut_offs"]
             for r in recs:
                 if np.isfinite(r["gap"]):
                     checks["negative_gaps"] += int(r["gap"] < 0)
@@ -319,7 +341,7 @@ def deadline_numbers(study: dict) -> dict:
     c = study["checks"]
     py = lambda x: x.item() if hasattr(x, "item") else x  # noqa: E731 - numpy scalars to Python numbers
     out = {k: py(c[k]) for k in ("max_overrun_ms", "max_ms", "max_ms_cpu", "answers", "over_t_s", "over_t_s_cpu",
-                                 "limit_without_plan",
+                                 "cut_offs", "limit_without_plan",
                                  "without_plan_infeasible", "without_plan_missed", "without_plan_undecided")}
     loop = [r for r in study["rows"] if r["run"] == "closed loop"][-1]
     out.update({f"loop_{k}": py(loop[k]) for k in ("N_p", "steps", "limit_hits", "gap_p50", "gap_max", "cpu_ms_max",
@@ -356,13 +378,16 @@ def run(fast: bool) -> dict:
              f"answers after t_s: {c['over_t_s']} of {c['answers']}, of which {c['over_t_s_cpu']} used more than t_s of "
              "CPU time (the others waited for the machine: their process was not running for part of the step); the "
              f"slowest took {c['max_ms']:.1f} ms of wall clock and {c['max_ms_cpu']:.1f} ms of CPU time (a shared "
-             "machine). An answer comes late by its own work when a solver call does not stop at its "
-             "limit: DAQP reads its clock every 32 iterations of a node's active-set solve and every 32 nodes of its "
-             "branch and bound (a search of short nodes runs on by up to 32 of them), SCIP at its own pace. "
-             "The controller keeps back from the engine "
+             "machine). A solver call need not stop at its limit: DAQP reads its clock every 32 iterations of a "
+             "node's active-set solve and every 32 nodes of its branch and bound (a search of short nodes runs on by "
+             "up to 32 of them), SCIP at its own pace. The controller keeps back from the engine "
              f"{100 * RESERVE_SHARE:.0f} % of t_s, or the lateness and fallback time it has measured so far "
              "(MPC.reserve); no solver or round starts without time left, no SCIP model is built with less than 20 ms "
-             "left, and the models a step built are freed at the next step.",
+             "left, and the models a step built are freed at the next step. The engine solves in a worker thread: a "
+             "solve that has not returned at the cut-off (t_s less the largest of half the reserve, the longest "
+             "fallback and CUT_OFF_MIN_S) is "
+             f"answered with its best plan so far while it runs on (MPC(cut_off=True), the default): {c['cut_offs']} "
+             "answers were given so.",
              "gap = (J - J_lb) / max(1, |J|) at the steps that hit the limit: J the cost of the returned plan, J_lb the "
              "largest valid lower bound known (the QP without the network, the levels proven empty, a solver's bound).",
              "opt_gap = (J - J*) / max(1, |J*|) at the same steps, J* the optimum proven by the MPC without the step's "
@@ -375,4 +400,11 @@ def run(fast: bool) -> dict:
                      "ref_bound_gap = (J - J_lb) / max(1, J_lb) with J_lb the reference's lower bound bounds ref_gap "
                      "from above also when it stopped at its limit; ref_unproven counts the hits that the reference "
                      "proves within 1e-4 of the optimum neither by its optimum nor by its bound.")
-    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"], notes=notes, figures=figs)
+    cut = cut_off_study(quad_setup(horizon=20, net=(base := quad_setup())["net"], eps=base["eps"]),
+                        t_final=3.0 if fast else 10.0)
+    off, on = cut
+    notes.append(f"cut-off as a lever (the last two rows): the closed loop at N_p = 20 with no share of t_s kept back "
+                 f"(MPC.reserve_share = 0: the reserve is only what the controller has measured), without and with "
+                 f"the cut-off: {off['over_t_s']} and {on['over_t_s']} of {on['steps']} answers after t_s, slowest "
+                 f"{off['ms_max']:.1f} and {on['ms_max']:.1f} ms; {on['cut_offs']} answers at the cut-off.")
+    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs)

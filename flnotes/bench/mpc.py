@@ -71,11 +71,12 @@ def quad_setup(horizon: Optional[int] = None, net=None, eps: Optional[float] = N
 
 
 def make_mpc(setup: dict, backend: Optional[str] = None, time_limit: Optional[float] = None,
-             solver_options: Optional[dict] = None, **levers) -> MPC:
-    """:class:`flnotes.MPC` for the setup with the given options (see :data:`CONFIGS`) and back-end options."""
+             solver_options: Optional[dict] = None, cut_off: Optional[bool] = None, **levers) -> MPC:
+    """:class:`flnotes.MPC` for the setup with the given options (see :data:`CONFIGS`), back-end options and
+    ``cut_off`` (see :class:`flnotes.MPC`)."""
     return MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
                R=setup["R"], time_limit=time_limit, options=MPCOptions(backend=backend, **levers),
-               solver_options=solver_options)
+               solver_options=solver_options, cut_off=cut_off)
 
 
 def record_run(setup: dict, t_final: float, mpc: Optional[MPC] = None, time_limit: Optional[float] = None) -> dict:

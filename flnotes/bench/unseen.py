@@ -48,7 +48,8 @@ def run(fast: bool) -> dict:
         r = U.deadline_row(name, steps=int(round((c.t_final / 4 if fast else c.t_final) / c.ts)))
         rows.append(dict(kind="closed loop, time_limit = t_s", **r))
         notes.append(f"{name}: closed loop with time_limit = t_s in {time.perf_counter() - t0:.0f} s: "
-                     f"{r['limit_hits']} of {r['steps']} steps hit the limit, slowest answer {r['wall_max_over_ts']:.2f} "
+                     f"{r['limit_hits']} of {r['steps']} steps hit the limit ({r['cut_offs']} answered at the cut-off "
+                     f"while the solve ran on), slowest answer {r['wall_max_over_ts']:.2f} "
                      f"t_s (wall); plans at the limit: largest distance to the optimum {r['opt_gap_max']:.1e}, "
                      f"{r['opt_gap_over']} above 1e-4, {r['opt_undecided']} without a proven optimum")
     n = 9 if fast else 30

@@ -15,10 +15,10 @@ Layout (a module imports only modules above it in this list):
   warm start);
 * :mod:`.reference`: the paper's program written with :func:`flnotes.encode`, solved cold by SCIP;
 * :mod:`.linear`: the linear models of the exact constraint used by the QP-based MPCs of the comparison;
-* :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history).
+* :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history, the cut-off).
 """
 from .bound_cache import CACHE_BOXES, BoundCache
-from .controller import MPC, RESERVE_SHARE, sine_reference
+from .controller import CUT_OFF_MIN_S, MPC, RESERVE_SHARE, sine_reference
 from .engine import NetworkEngine
 from .levers import AUTO_DAQP_BINARIES, LP_AUTO_BINARIES
 from .options import BOUNDS, CONSTRAINTS, MPC_BACKENDS, MPCOptions
@@ -27,4 +27,4 @@ from .region import REGION_MOVES, region_qp, region_rows
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
            "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "REGION_MOVES", "region_qp",
-           "region_rows", "RESERVE_SHARE", "BoundCache", "CACHE_BOXES"]
+           "region_rows", "RESERVE_SHARE", "CUT_OFF_MIN_S", "BoundCache", "CACHE_BOXES"]

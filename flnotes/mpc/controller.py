@@ -7,6 +7,7 @@ levers), :class:`flnotes.mpc.reference.ReferenceProgram` (the cold SCIP referenc
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Callable, Optional
 
@@ -32,6 +33,12 @@ Array = np.ndarray
 
 #: Share of :attr:`MPC.time_limit` that :attr:`MPC.reserve` keeps back from the engine at least.
 RESERVE_SHARE = 0.2
+
+#: Seconds the cut-off leaves for the answer at least (:meth:`MPC._engine_solve`): the thread that answers waits for
+#: Python's interpreter lock up to one switch interval (5 ms by default) while the solve runs Python code, then
+#: checks the plan (1 to 3 ms). Measured on the Quad-1D at N_p = 20 with no reserve share: the answers at a cut-off
+#: 4 to 6 ms before t_s came up to 1.7 ms after it.
+CUT_OFF_MIN_S = 0.01
 
 
 def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, phase: float = 0.0
@@ -117,10 +124,20 @@ class MPC:
         only when none passes the check, a plan whose first input is admissible, ``info["plan_feasible"]``
         False). ``bound`` is a valid lower bound of eq. (MPC_form_miqp) (the QP without the network, the levels
         proven empty, a solver's bound) and ``gap = (objective - bound) / max(1, |objective|)``; both NaN for a
-        plan that fails the check. A solver call that does not stop at its limit can still make the answer late:
-        :attr:`reserve` grows to what this controller has measured of it, and ``python -m flnotes.bench deadline``
-        reports the answers after the limit. With a time limit, the controller solves once when it is built
-        (:meth:`NetworkEngine.warm_up`), so that its first step does not pay the process's one-off costs.
+        plan that fails the check. A solver call need not stop at its limit (DAQP reads its clock every 32
+        iterations and nodes): :attr:`reserve` grows to what this controller has measured of that, and with
+        ``cut_off`` (the default) the step answers at its cut-off while such a call runs on.
+        ``python -m flnotes.bench deadline`` reports the answers after the limit. With a time limit, the controller
+        solves once when it is built (:meth:`NetworkEngine.warm_up`), so that its first step does not pay the
+        process's one-off costs.
+    cut_off
+        With a time limit and the network engine (default on there): the engine solves in a worker thread and the
+        step answers at its cut-off, before ``time_limit``, with the best plan the engine has found so far when the
+        solve has not returned by then (``info["cut_off"]`` True), so that a solver that overruns its own limit
+        does not make the answer late (:meth:`_engine_solve`). ``False`` waits for the engine (its answer is then
+        late by the solver's overrun, and which plan a step returns depends on the states only, not on thread
+        timing: the tests with a limit far below any solve use it). Given without a time limit, or with options
+        that do not run the engine, it is an error.
     gap
         Relative optimality gap at which a solver stops.
     discretization
@@ -130,6 +147,16 @@ class MPC:
     solver_options
         Passed to :func:`flnotes.solvers.make_solver` (DAQP gets :data:`DAQP_OPTIONS` unless overridden). With
         ``backend="auto"`` (two solvers) give them per back-end: ``{"daqp": {...}, "scip": {...}}``.
+
+    Attributes
+    ----------
+    history
+        The :class:`flnotes.StepResult` of every call since the last :meth:`reset`.
+    reserve_share
+        The share of ``time_limit`` that :attr:`reserve` keeps back at least (:data:`RESERVE_SHARE`); a number in
+        ``[0, 0.5]``, which ``python -m flnotes.bench deadline`` sets to 0 to measure the cut-off alone.
+    cut_off
+        Whether steps answer at the cut-off (the ``cut_off`` argument resolved against the time limit).
 
     Examples
     --------
@@ -141,9 +168,10 @@ class MPC:
     def __init__(self, system: FLSystem, net: ReLUNet, eps, horizon: int = 10, ts: float = 0.1,
                  Q=None, R=None, P=None, *, terminal=None, options: Optional[MPCOptions] = None,
                  time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
-                 v_box: Optional[tuple] = None, solver_options: Optional[dict] = None, **levers):
+                 v_box: Optional[tuple] = None, solver_options: Optional[dict] = None,
+                 cut_off: Optional[bool] = None, **levers):
         self._init_args = dict(system=system, net=net, eps=eps, horizon=horizon, ts=ts, Q=Q, R=R, P=P,
-                               terminal=terminal, options=options, time_limit=time_limit, gap=gap,
+                               terminal=terminal, options=options, time_limit=time_limit, gap=gap, cut_off=cut_off,
                                discretization=discretization, v_box=v_box, solver_options=solver_options, **levers)
         if options is not None and levers:
             raise ValueError(f"give either options=MPCOptions(...) or the keywords {sorted(levers)}, not both")
@@ -165,6 +193,15 @@ class MPC:
             raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
         if not (np.isfinite(ts) and ts > 0):
             raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
+        engine = o.constraint == "network" and not o.is_reference
+        if cut_off is not None:
+            if not isinstance(cut_off, bool):
+                raise TypeError(f"cut_off must be True, False or None, got {cut_off!r}")
+            if time_limit is None:
+                raise ValueError("cut_off answers at a time limit: give time_limit=... or leave cut_off unset")
+            if cut_off and not engine:
+                raise ValueError(f"cut_off needs the network engine (constraint='network', a persistent back-end); "
+                                 f"these options are {o}: leave cut_off unset")
         used = ("daqp", "scip") if o.backend == "auto" else ("scip",) if o.is_reference else (o.backend,)
         for b in used:
             _require(b)  # ImportError naming the package, here, not at a solve
@@ -202,8 +239,11 @@ class MPC:
         K = getattr(terminal, "K", None)
         self.K_terminal = None if K is None else np.asarray(K, float).reshape(self.m, self.n_z)
         self.time_limit, self.gap = time_limit, float(gap)
+        self.cut_off = bool(time_limit is not None and engine and (cut_off is None or cut_off))
+        self.reserve_share = RESERVE_SHARE
         self._fallback_s = 0.0  # the longest fallback run so far (s): see reserve
         self._late_s = 0.0  # the largest answer after its limit measured so far (s): see reserve
+        self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
@@ -236,19 +276,25 @@ class MPC:
     @property
     def reserve(self) -> float:
         """Seconds of :attr:`time_limit` kept back from the engine, for the answer it gives after its budget and the
-        fallback after it: :data:`RESERVE_SHARE` of the limit, or what this controller has measured so far when that
-        is more (the engine's largest lateness after its budget plus the longest fallback it ran), at most half the limit.
+        fallback after it: :attr:`reserve_share` (:data:`RESERVE_SHARE`) of the limit, or what this controller has
+        measured so far when that is more (the engine's largest lateness after its budget plus the longest fallback
+        it ran), at most half the limit.
 
         The engine answers after its budget by what a solver call overran its time limit: DAQP reads its clock every
         32 iterations of a node's active-set solve and every 32 nodes of its branch and bound, so a search of short
         nodes runs on by up to 32 of them (up to 9 ms past a 25 ms limit on the systems of the benchmark), SCIP by 1
         to 2 ms. The lateness is measured after every step; the
-        fallback of a cold state without a feasible plan took 25 to 35 ms on the Quad-1D at N_p = 20.
+        fallback of a cold state without a feasible plan took 25 to 35 ms on the Quad-1D at N_p = 20. With
+        :attr:`cut_off` a solve that has not returned by ``time_limit`` less the largest of half the reserve, the
+        longest fallback and :data:`CUT_OFF_MIN_S` is answered from what it has found so far, and its lateness is
+        measured when it ends.
         """
         if self.time_limit is None:
             return 0.0
         tl = float(self.time_limit)
-        return min(max(RESERVE_SHARE * tl, self._late_s + self._fallback_s), 0.5 * tl)
+        if not 0.0 <= self.reserve_share <= 0.5:
+            raise ValueError(f"reserve_share must be in [0, 0.5], got {self.reserve_share!r}")
+        return min(max(self.reserve_share * tl, self._late_s + self._fallback_s), 0.5 * tl)
 
     @property
     def backend(self) -> str:
@@ -261,6 +307,7 @@ class MPC:
     def reset(self) -> None:
         """Forget the previous plan, the history and the kept LP bounds (``MPCOptions.bound_cache``); called by
         :func:`flnotes.simulate` at the start of a run."""
+        self._finish_running()
         self.history = []
         self._plan = None
         if isinstance(self.solver, NetworkEngine):
@@ -280,6 +327,8 @@ class MPC:
     def clone(self, **changes) -> "MPC":
         """A new controller with the same settings except ``changes`` (no history, no previous plan)."""
         args = {**self._init_args, **changes}
+        if args.get("time_limit") is None and "cut_off" not in changes:
+            args["cut_off"] = None  # a clone without a time limit has no cut-off to keep
         if "options" in changes and changes["options"] is not None:
             args = {k: v for k, v in args.items() if k not in MPCOptions.__dataclass_fields__}
         elif set(changes) & set(MPCOptions.__dataclass_fields__):
@@ -306,6 +355,7 @@ class MPC:
         """
         if not isinstance(self.solver, NetworkEngine):
             raise ValueError(f"problem() shows the program of a persistent back-end; these options are {self.options}")
+        self._finish_running()
         return self.solver.program(self._check_z(z), self._check_ref(z_ref), steps)
 
     # ------------------------------------------------------------------ checks
@@ -335,6 +385,7 @@ class MPC:
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0 = time.perf_counter()
+        self._finish_running()  # a solve the last step answered at its cut-off ends first, inside this step's budget
         release_retired()  # the solver models the last step kept alive are freed here, inside this step's budget
         z = self._check_z(z)
         R = self._check_ref(z_ref)
@@ -347,9 +398,12 @@ class MPC:
         else:
             inc = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
             budget = self._engine_time(t0)
-            step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
-            if budget is not None:  # how late the engine answered after its budget (see reserve)
-                self._late_s = max(self._late_s, step.solve_time - budget)
+            if self.cut_off:
+                step = self._engine_solve(z, R, inc, budget, t0)
+            else:
+                step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
+                if budget is not None:  # how late the engine answered after its budget (see reserve)
+                    self._late_s = max(self._late_s, step.solve_time - budget)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
             # never a plan that breaks the program labelled as a solution
             step.status, step.v = "error", None
@@ -390,6 +444,62 @@ class MPC:
         else:
             R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
         return self(z, R)
+
+    def _engine_solve(self, z: Array, R: Array, inc: Optional[Array], budget: float, t0: float) -> StepResult:
+        """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
+
+        The solve runs in a worker thread with ``budget`` seconds; this thread waits for it until the cut-off,
+        ``t0 + time_limit`` less the largest of half of :attr:`reserve`, the longest fallback run so far and
+        :data:`CUT_OFF_MIN_S` (the rest of the reserve is for the engine's overrun after its budget).
+        A solve that has not returned then is asked to stop (:meth:`NetworkEngine.stop`) and the step answers with
+        what it has published (:meth:`NetworkEngine.answer_now`: its best plan that passed the forward-pass check
+        and its lower bound, ``info["cut_off"]`` True). The solver calls release the GIL (DAQP, HiGHS, SCIP), so the
+        answer does not wait for a solver that overruns its own limit. The solve ends on its own (at its next check
+        of the time, or when its solver call returns) and the next step, or :meth:`reset`, waits for it first.
+        """
+        box: dict = {}
+
+        def run() -> None:
+            try:
+                box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
+            except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
+                box["error"] = exc
+
+        self.solver.go()
+        worker = threading.Thread(target=run, name="flnotes-mpc-solve")
+        answer_s = max(0.5 * self.reserve, self._fallback_s, CUT_OFF_MIN_S)
+        self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
+        worker.start()
+        worker.join(max(t0 + float(self.time_limit) - answer_s - time.perf_counter(), 0.0))
+        if worker.is_alive():
+            self.solver.stop()
+            box["cut_off"] = True
+            step = self.solver.answer_now()
+            step.solve_time = time.perf_counter() - t0
+            return step
+        step = self._finish_running()
+        step.info["cut_off"] = False
+        return step
+
+    def _finish_running(self) -> Optional[StepResult]:
+        """Wait for the solve of :meth:`_engine_solve` to end; re-raise its error; measure how late it was after
+        its budget (see :attr:`reserve`). Returns its result, ``None`` when no solve was running."""
+        if self._running is None:
+            return None
+        worker, box, budget = self._running
+        if worker.ident is not None:  # started
+            worker.join()
+        self._running = None
+        self.solver.go()
+        if "step" not in box and "error" not in box:  # never started (interrupted before)
+            return None
+        if "error" in box:
+            if box.get("cut_off"):
+                box["error"].add_note("raised by the solve that the previous step answered at its cut-off")
+            raise box["error"]
+        step = box["step"]
+        self._late_s = max(self._late_s, step.solve_time - budget)  # how late the engine answered after its budget
+        return step
 
     # ------------------------------------------------------------------ the fallback
     def _engine_time(self, t0: float) -> Optional[float]:
@@ -474,7 +584,8 @@ class MPC:
                     warm_started=np.array([s.warm_started for s in h], bool))
 
     def summary(self) -> dict:
-        """Min/max/mean time per step (ms), time-limit hits, fallbacks, screened steps, binaries."""
+        """Min/max/mean time per step (ms), time-limit hits (``cut_offs`` of them answered at the cut-off), fallbacks,
+        screened steps, binaries."""
         if not self.history:
             return dict(steps=0)
         s = self.stats()
@@ -483,6 +594,7 @@ class MPC:
             steps=len(self.history), ms_min=float(s["wall_ms"].min()), ms_max=float(s["wall_ms"].max()),
             ms_mean=float(s["wall_ms"].mean()), ms_median=float(np.median(s["wall_ms"])),
             time_limit_hits=int(sum(st == "time_limit" for st in s["status"])),
+            cut_offs=int(sum(bool(r.info.get("cut_off")) for r in self.history)),
             fallbacks=int(s["fallback"].sum()), screened=int(s["screened"].sum()), miqp_steps=int(mi.sum()),
             nodes_mean=float(s["nodes"][mi].mean()) if mi.any() else 0.0, binaries_full=self.n_binaries_full,
             binaries_mean=float(s["n_binaries"][mi].mean()) if mi.any() else 0.0,
@@ -493,4 +605,5 @@ class MPC:
     def __repr__(self) -> str:
         term = ", terminal set" if self.terminal is not None else ""
         return (f"MPC({self.system.name}, N_p={self.N}, ts={self.ts}, {self.options}{term}, "
-                f"time_limit={self.time_limit})")
+                f"time_limit={self.time_limit}" + (f", cut_off={self.cut_off}" if self.time_limit is not None else "")
+                + ")")

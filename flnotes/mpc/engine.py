@@ -21,7 +21,9 @@ that finds nothing below it.
 from __future__ import annotations
 
 import copy
+import threading
 import time
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -67,6 +69,51 @@ _RELAX = "highs"
 RECENTER_QP_ITERATIONS = 500
 
 
+@dataclass(frozen=True, eq=False)
+class Progress:
+    """What a running :meth:`NetworkEngine.solve` has at one moment, published for an answer at a cut-off.
+
+    ``V`` is the best plan found so far that passed the forward-pass check (``None``: none yet), ``J`` its cost
+    and ``bound`` a valid lower bound of eq. (MPC_form_miqp) (``-inf``: none yet); ``f, c0`` the cost's linear
+    part at ``z0`` and ``stats`` the solve's counters (nodes, rounds, binaries, encoded steps).
+    """
+
+    z0: Array
+    f: Array
+    c0: float
+    V: Optional[Array] = None
+    J: float = np.inf
+    bound: float = -np.inf
+    source: Optional[str] = None
+    warm: bool = False
+    stats: dict = field(default_factory=dict)
+
+
+def _step_result(pred: Prediction, z0: Array, f: Array, c0: float, status: str, V: Optional[Array], bound: float,
+                 msg: str, st: dict, warm: bool, screened: bool = False) -> StepResult:
+    """The :class:`flnotes.StepResult` of a solve: the plan ``V`` (or none) with its cost, ``bound`` and gap."""
+    N, m = pred.N, pred.m
+    res = StepResult(None, status, nodes=st.get("nodes", 0), rounds=st.get("rounds", 0),
+                     n_binaries=st.get("n_bin", 0), encoded_steps=tuple(int(k) for k in st.get("steps", ())),
+                     screened=screened, backend="qp-screening" if screened else st.get("backend", ""),
+                     message=msg, warm_started=warm)
+    res.info["lp_rounds"] = st.get("lp_rounds", 0)  # level-set rounds whose node bounds were LP-tightened
+    res.info["incumbent"] = st.get("incumbent")  # where the first incumbent came from (None: none)
+    res.info["region_improved"] = st.get("region", False)  # the region QP made it cheaper
+    res.info["tightened"] = st.get("tightened", 0)  # times u_max^eps was tightened in the rows (solver tolerance)
+    res.info["repair_failed"] = st.get("repair_failed", False)  # the plan along the QP failed the check
+    if V is not None:
+        V = np.asarray(V, float).reshape(N, m)
+        obj = pred.cost(V, f, c0)
+        bound = min(bound, obj)
+        res.v, res.v_pred, res.z_pred = V[0].copy(), V, pred.predict(z0, V)
+        res.objective, res.bound = obj, bound
+        res.gap = abs(obj - bound) / max(1.0, abs(obj)) if np.isfinite(bound) else np.inf
+    elif status == "time_limit":
+        res.bound = bound  # a valid lower bound, for the gap of the caller's fallback plan
+    return res
+
+
 def _status(s: str) -> str:
     s = str(s).lower()
     if s in ("optimal", "time_limit", "infeasible"):
@@ -100,6 +147,9 @@ class NetworkEngine:
         :mod:`flnotes.solvers`).
     cache
         The kept LP bounds (:class:`flnotes.mpc.bound_cache.BoundCache`) with ``opts.bound_cache``, else ``None``.
+    progress
+        The running (or last) solve's :class:`Progress`: its best plan and bound so far, replaced as they improve
+        (``None`` before the first solve). :meth:`answer_now` reads it from another thread.
     """
 
     def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None):
@@ -109,6 +159,37 @@ class NetworkEngine:
         self.active_prev: tuple = ()
         self.order = opts.branching or "layers"  # the binaries' column order (DAQP's branching order)
         self.cache = BoundCache() if opts.bound_cache else None  # LP bounds kept for later boxes
+        self.progress: Optional[Progress] = None
+        self._stop = threading.Event()
+
+    def stop(self) -> None:
+        """Ask the running :meth:`solve` to return at its next check of the time (a solver call already started
+        runs to its own time limit first); cleared by :meth:`go`."""
+        self._stop.set()
+
+    def go(self) -> None:
+        """Clear :meth:`stop` and :attr:`progress` for the next solve (an answer read before it publishes anything
+        then has no plan, never one of an earlier state)."""
+        self._stop.clear()
+        self.progress = None
+
+    def answer_now(self) -> StepResult:
+        """The answer of the running solve at this moment, from :attr:`progress`: status ``"time_limit"``, its best
+        plan that passed the forward-pass check (or no plan) and its lower bound, ``info["cut_off"]`` True.
+
+        Reads only :attr:`progress` (replaced whole by the solve, never changed in place) and the prediction
+        model, so it can run while the solve goes on in another thread (:class:`flnotes.MPC` with a time limit).
+        """
+        p = self.progress
+        if p is None:
+            res = StepResult(None, "time_limit", message="time limit: cut off before the solve started")
+            res.bound = -np.inf
+        else:
+            what = f"the incumbent ({p.source}) is returned" if p.V is not None else "no feasible plan yet"
+            res = _step_result(self.pred, p.z0, p.f, p.c0, "time_limit", p.V, p.bound,
+                               f"time limit: cut off while a solver ran on; {what}", p.stats, p.warm)
+        res.info["cut_off"] = True
+        return res
 
     def reset(self) -> None:
         """Forget the steps encoded last and the kept LP bounds: the next solve is cold."""
@@ -176,30 +257,18 @@ class NetworkEngine:
         st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=(), lp_rounds=0, backend=o.backend)
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
-            res = StepResult(None, status, nodes=st["nodes"], rounds=st["rounds"], n_binaries=st["n_bin"],
-                             encoded_steps=tuple(int(k) for k in st["steps"]), screened=screened,
-                             backend="qp-screening" if screened else st["backend"], message=msg,
-                             warm_started=inc_from_warm)
-            res.info["lp_rounds"] = st["lp_rounds"]  # level-set rounds whose node bounds were LP-tightened
-            res.info["incumbent"] = st.get("incumbent")  # where the first incumbent came from (None: none)
-            res.info["region_improved"] = st.get("region", False)  # the region QP made it cheaper
-            res.info["tightened"] = st["tightened"]  # times u_max^eps was tightened in the rows (solver tolerance)
-            res.info["repair_failed"] = st.get("repair_failed", False)  # the plan along the QP failed the check
-            if V is not None:
-                V = np.asarray(V, float).reshape(N, m)
-                obj = pred.cost(V, f, c0)
-                bound = min(bound, obj)
-                res.v, res.v_pred, res.z_pred = V[0].copy(), V, pred.predict(z0, V)
-                res.objective, res.bound = obj, bound
-                res.gap = abs(obj - bound) / max(1.0, abs(obj)) if np.isfinite(bound) else np.inf
-            elif status == "time_limit":
-                res.bound = bound  # a valid lower bound, for the gap of the caller's fallback plan
+            res = _step_result(pred, z0, f, c0, status, V, bound, msg, st, inc_from_warm, screened)
             res.solve_time = time.perf_counter() - t0
             return res
 
+        def publish(V: Optional[Array], J: float, bound: float, source: Optional[str]) -> None:
+            self.progress = Progress(z0, f, c0, V, J, bound, source, inc_from_warm, dict(st))
+
         inc_V, inc_J, inc_from_warm = None, np.inf, False
+        self.progress = None
         if o.warm_start and incumbent is not None and pred.feasible(z0, incumbent):
             inc_V, inc_J, inc_from_warm = np.asarray(incumbent, float).reshape(-1), pred.cost(incumbent, f, c0), True
+        publish(inc_V, inc_J, -np.inf, "warm start" if inc_V is not None else None)
         # the QP without the network: screening, the first level-set center, the first active steps
         V_c, J_c = None, -np.inf
         if o.screening or o.bounds == "levelset" or o.lazy or o.repair:
@@ -218,6 +287,7 @@ class NetworkEngine:
             inc_V, inc_J, incumbent_from, st["region"], st["repair_failed"] = self._improve(
                 z0, f, c0, V_c, inc_V, inc_J, incumbent_from)
         st["incumbent"] = incumbent_from
+        publish(inc_V, inc_J, J_c, incumbent_from)
         try:
             lo_h, hi_h = pred.boxes(z0)
         except EmptyBoxError as exc:
@@ -230,7 +300,8 @@ class NetworkEngine:
             return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
 
         def out_of_time(need: float = SOLVE_MIN_LEFT) -> bool:  # less than ``need`` seconds of the time limit left
-            return time_limit is not None and time_limit - (time.perf_counter() - t0) < need
+            # (or the caller answered at a cut-off and asked this solve to stop: :meth:`stop`)
+            return time_limit is not None and (time_limit - (time.perf_counter() - t0) < need or self._stop.is_set())
 
         deadline = None if time_limit is None else t0 + time_limit  # no LP of the node bounds starts after it
 
@@ -247,6 +318,7 @@ class NetworkEngine:
                 if n_round and self.margin == 0.0:
                     lb = max(lb, J_up)
                 n_round += 1
+                publish(inc_V, inc_J, lb, incumbent_from)
                 if out_of_time():
                     return done("time_limit", inc_V, lb, "time limit: " + (
                         f"the incumbent ({incumbent_from}) is returned" if inc_V is not None else "no feasible plan"))
@@ -319,6 +391,7 @@ class NetworkEngine:
                     retire(solver)  # a SCIP or HiGHS model is freed at the next step, not inside this one
                 st["nodes"] += int(res.nodes)
                 st["rounds"] += 1
+                publish(inc_V, inc_J, lb, incumbent_from)
                 status = _status(res.status)
                 if status != "optimal":
                     break
@@ -374,6 +447,7 @@ class NetworkEngine:
                     return done("optimal", V, bound, f"{res.backend}: {res.message}")
                 if J < inc_J:
                     inc_V, inc_J, incumbent_from = V, J, "an earlier round"
+                    publish(inc_V, inc_J, lb, incumbent_from)
             elif status == "infeasible":
                 if full and inc_V is None:
                     return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend})")

@@ -41,12 +41,21 @@ LEAN_PRESOLVE_ROUNDS = 1
 
 
 class _quiet_c_output:
-    """Silence file descriptors 1 and 2 (C-level output of a solver library) inside a ``with`` block."""
+    """Silence file descriptors 1 and 2 (C-level output of a solver library) inside a ``with`` block.
+
+    Only in the main thread: the descriptors belong to the whole process, so silencing them from a worker thread
+    (:class:`flnotes.MPC` solves there under a time limit and answers at its cut-off while the solver runs on)
+    would also swallow what the main thread writes meanwhile.
+    """
 
     def __enter__(self):
         import os
         import sys
+        import threading
 
+        self._saved = None
+        if threading.current_thread() is not threading.main_thread():
+            return self
         try:
             sys.stdout.flush()
             sys.stderr.flush()
@@ -227,7 +236,7 @@ class ScipSolver(Solver):
                     m.setSolVal(sol, self._sq[i], float(0.5 * self._lam[i] * y[i] ** 2) + 1e-9)
             m.addSol(sol, free=True)
         with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
-            m.optimize()
+            m.optimizeNogil()  # other threads run meanwhile (flnotes.MPC answers at its cut-off)
         st = m.getStatus()
         nodes = m.getNNodes() if p.is_mip else 0
         w = None
