@@ -313,12 +313,13 @@ def test_late_answers_are_told_apart_by_their_cpu_time():
 class Gate:
     """Holds the engine's first solver call (``calls`` of them) until :meth:`release`: a solver that overruns its
     limit by as long as the test wants, without any timing in the test. ``then`` replaces the held call's result
-    (e.g. an exception to raise)."""
+    (e.g. an exception to raise); ``mute`` silences the C output while held, as SCIP does."""
 
-    def __init__(self, monkeypatch, calls: int = 1, then=None):
+    def __init__(self, monkeypatch, calls: int = 1, then=None, mute: bool = False):
         import threading
 
         from flnotes.mpc import engine
+        from flnotes.solvers import scip
 
         self.entered, self.released, self.left, self.then = threading.Event(), threading.Event(), calls, then
         real = engine.make_solver
@@ -331,6 +332,8 @@ class Gate:
             solve = solver.solve
 
             def held(*a, **k):
+                if mute:  # as a SCIP call does while it solves
+                    scip._mute_c_output()
                 self.entered.set()
                 assert self.released.wait(120.0), "the test never released the gate"
                 if self.then is not None:
@@ -343,6 +346,9 @@ class Gate:
         monkeypatch.setattr(engine, "make_solver", make_solver)
 
     def release(self):
+        from flnotes.solvers import unmute_c_output
+
+        unmute_c_output()  # whatever the held call silenced (a no-op when the cut-off gave it back)
         self.released.set()
 
 
@@ -368,10 +374,13 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     setup, z, R, prev, exact = engine_state(quad)
     mpc = rt.make_mpc(setup, time_limit=0.5)
     assert mpc.cut_off, "the cut-off is on by default under a time limit"
-    gate = Gate(monkeypatch)
+    gate = Gate(monkeypatch, mute=True)
     mpc.set_previous_plan(prev)
     s = mpc(z, R)
     assert gate.entered.is_set() and not gate.released.is_set(), "premise: the answer came while the solver was held"
+    from flnotes.solvers import scip
+
+    assert not scip._muted, "the held call's silencing of the C output ended with the answer"
     assert s.status == "time_limit" and s.info["cut_off"], s.message
     assert check_step(mpc, s) and not s.fallback and s.input_admissible, s.message
     assert s.objective >= exact.objective - 1e-6 * max(1.0, abs(exact.objective))  # never below the optimum

@@ -440,3 +440,22 @@ def test_retired_models_live_until_released():
     assert release_retired() == 1 and release_retired() == 0
     gc.collect()
     assert ref() is None
+
+
+def test_c_output_is_given_back_early_on_request(capfd):
+    """SCIP's notices are silenced on file descriptors 1 and 2 while it solves; unmute_c_output gives them back
+    at once (a controller that answered at its cut-off calls it, so that a SCIP call running on in another thread
+    silences nothing the process writes afterwards), and the end of the silenced block then changes nothing."""
+    import os
+
+    from flnotes.solvers import scip, unmute_c_output
+
+    with scip._quiet_c_output():
+        os.write(1, b"hidden\n")
+        unmute_c_output()
+        os.write(1, b"shown\n")
+    os.write(1, b"after\n")
+    unmute_c_output()  # nothing silenced: no-op
+    out = capfd.readouterr().out
+    assert "hidden" not in out and "shown" in out and "after" in out
+    assert not scip._muted

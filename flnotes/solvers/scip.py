@@ -4,6 +4,9 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 """
 from __future__ import annotations
 
+import os
+import sys
+import threading
 import time
 from typing import Optional
 
@@ -40,41 +43,55 @@ MIQP_PARAMS = ("lean", "default")
 LEAN_PRESOLVE_ROUNDS = 1
 
 
-class _quiet_c_output:
-    """Silence file descriptors 1 and 2 (C-level output of a solver library) inside a ``with`` block.
+_MUTE_LOCK = threading.Lock()
+_muted: list = []  # the saved descriptors (stdout, stderr, /dev/null) while the C output is silenced
 
-    Only in the main thread: the descriptors belong to the whole process, so silencing them from a worker thread
-    (:class:`flnotes.MPC` solves there under a time limit and answers at its cut-off while the solver runs on)
-    would also swallow what the main thread writes meanwhile.
-    """
 
-    def __enter__(self):
-        import os
-        import sys
-        import threading
-
-        self._saved = None
-        if threading.current_thread() is not threading.main_thread():
-            return self
+def _mute_c_output() -> None:
+    """Point file descriptors 1 and 2 at /dev/null (SoPlex prints tolerance notices straight to the C streams)."""
+    with _MUTE_LOCK:
+        if _muted:
+            return
         try:
             sys.stdout.flush()
             sys.stderr.flush()
-            self._null = os.open(os.devnull, os.O_WRONLY)
-            self._saved = (os.dup(1), os.dup(2))
-            os.dup2(self._null, 1)
-            os.dup2(self._null, 2)
+            null = os.open(os.devnull, os.O_WRONLY)
+            saved = (os.dup(1), os.dup(2))
+            os.dup2(null, 1)
+            os.dup2(null, 2)
         except OSError:
-            self._saved = None
+            return
+        _muted.extend((*saved, null))
+
+
+def unmute_c_output() -> None:
+    """Give file descriptors 1 and 2 back (no-op when they are not silenced).
+
+    The descriptors belong to the whole process: a SCIP call that runs on in another thread after its caller has
+    moved on (a controller that answered at its cut-off) would otherwise keep silencing what the rest of the process
+    writes. Such a caller calls this; the rest of that SCIP call may then print its notices.
+    """
+    with _MUTE_LOCK:
+        if not _muted:
+            return
+        saved1, saved2, null = _muted
+        os.dup2(saved1, 1)
+        os.dup2(saved2, 2)
+        for fd in (saved1, saved2, null):
+            os.close(fd)
+        _muted.clear()
+
+
+class _quiet_c_output:
+    """Silence file descriptors 1 and 2 (C-level output of a solver library) inside a ``with`` block
+    (:func:`unmute_c_output` gives them back early)."""
+
+    def __enter__(self):
+        _mute_c_output()
         return self
 
     def __exit__(self, *exc):
-        import os
-
-        if self._saved is not None:
-            os.dup2(self._saved[0], 1)
-            os.dup2(self._saved[1], 2)
-            for fd in (*self._saved, self._null):
-                os.close(fd)
+        unmute_c_output()
         return False
 
 
@@ -236,7 +253,7 @@ class ScipSolver(Solver):
                     m.setSolVal(sol, self._sq[i], float(0.5 * self._lam[i] * y[i] ** 2) + 1e-9)
             m.addSol(sol, free=True)
         with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
-            m.optimizeNogil()  # other threads run meanwhile (flnotes.MPC answers at its cut-off)
+            m.optimizeNogil()  # other threads run meanwhile (a caller may answer while this call runs on)
         st = m.getStatus()
         nodes = m.getNNodes() if p.is_mip else 0
         w = None
