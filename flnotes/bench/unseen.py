@@ -49,9 +49,11 @@ def run(fast: bool) -> dict:
         rows.append(dict(kind="closed loop, time_limit = t_s", **r))
         notes.append(f"{name}: closed loop with time_limit = t_s in {time.perf_counter() - t0:.0f} s: "
                      f"{r['limit_hits']} of {r['steps']} steps hit the limit ({r['cut_offs']} answered at the cut-off "
-                     f"while the solve ran on), slowest answer {r['wall_max_over_ts']:.2f} "
-                     f"t_s (wall); plans at the limit: largest distance to the optimum {r['opt_gap_max']:.1e}, "
-                     f"{r['opt_gap_over']} above 1e-4, {r['opt_undecided']} without a proven optimum")
+                     f"while the solve ran on), {r['over_ts_wall']} answers after t_s ({r['over_ts_cpu']} of them used more "
+                     f"than t_s of CPU time), slowest answer {r['wall_max_over_ts']:.2f} t_s (wall), most CPU time "
+                     f"of a step {r['cpu_max_over_ts']:.2f} t_s; plans at the limit: largest distance to the optimum "
+                     f"{r['opt_gap_max']:.1e}, {r['opt_gap_over']} above 1e-4, {r['opt_undecided']} without a proven "
+                     "optimum")
     n = 9 if fast else 30
     for name in names:
         t0 = time.perf_counter()

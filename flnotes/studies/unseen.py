@@ -507,13 +507,16 @@ def deadline_row(name: str, steps: Optional[int] = None, horizon: Optional[int] 
     Each step that hit the limit with a plan passing the forward-pass check is solved again without the limit
     (cold, ``optimum_limit`` seconds): ``opt_gap_max`` is the largest ``(J - J*) / max(1, |J*|)`` of those plans,
     ``opt_gap_over`` how many are above 1e-4, ``opt_undecided`` how many optima that solve did not prove.
-    ``wall_max_over_ts`` is the slowest answer (wall clock) over ``t_s``; ``cut_offs`` counts the answers given at
-    the cut-off while the engine's solve ran on (:class:`flnotes.MPC` ``cut_off``).
+    ``wall_max_over_ts`` is the slowest answer (wall clock) over ``t_s``, ``cpu_max_over_ts`` the most CPU time a
+    step used over ``t_s``; ``over_ts_wall`` counts the answers after ``t_s`` and ``over_ts_cpu`` those of them whose
+    step also used more than ``t_s`` of CPU time (late by their own work; the others waited for the machine);
+    ``cut_offs`` counts the answers given at the cut-off while the engine's solve ran on (:class:`flnotes.MPC`
+    ``cut_off``).
     """
     c = case(name)
     log, mpc, timed = closed_loop(name, t_final=None if steps is None else steps * c.ts, time_limit=c.ts,
                                   horizon=horizon)
-    wall, h = np.array(timed.wall), mpc.history
+    wall, cpu, h = np.array(timed.wall), np.array(timed.cpu), mpc.history
     exact = unseen_mpc(name, horizon=horizon, time_limit=optimum_limit)
     og = []
     for s in h:
@@ -526,7 +529,8 @@ def deadline_row(name: str, steps: Optional[int] = None, horizon: Optional[int] 
     return dict(system=name, role=c.role, N_p=mpc.N, t_s_ms=c.ts * 1e3, steps=log.n_steps,
                 limit_hits=int(sum(s.status == "time_limit" for s in h)),
                 cut_offs=int(sum(bool(s.info.get("cut_off")) for s in h)), over_ts_wall=int(np.sum(wall > c.ts)),
-                wall_max_over_ts=float(wall.max() / c.ts), cpu_max_over_ts=float(np.max(timed.cpu) / c.ts),
+                over_ts_cpu=int(np.sum((wall > c.ts) & (cpu > c.ts))),
+                wall_max_over_ts=float(wall.max() / c.ts), cpu_max_over_ts=float(cpu.max() / c.ts),
                 opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else np.nan,
                 opt_gap_over=int(np.sum(og > 1e-4)), opt_undecided=int(np.sum(np.isnan(og))),
                 plans_admissible=int(sum(bool(s.info.get("plan_feasible")) for s in h)),
