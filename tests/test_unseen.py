@@ -104,3 +104,30 @@ def test_plans_at_the_time_limit_are_checked_and_never_below_the_optimum():
     assert r["opt_undecided"] == 0
     if r["limit_hits"]:
         assert r["opt_gap_max"] >= -1e-6
+
+
+def test_diverse_states_under_the_time_limit_are_checked_against_the_optimum():
+    """Cubic3 (held out): cold diverse states with time_limit = t_s against the same states solved without it.
+    No first input exceeds u_max^eps by the network's forward pass unless flagged, every plan that fails the
+    forward-pass check is explained (a limit hit without a plan, or a program proven infeasible), and no plan
+    returned at the limit is cheaper than the optimum."""
+    n = fl.scale(6, 4)
+    exact, *_ = U.diverse_run("Cubic3", n, seed=0, time_limit=60.0)
+    lim, wall, cpu, _ = U.diverse_run("Cubic3", n, seed=0, time_limit=U.case("Cubic3").ts)
+    d = U.diverse_deadline_row("Cubic3", lim, wall, cpu, exact)
+    assert d["states"] == n and d["inputs_not_admissible"] == 0
+    infeasible_not_hit = sum(e.status == "infeasible" and s.status != "time_limit" for s, e in zip(lim, exact))
+    without = d["without_plan_infeasible"] + d["without_plan_missed"] + d["without_plan_undecided"]
+    assert d["plans_admissible"] + without + infeasible_not_hit == n, "a plan fails the check unexplained"
+    # never below the optimum, which the solve without the limit proves to a relative gap of 1e-6 (NaN: none)
+    assert not d["opt_gap_max"] < -2e-6
+
+
+def test_diverse_deadline_row_refuses_other_states():
+    """Rows of different states (another seed) are an error that says what to pass, not a silent comparison."""
+    a, wall, cpu, _ = U.diverse_run("Chain4-gain", 2, seed=0, time_limit=1.0)
+    b, *_ = U.diverse_run("Chain4-gain", 2, seed=1, time_limit=1.0)
+    with pytest.raises(ValueError, match="same states"):
+        U.diverse_deadline_row("Chain4-gain", a, wall, cpu, b)
+    with pytest.raises(ValueError, match="same states"):
+        U.diverse_deadline_row("Chain4-gain", a, wall, cpu, b[:1])

@@ -11,7 +11,9 @@ Per system: the closed loop on the true plant (share of steps with the network b
 input, per-step wall and CPU time min/median/p99/max, steps over ``t_s``, largest true ``|u|/u_max`` at the
 samples, and for the steps over ``t_s`` their phase, binaries, nodes and rounds from
 :class:`flnotes.StepResult`); then ~30 diverse states per system (uniform in the box, on its faces, bound
-strongly active), solved cold at the system's horizon: p99 against ``t_s``. The held-out systems run after
+strongly active), solved cold at the system's horizon: p99 against ``t_s``, then the same states with
+``time_limit = t_s`` (answer times, limit hits, the plans and inputs returned checked by the forward pass, and
+the plans at the limit against the optimum proven without it). The held-out systems run after
 the tuning pair. Speed is measured here, never asserted in tests.
 """
 from __future__ import annotations
@@ -63,6 +65,20 @@ def run(fast: bool) -> dict:
         notes.append(f"{name}: {n} diverse states (cold) in {time.perf_counter() - t0:.0f} s; p99 = "
                      f"{r['wall_p99_ms']:.0f} ms = {r['p99_over_ts_wall']:.1f} t_s (wall); "
                      + (r["miss"] or "every state <= t_s (wall)"))
+        lim, lw, lc, _ = U.diverse_run(name, n, seed=0, time_limit=U.case(name).ts)
+        d = U.diverse_deadline_row(name, lim, lw, lc, steps)
+        rows.append(dict(kind="diverse states, time_limit = t_s", **d))
+        notes.append(f"{name}: the same {n} states with time_limit = t_s: p99 = {d['wall_p99_over_ts']:.2f} t_s, "
+                     f"slowest {d['wall_max_over_ts']:.2f} t_s (wall), most CPU time of a step "
+                     f"{d['cpu_max_over_ts']:.2f} t_s; {d['over_ts_wall']} answers after t_s ({d['over_ts_cpu']} of "
+                     f"them used more than t_s of CPU time); {d['limit_hits']} limit hits ({d['cut_offs']} at the "
+                     f"cut-off); plans passing the forward pass {d['plans_admissible']} of {d['states']} "
+                     f"({d['infeasible']} programs infeasible; limit hits without one: {d['without_plan_infeasible']} "
+                     f"infeasible, {d['without_plan_missed']} with a plan the fallback missed, "
+                     f"{d['without_plan_undecided']} undecided); first inputs flagged {d['inputs_flagged']}, above "
+                     f"u_max^eps unflagged {d['inputs_not_admissible']}; plans at the limit: largest distance to the "
+                     f"optimum {d['opt_gap_max']:.1e}, {d['opt_gap_over']} above 1e-4, {d['opt_undecided']} without "
+                     "a proven optimum")
     notes.append("Default MPCOptions, time_limit=None in the closed loops (and time_limit = t_s in the rows that say so: "
                  "each limit hit solved again without the limit, 30 s cap, for its distance to the optimum); the diverse "
                  "states are solved cold with a "

@@ -34,6 +34,7 @@ from ..network import ReLUNet, fit_relu
 from ..reference import load_reference, save_reference
 from ..result import StepResult
 from ..simulate import simulate
+from ..solvers import BOUND_TOL
 from ..systems import FLSystem, brunovsky, quad1d
 from ..tables import time_stats
 from .mpc import active_fraction
@@ -481,6 +482,71 @@ def diverse_row(name: str, steps: Sequence[StepResult], wall: Array, cpu: Array)
                 fallbacks=int(sum(s.fallback for s in steps)),
                 binaries_max=int(max(s.n_binaries for s in steps)), nodes_max=int(max(s.nodes for s in steps)),
                 miss=_miss(steps, np.asarray(wall), c.ts))
+
+
+def diverse_deadline_row(name: str, steps: Sequence[StepResult], wall: Array, cpu: Array,
+                         exact: Sequence[StepResult]) -> dict:
+    """The diverse states under the time limit: ``steps``, ``wall``, ``cpu`` from :func:`diverse_run` with
+    ``time_limit = t_s``, ``exact`` the same states (same ``n`` and ``seed``) solved without it.
+
+    Answer time against ``t_s``: ``over_ts_wall`` answers after it, ``over_ts_cpu`` those of them whose step also
+    used more than ``t_s`` of CPU time, ``wall_p99_over_ts``, ``wall_max_over_ts``, ``cpu_max_over_ts``. What was
+    returned: ``plans_admissible`` (plans passing the forward-pass check), ``inputs_flagged`` (first inputs flagged
+    ``input_admissible=False``), ``inputs_not_admissible`` (first inputs with ``|Phi_NN(z, v)| > u_max^eps`` by the
+    network's forward pass and not flagged: must be 0), ``infeasible`` (states whose program the solve without
+    the limit proves infeasible). At the ``limit_hits`` (``cut_offs`` of them answered at the cut-off): for a plan
+    that passes the check, its distance to the optimum ``(J - J*) / max(1, |J*|)`` (``opt_gap_max``,
+    ``opt_gap_over`` above 1e-4, ``opt_undecided`` without a proven ``J*``); for one that does not, whether the
+    program has a plan (``without_plan_infeasible``, ``without_plan_missed``, ``without_plan_undecided``).
+    """
+    c = case(name)
+    if len(steps) != len(exact) or len(steps) != len(wall) or len(steps) != len(cpu):
+        raise ValueError(f"{len(steps)} steps, {len(wall)} wall and {len(cpu)} CPU times, {len(exact)} exact steps: "
+                         "pass the same states solved with and without the limit")
+    net, eps, _ = unseen_net(name)
+    u_eps = c.make().u_max - eps
+    wall, cpu = np.asarray(wall, float), np.asarray(cpu, float)
+    og, without = [], dict(infeasible=0, missed=0, undecided=0)
+    not_admissible = 0
+    for s, e in zip(steps, exact):
+        if not np.allclose(s.z_pred[0], e.z_pred[0]):
+            raise ValueError(f"{name}: a state solved with the limit ({s.z_pred[0]}) differs from the one solved "
+                             f"without it ({e.z_pred[0]}): pass the same states (same n and seed) in the same order")
+        u = net(np.r_[s.z_pred[0], np.atleast_1d(s.v)])
+        not_admissible += int(s.input_admissible and not np.all(np.abs(u) <= u_eps + BOUND_TOL))
+        if s.status != "time_limit":
+            continue
+        proven = e.status == "optimal" and not e.fallback
+        if s.info.get("plan_feasible"):
+            og.append((s.objective - e.objective) / max(1.0, abs(e.objective)) if proven else np.nan)
+        else:
+            without["infeasible" if e.status == "infeasible" else "missed" if proven else "undecided"] += 1
+    og = np.array(og, float)
+    sw = time_stats(wall, (50, 99))
+    return dict(system=name, role=c.role, N_p=c.horizon, t_s_ms=c.ts * 1e3, states=len(steps),
+                limit_hits=int(sum(s.status == "time_limit" for s in steps)),
+                cut_offs=int(sum(bool(s.info.get("cut_off")) for s in steps)),
+                over_ts_wall=int(np.sum(wall > c.ts)), over_ts_cpu=int(np.sum((wall > c.ts) & (cpu > c.ts))),
+                wall_p99_over_ts=sw["p99_ms"] / (c.ts * 1e3), wall_max_over_ts=float(wall.max() / c.ts),
+                cpu_max_over_ts=float(cpu.max() / c.ts),
+                plans_admissible=int(sum(bool(s.info.get("plan_feasible")) for s in steps)),
+                inputs_flagged=int(sum(not s.input_admissible for s in steps)), inputs_not_admissible=not_admissible,
+                infeasible=int(sum(e.status == "infeasible" for e in exact)),
+                opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else np.nan,
+                opt_gap_over=int(np.sum(og > 1e-4)), opt_undecided=int(np.sum(np.isnan(og))),
+                **{f"without_plan_{k}": v for k, v in without.items()})
+
+
+def diverse_deadline_table(names: Optional[Sequence[str]] = None, n: int = 10, seed: int = 0,
+                           optimum_limit: float = 60.0) -> list[dict]:
+    """:func:`diverse_deadline_row` for each case (default: all): ``n`` cold diverse states solved without a time
+    limit (``optimum_limit`` seconds each, for the optimum) and with ``time_limit = t_s``."""
+    rows = []
+    for name in (names or list(CASES)):
+        exact, *_ = diverse_run(name, n, seed=seed, time_limit=optimum_limit)
+        lim, wall, cpu, _ = diverse_run(name, n, seed=seed, time_limit=case(name).ts)
+        rows.append(diverse_deadline_row(name, lim, wall, cpu, exact))
+    return rows
 
 
 def unseen_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = None,
