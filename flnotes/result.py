@@ -60,9 +60,10 @@ class StepResult:
     info
         Controller-specific extras (e.g. the CLF-CBF's slack ``delta`` and certificate values; the MPC's
         reference ``z_ref`` over the horizon, ``plan_feasible`` (the forward-pass check of the plan),
-        ``incumbent`` (where the first incumbent came from: ``"warm start"``, ``"repaired relaxation"`` or
-        ``None``), ``region_improved`` (the QP of its linear region made it cheaper), ``lp_rounds`` and, under a
-        time limit, ``cut_off`` (the step answered at its cut-off while the engine's solve ran on)).
+        ``incumbent`` (where the first incumbent came from: ``"warm start"``, ``"repaired relaxation"``,
+        ``"one-switch plan"`` or ``None``), ``region_improved`` (the QP of its linear region made it cheaper),
+        ``bang_bang_s`` (seconds spent on the one-switch plans, ``None`` where they were not tried), ``lp_rounds`` and,
+        under a time limit, ``cut_off`` (the step answered at its cut-off while the engine's solve ran on)).
     """
 
     v: Optional[Array]

@@ -13,7 +13,8 @@ samples, and for the steps over ``t_s`` their phase, binaries, nodes and rounds 
 :class:`flnotes.StepResult`); then ~30 diverse states per system (uniform in the box, on its faces, bound
 strongly active), solved cold at the system's horizon: p99 against ``t_s``, then the same states with
 ``time_limit = t_s`` (answer times, limit hits, the plans and inputs returned checked by the forward pass, and
-the plans at the limit against the optimum proven without it). The held-out systems run after
+the plans at the limit against the optimum proven without it), and with the one-switch plans off and on
+(``MPCOptions.bang_bang``). The held-out systems run after
 the tuning pair. Speed is measured here, never asserted in tests.
 """
 from __future__ import annotations
@@ -79,6 +80,15 @@ def run(fast: bool) -> dict:
                      f"u_max^eps unflagged {d['inputs_not_admissible']}; plans at the limit: largest distance to the "
                      f"optimum {d['opt_gap_max']:.1e}, {d['opt_gap_over']} above 1e-4, {d['opt_undecided']} without "
                      "a proven optimum")
+        b = U.bang_bang_row(name, n, seed=0)
+        rows.append(dict(kind="diverse states, time_limit = t_s, one-switch plans off and on", **b))
+        notes.append(f"{name}: one-switch plans (MPCOptions.bang_bang) on the same {n} states: the repaired relaxation "
+                     f"fails the check at {b['repair_failed']} of the {b['qp_feasible'] - b['screened']} states the "
+                     f"screening QP does not settle, and a one-switch plan passes it at {b['one_switch_found']} of them "
+                     f"(search at most {b['search_ms_max']:.1f} ms); with time_limit = t_s, plans passing the check "
+                     f"{b['plans_without']} without and {b['plans_with']} with ({b['recovered']} recovered, {b['lost']} "
+                     f"lost), proven optimal {b['optimal_without']} and {b['optimal_with']}, slowest answer "
+                     f"{b['wall_max_over_ts_without']:.2f} and {b['wall_max_over_ts_with']:.2f} t_s")
     notes.append("Default MPCOptions, time_limit=None in the closed loops (and time_limit = t_s in the rows that say so: "
                  "each limit hit solved again without the limit, 30 s cap, for its distance to the optimum); the diverse "
                  "states are solved cold with a "

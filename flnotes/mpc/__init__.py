@@ -9,6 +9,7 @@ Layout (a module imports only modules above it in this list):
 * :mod:`.bound_cache`: :class:`BoundCache`, LP node bounds kept for the later boxes they contain;
 * :mod:`.levers`: node bounds per option, the steps that need encoding;
 * :mod:`.fallback`: what is applied when a solve gives no plan, and the step-by-step repairs;
+* :mod:`.bang_bang`: one-switch plans at the input bounds, repaired step by step in a batch (a first incumbent);
 * :mod:`.region`: the program on one activation region of the network (a convex QP), the first incumbent's
   last improvement;
 * :mod:`.engine`: :class:`NetworkEngine`, the exact solve with the levers (level set, constraint generation,
@@ -17,6 +18,7 @@ Layout (a module imports only modules above it in this list):
 * :mod:`.linear`: the linear models of the exact constraint used by the QP-based MPCs of the comparison;
 * :mod:`.controller`: :class:`MPC`, the controller (validation, warm start, fallback, history, the cut-off).
 """
+from .bang_bang import bang_bang_incumbent, nearest_admissible, one_switch_plans
 from .bound_cache import CACHE_BOXES, BoundCache
 from .controller import CUT_OFF_MIN_S, MPC, RESERVE_SHARE, sine_reference
 from .engine import NetworkEngine
@@ -27,4 +29,5 @@ from .region import REGION_MOVES, region_qp, region_rows
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
            "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "REGION_MOVES", "region_qp",
-           "region_rows", "RESERVE_SHARE", "CUT_OFF_MIN_S", "BoundCache", "CACHE_BOXES"]
+           "region_rows", "RESERVE_SHARE", "CUT_OFF_MIN_S", "BoundCache", "CACHE_BOXES", "one_switch_plans",
+           "bang_bang_incumbent", "nearest_admissible"]

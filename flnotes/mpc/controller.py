@@ -7,6 +7,8 @@ levers), :class:`flnotes.mpc.reference.ReferenceProgram` (the cold SCIP referenc
 """
 from __future__ import annotations
 
+import dataclasses
+
 import threading
 import time
 from typing import Callable, Optional
@@ -216,6 +218,11 @@ class MPC:
                 raise ImportError("backend='cvxpy-scip' needs cvxpy: pip install cvxpy") from exc
         self.system, self.net = system, net
         self.n_z, self.m, self.N = system.n_z, system.m, int(horizon)
+        if o.bang_bang and self.m != 1:
+            raise ValueError(f"bang_bang=True tries one-switch plans of one input; {system.name} has m = {self.m} "
+                             "inputs: drop bang_bang")
+        if engine and o.repair and o.bang_bang is None:  # the context's default: for one input
+            self.options = o = dataclasses.replace(o, bang_bang=self.m == 1)
         self.ts = float(ts)
         self.eps = as_vector(eps, self.m, "eps")
         self.u_eps = system.u_max - self.eps

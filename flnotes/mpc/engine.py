@@ -12,11 +12,12 @@ leaves few unstable neurons, and steps whose output provably meets the bound are
 restricted to these boxes contains every plan cheaper than ``J_up`` and nothing infeasible, so its optimum
 is the global one whenever it is below ``J_up``; otherwise ``J_up`` is raised (or, when ``J_up`` is the
 incumbent's cost, the incumbent is optimal). The incumbent is the cheaper of the warm start and the relaxation's
-optimum repaired step by step along the QP without the network, then optimized over the network's linear region
-around it and its neighbours (``repair``; :mod:`flnotes.mpc.region`). ``J_up`` starts at the incumbent's cost
-(``first_level="incumbent"``: one round holds the optimum; without an incumbent at ``J_c + max(1, |J_c|)``), or
-at ``J_c`` plus a small margin (``first_level="relaxation"``); the margin is multiplied by 4 per round
-that finds nothing below it.
+optimum repaired step by step along the QP without the network (or, when neither passes the check, the cheapest
+one-switch plan at the input bounds: ``bang_bang``, :mod:`flnotes.mpc.bang_bang`), then optimized over the
+network's linear region around it and its neighbours (``repair``; :mod:`flnotes.mpc.region`). ``J_up`` starts at
+the incumbent's cost (``first_level="incumbent"``: one round holds the optimum; without an incumbent at
+``J_c + max(1, |J_c|)``), or at ``J_c`` plus a small margin (``first_level="relaxation"``); the margin is
+multiplied by 4 per round that finds nothing below it.
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ from ..result import StepResult
 from ..solvers import MIQP, available_backends, make_solver, next_margin, release_retired, retire
 from ..solvers.base import VERIFY_MIN_LEFT
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
+from .bang_bang import bang_bang_incumbent
 from .bound_cache import BoundCache
 from .fallback import qp_repair
 from .region import REGION_MOVES, region_qp
@@ -102,6 +104,7 @@ def _step_result(pred: Prediction, z0: Array, f: Array, c0: float, status: str, 
     res.info["region_improved"] = st.get("region", False)  # the region QP made it cheaper
     res.info["tightened"] = st.get("tightened", 0)  # times u_max^eps was tightened in the rows (solver tolerance)
     res.info["repair_failed"] = st.get("repair_failed", False)  # the plan along the QP failed the check
+    res.info["bang_bang_s"] = st.get("bang_bang_s")  # time of the one-switch search (s; None: it did not run)
     if V is not None:
         V = np.asarray(V, float).reshape(N, m)
         obj = pred.cost(V, f, c0)
@@ -285,7 +288,7 @@ class NetworkEngine:
         incumbent_from = "warm start" if inc_V is not None else None
         if o.repair and V_c is not None:
             inc_V, inc_J, incumbent_from, st["region"], st["repair_failed"] = self._improve(
-                z0, f, c0, V_c, inc_V, inc_J, incumbent_from)
+                z0, f, c0, V_c, inc_V, inc_J, incumbent_from, None if time_limit is None else t0 + time_limit, st)
         st["incumbent"] = incumbent_from
         publish(inc_V, inc_J, J_c, incumbent_from)
         try:
@@ -469,19 +472,29 @@ class NetworkEngine:
             delta *= 4.0
 
     def _improve(self, z0: Array, f: Array, c0: float, V_c: Array, inc_V: Optional[Array], inc_J: float,
-                 inc_from: Optional[str]) -> tuple[Optional[Array], float, Optional[str], bool, bool]:
+                 inc_from: Optional[str], deadline: Optional[float] = None, st: Optional[dict] = None
+                 ) -> tuple[Optional[Array], float, Optional[str], bool, bool]:
         """The first incumbent of ``repair``: the cheaper of the warm start and the relaxation's optimum ``V_c``
-        repaired along the QP (:func:`flnotes.mpc.fallback.qp_repair`), then optimized over its linear region and
-        its neighbours (:func:`flnotes.mpc.region.region_qp`). Each candidate counts only if it passes the
-        forward-pass check. Returns ``(V, J, where it came from, whether the region QP made it cheaper, whether the
-        repaired plan failed the check)``."""
-        pred = self.pred
+        repaired along the QP (:func:`flnotes.mpc.fallback.qp_repair`); when neither passes and ``bang_bang`` is on,
+        the cheapest one-switch plan at the input bounds (:func:`flnotes.mpc.bang_bang.bang_bang_incumbent`, given
+        up at the ``deadline``, a ``time.perf_counter()`` value); then optimized over its linear region and its
+        neighbours (:func:`flnotes.mpc.region.region_qp`). Each candidate counts only if it passes the forward-pass
+        check. Returns ``(V, J, where it came from, whether the region QP made it cheaper, whether the repaired plan
+        failed the check)``; the one-switch search's time (s) goes to ``st["bang_bang_s"]``."""
+        pred, o = self.pred, self.opts
         _, V_r = qp_repair(pred, z0, f, V_c)
         failed = not pred.feasible(z0, V_r)
         if not failed:
             J_r = pred.cost(V_r, f, c0)
             if J_r < inc_J:
                 inc_V, inc_J, inc_from = V_r.reshape(-1), J_r, "repaired relaxation"
+        if inc_V is None and (o.bang_bang if o.bang_bang is not None else pred.m == 1):
+            t_bb = time.perf_counter()
+            found = bang_bang_incumbent(pred, z0, f, c0, deadline)
+            if st is not None:
+                st["bang_bang_s"] = time.perf_counter() - t_bb
+            if found is not None:
+                inc_V, inc_J, inc_from = found[0], found[1], "one-switch plan"
         if inc_V is None:
             return None, np.inf, inc_from, False, failed
         V_p = region_qp(pred, z0, f, inc_V, REGION_MOVES)

@@ -39,8 +39,10 @@ def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True) 
 
 def _admissible(pred: Prediction, z: Array, cand: Array, last: bool) -> Array:
     """Which rows of ``cand`` (n, m) meet ``|Phi_NN(z, v)| <= u_max^eps`` (forward pass) and keep
-    ``A_d z + B_d v`` in the state box (and, for the ``last`` step, in the terminal set)."""
-    u = pred.net(np.hstack([np.repeat(z[None], len(cand), 0), cand]))
+    ``A_d z + B_d v`` in the state box (and, for the ``last`` step, in the terminal set). ``z`` is one state (n_z,)
+    or one per row of ``cand`` (n, n_z)."""
+    z = np.broadcast_to(z, (len(cand), pred.nz))
+    u = pred.net(np.hstack([z, cand]))
     nxt = z @ pred.Ad.T + cand @ pred.Bd.T
     ok = (np.all(np.abs(u) <= pred.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= pred.z_lo, axis=1)
           & np.all(nxt <= pred.z_hi, axis=1))
@@ -69,8 +71,12 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
 #: when none of them is admissible.
 _NEAR = 128
 
+#: Grid points of a one-input search (:func:`feasible_tail`) over ``[v_lo, v_hi]``.
+FEASIBLE_TAIL_GRID = 2001
 
-def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = 2001, last: bool = False) -> Array:
+
+def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEASIBLE_TAIL_GRID,
+                  last: bool = False) -> Array:
     """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box (and, for the
     ``last`` step, in the terminal set), closest to ``v_guess``.
 

@@ -23,7 +23,7 @@ BOUNDS = ("box", "horizon", "lp", "levelset")
 CONSTRAINTS = ("network", "measured", "previous", "none")
 
 _NETWORK_LEVERS = ("bounds", "screening", "lazy", "warm_start", "encode", "eliminate_stable", "lp", "first_level",
-                   "repair", "branching", "bound_cache")
+                   "repair", "branching", "bound_cache", "bang_bang")
 #: DAQP's branching order (the binaries' column order, :data:`flnotes.mpc.program.ORDERS`).
 BRANCHINGS = ("layers", "steps")
 #: The first level ``J_up`` of the level-set rounds (``bounds="levelset"``; see :mod:`flnotes.mpc.engine`).
@@ -90,6 +90,15 @@ class MPCOptions:
         two is then optimized over the network's linear region around it and its neighbours
         (:func:`flnotes.mpc.region.region_qp`, a convex QP per region). Under a time limit this is the plan returned
         when the branch and bound does not finish, so a poor warm start is not carried from step to step.
+    bang_bang
+        With ``repair`` only, for one input: when neither the warm start nor the repaired relaxation gives an
+        incumbent, the ``2 N_p`` one-switch plans at the input bounds (``v`` at ``v_hi`` for the first ``s`` steps,
+        then at ``v_lo``, and the reverse), each repaired step by step
+        (:func:`flnotes.mpc.bang_bang.one_switch_plans`), are tried; the cheapest that passes the check is the first
+        incumbent, optimized over its linear region as above. Where the bound is active over most of the horizon
+        the optimum is often of this shape, and the greedy repair of the relaxation misses it. Left ``None``, the
+        :class:`flnotes.MPC` sets it to ``True`` for one input and ``False`` for more; ``True`` with more than one
+        input is an error.
     branching
         With a back-end that runs DAQP (``"auto"``, ``"daqp"``) only: DAQP branches on the first fractional binary
         in column order, so the order of the binaries is its branching order. ``"layers"`` (default): the
@@ -119,12 +128,13 @@ class MPCOptions:
     repair: Optional[bool] = None
     branching: Optional[str] = None
     bound_cache: Optional[bool] = None
+    bang_bang: Optional[bool] = None
     iterations: Optional[int] = None
 
     def __post_init__(self) -> None:
         given = {f.name for f in fields(self) if getattr(self, f.name) is not None}
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: resolve defaults once
-        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "repair", "bound_cache"):
+        for k in ("screening", "lazy", "warm_start", "eliminate_stable", "repair", "bound_cache", "bang_bang"):
             if k in given and not isinstance(getattr(self, k), bool):
                 raise TypeError(f"{k} must be True or False, got {getattr(self, k)!r}")
         if "lp" in given and not (isinstance(self.lp, bool) or self.lp == "auto"):
@@ -160,10 +170,10 @@ class MPCOptions:
         put("backend", backend)
         if backend == "cvxpy-scip":
             # the reference: the whole program written with fl.encode, solved cold; no lever applies
-            if "first_level" in given or "branching" in given or "bound_cache" in given:
-                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set, DAQP or kept LP "
-                                 "bounds: first_level, branching and bound_cache do not apply (drop them or choose "
-                                 "'daqp' or 'auto')")
+            if given & {"first_level", "branching", "bound_cache", "bang_bang"}:
+                raise ValueError("backend='cvxpy-scip' is the cold reference without a level set, DAQP, kept LP "
+                                 "bounds or a first incumbent: first_level, branching, bound_cache and bang_bang do "
+                                 "not apply (drop them or choose 'daqp' or 'auto')")
             for k, off in (("screening", False), ("lazy", False), ("warm_start", False), ("lp", False),
                            ("encode", "all"), ("eliminate_stable", True), ("repair", False)):
                 if k in given and getattr(self, k) != off:
@@ -216,6 +226,9 @@ class MPCOptions:
         put("bound_cache", (True if lp_runs else None) if self.bound_cache is None else self.bound_cache)
         for k in ("screening", "warm_start", "eliminate_stable", "repair"):
             put(k, True if getattr(self, k) is None else getattr(self, k))
+        if "bang_bang" in given and not self.repair:
+            raise ValueError(f"bang_bang={self.bang_bang!r} adds first incumbents to repair, and repair=False: drop "
+                             "bang_bang or set repair=True")
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -241,11 +254,12 @@ class MPCOptions:
                     grid = [dict(bounds=b) for b in ("box", "horizon", "lp")]
                 else:
                     grid = [dict(bounds=b, screening=s, warm_start=w, eliminate_stable=e, encode=enc, lazy=lz, lp=lp,
-                                 first_level=fl, repair=rp, branching=br, bound_cache=bc)
-                            for b, s, w, e, (enc, lz), lp, fl, rp, br, bc in itertools.product(
+                                 first_level=fl, repair=rp, branching=br, bound_cache=bc, bang_bang=bb)
+                            for b, s, w, e, (enc, lz), lp, fl, (rp, bb), br, bc in itertools.product(
                                 BOUNDS, (True, False), (True, False), (True, False),
                                 (("needed", True), ("needed", False), ("all", False)), (False, True, "auto"),
-                                FIRST_LEVELS + (None,), (True, False), BRANCHINGS + (None,), (True, False, None))
+                                FIRST_LEVELS + (None,), ((True, True), (True, False), (False, None)),
+                                BRANCHINGS + (None,), (True, False, None))
                             if not (lp and b != "levelset") and (fl is None) == (b != "levelset")
                             and (br is None) == (backend not in ("auto", "daqp"))
                             and (bc is None) == (b not in ("lp", "levelset") or (b == "levelset" and lp is False))]
@@ -266,6 +280,7 @@ class MPCOptions:
         on += ["first level: relaxation"] if self.first_level == "relaxation" else []
         on += ["branching step by step"] if self.branching == "steps" else []
         on += ["LP bounds not kept"] if self.bound_cache is False else []
+        on += ["no one-switch plans"] if self.repair and self.bang_bang is False else []
         extra = [] if self.eliminate_stable else ["stable neurons kept"]
         extra += [] if self.encode == "needed" else ["every step encoded"]
         return f"{self.backend}, bounds={self.bounds}" + "".join(f", {s}" for s in on + extra)

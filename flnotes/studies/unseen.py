@@ -30,6 +30,8 @@ import numpy as np
 from .. import interval as iv
 from ..error import certify_error
 from ..mpc import MPC, MPCOptions, sine_reference
+from ..mpc.bang_bang import bang_bang_incumbent
+from ..mpc.fallback import qp_repair
 from ..network import ReLUNet, fit_relu
 from ..reference import load_reference, save_reference
 from ..result import StepResult
@@ -43,7 +45,9 @@ Array = np.ndarray
 
 __all__ = ["UnseenCase", "CASES", "case", "unseen_system", "unseen_net", "unseen_mpc", "write_unseen_references",
            "definitions_table", "TimedController", "closed_loop", "diverse_cases", "diverse_run", "step_phase",
-           "closed_loop_row", "diverse_row", "unseen_table", "unseen_numbers", "dense_error", "worst_step"]
+           "closed_loop_row", "diverse_row", "unseen_table", "unseen_numbers", "dense_error", "worst_step",
+           "deadline_row", "deadline_table", "diverse_deadline_row", "diverse_deadline_table", "bang_bang_row",
+           "bang_bang_table"]
 
 
 def _identity(x: Array) -> Array:
@@ -547,6 +551,66 @@ def diverse_deadline_table(names: Optional[Sequence[str]] = None, n: int = 10, s
         lim, wall, cpu, _ = diverse_run(name, n, seed=seed, time_limit=case(name).ts)
         rows.append(diverse_deadline_row(name, lim, wall, cpu, exact))
     return rows
+
+
+def bang_bang_row(name: str, n: int = 30, seed: int = 0) -> dict:
+    """The one-switch plans (``MPCOptions.bang_bang``) on ``n`` cold diverse states of the case ``name``.
+
+    What does not depend on the machine: ``qp_feasible`` (states whose QP without the network has a plan),
+    ``screened`` (its optimum meets the network bound), ``repair_failed`` (the relaxation repaired along the QP
+    fails the forward-pass check, so a cold solve has no first incumbent without the one-switch plans), and of
+    those ``one_switch_found`` (a one-switch plan passes the check, searched without a deadline; the largest search
+    time ``search_ms_max``).
+
+    Then the same states solved with ``time_limit = t_s``, without and with the option (interleaved state by state):
+    ``plans_without``/``plans_with`` (answers whose plan passes the check), ``recovered`` (a plan with the option,
+    none without: a plan existed and was missed), ``lost`` (the reverse), ``one_switch_used`` (steps whose first
+    incumbent was a one-switch plan) and ``one_switch_unplanned`` (of those, steps that returned no plan passing the
+    check: 0, since an incumbent is always returned), ``optimal_without``/``optimal_with`` and the slowest answers
+    ``wall_max_over_ts_without``/``_with``.
+    """
+    c = case(name)
+    cases = diverse_cases(name, n, seed)
+    mpc = {bb: unseen_mpc(name, options=MPCOptions(bang_bang=bb), time_limit=c.ts) for bb in (False, True)}
+    pred = mpc[True].pred
+    det = dict(qp_feasible=0, screened=0, repair_failed=0, one_switch_found=0)
+    search, steps, wall = [], {False: [], True: []}, {False: [], True: []}
+    for cs in cases:
+        z = np.asarray(cs["z"], float)
+        f, c0 = pred.linear(z, cs["z_ref"])
+        V_q, _, _ = pred.qp(f, z)
+        if V_q is not None:
+            det["qp_feasible"] += 1
+            if pred.feasible(z, V_q):
+                det["screened"] += 1
+            elif not pred.feasible(z, qp_repair(pred, z, f, V_q)[1]):
+                det["repair_failed"] += 1
+                t0 = time.perf_counter()
+                det["one_switch_found"] += bang_bang_incumbent(pred, z, f, c0) is not None
+                search.append(time.perf_counter() - t0)
+        for bb in (False, True):
+            mpc[bb].reset()
+            t0 = time.perf_counter()
+            steps[bb].append(mpc[bb](z, cs["z_ref"]))
+            wall[bb].append(time.perf_counter() - t0)
+    planned = {bb: np.array([bool(s.info.get("plan_feasible")) and not s.fallback for s in steps[bb]]) for bb in wall}
+    used = [s.info.get("incumbent") == "one-switch plan" for s in steps[True]]
+    return dict(system=name, role=c.role, N_p=c.horizon, t_s_ms=c.ts * 1e3, states=n, **det,
+                search_ms_max=1e3 * max(search) if search else 0.0,
+                plans_without=int(planned[False].sum()), plans_with=int(planned[True].sum()),
+                recovered=int(np.sum(planned[True] & ~planned[False])),
+                lost=int(np.sum(planned[False] & ~planned[True])),
+                one_switch_used=int(sum(used)),
+                one_switch_unplanned=int(sum(u and not p for u, p in zip(used, planned[True]))),
+                optimal_without=int(sum(s.status == "optimal" for s in steps[False])),
+                optimal_with=int(sum(s.status == "optimal" for s in steps[True])),
+                wall_max_over_ts_without=float(max(wall[False]) / c.ts),
+                wall_max_over_ts_with=float(max(wall[True]) / c.ts))
+
+
+def bang_bang_table(names: Optional[Sequence[str]] = None, n: int = 30, seed: int = 0) -> list[dict]:
+    """:func:`bang_bang_row` for each case (default: all)."""
+    return [bang_bang_row(name, n, seed) for name in (names or list(CASES))]
 
 
 def unseen_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = None,
