@@ -461,3 +461,26 @@ def test_cut_off_study_compares_the_two_settings(quad):
     mpc.reserve_share = 0.7
     with pytest.raises(ValueError, match="reserve_share"):
         mpc.reserve
+
+
+def test_a_step_under_a_time_limit_runs_without_the_cyclic_garbage_collector(quad, monkeypatch):
+    """A full collection (tens of ms) must not land inside an answer: under a time limit the step runs with the
+    collector off and leaves it as it found it; without a limit the collector stays on."""
+    import gc
+
+    seen = []
+    for limit in (0.5, None):
+        mpc = rt.make_mpc(quad, time_limit=limit, cut_off=False if limit else None)
+        orig = mpc.solver.solve
+
+        def spy(*a, _orig=orig, **k):
+            seen.append(gc.isenabled())
+            return _orig(*a, **k)
+
+        monkeypatch.setattr(mpc.solver, "solve", spy)
+        z = np.asarray(quad["z0"], float)
+        R = quad["reference"](quad["ts"] * np.arange(quad["N"] + 1))
+        assert gc.isenabled()
+        mpc(z, R)
+        assert gc.isenabled(), "the step restores the collector"
+    assert seen == [False, True]

@@ -370,3 +370,18 @@ def test_daqp_switches_give_the_reference_optimum(recorded, daqp_options):
             s = mpc(z, R)
             assert s.status == "optimal" and not s.fallback, (daqp_options, s.message)
             assert abs(s.objective - J_ref) <= 1e-6 * max(1.0, abs(J_ref)), (daqp_options, s.objective, J_ref)
+
+
+def test_clone_keeps_or_refuses_to_drop_the_options():
+    """A clone changes what it is given and keeps the rest: keywords on keywords merge; keywords on an MPC built with
+    ``options=`` would drop those options, so they raise; ``options=`` replaces them."""
+    sysm = fl.quad1d()
+    net, _ = test_net("quad1d-8x8")
+    kw = MPC(sysm, net, EPS, screening=False, **COMMON).clone(warm_start=False)
+    assert kw.options.screening is False and kw.options.warm_start is False
+    built = MPC(sysm, net, EPS, options=MPCOptions(bounds="lp"), **COMMON)
+    with pytest.raises(ValueError, match="options=MPCOptions"):
+        built.clone(warm_start=False)
+    again = built.clone(options=MPCOptions(bounds="lp", warm_start=False))
+    assert again.options.bounds == "lp" and again.options.warm_start is False
+    assert built.clone(time_limit=0.5).options == built.options

@@ -131,3 +131,13 @@ def test_diverse_deadline_row_refuses_other_states():
         U.diverse_deadline_row("Chain4-gain", a, wall, cpu, b)
     with pytest.raises(ValueError, match="same states"):
         U.diverse_deadline_row("Chain4-gain", a, wall, cpu, b[:1])
+
+
+def test_late_steps_names_each_answer_after_ts_and_where_its_time_went():
+    h = [fl.StepResult(np.zeros(1), solve_time=0.01),
+         fl.StepResult(np.zeros(1), status="time_limit", solve_time=0.045, info={"cut_off": True}),
+         fl.StepResult(np.zeros(1), status="time_limit", solve_time=0.02, fallback=True)]
+    assert U.late_steps(h, [0.01, 0.049, 0.03], [0.01, 0.05, 0.03], ts=0.05) == ""
+    text = U.late_steps(h, [0.01, 0.06, 0.07], [0.01, 0.03, 0.069], ts=0.05)
+    assert text.startswith("step 1: 60.0 ms wall, 30.0 ms CPU, engine 45.0 ms, time_limit, at the cut-off; ")
+    assert text.endswith("step 2: 70.0 ms wall, 69.0 ms CPU, engine 20.0 ms, time_limit, fallback")

@@ -56,7 +56,7 @@ def run(fast: bool) -> dict:
                      f"than t_s of CPU time), slowest answer {r['wall_max_over_ts']:.2f} t_s (wall), most CPU time "
                      f"of a step {r['cpu_max_over_ts']:.2f} t_s; plans at the limit: largest distance to the optimum "
                      f"{r['opt_gap_max']:.1e}, {r['opt_gap_over']} above 1e-4, {r['opt_undecided']} without a proven "
-                     "optimum")
+                     "optimum" + (f"; late answers: {r['late']}" if r["late"] else ""))
     n = 9 if fast else 30
     for name in names:
         t0 = time.perf_counter()
@@ -79,7 +79,7 @@ def run(fast: bool) -> dict:
                      f"{d['without_plan_undecided']} undecided); first inputs flagged {d['inputs_flagged']}, above "
                      f"u_max^eps unflagged {d['inputs_not_admissible']}; plans at the limit: largest distance to the "
                      f"optimum {d['opt_gap_max']:.1e}, {d['opt_gap_over']} above 1e-4, {d['opt_undecided']} without "
-                     "a proven optimum")
+                     "a proven optimum" + (f"; late answers: {d['late']}" if d["late"] else ""))
         b = U.bang_bang_row(name, n, seed=0)
         rows.append(dict(kind="diverse states, time_limit = t_s, one-switch plans off and on", **b))
         notes.append(f"{name}: one-switch plans (MPCOptions.bang_bang) on the same {n} states: the repaired relaxation "
@@ -88,7 +88,8 @@ def run(fast: bool) -> dict:
                      f"(search at most {b['search_ms_max']:.1f} ms); with time_limit = t_s, plans passing the check "
                      f"{b['plans_without']} without and {b['plans_with']} with ({b['recovered']} recovered, {b['lost']} "
                      f"lost), proven optimal {b['optimal_without']} and {b['optimal_with']}, slowest answer "
-                     f"{b['wall_max_over_ts_without']:.2f} and {b['wall_max_over_ts_with']:.2f} t_s")
+                     f"{b['wall_max_over_ts_without']:.2f} and {b['wall_max_over_ts_with']:.2f} t_s"
+                     + "".join(f"; late {w}: {b['late_' + w]}" for w in ("without", "with") if b["late_" + w]))
     notes.append("Default MPCOptions, time_limit=None in the closed loops (and time_limit = t_s in the rows that say so: "
                  "each limit hit solved again without the limit, 30 s cap, for its distance to the optimum); the diverse "
                  "states are solved cold with a "

@@ -11,13 +11,14 @@ import dataclasses
 
 import threading
 import time
+from contextlib import nullcontext
 from typing import Callable, Optional
 
 import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import one_blas_thread
+from ..config import no_cyclic_gc, one_blas_thread
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired, unmute_c_output
@@ -336,9 +337,13 @@ class MPC:
         args = {**self._init_args, **changes}
         if args.get("time_limit") is None and "cut_off" not in changes:
             args["cut_off"] = None  # a clone without a time limit has no cut-off to keep
+        levers = sorted(set(changes) & set(MPCOptions.__dataclass_fields__))
         if "options" in changes and changes["options"] is not None:
             args = {k: v for k, v in args.items() if k not in MPCOptions.__dataclass_fields__}
-        elif set(changes) & set(MPCOptions.__dataclass_fields__):
+        elif levers:
+            if self._init_args.get("options") is not None and "options" not in changes:
+                raise ValueError(f"this MPC was built with options=MPCOptions(...), so the keywords {levers} would "
+                                 "replace those options: give clone(options=MPCOptions(...)) with every option wanted")
             args["options"] = None
         return MPC(**args)
 
@@ -385,9 +390,10 @@ class MPC:
         Returns the :class:`flnotes.StepResult` (appended to :attr:`history`): ``v`` to apply, the plan, status
         and statistics. A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``). An
         infeasible program is reported (``status="infeasible"``), not raised. The step runs with one BLAS
-        thread (:func:`flnotes.config.one_blas_thread`).
+        thread (:func:`flnotes.config.one_blas_thread`) and, under a time limit, without Python's cyclic garbage
+        collector (:func:`flnotes.config.no_cyclic_gc`: a collection runs after the answer, not inside it).
         """
-        with one_blas_thread():
+        with one_blas_thread(), (no_cyclic_gc() if self.time_limit is not None else nullcontext()):
             return self._solve_step(z, z_ref)
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:

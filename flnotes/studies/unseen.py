@@ -46,7 +46,7 @@ Array = np.ndarray
 __all__ = ["UnseenCase", "CASES", "case", "unseen_system", "unseen_net", "unseen_mpc", "write_unseen_references",
            "definitions_table", "TimedController", "closed_loop", "diverse_cases", "diverse_run", "step_phase",
            "closed_loop_row", "diverse_row", "unseen_table", "unseen_numbers", "dense_error", "worst_step",
-           "deadline_row", "deadline_table", "diverse_deadline_row", "diverse_deadline_table", "bang_bang_row",
+           "deadline_row", "deadline_table", "late_steps", "diverse_deadline_row", "diverse_deadline_table", "bang_bang_row",
            "bang_bang_table"]
 
 
@@ -391,6 +391,20 @@ def _miss(history: Sequence[StepResult], wall: Array, ts: float) -> str:
             + ", ".join(f"{p} {n}" for p, n in sorted(phases.items())))
 
 
+def late_steps(history: Sequence[StepResult], wall: Array, cpu: Array, ts: float) -> str:
+    """The answers after ``t_s`` told apart: per late step its wall and CPU time, the engine's own solve time
+    (``solve_time``), its status and whether it was answered at the cut-off or by the fallback; the rest of the
+    wall time was spent outside the engine's solve (the fallback, the controller, the interpreter) or waiting."""
+    wall, cpu = np.asarray(wall, float), np.asarray(cpu, float)
+    out = []
+    for k in np.flatnonzero(wall > ts):
+        s = history[k]
+        out.append(f"step {k}: {wall[k] * 1e3:.1f} ms wall, {cpu[k] * 1e3:.1f} ms CPU, engine {s.solve_time * 1e3:.1f} ms, "
+                   f"{s.status}" + (", at the cut-off" if s.info.get("cut_off") else "")
+                   + (", fallback" if s.fallback else ""))
+    return "; ".join(out)
+
+
 def closed_loop_row(name: str, log, mpc: MPC, timed: TimedController) -> dict:
     """The benchmark's row of a closed loop: bound activity, wall/CPU time per step, |u|/u_max, misses."""
     c = case(name)
@@ -501,7 +515,8 @@ def diverse_deadline_row(name: str, steps: Sequence[StepResult], wall: Array, cp
     the limit proves infeasible). At the ``limit_hits`` (``cut_offs`` of them answered at the cut-off): for a plan
     that passes the check, its distance to the optimum ``(J - J*) / max(1, |J*|)`` (``opt_gap_max``,
     ``opt_gap_over`` above 1e-4, ``opt_undecided`` without a proven ``J*``); for one that does not, whether the
-    program has a plan (``without_plan_infeasible``, ``without_plan_missed``, ``without_plan_undecided``).
+    program has a plan (``without_plan_infeasible``, ``without_plan_missed``, ``without_plan_undecided``); ``late``
+    describes each answer after ``t_s`` (:func:`late_steps`).
     """
     c = case(name)
     if len(steps) != len(exact) or len(steps) != len(wall) or len(steps) != len(cpu):
@@ -538,7 +553,7 @@ def diverse_deadline_row(name: str, steps: Sequence[StepResult], wall: Array, cp
                 infeasible=int(sum(e.status == "infeasible" for e in exact)),
                 opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else np.nan,
                 opt_gap_over=int(np.sum(og > 1e-4)), opt_undecided=int(np.sum(np.isnan(og))),
-                **{f"without_plan_{k}": v for k, v in without.items()})
+                **{f"without_plan_{k}": v for k, v in without.items()}, late=late_steps(steps, wall, cpu, c.ts))
 
 
 def diverse_deadline_table(names: Optional[Sequence[str]] = None, n: int = 10, seed: int = 0,
@@ -566,15 +581,16 @@ def bang_bang_row(name: str, n: int = 30, seed: int = 0) -> dict:
     ``plans_without``/``plans_with`` (answers whose plan passes the check), ``recovered`` (a plan with the option,
     none without: a plan existed and was missed), ``lost`` (the reverse), ``one_switch_used`` (steps whose first
     incumbent was a one-switch plan) and ``one_switch_unplanned`` (of those, steps that returned no plan passing the
-    check: 0, since an incumbent is always returned), ``optimal_without``/``optimal_with`` and the slowest answers
-    ``wall_max_over_ts_without``/``_with``.
+    check: 0, since an incumbent is always returned), ``optimal_without``/``optimal_with``, the slowest answers
+    ``wall_max_over_ts_without``/``_with``, the answers after ``t_s`` ``over_ts_without``/``_with`` and each of them
+    described (``late_without``/``late_with``, :func:`late_steps`).
     """
     c = case(name)
     cases = diverse_cases(name, n, seed)
     mpc = {bb: unseen_mpc(name, options=MPCOptions(bang_bang=bb), time_limit=c.ts) for bb in (False, True)}
     pred = mpc[True].pred
     det = dict(qp_feasible=0, screened=0, repair_failed=0, one_switch_found=0)
-    search, steps, wall = [], {False: [], True: []}, {False: [], True: []}
+    search, steps, wall, cpu = [], {False: [], True: []}, {False: [], True: []}, {False: [], True: []}
     for cs in cases:
         z = np.asarray(cs["z"], float)
         f, c0 = pred.linear(z, cs["z_ref"])
@@ -590,8 +606,9 @@ def bang_bang_row(name: str, n: int = 30, seed: int = 0) -> dict:
                 search.append(time.perf_counter() - t0)
         for bb in (False, True):
             mpc[bb].reset()
-            t0 = time.perf_counter()
+            t0, p0 = time.perf_counter(), time.process_time()
             steps[bb].append(mpc[bb](z, cs["z_ref"]))
+            cpu[bb].append(time.process_time() - p0)
             wall[bb].append(time.perf_counter() - t0)
     planned = {bb: np.array([bool(s.info.get("plan_feasible")) and not s.fallback for s in steps[bb]]) for bb in wall}
     used = [s.info.get("incumbent") == "one-switch plan" for s in steps[True]]
@@ -605,7 +622,11 @@ def bang_bang_row(name: str, n: int = 30, seed: int = 0) -> dict:
                 optimal_without=int(sum(s.status == "optimal" for s in steps[False])),
                 optimal_with=int(sum(s.status == "optimal" for s in steps[True])),
                 wall_max_over_ts_without=float(max(wall[False]) / c.ts),
-                wall_max_over_ts_with=float(max(wall[True]) / c.ts))
+                wall_max_over_ts_with=float(max(wall[True]) / c.ts),
+                over_ts_without=int(np.sum(np.array(wall[False]) > c.ts)),
+                over_ts_with=int(np.sum(np.array(wall[True]) > c.ts)),
+                late_without=late_steps(steps[False], wall[False], cpu[False], c.ts),
+                late_with=late_steps(steps[True], wall[True], cpu[True], c.ts))
 
 
 def bang_bang_table(names: Optional[Sequence[str]] = None, n: int = 30, seed: int = 0) -> list[dict]:
@@ -641,7 +662,7 @@ def deadline_row(name: str, steps: Optional[int] = None, horizon: Optional[int] 
     step used over ``t_s``; ``over_ts_wall`` counts the answers after ``t_s`` and ``over_ts_cpu`` those of them whose
     step also used more than ``t_s`` of CPU time (late by their own work; the others waited for the machine);
     ``cut_offs`` counts the answers given at the cut-off while the engine's solve ran on (:class:`flnotes.MPC`
-    ``cut_off``).
+    ``cut_off``); ``late`` describes each answer after ``t_s`` (:func:`late_steps`).
     """
     c = case(name)
     log, mpc, timed = closed_loop(name, t_final=None if steps is None else steps * c.ts, time_limit=c.ts,
@@ -665,7 +686,7 @@ def deadline_row(name: str, steps: Optional[int] = None, horizon: Optional[int] 
                 opt_gap_over=int(np.sum(og > 1e-4)), opt_undecided=int(np.sum(np.isnan(og))),
                 plans_admissible=int(sum(bool(s.info.get("plan_feasible")) for s in h)),
                 fallbacks=int(sum(s.fallback for s in h)), max_u_over_u_max=float(np.abs(log.u).max() / float(
-                    mpc.system.u_max[0])))
+                    mpc.system.u_max[0])), late=late_steps(h, wall, cpu, c.ts))
 
 
 def deadline_table(names: Optional[Sequence[str]] = None, steps: Optional[int] = None,
