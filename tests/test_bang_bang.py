@@ -160,4 +160,4 @@ def test_the_study_row_counts_what_it_says():
     assert r["qp_feasible"] >= r["screened"] + r["repair_failed"] and r["repair_failed"] >= r["one_switch_found"] >= 2
     assert r["one_switch_unplanned"] == 0 and r["one_switch_used"] <= r["repair_failed"]
     assert r["plans_with"] <= r["qp_feasible"] and r["plans_without"] <= r["qp_feasible"]
-    assert r["plans_with"] - r["plans_without"] == r["recovered"] - r["lost"]
+    assert r["plans_with"] - r["plans_without"] == r["recovered"] - r["lost"] and r["lost_searched"] <= r["lost"]

@@ -87,7 +87,8 @@ def run(fast: bool) -> dict:
                      f"screening QP does not settle, and a one-switch plan passes it at {b['one_switch_found']} of them "
                      f"(search at most {b['search_ms_max']:.1f} ms); with time_limit = t_s, plans passing the check "
                      f"{b['plans_without']} without and {b['plans_with']} with ({b['recovered']} recovered, {b['lost']} "
-                     f"lost), proven optimal {b['optimal_without']} and {b['optimal_with']}, slowest answer "
+                     f"lost, {b['lost_searched']} of them where the search ran), proven optimal "
+                     f"{b['optimal_without']} and {b['optimal_with']}, slowest answer "
                      f"{b['wall_max_over_ts_without']:.2f} and {b['wall_max_over_ts_with']:.2f} t_s"
                      + "".join(f"; late {w}: {b['late_' + w]}" for w in ("without", "with") if b["late_" + w]))
     notes.append("Default MPCOptions, time_limit=None in the closed loops (and time_limit = t_s in the rows that say so: "

@@ -579,7 +579,9 @@ def bang_bang_row(name: str, n: int = 30, seed: int = 0) -> dict:
 
     Then the same states solved with ``time_limit = t_s``, without and with the option (interleaved state by state):
     ``plans_without``/``plans_with`` (answers whose plan passes the check), ``recovered`` (a plan with the option,
-    none without: a plan existed and was missed), ``lost`` (the reverse), ``one_switch_used`` (steps whose first
+    none without: a plan existed and was missed), ``lost`` (the reverse; ``lost_searched`` of them at states where
+    the one-switch search ran: elsewhere both runs take the same path, and a difference is the machine's timing),
+    ``one_switch_used`` (steps whose first
     incumbent was a one-switch plan) and ``one_switch_unplanned`` (of those, steps that returned no plan passing the
     check: 0, since an incumbent is always returned), ``optimal_without``/``optimal_with``, the slowest answers
     ``wall_max_over_ts_without``/``_with``, the answers after ``t_s`` ``over_ts_without``/``_with`` and each of them
@@ -612,11 +614,13 @@ def bang_bang_row(name: str, n: int = 30, seed: int = 0) -> dict:
             wall[bb].append(time.perf_counter() - t0)
     planned = {bb: np.array([bool(s.info.get("plan_feasible")) and not s.fallback for s in steps[bb]]) for bb in wall}
     used = [s.info.get("incumbent") == "one-switch plan" for s in steps[True]]
+    searched = np.array([s.info.get("bang_bang_s") is not None for s in steps[True]])
     return dict(system=name, role=c.role, N_p=c.horizon, t_s_ms=c.ts * 1e3, states=n, **det,
                 search_ms_max=1e3 * max(search) if search else 0.0,
                 plans_without=int(planned[False].sum()), plans_with=int(planned[True].sum()),
                 recovered=int(np.sum(planned[True] & ~planned[False])),
                 lost=int(np.sum(planned[False] & ~planned[True])),
+                lost_searched=int(np.sum(planned[False] & ~planned[True] & searched)),
                 one_switch_used=int(sum(used)),
                 one_switch_unplanned=int(sum(u and not p for u, p in zip(used, planned[True]))),
                 optimal_without=int(sum(s.status == "optimal" for s in steps[False])),
