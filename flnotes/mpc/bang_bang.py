@@ -7,12 +7,13 @@ admits, then at the other. The relaxation repaired step by step along the QP wit
 bound without an incumbent, and a time limit may leave it with no plan although one exists.
 
 :func:`one_switch_plans` tries the ``2 N_p`` plans ``v(k) = v_hi`` for ``k < s`` then ``v_lo``, and the reverse
-(``s = 1..N_p``; ``s = N_p`` is the constant plan), each repaired step by step exactly as
-:func:`flnotes.mpc.fallback.repair_plan` does (each input moved to the nearest admissible one on its grid). A plan
-with its first ``s`` steps at one bound shares its repaired first ``s`` steps with the constant plan, so the
-constant plans are repaired first and the switched ones continue from their states, all switches of one direction
-in one batch per step. Every plan returned passes :meth:`flnotes.mpc.prediction.Prediction.feasible`: the search
-only adds incumbents, it never changes the optimum (``MPCOptions.bang_bang``).
+(``s = 1..N_p``; ``s = N_p`` is the constant plan), each repaired step by step like
+:func:`flnotes.mpc.fallback.repair_plan`, but on a coarser grid searched coarse to fine (:func:`nearest_admissible`).
+A plan with its first ``s`` steps at one bound shares its repaired first ``s`` steps with the constant plan, so the
+constant plans are repaired first and the switched ones continue from their states, every plan of both directions
+in one batch per step. :func:`bang_bang_incumbent` keeps the cheapest plan that passes
+:meth:`flnotes.mpc.prediction.Prediction.feasible`: the search only adds incumbents, it never changes the optimum
+(``MPCOptions.bang_bang``).
 """
 from __future__ import annotations
 
