@@ -12,7 +12,8 @@ from ..tables import Table, time_stats
 
 Array = np.ndarray
 
-__all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms"]
+__all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms",
+           "exponential_cbf_grid_check"]
 
 
 def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
@@ -48,6 +49,88 @@ def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
         out["min_H"] = float(min(np.min(h(Z)) for h in Hs))
         out["min_H_between"] = float(min(np.min(h(Zf)) for h in Hs))
     return out
+
+
+def exponential_cbf_grid_check(system: Any, net: Any, eps: float, H2: Any, kappa: float, n: int = 201) -> dict:
+    """Is the exponential CBF ``H2`` valid under the input bound at every state of a grid of the safe set?
+
+    On an ``n`` by ``n`` grid of the domain box's ``z``-part, the states of the
+    safe set ``{h >= 0, H_2 >= 0}`` (``h = H2.h``) are kept. At each, the CBF
+    condition of eq. (CLF_CBF_d) for ``H_2``, ``a_H v + b_H >= 0`` with
+    ``a_H = grad H_2^T B`` and ``b_H = grad H_2^T A z + kappa H_2(z)``, is
+    maximized over the admissible ``v``; its largest value is the *margin* (a
+    positive margin: some admissible ``v`` satisfies the condition with room to
+    spare). Two input sets are checked, vectorized over the grid:
+
+    - the true bound, ``|Phi(z, v)| <= u_max`` and ``v`` in the box;
+    - the network's bound ``|Phi_NN(z, v)| <= u_max - eps`` (eq. Phi_NN_ep),
+      through a witness: every ``v`` with ``|Phi(z, v)| <= u_max - 2 eps`` meets
+      it, because ``|Phi - Phi_NN| <= eps`` on the box. The witness margin is
+      therefore a lower bound of the network's margin; the network is also
+      evaluated at the witnesses (the largest ``|Phi_NN|`` there is returned).
+
+    ``Phi`` must be affine in the single input ``v`` with a positive slope
+    (checked on the grid), as it is for the mass-spring-damper.
+
+    Parameters
+    ----------
+    system
+        The plant (:class:`flnotes.FLSystem`, one input).
+    net
+        The network ``Phi_NN`` (:class:`flnotes.ReLUNet`).
+    eps
+        The certified error bound of the network.
+    H2
+        An :class:`flnotes.ExponentialCBF` (constant gradient).
+    kappa
+        The CBF gain.
+    n
+        Grid points per axis.
+
+    Returns
+    -------
+    dict
+        ``states`` (grid states in the safe set), ``margin_true`` and
+        ``margin_network`` (the smallest margins over them), ``argmin_true``
+        (the state of the smallest true margin) and ``max_abs_u_nn_witness``
+        (the largest ``|Phi_NN|`` at the network's witnesses, to compare with
+        ``u_max - eps``).
+    """
+    from ..control import ExponentialCBF
+    if not isinstance(H2, ExponentialCBF):
+        raise TypeError(f"H2 must be an ExponentialCBF (constant gradient), got {type(H2).__name__}")
+    if system.m != 1 or system.n_z != 2:
+        raise ValueError(f"the grid check is for one input and two states, got m = {system.m}, n_z = {system.n_z}")
+    if not (np.isfinite(kappa) and kappa > 0):
+        raise ValueError(f"kappa must be a positive gain, got {kappa!r}")
+    lo, hi = system.lo, system.hi
+    g1, g2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n), indexing="ij")
+    Z = np.column_stack([g1.ravel(), g2.ravel()])
+    Z = Z[(H2.h.value(Z) >= 0) & (H2.value(Z) >= 0)]
+    if len(Z) == 0:
+        raise ValueError("no grid state lies in the safe set {h >= 0, H_2 >= 0}: refine the grid or check H2")
+    g = H2.grad(Z[0])
+    a_H = float(g @ system.B[:, 0])
+    b_H = Z @ (system.A.T @ g) + kappa * H2.value(Z)
+    v_lo, v_hi = float(lo[2]), float(hi[2])
+    phi0 = system.Phi(Z, np.zeros((len(Z), 1)))[:, 0]
+    slope = system.Phi(Z, np.ones((len(Z), 1)))[:, 0] - phi0
+    at_hi = system.Phi(Z, np.full((len(Z), 1), v_hi))[:, 0]
+    if not (np.all(slope > 0) and np.allclose(at_hi, phi0 + slope * v_hi, rtol=1e-9, atol=1e-9)):
+        raise ValueError("Phi must be affine in v with a positive slope for this check")
+    u_max = float(system.u_max[0])
+
+    def margin(bound: float) -> tuple[Array, Array]:
+        v_a = np.maximum(v_lo, (-bound - phi0) / slope)   # admissible interval [v_a, v_b] of v
+        v_b = np.minimum(v_hi, (bound - phi0) / slope)
+        best = v_b if a_H > 0 else v_a                     # the end that makes a_H v + b_H largest
+        return np.where(v_a <= v_b, a_H * best + b_H, -np.inf), best
+
+    (m_true, _), (m_net, v_w) = margin(u_max), margin(u_max - 2.0 * float(eps))
+    u_nn = np.asarray(net(np.column_stack([Z, v_w])), float).reshape(len(Z), -1)
+    i = int(np.argmin(m_true))
+    return dict(states=int(len(Z)), margin_true=float(m_true.min()), margin_network=float(m_net.min()),
+                argmin_true=Z[i], max_abs_u_nn_witness=float(np.abs(u_nn).max()))
 
 
 def chapter_eps(name: str = "MSD") -> tuple[Array, str]:

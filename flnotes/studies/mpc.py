@@ -16,8 +16,8 @@ from ..tables import time_stats
 Array = np.ndarray
 
 __all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "horizon_sweep",
-           "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps", "compare_to_reference",
-           "lever_study"]
+           "shifted_plans", "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps",
+           "compare_to_reference", "lever_study"]
 
 
 def active_fraction(log, u_eps, rel: float = 0.02) -> float:
@@ -158,6 +158,34 @@ def prediction_mismatch(log, mpc: "MPC") -> float:
     """``max_k |z_{k+1} - (A_d z_k + B_d v_k)|`` on the true plant: 0 when the plant is exactly linearized."""
     pred = log.z[:-1] @ mpc.Ad.T + log.v @ mpc.Bd.T
     return float(np.abs(pred - log.z[1:]).max())
+
+
+def shifted_plans(log, mpc: "MPC") -> dict:
+    """Is the previous plan, shifted by one step, admissible at the next measured state? Counted over a run.
+
+    At every step ``k`` whose own plan passed the check (``info["plan_feasible"]``,
+    no fallback), a fresh clone of ``mpc`` is given that plan as its previous one
+    and builds :meth:`flnotes.MPC.shifted_plan` at the measured ``z_{k+1}``
+    (the last input extended: ``K z(N_p)`` with a terminal set, else
+    :meth:`flnotes.MPC.feasible_tail`); :meth:`flnotes.MPC.plan_feasible` then checks
+    it against eq. (MPC_form_miqp_b)-(d) (and the terminal rows, if any).
+
+    Returns
+    -------
+    dict
+        ``plans`` (shifted plans checked), ``admissible`` and ``not_admissible`` (counts).
+    """
+    probe = mpc.clone()
+    n = ok = 0
+    for k in range(len(log.steps) - 1):
+        st = log.steps[k]
+        if st.v_pred is None or bool(log.fallback[k]) or not (st.info or {}).get("plan_feasible", False):
+            continue
+        probe.set_previous_plan((st.z_pred, st.v_pred))
+        shifted = probe.shifted_plan(log.z[k + 1])
+        n += 1
+        ok += bool(probe.plan_feasible(*shifted))
+    return dict(plans=n, admissible=ok, not_admissible=n - ok)
 
 
 def recorded_problems(log, indices: Sequence[int], with_plans: bool = False) -> list[tuple]:
