@@ -69,3 +69,26 @@ def test_closed_loop_keeps_the_wall_where_the_first_order_condition_cannot():
     assert expo["fallback_steps"] == 0
     assert h(logs["exponential"].z).min() >= 0 and H2(logs["exponential"].z).min() >= -1e-9
     assert expo["max_abs_u"] <= U_MAX + 1e-9 and np.abs(logs["exponential"].u).max() <= U_MAX + 1e-9
+
+
+@pytest.mark.parametrize("k1, kappa, margin, corner", [(2.0, 4.0, U_MAX - 2.0 * 3.0, (-0.5, 3.0)),
+                                                        (0.5, 4.0, 1.0, (-3.0, 2.0))])
+def test_grid_check_finds_the_analytic_margin(k1, kappa, margin, corner):
+    """With Phi = v the margin is u_max + kappa H2 - k1 z2, smallest on H2 = 0 at the largest reachable z2."""
+    sysm, net = double_integrator()
+    H2 = fl.ExponentialCBF(fl.AffineCBF([-1.0, 0.0], 1.0), sysm.A, sysm.B, k1=k1)
+    g = fl.studies.exponential_cbf_grid_check(sysm, net, EPS, H2, kappa=kappa, n=61)
+    assert g["margin_true"] == pytest.approx(margin, abs=1e-12)
+    assert np.allclose(g["argmin_true"], corner)
+    assert g["margin_network"] == pytest.approx(margin - 2 * EPS, abs=1e-12)   # the witness uses u_max - 2 eps
+    assert g["max_abs_u_nn_witness"] <= U_MAX - EPS
+    assert (g["margin_true"] > 0) == (k1 < 1.0)   # k1 = 2 asks for more braking than |v| <= 2 gives at z2 = 3
+
+
+def test_grid_check_refuses_what_it_cannot_check():
+    sysm, net = double_integrator()
+    with pytest.raises(TypeError, match="ExponentialCBF"):
+        fl.studies.exponential_cbf_grid_check(sysm, net, EPS, fl.AffineCBF([-1.0, 0.0], 1.0), kappa=1.0)
+    H2 = fl.ExponentialCBF(fl.AffineCBF([-1.0, 0.0], 1.0), sysm.A, sysm.B, k1=1.0)
+    with pytest.raises(ValueError, match="kappa"):
+        fl.studies.exponential_cbf_grid_check(sysm, net, EPS, H2, kappa=0.0)

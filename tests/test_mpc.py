@@ -195,3 +195,23 @@ def test_the_solver_libraries_are_loaded_when_the_mpc_is_built():
             "assert {'highspy', 'daqp', 'pyscipopt', 'threadpoolctl'} <= set(sys.modules), sorted(sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_shifted_plans_are_checked_against_the_network(run, quad):
+    """shifted_plans counts what an independent forward pass of the shifted plan finds."""
+    log, mpc, _ = run
+    sysm, net = quad
+    counts = fl.studies.shifted_plans(log, mpc)
+    assert counts["plans"] == counts["admissible"] + counts["not_admissible"] > 0
+    probe, found = mpc.clone(), 0
+    for k in range(len(log.steps) - 1):
+        st = log.steps[k]
+        if log.fallback[k] or not st.info.get("plan_feasible"):
+            continue
+        probe.set_previous_plan((st.z_pred, st.v_pred))
+        Z, V = probe.shifted_plan(log.z[k + 1])
+        assert np.allclose(V[:-1], st.v_pred[1:]), "the shifted plan keeps the old inputs but the first"
+        u_nn = net(np.column_stack([Z[:-1], V]))
+        in_box = np.all((Z >= sysm.lo[:3] - 1e-9) & (Z <= sysm.hi[:3] + 1e-9))
+        found += bool(np.all(np.abs(u_nn) <= mpc.u_eps + 1e-6) and in_box)
+    assert found == counts["admissible"]

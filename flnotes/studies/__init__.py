@@ -27,8 +27,8 @@ from . import cheap_networks, compare, guarantees, multi, unseen
 from .clfcbf import (chapter_eps, clf_cbf_checks, cross_check_exact, exponential_cbf_grid_check, paper_mean_ms,
                      solve_time_table)
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
-                  horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, table2,
-                  tracking_error)
+                  horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, shifted_plans,
+                  table2, tracking_error)
 from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
                        width_experiment, write_sweep)
 
@@ -38,4 +38,4 @@ __all__ = ["cheap_networks", "compare", "guarantees", "multi", "unseen", "archit
            "solve_time_table", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
            "compare_to_reference",
            "hardest_steps", "horizon_sweep", "lever_study", "prediction_mismatch", "recorded_problems",
-           "run_closed_loop", "table2", "tracking_error"]
+           "run_closed_loop", "shifted_plans", "table2", "tracking_error"]
