@@ -292,30 +292,30 @@ def links_distance(q: Array, center: Array, p: Optional[dict] = None) -> Array:
 class ArmPointCBF(Certificate):
     """A disc obstacle in the workspace kept away from one point of the second link: a CBF on ``z``.
 
-    The point ``r_s(q)`` of the second link at fraction ``s`` of its length
-    (:func:`arm_link_points`) must stay outside the disc of centre ``c`` and
-    radius ``R``: ``h(q) = ||r_s(q) - c||^2 - R^2 >= 0``. ``h`` depends on the
+    The point ``p_eta(q)`` of the second link at fraction ``eta`` of its length
+    (:func:`arm_link_points`) must stay outside the disc of centre ``c_o`` and
+    radius ``R``: ``h(q) = ||p_eta(q) - c_o||^2 - R^2 >= 0``. ``h`` depends on the
     angles only, so on the chains ``z = (q_1, q_1', q_2, q_2')`` it has relative
     degree two (``grad h^T B = 0``) and, like :class:`flnotes.ExponentialCBF`
     for an affine ``h``, the controller is given
 
-        H_2(z) = dh/dt + k_1 h = 2 (r_s - c)^T J_s(q) q' + k_1 h(q),
+        H_2(z) = dh/dt + k_1 h = 2 (p_eta - c_o)^T D_eta(q) q' + k_1 h(q),
 
-    with ``J_s = dr_s/dq``. Its gradient in ``z``: ``dH_2/dq' = 2 J_s^T (r_s - c)``
-    (so ``grad H_2^T B v = 2 (r_s - c)^T J_s v``, zero only where the point
-    cannot move away from ``c``), and
-    ``dH_2/dq_i = 2 (J_s e_i)^T J_s q' + 2 (r_s - c)^T (dJ_s/dq_i) q' + 2 k_1 (r_s - c)^T J_s e_i``.
+    with ``D_eta = dp_eta/dq``. Its gradient in ``z``: ``dH_2/dq' = 2 D_eta^T (p_eta - c_o)``
+    (so ``grad H_2^T B v = 2 (p_eta - c_o)^T D_eta v``, zero only where the point
+    cannot move away from ``c_o``), and
+    ``dH_2/dq_i = 2 (D_eta e_i)^T D_eta q' + 2 (p_eta - c_o)^T (dD_eta/dq_i) q' + 2 k_1 (p_eta - c_o)^T D_eta e_i``.
     If the condition (CLF_CBF_d) keeps ``H_2 >= 0`` along the closed loop and
     ``h(z(0)) >= 0``, then ``dh/dt >= -k_1 h`` and ``h`` stays nonnegative.
 
     Parameters
     ----------
     center
-        Centre ``c`` of the disc (m), shape (2,).
+        Centre ``c_o`` of the disc (m), shape (2,).
     radius
         Its radius ``R`` (m), > 0.
     fraction
-        ``s`` in [0, 1]: 0 the elbow, 1 the hand.
+        ``eta`` in [0, 1]: 0 the elbow, 1 the hand.
     k1
         Gain > 0 of the inner condition ``dh/dt >= -k_1 h``.
     params
@@ -383,15 +383,15 @@ class ArmPointCBF(Certificate):
 
 def arm_obstacle_cbfs(center: Array, radius: float, n_points: int = 5, k1: float = 2.0,
                       params: Optional[dict] = None) -> list:
-    """Barriers keeping the whole second link out of a disc obstacle of radius ``r``: one :class:`ArmPointCBF` each.
+    """Barriers keeping the whole second link out of a disc obstacle of radius ``r_o``: one :class:`ArmPointCBF` each.
 
-    ``n_points`` points at equal spacing ``delta = l_2 / (n_points - 1)`` along
+    ``n_points`` points at equal spacing ``d = l_2 / (n_points - 1)`` along
     the second link (elbow to hand) are kept out of the inflated disc of radius
-    ``R = sqrt(r^2 + (delta / 2)^2)``. Then the segment between two neighbouring
-    points stays out of the disc of radius ``r``: the point of a chord of length
-    ``delta`` nearest the centre is within ``delta / 2`` of one end along the
-    chord, so its distance is at least ``sqrt(R^2 - (delta/2)^2) = r``. (The first
-    link must not reach the disc: ``||c|| > l_1 + r``; checked.)
+    ``bar r_o = sqrt(r_o^2 + (d / 2)^2)``. Then the segment between two neighbouring
+    points stays out of the disc of radius ``r_o``: the point of a chord of length
+    ``d`` nearest the centre is within ``d / 2`` of one end along the
+    chord, so its distance is at least ``sqrt(bar r_o^2 - (d/2)^2) = r_o``. (The first
+    link must not reach the disc: ``||c_o|| > l_1 + r_o``; checked.)
 
     Returns
     -------

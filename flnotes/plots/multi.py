@@ -58,7 +58,7 @@ def input_sets_plot(sets: Sequence[dict], axes=None, regions: bool = True,
                                 label=r"$|\Phi_{NN}| \leq u_{\max}^{\varepsilon}$" if j == 0 else None))
         if len(S["true"]):
             ax.add_patch(_Patch(S["true"], closed=True, fill=False, ec=COLORS["true"], lw=1.8,
-                                label=r"$V(z)$: $|\Phi| \leq u_{\max}$"))
+                                label=r"$\mathcal{V}(z)$: $|\Phi| \leq u_{\max}$"))
         if v_opt is not None and v_opt[i] is not None:
             ax.plot(*np.asarray(v_opt[i], float).reshape(2), "k*", ms=9, label=r"$v^*$")
         ax.set_xlim(S["v_lo"][0], S["v_hi"][0])
@@ -124,7 +124,7 @@ def arm_workspace_plot(logs: dict, center: Sequence[float], radius: float, frame
 
 
 def arm_torques_plot(logs: dict, eps: Optional[Sequence[float]] = None, axes=None):
-    """The true torques ``tau_i(t)`` each run applied (held between samples), with ``±tau_max,i`` and ``±(tau_max,i - eps_i)``.
+    """The true torques ``u_i(t)`` each run applied (held between samples), with ``±u_max,i`` and ``±(u_max,i - eps_i)``.
 
     Parameters
     ----------
@@ -150,6 +150,6 @@ def arm_torques_plot(logs: dict, eps: Optional[Sequence[float]] = None, axes=Non
         u_max = float(next(iter(logs.values())).system.u_max[i])
         bound_lines(ax, u_max, None if eps is None else float(eps[i]), label=(i == 0))
         ax.set_xlabel("t (s)")
-        ax.set_ylabel(f"$\\tau_{i + 1}$ (N m)")
+        ax.set_ylabel(f"$u_{i + 1}$ (torque, N m)")
     axes[0].legend(loc="lower right", fontsize=7, ncol=2)
     return fig, axes
