@@ -3,11 +3,11 @@
 An ONNX graph is read by walking its nodes in order and keeping, for each
 tensor computed from the graph's input, the affine map from the last ReLU
 output ``y^{k-1}`` (or the input ``y^0``) to it. An affine node (``Gemm``,
-``MatMul``, ``Add``/``Sub``/``Mul``/``Div``/``Neg`` with a constant) composes
-that map; a ``Relu`` closes layer ``k`` of eq. (recur), ``W^k, b^k`` being the
+``MatMul``, ``Add``/``Sub``/``Mul``/``Div``/``Neg`` with a constant, and the
+``Scaler`` of ``ai.onnx.ml`` that skl2onnx writes for a ``StandardScaler``)
+composes that map; a ``Relu`` closes layer ``k`` of eq. (recur), ``W^k, b^k`` being the
 map it is applied to; shape nodes (``Identity``, ``Flatten``, ``Reshape``,
 ``Squeeze``, ``Unsqueeze``, ``Transpose``, ``Cast``, inference ``Dropout``)
-and ``Scaler`` of ``ai.onnx.ml`` (a scikit-learn ``StandardScaler`` in a pipeline)
 keep the map and track where the batch axis is. The graph's output is the
 last affine map, ``W^K, b^K``. Scalings of the input and the output are thus
 folded into the first and last layer, as eq. (eq-02-fold) of chapter 2 does.
@@ -556,3 +556,83 @@ def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "fl
     model.ir_version = min(model.ir_version, 8)
     onnx.checker.check_model(model, full_check=True)
     return model
+
+
+# --------------------------------------------------------------------------- the shipped example
+#: the example network shipped in ``flnotes/data`` (``<name>.onnx`` and ``<name>.onnx.json``)
+EXAMPLE = "MSD-sklearn"
+
+
+def _sha256_file(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def example(name: str = EXAMPLE, folder: Optional[Path] = None) -> tuple[Path, dict]:
+    """The path of a shipped ``.onnx`` example and what is known about it, after checking its checksum."""
+    import json
+
+    from .reference import DATA_DIR
+
+    folder = DATA_DIR if folder is None else Path(folder)
+    path, meta = folder / f"{name}.onnx", folder / f"{name}.onnx.json"
+    if not (path.exists() and meta.exists()):
+        have = sorted(p.name[:-len(".onnx")] for p in folder.glob("*.onnx"))
+        raise FileNotFoundError(f"no shipped ONNX example {name!r}; shipped: {have}")
+    about = json.loads(meta.read_text())
+    digest = _sha256_file(path)
+    if digest != about["sha256"]:
+        raise ValueError(f"the shipped ONNX example {path.name} does not match its checksum ({digest[:12]}... != "
+                         f"{about['sha256'][:12]}...): the file is damaged; reinstall flnotes")
+    return path, about
+
+
+def write_msd_example(folder: Optional[Path] = None, widths: Sequence[int] = (20, 20, 20),
+                      n_per_axis: Sequence[int] = (30, 60, 30), max_iter: int = 3000, seed: int = 2) -> Path:
+    """Write the book's example of a network trained elsewhere: ``EXAMPLE.onnx`` and its ``.onnx.json``.
+
+    A scikit-learn pipeline ``StandardScaler`` + ``MLPRegressor`` (ReLU,
+    L-BFGS) fitted to the mass-spring-damper's ``Phi`` on a grid, with its
+    inputs in the order ``(v, z1, z2)`` (not the system's ``[z, v]``), and
+    exported by skl2onnx in float32 as any scikit-learn user would. Chapter 2
+    reads it with an ``input_map``. Only ``make reference``-like rewrites call
+    this; the book and the tests read the shipped file.
+    """
+    import json
+    import warnings as _w
+
+    import sklearn
+    import skl2onnx
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+    from threadpoolctl import threadpool_limits
+
+    from .network import uniform_grid
+    from .reference import DATA_DIR
+    from .systems import msd
+
+    folder = DATA_DIR if folder is None else Path(folder)
+    sysm, order = msd(), [2, 0, 1]  # the pipeline's input i is variable order[i] of [z1, z2, v]
+    X = uniform_grid(sysm.lo, sysm.hi, n_per_axis)
+    y = sysm.phi_stacked(X)[:, 0]
+    pipe = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=tuple(widths), solver="lbfgs", max_iter=max_iter,
+                                                        max_fun=10 * max_iter, tol=1e-10, random_state=seed))
+    with _w.catch_warnings(), threadpool_limits(limits=1):
+        _w.simplefilter("ignore", ConvergenceWarning)
+        pipe.fit(X[:, order], y)
+    model = convert_sklearn(pipe, initial_types=[("input", FloatTensorType([None, 3]))], target_opset={"": 17, "ai.onnx.ml": 3})
+    model.doc_string = "MSD Phi(z, v) fitted by a scikit-learn pipeline (StandardScaler, MLPRegressor); inputs (v, z1, z2)"
+    path = folder / f"{EXAMPLE}.onnx"
+    path.write_bytes(model.SerializeToString())
+    about = dict(name=EXAMPLE, sha256=_sha256_file(path), system="MSD", inputs=["v", "z1", "z2"], outputs=["u"],
+                 input_map=order, producer=f"skl2onnx {skl2onnx.__version__}", dtype="float32",
+                 model="make_pipeline(StandardScaler(), MLPRegressor(relu, lbfgs))",
+                 settings=dict(widths=list(widths), n_per_axis=list(n_per_axis), max_iter=max_iter, seed=seed),
+                 n_iter=int(pipe[-1].n_iter_), versions=dict(scikit_learn=sklearn.__version__, skl2onnx=skl2onnx.__version__))
+    (folder / f"{EXAMPLE}.onnx.json").write_text(json.dumps(about, indent=1, sort_keys=True) + "\n")
+    return path

@@ -194,7 +194,8 @@ class ReLUNet:
         and ``Add`` (either operand order), ``Relu``, ``Identity``,
         ``Flatten``/``Reshape``/``Squeeze``/``Unsqueeze`` of a vector, and
         scalings of the input and the output by ``Sub``/``Div``/``Mul``/``Add``
-        with constants (initializers or ``Constant`` nodes), folded into the
+        with constants (initializers or ``Constant`` nodes) or by the
+        ``Scaler`` skl2onnx writes for a ``StandardScaler``, folded into the
         first and last layer (eq. recur). Anything else is refused with the
         node's name and op.
 
@@ -288,6 +289,25 @@ class ReLUNet:
 
     def __repr__(self) -> str:
         return f"ReLUNet(n_in={self.n_in}, widths={self.widths}, n_out={self.n_out})"
+
+
+def onnx_example(name: str = "MSD-sklearn") -> tuple[Path, dict]:
+    """A network trained outside flnotes, shipped as an ``.onnx`` file (chapter 2), with what is known about it.
+
+    ``"MSD-sklearn"``: the mass-spring-damper's ``Phi`` fitted by a
+    scikit-learn pipeline (``StandardScaler``, ``MLPRegressor``) on inputs
+    ordered ``(v, z1, z2)`` and exported by skl2onnx in float32. The file's
+    SHA-256 checksum is checked against the one shipped beside it.
+
+    Returns
+    -------
+    path, about
+        The file, and its description (``inputs``, ``outputs``, ``input_map``
+        for :meth:`ReLUNet.from_onnx`, ``producer``, ``settings``, ``sha256``).
+    """
+    from . import _onnx
+
+    return _onnx.example(name)
 
 
 def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
