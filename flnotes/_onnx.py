@@ -559,7 +559,9 @@ def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "fl
 
 
 # --------------------------------------------------------------------------- the shipped example
-#: the example network shipped in ``flnotes/data`` (``<name>.onnx`` and ``<name>.onnx.json``)
+#: the example network shipped in ``flnotes/data`` (``<name>.onnx`` and ``<name>.onnx.json``; the checksum of the
+#: file is ``file_sha256``, not the ``sha256`` of a reference network, so :func:`flnotes.reference.reference_names`
+#: does not list it)
 EXAMPLE = "MSD-sklearn"
 
 
@@ -582,9 +584,9 @@ def example(name: str = EXAMPLE, folder: Optional[Path] = None) -> tuple[Path, d
         raise FileNotFoundError(f"no shipped ONNX example {name!r}; shipped: {have}")
     about = json.loads(meta.read_text())
     digest = _sha256_file(path)
-    if digest != about["sha256"]:
+    if digest != about["file_sha256"]:
         raise ValueError(f"the shipped ONNX example {path.name} does not match its checksum ({digest[:12]}... != "
-                         f"{about['sha256'][:12]}...): the file is damaged; reinstall flnotes")
+                         f"{about['file_sha256'][:12]}...): the file is damaged; reinstall flnotes")
     return path, about
 
 
@@ -629,7 +631,7 @@ def write_msd_example(folder: Optional[Path] = None, widths: Sequence[int] = (20
     model.doc_string = "MSD Phi(z, v) fitted by a scikit-learn pipeline (StandardScaler, MLPRegressor); inputs (v, z1, z2)"
     path = folder / f"{EXAMPLE}.onnx"
     path.write_bytes(model.SerializeToString())
-    about = dict(name=EXAMPLE, sha256=_sha256_file(path), system="MSD", inputs=["v", "z1", "z2"], outputs=["u"],
+    about = dict(name=EXAMPLE, file_sha256=_sha256_file(path), system="MSD", inputs=["v", "z1", "z2"], outputs=["u"],
                  input_map=order, producer=f"skl2onnx {skl2onnx.__version__}", dtype="float32",
                  model="make_pipeline(StandardScaler(), MLPRegressor(relu, lbfgs))",
                  settings=dict(widths=list(widths), n_per_axis=list(n_per_axis), max_iter=max_iter, seed=seed),

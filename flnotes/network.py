@@ -303,7 +303,7 @@ def onnx_example(name: str = "MSD-sklearn") -> tuple[Path, dict]:
     -------
     path, about
         The file, and its description (``inputs``, ``outputs``, ``input_map``
-        for :meth:`ReLUNet.from_onnx`, ``producer``, ``settings``, ``sha256``).
+        for :meth:`ReLUNet.from_onnx`, ``producer``, ``settings``, ``file_sha256``).
     """
     from . import _onnx
 

@@ -393,3 +393,35 @@ def test_from_torch_when_torch_is_installed():
     np.testing.assert_allclose(net(X), seq(torch.from_numpy(X)).detach().numpy(), rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="Tanh"):
         fl.ReLUNet.from_torch(nn.Sequential(nn.Linear(3, 4), nn.Tanh(), nn.Linear(4, 1)))
+
+
+# ----------------------------------------------------------------- the book's shipped example
+def test_shipped_example_is_what_onnxruntime_runs(tmp_path):
+    """Chapter 2's network exported by skl2onnx: checksum checked, inputs (v, z1, z2) mapped to [z1, z2, v]."""
+    from flnotes import _onnx
+
+    path, about = fl.network.onnx_example("MSD-sklearn")
+    assert about["inputs"] == ["v", "z1", "z2"] and about["input_map"] == [2, 0, 1]
+    raw = fl.ReLUNet.from_onnx(str(path))
+    net = fl.ReLUNet.from_onnx(path, input_map=about["input_map"])
+    assert net.widths == raw.widths == tuple(about["settings"]["widths"])
+    model = onnx.load(str(path))
+    assert {n.op_type for n in model.graph.node} >= {"Scaler", "MatMul", "Add", "Relu"}, "skl2onnx's pattern, with a scaler"
+    msd = fl.msd()
+    ZV = np.random.default_rng(11).uniform(msd.lo, msd.hi, (N_POINTS, 3))
+    Y_ort, Xr = run_ort(model, ZV[:, about["input_map"]])
+    assert np.abs(raw(Xr) - Y_ort).max() <= RTOL * np.abs(Y_ort).max()
+    np.testing.assert_allclose(net(Xr[:, [1, 2, 0]]), raw(Xr), rtol=1e-12, atol=1e-12)  # the map only reorders
+    bounds = fl.fbbt(net, msd.lo, msd.hi)
+    for x in ZV[:3]:
+        assert abs(fl.forward_milp(net, x, bounds)[0] - net(x)[0]) <= RTOL * np.abs(Y_ort).max()
+    # a damaged copy is refused
+    bad = tmp_path / path.name
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 1
+    bad.write_bytes(bytes(data))
+    (tmp_path / f"{path.name}.json").write_text((path.parent / f"{path.name}.json").read_text())
+    with pytest.raises(ValueError, match="checksum"):
+        _onnx.example("MSD-sklearn", folder=tmp_path)
+    with pytest.raises(FileNotFoundError, match="MSD-sklearn"):
+        _onnx.example("nothing", folder=path.parent)
