@@ -501,8 +501,13 @@ def _fold(node, args: list) -> Array:
         return x[0]
     if op in ("Add", "Sub", "Mul", "Div"):
         return {"Add": np.add, "Sub": np.subtract, "Mul": np.multiply, "Div": np.divide}[op](x[0], x[1])
-    if op == "Neg":
-        return -x[0]
+    if op in ("Neg", "Sqrt", "Reciprocal", "Abs", "Exp", "Log"):
+        return {"Neg": np.negative, "Sqrt": np.sqrt, "Reciprocal": np.reciprocal, "Abs": np.abs, "Exp": np.exp,
+                "Log": np.log}[op](x[0])
+    if op in ("Max", "Min", "Sum") and all(v is not None for v in x):
+        return {"Max": np.maximum, "Min": np.minimum, "Sum": np.add}[op].reduce(np.broadcast_arrays(*x))
+    if op == "Pow":
+        return np.power(x[0], x[1])
     if op == "Transpose":
         return np.transpose(x[0], a.get("perm"))
     if op == "Reshape":

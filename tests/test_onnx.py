@@ -94,7 +94,12 @@ def tf2onnx_keras(W, b, x_mean, x_var, elem=F32, const_nodes=True):
     """tf2onnx of Keras Sequential([Normalization, Dense(relu), ..., Dense]): Sub/Div, MatMul + Add, Identity."""
     g = _G(elem)
     x = g.op("Sub", ["dense_input", g.const(x_mean, const_nodes)], name="sequential/normalization/sub")
-    x = g.op("Div", [x, g.const(np.sqrt(x_var), const_nodes)], name="sequential/normalization/truediv")
+    if const_nodes:  # the standard deviation computed in the graph from constants, sqrt(max(var, eps))
+        std = g.op("Sqrt", [g.op("Max", [g.const(x_var, True), g.const([1e-7], True)], name="normalization/Maximum")],
+                   name="normalization/Sqrt")
+    else:
+        std = g.const(np.sqrt(x_var))
+    x = g.op("Div", [x, std], name="sequential/normalization/truediv")
     for k, (Wk, bk) in enumerate(zip(W, b)):
         x = g.op("MatMul", [x, g.const(Wk.T)], name=f"sequential/dense_{k}/MatMul")
         x = g.op("Add", [x, g.const(bk)], name=f"sequential/dense_{k}/BiasAdd")  # the bias second ...
