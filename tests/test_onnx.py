@@ -160,7 +160,8 @@ def run_ort(model, X):
     sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     inp = sess.get_inputs()[0]
     dtype = np.float64 if inp.type == "tensor(double)" else np.float32
-    Y = sess.run(None, {inp.name: X.astype(dtype)})[0]
+    feed = X.astype(dtype).reshape((len(X),) + (1,) * (len(inp.shape) - 2) + (X.shape[1],))  # (N, 1, n) if declared so
+    Y = sess.run(None, {inp.name: feed})[0]
     return np.asarray(Y, float).reshape(len(X), -1), X.astype(dtype).astype(float)
 
 
@@ -206,6 +207,25 @@ def test_tf2onnx_pattern_folds_the_input_normalization(const_nodes):
     net = fl.ReLUNet.from_onnx(model)
     assert net.widths == (9, 9), "the normalization is folded into the first layer, not a layer of its own"
     assert_same_as_ort(net, model, 3, scale=3.0)
+
+
+def test_matmul_on_columns_three_d_input_and_negated_output():
+    """Input (N, 1, n) flattened; MatMul with the weights first on transposed data; u = c - y through Sub and Neg."""
+    W, b = _layers(3, (6, 6), 1, seed=12)
+    g = _G(F64)
+    x = g.op("Flatten", ["x"], name="flatten", axis=1)
+    x = g.op("Transpose", [x], name="cols", perm=[1, 0])
+    for k, (Wk, bk) in enumerate(zip(W, b)):
+        x = g.op("Add", [g.op("MatMul", [g.const(Wk), x], name=f"mm{k}"), g.const(bk[:, None])], name=f"add{k}")
+        if k < len(W) - 1:
+            x = g.op("Relu", [x], name=f"relu{k}")
+    x = g.op("Transpose", [x], name="rows", perm=[1, 0])
+    x = g.op("Neg", [g.op("Sub", [g.const([2.0]), x], name="two_minus")], name="neg")  # y - 2
+    model = g.model("x", ["N", 1, 3], x, ["N", 1])
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.widths == (6, 6)
+    assert_same_as_ort(net, model, 3)
+    np.testing.assert_allclose(net(np.ones((1, 3))), fl.ReLUNet(W, b)(np.ones((1, 3))) - 2.0, rtol=1e-12)
 
 
 def test_gemm_in_every_orientation_and_output_scaling():
@@ -430,3 +450,26 @@ def test_shipped_example_is_what_onnxruntime_runs(tmp_path):
         _onnx.example("MSD-sklearn", folder=tmp_path)
     with pytest.raises(FileNotFoundError, match="MSD-sklearn"):
         _onnx.example("nothing", folder=path.parent)
+
+
+def _tiny(build, in_shape=("N", 3)):
+    g = _G(F64)
+    y = build(g)
+    return g.model("x", list(in_shape), y, ["N", 1])
+
+
+@pytest.mark.parametrize("build,match", [
+    (lambda g: g.op("Mul", ["x", "x"], name="square"), r"node 'square' \(Mul\) combines 2 tensors"),
+    (lambda g: g.op("Div", [g.const([1.0]), "x"], name="inv"), r"node 'inv' \(Div\): divides a constant by the data"),
+    (lambda g: g.op("Cast", ["x"], name="to_int", to=TensorProto.INT64), r"node 'to_int' \(Cast\).*non-float"),
+    (lambda g: g.op("Reshape", ["x", g.const(np.array([4, 3], np.int64))], name="fixed"), r"node 'fixed' \(Reshape\).*batch"),
+])
+def test_other_non_mlp_nodes_are_refused_by_name(build, match):
+    with pytest.raises(NotAReLUMLP, match=match):
+        fl.ReLUNet.from_onnx(_tiny(build))
+
+
+def test_unresolvable_input_size_is_refused():
+    model = _tiny(lambda g: g.op("Relu", ["x"], name="relu_first"), in_shape=("N", "features"))
+    with pytest.raises(NotAReLUMLP, match=r"node 'relu_first' \(Relu\).*unknown size"):
+        fl.ReLUNet.from_onnx(model)
