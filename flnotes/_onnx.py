@@ -108,7 +108,8 @@ def _input_shape(vi) -> tuple:
         return (dims[0],)
     if len(dims) < 1:
         raise NotAReLUMLP(f"graph input {vi.name!r} is a scalar, not a vector of inputs")
-    # the first axis is the batch (dynamic or fixed); all others must be known or the last one is the features
+    # the first axis is the batch (dynamic or fixed), the last the features (known, or fixed by the first layer),
+    # any axes between them of size 1
     rest = dims[1:]
     if any(d is None for d in rest[:-1]) or any(d not in (1, None) for d in rest[:-1]):
         raise NotAReLUMLP(f"graph input {vi.name!r} has shape {dims}: expected (batch, n_in) or (batch, 1, ..., n_in) "
@@ -119,6 +120,9 @@ def _input_shape(vi) -> tuple:
 def _broadcast_const(K: Array, d: _Data, node) -> Array:
     """The constant operand of an elementwise node, as one value per feature (or a scalar)."""
     K = np.asarray(K, float)
+    if K.ndim > len(d.shape):
+        raise NotAReLUMLP(f"{_where(node)}: the constant of shape {K.shape} has more axes than the data {d.shape}: "
+                          "it would add axes to the tensor")
     if K.size == 1:
         return np.full(1, K.ravel()[0])
     shape = tuple(1 if s == B else s for s in d.shape)
@@ -130,7 +134,7 @@ def _broadcast_const(K: Array, d: _Data, node) -> Array:
         out = np.broadcast_shapes(K.shape, shape)
     except ValueError:
         out = None
-    if out != shape or K.ndim > len(shape):
+    if out != shape:
         raise NotAReLUMLP(f"{_where(node)}: the constant of shape {K.shape} does not broadcast along the features of a "
                           f"tensor of shape {d.shape} (it would grow the tensor or mix samples of the batch)")
     return np.broadcast_to(K.reshape((1,) * (len(shape) - K.ndim) + K.shape), shape).ravel().copy()
