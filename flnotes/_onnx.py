@@ -607,8 +607,10 @@ def write_msd_example(folder: Optional[Path] = None, widths: Sequence[int] = (20
     L-BFGS) fitted to the mass-spring-damper's ``Phi`` on a grid, with its
     inputs in the order ``(v, z1, z2)`` (not the system's ``[z, v]``), and
     exported by skl2onnx in float32 as any scikit-learn user would. Chapter 2
-    reads it with an ``input_map``. Only ``make reference``-like rewrites call
-    this; the book and the tests read the shipped file.
+    reads it with an ``input_map``. The book and the tests read the shipped
+    file; this rewrites it (training is not reproducible across machines, so
+    the weights, and the checksum, change):
+    ``python -c "from flnotes._onnx import write_msd_example as w; print(w())"``.
     """
     import json
     import warnings as _w

@@ -10,6 +10,7 @@ onnxruntime's on 10,000 random points to 1e-6 relative (to the largest
 output, since a float32 graph rounds every product), and the big-M MILP with
 the input fixed equals it too.
 """
+import functools
 import warnings
 
 import numpy as np
@@ -131,6 +132,7 @@ def gemm_variants(W, b, elem=F64):
     return g.model("x", ["N", W[0].shape[1]], x, ["N", W[-1].shape[0]])
 
 
+@functools.lru_cache(maxsize=None)
 def _skl_mlp(n_in=3, widths=(10, 8), seed=0, scaler=False):
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.neural_network import MLPRegressor
