@@ -7,8 +7,9 @@ the end; skl2onnx: the converter itself on an MLPRegressor and on a pipeline
 with a StandardScaler), plus the Gemm variants (transA, transB, alpha, beta,
 weights as the first operand). Every imported network's forward pass equals
 onnxruntime's on 10,000 random points to 1e-6 relative (to the largest
-output, since a float32 graph rounds every product), and the big-M MILP with
-the input fixed equals it too.
+output, since a float32 graph rounds every product), and the big-M MILP of
+eq. (MIP_general) with the input fixed, node bounds over the whole box, has
+its minimum and its maximum of every output at onnxruntime's value too.
 """
 import functools
 import warnings
@@ -175,11 +176,30 @@ def assert_same_as_ort(net, model, n_in, seed=0, scale=2.0):
     rel = np.abs(Y - Y_ort) / np.abs(Y_ort).max()  # relative to the output's size (float32 graphs round each product)
     assert rel.max() <= RTOL, f"forward pass differs from onnxruntime by {rel.max():.1e} relative"
     lo, hi = np.full(n_in, -scale), np.full(n_in, scale)
-    bounds = fl.fbbt(net, lo, hi)
+    form = fl.bigm_form(net, fl.fbbt(net, lo, hi))  # node bounds over the box: the binaries are free
     for x, y in zip(Xr[:3], Y_ort[:3]):
-        y_milp = fl.forward_milp(net, x, bounds)
-        assert np.all(np.abs(y_milp - y) <= RTOL * max(1.0, np.abs(Y_ort).max())), (y_milp, y)
+        lo_out, hi_out = _milp_extremes(form, x)
+        assert np.all(np.abs(lo_out - y) <= RTOL * np.abs(Y_ort).max()), (lo_out, y)
+        assert np.all(np.abs(hi_out - y) <= RTOL * np.abs(Y_ort).max()), (hi_out, y)
     return rel.max()
+
+
+def _milp_extremes(form, x):
+    """Min and max of every output of the big-M program of eq. (MIP_general) with the input fixed to x (HiGHS)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
+    lb, ub = form.lb.copy(), form.ub.copy()
+    lb[form.x], ub[form.x] = x, x
+    cons = [LinearConstraint(form.A_eq, form.b_eq, form.b_eq), LinearConstraint(form.A_ub, -np.inf, form.b_ub)]
+    out = np.zeros((2, len(form.out)))
+    for i, j in enumerate(form.out):
+        for row, sign in ((0, 1.0), (1, -1.0)):
+            c = np.zeros(form.n)
+            c[j] = sign
+            res = milp(c, integrality=form.integrality, bounds=Bounds(lb, ub), constraints=cons)
+            assert res.status == 0, res.message
+            out[row, i] = res.x[j]
+    return out
 
 
 # ----------------------------------------------------------------- exporters' patterns
@@ -439,9 +459,9 @@ def test_shipped_example_is_what_onnxruntime_runs(tmp_path):
     Y_ort, Xr = run_ort(model, ZV[:, about["input_map"]])
     assert np.abs(raw(Xr) - Y_ort).max() <= RTOL * np.abs(Y_ort).max()
     np.testing.assert_allclose(net(Xr[:, [1, 2, 0]]), raw(Xr), rtol=1e-12, atol=1e-12)  # the map only reorders
-    bounds = fl.fbbt(net, msd.lo, msd.hi)
+    form = fl.bigm_form(net, fl.fbbt(net, msd.lo, msd.hi))
     for x in ZV[:3]:
-        assert abs(fl.forward_milp(net, x, bounds)[0] - net(x)[0]) <= RTOL * np.abs(Y_ort).max()
+        assert np.all(np.abs(_milp_extremes(form, x) - net(x)[0]) <= RTOL * np.abs(Y_ort).max())
     # a damaged copy is refused
     bad = tmp_path / path.name
     data = bytearray(path.read_bytes())
