@@ -146,6 +146,134 @@ class ReLUNet:
                 np.zeros(n_out) if y_offset is None else y_offset, np.ones(n_out) if y_scale is None else y_scale)
         return net
 
+    def mapped(self, input_map=None, output_map=None) -> "ReLUNet":
+        """The network on the system's variables: ``x -> D net(M x + c) + d``, folded into the first and last layer.
+
+        A network trained elsewhere may order or scale its inputs differently
+        from the system's stacked ``[z, v]`` (eq. recur's ``y^0``), or return
+        ``u`` in other units. Say how, and the result takes ``[z, v]`` and
+        returns ``u``; it has the same hidden layers (eq. eq-02-fold of
+        chapter 2 with full matrices).
+
+        Parameters
+        ----------
+        input_map
+            ``None`` (the network's input is ``[z, v]``); a sequence of
+            integers, a permutation: the network's input ``i`` is the
+            variable ``input_map[i]`` of ``[z, v]`` (e.g. ``[2, 0, 1]`` for a
+            network trained on ``(v, z1, z2)``); or a pair ``(M, c)``: the
+            network's input is ``M @ [z, v] + c``, ``M`` of shape
+            ``(net.n_in, n)`` for a system with ``n`` variables (a scaling of
+            the inputs: ``M = diag(1 / scale)``, ``c = -offset / scale``).
+        output_map
+            ``None`` or a pair ``(D, d)``: ``u = D @ net(...) + d``, ``D`` of
+            shape ``(m, net.n_out)`` (or a vector: a diagonal scaling).
+
+        Raises
+        ------
+        ValueError
+            An ``input_map`` that is not a permutation of ``0..net.n_in-1``, or
+            a map of the wrong shape or with NaN or inf.
+        """
+        W, b = [w.copy() for w in self.W], [c.copy() for c in self.b]
+        if input_map is not None:
+            M, c = _input_map(input_map, self.n_in)
+            b[0] = b[0] + W[0] @ c
+            W[0] = W[0] @ M
+        if output_map is not None:
+            D, d = _output_map(output_map, self.n_out)
+            W[-1], b[-1] = D @ W[-1], D @ b[-1] + d
+        return ReLUNet(W, b)
+
+    # ------------------------------------------------------------------ ONNX
+    @classmethod
+    def from_onnx(cls, model, input_map=None, output_map=None) -> "ReLUNet":
+        """Read a ReLU MLP from an ONNX model: the graphs ``torch.onnx.export``, tf2onnx and skl2onnx write.
+
+        ``Gemm`` (any ``transA``, ``transB``, ``alpha``, ``beta``), ``MatMul``
+        and ``Add`` (either operand order), ``Relu``, ``Identity``,
+        ``Flatten``/``Reshape``/``Squeeze``/``Unsqueeze`` of a vector, and
+        scalings of the input and the output by ``Sub``/``Div``/``Mul``/``Add``
+        with constants (initializers or ``Constant`` nodes) or by the
+        ``Scaler`` skl2onnx writes for a ``StandardScaler``, folded into the
+        first and last layer (eq. recur). Anything else is refused with the
+        node's name and op.
+
+        Parameters
+        ----------
+        model
+            A path to an ``.onnx`` file, its bytes, or an ``onnx.ModelProto``.
+        input_map, output_map
+            How the network's inputs and outputs relate to the system's
+            ``[z, v]`` and ``u`` (see :meth:`mapped`); the default is that they
+            are the same.
+
+        Raises
+        ------
+        flnotes._onnx.NotAReLUMLP
+            (a ``ValueError``) the graph is not a ReLU MLP (the message names
+            the node and op).
+        ValueError
+            Non-finite weights; a bad ``input_map``/``output_map``.
+        """
+        from . import _onnx
+
+        W, b, _ = _onnx.read(model)
+        return cls(W, b).mapped(input_map, output_map)
+
+    def to_onnx(self, path: Optional[Union[str, Path]] = None, dtype: str = "float64"):
+        """Write the network as an ONNX model: ``Gemm`` + ``Relu`` per layer, input ``(batch, n_in)``.
+
+        Any ONNX tool (onnxruntime, Netron, the MILP libraries that read ONNX)
+        opens it. ``dtype="float64"`` keeps the weights exactly, so
+        ``ReLUNet.from_onnx(net.to_onnx())`` has the same ``W^k, b^k``;
+        ``"float32"`` rounds them. The model passes ``onnx.checker``.
+
+        Returns
+        -------
+        onnx.ModelProto
+            The model (also saved to ``path`` when one is given).
+        """
+        from . import _onnx
+
+        model = _onnx.write(self.W, self.b, dtype=dtype, doc=repr(self))
+        if path is not None:
+            Path(path).write_bytes(model.SerializeToString())
+        return model
+
+    @classmethod
+    def from_torch(cls, module, input_map=None, output_map=None) -> "ReLUNet":
+        """Import a PyTorch ``nn.Sequential`` of ``nn.Linear`` and ``nn.ReLU`` (``nn.Flatten``, ``nn.Identity``,
+        ``nn.Dropout`` are skipped).
+
+        PyTorch is never a dependency of flnotes: this works when it happens to
+        be installed. ``input_map``, ``output_map`` as in :meth:`mapped`.
+        """
+        try:
+            import torch.nn as nn
+        except ImportError as exc:
+            raise ImportError("from_torch needs PyTorch, which flnotes does not install; without it, export the model "
+                              "with torch.onnx.export and read it with ReLUNet.from_onnx") from exc
+        if not isinstance(module, nn.Sequential):
+            raise TypeError(f"give an nn.Sequential of Linear and ReLU layers, got {type(module).__name__}")
+        W, b, last = [], [], "relu"
+        for i, layer in enumerate(module):
+            if isinstance(layer, (nn.Flatten, nn.Identity, nn.Dropout)):
+                continue
+            if isinstance(layer, nn.Linear) and last == "relu":
+                W.append(layer.weight.detach().cpu().double().numpy())
+                bias = layer.bias
+                b.append(np.zeros(layer.out_features) if bias is None else bias.detach().cpu().double().numpy())
+                last = "linear"
+            elif isinstance(layer, nn.ReLU) and last == "linear" and i < len(module) - 1:
+                last = "relu"
+            else:
+                raise ValueError(f"layer {i} ({type(layer).__name__}) of the Sequential is not part of a ReLU MLP: expected "
+                                 "Linear, ReLU, Linear, ..., Linear (ReLU between two Linear layers)")
+        if last != "linear":
+            raise ValueError("the Sequential must end with an nn.Linear layer (the output layer of eq. recur)")
+        return cls(W, b).mapped(input_map, output_map)
+
     # ------------------------------------------------------------- save/load
     def save(self, path: Union[str, Path]) -> None:
         """Save to ``.npz`` (``W1..WK``, ``b1..bK``)."""
@@ -161,6 +289,59 @@ class ReLUNet:
 
     def __repr__(self) -> str:
         return f"ReLUNet(n_in={self.n_in}, widths={self.widths}, n_out={self.n_out})"
+
+
+def onnx_example(name: str = "MSD-sklearn") -> tuple[Path, dict]:
+    """A network trained outside flnotes, shipped as an ``.onnx`` file (chapter 2), with what is known about it.
+
+    ``"MSD-sklearn"``: the mass-spring-damper's ``Phi`` fitted by a
+    scikit-learn pipeline (``StandardScaler``, ``MLPRegressor``) on inputs
+    ordered ``(v, z1, z2)`` and exported by skl2onnx in float32. The file's
+    SHA-256 checksum is checked against the one shipped beside it.
+
+    Returns
+    -------
+    path, about
+        The file, and its description (``inputs``, ``outputs``, ``input_map``
+        for :meth:`ReLUNet.from_onnx`, ``producer``, ``settings``, ``file_sha256``).
+    """
+    from . import _onnx
+
+    return _onnx.example(name)
+
+
+def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
+    """``(M, c)`` of :meth:`ReLUNet.mapped` from a permutation or a pair, validated."""
+    if isinstance(input_map, tuple) and len(input_map) == 2 and np.ndim(input_map[0]) == 2:
+        M, c = np.asarray(input_map[0], float), np.asarray(input_map[1], float).reshape(-1)
+        if M.shape[0] != n_net or c.shape != (n_net,):
+            raise ValueError(f"input_map = (M, c) must have M of shape ({n_net}, n) and c of shape ({n_net},) for a network "
+                             f"with {n_net} inputs, got M {M.shape} and c {c.shape}")
+        if not (np.all(np.isfinite(M)) and np.all(np.isfinite(c))):
+            raise ValueError("input_map (M, c) contains NaN or inf")
+        return M, c
+    perm = np.asarray(input_map)
+    if perm.ndim != 1 or perm.dtype.kind not in "iu":
+        raise ValueError("input_map must be a permutation (a list of integers: the network's input i is variable "
+                         f"input_map[i] of [z, v]) or a pair (M, c) with M a 2-D array; got {input_map!r}")
+    if sorted(perm.tolist()) != list(range(n_net)):
+        raise ValueError(f"input_map {perm.tolist()} is not a permutation of 0..{n_net - 1} (the network has {n_net} inputs); "
+                         "for a network that uses fewer or other variables, give input_map = (M, c)")
+    return np.eye(n_net)[perm], np.zeros(n_net)
+
+
+def _output_map(output_map, n_net: int) -> tuple[Array, Array]:
+    if not (isinstance(output_map, tuple) and len(output_map) == 2):
+        raise ValueError(f"output_map must be a pair (D, d): u = D @ net(...) + d, got {output_map!r}")
+    D, d = np.asarray(output_map[0], float), np.asarray(output_map[1], float).reshape(-1)
+    if D.ndim == 1:
+        D = np.diag(D) if D.shape[0] == n_net else D.reshape(-1, 1)
+    if D.ndim != 2 or D.shape[1] != n_net or d.shape != (D.shape[0],):
+        raise ValueError(f"output_map = (D, d) must have D of shape (m, {n_net}) (or a vector of {n_net} scales) and d of "
+                         f"shape (m,), got D {np.shape(output_map[0])} and d {np.shape(output_map[1])}")
+    if not (np.all(np.isfinite(D)) and np.all(np.isfinite(d))):
+        raise ValueError("output_map (D, d) contains NaN or inf")
+    return D, d
 
 
 @dataclass
