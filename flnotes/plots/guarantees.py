@@ -11,7 +11,8 @@ __all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_c
 
 
 def plot_terminal_bisection(term, ax=None):
-    """The bisection on the level ``alpha``: the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha Z_f`` against ``u_max^eps``.
+    """The bisection on the level ``alpha`` (the book's lambda): the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha O_inf``
+    against ``u_max^eps``.
 
     Parameters
     ----------
@@ -27,8 +28,8 @@ def plot_terminal_bisection(term, ax=None):
     ax.scatter(H[ok, 0], H[ok, 1], color=COLORS["nominal"], zorder=2, label="certified (MILP upper bound)")
     ax.scatter(H[~ok, 0], H[~ok, 1], color=COLORS["unsafe"], marker="x", zorder=2, label="fails")
     ax.axhline(float(np.max(term.u_eps)), color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max}^{\varepsilon}$")
-    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\alpha = {term.alpha:.3g}$")
-    ax.set(xlabel=r"level $\alpha$", ylabel=r"$\max_{z \in \alpha O_\infty} |\Phi_{NN}(z, Kz)|$")
+    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\lambda = {term.alpha:.3g}$")
+    ax.set(xlabel=r"level $\lambda$", ylabel=r"$\max_{z \in \lambda O_\infty} |\Phi_{NN}(z, K_f z)|$")
     ax.legend(loc="upper left")
     return ax
 
@@ -39,7 +40,7 @@ def _slice_mask(term, roa, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return term.contains(Z.reshape(-1, Z.shape[-1]), tol=0.0).reshape(X.shape)
 
 
-def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
+def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None, mark=None, mark_label: str = "start"):
     """Initial states (a 2-D slice) from which the horizon program is feasible, without and with ``z(N_p) in Z_f``.
 
     Each grid state is a cell: light grey feasible without the terminal constraint only, green feasible with it,
@@ -49,6 +50,10 @@ def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
     ----------
     roa
         A :class:`flnotes.terminal.RegionOfAttraction`.
+    mark
+        Optional state (n_z,) drawn as a star at its two sliced coordinates (e.g. a run's start on the slice).
+    mark_label
+        Its legend entry.
     """
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
@@ -73,6 +78,12 @@ def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
     if M.any():
         ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4, zorder=2)
         handles.append(_line(COLORS["true"], r"terminal set $Z_f$ (slice)"))
+    if mark is not None:
+        mk = np.asarray(mark, float).reshape(-1)
+        if mk.shape != np.shape(roa.z_fixed):
+            raise ValueError(f"mark must be a state of shape {np.shape(roa.z_fixed)}, got {mk.shape}")
+        handles.append(ax.scatter([mk[roa.axes[0]]], [mk[roa.axes[1]]], marker="*", s=140, color="k", zorder=4,
+                                  label=mark_label))
     ax.set(xlabel=f"$z_{roa.axes[0] + 1}$", ylabel=f"$z_{roa.axes[1] + 1}$",
            title=title or rf"region of attraction, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
     ax.legend(handles=handles, loc="upper right", fontsize=7.5, framealpha=0.9, frameon=True)
