@@ -172,7 +172,7 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
                     run = dict(t=log.t, z=log.z, v=log.v, steps=list(mpc.history[-log.n_steps:]),
                                box_exit="left the domain box" in (log.message or ""),
                                time_s=time.perf_counter() - t0, log=log)
-                row = dict(N_p=int(N), ingredients="P and Z_f" if with_terminal else "none", plant=plant,
+                row = dict(N_p=int(N), ingredients="P_f and Z_f" if with_terminal else "none", plant=plant,
                            **_summarize(run, terminal.Q, terminal.R, extra.get("P"), system, n_steps))
                 run["objective"] = plan_costs(run["steps"], terminal.Q, terminal.R, extra.get("P"))
                 runs[(int(N), with_terminal, plant)] = run
