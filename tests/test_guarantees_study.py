@@ -61,3 +61,13 @@ def test_guaranteed_loop_on_the_msd(msd_margin):
     assert row["within_u_max"] and row["max_abs_u_between"] <= float(system.u_max[0])
     # the dense check is the true map along the exact flow: it reproduces the simulator's samples
     assert np.allclose(np.abs(log.u).max(), np.abs(system.Phi(log.z[:-1], log.v)).max())
+    # the figure draws each run and refuses an empty mapping
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from flnotes.plots.guarantees import plot_guaranteed_loop
+
+    ax = plot_guaranteed_loop({"run": log}, float(system.u_max[0]), {"b": row["bound"]})
+    assert len(ax.lines) >= 2
+    with pytest.raises(ValueError, match="at least one"):
+        plot_guaranteed_loop({}, 5.0, {})
