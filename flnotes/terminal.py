@@ -57,7 +57,7 @@ from .systems import FLSystem
 
 Array = np.ndarray
 
-__all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "TerminalSet", "terminal_set",
+__all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "NETWORK_MAX_BACKENDS", "TerminalSet", "terminal_set",
            "shifted_plan", "RegionOfAttraction", "region_of_attraction"]
 
 
@@ -194,7 +194,7 @@ class NetworkMax:
     ----------
     upper
         Proved upper bound of ``max_S |Phi_NN,i(z, K z)|`` per output, shape (m,):
-        the MILP's dual bound (HiGHS), the larger of the two signs.
+        the MILP's dual bound (of the back-end used), the larger of the two signs.
     lower
         ``|Phi_NN,i(z*, K z*)|`` at the best point found, evaluated by the
         network's forward pass, shape (m,): the maximum is at least this.
@@ -213,16 +213,23 @@ class NetworkMax:
     time_s: float
 
 
+#: The back-ends :func:`network_max` proves its bound with: ``"highs"`` (HiGHS through :func:`scipy.optimize.milp`,
+#: feasibility tolerance 1e-7) and ``"scip"`` (SCIP through :mod:`flnotes.solvers`, SCIP's defaults for a MILP with
+#: the feasibility tolerance ``numerics/feastol`` = 1e-9), two independent branch and bounds.
+NETWORK_MAX_BACKENDS = ("highs", "scip")
+
+
 def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float = 1e-6,
-                time_limit: Optional[float] = None) -> NetworkMax:
+                time_limit: Optional[float] = None, backend: str = "highs") -> NetworkMax:
     """Maximize ``+-Phi_NN(z, K z)`` over ``{z : F z <= g}`` with the big-M encoding (eq. MIP_general).
 
     The input of the network is ``y^0 = [z, K z]``; the node bounds ``L``, ``U``
     of eq. (MIP_general_c) come from :func:`flnotes.fbbt` over the bounding box
     of the polytope and of ``K z`` on it (LPs), so the encoding is exact on the
-    polytope. Each MILP is solved by HiGHS (:func:`scipy.optimize.milp`); its
-    dual bound is a proof that no point of the polytope gives a larger value,
-    up to the solver's feasibility tolerances (1e-7 absolute by default).
+    polytope. Each MILP is solved by HiGHS (:func:`scipy.optimize.milp`) or SCIP
+    (``backend``); its dual bound is a proof that no point of the polytope gives a
+    larger value, up to the solver's feasibility tolerance (1e-7 for HiGHS, 1e-9 for
+    SCIP) and its floating-point arithmetic: not an exact-arithmetic proof.
 
     Parameters
     ----------
@@ -233,8 +240,12 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
     F, g
         The polytope, (p, n_z) and (p,); it must be bounded and non-empty.
     mip_rel_gap, time_limit
-        HiGHS options; a MILP that stops without proving optimality raises
+        Solver options (relative gap, seconds); a MILP that stops without proving optimality raises
         ``RuntimeError`` (a certificate must be a proof).
+    backend
+        ``"highs"`` (default) or ``"scip"`` (:data:`NETWORK_MAX_BACKENDS`): the same MILP, another solver. HiGHS
+        has returned sub-optimal points labelled optimal on the book's big-M programs, so a certificate that
+        matters is confirmed by the other one.
 
     Returns
     -------
@@ -242,6 +253,8 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
     """
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if backend not in NETWORK_MAX_BACKENDS:
+        raise ValueError(f"backend must be one of {NETWORK_MAX_BACKENDS}, got {backend!r}")
     K = np.atleast_2d(np.asarray(K, float))
     m, n = K.shape
     if net.n_in != n + m or net.n_out != m:
@@ -278,21 +291,40 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
     for i in range(m):
         for s in (1.0, -1.0):
             c = np.zeros(N)
-            c[form.out[i]] = -s  # milp minimizes: min -s y^K_i = -max s y^K_i
-            res = milp(c, integrality=form.integrality, bounds=Bounds(lb, ub), constraints=cons, options=opts)
-            if res.status != 0 or res.x is None:
-                raise RuntimeError(f"the MILP max of {'+' if s > 0 else '-'}Phi_NN over the polytope was not solved "
-                                   f"to optimality ({res.message}); no certificate")
-            dual = getattr(res, "mip_dual_bound", None)
-            up_s = -float(dual) if dual is not None and np.isfinite(dual) else -float(res.fun)
-            up_s = max(up_s, -float(res.fun))
-            z_star = res.x[x_z]
+            c[form.out[i]] = -s  # both minimize: min -s y^K_i = -max s y^K_i
+            if backend == "highs":
+                res = milp(c, integrality=form.integrality, bounds=Bounds(lb, ub), constraints=cons, options=opts)
+                if res.status != 0 or res.x is None:
+                    raise RuntimeError(f"the MILP max of {'+' if s > 0 else '-'}Phi_NN over the polytope was not "
+                                       f"solved to optimality ({res.message}); no certificate")
+                dual = getattr(res, "mip_dual_bound", None)
+                up_s = -float(dual) if dual is not None and np.isfinite(dual) else -float(res.fun)
+                up_s, x = max(up_s, -float(res.fun)), res.x
+            else:
+                up_s, x = _scip_max(c, cons, lb, ub, form.integrality, mip_rel_gap, time_limit, s)
+            z_star = x[x_z]
             val = s * float(net(np.r_[z_star, K @ z_star][None])[0, i])
             upper[i] = max(upper[i], up_s, val)
             if val > lower[i]:
                 lower[i], argmax[i] = val, z_star
     return NetworkMax(upper=upper, lower=lower, argmax=argmax, n_binaries=form.n_binaries,
                       time_s=time.perf_counter() - t0)
+
+
+def _scip_max(c: Array, cons: list, lb: Array, ub: Array, integrality: Array, gap: float,
+              time_limit: Optional[float], s: float) -> tuple[float, Array]:
+    """``min c'w`` over the MILP's rows with SCIP (feasibility tolerance 1e-9): ``(-bound, w)``, a proof or an error."""
+    from .solvers import MIQP, make_solver
+
+    A = sp.vstack([sp.csr_matrix(k.A) for k in cons]).tocsr()
+    rl = np.concatenate([np.broadcast_to(k.lb, (k.A.shape[0],)) for k in cons])
+    ru = np.concatenate([np.broadcast_to(k.ub, (k.A.shape[0],)) for k in cons])
+    prob = MIQP(H=None, c=c, c0=0.0, A=A, rl=rl, ru=ru, lb=lb, ub=ub, integrality=integrality)
+    res = make_solver(prob, "scip", feastol=1e-9).solve(time_limit=time_limit, gap=gap)
+    if res.status != "optimal" or res.w is None:
+        raise RuntimeError(f"SCIP did not prove the MILP max of {'+' if s > 0 else '-'}Phi_NN over the polytope "
+                           f"({res.status}: {res.message}); no certificate")
+    return max(-float(res.bound), -float(res.objective)), res.w
 
 
 # ============================================================================ the terminal set

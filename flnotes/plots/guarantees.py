@@ -7,11 +7,13 @@ import numpy as np
 
 from .style import COLORS, new_axes
 
-__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve", "plot_terminal_sweep"]
+__all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_curve", "plot_terminal_sweep",
+           "plot_guaranteed_loop"]
 
 
 def plot_terminal_bisection(term, ax=None):
-    """The bisection on the level ``alpha``: the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha Z_f`` against ``u_max^eps``.
+    """The bisection on the level ``alpha`` (the book's mu): the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha O_inf``
+    against ``u_max^eps``.
 
     Parameters
     ----------
@@ -27,8 +29,8 @@ def plot_terminal_bisection(term, ax=None):
     ax.scatter(H[ok, 0], H[ok, 1], color=COLORS["nominal"], zorder=2, label="certified (MILP upper bound)")
     ax.scatter(H[~ok, 0], H[~ok, 1], color=COLORS["unsafe"], marker="x", zorder=2, label="fails")
     ax.axhline(float(np.max(term.u_eps)), color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max}^{\varepsilon}$")
-    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\alpha = {term.alpha:.3g}$")
-    ax.set(xlabel=r"level $\alpha$", ylabel=r"$\max_{z \in \alpha O_\infty} |\Phi_{NN}(z, Kz)|$")
+    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\mu = {term.alpha:.3g}$")
+    ax.set(xlabel=r"level $\mu$", ylabel=r"$\max_{z \in \mu O_\infty} |\Phi_{NN}(z, K_f z)|$")
     ax.legend(loc="upper left")
     return ax
 
@@ -39,7 +41,7 @@ def _slice_mask(term, roa, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return term.contains(Z.reshape(-1, Z.shape[-1]), tol=0.0).reshape(X.shape)
 
 
-def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
+def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None, mark=None, mark_label: str = "start"):
     """Initial states (a 2-D slice) from which the horizon program is feasible, without and with ``z(N_p) in Z_f``.
 
     Each grid state is a cell: light grey feasible without the terminal constraint only, green feasible with it,
@@ -49,6 +51,10 @@ def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
     ----------
     roa
         A :class:`flnotes.terminal.RegionOfAttraction`.
+    mark
+        Optional state (n_z,) drawn as a star at its two sliced coordinates (e.g. a run's start on the slice).
+    mark_label
+        Its legend entry.
     """
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
@@ -73,6 +79,12 @@ def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None):
     if M.any():
         ax.contour(Xf, Yf, M.astype(float), levels=[0.5], colors=[COLORS["true"]], linewidths=1.4, zorder=2)
         handles.append(_line(COLORS["true"], r"terminal set $Z_f$ (slice)"))
+    if mark is not None:
+        mk = np.asarray(mark, float).reshape(-1)
+        if mk.shape != np.shape(roa.z_fixed):
+            raise ValueError(f"mark must be a state of shape {np.shape(roa.z_fixed)}, got {mk.shape}")
+        handles.append(ax.scatter([mk[roa.axes[0]]], [mk[roa.axes[1]]], marker="*", s=140, color="k", zorder=4,
+                                  label=mark_label))
     ax.set(xlabel=f"$z_{roa.axes[0] + 1}$", ylabel=f"$z_{roa.axes[1] + 1}$",
            title=title or rf"region of attraction, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
     ax.legend(handles=handles, loc="upper right", fontsize=7.5, framealpha=0.9, frameon=True)
@@ -143,3 +155,48 @@ def plot_terminal_sweep(runs: dict, plant: str = "true", box: Optional[float] = 
     a2.set(xlabel="t [s]", ylabel=r"optimal cost $J(z_k)$", title="cost per step (solid: decreasing by the theorem)")
     a1.legend(loc="upper right", fontsize=7)
     return fig
+
+
+
+def plot_guaranteed_loop(logs: dict, u_max: float, bounds: dict, t_window: Optional[tuple] = None,
+                         title: Optional[str] = None, unit: str = ""):
+    """The true input ``u(t)`` between the samples (lines) and ``Phi_NN(z_k, v_k)`` at the samples (dots) of one or
+    more runs, against ``u_max`` and the bounds imposed on ``|Phi_NN|`` at the samples (e.g. the loop of
+    :func:`flnotes.studies.guarantees.guaranteed_loop`, or the two runs of ``margin_study`` at one ``t_s``).
+
+    Parameters
+    ----------
+    logs
+        ``{label: SimLog}``, each recorded with ``net`` (for ``u_nn``).
+    u_max
+        The input bound.
+    bounds
+        ``{label: value}``: the bounds at the samples, drawn as dotted lines ``+-value`` (e.g.
+        ``{"u_max^eps": ..., "u_max^{eps+delta}": ...}``, labels in LaTeX without dollars).
+    t_window
+        ``(t0, t1)`` to zoom on.
+    unit
+        Unit of ``u`` for the axis label (e.g. ``"rad"``), empty for none.
+    """
+    if not logs:
+        raise ValueError("logs must map at least one label to a SimLog")
+    fig, ax = new_axes(figsize=(8.0, 3.4))
+    colors = (COLORS["true"], COLORS["nn"], COLORS["lcost"], COLORS["qcost"])
+    for i, (label, log) in enumerate(logs.items()):
+        col = colors[i % len(colors)]
+        tf, uf = log.t_fine, log.u_fine[:, 0]
+        tk, nn = log.t[:-1], np.asarray(log.u_nn, float)[:, 0]
+        sf = np.ones(len(tf), bool) if t_window is None else (tf >= t_window[0]) & (tf <= t_window[1])
+        sk = np.ones(len(tk), bool) if t_window is None else (tk >= t_window[0]) & (tk <= t_window[1])
+        ax.plot(tf[sf], uf[sf], color=col, lw=1.3, label=f"{label}: true $u(t)$")
+        ax.plot(tk[sk], nn[sk], "o", color=col, ms=3.5, label=rf"{label}: $\Phi_{{NN}}(z_k, v_k)$")
+    ax.axhline(u_max, color=COLORS["u_max"], ls="--", lw=1, label=r"$\pm u_{\max}$")
+    ax.axhline(-u_max, color=COLORS["u_max"], ls="--", lw=1)
+    styles = (":", "-.", (0, (1, 3)))
+    for j, (label, b) in enumerate(bounds.items()):
+        for sgn in (1, -1):
+            ax.axhline(sgn * b, color=COLORS["u_max_eps"], ls=styles[j % len(styles)], lw=1.2,
+                       label=rf"$\pm {label}$" if sgn > 0 else None)
+    ax.set(xlabel="t [s]", ylabel="u" + (f" [{unit}]" if unit else ""), title=title)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7.5, frameon=False)
+    return ax

@@ -9,7 +9,13 @@
     the steps of a run that had no admissible plan, as the MPC recorded them;
 ``margin_study``
     closed loops with ``u_max^eps`` and ``u_max^{eps+delta}`` for several sampling times: the true input on a
-    fine grid between the samples, the tracking and the feasibility.
+    fine grid between the samples, the tracking and the feasibility;
+``intersample_sample``
+    sampled pairs ``(z, v)`` admissible at the sample: the share whose true input stays within ``u_max`` over the
+    whole hold (what the uniform worst case ``delta`` does not say);
+``guaranteed_loop``
+    the MPC with the terminal ingredients built for ``u_max^{eps+delta}`` on the true plant: the network bound
+    active or not at each step, and the true input checked densely along the exact flow between the samples.
 """
 from __future__ import annotations
 
@@ -18,7 +24,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from ..intersample import intersample_drift
+from ..intersample import flow, intersample_drift
 from ..mpc import MPC
 from ..network import ReLUNet
 from ..simulate import simulate
@@ -27,7 +33,8 @@ from ..terminal import TerminalSet
 
 Array = np.ndarray
 
-__all__ = ["nominal_loop", "plan_costs", "terminal_sweep", "fallback_table", "margin_study"]
+__all__ = ["nominal_loop", "plan_costs", "terminal_sweep", "fallback_table", "margin_study", "intersample_sample",
+           "guaranteed_loop"]
 
 
 def _stage_costs(Z: Array, V: Array, Q: Array, R: Array) -> Array:
@@ -107,12 +114,16 @@ def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSyst
     dec = J[1:] - J[:-1] + stage[: len(J) - 1]
     ok = np.isfinite(dec)
     u = system.Phi(Z[: len(V)], V) if len(V) else np.zeros((0, system.m))
+    # the measured decay rate over the second half of a completed run: ||z|| ~ exp(-rate t) there
+    k2, nz = len(V) // 2, np.linalg.norm(Z, axis=1)
+    done = len(V) == n_planned and not run["box_exit"] and k2 > 0 and nz[k2] > 0 and nz[-1] > 0
+    rate = float(np.log(nz[k2] / nz[-1]) / ((len(V) - k2) * run["t"][1])) if done else np.nan
     return dict(steps=len(V), completed=len(V) == n_planned and not run["box_exit"],
                 infeasible=int(sum(s.status == "infeasible" for s in steps)),
                 fallback=int(sum(bool(s.fallback) for s in steps)),
                 not_admissible=int(sum(not s.input_admissible for s in steps)),
                 box_exit=bool(run["box_exit"]), cost=float(stage.sum()),
-                final_norm_z=float(np.linalg.norm(Z[-1])),
+                final_norm_z=float(np.linalg.norm(Z[-1])), decay_rate=rate,
                 max_cost_increase=float(np.max(dec[ok] / (1.0 + J[:-1][ok]))) if ok.any() else np.nan,
                 max_abs_u_samples=float(np.abs(u).max()) if len(u) else np.nan, time_s=run["time_s"])
 
@@ -135,7 +146,9 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
         whether the run completed, the infeasible and fallback steps, the steps whose applied input was not
         admissible, whether the state left the box, the closed-loop cost ``sum_k l(z_k, v_k)``, the final ``|z|``,
         ``max_cost_increase`` (largest ``(J_{k+1} - J_k + l(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
-        steps: ``<= 0`` is the proof's Lyapunov decrease), the largest true ``|u|`` at the samples, and the time.
+        steps: ``<= 0`` is the proof's Lyapunov decrease), ``decay_rate`` (``ln(|z(T/2)| / |z(T)|) / (T/2)``, per
+        second, over the second half of a completed run; NaN if it stopped early), the largest true ``|u|`` at
+        the samples, and the time.
     """
     for p in plants:
         if p not in ("nominal", "true"):
@@ -159,7 +172,7 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
                     run = dict(t=log.t, z=log.z, v=log.v, steps=list(mpc.history[-log.n_steps:]),
                                box_exit="left the domain box" in (log.message or ""),
                                time_s=time.perf_counter() - t0, log=log)
-                row = dict(N_p=int(N), ingredients="P and Z_f" if with_terminal else "none", plant=plant,
+                row = dict(N_p=int(N), ingredients="P_f and Z_f" if with_terminal else "none", plant=plant,
                            **_summarize(run, terminal.Q, terminal.R, extra.get("P"), system, n_steps))
                 run["objective"] = plan_costs(run["steps"], terminal.Q, terminal.R, extra.get("P"))
                 runs[(int(N), with_terminal, plant)] = run
@@ -231,3 +244,90 @@ def margin_study(system: FLSystem, net: ReLUNet, eps: float, ts_values: Sequence
             logs[(ts, label)] = log
             rows.append(row)
     return logs, rows
+
+
+def intersample_sample(system: FLSystem, net: ReLUNet, u_bound: float, ts: float, n_samples: int = 200_000,
+                       n_tau: int = 41, seed: int = 0) -> dict:
+    """Sampled pairs admissible at the sample: does the true input stay within ``u_max`` over the whole hold?
+
+    ``n_samples`` uniform pairs ``(z, v)`` of the domain box are drawn (``seed``); those with
+    ``|Phi_NN(z, v)| <= u_bound`` (e.g. ``u_max^eps``) are followed along the exact flow ``z(tau)`` with ``v`` held
+    (:func:`flnotes.intersample.flow`) on ``n_tau`` equally spaced ``tau in [0, ts]``, and a pair counts as kept when
+    ``|Phi(z(tau), v)| <= u_max`` at every one of them (``Phi`` undefined along the flow counts as not kept).
+    The certified ``delta`` is a uniform worst case over the box; this is the share of pairs for which the bound holds
+    over the interval anyway (a sample: a statement about these pairs, not a certificate).
+
+    Returns
+    -------
+    dict
+        ``n_admissible`` (pairs admissible at the sample), ``n_kept``, ``fraction_kept``, ``max_abs_u`` (largest
+        ``|Phi|`` met along the flows, over the pairs where it is defined) and ``ts``, ``n_tau``.
+    """
+    if not (np.isfinite(ts) and ts > 0) or int(n_tau) < 2 or int(n_samples) < 1:
+        raise ValueError(f"need ts > 0, n_tau >= 2 and n_samples >= 1, got ts={ts!r}, n_tau={n_tau!r}, "
+                         f"n_samples={n_samples!r}")
+    n, u_max = system.n_z, system.u_max
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(system.lo, system.hi, (int(n_samples), system.n_in))
+    X = X[np.all(np.abs(net(X)) <= u_bound, axis=1)]
+    Z, V = X[:, :n], X[:, n:]
+    kept, top = np.ones(len(X), bool), 0.0
+    for tau in np.linspace(0.0, float(ts), int(n_tau)):
+        with np.errstate(all="ignore"):
+            U = system.Phi(flow(system, Z, V, np.full(len(X), tau)), V)
+        ok = np.all(np.isfinite(U), axis=1)
+        kept &= ok & np.all(np.abs(np.where(ok[:, None], U, 0.0)) <= u_max, axis=1)
+        if ok.any():
+            top = max(top, float(np.abs(U[ok]).max()))
+    return dict(ts=float(ts), n_tau=int(n_tau), n_admissible=int(len(X)), n_kept=int(kept.sum()),
+                fraction_kept=float(kept.mean()) if len(X) else np.nan, max_abs_u=top)
+
+
+def guaranteed_loop(system: FLSystem, net: ReLUNet, eps: float, delta: float, terminal: TerminalSet, z0: Array,
+                    t_final: float, horizon: int, n_fine: int = 40, n_dense: int = 201, active_tol: float = 1e-6,
+                    **mpc_kwargs) -> tuple:
+    """The MPC with ``u_max^{eps+delta}`` and the terminal ingredients built for it, on the true plant (``v`` held).
+
+    ``terminal`` must be :func:`flnotes.terminal_set` for ``eps + delta`` (its ``u_eps`` is checked), so that
+    the theorem's hypotheses hold with the margin: then every step has a plan, ``|Phi_NN(z_k, v_k)| <=
+    u_max^{eps+delta}`` at the samples, and ``|u(t)| <= u_max`` between them. The true input is checked twice
+    between the samples: on the simulator's ``n_fine`` points per interval, and on ``n_dense`` points of the
+    exact flow ``z(t_k + tau)`` from each sampled state with ``v_k`` held (:func:`flnotes.intersample.flow`).
+
+    Returns
+    -------
+    log, row
+        The :class:`flnotes.SimLog` and a dict: ``bound`` (``u_max^{eps+delta}``), ``max_abs_phi_nn`` at the samples,
+        ``active_steps`` (steps with ``|Phi_NN| >= bound - active_tol``: the network bound is active),
+        ``statuses`` (count per status), ``fallback``, ``max_abs_u_between`` (the larger of the two checks),
+        ``within_u_max``, ``final_norm_z``, ``mean_ms``, ``max_ms``.
+    """
+    if not isinstance(terminal, TerminalSet):
+        raise TypeError(f"terminal must be a flnotes.terminal.TerminalSet, got {type(terminal).__name__}")
+    u_max, e = system.u_max, eps + delta
+    if not np.allclose(terminal.u_eps, u_max - e, rtol=0, atol=1e-12):
+        raise ValueError(f"terminal was built for u_max^eps = {terminal.u_eps}, not for u_max - eps - delta = "
+                         f"{u_max - e}: pass the terminal_set built with eps + delta")
+    mpc = MPC(system, net, e, horizon=int(horizon), ts=terminal.ts, Q=terminal.Q, R=terminal.R, P=terminal.P,
+              terminal=terminal, discretization=terminal.discretization, v_box=(terminal.v_lo, terminal.v_hi),
+              **mpc_kwargs)
+    zero = lambda t: np.zeros((np.size(t), system.n_z))  # noqa: E731
+    log = simulate(system, mpc, t_final=t_final, ts=terminal.ts, z0=z0, reference=zero, net=net, n_fine=n_fine,
+                   progress=False)
+    K = len(log.v)
+    taus = np.linspace(0.0, terminal.ts, int(n_dense))
+    Zk = np.repeat(log.z[:K], len(taus), 0)
+    Vk = np.repeat(log.v, len(taus), 0)
+    U_dense = system.Phi(flow(system, Zk, Vk, np.tile(taus, K)), Vk)
+    top = max(float(np.abs(log.u_fine).max()), float(np.abs(U_dense).max()))
+    bound = float(np.max(u_max - e))
+    phi_nn = np.abs(np.asarray(log.u_nn, float)).max(axis=1)
+    st = list(log.status)
+    row = dict(t_s=terminal.ts, N_p=int(horizon), eps=float(eps), delta=float(delta), bound=bound, steps=K,
+               completed=log.message == "", max_abs_phi_nn=float(phi_nn.max()),
+               active_steps=int(np.sum(phi_nn >= bound - active_tol)),
+               statuses={s: st.count(s) for s in sorted(set(st))}, fallback=int(np.sum(log.fallback)),
+               max_abs_u_between=top, within_u_max=bool(top <= float(np.min(u_max)) + 1e-9),
+               final_norm_z=float(np.linalg.norm(log.z[-1])), mean_ms=float(1e3 * np.mean(log.solve_time)),
+               max_ms=float(1e3 * np.max(log.solve_time)))
+    return log, row

@@ -1,0 +1,73 @@
+"""The chapter-9 studies of flnotes.studies.guarantees that are not covered elsewhere.
+
+Properties checked: the sampled share of pairs that keep |u| <= u_max over the hold is 1 when the bound at the
+samples includes the certified margin (the theorem of flnotes.intersample, on a sample) and below 1 for the
+quadrotor with eps alone at t_s = 0.1 s; the combined loop (terminal set for u_max^{eps+delta}) refuses a terminal
+set built for another bound, and on the MSD it keeps every step optimal, drives the network bound active and keeps
+|u(t)| <= u_max along the exact flow between the samples.
+"""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.studies import guarantees as G
+
+MSD_Q, MSD_R = np.diag([10.0, 1.0]), np.array([[0.01]])
+
+
+@pytest.fixture(scope="module")
+def msd_margin():
+    system = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    eps = float(fl.paper_eps("MSD").upper[0])
+    delta = float(fl.intersample_drift(system, 0.1).upper[0])
+    return system, net, eps, delta
+
+
+def test_sampled_pairs_keep_the_bound_with_the_margin(msd_margin):
+    system, net, eps, delta = msd_margin
+    u_max = float(system.u_max[0])
+    with_margin = G.intersample_sample(system, net, u_max - eps - delta, 0.1, n_samples=20_000, n_tau=21)
+    assert with_margin["n_admissible"] > 100
+    assert with_margin["fraction_kept"] == 1.0 and with_margin["max_abs_u"] <= u_max
+    alone = G.intersample_sample(system, net, u_max - eps, 0.1, n_samples=20_000, n_tau=21)
+    assert alone["n_admissible"] > with_margin["n_admissible"]
+    assert alone["fraction_kept"] <= 1.0
+
+
+def test_sampled_pairs_quad_eps_alone_violate_sometimes():
+    quad = fl.quad1d()
+    net, _ = fl.paper_net("Quad-1D")
+    eps = float(fl.paper_eps("Quad-1D").upper[0])
+    u_max = float(quad.u_max[0])
+    s = G.intersample_sample(quad, net, u_max - eps, 0.1, n_samples=20_000, n_tau=21)
+    assert 0.0 < s["fraction_kept"] < 1.0 and s["max_abs_u"] > u_max
+    # a shorter hold keeps more pairs within the bound (the same pairs, a shorter flow)
+    short = G.intersample_sample(quad, net, u_max - eps, 0.025, n_samples=20_000, n_tau=21)
+    assert short["n_admissible"] == s["n_admissible"] and short["fraction_kept"] >= s["fraction_kept"]
+    with pytest.raises(ValueError, match="ts > 0"):
+        G.intersample_sample(quad, net, u_max - eps, 0.0)
+
+
+def test_guaranteed_loop_on_the_msd(msd_margin):
+    system, net, eps, delta = msd_margin
+    T = fl.terminal_set(system, net, eps + delta, 0.1, MSD_Q, MSD_R)
+    with pytest.raises(ValueError, match="terminal was built for"):
+        G.guaranteed_loop(system, net, eps, 0.0, T, np.array([-1.0, 1.0]), 1.0, horizon=10)
+    log, row = G.guaranteed_loop(system, net, eps, delta, T, np.array([-1.0, 1.0]), 1.0, horizon=10, n_dense=51,
+                                 time_limit=30.0)
+    assert row["completed"] and row["statuses"] == {"optimal": row["steps"]} and row["fallback"] == 0
+    assert row["active_steps"] > 0 and abs(row["max_abs_phi_nn"] - row["bound"]) <= 1e-6
+    assert row["within_u_max"] and row["max_abs_u_between"] <= float(system.u_max[0])
+    # the dense check is the true map along the exact flow: it reproduces the simulator's samples
+    assert np.allclose(np.abs(log.u).max(), np.abs(system.Phi(log.z[:-1], log.v)).max())
+    # the figure draws each run and refuses an empty mapping
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from flnotes.plots.guarantees import plot_guaranteed_loop
+
+    ax = plot_guaranteed_loop({"run": log}, float(system.u_max[0]), {"b": row["bound"]})
+    assert len(ax.lines) >= 2
+    with pytest.raises(ValueError, match="at least one"):
+        plot_guaranteed_loop({}, 5.0, {})
