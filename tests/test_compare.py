@@ -102,12 +102,13 @@ def _tiny_log():
     u_fine = np.array([[1.0], [4.0], [6.0], [5.5], [-2.0], [-5.2]])  # steps 1 and 2 between samples
     plan_ok = SimpleNamespace(z_pred=np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]), v_pred=np.array([[0.0], [1.0]]))
     plan_bad = SimpleNamespace(z_pred=np.array([[0.5, 0.0], [4.0, 0.0], [0.0, 0.0]]), v_pred=np.array([[0.0], [1.5]]))
-    no_plan = SimpleNamespace(input_admissible=False)  # a fallback without an admissible input
+    # a fallback without an admissible input; its plan is the fallback's, not the method's: not counted
+    fallback_plan = SimpleNamespace(z_pred=plan_bad.z_pred, v_pred=plan_bad.v_pred, input_admissible=False)
     return fl.SimLog(system=msd, ts=0.1, hold="v", t=np.array([0.0, 0.1, 0.2, 0.3]), x=z, z=z, v=v, u=u, u_nn=None,
-                     solve_time=np.array([0.001, 0.003, 0.002]), status=["optimal", "infeasible", "optimal"],
-                     fallback=np.array([False, True, False]), t_fine=np.arange(6) * 0.05, x_fine=np.zeros((6, 2)),
+                     solve_time=np.array([0.001, 0.003, 0.002]), status=["optimal", "optimal", "infeasible"],
+                     fallback=np.array([False, False, True]), t_fine=np.arange(6) * 0.05, x_fine=np.zeros((6, 2)),
                      z_fine=np.zeros((6, 2)), u_fine=u_fine, in_domain=np.ones(4, bool),
-                     steps=[plan_ok, plan_bad, no_plan], message="")
+                     steps=[plan_ok, plan_bad, fallback_plan], message="")
 
 
 def test_run_metrics_on_a_constructed_run():
@@ -330,9 +331,11 @@ def test_relative_costs_compare_completed_runs_only():
 
 
 def test_extremes_name_every_method_at_the_extreme():
-    table = {"a": dict(method="A", n=3), "b": dict(method="B", n=1), "c": dict(method="C", n=3)}
+    table = {"a": dict(method="A", n=3), "b": dict(method="B", n=1), "c": dict(method="C", n=3),
+             "d": dict(method="D", n=3)}
     e = C.extremes(table, "n", ["a", "b", "c"])
     assert e == dict(min=1, max=3, at_min="B", at_max="A and C")
+    assert C.extremes(table, "n", ["a", "b", "c", "d"])["at_max"] == "A, C and D"
     assert C.extremes(table, "n", ["a", "c"])["at_min"] == "A and C"
     with pytest.raises(ValueError, match="at least one"):
         C.extremes(table, "n", [])

@@ -322,13 +322,18 @@ def plan_violations(log, system: FLSystem, tol: float = U_TOL, first: int = 1) -
 
     For every logged step with a plan ``(z_pred, v_pred)`` on the Brunovsky model, the true
     input of each predicted step ``k >= first`` (default: the later steps, after the one that is
-    applied) is ``Phi(z_pred[k], v_pred[k])``. Returns the number of steps with a plan,
-    the number whose plan violates the bound at some such step, that fraction, and the largest
-    excess ``max |Phi| - u_max`` (0 when none).
+    applied) is ``Phi(z_pred[k], v_pred[k])``. Only the plans of the method's program count: a
+    fallback step's plan (``log.fallback``) is the fallback's, counted in ``fallback_steps`` of
+    :func:`run_metrics`. Returns the number of steps with a plan, the number whose plan violates
+    the bound at some such step, that fraction, and the largest excess ``max |Phi| - u_max`` (0 when
+    none).
     """
     n_plans = n_bad = 0
     excess = 0.0
-    for s in log.steps:
+    fallback = np.asarray(getattr(log, "fallback", np.zeros(len(log.steps), bool)), bool)
+    for s, fb in zip(log.steps, fallback):
+        if fb:
+            continue
         Z, V = step_field(s, "z_pred"), step_field(s, "v_pred")
         if Z is None or V is None:
             continue
@@ -468,14 +473,18 @@ def extremes(table: dict, column: str, keys: Sequence[str]) -> dict:
     """The smallest and largest ``column`` among the lines ``keys`` of a keyed :func:`method_table`.
 
     ``table`` maps variant keys to lines; returns ``min``, ``max`` and the methods at each, ``at_min``
-    and ``at_max`` (their labels, joined by " and ").
+    and ``at_max`` (their labels: "A", "A and B", "A, B and C").
     """
     if not keys:
         raise ValueError("keys must name at least one line of the table")
     vals = {k: table[k][column] for k in keys}
     lo, hi = min(vals.values()), max(vals.values())
-    return dict(min=lo, max=hi, at_min=" and ".join(table[k]["method"] for k in keys if vals[k] == lo),
-                at_max=" and ".join(table[k]["method"] for k in keys if vals[k] == hi))
+
+    def names(at) -> str:
+        n = [table[k]["method"] for k in keys if vals[k] == at]
+        return n[0] if len(n) == 1 else ", ".join(n[:-1]) + " and " + n[-1]
+
+    return dict(min=lo, max=hi, at_min=names(lo), at_max=names(hi))
 
 
 def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence] = None,
