@@ -339,3 +339,18 @@ def test_extremes_name_every_method_at_the_extreme():
     assert C.extremes(table, "n", ["a", "c"])["at_min"] == "A and C"
     with pytest.raises(ValueError, match="at least one"):
         C.extremes(table, "n", [])
+
+
+def test_monte_carlo_figure_draws_the_variants():
+    import matplotlib
+    matplotlib.use("Agg")
+    from flnotes.plots.compare import plot_monte_carlo
+    keys = ["network", "measured", "measured hold u", "network eps+delta"]
+    rows = [dict(scenario=s, method=k, max_abs_u_samples=0.1, max_abs_u_between=0.2, plan_violation_fraction=0.1 * i,
+                 cost_vs_miqp=1.0 + 0.1 * i if s else np.nan, ms_median=1.0, ms_max=2.0)
+            for s in range(2) for i, k in enumerate(keys)]
+    fig = plot_monte_carlo(rows, keys, 0.1745, labels={k: C.label(k) for k in keys})
+    bars = fig.axes[1].patches
+    assert len(bars) == 4 and [b.get_hatch() for b in bars] == [None, None, "//", "//"]  # variants hatched
+    assert [t.get_text() for t in fig.axes[0].get_xticklabels()] == [C.label(k) for k in keys]
+    assert np.isclose(bars[2].get_height(), 0.2)
