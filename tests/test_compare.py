@@ -102,12 +102,13 @@ def _tiny_log():
     u_fine = np.array([[1.0], [4.0], [6.0], [5.5], [-2.0], [-5.2]])  # steps 1 and 2 between samples
     plan_ok = SimpleNamespace(z_pred=np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]), v_pred=np.array([[0.0], [1.0]]))
     plan_bad = SimpleNamespace(z_pred=np.array([[0.5, 0.0], [4.0, 0.0], [0.0, 0.0]]), v_pred=np.array([[0.0], [1.5]]))
-    no_plan = SimpleNamespace()
+    # a fallback without an admissible input; its plan is the fallback's, not the method's: not counted
+    fallback_plan = SimpleNamespace(z_pred=plan_bad.z_pred, v_pred=plan_bad.v_pred, input_admissible=False)
     return fl.SimLog(system=msd, ts=0.1, hold="v", t=np.array([0.0, 0.1, 0.2, 0.3]), x=z, z=z, v=v, u=u, u_nn=None,
-                     solve_time=np.array([0.001, 0.003, 0.002]), status=["optimal", "infeasible", "optimal"],
-                     fallback=np.array([False, True, False]), t_fine=np.arange(6) * 0.05, x_fine=np.zeros((6, 2)),
+                     solve_time=np.array([0.001, 0.003, 0.002]), status=["optimal", "optimal", "infeasible"],
+                     fallback=np.array([False, False, True]), t_fine=np.arange(6) * 0.05, x_fine=np.zeros((6, 2)),
                      z_fine=np.zeros((6, 2)), u_fine=u_fine, in_domain=np.ones(4, bool),
-                     steps=[plan_ok, plan_bad, no_plan], message="")
+                     steps=[plan_ok, plan_bad, fallback_plan], message="")
 
 
 def test_run_metrics_on_a_constructed_run():
@@ -118,6 +119,10 @@ def test_run_metrics_on_a_constructed_run():
     assert m["steps"] == 3 and m["completed"]
     assert m["max_abs_u_samples"] == 6.0 and m["max_abs_u_between"] == 6.0
     assert m["violating_samples"] == 1 and m["violating_intervals"] == 2
+    assert m["inadmissible_steps"] == 1 and m["violating_after_admissible"] == 1  # step 2's interval: flagged
+    assert m["over_ts"] == 0
+    log.solve_time = np.array([0.001, 0.25, 0.002])
+    assert C.run_metrics(log, ref, Q, R, band=0.6)["over_ts"] == 1  # one step slower than t_s = 0.1
     # plans: the first stays within 5 (Phi(z(1), v(1)) = 2 + 1 = 3), the second reaches 4 + 1.5 = 5.5
     assert m["plans"] == 2 and m["plans_violating"] == 1 and np.isclose(m["plan_excess_max"], 0.5)
     assert m["infeasible_steps"] == 1 and m["fallback_steps"] == 1 and m["non_optimal_steps"] == 1
@@ -228,3 +233,124 @@ def test_cost_vs_miqp_solves_the_miqp_without_the_runs_time_limit(quad_setting):
         assert r["status_cold"] == "optimal" and r["status_from_miqp"] == "optimal"
     with pytest.raises(ValueError, match="z_ref"):
         C.cost_vs_miqp(s, SimpleNamespace(steps=[SimpleNamespace(info={})], z=log.z, t=log.t), [0])
+
+
+# ------------------------------------------------------------------ variants: the hold and the margin
+def test_variants_are_validated_values():
+    assert C.Variant("network").hold == "v" and C.Variant("nmpc").hold == "u"
+    assert C.Variant("network").key == "network" and C.Variant("measured", hold="u").key == "measured hold u"
+    assert C.Variant("network", margin="eps+delta").key == "network eps+delta"
+    for v in (C.Variant("previous"), C.Variant("saturated", hold="u"), C.Variant("network", margin="eps+delta")):
+        assert C._variant(v.key) == v  # a key names its variant
+    assert C.label("measured hold u") == C.LABELS["measured"] + ", u held"
+    with pytest.raises(ValueError, match="holds u"):
+        C.Variant("nmpc", hold="v")
+    with pytest.raises(ValueError, match="margin"):
+        C.Variant("measured", margin="eps+delta")
+    with pytest.raises(ValueError, match="margin"):
+        C.Variant("network", hold="u", margin="eps+delta")
+    with pytest.raises(ValueError, match="hold"):
+        C.Variant("network", hold="z")
+    with pytest.raises(ValueError, match="method"):
+        C.Variant("lqr")
+    with pytest.raises(ValueError, match="not a variant"):
+        C._variant("network hold u now")
+
+
+@pytest.fixture(scope="module")
+def msd_drift_setting():
+    return C.with_drift(C.setting("MSD", horizon=2))  # a short horizon: a fast MIQP without a time limit
+
+
+def test_with_drift_and_the_rows_of_the_study(msd_drift_setting):
+    s = msd_drift_setting
+    d = s["drift"]
+    assert d.ts == s["ts"] and np.all(d.bracket.converged) and s["delta"] == float(d.upper[0]) >= d.lower[0] > 0
+    assert s["margin_fits"] and s["eps"] + s["delta"] < s["system"].u_max[0]
+    keys = [v.key for v in C.study_variants(s)]
+    assert keys[:5] == list(C.METHODS) and "network eps+delta" in keys
+    assert {k for k in keys if k.endswith("hold u")} == {f"{m} hold u" for m in C.METHODS if m != "nmpc"}
+    assert "network eps+delta" not in [v.key for v in C.study_variants(C.setting("MSD"))]  # no delta, no row
+    mpc, hold = C.make_controller("network eps+delta", s)
+    assert hold == "v" and np.isclose(mpc.eps[0], s["eps"] + s["delta"])
+    with pytest.raises(ValueError, match="with_drift"):
+        C.make_controller("network eps+delta", C.setting("MSD"))
+
+
+def test_the_margin_that_does_not_fit_is_refused(quad_setting):
+    s = dict(quad_setting, delta=0.16, margin_fits=False)  # Quad-1D at t_s = 0.1: delta > u_max - eps
+    assert s["eps"] + s["delta"] >= s["system"].u_max[0]
+    assert "network eps+delta" not in [v.key for v in C.study_variants(s)]
+    with pytest.raises(ValueError, match="leaves no input"):
+        C.make_controller("network eps+delta", s)
+
+
+def test_time_limit_applies_to_the_miqp_only():
+    s = C.setting("Quad-1D", horizon=4, time_limit=0.5)
+    assert C.make_controller("network", s)[0].time_limit == 0.5
+    assert C.make_controller("measured", s)[0].time_limit is None
+    assert C.make_controller("saturated", s)[0].inner.time_limit is None
+    assert C.make_controller("nmpc", s)[0].time_limit is None
+    with pytest.raises(ValueError, match="time_limit"):
+        C.setting("MSD", time_limit=0.0)
+
+
+def test_holding_u_keeps_the_sample_bound_between_samples(quad_setting):
+    sc = C.draw_scenarios("Quad-1D", 2, seed=0)[1]
+    rows = C.run_scenario(quad_setting, sc, 1.0, ("measured", "measured hold u"))
+    by = {r["method"]: r for r in rows}
+    assert by["measured"]["violating_intervals"] > 0, "premise: with v held the true input leaves the bound"
+    assert by["measured hold u"]["hold"] == "u" and by["measured hold u"]["violating_samples"] == 0
+    assert by["measured hold u"]["violating_intervals"] == 0
+    assert by["measured hold u"]["max_abs_u_between"] == by["measured hold u"]["max_abs_u_samples"]
+
+
+def test_the_margin_keeps_the_true_input_within_between_samples(msd_drift_setting):
+    """eq. (eq-09-margin): with eps + delta, every interval from an admissible sample keeps |u(t)| <= u_max."""
+    s = msd_drift_setting
+    far = lambda t: np.tile([3.0, 0.0], (np.size(t), 1))  # a far set point: the bound binds
+    logs = C.run_methods(s, np.array([0.0, 0.0]), far, 0.3, ("network", "network eps+delta"))
+    m = {k: C.run_metrics(log, far, s["Q"], s["R"]) for k, log in logs.items()}
+    assert m["network"]["violating_intervals"] > 0, "premise: with eps alone the true input leaves the bound"
+    bound = s["system"].u_max[0] - s["eps"] - s["delta"]
+    assert np.abs(logs["network eps+delta"].u).max() >= 0.9 * bound, "premise: the margin's bound is reached"
+    assert m["network eps+delta"]["violating_after_admissible"] == 0
+    assert m["network eps+delta"]["inadmissible_steps"] == 0 and m["network eps+delta"]["violating_intervals"] == 0
+
+
+def test_relative_costs_compare_completed_runs_only():
+    rows = [dict(scenario=0, method="network", completed=True, cost=2.0),
+            dict(scenario=0, method="measured", completed=True, cost=3.0),
+            dict(scenario=0, method="previous", completed=False, cost=0.5)]  # stopped early: cheap, not compared
+    out = {r["method"]: r["cost_vs_miqp"] for r in C.relative_costs(rows)}
+    assert out["network"] == 1.0 and out["measured"] == 1.5 and np.isnan(out["previous"])
+    stopped = [dict(rows[0], completed=False), rows[1]]
+    assert all(np.isnan(r["cost_vs_miqp"]) for r in C.relative_costs(stopped))
+    with pytest.raises(ValueError, match="one scenario"):
+        C.relative_costs(rows + [dict(rows[0], scenario=1)])
+
+
+def test_extremes_name_every_method_at_the_extreme():
+    table = {"a": dict(method="A", n=3), "b": dict(method="B", n=1), "c": dict(method="C", n=3),
+             "d": dict(method="D", n=3)}
+    e = C.extremes(table, "n", ["a", "b", "c"])
+    assert e == dict(min=1, max=3, at_min="B", at_max="A and C")
+    assert C.extremes(table, "n", ["a", "b", "c", "d"])["at_max"] == "A, C and D"
+    assert C.extremes(table, "n", ["a", "c"])["at_min"] == "A and C"
+    with pytest.raises(ValueError, match="at least one"):
+        C.extremes(table, "n", [])
+
+
+def test_monte_carlo_figure_draws_the_variants():
+    import matplotlib
+    matplotlib.use("Agg")
+    from flnotes.plots.compare import plot_monte_carlo
+    keys = ["network", "measured", "measured hold u", "network eps+delta"]
+    rows = [dict(scenario=s, method=k, max_abs_u_samples=0.1, max_abs_u_between=0.2, plan_violation_fraction=0.1 * i,
+                 cost_vs_miqp=1.0 + 0.1 * i if s else np.nan, ms_median=1.0, ms_max=2.0)
+            for s in range(2) for i, k in enumerate(keys)]
+    fig = plot_monte_carlo(rows, keys, 0.1745, labels={k: C.label(k) for k in keys})
+    bars = fig.axes[1].patches
+    assert len(bars) == 4 and [b.get_hatch() for b in bars] == [None, None, "//", "//"]  # variants hatched
+    assert [t.get_text() for t in fig.axes[0].get_xticklabels()] == [C.label(k) for k in keys]
+    assert np.isclose(bars[2].get_height(), 0.2)

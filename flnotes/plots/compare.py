@@ -24,6 +24,16 @@ def _label(method: str, labels: Optional[Mapping[str, str]]) -> str:
     return (labels or {}).get(method, method)
 
 
+def _color(key: str) -> Optional[str]:
+    """The colour of a method, or of a variant of it (``"<method> hold u"``, ``"network eps+delta"``)."""
+    return METHOD_COLORS.get(key.split(" ")[0])
+
+
+def _own(key: str) -> bool:
+    """Whether ``key`` is a method as it is (its own hold, ``eps``) rather than a variant of it."""
+    return " " not in key
+
+
 def plot_methods_run(logs: Mapping[str, object], reference: Callable[[Array], Array], u_max: float,
                      eps: Optional[float] = None, labels: Optional[Mapping[str, str]] = None,
                      t_max: Optional[float] = None, title: Optional[str] = None):
@@ -69,31 +79,31 @@ def plot_methods_run(logs: Mapping[str, object], reference: Callable[[Array], Ar
 
 def plot_monte_carlo(rows: Sequence[dict], methods: Sequence[str], u_max: float,
                      labels: Optional[Mapping[str, str]] = None, title: Optional[str] = None):
-    """The Monte Carlo in four panels, one box per method.
+    """The Monte Carlo in four panels, one column per method (or variant: same colour, hatched bar).
 
+    ``methods`` are the ``method`` keys of the rows (:func:`flnotes.studies.compare.run_scenario`).
     (a) largest true ``|u|`` per run at the samples (filled) and between them (hollow), against
     ``u_max``; (b) fraction of steps whose plan violates the true bound at a later predicted step;
-    (c) tracking cost relative to the MIQP on the same scenario; (d) per-step wall time
-    (median and maximum of each run), log scale.
+    (c) tracking cost relative to the MIQP on the same scenario (the rows' ``cost_vs_miqp``: runs
+    that both completed); (d) per-step wall time (median and maximum of each run), log scale.
     """
-    fig, axes = new_axes(2, 2, figsize=(9.0, 6.6))
+    fig, axes = new_axes(2, 2, figsize=(9.0 if len(methods) <= 5 else 11.0, 6.8))
     (a, b), (c, d) = axes
     pos = np.arange(len(methods))
-    base = {r["scenario"]: r["cost"] for r in rows if r["method"] == "network"}
     rng = np.random.default_rng(0)  # horizontal jitter of the dots, drawing only
     ratios: list = []
     for i, mth in enumerate(methods):
         rr = [r for r in rows if r["method"] == mth]
-        col = METHOD_COLORS.get(mth)
+        col = _color(mth)
         jit = rng.uniform(-0.15, 0.15, len(rr))
         a.plot(i + jit - 0.18, [r["max_abs_u_samples"] for r in rr], "o", color=col, ms=3.5)
         a.plot(i + jit + 0.18, [r["max_abs_u_between"] for r in rr], "o", mfc="none", color=col, ms=3.5)
         frac = float(np.mean([r["plan_violation_fraction"] for r in rr if np.isfinite(r["plan_violation_fraction"])]
                              or [0.0]))
-        b.bar(i, frac, color=col)
+        b.bar(i, frac, color=col, hatch=None if _own(mth) else "//", edgecolor="white" if _own(mth) else "0.2")
         b.text(i, frac, f"{frac:.2f}", ha="center", va="bottom", fontsize=8)
-        ratios += [r["cost"] / base[r["scenario"]] for r in rr if base.get(r["scenario"], 0) > 0]
-        ratio = [r["cost"] / base[r["scenario"]] for r in rr if base.get(r["scenario"], 0) > 0]
+        ratio = [r["cost_vs_miqp"] for r in rr if np.isfinite(r["cost_vs_miqp"])]
+        ratios += ratio
         if ratio:
             c.boxplot(ratio, positions=[i], widths=0.5, showfliers=True,
                       medianprops=dict(color=col), boxprops=dict(color=col), whiskerprops=dict(color=col),

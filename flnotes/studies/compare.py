@@ -7,8 +7,8 @@ plant, cost, horizon, sampling time, references and initial states:
     the book's MIQP, eq. (MPC_form_miqp): ``|Phi_NN(z(k), v(k))| <= u_max - eps`` at every
     predicted step (``fl.MPC``, default options);
 ``"measured"``
-    constant extension (Nevistic & Morari; Kandler et al.): the exact bound at the *measured*
-    state turned into linear bounds on ``v``, applied at every predicted step (a QP);
+    constant extension (Nevistic & del Re 1994; Kandler et al. 2012): the exact bound at the
+    *measured* state turned into linear bounds on ``v``, applied at every predicted step (a QP);
 ``"previous"``
     previous prediction (Kurtz & Henson 1998): at predicted step ``k`` the exact bound evaluated
     along the plan of the previous sampling instant, shifted (a QP; ``iterations > 1`` re-solves
@@ -20,8 +20,19 @@ plant, cost, horizon, sampling time, references and initial states:
     nonlinear MPC on the original plant with ``|u| <= u_max`` as a bound, CasADi + IPOPT
     (:class:`flnotes.nmpc.NonlinearMPC`), a local optimum.
 
+Each method runs with the hold its prediction assumes (``v`` for the first four, ``u`` for the
+NMPC); a :class:`Variant` runs a method with the other hold (the FL methods with ``u`` held), or the
+MIQP with the margin ``u_max^{eps+delta}`` of eq. (eq-09-margin), ``delta`` the certified drift of
+``Phi`` over one sampling interval (:func:`with_drift`). :func:`study_variants` lists the rows of the
+chapter.
+
 The metrics of one closed-loop run are computed by :func:`run_metrics`; :func:`monte_carlo`
-draws the scenarios of :func:`draw_scenarios` and runs every method on each.
+draws the scenarios of :func:`draw_scenarios` and runs every variant on each, one scenario at a
+time (:func:`run_scenario`).
+
+Same result on every machine: with ``time_limit=None`` (the default of :func:`setting`) every program
+is solved to its end and every count of a run is the machine's speed-independent answer; the wall
+times are measured, never used. A ``time_limit`` applies to the MIQP (the network constraint) only.
 """
 from __future__ import annotations
 
@@ -32,6 +43,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from .. import paper
+from ..intersample import intersample_drift
 from ..mpc import MPC, sine_reference
 from ..nmpc import NonlinearMPC, SaturatedInput
 from ..simulate import simulate
@@ -40,8 +52,10 @@ from ..tables import time_stats
 
 Array = np.ndarray
 
-__all__ = ["METHODS", "LABELS", "U_TOL", "setting", "make_controller", "Timed", "draw_scenarios", "scenario_reference",
-           "run_methods", "run_metrics", "plan_violations", "settling_time", "monte_carlo", "method_table",
+__all__ = ["METHODS", "LABELS", "HOLDS", "MARGINS", "U_TOL", "Variant", "label", "setting", "with_drift",
+           "study_variants", "make_controller", "Timed", "draw_scenarios", "scenario_reference", "run_methods",
+           "run_metrics", "plan_violations", "settling_time", "run_scenario", "relative_costs", "monte_carlo",
+           "method_table", "extremes",
            "cost_vs_miqp", "step_field"]
 
 #: The five methods, in the order of the chapter.
@@ -51,21 +65,110 @@ METHODS = ("network", "measured", "previous", "saturated", "nmpc")
 LABELS = {"network": "MIQP (network)", "measured": "constant extension", "previous": "previous prediction",
           "saturated": "saturated FL", "nmpc": "nonlinear MPC"}
 
+#: What the actuator holds over a sampling interval (see :func:`flnotes.simulate`).
+HOLDS = ("v", "u")
+
+#: The bounds the MIQP may impose at the samples: ``u_max^eps`` or ``u_max^{eps+delta}`` (eq-09-margin).
+MARGINS = ("eps", "eps+delta")
+
+#: The hold each method's prediction assumes: the Brunovsky chain is exact with ``v`` held, the NMPC's RK4
+#: prediction holds ``u``.
+OWN_HOLD = {"network": "v", "measured": "v", "previous": "v", "saturated": "v", "nmpc": "u"}
+
 #: Tolerance on ``|u| <= u_max`` (round-off of the input at the bound).
 U_TOL = 1e-9
 
 
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One row of the study: a method, the hold it runs with and (the MIQP only) the margin of its bound.
+
+    Parameters
+    ----------
+    method
+        One of :data:`METHODS`.
+    hold
+        ``"v"`` or ``"u"`` (:data:`HOLDS`); ``None``: the hold the method's prediction assumes
+        (:data:`OWN_HOLD`). The NMPC runs with ``u`` held only: its prediction holds ``u``.
+    margin
+        ``"eps"`` (``u_max^eps``, every method's own bound) or ``"eps+delta"``: the MIQP imposes
+        ``|Phi_NN| <= u_max - eps - delta`` at every predicted step, ``delta`` the certified drift of
+        eq. (eq-09-delta), so that ``|u(t)| <= u_max`` at every instant with ``v`` held. Only for the
+        MIQP with ``v`` held (with ``u`` held the bound holds between samples already).
+
+    Attributes
+    ----------
+    key
+        The method's name for its own hold and ``eps`` (so the five methods keep their names), else
+        ``"<method> hold u"`` or ``"network eps+delta"``: the ``method`` field of the study's rows.
+    """
+
+    method: str
+    hold: Optional[str] = None
+    margin: str = "eps"
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.hold is None:
+            object.__setattr__(self, "hold", OWN_HOLD[self.method])
+        if self.hold not in HOLDS:
+            raise ValueError(f"hold must be one of {HOLDS} or None (the method's own), got {self.hold!r}")
+        if self.margin not in MARGINS:
+            raise ValueError(f"margin must be one of {MARGINS}, got {self.margin!r}")
+        if self.method == "nmpc" and self.hold != "u":
+            raise ValueError("the nonlinear MPC's prediction holds u: run it with hold='u' (or None)")
+        if self.margin == "eps+delta" and (self.method != "network" or self.hold != "v"):
+            raise ValueError(f"margin='eps+delta' is the MIQP's bound with v held (method='network', hold='v'), got "
+                             f"method={self.method!r}, hold={self.hold!r}")
+
+    @property
+    def key(self) -> str:
+        if self.margin != "eps":
+            return f"{self.method} {self.margin}"
+        return self.method if self.hold == OWN_HOLD[self.method] else f"{self.method} hold {self.hold}"
+
+
+def _variant(v) -> Variant:
+    """A :class:`Variant` from a Variant, a method name or a key of one."""
+    if isinstance(v, Variant):
+        return v
+    if not isinstance(v, str):
+        raise TypeError(f"a variant is a Variant or a method name, got {type(v).__name__}")
+    parts = v.split(" ")
+    if len(parts) == 1:
+        return Variant(v)
+    if len(parts) == 3 and parts[1] == "hold":
+        return Variant(parts[0], hold=parts[2])
+    if len(parts) == 2:
+        return Variant(parts[0], margin=parts[1])
+    raise ValueError(f"not a variant of the study: {v!r} (a method of {METHODS}, '<method> hold u' or "
+                     f"'network eps+delta')")
+
+
+def label(variant) -> str:
+    """The name of a variant (or of its key) in tables and figures: the method's label, with the hold or margin."""
+    v = _variant(variant)
+    base = LABELS[v.method]
+    if v.margin != "eps":
+        return f"{base}, eps+delta"
+    return base if v.hold == OWN_HOLD[v.method] else f"{base}, {v.hold} held"
+
+
 # ----------------------------------------------------------------------------------- setting
-def setting(name: str, horizon: int = 10, ts: float = 0.1, time_limit: Optional[float] = 5.0) -> dict:
+def setting(name: str, horizon: int = 10, ts: float = 0.1, time_limit: Optional[float] = None) -> dict:
     """The common setting of every method for system ``name`` (``"Quad-1D"`` or ``"MSD"``).
 
     Quad-1D: the paper's Sec. IV-B (``t_s = 0.1`` s, ``Q = diag(10, 1, 1)``, ``R = 0.0175``).
     MSD: the book's choice ``Q = diag(10, 1)``, ``R = 0.01`` at the same ``t_s`` and ``N_p``
     (the paper runs no MPC on it). Both use the shipped network and its certified ``eps``.
+    ``time_limit`` (seconds per step, or ``None``: solved to the end) applies to the MIQP only (the
+    network constraint, plain or with a margin); the QPs and the NMPC are always solved to the end,
+    so their runs do not depend on the machine's speed.
     Returns a dict with ``system``, ``net``, ``eps``, ``horizon``, ``ts``, ``Q``, ``R``,
     ``time_limit``, ``rk4_steps`` (the NMPC's RK4 sub-steps per sample), ``to_z_sym`` (the
     coordinate change written for CasADi symbols, or ``None`` when the system's own works) and
-    ``name``.
+    ``name``; :func:`with_drift` adds the certified drift ``delta``.
     """
     if name == "Quad-1D":
         S = paper.QUAD_SETTING
@@ -76,30 +179,66 @@ def setting(name: str, horizon: int = 10, ts: float = 0.1, time_limit: Optional[
         raise ValueError(f"name must be 'Quad-1D' or 'MSD', got {name!r}")
     net, _ = paper.paper_net(name)
     eps = float(np.max(paper.paper_eps(name).upper))
+    if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
+        raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
     return dict(name=name, system=paper.system(name), net=net, eps=eps, horizon=int(horizon), ts=float(ts), Q=Q, R=R,
                 time_limit=time_limit, rk4_steps=rk4, to_z_sym=to_z)
 
 
-def make_controller(method: str, s: dict, iterations: int = 1):
-    """The controller of ``method`` (one of :data:`METHODS`) for the setting ``s`` and the hold it assumes.
+def with_drift(s: dict) -> dict:
+    """The setting ``s`` with the certified drift of ``Phi`` over one sampling interval (eq. eq-09-delta).
 
-    Returns ``(controller, hold)``: the FL-based methods hold ``v`` over a sample (their
-    prediction model is the Brunovsky chain, exact with ``hold="v"``); the nonlinear MPC holds
-    ``u`` (its RK4 prediction holds ``u``).
+    ``delta`` is :func:`flnotes.intersample_drift` at ``s["ts"]`` over the domain box, without a time
+    budget (so that the bracket, hence ``delta``, is the same on every machine). Adds ``drift`` (the
+    :class:`flnotes.intersample.DriftBound`), ``delta`` (its upper end: the margin) and ``margin_fits``
+    (``eps + delta < u_max``: only then does ``u_max^{eps+delta}`` leave any input).
     """
+    d = intersample_drift(s["system"], s["ts"], max_time=None)
+    if not np.all(d.bracket.converged):
+        raise RuntimeError(f"the drift bracket of {s['name']} did not converge within its box budget: {d}")
+    delta = float(np.max(d.upper))
+    return dict(s, drift=d, delta=delta, margin_fits=bool(s["eps"] + delta < float(s["system"].u_max[0])))
+
+
+def study_variants(s: dict) -> list:
+    """The rows of the chapter for setting ``s``: the five methods with their own hold, the four FL
+    methods with ``u`` held, and the MIQP with ``u_max^{eps+delta}`` where the margin fits
+    (``s`` from :func:`with_drift`; without ``delta`` that row is left out)."""
+    out = [Variant(m) for m in METHODS] + [Variant(m, hold="u") for m in METHODS if OWN_HOLD[m] == "v"]
+    if s.get("margin_fits"):
+        out.append(Variant("network", margin="eps+delta"))
+    return out
+
+
+def make_controller(method, s: dict, iterations: int = 1):
+    """The controller of ``method`` (one of :data:`METHODS`, or a :class:`Variant`) for the setting ``s``.
+
+    Returns ``(controller, hold)``: by default the FL-based methods hold ``v`` over a sample (their
+    prediction model is the Brunovsky chain, exact with ``hold="v"``) and the nonlinear MPC holds
+    ``u`` (its RK4 prediction holds ``u``); a :class:`Variant` sets the hold, or the MIQP's margin
+    (``eps + s["delta"]`` as its ``eps``; ``s`` from :func:`with_drift`). ``s["time_limit"]`` applies
+    to the MIQP only.
+    """
+    var = _variant(method)
+    method = var.method
     common = dict(horizon=s["horizon"], ts=s["ts"], Q=s["Q"], R=s["R"])
     if method == "network":
-        return MPC(s["system"], s["net"], s["eps"], time_limit=s["time_limit"], **common), "v"
+        eps = s["eps"]
+        if var.margin == "eps+delta":
+            if "delta" not in s:
+                raise ValueError("margin='eps+delta' needs the certified drift: pass compare.with_drift(setting)")
+            if not s["margin_fits"]:
+                raise ValueError(f"eps + delta = {s['eps'] + s['delta']:.4g} >= u_max = {s['system'].u_max[0]:.4g} "
+                                 f"for {s['name']} at t_s = {s['ts']}: the margin leaves no input; use a shorter t_s")
+            eps = s["eps"] + s["delta"]
+        return MPC(s["system"], s["net"], eps, time_limit=s["time_limit"], **common), var.hold
     if method in ("measured", "previous"):
         kw = dict(iterations=int(iterations)) if method == "previous" else {}
-        return MPC(s["system"], s["net"], s["eps"], constraint=method, time_limit=s["time_limit"], **kw, **common), "v"
+        return MPC(s["system"], s["net"], s["eps"], constraint=method, **kw, **common), var.hold
     if method == "saturated":
-        inner = MPC(s["system"], s["net"], s["eps"], constraint="none", time_limit=s["time_limit"], **common)
-        return SaturatedInput(inner, s["system"]), "v"
-    if method == "nmpc":
-        return NonlinearMPC(s["system"], rk4_steps=s["rk4_steps"], to_z=s["to_z_sym"], time_limit=s["time_limit"],
-                            **common), "u"
-    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        inner = MPC(s["system"], s["net"], s["eps"], constraint="none", **common)
+        return SaturatedInput(inner, s["system"]), var.hold
+    return NonlinearMPC(s["system"], rk4_steps=s["rk4_steps"], to_z=s["to_z_sym"], **common), var.hold
 
 
 class Timed:
@@ -183,13 +322,18 @@ def plan_violations(log, system: FLSystem, tol: float = U_TOL, first: int = 1) -
 
     For every logged step with a plan ``(z_pred, v_pred)`` on the Brunovsky model, the true
     input of each predicted step ``k >= first`` (default: the later steps, after the one that is
-    applied) is ``Phi(z_pred[k], v_pred[k])``. Returns the number of steps with a plan,
-    the number whose plan violates the bound at some such step, that fraction, and the largest
-    excess ``max |Phi| - u_max`` (0 when none).
+    applied) is ``Phi(z_pred[k], v_pred[k])``. Only the plans of the method's program count: a
+    fallback step's plan (``log.fallback``) is the fallback's, counted in ``fallback_steps`` of
+    :func:`run_metrics`. Returns the number of steps with a plan, the number whose plan violates
+    the bound at some such step, that fraction, and the largest excess ``max |Phi| - u_max`` (0 when
+    none).
     """
     n_plans = n_bad = 0
     excess = 0.0
-    for s in log.steps:
+    fallback = np.asarray(getattr(log, "fallback", np.zeros(len(log.steps), bool)), bool)
+    for s, fb in zip(log.steps, fallback):
+        if fb:
+            continue
         Z, V = step_field(s, "z_pred"), step_field(s, "v_pred")
         if Z is None or V is None:
             continue
@@ -228,11 +372,15 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
         ``max_abs_u_between`` (the fine grid of :func:`flnotes.simulate`, samples included),
         ``violating_samples`` (steps with ``|u(t_k)| > u_max``) and ``violating_intervals``
         (sampling intervals where the true input exceeds ``u_max`` somewhere on the fine grid),
-        the plan statistics of :func:`plan_violations`, ``infeasible_steps`` (status
+        ``violating_after_admissible`` (those of them whose step's input passed the controller's own
+        check at the sample, ``input_admissible``), ``inadmissible_steps`` (steps flagged not
+        admissible), the plan statistics of :func:`plan_violations`, ``infeasible_steps`` (status
         ``"infeasible"``), ``fallback_steps``, ``non_optimal_steps``, ``cost`` (the tracking cost
-        ``t_s sum_k ||z_k - z_ref(t_k)||_Q^2 + ||v_k||_R^2`` over the run), ``rms_error`` (of the
-        position ``z_1`` over the run), ``settling_s`` (:func:`settling_time` of ``z_1`` with
-        ``band``), and the per-step wall times ``ms_min``, ``ms_median``, ``ms_max``.
+        ``t_s sum_k ||z_k - z_ref(t_k)||_Q^2 + ||v_k||_R^2`` over the steps run: compare it between
+        runs of the same length only, see :func:`method_table`), ``rms_error`` (of the position
+        ``z_1`` over the run), ``settling_s`` (:func:`settling_time` of ``z_1`` with ``band``), the
+        per-step wall times ``ms_min``, ``ms_median``, ``ms_max`` and ``over_ts``, the steps whose
+        wall time exceeded the sampling period (the machine's, like the times).
     """
     sysm = log.system
     u_max = sysm.u_max
@@ -243,6 +391,8 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
     cost = float(log.ts * (np.einsum("ki,ij,kj->", E, Q, E) + np.einsum("ki,ij,kj->", log.v, R, log.v)))
     n_fine = len(log.u_fine) // K if K else 0
     fine_bad = (np.abs(log.u_fine) > u_max + tol).any(axis=1)
+    bad_interval = fine_bad.reshape(K, n_fine).any(axis=1) if K else np.zeros(0, bool)
+    admissible = np.array([step_field(s, "input_admissible") is not False for s in log.steps[:K]], bool)
     st = time_stats(log.solve_time)
     pos = log.z[:, 0] - Zr[:, 0]
     out = dict(
@@ -250,7 +400,9 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
         max_abs_u_samples=float(np.abs(log.u).max()) if K else np.nan,
         max_abs_u_between=float(np.abs(log.u_fine).max()) if K else np.nan,
         violating_samples=int((np.abs(log.u) > u_max + tol).any(axis=1).sum()),
-        violating_intervals=int(fine_bad.reshape(K, n_fine).any(axis=1).sum()) if K else 0,
+        violating_intervals=int(bad_interval.sum()),
+        violating_after_admissible=int((bad_interval & admissible).sum()),
+        inadmissible_steps=int((~admissible).sum()),
         **plan_violations(log, sysm, tol),
         infeasible_steps=int(sum(str(s).startswith("infeasible") for s in log.status)),
         fallback_steps=int(np.sum(log.fallback)),
@@ -258,76 +410,125 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
         cost=cost, rms_error=float(np.sqrt(np.mean(pos**2))),
         settling_s=settling_time(log.t, pos, band),
         ms_min=st["min_ms"], ms_median=st["median_ms"], ms_max=st["max_ms"],
+        over_ts=int(np.sum(np.asarray(log.solve_time, float) > log.ts)),
     )
     return out
 
 
 # ----------------------------------------------------------------------------------- runs
 def run_methods(s: dict, z0: Array, reference: Callable[[Array], Array], t_final: float,
-                methods: Optional[Sequence[str]] = None, iterations: int = 1) -> dict:
-    """Run each method once in closed loop on the true plant; returns ``{method: log}``.
+                methods: Optional[Sequence] = None, iterations: int = 1) -> dict:
+    """Run each method (or :class:`Variant`) once in closed loop on the true plant; returns ``{key: log}``.
 
     Every controller is wrapped in :class:`Timed` (the same timing for all) and runs with the
-    hold its prediction assumes (:func:`make_controller`); every run checks the domain box.
-    ``methods`` defaults to :data:`METHODS`.
+    hold of its variant (:func:`make_controller`: by default the hold its prediction assumes);
+    every run checks the domain box. ``methods`` defaults to :data:`METHODS`; the keys are the
+    variants' :attr:`Variant.key` (the method names for the five methods as they are).
     """
     logs = {}
-    for mth in (METHODS if methods is None else methods):
-        ctrl, hold = make_controller(mth, s, iterations)
-        logs[mth] = simulate(s["system"], Timed(ctrl), t_final, s["ts"], z0=z0, reference=reference, hold=hold,
-                             net=s["net"] if mth != "nmpc" else None, check_domain=True, progress=False)
-        logs[mth].controller = ctrl
+    for var in map(_variant, METHODS if methods is None else methods):
+        ctrl, hold = make_controller(var, s, iterations)
+        log = simulate(s["system"], Timed(ctrl), t_final, s["ts"], z0=z0, reference=reference, hold=hold,
+                       net=s["net"] if var.method != "nmpc" else None, check_domain=True, progress=False)
+        log.controller = ctrl
+        logs[var.key] = log
     return logs
 
 
-def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence[str]] = None,
-                band: float = 0.1, iterations: int = 1) -> list[dict]:
-    """Every method on every scenario: one row of :func:`run_metrics` per (scenario, method).
+def run_scenario(s: dict, sc: dict, t_final: float, methods: Optional[Sequence] = None, band: float = 0.1,
+                 iterations: int = 1) -> list[dict]:
+    """One scenario of the Monte Carlo: every method (or variant) on it, one row of :func:`run_metrics` each.
 
     Rows also carry the scenario (``scenario``, ``amplitude``, ``omega``, ``u_ref_max``,
-    ``bound_active``) and ``method``.
+    ``bound_active``), ``method`` (the variant's key), ``hold``, ``margin`` and ``cost_vs_miqp``: the
+    run's tracking cost over the MIQP's (``"network"``, ``v`` held, ``eps``) on this scenario, NaN
+    unless both runs completed. The cost sums over the steps run, so a run that stopped early would
+    look cheap: only runs of the full length are compared.
     """
+    ref = scenario_reference(s["system"], sc)
+    logs = run_methods(s, sc["z0"], ref, t_final, methods, iterations)
+    rows = []
+    for key, log in logs.items():
+        var = _variant(key)
+        rows.append(dict(scenario=sc["index"], method=key, hold=var.hold, margin=var.margin,
+                         amplitude=sc["amplitude"], omega=sc["omega"], u_ref_max=sc["u_ref_max"],
+                         bound_active=sc["bound_active"], **run_metrics(log, ref, s["Q"], s["R"], band)))
+    return relative_costs(rows)
+
+
+def relative_costs(rows: Sequence[dict]) -> list[dict]:
+    """The rows of one scenario with ``cost_vs_miqp``: cost over the MIQP's (``"network"``), completed runs only.
+
+    The tracking cost of :func:`run_metrics` sums over the steps run, so a run that stopped early
+    would look cheap: a ratio is computed only when both this run and the MIQP's completed (else NaN).
+    """
+    if len({r["scenario"] for r in rows}) > 1:
+        raise ValueError("relative_costs compares the runs of one scenario: pass the rows of one scenario")
+    base = next((r for r in rows if r["method"] == "network" and r["completed"] and r["cost"] > 0), None)
+    return [dict(r, cost_vs_miqp=r["cost"] / base["cost"] if base is not None and r["completed"] else np.nan)
+            for r in rows]
+
+
+def extremes(table: dict, column: str, keys: Sequence[str]) -> dict:
+    """The smallest and largest ``column`` among the lines ``keys`` of a keyed :func:`method_table`.
+
+    ``table`` maps variant keys to lines; returns ``min``, ``max`` and the methods at each, ``at_min``
+    and ``at_max`` (their labels: "A", "A and B", "A, B and C").
+    """
+    if not keys:
+        raise ValueError("keys must name at least one line of the table")
+    vals = {k: table[k][column] for k in keys}
+    lo, hi = min(vals.values()), max(vals.values())
+
+    def names(at) -> str:
+        n = [table[k]["method"] for k in keys if vals[k] == at]
+        return n[0] if len(n) == 1 else ", ".join(n[:-1]) + " and " + n[-1]
+
+    return dict(min=lo, max=hi, at_min=names(lo), at_max=names(hi))
+
+
+def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence] = None,
+                band: float = 0.1, iterations: int = 1) -> list[dict]:
+    """Every method (or variant) on every scenario: the rows of :func:`run_scenario`, scenario by scenario."""
     rows = []
     for sc in scenarios:
-        ref = scenario_reference(s["system"], sc)
-        logs = run_methods(s, sc["z0"], ref, t_final, methods, iterations)
-        for mth, log in logs.items():
-            rows.append(dict(scenario=sc["index"], method=mth, amplitude=sc["amplitude"], omega=sc["omega"],
-                             u_ref_max=sc["u_ref_max"], bound_active=sc["bound_active"],
-                             **run_metrics(log, ref, s["Q"], s["R"], band)))
+        rows += run_scenario(s, sc, t_final, methods, band, iterations)
     return rows
 
 
-def method_table(rows: Sequence[dict], methods: Optional[Sequence[str]] = None, only_active: bool = False) -> list[dict]:
-    """One line per method from the rows of :func:`monte_carlo` (or of single runs).
+def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_active: bool = False) -> list[dict]:
+    """One line per method (or variant) from the rows of :func:`monte_carlo` (or of single runs).
 
-    Columns: scenarios, runs that completed, the largest ``|u|`` at the samples and between
-    them over all runs, runs and steps violating the bound at the samples, intervals violating
-    it between samples, the fraction of plans violating the true bound at a later predicted step,
+    Columns: hold, scenarios, runs that completed, the largest ``|u|`` at the samples and between
+    them over all runs, runs and steps violating the bound at the samples, intervals violating it
+    between samples, the fraction of plans violating the true bound at a later predicted step,
     infeasible and fallback steps, the median tracking cost relative to the MIQP's on the same
-    scenario, the fraction of runs settled, and the per-step wall times pooled over all runs
-    (min of the minima, median of the medians, max of the maxima).
+    scenario over the scenarios where both runs completed (``cost_vs_miqp`` of :func:`run_scenario`)
+    and how many those are (``cost_runs``), the fraction of runs settled, the per-step wall times pooled over all runs
+    (min of the minima, median of the medians, max of the maxima) and the steps slower than ``t_s``.
+    ``methods`` defaults to the variants present in ``rows``, in their order.
     """
-    base = {r["scenario"]: r["cost"] for r in rows if r["method"] == "network"}
+    if methods is None:
+        methods = list(dict.fromkeys(r["method"] for r in rows))
     out = []
-    for mth in (METHODS if methods is None else methods):
-        rr = [r for r in rows if r["method"] == mth and (r["bound_active"] or not only_active)]
+    for var in map(_variant, methods):
+        rr = [r for r in rows if r["method"] == var.key and (r["bound_active"] or not only_active)]
         if not rr:
             continue
         plans = sum(r["plans"] for r in rr)
-        ratio = [r["cost"] / base[r["scenario"]] for r in rr if r["scenario"] in base and base[r["scenario"]] > 0]
+        ratio = [r["cost_vs_miqp"] for r in rr if np.isfinite(r["cost_vs_miqp"])]
         out.append(dict(
-            method=LABELS[mth], scenarios=len(rr), completed=int(sum(r["completed"] for r in rr)),
+            method=label(var), hold=var.hold, scenarios=len(rr), completed=int(sum(r["completed"] for r in rr)),
             max_u_samples=max(r["max_abs_u_samples"] for r in rr), max_u_between=max(r["max_abs_u_between"] for r in rr),
             runs_violating=int(sum(r["violating_samples"] > 0 for r in rr)),
             violating_samples=int(sum(r["violating_samples"] for r in rr)),
             violating_intervals=int(sum(r["violating_intervals"] for r in rr)),
             plans_violating=(sum(r["plans_violating"] for r in rr) / plans) if plans else np.nan,
             infeasible=int(sum(r["infeasible_steps"] for r in rr)), fallback=int(sum(r["fallback_steps"] for r in rr)),
-            cost_vs_miqp=float(np.median(ratio)) if ratio else np.nan,
+            cost_vs_miqp=float(np.median(ratio)) if ratio else np.nan, cost_runs=len(ratio),
             settled=float(np.mean([np.isfinite(r["settling_s"]) for r in rr])),
             ms_min=float(np.nanmin([r["ms_min"] for r in rr])), ms_median=float(np.nanmedian([r["ms_median"] for r in rr])),
-            ms_max=float(np.nanmax([r["ms_max"] for r in rr])),
+            ms_max=float(np.nanmax([r["ms_max"] for r in rr])), over_ts=int(sum(r["over_ts"] for r in rr)),
         ))
     return out
 
