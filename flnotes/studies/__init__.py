@@ -16,6 +16,8 @@ that imports :mod:`flnotes.paper`.
     chapter 8: networks cheaper to encode (other seeds, a weight penalty, other widths) against the MPC's work;
 ``unseen``
     chapter 8: five systems not in the book, their shipped networks, the default MPC on them;
+``realtime``
+    chapter 8: the MPC under a time limit in a periodic loop, and where the garbage collector runs;
 ``guarantees``
     chapter 9: nominal loops with and without terminal ingredients, horizon sweeps, the drift margin;
 ``multi``
@@ -23,7 +25,7 @@ that imports :mod:`flnotes.paper`.
 ``compare``
     chapter 11: the five methods of the comparative study, their metrics and the Monte Carlo.
 """
-from . import cheap_networks, compare, guarantees, multi, unseen
+from . import cheap_networks, compare, guarantees, multi, realtime, unseen
 from .clfcbf import (chapter_eps, clf_cbf_checks, cross_check_exact, exponential_cbf_grid_check, paper_mean_ms,
                      solve_time_table)
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
@@ -32,7 +34,8 @@ from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compar
 from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
                        width_experiment, write_sweep)
 
-__all__ = ["cheap_networks", "compare", "guarantees", "multi", "unseen", "architecture_sweep", "book_sweep", "estimates_table",
+__all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "unseen", "architecture_sweep", "book_sweep",
+           "estimates_table",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",
            "solve_time_table", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",

@@ -1,0 +1,47 @@
+"""The periodic-loop study of chapter 8 (:mod:`flnotes.studies.realtime`): the schedule, the collector's state."""
+import gc
+
+import numpy as np
+import pytest
+
+from flnotes.bench.mpc import make_mpc, quad_setup
+from flnotes.studies import realtime
+
+
+def test_schedule_on_time_without_pauses():
+    late = realtime.periodic_schedule([0.02, 0.05, 0.09], [0.0, 0.0, 0.0], t_s=0.1)
+    np.testing.assert_allclose(late, [-0.08, -0.05, -0.01])
+
+
+def test_a_pause_longer_than_the_slack_makes_the_next_answer_late():
+    # step 0 answers at 0.02 and the collector then runs 0.15 s: step 1 starts at 0.17, not at its tick 0.1
+    late = realtime.periodic_schedule([0.02, 0.02, 0.02], [0.15, 0.0, 0.0], t_s=0.1)
+    np.testing.assert_allclose(late, [-0.08, -0.01, -0.08])
+    late = realtime.periodic_schedule([0.02, 0.05, 0.02], [0.15, 0.0, 0.0], t_s=0.1)
+    assert late[1] == pytest.approx(0.02) and late[2] < 0  # late once, then back on its tick
+
+
+def test_schedule_rejects_bad_input():
+    with pytest.raises(ValueError, match="one length"):
+        realtime.periodic_schedule([0.1, 0.1], [0.0], t_s=0.1)
+    with pytest.raises(ValueError, match="t_s"):
+        realtime.periodic_schedule([0.1], [0.0], t_s=0.0)
+
+
+def test_the_study_needs_a_time_limit():
+    setup = quad_setup(horizon=3)
+    with pytest.raises(ValueError, match="time limit"):
+        realtime.gc_loop_row(lambda: make_mpc(setup), setup, t_final=0.2, freeze=False)
+
+
+def test_gc_study_freezes_and_restores_the_collector():
+    setup = quad_setup(horizon=3)
+    enabled, frozen = gc.isenabled(), gc.get_freeze_count()
+    plain, after = realtime.gc_study(setup, t_final=0.3)
+    assert gc.isenabled() == enabled and gc.get_freeze_count() == frozen, "the study left the collector changed"
+    assert plain["steps"] == after["steps"] == 3
+    assert after["walked"] < plain["walked"] / 10, "after gc.freeze() a full collection walks the set-up objects"
+    for r in (plain, after):
+        assert r["plans_not_admissible"] == 0 and r["inputs_not_admissible"] == 0 and r["u_within"]
+    n = realtime.gc_numbers([plain, after])
+    assert n["walked_ratio"] == pytest.approx(after["walked"] / plain["walked"])
