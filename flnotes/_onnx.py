@@ -84,17 +84,119 @@ def _features(shape: tuple) -> int:
 
 
 def _constant_value(node) -> Array:
-    onnx = _onnx()
     a = _attrs(node)
     if "value" in a:
-        return onnx.numpy_helper.to_array(a["value"])
-    for key in ("value_float", "value_int"):
+        return _tensor(a["value"], node)
+    if "sparse_value" in a:
+        return _dense(a["sparse_value"], f"{_where(node)}: its sparse value")
+    for key, dt in (("value_float", np.float32), ("value_int", np.int64)):
         if key in a:
-            return np.array(a[key])
-    for key in ("value_floats", "value_ints"):
+            return np.array(a[key], dt)
+    for key, dt in (("value_floats", np.float32), ("value_ints", np.int64)):
         if key in a:
-            return np.array(list(a[key]))
+            return np.array(list(a[key]), dt)
     raise NotAReLUMLP(f"{_where(node)}: a Constant of kind {sorted(a)} is not a number array")
+
+
+#: the float types whose rounding the folded float64 weights follow closely enough (a float16 or bfloat16 data path
+#: rounds each product to 3 significant digits, which an ``eps`` certified on the float64 network would not cover)
+_FULL_FLOATS = (1, 11)  # FLOAT, DOUBLE
+_REDUCED = {10: "float16", 16: "bfloat16"}
+
+
+def _tensor(t, where) -> Array:
+    """A TensorProto's value; a tensor stored in an external file must have been loaded already (see :func:`_load`)."""
+    onnx = _onnx()
+    if t.data_location == onnx.TensorProto.EXTERNAL:
+        raise NotAReLUMLP(f"{where if isinstance(where, str) else _where(where)}: tensor {t.name!r} is stored in an "
+                          "external data file that was not loaded; pass the path of the .onnx file (its external data "
+                          "is read from the model's folder), not its bytes or a model loaded with load_external_data=False")
+    return onnx.numpy_helper.to_array(t)
+
+
+def _dense(sp, where: str) -> Array:
+    """A SparseTensorProto as a dense array (as onnxruntime densifies a sparse initializer)."""
+    values = _tensor(sp.values, where)
+    idx = _tensor(sp.indices, where).astype(np.int64)
+    dims = tuple(int(x) for x in sp.dims)
+    out = np.zeros(int(np.prod(dims, dtype=np.int64)), values.dtype)
+    flat = idx if idx.ndim == 1 else (np.ravel_multi_index(tuple(idx.T), dims) if idx.size else idx.reshape(0))
+    if flat.size and (flat.min() < 0 or flat.max() >= out.size) or len(flat) != values.size:
+        raise NotAReLUMLP(f"{where}: sparse tensor {sp.values.name!r} has indices that do not fit its shape {dims}")
+    out[flat] = values.ravel()
+    return out.reshape(dims)
+
+
+def _load(model) -> Any:
+    """The ModelProto of a path, bytes or a model; external data only from a path, inside the model's folder."""
+    onnx = _onnx()
+    from onnx import external_data_helper as ext
+
+    base = None
+    if isinstance(model, (str, Path)):
+        path = Path(model)
+        if not path.exists():
+            raise FileNotFoundError(f"no ONNX file {str(path)!r}")
+        model = onnx.load(str(path), load_external_data=False)
+        base = path.resolve().parent
+    elif isinstance(model, (bytes, bytearray)):
+        model = onnx.load_from_string(bytes(model))
+    if not isinstance(model, onnx.ModelProto):
+        raise TypeError(f"give an ONNX model (onnx.ModelProto), its bytes or a path to an .onnx file, got {type(model).__name__}")
+    external = [t for t in ext._get_all_tensors(model) if ext.uses_external_data(t)]
+    if external and base is None:
+        raise NotAReLUMLP(f"tensor {external[0].name!r} is stored in an external data file, and a model given as bytes or "
+                          "as a ModelProto has no folder to read it from: pass the path of the .onnx file instead")
+    if external:
+        model = onnx.ModelProto.FromString(model.SerializeToString())  # do not fill the caller's model
+        for t in ext._get_all_tensors(model):
+            if not ext.uses_external_data(t):
+                continue
+            loc = ext.ExternalDataInfo(t).location
+            target = (base / loc).resolve()
+            if Path(loc).is_absolute() or base not in target.parents:
+                raise NotAReLUMLP(f"tensor {t.name!r} points to external data {loc!r} outside the model's folder {base.name!r}: "
+                                  "only a file name relative to the .onnx file's folder is read")
+            if not target.is_file():
+                raise FileNotFoundError(f"tensor {t.name!r}: its external data file {loc!r} is not next to the model")
+            ext.load_external_data_for_tensor(t, str(base))
+            t.data_location = onnx.TensorProto.DEFAULT
+            del t.external_data[:]
+    return model
+
+
+def _check(model) -> None:
+    """onnx.checker's structural check (arity of every node, attributes), its message turned into a clear refusal."""
+    onnx = _onnx()
+    try:
+        onnx.checker.check_model(model)
+    except onnx.checker.ValidationError as exc:
+        raise NotAReLUMLP(f"the model is not valid ONNX (onnx.checker: {str(exc).strip().splitlines()[0]}); "
+                          "fix the node it names (onnxruntime would refuse it too)") from None
+
+
+def _check_types(model) -> None:
+    """onnx's strict type and shape inference: what onnxruntime rejects (int weights in a float graph, ...)."""
+    onnx = _onnx()
+    try:
+        onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
+    except (onnx.shape_inference.InferenceError, onnx.checker.ValidationError) as exc:
+        raise NotAReLUMLP(f"the model does not type-check (onnx shape inference: {str(exc).strip().splitlines()[0]}); "
+                          "onnxruntime would refuse it: fix the node it names") from None
+
+
+def _live(g) -> list:
+    """The nodes whose outputs reach the graph's output (dead nodes are ignored, as onnxruntime does)."""
+    need = {o.name for o in g.output}
+    live = [False] * len(g.node)
+    changed = True
+    while changed:
+        changed = False
+        for i, node in enumerate(g.node):
+            if not live[i] and any(o in need for o in node.output if o):
+                live[i], changed = True, True
+                need.update(x for x in node.input if x)
+    return [n for n, keep in zip(g.node, live) if keep]
 
 
 def _input_shape(vi) -> tuple:
@@ -243,7 +345,7 @@ def _transpose(S: tuple, perm: Optional[Sequence[int]], node) -> tuple:
 def _gemm(node, a: Any, b: Any, cval: Optional[Array], attrs: dict) -> _Data:
     """``Y = alpha op(A) op(B) + beta C``, with either A or B the data."""
     alpha, beta = float(attrs.get("alpha", 1.0)), float(attrs.get("beta", 1.0))
-    tA, tB = int(attrs.get("transA", 0)), int(attrs.get("transB", 0))
+    tA, tB = int(bool(attrs.get("transA", 0))), int(bool(attrs.get("transB", 0)))
     if isinstance(a, _Data) == isinstance(b, _Data):
         raise NotAReLUMLP(f"{_where(node)}: needs exactly one operand computed from the input and one constant weight "
                           "matrix" + (" (two data operands: not a layer of an MLP)" if isinstance(a, _Data) else ""))
@@ -299,24 +401,33 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
     ValueError
         Non-finite weights (the node is named).
     """
-    onnx = _onnx()
-    if isinstance(model, (str, Path)):
-        path = Path(model)
-        if not path.exists():
-            raise FileNotFoundError(f"no ONNX file {str(path)!r}")
-        model = onnx.load(str(path))
-    elif isinstance(model, (bytes, bytearray)):
-        model = onnx.load_from_string(bytes(model))
-    if not isinstance(model, onnx.ModelProto):
-        raise TypeError(f"give an ONNX model (onnx.ModelProto), its bytes or a path to an .onnx file, got {type(model).__name__}")
+    model = _load(model)
+    _check(model)
+    if model.graph.sparse_initializer:  # densified, as onnxruntime does (and for onnx's type inference)
+        onnx = _onnx()
+        dense = [onnx.numpy_helper.from_array(_dense(sp, f"sparse initializer {sp.values.name!r}"), sp.values.name)
+                 for sp in model.graph.sparse_initializer]
+        model = onnx.ModelProto.FromString(model.SerializeToString())
+        del model.graph.sparse_initializer[:]
+        model.graph.initializer.extend(dense)
     g = model.graph
-    consts: dict[str, Array] = {t.name: onnx.numpy_helper.to_array(t) for t in g.initializer}
+    consts: dict[str, Array] = {t.name: _tensor(t, f"initializer {t.name!r}") for t in g.initializer}
+    shadowed = [vi.name for vi in g.input if vi.name in consts]
     inputs = [vi for vi in g.input if vi.name not in consts]
     if len(inputs) != 1:
+        note = (f"; inputs {shadowed} have an initializer of the same name, so they are read as constants (weights "
+                "with a default value): rename the data input or the initializer") if shadowed and not inputs else ""
         raise NotAReLUMLP(f"the graph has {len(inputs)} inputs {[vi.name for vi in inputs]}; a network of flnotes has one "
-                          "input vector [z, v]: concatenate the inputs before exporting")
+                          f"input vector [z, v]: concatenate the inputs before exporting{note}")
     if len(g.output) != 1:
         raise NotAReLUMLP(f"the graph has {len(g.output)} outputs {[o.name for o in g.output]}; expected one output Phi_NN")
+    elem = inputs[0].type.tensor_type.elem_type
+    if elem not in _FULL_FLOATS:
+        kind = _REDUCED.get(elem)
+        raise NotAReLUMLP(f"graph input {inputs[0].name!r} is of type "
+                          f"{kind or _onnx().helper.tensor_dtype_to_string(elem)}: "
+                          + (f"a {kind} network rounds every product to a few digits, which the MILP's eps would not "
+                             "cover; export it in float32 or float64" if kind else "expected a float32 or float64 input"))
     in_shape = _input_shape(inputs[0])
     n0 = in_shape[-1]
     data: dict[str, _Data] = {inputs[0].name: _Data(None if n0 is None else np.eye(n0),
@@ -333,7 +444,7 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
             return consts[name]
         raise NotAReLUMLP(f"tensor {name!r} is used before it is computed (not topologically sorted?)")
 
-    for node in g.node:
+    for node in _live(g):
         op = node.op_type
         if node.domain not in ("", "ai.onnx") and not (node.domain == "ai.onnx.ml" and op == "Scaler"):
             raise NotAReLUMLP(f"{_where(node)} of domain {node.domain!r} is not part of a ReLU MLP; supported ops: "
@@ -414,7 +525,13 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
         elif op == "Neg":
             new = _scale(d, -np.ones(1), node)
         elif op == "Scaler":  # ai.onnx.ml, skl2onnx's StandardScaler: (x - offset) * scale
-            off, sc = (np.asarray(a.get(k, [v]), float) for k, v in (("offset", 0.0), ("scale", 1.0)))
+            if "offset" not in a or "scale" not in a:
+                raise NotAReLUMLP(f"{_where(node)}: a Scaler needs both its offset and its scale attributes "
+                                  "(onnxruntime refuses it without them); give both")
+            off, sc = (np.asarray(a[k], float).ravel() for k in ("offset", "scale"))
+            if off.size != sc.size and 1 not in (off.size, sc.size):
+                raise NotAReLUMLP(f"{_where(node)}: its offset ({off.size} values) and scale ({sc.size} values) differ in "
+                                  "length; give one value each or one per feature")
             _check_finite(off, node, "offset")
             _check_finite(sc, node, "scale")
             new = _scale(_shift(d, -_broadcast_const(off, d, node), node), _broadcast_const(sc, d, node), node)
@@ -432,6 +549,10 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
         raise NotAReLUMLP(f"the graph's output {oname!r} does not come from the last ReLU layer (a branch)")
     if not (np.all(np.isfinite(d.A)) and np.all(np.isfinite(d.c))):
         raise ValueError(f"the last layer, folded up to the output {oname!r}, contains NaN or inf: fix the exported model")
+    if B in d.shape and (d.shape[0] != B or len(d.shape) > 2):
+        raise NotAReLUMLP(f"the graph's output {oname!r} has the layout {d.shape} ('batch' is the batch axis); flnotes reads "
+                          "a network whose output is (batch, m): transpose or reshape the output before exporting")
+    _check_types(model)
     weights.append(d.A)
     biases.append(d.c)
     n_in = weights[0].shape[1]
@@ -444,8 +565,12 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
     """The tracked shape after a shape-only node."""
     S = d.shape
     if op in ("Identity", "Cast"):
-        if op == "Cast" and a.get("to") not in (1, 10, 11, 16):  # float, float16, double, bfloat16
-            raise NotAReLUMLP(f"{_where(node)}: casts the data to a non-float type ({a.get('to')})")
+        to = a.get("to")
+        if op == "Cast" and to in _REDUCED:
+            raise NotAReLUMLP(f"{_where(node)}: casts the data to {_REDUCED[to]}, which rounds every value to a few digits "
+                              "(the MILP's eps would not cover it); remove the cast or cast to float32/float64")
+        if op == "Cast" and to not in _FULL_FLOATS:
+            raise NotAReLUMLP(f"{_where(node)}: casts the data to a non-float type ({to}); remove the cast")
         return S
     if op == "Dropout":
         if len(args) > 2 and args[2] is not None and bool(np.asarray(args[2]).ravel()[0]):
@@ -454,7 +579,10 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
             raise NotAReLUMLP(f"{_where(node)}: its mask output is used; export the model in eval mode")
         return S
     if op == "Flatten":
-        axis = int(a.get("axis", 1)) % max(len(S), 1) if len(S) else 0
+        r, axis = len(S), int(a.get("axis", 1))
+        if not -r <= axis <= r:
+            raise NotAReLUMLP(f"{_where(node)}: axis={axis} is outside [-{r}, {r}] for a tensor of rank {r}")
+        axis = axis + r if axis < 0 else axis
         head, tail = S[:axis], S[axis:]
         if B in tail:
             if head:
@@ -462,7 +590,7 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
             return (1, B) if all(s in (1, B) for s in tail) and len(tail) == 1 else _refuse_batch(node, S)
         if head and not all(s in (1, B) for s in head):
             raise NotAReLUMLP(f"{_where(node)}: keeps feature axes {head} in front ({S}, axis={axis})")
-        return ((B if B in head else 1), None if None in tail else _features(tail))
+        return ((B if B in head else 1), None if None in tail else (_features(tail) if tail else 1))
     if op == "Reshape":
         if len(args) < 2 or isinstance(args[1], _Data) or args[1] is None:
             raise NotAReLUMLP(f"{_where(node)}: its target shape is computed from the data at run time and cannot be "
@@ -501,8 +629,15 @@ def _fold(node, args: list) -> Array:
     """Evaluate a node whose inputs are all constants (shape arithmetic, scalings computed in the graph)."""
     op, a = node.op_type, _attrs(node)
     x = [None if v is None else np.asarray(v) for v in args]
-    if op in ("Identity", "Cast") and x:
+    if op == "Identity" and x:
         return x[0]
+    if op == "Cast":
+        return _cast(node, x[0], int(a.get("to", 0)))
+    if op == "Div" and x[0].dtype.kind in "iu" and x[1].dtype.kind in "iu":  # integer division truncates toward zero
+        if np.any(x[1] == 0):
+            raise NotAReLUMLP(f"{_where(node)}: an integer division by zero in the constants")
+        q = np.abs(x[0]) // np.abs(x[1])
+        return (np.where((x[0] < 0) != (x[1] < 0), -q, q)).astype(np.result_type(x[0], x[1]))
     if op in ("Add", "Sub", "Mul", "Div"):
         return {"Add": np.add, "Sub": np.subtract, "Mul": np.multiply, "Div": np.divide}[op](x[0], x[1])
     if op in ("Neg", "Sqrt", "Reciprocal", "Abs", "Exp", "Log"):
@@ -511,7 +646,9 @@ def _fold(node, args: list) -> Array:
     if op in ("Max", "Min", "Sum") and all(v is not None for v in x):
         return {"Max": np.maximum, "Min": np.minimum, "Sum": np.add}[op].reduce(np.broadcast_arrays(*x))
     if op == "Pow":
-        return np.power(x[0], x[1])
+        if x[0].dtype.kind in "iu" and x[1].dtype.kind in "iu" and np.any(x[1] < 0):
+            raise NotAReLUMLP(f"{_where(node)}: an integer raised to a negative integer power; make the constants float")
+        return np.power(x[0], x[1]).astype(x[0].dtype)
     if op == "Transpose":
         return np.transpose(x[0], a.get("perm"))
     if op == "Reshape":
@@ -529,6 +666,26 @@ def _fold(node, args: list) -> Array:
         return out
     raise NotAReLUMLP(f"{_where(node)} on constants only is not folded by flnotes; simplify the graph "
                       "(e.g. with onnx's constant folding) before importing")
+
+
+def _cast(node, x: Array, to: int) -> Array:
+    """``Cast`` of a constant, to the ``to`` type exactly as onnxruntime does (float to int truncates toward zero)."""
+    onnx = _onnx()
+    names = {1: np.float32, 11: np.float64, 10: np.float16, 9: np.bool_, 2: np.uint8, 3: np.int8, 4: np.uint16,
+             5: np.int16, 6: np.int32, 7: np.int64, 12: np.uint32, 13: np.uint64}
+    if to not in names:
+        raise NotAReLUMLP(f"{_where(node)}: casts a constant to {onnx.helper.tensor_dtype_to_string(to) if to else to}, "
+                          "which flnotes does not fold; cast to a float or an integer type")
+    dt = np.dtype(names[to])
+    if dt.kind in "iub" and x.dtype.kind == "f":
+        if not np.all(np.isfinite(x)):
+            raise NotAReLUMLP(f"{_where(node)}: casts NaN or inf to an integer type (undefined); fix the constants")
+        if dt.kind != "b":
+            info = np.iinfo(dt)
+            if np.any(np.trunc(x) < info.min) or np.any(np.trunc(x) > info.max):
+                raise NotAReLUMLP(f"{_where(node)}: casts a constant out of the range of {dt}")
+            return np.trunc(x).astype(dt)
+    return x.astype(dt)
 
 
 def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "float64", opset: int = 17,
@@ -550,6 +707,14 @@ def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "fl
     nodes, inits, x = [], [], input_name
     K = len(weights)
     for k, (W, b) in enumerate(zip(weights, biases), start=1):
+        for what, v in ((f"W^{k}", np.asarray(W, float)), (f"b^{k}", np.asarray(b, float))):
+            with np.errstate(over="ignore", under="ignore"):
+                r = v.astype(np.float32) if dtype == "float32" else v
+            bad = ~np.isfinite(r) | ((r == 0) & (v != 0))
+            if np.any(bad):
+                i = tuple(int(j) for j in np.argwhere(bad)[0])
+                raise ValueError(f"{what}{list(i)} = {v[i]!r} overflows or underflows in {dtype} (it would be written as "
+                                 f"{r[i]!r}): write the network with dtype='float64', or rescale it")
         inits.append(numpy_helper.from_array(np.asarray(W, dtype), f"W{k}"))
         inits.append(numpy_helper.from_array(np.asarray(b, dtype), f"b{k}"))
         y = output_name if k == K else f"a{k}"
