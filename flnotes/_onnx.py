@@ -63,10 +63,31 @@ class _Data:
     A: Optional[Array]
     c: Array
     shape: tuple
+    k: float = 1.0  # with A None: features = k * y + c (c empty or one value for every feature)
 
     @property
     def n(self) -> Optional[int]:
         return None if self.A is None else self.A.shape[0]
+
+
+@dataclass
+class _Shp:
+    """An integer tensor read from the data's shape at run time (``Shape``), its entries ints or :data:`B`.
+
+    torch writes ``x.view(x.size(0), -1)`` as ``Shape -> Gather(0) -> Unsqueeze
+    -> Concat([batch, -1]) -> Reshape``: the batch size is followed through
+    these nodes so that the ``Reshape`` keeps the batch axis.
+    """
+
+    v: list
+    scalar: bool = False
+
+    def value(self) -> Union["_Shp", Array]:
+        """Itself, or a plain int64 array when no entry depends on the batch size."""
+        if any(e == B or e is None for e in self.v):
+            return self
+        arr = np.array(self.v, np.int64)
+        return arr.reshape(()) if self.scalar else arr
 
 
 def _where(node) -> str:
@@ -206,16 +227,16 @@ def _input_shape(vi) -> tuple:
         raise NotAReLUMLP(f"graph input {vi.name!r} has no declared shape; export with a fixed feature size "
                           "(e.g. input shape (batch, n_in))")
     dims = [d.dim_value if d.HasField("dim_value") and d.dim_value > 0 else None for d in t.shape.dim]
-    if len(dims) == 1:
-        return (dims[0],)
+    if len(dims) == 1:  # a dynamic 1-D input is a batch of scalars (as onnxruntime runs it), a fixed one a vector
+        return (B,) if dims[0] is None else (dims[0],)
     if len(dims) < 1:
         raise NotAReLUMLP(f"graph input {vi.name!r} is a scalar, not a vector of inputs")
-    # the first axis is the batch (dynamic or fixed), the last the features (known, or fixed by the first layer),
-    # any axes between them of size 1
+    # the first axis is the batch (dynamic or fixed), one other axis the features (known, or fixed by the first
+    # layer), any other axes of size 1
     rest = dims[1:]
-    if any(d is None for d in rest[:-1]) or any(d not in (1, None) for d in rest[:-1]):
-        raise NotAReLUMLP(f"graph input {vi.name!r} has shape {dims}: expected (batch, n_in) or (batch, 1, ..., n_in) "
-                          "with the other axes of size 1 (None is a dynamic size)")
+    if sum(1 for d in rest if d != 1) > 1:
+        raise NotAReLUMLP(f"graph input {vi.name!r} has shape {dims}: expected (batch, n_in), (batch, 1, ..., n_in) or "
+                          "(batch, n_in, 1, ...) with the other axes of size 1 (None is a dynamic size)")
     return (B, *rest)
 
 
@@ -247,7 +268,8 @@ def _need(d: _Data, n: int, node) -> _Data:
     if d.A is None:
         if n < 1:
             raise NotAReLUMLP(f"{_where(node)}: cannot resolve the input size")
-        return _Data(np.eye(n), np.zeros(n), tuple(n if s is None else s for s in d.shape))
+        return _Data(d.k * np.eye(n), np.zeros(n) + (d.c[0] if d.c.size else 0.0),
+                     tuple(n if s is None else s for s in d.shape))
     if d.n != n:
         raise NotAReLUMLP(f"{_where(node)}: expects {n} features but its data input has {d.n}")
     return d
@@ -256,18 +278,16 @@ def _need(d: _Data, n: int, node) -> _Data:
 def _scale(d: _Data, s: Array, node) -> _Data:
     if s.size > 1:
         d = _need(d, s.size, node)
-    if d.A is None:  # a scalar times the identity of unknown size: keep it symbolic only for 1
-        if s.size == 1 and s[0] == 1.0:
-            return d
-        raise NotAReLUMLP(f"{_where(node)}: scales a tensor of unknown size; export with a fixed feature size")
+    if d.A is None:  # a scalar times the identity of unknown size: kept until the first layer fixes the size
+        return _Data(None, d.c * s[0], d.shape, d.k * s[0])
     return _Data(s[:, None] * d.A, s * d.c, d.shape)
 
 
 def _shift(d: _Data, s: Array, node) -> _Data:
     if s.size > 1:
         d = _need(d, s.size, node)
-    if d.A is None:
-        raise NotAReLUMLP(f"{_where(node)}: shifts a tensor of unknown size; export with a fixed feature size")
+    if d.A is None:  # one shift of every feature of a tensor of unknown size
+        return _Data(None, (d.c if d.c.size else np.zeros(1)) + s, d.shape, d.k)
     return _Data(d.A, d.c + s, d.shape)
 
 
@@ -290,7 +310,9 @@ def _only_singletons(shape: tuple, keep: int) -> bool:
 
 def _reshape(d: _Data, target: Sequence[int], allowzero: int, node) -> tuple:
     S = d.shape
-    T = [int(t) for t in target]
+    T = [t if t == B else int(t) for t in target]
+    if B in T[1:] or (B in T and B not in S):
+        raise NotAReLUMLP(f"{_where(node)}: reshape target {T} puts the batch size at another place than the first axis")
     if B not in S:
         n = _features(S) if None not in S else None
         if n is None:
@@ -429,7 +451,8 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
                           + (f"a {kind} network rounds every product to a few digits, which the MILP's eps would not "
                              "cover; export it in float32 or float64" if kind else "expected a float32 or float64 input"))
     in_shape = _input_shape(inputs[0])
-    n0 = in_shape[-1]
+    feats = [s for s in in_shape if s != B]
+    n0 = None if None in feats else int(np.prod(feats, dtype=int))
     data: dict[str, _Data] = {inputs[0].name: _Data(None if n0 is None else np.eye(n0),
                                                     np.zeros(0 if n0 is None else n0), in_shape)}
     weights, biases = [], []
@@ -454,6 +477,17 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
             continue
         args = [val(x) for x in node.input]
         datas = [x for x in args if isinstance(x, _Data)]
+        if op == "Shape" and datas:  # the data's shape at run time: followed for a Reshape that keeps the batch
+            a = _attrs(node)
+            consts[node.output[0]] = _Shp(list(datas[0].shape)[slice(a.get("start", 0), a.get("end"))]).value()
+            continue
+        if any(isinstance(x, _Shp) for x in args) and not (op == "Reshape" and datas and len(args) > 1
+                                                            and isinstance(args[1], _Shp)):
+            if datas:
+                raise NotAReLUMLP(f"{_where(node)}: computes with the shape of the data read at run time; "
+                                  "export with a fixed feature size and a dynamic batch axis")
+            consts[node.output[0]] = _fold_shape(node, args)
+            continue
         if not datas:  # a node on constants only: fold it
             consts[node.output[0]] = _fold(node, args)
             continue
@@ -536,7 +570,7 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
             _check_finite(sc, node, "scale")
             new = _scale(_shift(d, -_broadcast_const(off, d, node), node), _broadcast_const(sc, d, node), node)
         else:
-            new = _Data(d.A, d.c, _shape_op(node, op, d, args, a))
+            new = _Data(d.A, d.c, _shape_op(node, op, d, args, a), d.k)
         data[out] = new
         layer_of[out] = layer_of[node.input[0] if node.input[0] in data else next(x for x in node.input if x in data)]
     oname = g.output[0].name
@@ -595,6 +629,11 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
         if len(args) < 2 or isinstance(args[1], _Data) or args[1] is None:
             raise NotAReLUMLP(f"{_where(node)}: its target shape is computed from the data at run time and cannot be "
                               "resolved; export with a constant shape (e.g. a Flatten)")
+        if isinstance(args[1], _Shp):
+            if None in args[1].v:
+                raise NotAReLUMLP(f"{_where(node)}: its target shape uses a feature size not known before run time; "
+                                  "export with a fixed feature size")
+            return _reshape(d, args[1].v, int(a.get("allowzero", 0)), node)
         return _reshape(d, np.asarray(args[1]).ravel(), int(a.get("allowzero", 0)), node)
     if op in ("Squeeze", "Unsqueeze"):
         axes = a.get("axes")
@@ -623,6 +662,53 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
 
 def _refuse_batch(node, S):
     raise NotAReLUMLP(f"{_where(node)}: flattens the batch axis of {S}")
+
+
+def _fold_shape(node, args: list) -> Union[_Shp, Array]:
+    """Follow the batch size through the shape arithmetic torch writes for ``x.view(x.size(0), -1)``."""
+    op, a = node.op_type, _attrs(node)
+    x = args[0]
+
+    def refuse(why: str):
+        return NotAReLUMLP(f"{_where(node)}: {why}; flnotes follows the batch size only through Shape -> Gather -> "
+                           "Unsqueeze -> Concat -> Reshape (as torch writes x.view(x.size(0), -1)): export with a "
+                           "constant target shape")
+
+    if op in ("Identity", "Cast"):
+        if op == "Cast" and int(a.get("to", 0)) not in (6, 7):  # int32, int64
+            raise refuse("casts a shape to a non-integer type")
+        return x
+    if op == "Gather" and isinstance(x, _Shp) and not isinstance(args[1], _Shp):
+        idx = np.asarray(args[1])
+        if int(a.get("axis", 0)) != 0 or idx.ndim > 1 or x.scalar:
+            raise refuse("gathers a shape along an axis other than 0")
+        n = len(x.v)
+        if np.any((idx < -n) | (idx >= n)):
+            raise refuse(f"gathers index {idx.tolist()} of a shape of {n} entries")
+        return _Shp([x.v[int(i)] for i in idx.ravel()], scalar=idx.ndim == 0).value()
+    if op in ("Unsqueeze", "Squeeze") and isinstance(x, _Shp):
+        axes = a.get("axes") if "axes" in a else (np.asarray(args[1]).ravel().tolist() if len(args) > 1 else None)
+        if op == "Unsqueeze" and x.scalar and [int(v) for v in (axes or [])] in ([0], [-1]):
+            return _Shp(x.v)
+        if op == "Squeeze" and not x.scalar and len(x.v) == 1 and (axes is None or [int(v) for v in axes] in ([0], [-1])):
+            return _Shp(x.v, scalar=True)
+        raise refuse(f"{op.lower()}s a shape in an unexpected way")
+    if op == "Concat":
+        if int(a.get("axis", 0)) not in (0, -1):
+            raise refuse("concatenates shapes along an axis other than 0")
+        v = []
+        for y in args:
+            if isinstance(y, _Shp):
+                if y.scalar:
+                    raise refuse("concatenates a scalar")
+                v += y.v
+            else:
+                y = np.asarray(y)
+                if y.ndim != 1 or y.dtype.kind not in "iu":
+                    raise refuse("concatenates a shape with a non-integer vector")
+                v += [int(t) for t in y]
+        return _Shp(v).value()
+    raise refuse("computes with the batch size read at run time")
 
 
 def _fold(node, args: list) -> Array:

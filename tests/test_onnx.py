@@ -378,19 +378,85 @@ def test_unfused_batch_norm_is_refused():
         fl.ReLUNet.from_onnx(g.model("x", ["N", 3], y, ["N", 1]))
 
 
-def test_run_time_shape_is_refused():
-    """view(x.size(0), -1) as an older exporter writes it: Shape -> Gather -> Concat -> Reshape."""
-    W, b = _layers(3, (4,), 1)
+def _view_batch(W, b, second, gather_index=0, shape_op=None, swap=False):
+    """torch's x.view(x.size(0), -1) with dynamic axes: Shape -> Gather -> Unsqueeze -> Concat([batch, second]) -> Reshape."""
     g = _G(F64)
     shp = g.op("Shape", ["x"], name="/Shape")
-    n0 = g.op("Gather", [shp, g.const(np.array(0, np.int64))], name="/Gather", axis=0)
-    tgt = g.op("Concat", [g.op("Unsqueeze", [n0, g.const(np.array([0], np.int64))]), g.const(np.array([-1], np.int64))],
-               name="/Concat", axis=0)
+    n0 = g.op("Gather", [shp, g.const(np.array(gather_index, np.int64))], name="/Gather", axis=0)
+    if shape_op is not None:
+        n0 = shape_op(g, n0)
+    parts = [g.op("Unsqueeze", [n0, g.const(np.array([0], np.int64))], name="/Unsqueeze"),
+             g.const(np.array([second], np.int64))]
+    tgt = g.op("Concat", parts[::-1] if swap else parts, name="/Concat", axis=0)
     x = g.op("Reshape", ["x", tgt], name="/Reshape")
     y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
                       g.const(b[1])], transB=1)
-    with pytest.raises(NotAReLUMLP, match=r"node '/Shape' \(Shape\).*shape computed at run time"):
-        fl.ReLUNet.from_onnx(g.model("x", ["N", 3], y, ["N", 1]))
+    return g.model("x", ["N", 1, 3], y, ["N", 1])
+
+
+@pytest.mark.parametrize("second", [-1, 3])
+def test_view_by_the_run_time_batch_size_is_read(second):
+    """view(x.size(0), -1) (or the feature count) as torch.onnx.export writes it with a dynamic batch axis."""
+    W, b = _layers(3, (4,), 1, seed=26)
+    model = _view_batch(W, b, second)
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.widths == (4,)
+    assert_same_as_ort(net, model, 3)
+
+
+@pytest.mark.parametrize("gather_index,shape_op,swap,match", [
+    (1, None, False, r"node '/Reshape' \(Reshape\).*does not keep a dynamic batch axis first"),  # a fixed (1, 3)
+    (0, None, True, r"node '/Reshape' \(Reshape\).*batch size at another place"),  # (3, batch)
+    (0, lambda g, n: g.op("Mul", [n, g.const(np.array(2, np.int64))], name="/Mul"), False,
+     r"node '/Mul' \(Mul\).*batch size read at run time"),
+])
+def test_other_run_time_shape_arithmetic_is_refused(gather_index, shape_op, swap, match):
+    W, b = _layers(3, (4,), 1)
+    with pytest.raises(NotAReLUMLP, match=match):
+        fl.ReLUNet.from_onnx(_view_batch(W, b, 3, gather_index, shape_op, swap))
+
+
+def test_lesser_input_layouts_and_gemm_flags_follow_onnxruntime():
+    W, b = _layers(3, (5,), 1, seed=27)
+    X = np.random.default_rng(28).uniform(-2, 2, (200, 3))
+    ref = fl.ReLUNet(W, b)
+
+    def ort_out(model, feed):
+        sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        return sess.run(None, {"x": feed})[0].reshape(len(feed), -1)
+
+    # an input declared (N, n, 1), flattened
+    g = _G(F64)
+    x = g.op("Flatten", ["x"], axis=1)
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
+                      g.const(b[1])], transB=1)
+    model = g.model("x", ["N", 3, 1], y, ["N", 1])
+    np.testing.assert_allclose(fl.ReLUNet.from_onnx(model)(X), ort_out(model, X[:, :, None]), rtol=1e-12, atol=1e-12)
+    # a 1-D batch of scalars [N], unsqueezed to (N, 1)
+    W1, b1 = _layers(1, (5,), 1, seed=29)
+    g = _G(F64)
+    x = g.op("Unsqueeze", ["x", g.const(np.array([-1], np.int64))])
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W1[0]), g.const(b1[0])], transB=1)]), g.const(W1[1]),
+                      g.const(b1[1])], transB=1)
+    model = g.model("x", ["N"], y, ["N", 1])
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.n_in == 1
+    np.testing.assert_allclose(net(X[:, :1]), ort_out(model, X[:, 0]), rtol=1e-12, atol=1e-12)
+    # a symbolic feature size scaled and shifted by scalars before the first layer
+    g = _G(F64)
+    x = g.op("Add", [g.op("Mul", ["x", g.const([0.5])]), g.const([-1.0])])
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
+                      g.const(b[1])], transB=1)
+    model = g.model("x", ["N", "features"], y, ["N", 1])
+    np.testing.assert_allclose(fl.ReLUNet.from_onnx(model)(X), ref(0.5 * X - 1.0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(ort_out(model, X), ref(0.5 * X - 1.0), rtol=1e-12, atol=1e-12)
+    # Gemm's transA/transB: any nonzero value transposes, as onnxruntime reads it
+    g = _G(F64)
+    x = g.op("Transpose", ["x"], perm=[1, 0])
+    h = g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transA=2, transB=3)])
+    y = g.op("Gemm", [h, g.const(W[1]), g.const(b[1])], transB=1)
+    model = g.model("x", ["N", 3], y, ["N", 1])
+    np.testing.assert_allclose(fl.ReLUNet.from_onnx(model)(X), ort_out(model, X), rtol=1e-12, atol=1e-12)
 
 
 def test_non_finite_weights_are_refused_with_the_node():
