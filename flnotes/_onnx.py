@@ -199,6 +199,11 @@ def _check(model) -> None:
 def _check_types(model) -> None:
     """onnx's strict type and shape inference: what onnxruntime rejects (int weights in a float graph, ...)."""
     onnx = _onnx()
+    model = onnx.ModelProto.FromString(model.SerializeToString())
+    del model.graph.value_info[:]  # declared shapes of intermediates and of the output: onnxruntime merges them leniently
+    for o in model.graph.output:
+        if o.type.tensor_type.HasField("shape"):
+            o.type.tensor_type.ClearField("shape")
     try:
         onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
     except (onnx.shape_inference.InferenceError, onnx.checker.ValidationError) as exc:
@@ -356,8 +361,18 @@ def _reshape(d: _Data, target: Sequence[int], allowzero: int, node) -> tuple:
     return tuple([B] + rest)
 
 
+def _axes(node, axes, r: int) -> list:
+    """Axes of a tensor of rank ``r`` in ``[-r, r - 1]``, made non-negative; out of range or repeated is refused."""
+    axes = [int(x) for x in axes]
+    if any(not -r <= x < r for x in axes) or len({x % r for x in axes}) != len(axes):
+        raise NotAReLUMLP(f"{_where(node)}: axes {axes} are out of range [-{r}, {r - 1}] or repeated for a tensor of rank {r}")
+    return sorted(x % r for x in axes)
+
+
 def _transpose(S: tuple, perm: Optional[Sequence[int]], node) -> tuple:
     perm = list(range(len(S)))[::-1] if perm is None else [int(p) for p in perm]
+    if sorted(perm) != list(range(len(S))):
+        raise NotAReLUMLP(f"{_where(node)}: perm {perm} is not a permutation of the {len(S)} axes of {S}")
     big = [i for i, s in enumerate(S) if s not in (1, B)]
     if len(big) > 1:
         raise NotAReLUMLP(f"{_where(node)}: transposes a tensor of shape {S} with several feature axes")
@@ -563,9 +578,9 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
                 raise NotAReLUMLP(f"{_where(node)}: a Scaler needs both its offset and its scale attributes "
                                   "(onnxruntime refuses it without them); give both")
             off, sc = (np.asarray(a[k], float).ravel() for k in ("offset", "scale"))
-            if off.size != sc.size and 1 not in (off.size, sc.size):
+            if off.size != sc.size:
                 raise NotAReLUMLP(f"{_where(node)}: its offset ({off.size} values) and scale ({sc.size} values) differ in "
-                                  "length; give one value each or one per feature")
+                                  "length (onnxruntime refuses it); give as many offsets as scales")
             _check_finite(off, node, "offset")
             _check_finite(sc, node, "scale")
             new = _scale(_shift(d, -_broadcast_const(off, d, node), node), _broadcast_const(sc, d, node), node)
@@ -583,9 +598,10 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
         raise NotAReLUMLP(f"the graph's output {oname!r} does not come from the last ReLU layer (a branch)")
     if not (np.all(np.isfinite(d.A)) and np.all(np.isfinite(d.c))):
         raise ValueError(f"the last layer, folded up to the output {oname!r}, contains NaN or inf: fix the exported model")
-    if B in d.shape and (d.shape[0] != B or len(d.shape) > 2):
+    if B in d.shape and (d.shape[0] != B or sum(1 for s in d.shape[1:] if s != 1) > 1):
         raise NotAReLUMLP(f"the graph's output {oname!r} has the layout {d.shape} ('batch' is the batch axis); flnotes reads "
-                          "a network whose output is (batch, m): transpose or reshape the output before exporting")
+                          "a network whose output is (batch, m) (or (batch, 1, ..., m)): transpose or reshape the output "
+                          "before exporting")
     _check_types(model)
     weights.append(d.A)
     biases.append(d.c)
@@ -644,15 +660,14 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
         if op == "Squeeze":
             if axes is None:
                 axes = [i for i, s in enumerate(S) if s == 1]
-            axes = sorted(int(x) % len(S) for x in axes)
+            axes = _axes(node, axes, len(S))
             if any(S[i] != 1 for i in axes):
                 raise NotAReLUMLP(f"{_where(node)}: squeezes an axis of size other than 1 in {S}")
             return tuple(s for i, s in enumerate(S) if i not in axes)
         if axes is None:
             raise NotAReLUMLP(f"{_where(node)}: Unsqueeze without axes")
         out = list(S)
-        r = len(S) + len(axes)
-        for x in sorted(int(x) % r for x in axes):
+        for x in _axes(node, axes, len(S) + len(axes)):
             out.insert(x, 1)
         return tuple(out)
     if op == "Transpose":
@@ -736,7 +751,10 @@ def _fold(node, args: list) -> Array:
             raise NotAReLUMLP(f"{_where(node)}: an integer raised to a negative integer power; make the constants float")
         return np.power(x[0], x[1]).astype(x[0].dtype)
     if op == "Transpose":
-        return np.transpose(x[0], a.get("perm"))
+        perm = a.get("perm")
+        if perm is not None and sorted(int(p) for p in perm) != list(range(x[0].ndim)):
+            raise NotAReLUMLP(f"{_where(node)}: perm {list(perm)} is not a permutation of the {x[0].ndim} axes")
+        return np.transpose(x[0], perm)
     if op == "Reshape":
         t = [s if (s != 0 or a.get("allowzero", 0)) else x[0].shape[i] for i, s in enumerate(x[1].astype(int).tolist())]
         return x[0].reshape(t)
@@ -745,9 +763,16 @@ def _fold(node, args: list) -> Array:
     if op in ("Unsqueeze", "Squeeze"):
         axes = a.get("axes") if "axes" in a else (x[1].ravel().tolist() if len(x) > 1 and x[1] is not None else None)
         if op == "Squeeze":
-            return np.squeeze(x[0], axis=None if axes is None else tuple(int(v) for v in axes))
+            if axes is None:
+                return np.squeeze(x[0])
+            axes = _axes(node, axes, x[0].ndim)
+            if any(x[0].shape[i] != 1 for i in axes):
+                raise NotAReLUMLP(f"{_where(node)}: squeezes an axis of size other than 1 in {x[0].shape}")
+            return np.squeeze(x[0], axis=tuple(axes))
+        if axes is None:
+            raise NotAReLUMLP(f"{_where(node)}: Unsqueeze without axes")
         out = x[0]
-        for v in sorted(int(v) % (out.ndim + len(axes)) for v in axes):
+        for v in _axes(node, axes, out.ndim + len(axes)):
             out = np.expand_dims(out, v)
         return out
     raise NotAReLUMLP(f"{_where(node)} on constants only is not folded by flnotes; simplify the graph "

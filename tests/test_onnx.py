@@ -789,7 +789,8 @@ def test_invalid_models_that_onnxruntime_rejects_are_refused():
 
 
 @pytest.mark.parametrize("attrs,match", [({}, "needs both its offset and its scale"),
-                                         ({"offset": [0.0, 1.0], "scale": [1.0, 2.0, 3.0]}, "differ in length")])
+                                         ({"offset": [0.0, 1.0], "scale": [1.0, 2.0, 3.0]}, "differ in length"),
+                                         ({"offset": [0.0], "scale": [1.0, 2.0, 3.0]}, "differ in length")])
 def test_bad_scaler_is_refused(attrs, match):
     W, b = _layers(3, (4,), 1)
     g = _G(F32)
@@ -820,3 +821,44 @@ def test_output_not_in_batch_rows_is_refused(layout):
     g.output.append(helper.make_tensor_value_info("out", F64, shape))
     with pytest.raises(NotAReLUMLP, match=r"output 'out' has the layout.*\(batch, m\)"):
         fl.ReLUNet.from_onnx(model)
+
+
+@pytest.mark.parametrize("build,match", [
+    (lambda g: g.op("Unsqueeze", ["x", g.const(np.array([3], np.int64))], name="u"), r"node 'u' \(Unsqueeze\): axes \[3\]"),
+    (lambda g: g.op("Squeeze", ["x", g.const(np.array([5], np.int64))], name="s"), r"node 's' \(Squeeze\): axes \[5\]"),
+    (lambda g: g.op("Transpose", ["x"], name="t", perm=[1, 2]), r"node 't' \(Transpose\): perm \[1, 2\]"),
+    (lambda g: g.op("Mul", ["x", g.op("Unsqueeze", [g.const(np.ones(3)), g.const(np.array([2], np.int64))], name="uc")]),
+     r"node 'uc' \(Unsqueeze\): axes \[2\]"),  # on constants
+])
+def test_out_of_range_axes_are_refused_not_wrapped(build, match):
+    """onnxruntime refuses these; wrapping the axis modulo the rank would read another graph."""
+    with pytest.raises(NotAReLUMLP, match=match):
+        fl.ReLUNet.from_onnx(_tiny(lambda g: g.op("Gemm", [build(g), g.const(np.ones((1, 3))), g.const([0.0])], transB=1)))
+
+
+def test_declared_output_shape_is_not_trusted_over_the_nodes():
+    """onnxruntime runs a model whose declared output shape is wrong (it warns) and returns what the nodes compute."""
+    W, b = _layers(3, (4,), 2, seed=30)
+    model = torch_gemm(W, b, F64, flatten=False)
+    model.graph.output[0].type.tensor_type.shape.dim[1].dim_value = 5
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.n_out == 2
+    assert_same_as_ort(net, model, 3)
+
+
+def test_output_with_singleton_axes_after_the_batch_is_read():
+    W, b = _layers(3, (4,), 2, seed=31)
+    g = _G(F64)
+    x = g.op("MatMul", ["x", g.const(W[0].T[None])], name="mm")
+    x = g.op("Add", [x, g.const(b[0])])
+    y = g.op("Add", [g.op("MatMul", [g.op("Relu", [x]), g.const(W[1].T)]), g.const(b[1])])
+    model = g.model("x", ["N", 1, 3], y, ["N", 1, 2])
+    with pytest.raises(NotAReLUMLP, match=r"node 'mm' \(MatMul\)"):  # a 3-D weight is not a layer of an MLP
+        fl.ReLUNet.from_onnx(model)
+    g = _G(F64)
+    x = g.op("Add", [g.op("MatMul", ["x", g.const(W[0].T)]), g.const(b[0])])
+    y = g.op("Add", [g.op("MatMul", [g.op("Relu", [x]), g.const(W[1].T)]), g.const(b[1])])
+    model = g.model("x", ["N", 1, 3], y, ["N", 1, 2])
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.n_out == 2
+    assert_same_as_ort(net, model, 3)
