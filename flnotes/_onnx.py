@@ -12,10 +12,23 @@ keep the map and track where the batch axis is. The graph's output is the
 last affine map, ``W^K, b^K``. Scalings of the input and the output are thus
 folded into the first and last layer, as eq. (eq-02-fold) of chapter 2 does.
 These are the node patterns that ``torch.onnx.export``, tf2onnx and skl2onnx
-write for a ReLU multilayer perceptron. Any other node that touches the data
-(another activation, a second data operand as in a skip connection, an
-unfused ``BatchNormalization``, a shape computed at run time) is refused with
+write for a ReLU multilayer perceptron, including torch's
+``x.view(x.size(0), -1)`` (``Shape -> Gather -> Unsqueeze -> Concat ->
+Reshape``: the batch size is followed, see :class:`_Shp`). Any other node that
+touches the data (another activation, a second data operand as in a skip
+connection, an unfused ``BatchNormalization``, other arithmetic on a shape
+read at run time, a cast of the data to float16 or bfloat16) is refused with
 its name and op.
+
+What the reader does not guess: the model must pass ``onnx.checker`` (the
+arity of every node) and, once read, onnx's strict type inference (what
+onnxruntime would reject); nodes that do not reach the output are ignored, as
+onnxruntime ignores them; nodes on constants only are folded with ONNX's
+types (``Cast`` converts, integer ``Div`` truncates toward zero); float16 and
+bfloat16 data paths are refused (their rounding is far above what an ``eps``
+certified on the float64 weights covers); tensors stored in external data
+files are read only when the model is given as a path, and only from the
+model's folder; sparse initializers are densified.
 
 The ``onnx`` package is needed only here and is imported on first use.
 """
@@ -422,7 +435,9 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
     Parameters
     ----------
     model
-        A path to an ``.onnx`` file, its bytes, or an ``onnx.ModelProto``.
+        A path to an ``.onnx`` file (external data is read from its folder
+        only), its bytes, or an ``onnx.ModelProto`` (both without external
+        data: they have no folder to read it from).
 
     Returns
     -------
@@ -434,7 +449,9 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
     ------
     NotAReLUMLP
         A node that is not part of a ReLU MLP (named with its op), several
-        inputs or outputs, a shape that cannot be resolved.
+        inputs or outputs, a shape that cannot be resolved, a model that
+        ``onnx.checker`` or onnx's type inference rejects, a float16 or
+        bfloat16 data path, external data that cannot be read safely.
     ValueError
         Non-finite weights (the node is named).
     """
@@ -807,7 +824,8 @@ def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "fl
     The input is ``(batch, n_in)`` with a dynamic batch axis, the output
     ``(batch, n_out)``. ``dtype="float64"`` keeps the weights bit for bit
     (``from_onnx(to_onnx(net))`` is ``net``); ``"float32"`` is what most
-    tools default to, rounded.
+    tools default to, rounded; a weight that overflows float32 (to inf) or
+    underflows it (a nonzero weight to 0) is a ``ValueError``.
     """
     onnx = _onnx()
     from onnx import TensorProto, helper, numpy_helper

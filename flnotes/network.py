@@ -167,13 +167,14 @@ class ReLUNet:
             the inputs: ``M = diag(1 / scale)``, ``c = -offset / scale``).
         output_map
             ``None`` or a pair ``(D, d)``: ``u = D @ net(...) + d``, ``D`` of
-            shape ``(m, net.n_out)`` (or a vector: a diagonal scaling).
+            shape ``(m, net.n_out)`` (or a vector of ``net.n_out`` scales: a
+            diagonal scaling).
 
         Raises
         ------
         ValueError
-            An ``input_map`` that is not a permutation of ``0..net.n_in-1``, or
-            a map of the wrong shape or with NaN or inf.
+            An ``input_map`` that is not a permutation of ``0..net.n_in-1`` or
+            a tuple ``(M, c)``, or a map of the wrong shape or with NaN or inf.
         """
         W, b = [w.copy() for w in self.W], [c.copy() for c in self.b]
         if input_map is not None:
@@ -202,7 +203,8 @@ class ReLUNet:
         Parameters
         ----------
         model
-            A path to an ``.onnx`` file, its bytes, or an ``onnx.ModelProto``.
+            A path to an ``.onnx`` file (tensors in external data files are
+            read from its folder only), its bytes, or an ``onnx.ModelProto``.
         input_map, output_map
             How the network's inputs and outputs relate to the system's
             ``[z, v]`` and ``u`` (see :meth:`mapped`); the default is that they
@@ -212,7 +214,9 @@ class ReLUNet:
         ------
         flnotes._onnx.NotAReLUMLP
             (a ``ValueError``) the graph is not a ReLU MLP (the message names
-            the node and op).
+            the node and op), is not valid ONNX (``onnx.checker``, type
+            inference), computes in float16 or bfloat16, or has external data
+            that cannot be read from the model's folder.
         ValueError
             Non-finite weights; a bad ``input_map``/``output_map``.
         """
@@ -227,7 +231,8 @@ class ReLUNet:
         Any ONNX tool (onnxruntime, Netron, the MILP libraries that read ONNX)
         opens it. ``dtype="float64"`` keeps the weights exactly, so
         ``ReLUNet.from_onnx(net.to_onnx())`` has the same ``W^k, b^k``;
-        ``"float32"`` rounds them. The model passes ``onnx.checker``.
+        ``"float32"`` rounds them (a weight that overflows or underflows
+        float32 is a ``ValueError``). The model passes ``onnx.checker``.
 
         Returns
         -------
