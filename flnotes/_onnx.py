@@ -202,6 +202,13 @@ def _load(model) -> Any:
 def _check(model) -> None:
     """onnx.checker's structural check (arity of every node, attributes), its message turned into a clear refusal."""
     onnx = _onnx()
+    undeclared = [o for o in model.graph.output if o.type.HasField("tensor_type")
+                  and not o.type.tensor_type.HasField("shape")]
+    if undeclared:  # onnxruntime runs a graph whose output has no declared shape; the checker wants the field
+        model = onnx.ModelProto.FromString(model.SerializeToString())
+        for o in model.graph.output:
+            if o.type.HasField("tensor_type") and not o.type.tensor_type.HasField("shape"):
+                o.type.tensor_type.shape.SetInParent()
     try:
         onnx.checker.check_model(model)
     except onnx.checker.ValidationError as exc:

@@ -862,3 +862,12 @@ def test_output_with_singleton_axes_after_the_batch_is_read():
     net = fl.ReLUNet.from_onnx(model)
     assert net.n_out == 2
     assert_same_as_ort(net, model, 3)
+
+
+def test_output_without_a_declared_shape_is_read():
+    """onnxruntime runs a graph whose output declares no shape; checking the model must not refuse it."""
+    W, b = _layers(3, (4,), 1, seed=32)
+    model = torch_gemm(W, b, F64)
+    model.graph.output[0].type.tensor_type.ClearField("shape")
+    net = fl.ReLUNet.from_onnx(model)
+    assert_same_as_ort(net, model, 3)
