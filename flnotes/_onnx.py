@@ -161,6 +161,28 @@ def _dense(sp, where: str) -> Array:
     return out.reshape(dims)
 
 
+def _all_tensors(model):
+    """Every TensorProto of the model: initializers, sparse ones' parts, tensors in node attributes (and subgraphs)."""
+    graphs = [model.graph]
+    while graphs:
+        g = graphs.pop()
+        yield from g.initializer
+        for sp in g.sparse_initializer:
+            yield sp.values
+            yield sp.indices
+        for node in g.node:
+            for a in node.attribute:
+                if a.HasField("t"):
+                    yield a.t
+                yield from a.tensors
+                if a.HasField("sparse_tensor"):
+                    yield a.sparse_tensor.values
+                    yield a.sparse_tensor.indices
+                if a.HasField("g"):
+                    graphs.append(a.g)
+                graphs.extend(a.graphs)
+
+
 def _load(model) -> Any:
     """The ModelProto of a path, bytes or a model; external data only from a path, inside the model's folder."""
     onnx = _onnx()
@@ -177,13 +199,13 @@ def _load(model) -> Any:
         model = onnx.load_from_string(bytes(model))
     if not isinstance(model, onnx.ModelProto):
         raise TypeError(f"give an ONNX model (onnx.ModelProto), its bytes or a path to an .onnx file, got {type(model).__name__}")
-    external = [t for t in ext._get_all_tensors(model) if ext.uses_external_data(t)]
+    external = [t for t in _all_tensors(model) if ext.uses_external_data(t)]
     if external and base is None:
         raise NotAReLUMLP(f"tensor {external[0].name!r} is stored in an external data file, and a model given as bytes or "
                           "as a ModelProto has no folder to read it from: pass the path of the .onnx file instead")
     if external:
         model = onnx.ModelProto.FromString(model.SerializeToString())  # do not fill the caller's model
-        for t in ext._get_all_tensors(model):
+        for t in _all_tensors(model):
             if not ext.uses_external_data(t):
                 continue
             loc = ext.ExternalDataInfo(t).location
