@@ -869,3 +869,21 @@ def test_output_without_a_declared_shape_is_read():
     model.graph.output[0].type.tensor_type.ClearField("shape")
     net = fl.ReLUNet.from_onnx(model)
     assert_same_as_ort(net, model, 3)
+
+
+def test_external_data_in_a_constant_node_is_refused_without_a_path(tmp_path, monkeypatch):
+    from onnx.external_data_helper import set_external_data
+
+    W, b = _layers(3, (4,), 1, seed=33)
+    g = _G(F64)
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", ["x", g.const(W[0], as_node=True), g.const(b[0])], transB=1)]),
+                      g.const(W[1]), g.const(b[1])], transB=1)
+    model = g.model("x", ["N", 3], y, ["N", 1])
+    t = model.graph.node[0].attribute[0].t
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "W.bin").write_bytes(np.full(12, 7.0).tobytes())
+    set_external_data(t, "W.bin")
+    t.ClearField("raw_data")
+    t.data_location = TensorProto.EXTERNAL
+    with pytest.raises(NotAReLUMLP, match="external data.*pass the path"):
+        fl.ReLUNet.from_onnx(model.SerializeToString())
