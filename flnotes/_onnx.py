@@ -12,10 +12,23 @@ keep the map and track where the batch axis is. The graph's output is the
 last affine map, ``W^K, b^K``. Scalings of the input and the output are thus
 folded into the first and last layer, as eq. (eq-02-fold) of chapter 2 does.
 These are the node patterns that ``torch.onnx.export``, tf2onnx and skl2onnx
-write for a ReLU multilayer perceptron. Any other node that touches the data
-(another activation, a second data operand as in a skip connection, an
-unfused ``BatchNormalization``, a shape computed at run time) is refused with
+write for a ReLU multilayer perceptron, including torch's
+``x.view(x.size(0), -1)`` (``Shape -> Gather -> Unsqueeze -> Concat ->
+Reshape``: the batch size is followed, see :class:`_Shp`). Any other node that
+touches the data (another activation, a second data operand as in a skip
+connection, an unfused ``BatchNormalization``, other arithmetic on a shape
+read at run time, a cast of the data to float16 or bfloat16) is refused with
 its name and op.
+
+What the reader does not guess: the model must pass ``onnx.checker`` (the
+arity of every node) and, once read, onnx's strict type inference (what
+onnxruntime would reject); nodes that do not reach the output are ignored, as
+onnxruntime ignores them; nodes on constants only are folded with ONNX's
+types (``Cast`` converts, integer ``Div`` truncates toward zero); float16 and
+bfloat16 data paths are refused (their rounding is far above what an ``eps``
+certified on the float64 weights covers); tensors stored in external data
+files are read only when the model is given as a path, and only from the
+model's folder; sparse initializers are densified.
 
 The ``onnx`` package is needed only here and is imported on first use.
 """
@@ -63,10 +76,31 @@ class _Data:
     A: Optional[Array]
     c: Array
     shape: tuple
+    k: float = 1.0  # with A None: features = k * y + c (c empty or one value for every feature)
 
     @property
     def n(self) -> Optional[int]:
         return None if self.A is None else self.A.shape[0]
+
+
+@dataclass
+class _Shp:
+    """An integer tensor read from the data's shape at run time (``Shape``), its entries ints or :data:`B`.
+
+    torch writes ``x.view(x.size(0), -1)`` as ``Shape -> Gather(0) -> Unsqueeze
+    -> Concat([batch, -1]) -> Reshape``: the batch size is followed through
+    these nodes so that the ``Reshape`` keeps the batch axis.
+    """
+
+    v: list
+    scalar: bool = False
+
+    def value(self) -> Union["_Shp", Array]:
+        """Itself, or a plain int64 array when no entry depends on the batch size."""
+        if any(e == B or e is None for e in self.v):
+            return self
+        arr = np.array(self.v, np.int64)
+        return arr.reshape(()) if self.scalar else arr
 
 
 def _where(node) -> str:
@@ -84,17 +118,153 @@ def _features(shape: tuple) -> int:
 
 
 def _constant_value(node) -> Array:
-    onnx = _onnx()
     a = _attrs(node)
     if "value" in a:
-        return onnx.numpy_helper.to_array(a["value"])
-    for key in ("value_float", "value_int"):
+        return _tensor(a["value"], node)
+    if "sparse_value" in a:
+        return _dense(a["sparse_value"], f"{_where(node)}: its sparse value")
+    for key, dt in (("value_float", np.float32), ("value_int", np.int64)):
         if key in a:
-            return np.array(a[key])
-    for key in ("value_floats", "value_ints"):
+            return np.array(a[key], dt)
+    for key, dt in (("value_floats", np.float32), ("value_ints", np.int64)):
         if key in a:
-            return np.array(list(a[key]))
+            return np.array(list(a[key]), dt)
     raise NotAReLUMLP(f"{_where(node)}: a Constant of kind {sorted(a)} is not a number array")
+
+
+#: the float types whose rounding the folded float64 weights follow closely enough (a float16 or bfloat16 data path
+#: rounds each product to 3 significant digits, which an ``eps`` certified on the float64 network would not cover)
+_FULL_FLOATS = (1, 11)  # FLOAT, DOUBLE
+_REDUCED = {10: "float16", 16: "bfloat16"}
+
+
+def _tensor(t, where) -> Array:
+    """A TensorProto's value; a tensor stored in an external file must have been loaded already (see :func:`_load`)."""
+    onnx = _onnx()
+    if t.data_location == onnx.TensorProto.EXTERNAL:
+        raise NotAReLUMLP(f"{where if isinstance(where, str) else _where(where)}: tensor {t.name!r} is stored in an "
+                          "external data file that was not loaded; pass the path of the .onnx file (its external data "
+                          "is read from the model's folder), not its bytes or a model loaded with load_external_data=False")
+    return onnx.numpy_helper.to_array(t)
+
+
+def _dense(sp, where: str) -> Array:
+    """A SparseTensorProto as a dense array (as onnxruntime densifies a sparse initializer)."""
+    values = _tensor(sp.values, where)
+    idx = _tensor(sp.indices, where).astype(np.int64)
+    dims = tuple(int(x) for x in sp.dims)
+    out = np.zeros(int(np.prod(dims, dtype=np.int64)), values.dtype)
+    flat = idx if idx.ndim == 1 else (np.ravel_multi_index(tuple(idx.T), dims) if idx.size else idx.reshape(0))
+    if flat.size and (flat.min() < 0 or flat.max() >= out.size) or len(flat) != values.size:
+        raise NotAReLUMLP(f"{where}: sparse tensor {sp.values.name!r} has indices that do not fit its shape {dims}")
+    out[flat] = values.ravel()
+    return out.reshape(dims)
+
+
+def _all_tensors(model):
+    """Every TensorProto of the model: initializers, sparse ones' parts, tensors in node attributes (and subgraphs)."""
+    graphs = [model.graph]
+    while graphs:
+        g = graphs.pop()
+        yield from g.initializer
+        for sp in g.sparse_initializer:
+            yield sp.values
+            yield sp.indices
+        for node in g.node:
+            for a in node.attribute:
+                if a.HasField("t"):
+                    yield a.t
+                yield from a.tensors
+                if a.HasField("sparse_tensor"):
+                    yield a.sparse_tensor.values
+                    yield a.sparse_tensor.indices
+                if a.HasField("g"):
+                    graphs.append(a.g)
+                graphs.extend(a.graphs)
+
+
+def _load(model) -> Any:
+    """The ModelProto of a path, bytes or a model; external data only from a path, inside the model's folder."""
+    onnx = _onnx()
+    from onnx import external_data_helper as ext
+
+    base = None
+    if isinstance(model, (str, Path)):
+        path = Path(model)
+        if not path.exists():
+            raise FileNotFoundError(f"no ONNX file {str(path)!r}")
+        model = onnx.load(str(path), load_external_data=False)
+        base = path.resolve().parent
+    elif isinstance(model, (bytes, bytearray)):
+        model = onnx.load_from_string(bytes(model))
+    if not isinstance(model, onnx.ModelProto):
+        raise TypeError(f"give an ONNX model (onnx.ModelProto), its bytes or a path to an .onnx file, got {type(model).__name__}")
+    external = [t for t in _all_tensors(model) if ext.uses_external_data(t)]
+    if external and base is None:
+        raise NotAReLUMLP(f"tensor {external[0].name!r} is stored in an external data file, and a model given as bytes or "
+                          "as a ModelProto has no folder to read it from: pass the path of the .onnx file instead")
+    if external:
+        model = onnx.ModelProto.FromString(model.SerializeToString())  # do not fill the caller's model
+        for t in _all_tensors(model):
+            if not ext.uses_external_data(t):
+                continue
+            loc = ext.ExternalDataInfo(t).location
+            target = (base / loc).resolve()
+            if Path(loc).is_absolute() or base not in target.parents:
+                raise NotAReLUMLP(f"tensor {t.name!r} points to external data {loc!r} outside the model's folder {base.name!r}: "
+                                  "only a file name relative to the .onnx file's folder is read")
+            if not target.is_file():
+                raise FileNotFoundError(f"tensor {t.name!r}: its external data file {loc!r} is not next to the model")
+            ext.load_external_data_for_tensor(t, str(base))
+            t.data_location = onnx.TensorProto.DEFAULT
+            del t.external_data[:]
+    return model
+
+
+def _check(model) -> None:
+    """onnx.checker's structural check (arity of every node, attributes), its message turned into a clear refusal."""
+    onnx = _onnx()
+    undeclared = [o for o in model.graph.output if o.type.HasField("tensor_type")
+                  and not o.type.tensor_type.HasField("shape")]
+    if undeclared:  # onnxruntime runs a graph whose output has no declared shape; the checker wants the field
+        model = onnx.ModelProto.FromString(model.SerializeToString())
+        for o in model.graph.output:
+            if o.type.HasField("tensor_type") and not o.type.tensor_type.HasField("shape"):
+                o.type.tensor_type.shape.SetInParent()
+    try:
+        onnx.checker.check_model(model)
+    except onnx.checker.ValidationError as exc:
+        raise NotAReLUMLP(f"the model is not valid ONNX (onnx.checker: {str(exc).strip().splitlines()[0]}); "
+                          "fix the node it names (onnxruntime would refuse it too)") from None
+
+
+def _check_types(model) -> None:
+    """onnx's strict type and shape inference: what onnxruntime rejects (int weights in a float graph, ...)."""
+    onnx = _onnx()
+    model = onnx.ModelProto.FromString(model.SerializeToString())
+    del model.graph.value_info[:]  # declared shapes of intermediates and of the output: onnxruntime merges them leniently
+    for o in model.graph.output:
+        if o.type.tensor_type.HasField("shape"):
+            o.type.tensor_type.ClearField("shape")
+    try:
+        onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
+    except (onnx.shape_inference.InferenceError, onnx.checker.ValidationError) as exc:
+        raise NotAReLUMLP(f"the model does not type-check (onnx shape inference: {str(exc).strip().splitlines()[0]}); "
+                          "onnxruntime would refuse it: fix the node it names") from None
+
+
+def _live(g) -> list:
+    """The nodes whose outputs reach the graph's output (dead nodes are ignored, as onnxruntime does)."""
+    need = {o.name for o in g.output}
+    live = [False] * len(g.node)
+    changed = True
+    while changed:
+        changed = False
+        for i, node in enumerate(g.node):
+            if not live[i] and any(o in need for o in node.output if o):
+                live[i], changed = True, True
+                need.update(x for x in node.input if x)
+    return [n for n, keep in zip(g.node, live) if keep]
 
 
 def _input_shape(vi) -> tuple:
@@ -104,16 +274,16 @@ def _input_shape(vi) -> tuple:
         raise NotAReLUMLP(f"graph input {vi.name!r} has no declared shape; export with a fixed feature size "
                           "(e.g. input shape (batch, n_in))")
     dims = [d.dim_value if d.HasField("dim_value") and d.dim_value > 0 else None for d in t.shape.dim]
-    if len(dims) == 1:
-        return (dims[0],)
+    if len(dims) == 1:  # a dynamic 1-D input is a batch of scalars (as onnxruntime runs it), a fixed one a vector
+        return (B,) if dims[0] is None else (dims[0],)
     if len(dims) < 1:
         raise NotAReLUMLP(f"graph input {vi.name!r} is a scalar, not a vector of inputs")
-    # the first axis is the batch (dynamic or fixed), the last the features (known, or fixed by the first layer),
-    # any axes between them of size 1
+    # the first axis is the batch (dynamic or fixed), one other axis the features (known, or fixed by the first
+    # layer), any other axes of size 1
     rest = dims[1:]
-    if any(d is None for d in rest[:-1]) or any(d not in (1, None) for d in rest[:-1]):
-        raise NotAReLUMLP(f"graph input {vi.name!r} has shape {dims}: expected (batch, n_in) or (batch, 1, ..., n_in) "
-                          "with the other axes of size 1 (None is a dynamic size)")
+    if sum(1 for d in rest if d != 1) > 1:
+        raise NotAReLUMLP(f"graph input {vi.name!r} has shape {dims}: expected (batch, n_in), (batch, 1, ..., n_in) or "
+                          "(batch, n_in, 1, ...) with the other axes of size 1 (None is a dynamic size)")
     return (B, *rest)
 
 
@@ -145,7 +315,8 @@ def _need(d: _Data, n: int, node) -> _Data:
     if d.A is None:
         if n < 1:
             raise NotAReLUMLP(f"{_where(node)}: cannot resolve the input size")
-        return _Data(np.eye(n), np.zeros(n), tuple(n if s is None else s for s in d.shape))
+        return _Data(d.k * np.eye(n), np.zeros(n) + (d.c[0] if d.c.size else 0.0),
+                     tuple(n if s is None else s for s in d.shape))
     if d.n != n:
         raise NotAReLUMLP(f"{_where(node)}: expects {n} features but its data input has {d.n}")
     return d
@@ -154,18 +325,16 @@ def _need(d: _Data, n: int, node) -> _Data:
 def _scale(d: _Data, s: Array, node) -> _Data:
     if s.size > 1:
         d = _need(d, s.size, node)
-    if d.A is None:  # a scalar times the identity of unknown size: keep it symbolic only for 1
-        if s.size == 1 and s[0] == 1.0:
-            return d
-        raise NotAReLUMLP(f"{_where(node)}: scales a tensor of unknown size; export with a fixed feature size")
+    if d.A is None:  # a scalar times the identity of unknown size: kept until the first layer fixes the size
+        return _Data(None, d.c * s[0], d.shape, d.k * s[0])
     return _Data(s[:, None] * d.A, s * d.c, d.shape)
 
 
 def _shift(d: _Data, s: Array, node) -> _Data:
     if s.size > 1:
         d = _need(d, s.size, node)
-    if d.A is None:
-        raise NotAReLUMLP(f"{_where(node)}: shifts a tensor of unknown size; export with a fixed feature size")
+    if d.A is None:  # one shift of every feature of a tensor of unknown size
+        return _Data(None, (d.c if d.c.size else np.zeros(1)) + s, d.shape, d.k)
     return _Data(d.A, d.c + s, d.shape)
 
 
@@ -188,7 +357,9 @@ def _only_singletons(shape: tuple, keep: int) -> bool:
 
 def _reshape(d: _Data, target: Sequence[int], allowzero: int, node) -> tuple:
     S = d.shape
-    T = [int(t) for t in target]
+    T = [t if t == B else int(t) for t in target]
+    if B in T[1:] or (B in T and B not in S):
+        raise NotAReLUMLP(f"{_where(node)}: reshape target {T} puts the batch size at another place than the first axis")
     if B not in S:
         n = _features(S) if None not in S else None
         if n is None:
@@ -232,8 +403,18 @@ def _reshape(d: _Data, target: Sequence[int], allowzero: int, node) -> tuple:
     return tuple([B] + rest)
 
 
+def _axes(node, axes, r: int) -> list:
+    """Axes of a tensor of rank ``r`` in ``[-r, r - 1]``, made non-negative; out of range or repeated is refused."""
+    axes = [int(x) for x in axes]
+    if any(not -r <= x < r for x in axes) or len({x % r for x in axes}) != len(axes):
+        raise NotAReLUMLP(f"{_where(node)}: axes {axes} are out of range [-{r}, {r - 1}] or repeated for a tensor of rank {r}")
+    return sorted(x % r for x in axes)
+
+
 def _transpose(S: tuple, perm: Optional[Sequence[int]], node) -> tuple:
     perm = list(range(len(S)))[::-1] if perm is None else [int(p) for p in perm]
+    if sorted(perm) != list(range(len(S))):
+        raise NotAReLUMLP(f"{_where(node)}: perm {perm} is not a permutation of the {len(S)} axes of {S}")
     big = [i for i, s in enumerate(S) if s not in (1, B)]
     if len(big) > 1:
         raise NotAReLUMLP(f"{_where(node)}: transposes a tensor of shape {S} with several feature axes")
@@ -243,7 +424,7 @@ def _transpose(S: tuple, perm: Optional[Sequence[int]], node) -> tuple:
 def _gemm(node, a: Any, b: Any, cval: Optional[Array], attrs: dict) -> _Data:
     """``Y = alpha op(A) op(B) + beta C``, with either A or B the data."""
     alpha, beta = float(attrs.get("alpha", 1.0)), float(attrs.get("beta", 1.0))
-    tA, tB = int(attrs.get("transA", 0)), int(attrs.get("transB", 0))
+    tA, tB = int(bool(attrs.get("transA", 0))), int(bool(attrs.get("transB", 0)))
     if isinstance(a, _Data) == isinstance(b, _Data):
         raise NotAReLUMLP(f"{_where(node)}: needs exactly one operand computed from the input and one constant weight "
                           "matrix" + (" (two data operands: not a layer of an MLP)" if isinstance(a, _Data) else ""))
@@ -283,7 +464,9 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
     Parameters
     ----------
     model
-        A path to an ``.onnx`` file, its bytes, or an ``onnx.ModelProto``.
+        A path to an ``.onnx`` file (external data is read from its folder
+        only), its bytes, or an ``onnx.ModelProto`` (both without external
+        data: they have no folder to read it from).
 
     Returns
     -------
@@ -295,30 +478,42 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
     ------
     NotAReLUMLP
         A node that is not part of a ReLU MLP (named with its op), several
-        inputs or outputs, a shape that cannot be resolved.
+        inputs or outputs, a shape that cannot be resolved, a model that
+        ``onnx.checker`` or onnx's type inference rejects, a float16 or
+        bfloat16 data path, external data that cannot be read safely.
     ValueError
         Non-finite weights (the node is named).
     """
-    onnx = _onnx()
-    if isinstance(model, (str, Path)):
-        path = Path(model)
-        if not path.exists():
-            raise FileNotFoundError(f"no ONNX file {str(path)!r}")
-        model = onnx.load(str(path))
-    elif isinstance(model, (bytes, bytearray)):
-        model = onnx.load_from_string(bytes(model))
-    if not isinstance(model, onnx.ModelProto):
-        raise TypeError(f"give an ONNX model (onnx.ModelProto), its bytes or a path to an .onnx file, got {type(model).__name__}")
+    model = _load(model)
+    _check(model)
+    if model.graph.sparse_initializer:  # densified, as onnxruntime does (and for onnx's type inference)
+        onnx = _onnx()
+        dense = [onnx.numpy_helper.from_array(_dense(sp, f"sparse initializer {sp.values.name!r}"), sp.values.name)
+                 for sp in model.graph.sparse_initializer]
+        model = onnx.ModelProto.FromString(model.SerializeToString())
+        del model.graph.sparse_initializer[:]
+        model.graph.initializer.extend(dense)
     g = model.graph
-    consts: dict[str, Array] = {t.name: onnx.numpy_helper.to_array(t) for t in g.initializer}
+    consts: dict[str, Array] = {t.name: _tensor(t, f"initializer {t.name!r}") for t in g.initializer}
+    shadowed = [vi.name for vi in g.input if vi.name in consts]
     inputs = [vi for vi in g.input if vi.name not in consts]
     if len(inputs) != 1:
+        note = (f"; inputs {shadowed} have an initializer of the same name, so they are read as constants (weights "
+                "with a default value): rename the data input or the initializer") if shadowed and not inputs else ""
         raise NotAReLUMLP(f"the graph has {len(inputs)} inputs {[vi.name for vi in inputs]}; a network of flnotes has one "
-                          "input vector [z, v]: concatenate the inputs before exporting")
+                          f"input vector [z, v]: concatenate the inputs before exporting{note}")
     if len(g.output) != 1:
         raise NotAReLUMLP(f"the graph has {len(g.output)} outputs {[o.name for o in g.output]}; expected one output Phi_NN")
+    elem = inputs[0].type.tensor_type.elem_type
+    if elem not in _FULL_FLOATS:
+        kind = _REDUCED.get(elem)
+        raise NotAReLUMLP(f"graph input {inputs[0].name!r} is of type "
+                          f"{kind or _onnx().helper.tensor_dtype_to_string(elem)}: "
+                          + (f"a {kind} network rounds every product to a few digits, which the MILP's eps would not "
+                             "cover; export it in float32 or float64" if kind else "expected a float32 or float64 input"))
     in_shape = _input_shape(inputs[0])
-    n0 = in_shape[-1]
+    feats = [s for s in in_shape if s != B]
+    n0 = None if None in feats else int(np.prod(feats, dtype=int))
     data: dict[str, _Data] = {inputs[0].name: _Data(None if n0 is None else np.eye(n0),
                                                     np.zeros(0 if n0 is None else n0), in_shape)}
     weights, biases = [], []
@@ -333,7 +528,7 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
             return consts[name]
         raise NotAReLUMLP(f"tensor {name!r} is used before it is computed (not topologically sorted?)")
 
-    for node in g.node:
+    for node in _live(g):
         op = node.op_type
         if node.domain not in ("", "ai.onnx") and not (node.domain == "ai.onnx.ml" and op == "Scaler"):
             raise NotAReLUMLP(f"{_where(node)} of domain {node.domain!r} is not part of a ReLU MLP; supported ops: "
@@ -343,6 +538,17 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
             continue
         args = [val(x) for x in node.input]
         datas = [x for x in args if isinstance(x, _Data)]
+        if op == "Shape" and datas:  # the data's shape at run time: followed for a Reshape that keeps the batch
+            a = _attrs(node)
+            consts[node.output[0]] = _Shp(list(datas[0].shape)[slice(a.get("start", 0), a.get("end"))]).value()
+            continue
+        if any(isinstance(x, _Shp) for x in args) and not (op == "Reshape" and datas and len(args) > 1
+                                                            and isinstance(args[1], _Shp)):
+            if datas:
+                raise NotAReLUMLP(f"{_where(node)}: computes with the shape of the data read at run time; "
+                                  "export with a fixed feature size and a dynamic batch axis")
+            consts[node.output[0]] = _fold_shape(node, args)
+            continue
         if not datas:  # a node on constants only: fold it
             consts[node.output[0]] = _fold(node, args)
             continue
@@ -414,12 +620,18 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
         elif op == "Neg":
             new = _scale(d, -np.ones(1), node)
         elif op == "Scaler":  # ai.onnx.ml, skl2onnx's StandardScaler: (x - offset) * scale
-            off, sc = (np.asarray(a.get(k, [v]), float) for k, v in (("offset", 0.0), ("scale", 1.0)))
+            if "offset" not in a or "scale" not in a:
+                raise NotAReLUMLP(f"{_where(node)}: a Scaler needs both its offset and its scale attributes "
+                                  "(onnxruntime refuses it without them); give both")
+            off, sc = (np.asarray(a[k], float).ravel() for k in ("offset", "scale"))
+            if off.size != sc.size:
+                raise NotAReLUMLP(f"{_where(node)}: its offset ({off.size} values) and scale ({sc.size} values) differ in "
+                                  "length (onnxruntime refuses it); give as many offsets as scales")
             _check_finite(off, node, "offset")
             _check_finite(sc, node, "scale")
             new = _scale(_shift(d, -_broadcast_const(off, d, node), node), _broadcast_const(sc, d, node), node)
         else:
-            new = _Data(d.A, d.c, _shape_op(node, op, d, args, a))
+            new = _Data(d.A, d.c, _shape_op(node, op, d, args, a), d.k)
         data[out] = new
         layer_of[out] = layer_of[node.input[0] if node.input[0] in data else next(x for x in node.input if x in data)]
     oname = g.output[0].name
@@ -432,6 +644,11 @@ def read(model: Union[str, Path, Any]) -> tuple[list[Array], list[Array], dict]:
         raise NotAReLUMLP(f"the graph's output {oname!r} does not come from the last ReLU layer (a branch)")
     if not (np.all(np.isfinite(d.A)) and np.all(np.isfinite(d.c))):
         raise ValueError(f"the last layer, folded up to the output {oname!r}, contains NaN or inf: fix the exported model")
+    if B in d.shape and (d.shape[0] != B or sum(1 for s in d.shape[1:] if s != 1) > 1):
+        raise NotAReLUMLP(f"the graph's output {oname!r} has the layout {d.shape} ('batch' is the batch axis); flnotes reads "
+                          "a network whose output is (batch, m) (or (batch, 1, ..., m)): transpose or reshape the output "
+                          "before exporting")
+    _check_types(model)
     weights.append(d.A)
     biases.append(d.c)
     n_in = weights[0].shape[1]
@@ -444,8 +661,12 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
     """The tracked shape after a shape-only node."""
     S = d.shape
     if op in ("Identity", "Cast"):
-        if op == "Cast" and a.get("to") not in (1, 10, 11, 16):  # float, float16, double, bfloat16
-            raise NotAReLUMLP(f"{_where(node)}: casts the data to a non-float type ({a.get('to')})")
+        to = a.get("to")
+        if op == "Cast" and to in _REDUCED:
+            raise NotAReLUMLP(f"{_where(node)}: casts the data to {_REDUCED[to]}, which rounds every value to a few digits "
+                              "(the MILP's eps would not cover it); remove the cast or cast to float32/float64")
+        if op == "Cast" and to not in _FULL_FLOATS:
+            raise NotAReLUMLP(f"{_where(node)}: casts the data to a non-float type ({to}); remove the cast")
         return S
     if op == "Dropout":
         if len(args) > 2 and args[2] is not None and bool(np.asarray(args[2]).ravel()[0]):
@@ -454,7 +675,10 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
             raise NotAReLUMLP(f"{_where(node)}: its mask output is used; export the model in eval mode")
         return S
     if op == "Flatten":
-        axis = int(a.get("axis", 1)) % max(len(S), 1) if len(S) else 0
+        r, axis = len(S), int(a.get("axis", 1))
+        if not -r <= axis <= r:
+            raise NotAReLUMLP(f"{_where(node)}: axis={axis} is outside [-{r}, {r}] for a tensor of rank {r}")
+        axis = axis + r if axis < 0 else axis
         head, tail = S[:axis], S[axis:]
         if B in tail:
             if head:
@@ -462,11 +686,16 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
             return (1, B) if all(s in (1, B) for s in tail) and len(tail) == 1 else _refuse_batch(node, S)
         if head and not all(s in (1, B) for s in head):
             raise NotAReLUMLP(f"{_where(node)}: keeps feature axes {head} in front ({S}, axis={axis})")
-        return ((B if B in head else 1), None if None in tail else _features(tail))
+        return ((B if B in head else 1), None if None in tail else (_features(tail) if tail else 1))
     if op == "Reshape":
         if len(args) < 2 or isinstance(args[1], _Data) or args[1] is None:
             raise NotAReLUMLP(f"{_where(node)}: its target shape is computed from the data at run time and cannot be "
                               "resolved; export with a constant shape (e.g. a Flatten)")
+        if isinstance(args[1], _Shp):
+            if None in args[1].v:
+                raise NotAReLUMLP(f"{_where(node)}: its target shape uses a feature size not known before run time; "
+                                  "export with a fixed feature size")
+            return _reshape(d, args[1].v, int(a.get("allowzero", 0)), node)
         return _reshape(d, np.asarray(args[1]).ravel(), int(a.get("allowzero", 0)), node)
     if op in ("Squeeze", "Unsqueeze"):
         axes = a.get("axes")
@@ -477,15 +706,14 @@ def _shape_op(node, op: str, d: _Data, args: list, a: dict) -> tuple:
         if op == "Squeeze":
             if axes is None:
                 axes = [i for i, s in enumerate(S) if s == 1]
-            axes = sorted(int(x) % len(S) for x in axes)
+            axes = _axes(node, axes, len(S))
             if any(S[i] != 1 for i in axes):
                 raise NotAReLUMLP(f"{_where(node)}: squeezes an axis of size other than 1 in {S}")
             return tuple(s for i, s in enumerate(S) if i not in axes)
         if axes is None:
             raise NotAReLUMLP(f"{_where(node)}: Unsqueeze without axes")
         out = list(S)
-        r = len(S) + len(axes)
-        for x in sorted(int(x) % r for x in axes):
+        for x in _axes(node, axes, len(S) + len(axes)):
             out.insert(x, 1)
         return tuple(out)
     if op == "Transpose":
@@ -497,12 +725,66 @@ def _refuse_batch(node, S):
     raise NotAReLUMLP(f"{_where(node)}: flattens the batch axis of {S}")
 
 
+def _fold_shape(node, args: list) -> Union[_Shp, Array]:
+    """Follow the batch size through the shape arithmetic torch writes for ``x.view(x.size(0), -1)``."""
+    op, a = node.op_type, _attrs(node)
+    x = args[0]
+
+    def refuse(why: str):
+        return NotAReLUMLP(f"{_where(node)}: {why}; flnotes follows the batch size only through Shape -> Gather -> "
+                           "Unsqueeze -> Concat -> Reshape (as torch writes x.view(x.size(0), -1)): export with a "
+                           "constant target shape")
+
+    if op in ("Identity", "Cast"):
+        if op == "Cast" and int(a.get("to", 0)) not in (6, 7):  # int32, int64
+            raise refuse("casts a shape to a non-integer type")
+        return x
+    if op == "Gather" and isinstance(x, _Shp) and not isinstance(args[1], _Shp):
+        idx = np.asarray(args[1])
+        if int(a.get("axis", 0)) != 0 or idx.ndim > 1 or x.scalar:
+            raise refuse("gathers a shape along an axis other than 0")
+        n = len(x.v)
+        if np.any((idx < -n) | (idx >= n)):
+            raise refuse(f"gathers index {idx.tolist()} of a shape of {n} entries")
+        return _Shp([x.v[int(i)] for i in idx.ravel()], scalar=idx.ndim == 0).value()
+    if op in ("Unsqueeze", "Squeeze") and isinstance(x, _Shp):
+        axes = a.get("axes") if "axes" in a else (np.asarray(args[1]).ravel().tolist() if len(args) > 1 else None)
+        if op == "Unsqueeze" and x.scalar and [int(v) for v in (axes or [])] in ([0], [-1]):
+            return _Shp(x.v)
+        if op == "Squeeze" and not x.scalar and len(x.v) == 1 and (axes is None or [int(v) for v in axes] in ([0], [-1])):
+            return _Shp(x.v, scalar=True)
+        raise refuse(f"{op.lower()}s a shape in an unexpected way")
+    if op == "Concat":
+        if int(a.get("axis", 0)) not in (0, -1):
+            raise refuse("concatenates shapes along an axis other than 0")
+        v = []
+        for y in args:
+            if isinstance(y, _Shp):
+                if y.scalar:
+                    raise refuse("concatenates a scalar")
+                v += y.v
+            else:
+                y = np.asarray(y)
+                if y.ndim != 1 or y.dtype.kind not in "iu":
+                    raise refuse("concatenates a shape with a non-integer vector")
+                v += [int(t) for t in y]
+        return _Shp(v).value()
+    raise refuse("computes with the batch size read at run time")
+
+
 def _fold(node, args: list) -> Array:
     """Evaluate a node whose inputs are all constants (shape arithmetic, scalings computed in the graph)."""
     op, a = node.op_type, _attrs(node)
     x = [None if v is None else np.asarray(v) for v in args]
-    if op in ("Identity", "Cast") and x:
+    if op == "Identity" and x:
         return x[0]
+    if op == "Cast":
+        return _cast(node, x[0], int(a.get("to", 0)))
+    if op == "Div" and x[0].dtype.kind in "iu" and x[1].dtype.kind in "iu":  # integer division truncates toward zero
+        if np.any(x[1] == 0):
+            raise NotAReLUMLP(f"{_where(node)}: an integer division by zero in the constants")
+        q = np.abs(x[0]) // np.abs(x[1])
+        return (np.where((x[0] < 0) != (x[1] < 0), -q, q)).astype(np.result_type(x[0], x[1]))
     if op in ("Add", "Sub", "Mul", "Div"):
         return {"Add": np.add, "Sub": np.subtract, "Mul": np.multiply, "Div": np.divide}[op](x[0], x[1])
     if op in ("Neg", "Sqrt", "Reciprocal", "Abs", "Exp", "Log"):
@@ -511,9 +793,14 @@ def _fold(node, args: list) -> Array:
     if op in ("Max", "Min", "Sum") and all(v is not None for v in x):
         return {"Max": np.maximum, "Min": np.minimum, "Sum": np.add}[op].reduce(np.broadcast_arrays(*x))
     if op == "Pow":
-        return np.power(x[0], x[1])
+        if x[0].dtype.kind in "iu" and x[1].dtype.kind in "iu" and np.any(x[1] < 0):
+            raise NotAReLUMLP(f"{_where(node)}: an integer raised to a negative integer power; make the constants float")
+        return np.power(x[0], x[1]).astype(x[0].dtype)
     if op == "Transpose":
-        return np.transpose(x[0], a.get("perm"))
+        perm = a.get("perm")
+        if perm is not None and sorted(int(p) for p in perm) != list(range(x[0].ndim)):
+            raise NotAReLUMLP(f"{_where(node)}: perm {list(perm)} is not a permutation of the {x[0].ndim} axes")
+        return np.transpose(x[0], perm)
     if op == "Reshape":
         t = [s if (s != 0 or a.get("allowzero", 0)) else x[0].shape[i] for i, s in enumerate(x[1].astype(int).tolist())]
         return x[0].reshape(t)
@@ -522,13 +809,40 @@ def _fold(node, args: list) -> Array:
     if op in ("Unsqueeze", "Squeeze"):
         axes = a.get("axes") if "axes" in a else (x[1].ravel().tolist() if len(x) > 1 and x[1] is not None else None)
         if op == "Squeeze":
-            return np.squeeze(x[0], axis=None if axes is None else tuple(int(v) for v in axes))
+            if axes is None:
+                return np.squeeze(x[0])
+            axes = _axes(node, axes, x[0].ndim)
+            if any(x[0].shape[i] != 1 for i in axes):
+                raise NotAReLUMLP(f"{_where(node)}: squeezes an axis of size other than 1 in {x[0].shape}")
+            return np.squeeze(x[0], axis=tuple(axes))
+        if axes is None:
+            raise NotAReLUMLP(f"{_where(node)}: Unsqueeze without axes")
         out = x[0]
-        for v in sorted(int(v) % (out.ndim + len(axes)) for v in axes):
+        for v in _axes(node, axes, out.ndim + len(axes)):
             out = np.expand_dims(out, v)
         return out
     raise NotAReLUMLP(f"{_where(node)} on constants only is not folded by flnotes; simplify the graph "
                       "(e.g. with onnx's constant folding) before importing")
+
+
+def _cast(node, x: Array, to: int) -> Array:
+    """``Cast`` of a constant, to the ``to`` type exactly as onnxruntime does (float to int truncates toward zero)."""
+    onnx = _onnx()
+    names = {1: np.float32, 11: np.float64, 10: np.float16, 9: np.bool_, 2: np.uint8, 3: np.int8, 4: np.uint16,
+             5: np.int16, 6: np.int32, 7: np.int64, 12: np.uint32, 13: np.uint64}
+    if to not in names:
+        raise NotAReLUMLP(f"{_where(node)}: casts a constant to {onnx.helper.tensor_dtype_to_string(to) if to else to}, "
+                          "which flnotes does not fold; cast to a float or an integer type")
+    dt = np.dtype(names[to])
+    if dt.kind in "iub" and x.dtype.kind == "f":
+        if not np.all(np.isfinite(x)):
+            raise NotAReLUMLP(f"{_where(node)}: casts NaN or inf to an integer type (undefined); fix the constants")
+        if dt.kind != "b":
+            info = np.iinfo(dt)
+            if np.any(np.trunc(x) < info.min) or np.any(np.trunc(x) > info.max):
+                raise NotAReLUMLP(f"{_where(node)}: casts a constant out of the range of {dt}")
+            return np.trunc(x).astype(dt)
+    return x.astype(dt)
 
 
 def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "float64", opset: int = 17,
@@ -539,7 +853,8 @@ def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "fl
     The input is ``(batch, n_in)`` with a dynamic batch axis, the output
     ``(batch, n_out)``. ``dtype="float64"`` keeps the weights bit for bit
     (``from_onnx(to_onnx(net))`` is ``net``); ``"float32"`` is what most
-    tools default to, rounded.
+    tools default to, rounded; a weight that overflows float32 (to inf) or
+    underflows it (a nonzero weight to 0) is a ``ValueError``.
     """
     onnx = _onnx()
     from onnx import TensorProto, helper, numpy_helper
@@ -550,6 +865,14 @@ def write(weights: Sequence[Array], biases: Sequence[Array], *, dtype: str = "fl
     nodes, inits, x = [], [], input_name
     K = len(weights)
     for k, (W, b) in enumerate(zip(weights, biases), start=1):
+        for what, v in ((f"W^{k}", np.asarray(W, float)), (f"b^{k}", np.asarray(b, float))):
+            with np.errstate(over="ignore", under="ignore"):
+                r = v.astype(np.float32) if dtype == "float32" else v
+            bad = ~np.isfinite(r) | ((r == 0) & (v != 0))
+            if np.any(bad):
+                i = tuple(int(j) for j in np.argwhere(bad)[0])
+                raise ValueError(f"{what}{list(i)} = {v[i]!r} overflows or underflows in {dtype} (it would be written as "
+                                 f"{r[i]!r}): write the network with dtype='float64', or rescale it")
         inits.append(numpy_helper.from_array(np.asarray(W, dtype), f"W{k}"))
         inits.append(numpy_helper.from_array(np.asarray(b, dtype), f"b{k}"))
         y = output_name if k == K else f"a{k}"

@@ -167,13 +167,14 @@ class ReLUNet:
             the inputs: ``M = diag(1 / scale)``, ``c = -offset / scale``).
         output_map
             ``None`` or a pair ``(D, d)``: ``u = D @ net(...) + d``, ``D`` of
-            shape ``(m, net.n_out)`` (or a vector: a diagonal scaling).
+            shape ``(m, net.n_out)`` (or a vector of ``net.n_out`` scales: a
+            diagonal scaling).
 
         Raises
         ------
         ValueError
-            An ``input_map`` that is not a permutation of ``0..net.n_in-1``, or
-            a map of the wrong shape or with NaN or inf.
+            An ``input_map`` that is not a permutation of ``0..net.n_in-1`` or
+            a tuple ``(M, c)``, or a map of the wrong shape or with NaN or inf.
         """
         W, b = [w.copy() for w in self.W], [c.copy() for c in self.b]
         if input_map is not None:
@@ -202,7 +203,8 @@ class ReLUNet:
         Parameters
         ----------
         model
-            A path to an ``.onnx`` file, its bytes, or an ``onnx.ModelProto``.
+            A path to an ``.onnx`` file (tensors in external data files are
+            read from its folder only), its bytes, or an ``onnx.ModelProto``.
         input_map, output_map
             How the network's inputs and outputs relate to the system's
             ``[z, v]`` and ``u`` (see :meth:`mapped`); the default is that they
@@ -212,7 +214,9 @@ class ReLUNet:
         ------
         flnotes._onnx.NotAReLUMLP
             (a ``ValueError``) the graph is not a ReLU MLP (the message names
-            the node and op).
+            the node and op), is not valid ONNX (``onnx.checker``, type
+            inference), computes in float16 or bfloat16, or has external data
+            that cannot be read from the model's folder.
         ValueError
             Non-finite weights; a bad ``input_map``/``output_map``.
         """
@@ -227,7 +231,8 @@ class ReLUNet:
         Any ONNX tool (onnxruntime, Netron, the MILP libraries that read ONNX)
         opens it. ``dtype="float64"`` keeps the weights exactly, so
         ``ReLUNet.from_onnx(net.to_onnx())`` has the same ``W^k, b^k``;
-        ``"float32"`` rounds them. The model passes ``onnx.checker``.
+        ``"float32"`` rounds them (a weight that overflows or underflows
+        float32 is a ``ValueError``). The model passes ``onnx.checker``.
 
         Returns
         -------
@@ -312,7 +317,10 @@ def onnx_example(name: str = "MSD-sklearn") -> tuple[Path, dict]:
 
 def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
     """``(M, c)`` of :meth:`ReLUNet.mapped` from a permutation or a pair, validated."""
-    if isinstance(input_map, tuple) and len(input_map) == 2 and np.ndim(input_map[0]) == 2:
+    if isinstance(input_map, (tuple, list)) and any(np.ndim(x) == 2 for x in input_map if _is_array_like(x)):
+        if not (isinstance(input_map, tuple) and len(input_map) == 2 and np.ndim(input_map[0]) == 2):
+            raise ValueError("input_map with a matrix must be a pair (M, c) (a tuple of two: M of shape (net.n_in, n) "
+                             f"and c of shape (net.n_in,)), got a {type(input_map).__name__} of {len(input_map)}")
         M, c = np.asarray(input_map[0], float), np.asarray(input_map[1], float).reshape(-1)
         if M.shape[0] != n_net or c.shape != (n_net,):
             raise ValueError(f"input_map = (M, c) must have M of shape ({n_net}, n) and c of shape ({n_net},) for a network "
@@ -320,7 +328,10 @@ def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
         if not (np.all(np.isfinite(M)) and np.all(np.isfinite(c))):
             raise ValueError("input_map (M, c) contains NaN or inf")
         return M, c
-    perm = np.asarray(input_map)
+    try:
+        perm = np.asarray(input_map)
+    except ValueError:
+        perm = np.asarray(None)
     if perm.ndim != 1 or perm.dtype.kind not in "iu":
         raise ValueError("input_map must be a permutation (a list of integers: the network's input i is variable "
                          f"input_map[i] of [z, v]) or a pair (M, c) with M a 2-D array; got {input_map!r}")
@@ -330,12 +341,23 @@ def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
     return np.eye(n_net)[perm], np.zeros(n_net)
 
 
+def _is_array_like(x) -> bool:
+    try:
+        np.asarray(x, float)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
 def _output_map(output_map, n_net: int) -> tuple[Array, Array]:
     if not (isinstance(output_map, tuple) and len(output_map) == 2):
         raise ValueError(f"output_map must be a pair (D, d): u = D @ net(...) + d, got {output_map!r}")
     D, d = np.asarray(output_map[0], float), np.asarray(output_map[1], float).reshape(-1)
-    if D.ndim == 1:
-        D = np.diag(D) if D.shape[0] == n_net else D.reshape(-1, 1)
+    if D.ndim == 1:  # a diagonal scaling, one scale per output (or one scale of a single output)
+        if D.shape[0] != n_net:
+            raise ValueError(f"output_map = (D, d) with D a vector: a diagonal scaling needs {n_net} scales (one per output "
+                             f"of the network), got {D.shape[0]}; for a map to other outputs give D of shape (m, {n_net})")
+        D = np.diag(D)
     if D.ndim != 2 or D.shape[1] != n_net or d.shape != (D.shape[0],):
         raise ValueError(f"output_map = (D, d) must have D of shape (m, {n_net}) (or a vector of {n_net} scales) and d of "
                          f"shape (m,), got D {np.shape(output_map[0])} and d {np.shape(output_map[1])}")

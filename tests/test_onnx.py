@@ -42,7 +42,7 @@ class _G:
 
     def __init__(self, elem=F32):
         self.nodes, self.inits, self.elem, self.k = [], [], elem, 0
-        self.dtype = np.float32 if elem == F32 else np.float64
+        self.dtype = helper.tensor_dtype_to_np_dtype(elem)
 
     def const(self, value, as_node=False):
         self.k += 1
@@ -162,7 +162,7 @@ def run_ort(model, X):
     """onnxruntime's output for the rows of X, as (N, n_out) (the input fed as the graph declares it)."""
     sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     inp = sess.get_inputs()[0]
-    dtype = np.float64 if inp.type == "tensor(double)" else np.float32
+    dtype = {"tensor(double)": np.float64, "tensor(float16)": np.float16}.get(inp.type, np.float32)
     feed = X.astype(dtype).reshape((len(X),) + (1,) * (len(inp.shape) - 2) + (X.shape[1],))  # (N, 1, n) if declared so
     Y = sess.run(None, {inp.name: feed})[0]
     return np.asarray(Y, float).reshape(len(X), -1), X.astype(dtype).astype(float)
@@ -378,19 +378,85 @@ def test_unfused_batch_norm_is_refused():
         fl.ReLUNet.from_onnx(g.model("x", ["N", 3], y, ["N", 1]))
 
 
-def test_run_time_shape_is_refused():
-    """view(x.size(0), -1) as an older exporter writes it: Shape -> Gather -> Concat -> Reshape."""
-    W, b = _layers(3, (4,), 1)
+def _view_batch(W, b, second, gather_index=0, shape_op=None, swap=False):
+    """torch's x.view(x.size(0), -1) with dynamic axes: Shape -> Gather -> Unsqueeze -> Concat([batch, second]) -> Reshape."""
     g = _G(F64)
     shp = g.op("Shape", ["x"], name="/Shape")
-    n0 = g.op("Gather", [shp, g.const(np.array(0, np.int64))], name="/Gather", axis=0)
-    tgt = g.op("Concat", [g.op("Unsqueeze", [n0, g.const(np.array([0], np.int64))]), g.const(np.array([-1], np.int64))],
-               name="/Concat", axis=0)
+    n0 = g.op("Gather", [shp, g.const(np.array(gather_index, np.int64))], name="/Gather", axis=0)
+    if shape_op is not None:
+        n0 = shape_op(g, n0)
+    parts = [g.op("Unsqueeze", [n0, g.const(np.array([0], np.int64))], name="/Unsqueeze"),
+             g.const(np.array([second], np.int64))]
+    tgt = g.op("Concat", parts[::-1] if swap else parts, name="/Concat", axis=0)
     x = g.op("Reshape", ["x", tgt], name="/Reshape")
     y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
                       g.const(b[1])], transB=1)
-    with pytest.raises(NotAReLUMLP, match=r"node '/Shape' \(Shape\).*shape computed at run time"):
-        fl.ReLUNet.from_onnx(g.model("x", ["N", 3], y, ["N", 1]))
+    return g.model("x", ["N", 1, 3], y, ["N", 1])
+
+
+@pytest.mark.parametrize("second", [-1, 3])
+def test_view_by_the_run_time_batch_size_is_read(second):
+    """view(x.size(0), -1) (or the feature count) as torch.onnx.export writes it with a dynamic batch axis."""
+    W, b = _layers(3, (4,), 1, seed=26)
+    model = _view_batch(W, b, second)
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.widths == (4,)
+    assert_same_as_ort(net, model, 3)
+
+
+@pytest.mark.parametrize("gather_index,shape_op,swap,match", [
+    (1, None, False, r"node '/Reshape' \(Reshape\).*does not keep a dynamic batch axis first"),  # a fixed (1, 3)
+    (0, None, True, r"node '/Reshape' \(Reshape\).*batch size at another place"),  # (3, batch)
+    (0, lambda g, n: g.op("Mul", [n, g.const(np.array(2, np.int64))], name="/Mul"), False,
+     r"node '/Mul' \(Mul\).*batch size read at run time"),
+])
+def test_other_run_time_shape_arithmetic_is_refused(gather_index, shape_op, swap, match):
+    W, b = _layers(3, (4,), 1)
+    with pytest.raises(NotAReLUMLP, match=match):
+        fl.ReLUNet.from_onnx(_view_batch(W, b, 3, gather_index, shape_op, swap))
+
+
+def test_lesser_input_layouts_and_gemm_flags_follow_onnxruntime():
+    W, b = _layers(3, (5,), 1, seed=27)
+    X = np.random.default_rng(28).uniform(-2, 2, (200, 3))
+    ref = fl.ReLUNet(W, b)
+
+    def ort_out(model, feed):
+        sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        return sess.run(None, {"x": feed})[0].reshape(len(feed), -1)
+
+    # an input declared (N, n, 1), flattened
+    g = _G(F64)
+    x = g.op("Flatten", ["x"], axis=1)
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
+                      g.const(b[1])], transB=1)
+    model = g.model("x", ["N", 3, 1], y, ["N", 1])
+    np.testing.assert_allclose(fl.ReLUNet.from_onnx(model)(X), ort_out(model, X[:, :, None]), rtol=1e-12, atol=1e-12)
+    # a 1-D batch of scalars [N], unsqueezed to (N, 1)
+    W1, b1 = _layers(1, (5,), 1, seed=29)
+    g = _G(F64)
+    x = g.op("Unsqueeze", ["x", g.const(np.array([-1], np.int64))])
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W1[0]), g.const(b1[0])], transB=1)]), g.const(W1[1]),
+                      g.const(b1[1])], transB=1)
+    model = g.model("x", ["N"], y, ["N", 1])
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.n_in == 1
+    np.testing.assert_allclose(net(X[:, :1]), ort_out(model, X[:, 0]), rtol=1e-12, atol=1e-12)
+    # a symbolic feature size scaled and shifted by scalars before the first layer
+    g = _G(F64)
+    x = g.op("Add", [g.op("Mul", ["x", g.const([0.5])]), g.const([-1.0])])
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
+                      g.const(b[1])], transB=1)
+    model = g.model("x", ["N", "features"], y, ["N", 1])
+    np.testing.assert_allclose(fl.ReLUNet.from_onnx(model)(X), ref(0.5 * X - 1.0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(ort_out(model, X), ref(0.5 * X - 1.0), rtol=1e-12, atol=1e-12)
+    # Gemm's transA/transB: any nonzero value transposes, as onnxruntime reads it
+    g = _G(F64)
+    x = g.op("Transpose", ["x"], perm=[1, 0])
+    h = g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transA=2, transB=3)])
+    y = g.op("Gemm", [h, g.const(W[1]), g.const(b[1])], transB=1)
+    model = g.model("x", ["N", 3], y, ["N", 1])
+    np.testing.assert_allclose(fl.ReLUNet.from_onnx(model)(X), ort_out(model, X), rtol=1e-12, atol=1e-12)
 
 
 def test_non_finite_weights_are_refused_with_the_node():
@@ -495,3 +561,329 @@ def test_unresolvable_input_size_is_refused():
     model = _tiny(lambda g: g.op("Relu", ["x"], name="relu_first"), in_shape=("N", "features"))
     with pytest.raises(NotAReLUMLP, match=r"node 'relu_first' \(Relu\).*unknown size"):
         fl.ReLUNet.from_onnx(model)
+
+
+# ----------------------------------------------------------------- found by an independent attack (regressions)
+def _external_model(tmp_path, location="W1.bin"):
+    """torch's Gemm pattern with its first weight stored in an external file next to the model."""
+    from onnx.external_data_helper import set_external_data
+
+    W, b = _layers(3, (4,), 1, seed=20)
+    model = torch_gemm(W, b, F64, flatten=False)
+    t = next(t for t in model.graph.initializer if t.name == model.graph.node[0].input[1])
+    (tmp_path / "W1.bin").write_bytes(numpy_helper.to_array(t).astype(np.float64).tobytes())
+    set_external_data(t, location)
+    t.ClearField("double_data")
+    t.ClearField("raw_data")
+    t.data_location = TensorProto.EXTERNAL
+    path = tmp_path / "net.onnx"
+    path.write_bytes(model.SerializeToString())
+    return model, path, W, b
+
+
+def test_external_data_is_read_only_from_the_models_folder(tmp_path, monkeypatch):
+    model, path, W, b = _external_model(tmp_path)
+    net = fl.ReLUNet.from_onnx(path)  # a path: resolved next to the model
+    assert np.array_equal(net.W[0], W[0]) and np.array_equal(net.b[0], b[0])
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    (other / "W1.bin").write_bytes(np.full(12, 7.0).tobytes())  # a file of that name in the current directory
+    monkeypatch.chdir(other)
+    for given in (model, model.SerializeToString(), onnx.load(str(path), load_external_data=False)):
+        with pytest.raises(NotAReLUMLP, match="external data.*pass the path"):
+            fl.ReLUNet.from_onnx(given)
+    _, esc, _, _ = _external_model(tmp_path, location="../W1.bin")
+    with pytest.raises(NotAReLUMLP, match="outside the model's folder"):
+        fl.ReLUNet.from_onnx(esc)
+
+
+def _scaled_by(build, n_in=3):
+    """A one-layer torch network whose input is multiplied by a constant vector computed by ``build(g)``."""
+    W, b = _layers(n_in, (4,), 1, seed=21)
+    g = _G(F32)
+    x = g.op("Mul", ["x", build(g)], name="scale_in")
+    for k, (Wk, bk) in enumerate(zip(W, b)):
+        x = g.op("Gemm", [x, g.const(Wk), g.const(bk)], transB=1)
+        if k < len(W) - 1:
+            x = g.op("Relu", [x])
+    return g.model("x", ["N", n_in], x, ["N", 1])
+
+
+@pytest.mark.parametrize("to,expect", [
+    (TensorProto.INT64, [2.0, -1.0, 0.0]), (TensorProto.INT32, [2.0, -1.0, 0.0]), (TensorProto.BOOL, [1.0, 1.0, 1.0]),
+    (TensorProto.FLOAT16, np.float16([2.7, -1.6, 0.4]).astype(float)),
+])
+def test_cast_of_constants_converts_like_onnxruntime(to, expect):
+    model = _scaled_by(lambda g: g.op("Cast", [g.op("Cast", [g.const([2.7, -1.6, 0.4])], to=to)], to=F32))
+    net = fl.ReLUNet.from_onnx(model)
+    plain = fl.ReLUNet.from_onnx(_scaled_by(lambda g: g.const(expect)))
+    np.testing.assert_allclose(net.W[0], plain.W[0], rtol=0, atol=0)
+    assert_same_as_ort(net, model, 3)
+
+
+def test_integer_division_of_constants_truncates_toward_zero():
+    model = _scaled_by(lambda g: g.op("Cast", [g.op("Div", [g.const(np.array([7, 5, -7], np.int64)),
+                                                             g.const(np.array([2], np.int64))])], to=F32))
+    net = fl.ReLUNet.from_onnx(model)
+    plain = fl.ReLUNet.from_onnx(_scaled_by(lambda g: g.const([3.0, 2.0, -3.0])))
+    np.testing.assert_array_equal(net.W[0], plain.W[0])
+    assert_same_as_ort(net, model, 3)
+
+
+def test_reduced_precision_data_paths_are_refused():
+    W, b = _layers(3, (4,), 1, seed=22)
+    g = _G(F32)
+    x = g.op("Cast", [g.op("Cast", ["x"], name="to_half", to=TensorProto.FLOAT16)], name="back", to=F32)
+    x = g.op("Gemm", [g.op("Relu", [g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)]), g.const(W[1]),
+                      g.const(b[1])], transB=1)
+    with pytest.raises(NotAReLUMLP, match=r"node 'to_half' \(Cast\): casts the data to float16"):
+        fl.ReLUNet.from_onnx(g.model("x", ["N", 3], x, ["N", 1]))
+    g = _G(F32)
+    x = g.op("Cast", ["x"], name="to_bf16", to=TensorProto.BFLOAT16)
+    x = g.op("Cast", [x], name="back", to=F32)
+    x = g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)
+    with pytest.raises(NotAReLUMLP, match=r"node 'to_bf16' \(Cast\): casts the data to bfloat16"):
+        fl.ReLUNet.from_onnx(g.model("x", ["N", 3], x, ["N", 4]))
+    half = torch_gemm(W, b, TensorProto.FLOAT16)
+    assert run_ort(half, np.ones((2, 3)))[0].shape == (2, 1), "onnxruntime runs the float16 model"
+    with pytest.raises(NotAReLUMLP, match="float16.*export it in float32 or float64"):
+        fl.ReLUNet.from_onnx(half)
+
+
+def test_flatten_at_the_rank_of_a_vector_is_a_column():
+    """Flatten (axis=1) of a 1-D input (3,) gives (3, 1) in onnxruntime: features in front, refused."""
+    W, b = _layers(3, (4,), 1, seed=23)
+    g = _G(F64)
+    x = g.op("Flatten", ["x"], name="flat", axis=1)
+    x = g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)
+    y = g.op("Gemm", [g.op("Relu", [x]), g.const(W[1]), g.const(b[1])], transB=1)
+    model = g.model("x", [3], y, [1])
+    with pytest.raises(Exception):  # onnxruntime: (3, 1) @ (3, 4)^T does not multiply
+        run_ort_vector = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        run_ort_vector.run(None, {"x": np.ones(3)})
+    with pytest.raises(NotAReLUMLP, match=r"node 'flat' \(Flatten\): keeps feature axes"):
+        fl.ReLUNet.from_onnx(model)
+    # at axis 0 the vector becomes a row (1, 3): a single sample, read as such
+    g = _G(F64)
+    x = g.op("Flatten", ["x"], name="flat", axis=0)
+    x = g.op("Gemm", [x, g.const(W[0]), g.const(b[0])], transB=1)
+    y = g.op("Gemm", [g.op("Relu", [x]), g.const(W[1]), g.const(b[1])], transB=1)
+    net = fl.ReLUNet.from_onnx(g.model("x", [3], y, [1, 1]))
+    assert net.widths == (4,)
+
+
+def test_dead_nodes_are_ignored():
+    W, b = _layers(3, (4,), 1, seed=24)
+    model = torch_gemm(W, b, F64, flatten=False)
+    g = model.graph
+    dead = [helper.make_node("Relu", ["input"], ["dead_in"], name="dead_relu_in"),
+            helper.make_node("Sigmoid", ["dead_in"], ["dead_sig"], name="dead_sigmoid"),
+            helper.make_node("Relu", [g.output[0].name], ["dead_out"], name="dead_relu_out")]
+    nodes = list(g.node)
+    del g.node[:]
+    g.node.extend([dead[0], dead[1]] + nodes + [dead[2]])
+    onnx.checker.check_model(model)
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.widths == (4,)
+    assert_same_as_ort(net, model, 3)
+
+
+def _bare(nodes, inits=(), x_shape=("N", 3), y="y", y_shape=("N", 1), elem=F64):
+    g = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", elem, list(x_shape))],
+                          [helper.make_tensor_value_info(y, elem, list(y_shape))], initializer=list(inits))
+    m = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    m.ir_version = 8
+    return m
+
+
+@pytest.mark.parametrize("make,match", [
+    (lambda W: [helper.make_node("Gemm", ["x"], ["y"], name="g1")], r"g1\b.*Gemm.*input size 1"),
+    (lambda W: [helper.make_node("Gemm", ["x", "W"], [], name="g0")], r"g0\b.*Gemm.*output size 0"),
+    (lambda W: [helper.make_node("Constant", [], [], name="k", value_float=1.0),
+                helper.make_node("Gemm", ["x", "W"], ["y"], name="g1", transB=1)], r"name: k, type: Constant.*zero output"),
+    (lambda W: [helper.make_node("MatMul", ["x", "W", "W"], ["y"], name="mm3")], r"mm3\b.*MatMul.*input size 3"),
+    (lambda W: [helper.make_node("Gemm", ["x", "W"], ["h"], transB=1),
+                helper.make_node("Add", ["h"], ["y"], name="add1")], r"add1\b.*Add.*input size 1"),
+])
+def test_malformed_models_are_refused_by_the_checker_with_the_node(make, match):
+    W = numpy_helper.from_array(np.ones((1, 3)), "W")
+    with pytest.raises(NotAReLUMLP, match=r"not valid ONNX.*" + match):
+        fl.ReLUNet.from_onnx(_bare(make(W), [W]))
+
+
+def test_integer_power_with_a_negative_exponent_is_refused():
+    model = _scaled_by(lambda g: g.op("Cast", [g.op("Pow", [g.const(np.array([2, 2, 2], np.int64)),
+                                                             g.const(np.array([-1], np.int64))], name="pow")], to=F32))
+    with pytest.raises(NotAReLUMLP, match=r"node 'pow' \(Pow\).*negative integer power"):
+        fl.ReLUNet.from_onnx(model)
+
+
+def test_sparse_initializer_is_densified():
+    W, b = _layers(3, (4,), 1, seed=25)
+    W[0][np.abs(W[0]) < 0.4] = 0.0
+    model = torch_gemm(W, b, F64, flatten=False)
+    g = model.graph
+    name = g.node[0].input[1]
+    t = next(t for t in g.initializer if t.name == name)
+    dense = numpy_helper.to_array(t)
+    idx = np.flatnonzero(dense)
+    sp = helper.make_sparse_tensor(numpy_helper.from_array(dense.ravel()[idx], name),
+                                   numpy_helper.from_array(idx.astype(np.int64), ""), dense.shape)
+    g.initializer.remove(t)
+    g.sparse_initializer.append(sp)
+    net = fl.ReLUNet.from_onnx(model)
+    np.testing.assert_array_equal(net.W[0], W[0])
+    assert_same_as_ort(net, model, 3)
+
+
+@pytest.mark.parametrize("bad", ["list", "triple"])
+def test_input_map_pair_given_otherwise_gets_the_documented_message(bad):
+    W, b = _layers(3, (4,), 1)
+    M, c = np.eye(3), np.zeros(3)
+    with pytest.raises(ValueError, match=r"pair \(M, c\)"):
+        fl.ReLUNet(W, b).mapped(input_map=[M, c] if bad == "list" else (M, c, c))
+
+
+def test_input_shadowed_by_an_initializer_is_named():
+    W, b = _layers(3, (4,), 1)
+    model = torch_gemm(W, b, F64, flatten=False)
+    model.graph.initializer.append(numpy_helper.from_array(np.zeros((1, 3)), "input"))
+    with pytest.raises(NotAReLUMLP, match=r"\['input'\] have an initializer of the same name"):
+        fl.ReLUNet.from_onnx(model)
+
+
+def test_to_onnx_float32_refuses_weights_that_overflow_or_underflow():
+    W, b = _layers(3, (4,), 1)
+    for big in (1e39, 1e-50):
+        W2 = [w.copy() for w in W]
+        W2[1][0, 2] = big
+        with pytest.raises(ValueError, match=r"W\^2\[0, 2\].*float32"):
+            fl.ReLUNet(W2, b).to_onnx(dtype="float32")
+        fl.ReLUNet(W2, b).to_onnx(dtype="float64")  # exact in float64
+
+
+def test_output_map_vector_must_have_one_scale_per_output():
+    W, b = _layers(3, (4,), 1)
+    with pytest.raises(ValueError, match="diagonal scaling needs 1 scales"):
+        fl.ReLUNet(W, b).mapped(output_map=(np.array([1.0, 2.0, 3.0]), np.zeros(3)))
+    net = fl.ReLUNet(W, b).mapped(output_map=(np.array([2.0]), np.array([1.0])))
+    x = np.ones((1, 3))
+    np.testing.assert_allclose(net(x), 2 * fl.ReLUNet(W, b)(x) + 1)
+
+
+def test_invalid_models_that_onnxruntime_rejects_are_refused():
+    W, b = _layers(3, (4,), 1)
+    # int64 weights in a float graph
+    g = _G(F64)
+    y = g.op("Gemm", ["x", g.const(np.ones((1, 3), np.int64)), g.const(b[1])], transB=1)
+    with pytest.raises(NotAReLUMLP, match="type"):
+        fl.ReLUNet.from_onnx(g.model("x", ["N", 3], y, ["N", 1]))
+    # a Reshape shape given as floats
+    g = _G(F64)
+    x = g.op("Reshape", ["x", g.const(np.array([0.0, -1.0]))], name="r")
+    y = g.op("Gemm", [x, g.const(W[1][:, :3]), g.const(b[1])], transB=1)
+    with pytest.raises(NotAReLUMLP):
+        fl.ReLUNet.from_onnx(_bare(g.nodes, g.inits, y=y))
+
+
+@pytest.mark.parametrize("attrs,match", [({}, "needs both its offset and its scale"),
+                                         ({"offset": [0.0, 1.0], "scale": [1.0, 2.0, 3.0]}, "differ in length"),
+                                         ({"offset": [0.0], "scale": [1.0, 2.0, 3.0]}, "differ in length")])
+def test_bad_scaler_is_refused(attrs, match):
+    W, b = _layers(3, (4,), 1)
+    g = _G(F32)
+    g.nodes.append(helper.make_node("Scaler", ["x"], ["s"], name="scaler", domain="ai.onnx.ml", **attrs))
+    y = g.op("Gemm", ["s", g.const(W[1][:, :3]), g.const(b[1])], transB=1)
+    gr = helper.make_graph(g.nodes, "g", [helper.make_tensor_value_info("x", F32, ["N", 3])],
+                           [helper.make_tensor_value_info(y, F32, ["N", 1])], initializer=g.inits)
+    m = helper.make_model(gr, opset_imports=[helper.make_opsetid("", 17), helper.make_opsetid("ai.onnx.ml", 3)])
+    m.ir_version = 8
+    with pytest.raises(NotAReLUMLP, match=rf"node 'scaler' \(Scaler\).*{match}"):
+        fl.ReLUNet.from_onnx(m)
+
+
+@pytest.mark.parametrize("layout", ["columns", "three_d"])
+def test_output_not_in_batch_rows_is_refused(layout):
+    W, b = _layers(3, (4,), 2)
+    model = torch_gemm(W, b, F64, flatten=False)
+    g = model.graph
+    last = g.output[0].name
+    if layout == "columns":
+        g.node.append(helper.make_node("Transpose", [last], ["out"], name="t", perm=[1, 0]))
+        shape = [2, "N"]
+    else:
+        g.node.append(helper.make_node("Unsqueeze", [last, "ax"], ["out"], name="u"))
+        g.initializer.append(numpy_helper.from_array(np.array([0], np.int64), "ax"))
+        shape = [1, "N", 2]
+    del g.output[:]
+    g.output.append(helper.make_tensor_value_info("out", F64, shape))
+    with pytest.raises(NotAReLUMLP, match=r"output 'out' has the layout.*\(batch, m\)"):
+        fl.ReLUNet.from_onnx(model)
+
+
+@pytest.mark.parametrize("build,match", [
+    (lambda g: g.op("Unsqueeze", ["x", g.const(np.array([3], np.int64))], name="u"), r"node 'u' \(Unsqueeze\): axes \[3\]"),
+    (lambda g: g.op("Squeeze", ["x", g.const(np.array([5], np.int64))], name="s"), r"node 's' \(Squeeze\): axes \[5\]"),
+    (lambda g: g.op("Transpose", ["x"], name="t", perm=[1, 2]), r"node 't' \(Transpose\): perm \[1, 2\]"),
+    (lambda g: g.op("Mul", ["x", g.op("Unsqueeze", [g.const(np.ones(3)), g.const(np.array([2], np.int64))], name="uc")]),
+     r"node 'uc' \(Unsqueeze\): axes \[2\]"),  # on constants
+])
+def test_out_of_range_axes_are_refused_not_wrapped(build, match):
+    """onnxruntime refuses these; wrapping the axis modulo the rank would read another graph."""
+    with pytest.raises(NotAReLUMLP, match=match):
+        fl.ReLUNet.from_onnx(_tiny(lambda g: g.op("Gemm", [build(g), g.const(np.ones((1, 3))), g.const([0.0])], transB=1)))
+
+
+def test_declared_output_shape_is_not_trusted_over_the_nodes():
+    """onnxruntime runs a model whose declared output shape is wrong (it warns) and returns what the nodes compute."""
+    W, b = _layers(3, (4,), 2, seed=30)
+    model = torch_gemm(W, b, F64, flatten=False)
+    model.graph.output[0].type.tensor_type.shape.dim[1].dim_value = 5
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.n_out == 2
+    assert_same_as_ort(net, model, 3)
+
+
+def test_output_with_singleton_axes_after_the_batch_is_read():
+    W, b = _layers(3, (4,), 2, seed=31)
+    g = _G(F64)
+    x = g.op("MatMul", ["x", g.const(W[0].T[None])], name="mm")
+    x = g.op("Add", [x, g.const(b[0])])
+    y = g.op("Add", [g.op("MatMul", [g.op("Relu", [x]), g.const(W[1].T)]), g.const(b[1])])
+    model = g.model("x", ["N", 1, 3], y, ["N", 1, 2])
+    with pytest.raises(NotAReLUMLP, match=r"node 'mm' \(MatMul\)"):  # a 3-D weight is not a layer of an MLP
+        fl.ReLUNet.from_onnx(model)
+    g = _G(F64)
+    x = g.op("Add", [g.op("MatMul", ["x", g.const(W[0].T)]), g.const(b[0])])
+    y = g.op("Add", [g.op("MatMul", [g.op("Relu", [x]), g.const(W[1].T)]), g.const(b[1])])
+    model = g.model("x", ["N", 1, 3], y, ["N", 1, 2])
+    net = fl.ReLUNet.from_onnx(model)
+    assert net.n_out == 2
+    assert_same_as_ort(net, model, 3)
+
+
+def test_output_without_a_declared_shape_is_read():
+    """onnxruntime runs a graph whose output declares no shape; checking the model must not refuse it."""
+    W, b = _layers(3, (4,), 1, seed=32)
+    model = torch_gemm(W, b, F64)
+    model.graph.output[0].type.tensor_type.ClearField("shape")
+    net = fl.ReLUNet.from_onnx(model)
+    assert_same_as_ort(net, model, 3)
+
+
+def test_external_data_in_a_constant_node_is_refused_without_a_path(tmp_path, monkeypatch):
+    from onnx.external_data_helper import set_external_data
+
+    W, b = _layers(3, (4,), 1, seed=33)
+    g = _G(F64)
+    y = g.op("Gemm", [g.op("Relu", [g.op("Gemm", ["x", g.const(W[0], as_node=True), g.const(b[0])], transB=1)]),
+                      g.const(W[1]), g.const(b[1])], transB=1)
+    model = g.model("x", ["N", 3], y, ["N", 1])
+    t = model.graph.node[0].attribute[0].t
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "W.bin").write_bytes(np.full(12, 7.0).tobytes())
+    set_external_data(t, "W.bin")
+    t.ClearField("raw_data")
+    t.data_location = TensorProto.EXTERNAL
+    with pytest.raises(NotAReLUMLP, match="external data.*pass the path"):
+        fl.ReLUNet.from_onnx(model.SerializeToString())
