@@ -53,7 +53,8 @@ def students_repository(config: str | Path = ROOT / "_config.yml") -> str:
     return url
 
 
-_INSTALL = re.compile(r'"flnotes @ git\+[^"]*"')
+#: the package's install line in a notebook (``"flnotes @ git+..."``, ``"flnotes[book] @ git+..."``)
+_INSTALL = re.compile(r'(flnotes(?:\[[\w,]+\])? @ git\+)https://[^"\\\s]+')
 
 
 def assign(master: str | Path, out_dir: str | Path, *, run_tests: bool = True) -> tuple[Path, Path]:
@@ -71,7 +72,7 @@ def assign(master: str | Path, out_dir: str | Path, *, run_tests: bool = True) -
     if not master.is_file() or master.suffix != ".ipynb":
         raise ValueError(f"master={master} is not a notebook file (.ipynb)")
     name = master.stem
-    install = f'"flnotes @ git+{students_repository()}"'
+    url = students_repository()
     with tempfile.TemporaryDirectory(prefix=f"otter-assign-{name}-") as tmp:
         cmd = _otter_cmd() + ["assign", str(master), tmp]
         if not run_tests:
@@ -89,7 +90,7 @@ def assign(master: str | Path, out_dir: str | Path, *, run_tests: bool = True) -
         nb = nbformat.read(Path(tmp, "student", master.name), as_version=4)
         for cell in nb.cells:
             if cell.cell_type == "code" and "%pip install" in cell.source:
-                cell.source = _INSTALL.sub(install, cell.source)
+                cell.source = _INSTALL.sub(lambda m: m.group(1) + url, cell.source)
         nbformat.write(nb, student)
         bundle = out_dir / "autograder" / f"{name}-autograder.zip"
         if bundle.exists():
@@ -296,6 +297,12 @@ def students_edition(out_dir: str | Path, root: str | Path = ROOT) -> Path:
                                                                      ".pytest_cache") or n.endswith(".egg-info")]
 
     shutil.copytree(root, out_dir, ignore=ignore, symlinks=True)
+    url = students_repository(root / "_config.yml")
+    for p in list(out_dir.rglob("*.ipynb")) + list(out_dir.rglob("*.md")):
+        text = p.read_text(encoding="utf-8")
+        new = _INSTALL.sub(lambda m: m.group(1) + url, text)
+        if new != text:
+            p.write_text(new, encoding="utf-8")
     bad = hidden_test_lines(root / "book" / "assignments" / "master") + ["REFSOL", "# BEGIN SOLUTION", "BEGIN TESTS"]
     leaks = []
     for p in out_dir.rglob("*"):
