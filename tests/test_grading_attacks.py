@@ -11,7 +11,7 @@ submission per attack the grader must withstand:
 * rewriting the bundles, the gradebook and the reports; a symbolic link to the checkout;
 * a detached (``setsid``) process that outlives the kernel and rewrites the reports;
 * empty arrays (``np.allclose`` of an empty array with anything is True);
-* printing 2 GB; children that take 800 MB each; a bounded fork storm;
+* printing 2 GB; children that take 800 MB each; a bounded fork storm; filling the file systems;
 * a function that sleeps only when the grader calls it; an answer too large to be data;
 * killing the sandbox's runner.
 
@@ -212,6 +212,16 @@ def phi(z, v):
 def v_interval(z):
     return [[[[[[[[[[[[[[[[[[[[[[[[0]]]]]]]]]]]]]]]]]]]]]]], 0
 '''),
+        "fill_memory_file_systems": _attack(built, '''
+import os
+for d in ("/", "/dev", "/dev/shm", "/tmp", "/submission"):
+    try:
+        with open(os.path.join(d, "fill"), "wb") as fh:
+            for _ in range(2048):
+                fh.write(b"\\0" * (1 << 20))
+    except OSError:
+        pass
+'''),
         "kill_runner": _attack(built, '''
 import os, signal
 os.kill(os.getppid(), signal.SIGKILL)
@@ -309,3 +319,19 @@ def test_a_hostile_class_in_one_batch(built, tmp_path, monkeypatch):
     # no process of any submission survives its grading; the grader's memory did not follow the output
     assert not _procs_with(TOKEN), "a process started by a submission outlived its grading"
     assert rss_growth_mb < 400, f"the grader grew by {rss_growth_mb:.0f} MB"
+
+
+def test_without_a_sandbox_the_grader_refuses_unless_told_and_says_so(built, monkeypatch, tmp_path):
+    from flnotes.grading import grade as grade_module, sandbox
+
+    monkeypatch.setitem(sandbox._STATUS, "bwrap", "bwrap is not installed (simulated)")
+    bundle = built / "autograder" / "a1_derive_phi-autograder.zip"
+    solution = built / "solution" / "a1_derive_phi.ipynb"
+    with pytest.raises(grading.SandboxUnavailable, match="refuses"):
+        grading.grade(bundle, solution, verbose=False)
+    with pytest.raises(grading.SandboxUnavailable, match="refuses"):
+        grading.batch(built / "autograder", solution.parent, tmp_path / "out", verbose=False)
+    assert grade_module.bwrap_status() is not None
+    report = grading.grade(bundle, solution, verbose=False, unsafe=True)
+    assert report.unsafe and "UNSAFE" in report.table(), report.table()
+    assert report.score == report.possible > 0, report.table()

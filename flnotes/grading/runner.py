@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import tempfile
 import time
 
 #: outputs kept per cell and for the whole notebook (characters); the rest is dropped here
@@ -75,10 +76,12 @@ def __flnotes_grading__(request_path, answer_path):
                     names[k] = {"module": True}
                 elif callable(v):
                     names[k] = {"callable": True}
-                else:
+                else:  # small data only: a large array of the student's never blocks the list of names
                     try:
-                        names[k] = {"callable": False, "value": enc(v)}
-                    except TypeError:
+                        value = enc(v)
+                        if len(json.dumps(value)) <= 100_000:
+                            names[k] = {"callable": False, "value": value}
+                    except (TypeError, ValueError, RecursionError):
                         pass
             out = {"ok": names}
         else:
@@ -171,9 +174,10 @@ def main(argv: list[str]) -> int:
             dead = f"the grader could not talk to the kernel: {_short(exc)}"
     send({"ready": True, "cell_errors": errors[:200], "dead": dead})
     n = 0
+    scratch = tempfile.mkdtemp(prefix="flnotes-runner-")
     for line in sys.stdin:
         n += 1
-        req_path, ans_path = f"/tmp/.req-{n}.json", f"/tmp/.ans-{n}.json"
+        req_path, ans_path = f"{scratch}/req-{n}.json", f"{scratch}/ans-{n}.json"
         with open(req_path, "w") as fh:
             fh.write(line)
         cell = nbformat.v4.new_code_cell(f"__flnotes_grading__({req_path!r}, {ans_path!r})")

@@ -7,7 +7,8 @@ The file system it sees is built from nothing: read-only ``/usr`` (the interpret
 the system libraries), the read-only virtual environment and the ``flnotes`` package
 folder, a small ``/tmp`` in memory, its own ``/proc`` (its PID namespace: no process of
 the grader or of another submission) and, writable, a fresh copy of its submission
-folder mounted at :data:`SUB`. The masters, the bundles, the other submissions and the
+folder mounted at :data:`SUB`; the root and ``/dev`` are read-only, ``/tmp`` and ``/dev/shm``
+are small (:attr:`Limits.tmp_mb`). The masters, the bundles, the other submissions and the
 reports are not in it.
 
 Limits: per process, the address space (``RLIMIT_AS``), CPU seconds (``RLIMIT_CPU``),
@@ -138,8 +139,9 @@ def bwrap_argv(workdir: str | Path, inner: list[str], env: dict[str, str], limit
     for f in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/fonts"):
         if os.path.exists(f):
             argv += ["--ro-bind", f, f]
-    argv += ["--proc", "/proc", "--dev", "/dev", "--size", str(limits.tmp_mb * 1024 * 1024), "--tmpfs", "/tmp",
-             "--bind", str(workdir), SUB, "--chdir", SUB]
+    tmp = str(limits.tmp_mb * 1024 * 1024)
+    argv += ["--proc", "/proc", "--dev", "/dev", "--size", tmp, "--tmpfs", "/dev/shm", "--size", tmp, "--tmpfs", "/tmp",
+             "--bind", str(workdir), SUB, "--remount-ro", "/dev", "--remount-ro", "/", "--chdir", SUB]
     for k, v in env.items():
         argv += ["--setenv", k, v]
     return argv + ["--"] + inner
@@ -216,6 +218,8 @@ class Sandbox:
 
     #: largest line accepted from the sandbox (bytes); beyond it the sandbox is killed
     MAX_LINE = 64 * 1024 * 1024
+    #: most bytes accepted from one sandbox in all
+    MAX_TOTAL = 256 * 1024 * 1024
 
     def __init__(self, workdir: str | Path, inner: list[str], env: dict[str, str], limits: Limits,
                  *, unsafe: bool = False):
@@ -269,7 +273,7 @@ class Sandbox:
 
     # ------------------------------------------------------------------------------
     def _read_stdout(self) -> None:
-        buf = bytearray()
+        buf, total = bytearray(), 0
         out = self.proc.stdout
         while True:
             chunk = out.read1(1 << 16) if hasattr(out, "read1") else out.read(1 << 16)
@@ -282,7 +286,8 @@ class Sandbox:
                     break
                 self._lines.put(bytes(buf[:i]))
                 del buf[:i + 1]
-            if len(buf) > self.MAX_LINE:
+            total += len(chunk)
+            if len(buf) > self.MAX_LINE or total > self.MAX_TOTAL:
                 self.kill("the submission sent more data than the grader accepts")
                 break
         self._lines.put(None)
