@@ -317,6 +317,12 @@ def test_students_edition_html_holds_no_solution(tmp_path):
                  and MARKER in p.read_text(encoding="utf-8", errors="replace")]
         assert not leaks, f"reference solutions in the students' edition: {leaks}"
         assert not list(site.rglob("master")), "the master notebooks must not be part of the students' edition"
+        assert not list(site.rglob("instructor*")), "no instructor page in the students' edition"
+        seeds = {m for line in grading.hidden_test_lines() for m in re.findall(r"default_rng\(\d+\)", line)}
+        assert "default_rng(101)" in seeds, "premise: the hidden tests' seeds are known"
+        for p in site.rglob("*.html"):
+            text = re.sub(r"<[^>]+>", "", p.read_text(encoding="utf-8", errors="replace"))
+            assert not [s for s in seeds if s in text], f"{p} reveals a hidden test's seed"
 
 
 # ----------------------------------------------------------------------------------

@@ -111,7 +111,10 @@ def read_submission(path: str | Path):
         if path.stat().st_size > 50 * 1024 * 1024:
             raise ValueError("larger than 50 MB")
         nb = nbformat.read(path, as_version=4)
-        nbformat.validate(nb)
+        if not isinstance(nb.get("cells"), list) or not all(
+                isinstance(c, dict) and c.get("cell_type") in ("code", "markdown", "raw")
+                and isinstance(c.get("source"), str) for c in nb.cells):
+            raise ValueError("its cells are not notebook cells")
     except Exception as exc:  # noqa: BLE001 - any unreadable file is reported as such
         raise ValueError(f"{path.name} is not a readable Jupyter notebook ({type(exc).__name__}: "
                          f"{str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ''})") from None
