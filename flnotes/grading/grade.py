@@ -99,7 +99,7 @@ class GradeReport:
 def _short(text: str, n: int = 300) -> str:
     msg = [m.strip() for m in str(text).splitlines() if m.strip()]
     errs = [m for m in msg if "Error" in m.split(":")[0] or "Exception" in m.split(":")[0]]
-    return (errs[-1] if errs else msg[-1] if msg else "failed")[:n]
+    return (errs[0] if errs else msg[-1] if msg else "failed")[:n]  # the first failure: the cause
 
 
 def read_submission(path: str | Path):
