@@ -14,7 +14,7 @@ NBMAKE_TIMEOUT ?= 900
 # pytest-xdist workers for `make test` (auto: one per CPU core); 0 runs everything in one process
 TEST_JOBS ?= auto
 
-.PHONY: all venv book book-instructor test bench assignments reference clean help
+.PHONY: all venv book book-instructor test bench assignments grade students-edition sandbox reference clean help
 
 all: book
 
@@ -24,6 +24,8 @@ help:
 	@echo "make bench        solver benchmarks (python -m flnotes.bench)"
 	@echo "make book-instructor  the instructor edition (reference solutions, all tests, rubrics) into _build/instructor"
 	@echo "make assignments  students' notebooks and autograder bundles (otter-grader) into _build/assignments"
+	@echo "make grade SUBMISSIONS=dir  grade a folder of submissions in the sandbox: _build/grades/gradebook.csv"
+	@echo "make students-edition  the tree published for students (no masters, hidden tests, rubrics) into _build/students"
 	@echo "make reference    retrain and recertify the shipped networks and sweep table (changes the book's numbers)"
 	@echo "make clean        remove _build and caches (keeps .venv)"
 
@@ -50,7 +52,7 @@ book: venv
 # pytest-xdist workers: a test module or a notebook stays on one worker (its module
 # fixtures are built once), the longest first (tests/conftest.py orders them), and
 # one BLAS thread per worker so that the workers do not compete for the cores.
-test: venv
+test: venv sandbox
 	$(VENV)/bin/ruff check .
 	env FLNOTES_FAST=1 MPLBACKEND=Agg PYTHONDONTWRITEBYTECODE=1 \
 	  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
@@ -68,15 +70,33 @@ reference: venv
 	$(PY) -c "from flnotes.arm import make_arm_reference; print(make_arm_reference())"
 	$(PY) -c "from flnotes.studies.unseen import write_unseen_references as w; print(*w(), sep='\n')"
 
-# Students' notebooks, autograder bundles and reference solutions of the otter-grader
-# master notebooks (book/assignments/master) into _build/assignments; refreshes the
-# students' pages of the book (book/assignments/a*.ipynb). Grade one submission with
-#   $(PY) -m flnotes.grading grade -a _build/assignments/autograder/<name>-autograder.zip <submission.ipynb>
+# Students' notebooks, autograder bundles (read-only, SHA-256 recorded in SHA256SUMS) and reference
+# solutions of the otter-grader master notebooks (book/assignments/master) into _build/assignments;
+# refreshes the students' pages of the book (book/assignments/a*.ipynb).
 assignments: venv
 	$(PY) -m flnotes.grading assign book/assignments/master _build/assignments --book-dir book/assignments
 
+# bubblewrap, the sandbox the grader runs every submission in (Debian's package; as root, or with sudo)
+sandbox:
+	@command -v bwrap >/dev/null || { \
+	  if command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq bubblewrap; \
+	  elif command -v apt-get >/dev/null && command -v sudo >/dev/null; then sudo apt-get update -qq && sudo apt-get install -y -qq bubblewrap; \
+	  else echo "bubblewrap (bwrap) is not installed and cannot be installed here: the grader refuses to grade"; fi; }
+
+# Grade every file of SUBMISSIONS (any names, any mix of assignments) in the sandbox:
+# $(GRADES)/gradebook.csv and one report per file in $(GRADES)/reports/.
+SUBMISSIONS ?= submissions
+GRADES ?= _build/grades
+grade: venv sandbox
+	$(PY) -m flnotes.grading batch _build/assignments/autograder $(SUBMISSIONS) $(GRADES)
+
+# The tree published for students (the repository named in _config.yml's repository: url):
+# the checkout without the masters, the instructor guide, the grader's tests and the build folders.
+students-edition: venv
+	$(PY) -m flnotes.grading students-edition _build/students
+
 # Instructor edition of the book: the assignments' master notebooks (reference solutions,
-# all tests, rubrics) instead of the students' pages, into _build/instructor/_build/html.
+# all tests, rubrics) instead of the students' pages, and the instructor guide, into _build/instructor/_build/html.
 book-instructor: venv
 	$(PY) -m flnotes.grading instructor-toc _toc.yml _build/instructor_toc.yml
 	env -u FLNOTES_FAST -u MPLBACKEND $(JB) build . --all -W -n --keep-going \

@@ -4,7 +4,7 @@
 --no-loadscope-reorder``: each test module and each notebook is one unit of work
 (its module fixtures are built once), given in collection order to the next free
 worker. The long units go first (:data:`LONG`: the fast build of the whole book in
-``test_rendered.py``, the assignments' grader, every option combination of the MPC),
+``test_rendered.py``, the assignments' grader and the attacks on it, every option combination of the MPC),
 then the chapters, the other unit tests, and the short ones last (the assignments'
 notebooks), so that the workers finish at about the same time. Within a unit the
 order is kept.
@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: The longest units, longest first (each took 6 to 8 minutes of one worker in a run of ``make test``
 #: with ``--durations=0``; the next longest, a chapter, about one minute).
-LONG = ("test_rendered.py", "test_assignments.py", "test_mpc_options.py")
+LONG = ("test_rendered.py", "test_assignments.py", "test_grading_attacks.py", "test_mpc_options.py")
 
 
 def _rank(item: pytest.Item) -> tuple[int, int]:

@@ -9,12 +9,19 @@
 * submissions that try to game the grader score no more than the honest blank
   (zero): patching otter, numpy or the grader from a cell, shadowing built-ins,
   hard-coded answers, a checks file next to the submission, copying the network
-  instead of solving the MILP, killing the kernel, looping forever.
+  instead of solving the MILP, killing the kernel, looping forever, a6's program
+  replaced by fl.MPC's plan or stripped of the network constraint;
+* the bundles are verified (a changed bundle is refused), answers are decoded strictly,
+  the students' edition holds no instructor material and points at the students' repository.
+
+The sandbox's attack classes, graded in one batch, are in ``test_grading_attacks.py``.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -26,6 +33,9 @@ import pytest
 import yaml
 
 from flnotes import grading
+
+pytestmark = pytest.mark.skipif(grading.bwrap_status() is not None,
+                                reason=f"no sandbox: {grading.bwrap_status()} (`make test` installs bubblewrap)")
 
 ROOT = Path(__file__).resolve().parent.parent
 ADIR = ROOT / "book" / "assignments"
@@ -169,7 +179,7 @@ def test_students_version_scores_zero(name, built):
     student, bundle, _ = built[name]
     report = _grade(bundle, student)
     tests, _ = grading.load_bundle_tests(bundle)
-    assert [t.name for t in report.tests] == [t.name for t in tests], "every question must be reported"
+    assert [q.name for q in report.questions] == [t.name for t in tests], "every question must be reported"
     assert report.possible == sum(t.possible for t in tests) > 0
     assert report.score == 0, report.table()
     assert report.table().splitlines()[-1] == f"score: 0/{report.possible:g}"
@@ -195,6 +205,74 @@ def test_instructor_toc_swaps_every_assignment(tmp_path):
         assert f"book/assignments/master/{name}" in files
         assert f"book/assignments/{name}\n" not in files
     assert "book/assignments/master/index" in files
+    assert "book/assignments/master/instructor_guide" in files, "the guide is in the instructor edition"
+    assert "instructor" not in (ROOT / "_toc.yml").read_text(), "no instructor page in the students' table of contents"
+    assert not list((ROOT / "book").glob("**/instructor*.md")) or all(
+        "master" in p.parts for p in (ROOT / "book").glob("**/instructor*.md")), "instructor pages live with the masters"
+
+
+def test_students_edition_holds_no_instructor_material(tmp_path, built):
+    out = grading.students_edition(tmp_path / "students")
+    url = grading.students_repository()
+    assert not (out / "book" / "assignments" / "master").exists() and not (out / "tests").exists()
+    assert not list(out.rglob("instructor*")) and not list(out.rglob("*-autograder.zip"))
+    seeds = grading.hidden_test_lines()
+    assert any("default_rng(101)" in line for line in seeds), "premise: the hidden tests' seeds are known"
+    installs = 0
+    for p in list(out.rglob("*.ipynb")) + list(out.rglob("*.md")):
+        text = p.read_text(encoding="utf-8")
+        assert "REFSOL" not in text and "hidden: true" not in text, p
+        assert not [line for line in seeds if line in text], f"{p} reveals a hidden test"
+        for m in re.finditer(r"flnotes(?:\[\w+\])? @ git\+([^\"\\]+)", text):
+            assert m.group(1) == url, f"{p} installs from {m.group(1)}, not the students' repository {url}"
+            installs += 1
+    assert installs >= len(IDS), "the notebooks install the package"
+    config = yaml.safe_load((out / "_config.yml").read_text())
+    assert config["repository"]["url"] == url and config["html"]["use_repository_button"]
+    for name in IDS:  # the students' notebooks written by `make assignments` install from there too
+        student, _, _ = built[name]
+        assert f"git+{url}" in student.read_text(encoding="utf-8")
+
+
+def test_a_changed_bundle_is_refused(built, tmp_path):
+    _, bundle, _ = built[IDS[0]]
+    copy = tmp_path / "autograder"
+    shutil.copytree(bundle.parent, copy)
+    assert grading.load_bundle(copy / bundle.name).sha256 == hashlib.sha256(bundle.read_bytes()).hexdigest()
+    target = copy / bundle.name
+    target.chmod(0o644)
+    with zipfile.ZipFile(target, "a") as zf:
+        zf.writestr("tests/q9.py", "OK_FORMAT = True\ntest = {'name': 'q9', 'points': 100, 'suites': []}\n")
+    with pytest.raises(ValueError, match="does not match its SHA-256"):
+        grading.load_bundle(target)
+    (copy / grading.MANIFEST).unlink()
+    with pytest.raises(ValueError, match="missing"):
+        grading.load_bundle(target)
+    assert not os.access(bundle, os.W_OK) or os.geteuid() == 0, "bundles are written read-only"
+    assert bundle.stat().st_mode & 0o222 == 0, "bundles are written read-only"
+
+
+def test_answers_are_decoded_strictly():
+    import numpy as np
+
+    a = np.arange(6.0).reshape(2, 3)
+    assert np.array_equal(grading.decode(json.loads(json.dumps(grading.encode((a, [1, "x"], {"k": None})))))[0], a)
+    bad = [{"__nd__": [[1.0, 2.0]], "kind": "f", "shape": [2, 2]},      # data not of the declared shape
+           {"__nd__": [1.0], "kind": "O", "shape": [1]},                # object dtype
+           {"__nd__": ["a"], "kind": "f", "shape": [1]},                # a string in an array
+           {"__float__": "1e308*10"}, {"__module__": "os"}, {"__nd__": [], "kind": "f", "shape": [10**7]}]
+    for x in bad:
+        with pytest.raises(grading.AnswerError):
+            grading.decode(x)
+    deep = 0
+    for _ in range(50):
+        deep = [deep]
+    with pytest.raises(grading.AnswerError, match="deep"):
+        grading.decode(deep)
+    with pytest.raises(AssertionError, match="shape"):
+        grading.expect_array(np.zeros(0), (200,))
+    with pytest.raises(AssertionError, match="nan"):
+        grading.expect_array([1.0, float("nan")], (2,))
 
 
 # ----------------------------------------------------------------------------------
@@ -239,6 +317,12 @@ def test_students_edition_html_holds_no_solution(tmp_path):
                  and MARKER in p.read_text(encoding="utf-8", errors="replace")]
         assert not leaks, f"reference solutions in the students' edition: {leaks}"
         assert not list(site.rglob("master")), "the master notebooks must not be part of the students' edition"
+        assert not list(site.rglob("instructor*")), "no instructor page in the students' edition"
+        seeds = {m for line in grading.hidden_test_lines() for m in re.findall(r"default_rng\(\d+\)", line)}
+        assert "default_rng(101)" in seeds, "premise: the hidden tests' seeds are known"
+        for p in site.rglob("*.html"):
+            text = re.sub(r"<[^>]+>", "", p.read_text(encoding="utf-8", errors="replace"))
+            assert not [s for s in seeds if s in text], f"{p} reveals a hidden test's seed"
 
 
 # ----------------------------------------------------------------------------------
@@ -424,17 +508,34 @@ def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
     assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
 
 
-def test_cheat_the_horizon_program_without_the_network_constraint(built, tmp_path):
-    """The QP of the double integrator alone: optimal where the network constraint is inactive, not elsewhere."""
+A6_PINNED_TO_MPC = """
+_honest_program = mpc_program
+def mpc_program(weights, biases, eps, z0):
+    # the answer of one library call: fl.MPC's plan, pinned in the program's bounds
+    p = _honest_program(weights, biases, eps, z0)
+    net = fl.ReLUNet([np.asarray(w, float) for w in weights], [np.asarray(b, float) for b in biases])
+    step = fl.MPC(cart, net, eps, horizon=N_P, ts=TS, Q=Q, R=R)(np.asarray(z0, float), np.zeros(2))
+    w = np.r_[np.asarray(step.z_pred, float).ravel(), np.asarray(step.v_pred, float).ravel()]
+    p["var_lo"][:len(w)], p["var_hi"][:len(w)] = w, w
+    return p
+"""
+
+A6_NO_NETWORK = """
+_honest_program = mpc_program
+def mpc_program(weights, biases, eps, z0):
+    # the program without the network constraint: the last row of every step made free
+    p = _honest_program(weights, biases, eps, z0)
+    k = len(np.asarray(biases[0]))
+    for j in range(N_P):
+        r = (j + 1) * (2 + 3 * k + 1) - 1
+        p["row_lo"][r], p["row_hi"][r] = -np.inf, np.inf
+    return p
+"""
+
+
+def test_cheat_the_horizon_program_from_the_library_or_without_the_network(built, tmp_path):
+    """fl.MPC's plan pinned in the program, or the program without its network rows: q2 scores 0."""
     _, bundle, solution = built["a6_mpc_horizon"]
-    qp = ("def mpc_plan(weights, biases, eps, z0):\n"
-          "    Ad, Bd = np.array([[1.0, TS], [0.0, 1.0]]), np.array([[TS**2 / 2], [TS]])\n"
-          "    Z, V = cp.Variable((2, N_P + 1)), cp.Variable((1, N_P))\n"
-          "    X = cp.vstack([Z[:, :N_P], V])\n"
-          "    cons = [Z[:, 0] == np.asarray(z0, float), Z[:, 1:] == Ad @ Z[:, :N_P] + Bd @ V,\n"
-          "            X >= cart.lo[:, None], X <= cart.hi[:, None]]\n"
-          "    cost = sum(cp.quad_form(Z[:, k], Q) + cp.quad_form(V[:, k], R) for k in range(N_P))\n"
-          "    cp.Problem(cp.Minimize(cost), cons).solve()\n"
-          "    return dict(Z=Z.value.T, V=V.value.T)")
-    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[qp]))
-    assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
+    for i, cheat in enumerate((A6_PINNED_TO_MPC, A6_NO_NETWORK)):
+        report = _grade(bundle, _with_cells(solution, tmp_path / str(i) / solution.name, before_end=[cheat]))
+        assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
