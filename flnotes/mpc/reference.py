@@ -16,6 +16,7 @@ import numpy as np
 from ..bounds import NodeBounds
 from ..encoding import encode
 from ..result import StepResult
+from ..solvers import BOX_TOL
 from ..solvers.scip import _quiet_c_output
 from ..tightening import EmptyBoxError
 from .levers import node_bounds, repeat_bounds
@@ -126,7 +127,7 @@ class ReferenceProgram:
             out = np.maximum(V - p.v_hi, p.v_lo - V)
             tol = V_BOX_SNAP * np.maximum(1.0, np.maximum(np.abs(p.v_lo), np.abs(p.v_hi)))
             if np.all(out <= tol):
-                if np.any(out > 0.0):
+                if np.any(out > BOX_TOL):
                     res.message += f"; moved onto the v-box face (SCIP's plan was {float(out.max()):.1e} outside)"
                 V = np.clip(V, p.v_lo, p.v_hi)
             f, c0 = p.linear(z0, z_ref)
