@@ -105,9 +105,11 @@ def cut_off_study(setup: dict, t_final: float, t_s: float = T_S, reserve_share: 
     return rows
 
 
-def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2) -> list[dict]:
-    """``n`` diverse states (:func:`flnotes.bench.exactness.mpc_cases`), each solved cold with ``time_limit = t_s``."""
+def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2, fallback_deadline: bool = True) -> list[dict]:
+    """``n`` diverse states (:func:`flnotes.bench.exactness.mpc_cases`), each solved cold with ``time_limit = t_s``
+    (``fallback_deadline``: :attr:`flnotes.MPC.fallback_deadline`)."""
     mpc = make_mpc(setup, time_limit=t_s)
+    mpc.fallback_deadline = fallback_deadline
     out = []
     for c in mpc_cases(setup, n, seed=seed):
         mpc.reset()

@@ -179,6 +179,10 @@ class MPC:
         ``[0, 0.5]``, which ``python -m flnotes.bench deadline`` sets to 0 to measure the cut-off alone.
     cut_off
         Whether steps answer at the cut-off (the ``cut_off`` argument resolved against the time limit).
+    fallback_deadline
+        Under a time limit, whether the fallback's repairs stop at their deadline (default True, see ``time_limit``).
+        ``False`` lets them run to the end, so that the answer is late by them: the tests and benchmarks with a limit
+        far below any solve set it to obtain the repaired plans, which depend on the states only.
 
     Examples
     --------
@@ -268,6 +272,7 @@ class MPC:
         self.time_limit, self.gap = time_limit, float(gap)
         self.cut_off = bool(time_limit is not None and engine and (cut_off is None or cut_off))
         self.reserve_share = RESERVE_SHARE
+        self.fallback_deadline = True
         self._fallback_s = 0.0  # the longest fallback (CPU s of this controller's thread), decaying: see reserve
         self._late_s = 0.0  # the engine's largest lateness after its budget (its CPU share), decaying: see reserve
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
@@ -577,7 +582,7 @@ class MPC:
         """
         f, _ = self.pred.linear(z, R)
         engine_bound = step.bound
-        deadline = (None if self.time_limit is None or t0 is None
+        deadline = (None if self.time_limit is None or t0 is None or not self.fallback_deadline
                     else t0 + (1.0 - FALLBACK_POST_SHARE) * float(self.time_limit))
         c_fb = time.thread_time()
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,
