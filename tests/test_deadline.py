@@ -298,7 +298,7 @@ def test_slow_fallbacks_never_stop_the_controller_from_optimizing(quad, monkeypa
         assert s.status == "optimal" and not s.fallback and not s.info["cut_off"], s.message
     assert mpc._fallback_s < 1.5 * tl, "what was measured decays step by step"
     mpc.reset()
-    assert mpc.measured == dict(late=0.0, fallback=0.0)
+    assert mpc.measured == dict(late=0.0, fallback=0.0, answer=0.0)
 
 
 def test_the_reserve_is_measured_on_cpu_not_on_waiting(quad, monkeypatch):
@@ -585,3 +585,33 @@ def test_a_step_under_a_time_limit_runs_without_the_cyclic_garbage_collector(qua
         mpc(z, R)
         assert gc.isenabled(), "the step restores the collector"
     assert seen == [False, True]
+
+
+def test_a_slow_answer_after_a_cut_off_moves_the_next_cut_off_by_a_bounded_share(quad, monkeypatch):
+    """An answer that took long after its cut-off (the machine busy: here a sleep) moves the following cut-offs
+    earlier, by at most RESERVE_MAX_SHARE of the limit: the next easy state is still solved to optimality."""
+    import time
+
+    from flnotes.mpc import engine
+
+    setup, z, R, prev, _ = engine_state(quad)
+    easy, _ = _easy_and_cold(setup, n_easy=1)
+    tl = 5.0  # long enough for the engine to reach its (held) solver call on a loaded machine
+    mpc = rt.make_mpc(setup, time_limit=tl)
+    gate = Gate(monkeypatch)
+    real = engine.NetworkEngine.answer_now
+
+    def slow(self):
+        time.sleep(0.5 * tl)  # more than RESERVE_MAX_SHARE of the limit
+        return real(self)
+
+    monkeypatch.setattr(engine.NetworkEngine, "answer_now", slow)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert s.info["cut_off"] and s.solve_time >= 0.5 * tl
+    monkeypatch.setattr(engine.NetworkEngine, "answer_now", real)
+    gate.release()
+    assert mpc.measured["answer"] >= 0.5 * tl > RESERVE_MAX_SHARE * tl, mpc.measured
+    mpc.set_previous_plan(None)
+    s = mpc(easy[0]["z"], easy[0]["z_ref"])
+    assert s.status == "optimal" and not s.info["cut_off"], s.message

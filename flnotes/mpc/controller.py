@@ -275,6 +275,7 @@ class MPC:
         self.fallback_deadline = True
         self._fallback_s = 0.0  # the longest fallback (CPU s of this controller's thread), decaying: see reserve
         self._late_s = 0.0  # the engine's largest lateness after its budget (its CPU share), decaying: see reserve
+        self._answer_s = 0.0  # the longest wall time from a cut-off to its answer, decaying: see _engine_solve
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
@@ -332,10 +333,13 @@ class MPC:
 
     @property
     def measured(self) -> dict:
-        """What this controller keeps back from its engine for (seconds, decaying by :data:`RESERVE_DECAY` per step,
-        cleared by :meth:`reset`): ``late`` (the engine's lateness after its budget, scaled by the CPU share of its
-        solve: waiting for the machine does not count) and ``fallback`` (the longest fallback's CPU time)."""
-        return dict(late=self._late_s, fallback=self._fallback_s)
+        """What this controller has measured (seconds, decaying by :data:`RESERVE_DECAY` per step, cleared by
+        :meth:`reset`): ``late`` (the engine's lateness after its budget, scaled by the CPU share of its solve: waiting
+        for the machine does not count) and ``fallback`` (the longest fallback's CPU time), which :attr:`reserve`
+        keeps back from the engine; ``answer`` (the longest wall time from a cut-off to its answer, waiting for the
+        machine included), which moves the cut-off earlier (:meth:`_engine_solve`) but never by more than
+        :data:`RESERVE_MAX_SHARE` of the limit."""
+        return dict(late=self._late_s, fallback=self._fallback_s, answer=self._answer_s)
 
     @property
     def backend(self) -> str:
@@ -351,7 +355,7 @@ class MPC:
         self._finish_running()
         self.history = []
         self._plan = None
-        self._fallback_s = self._late_s = 0.0  # what was measured on other states and loads is not kept
+        self._fallback_s = self._late_s = self._answer_s = 0.0  # what was measured on other states and loads
         if isinstance(self.solver, NetworkEngine):
             self.solver.reset()
 
@@ -435,6 +439,7 @@ class MPC:
         self._finish_running()  # a solve the last step answered at its cut-off ends first, inside this step's budget
         self._fallback_s *= RESERVE_DECAY
         self._late_s *= RESERVE_DECAY
+        self._answer_s *= RESERVE_DECAY
         release_retired()  # the solver models the last step kept alive are freed here, inside this step's budget
         z = self._check_z(z)
         R = self._check_ref(z_ref)
@@ -471,6 +476,8 @@ class MPC:
         step.solve_time = time.perf_counter() - t0
         step.info["post_time"] = step.solve_time - (t_post - t0)
         step.info["cpu_time"] = time.thread_time() - c0  # this thread's CPU time (a cut-off solve's is its own)
+        if "cut_off_at" in step.info:  # how long the answer took after the cut-off, on the wall clock
+            self._answer_s = max(self._answer_s, t0 + step.solve_time - step.info.pop("cut_off_at"))
         self._plan = (step.z_pred, step.v_pred)
         self.history.append(step)
         return step
@@ -500,8 +507,10 @@ class MPC:
         """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
 
         The solve runs in a worker thread with ``budget`` seconds; this thread waits for it until the cut-off,
-        ``t0 + time_limit`` less the largest of half of :attr:`reserve`, the longest fallback run so far and
-        :data:`CUT_OFF_MIN_S` (the rest of the reserve is for the engine's overrun after its budget).
+        ``t0 + time_limit`` less the largest of half of :attr:`reserve`, the longest fallback run so far (CPU time),
+        the longest time an answer took after its cut-off (wall clock: on a loaded machine the answer waits for a
+        core) and :data:`CUT_OFF_MIN_S`, at most :data:`RESERVE_MAX_SHARE` of the limit (the rest of the reserve is
+        for the engine's overrun after its budget); these measures decay by :data:`RESERVE_DECAY` per step.
         A solve that has not returned then is asked to stop (:meth:`NetworkEngine.stop`) and the step answers with
         what it has published (:meth:`NetworkEngine.answer_now`: its best plan that passed the forward-pass check
         and its lower bound, ``info["cut_off"]`` True). The solver calls release the GIL (DAQP, HiGHS, SCIP), so the
@@ -520,7 +529,8 @@ class MPC:
 
         self.solver.go()
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
-        answer_s = min(max(0.5 * self.reserve, self._fallback_s, CUT_OFF_MIN_S), RESERVE_MAX_SHARE * self.time_limit)
+        answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
+                       RESERVE_MAX_SHARE * self.time_limit)
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
         worker.start()
         worker.join(max(t0 + float(self.time_limit) - answer_s - time.perf_counter(), 0.0))
@@ -528,7 +538,9 @@ class MPC:
             self.solver.stop()
             unmute_c_output()  # a SCIP call running on must not silence what the caller writes from now on
             box["cut_off"] = True
+            t_cut = time.perf_counter()
             step = self.solver.answer_now()
+            step.info["cut_off_at"] = t_cut
             step.solve_time = time.perf_counter() - t0
             return step
         step = self._finish_running()
