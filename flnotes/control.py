@@ -59,6 +59,7 @@ from .pieces import solve_exact_2d
 from .simulate import StepResult
 from .systems import FLSystem
 from .solvers import BOUND_TOL, next_margin, project_to_box
+from .solvers.scip import _quiet_c_output
 
 Array = np.ndarray
 
@@ -760,10 +761,14 @@ class ClfCbfController:
     def step(self, z: Array, t: float = 0.0, reference=None) -> StepResult:
         """Solve eq. (CLF_CBF) at ``z``; see the class docstring for the result.
 
-        ``status`` is ``"optimal"``, ``"time_limit"`` (the solver's incumbent is
-        applied), ``"infeasible"`` or ``"error: ..."``; in the last two cases
+        ``status`` is one of :data:`flnotes.STATUSES`: ``"optimal"``,
+        ``"time_limit"`` (the solver's incumbent is applied), ``"infeasible"``
+        or ``"error"`` (``message`` says what failed); in the last two cases
         ``fallback`` is True and ``info["fallback_rule"]`` says which rule gave
         ``v``: ``"softened program"`` or ``"k(z) clipped to the v box"``.
+        With ``backend="cvxpy"`` and one or two inputs, the solver's answer is
+        checked against the exact method; where they differ the exact optimum
+        is returned and ``message`` says what the solver had claimed.
         A solver's point is checked with the network's forward pass: one that
         exceeds ``u_max^eps`` (beyond round-off) is an error, never applied as a
         solution. ``input_admissible`` says whether the applied ``v``
@@ -952,8 +957,14 @@ class _ExactPiecesBackend:
         return sol
 
 
+#: Relative difference (``/ max(1, |J|)``) within which the ``"cvxpy"`` back-end's optimum counts as the exact
+#: method's (:meth:`_CvxpyBackend._checked`): the suite's tolerance for a reference.
+EXACT_CHECK_TOL = 1e-6
+
+
 class _CvxpyBackend:
-    """The teaching form: cvxpy with Parameters, built once (DPP), re-solved each step."""
+    """The teaching form: cvxpy with Parameters, built once (DPP), re-solved each step; with one or two inputs every
+    answer is checked against the exact method (:meth:`_checked`)."""
 
     def __init__(self, c: ClfCbfController, solver: Optional[str] = None):
         import cvxpy as cp
@@ -998,6 +1009,8 @@ class _CvxpyBackend:
         self.n_binaries = self.enc.n_binaries
         self.big = 1e4
         self.margin = 0.0
+        #: The exact method of one or two inputs that checks every answer of the program (None for more inputs).
+        self.exact = (_ExactBackend(c) if m == 1 else _ExactPiecesBackend(c)) if m <= 2 else None
 
     def _opts(self) -> dict:
         tl = self.c.time_limit
@@ -1017,6 +1030,8 @@ class _CvxpyBackend:
         return {}
 
     def solve(self, z: Array, d: dict, soft: bool) -> _Solution:
+        import cvxpy as cp
+
         c = self.c
         b = c.node_bounds(z)
         self.z.value = z
@@ -1030,25 +1045,67 @@ class _CvxpyBackend:
             self.aH.value, self.bH.value = d["aH"], d["bH"]
             self.cap_H.value = np.full(c.p, self.big if soft else 0.0)
         self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
+        failed = None
         for _ in range(6):
             self.u_in.value = c.u_eps - self.margin
-            self.problem.solve(solver=self.solver, **self._opts())
+            try:
+                with _quiet_c_output():  # SoPlex prints its tolerance notices to the C streams
+                    self.problem.solve(solver=self.solver, **self._opts())
+            except cp.error.SolverError as exc:
+                if soft or self.exact is None:
+                    raise
+                failed = f"cvxpy/{self.solver} failed ({exc})"
+                break
             if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
                 break
             ex = float(np.max(np.abs(c.net(np.concatenate([z, np.asarray(self.v.value, float)]))) - c.u_eps))
             if ex <= BOUND_TOL:
                 break
             self.margin = next_margin(self.margin, ex, float(np.max(c.u_eps)))  # see _MiqpBackend.solve
-        raw = self.problem.status
-        st = _CVXPY_STATUS.get(raw, f"error: {raw}")
-        stats = self.problem.solver_stats
-        sol = _Solution(status=st, solver_time=float(stats.solve_time or np.nan), detail=f"cvxpy/{self.solver}: {raw}")
-        if self.v.value is not None and st in ("optimal", "time_limit"):
-            sol.v, sol.delta = np.array(self.v.value, float), float(self.delta.value)
-            sol.objective = float(self.problem.value)
-            sol.slack_u = np.array(self.s_u.value, float)
-            sol.slack_H = np.array(self.s_H.value, float) if c.p else np.zeros(0)
-        return sol
+        if failed is not None:
+            sol = _Solution(status=f"error: {failed}", detail=failed)
+        else:
+            raw = self.problem.status
+            st = _CVXPY_STATUS.get(raw, f"error: {raw}")
+            stats = self.problem.solver_stats
+            sol = _Solution(status=st, solver_time=float(stats.solve_time or np.nan),
+                            detail=f"cvxpy/{self.solver}: {raw}")
+            if self.v.value is not None and st in ("optimal", "time_limit"):
+                sol.v, sol.delta = np.array(self.v.value, float), float(self.delta.value)
+                sol.objective = float(self.problem.value)
+                sol.slack_u = np.array(self.s_u.value, float)
+                sol.slack_H = np.array(self.s_H.value, float) if c.p else np.zeros(0)
+        return sol if soft or self.exact is None else self._checked(z, d, sol)
+
+    def _checked(self, z: Array, d: dict, sol: _Solution) -> _Solution:
+        """The program's answer checked against the exact method of one or two inputs (:func:`solve_exact_1d`,
+        :func:`flnotes.pieces.solve_exact_2d`), which lists every linear piece of ``Phi_NN(z, .)``.
+
+        An answer that agrees (the same status; an optimum whose cost is within :data:`EXACT_CHECK_TOL` of the exact
+        one) is returned with the check in its ``detail``. Otherwise the solver's answer is not a proof: the exact
+        optimum is returned, and ``detail`` says what the solver had claimed (cvxpy's solvers keep their own
+        tolerances, e.g. HiGHS labelled as optimal a point of cost -1462.4 where the exact optimum is -1768.1, and
+        SCIP failed on states near the domain edge).
+        """
+        ex = self.exact.solve(z, d, soft=False)
+        kind = "the exact 1-D method" if self.c.system.m == 1 else "the exact region method"
+        if ex.status == "infeasible":
+            if sol.status == "infeasible":
+                sol.detail += f"; infeasible, confirmed by {kind}"
+                return sol
+            if sol.v is not None and self.c._admissible(z, sol.v):  # pragma: no cover - would be a bug of the method
+                raise RuntimeError(f"{kind} found no admissible v at z = {z} but {sol.detail} returned an admissible "
+                                   f"point {sol.v}: report this state")
+            ex.detail = f"{sol.detail}, not confirmed: infeasible by {kind} ({ex.detail})"
+            return ex
+        J = ex.objective
+        if sol.status == "optimal" and sol.v is not None and sol.objective <= J + EXACT_CHECK_TOL * max(1.0, abs(J)):
+            sol.detail += f"; equal to the optimum of {kind} ({J:.10g})"
+            return sol
+        claim = sol.detail if sol.v is None else f"{sol.detail} at cost {sol.objective:.10g}"
+        ex.slack_u, ex.slack_H = np.zeros(self.c.system.m), np.zeros(self.c.p)
+        ex.detail = f"{claim}, not the optimum: the optimum of {kind} ({ex.detail}) is returned"
+        return ex
 
 
 class _MiqpBackend:

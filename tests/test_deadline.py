@@ -13,7 +13,7 @@ import flnotes as fl
 from flnotes.bench import exactness as ex
 from flnotes.bench import mpc as rt
 from flnotes.control import exact_1d_feasible_set
-from flnotes.mpc import MPC, RESERVE_SHARE
+from flnotes.mpc import MPC, RESERVE_MAX_SHARE, RESERVE_SHARE
 from flnotes.mpc import fallback as fb
 from flnotes.solvers import BOUND_TOL
 from flnotes.studies import multi as study
@@ -237,7 +237,108 @@ def test_the_fallback_skips_a_plan_along_the_qp_the_engine_saw_fail(quad):
     else:
         pytest.fail("premise: a state that needs the fallback")
     assert mpc._fallback_s > 0
-    assert mpc.reserve == min(max(RESERVE_SHARE * 0.2, mpc._late_s + mpc._fallback_s), 0.1)
+    assert mpc.reserve == max(RESERVE_SHARE * 0.2, min(mpc._late_s + mpc._fallback_s, RESERVE_MAX_SHARE * 0.2))
+    mpc.reset()
+    assert mpc._fallback_s == mpc._late_s == 0.0 and mpc.reserve == RESERVE_SHARE * 0.2
+
+
+def _easy_and_cold(quad, n_easy=2):
+    """States of the book's Quad-1D that the MPC without a limit screens (an easy step: one QP) and one where it has
+    no plan (the fallback runs)."""
+    exact = rt.make_mpc(quad)
+    easy, cold = [], None
+    for c in ex.mpc_cases(quad, 40, seed=11):
+        exact.reset()
+        s = exact(c["z"], c["z_ref"])
+        if s.screened and len(easy) < n_easy:
+            easy.append(c)
+        elif s.status == "infeasible" and cold is None:
+            cold = c
+    assert len(easy) == n_easy and cold is not None, "premise: screened states and an infeasible one"
+    return easy, cold
+
+
+def _burn(seconds):
+    """Busy CPU work of this thread for ``seconds`` of its CPU time."""
+    import time
+
+    c0 = time.thread_time()
+    while time.thread_time() - c0 < seconds:
+        sum(range(1000))
+
+
+def test_slow_fallbacks_never_stop_the_controller_from_optimizing(quad, monkeypatch):
+    """Fallbacks that cost more CPU than the whole limit (a slow fallback injected, on cold states), then easy states:
+    the measured reserve stays at most RESERVE_MAX_SHARE of the limit, the cut-off leaves the engine most of the
+    limit, and the easy states are solved to optimality again, by the same controller, without a reset. A reset
+    clears what was measured."""
+    from flnotes.mpc import controller
+
+    easy, cold = _easy_and_cold(quad)
+    tl = 0.25
+    mpc = rt.make_mpc(quad, time_limit=tl)
+    real = controller.fallback.fallback_plan
+
+    def slow(*a, **k):
+        _burn(1.5 * tl)  # the controller's own CPU work, more than its whole limit
+        return real(*a, **k)
+
+    monkeypatch.setattr(controller.fallback, "fallback_plan", slow)
+    for _ in range(3):
+        mpc.reset()
+        s = mpc(cold["z"], cold["z_ref"])
+        assert s.fallback, s.message
+    monkeypatch.setattr(controller.fallback, "fallback_plan", real)
+    mpc.set_previous_plan(None)
+    assert mpc._fallback_s >= 1.5 * tl, "premise: the controller measured a fallback longer than its limit"
+    assert mpc.reserve <= RESERVE_MAX_SHARE * tl
+    for c in easy:
+        mpc.set_previous_plan(None)
+        s = mpc(c["z"], c["z_ref"])
+        assert s.status == "optimal" and not s.fallback and not s.info["cut_off"], s.message
+    assert mpc._fallback_s < 1.5 * tl, "what was measured decays step by step"
+    mpc.reset()
+    assert mpc.measured == dict(late=0.0, fallback=0.0, answer=0.0)
+
+
+def test_the_reserve_is_measured_on_cpu_not_on_waiting(quad, monkeypatch):
+    """A fallback that waits (the machine busy elsewhere, here a sleep) without working: the controller keeps back
+    only its CPU time, not the wait."""
+    import time
+
+    from flnotes.mpc import controller
+
+    _, cold = _easy_and_cold(quad, n_easy=0)
+    mpc = rt.make_mpc(quad, time_limit=0.25)
+    real = controller.fallback.fallback_plan
+
+    def waits(*a, **k):
+        time.sleep(1.0)
+        return real(*a, **k)
+
+    monkeypatch.setattr(controller.fallback, "fallback_plan", waits)
+    s = mpc(cold["z"], cold["z_ref"])
+    assert s.fallback and s.solve_time >= 1.0
+    assert mpc._fallback_s < 0.5, mpc.measured
+    assert s.info["cpu_time"] < s.solve_time - 0.5
+
+
+def test_the_fallback_stops_its_repairs_at_its_deadline(quad):
+    """With a deadline already past, the fallback makes only the first input admissible (exact, whatever the time)
+    and says that its repairs stopped; without one it repairs as before."""
+    import time
+
+    _, cold = _easy_and_cold(quad, n_easy=0)
+    pred = rt.make_mpc(quad).pred
+    z = cold["z"]
+    f, _ = pred.linear(z, cold["z_ref"])
+    Z, V, what, ok = fb.fallback_plan(pred, z, None, f=f, deadline=time.perf_counter() - 1.0)
+    assert "stopped at the step's deadline" in what
+    v_ok, adm = fb.safe_input(pred, z, np.zeros(pred.m))
+    assert ok == adm and np.array_equal(V[0], v_ok)
+    assert np.array_equal(V[1:], np.zeros((pred.N - 1, pred.m)))  # the rest as guessed, not repaired
+    Z2, V2, what2, _ = fb.fallback_plan(pred, z, None, f=f)
+    assert "deadline" not in what2
 
 
 def test_the_warm_up_changes_no_answer(quad):
@@ -275,7 +376,7 @@ def test_plans_at_the_limit_are_measured_against_the_cold_reference(quad):
     below the reference's optimum, and the two optima agree (the levers are exact)."""
     from flnotes.bench import deadline as dl
 
-    recs = dl.diverse(quad, fl.scale(8, 4), t_s=TINY, seed=3)
+    recs = dl.diverse(quad, fl.scale(8, 4), t_s=TINY, seed=3, fallback_deadline=False)  # the repaired plans
     dl.optimum_gaps(quad, recs, 60.0)
     dl.reference_gaps(quad, recs, 60.0)
     both = [r for r in recs if "ref_gap" in r and np.isfinite(r["ref_gap"]) and np.isfinite(r.get("opt_gap", np.nan))]
@@ -402,7 +503,8 @@ def test_an_error_in_a_cut_off_solve_is_raised_at_the_next_step(quad, monkeypatc
     """The solve a step answered at its cut-off fails after the answer: the error is raised by the next call, with a
     note saying where it came from (never dropped)."""
     setup, z, R, prev, _ = engine_state(quad)
-    mpc = rt.make_mpc(setup, time_limit=0.5)
+    mpc = rt.make_mpc(setup, time_limit=5.0)  # the engine reaches its held solver call before the cut-off (a limit
+    # of 0.5 s was too short for that on a machine loaded 7 times over)
     gate = Gate(monkeypatch, then=RuntimeError("the solver broke"))
     mpc.set_previous_plan(prev)
     assert mpc(z, R).info["cut_off"]
@@ -484,3 +586,33 @@ def test_a_step_under_a_time_limit_runs_without_the_cyclic_garbage_collector(qua
         mpc(z, R)
         assert gc.isenabled(), "the step restores the collector"
     assert seen == [False, True]
+
+
+def test_a_slow_answer_after_a_cut_off_moves_the_next_cut_off_by_a_bounded_share(quad, monkeypatch):
+    """An answer that took long after its cut-off (the machine busy: here a sleep) moves the following cut-offs
+    earlier, by at most RESERVE_MAX_SHARE of the limit: the next easy state is still solved to optimality."""
+    import time
+
+    from flnotes.mpc import engine
+
+    setup, z, R, prev, _ = engine_state(quad)
+    easy, _ = _easy_and_cold(setup, n_easy=1)
+    tl = 5.0  # long enough for the engine to reach its (held) solver call on a loaded machine
+    mpc = rt.make_mpc(setup, time_limit=tl)
+    gate = Gate(monkeypatch)
+    real = engine.NetworkEngine.answer_now
+
+    def slow(self):
+        time.sleep(0.5 * tl)  # more than RESERVE_MAX_SHARE of the limit
+        return real(self)
+
+    monkeypatch.setattr(engine.NetworkEngine, "answer_now", slow)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert s.info["cut_off"] and s.solve_time >= 0.5 * tl
+    monkeypatch.setattr(engine.NetworkEngine, "answer_now", real)
+    gate.release()
+    assert mpc.measured["answer"] >= 0.5 * tl > RESERVE_MAX_SHARE * tl, mpc.measured
+    mpc.set_previous_plan(None)
+    s = mpc(easy[0]["z"], easy[0]["z_ref"])
+    assert s.status == "optimal" and not s.info["cut_off"], s.message

@@ -393,6 +393,21 @@ def test_no_verification_model_is_built_without_the_time_to_use_it(monkeypatch):
     assert r.status == "time_limit" and "came before scip could verify it" in r.message
 
 
+def test_a_verified_claim_says_first_what_was_proven():
+    """A claim that is no proof (here DAQP's) checked by SCIP: the message of a proven answer starts with what was
+    proven and by which solver, then names the claim; it never reads as a failure."""
+    import time
+
+    from flnotes.solvers import base
+
+    p = random_program(0, quad=True)
+    ref = make_solver(p, "scip").solve(gap=1e-9)
+    assert ref.status in ("optimal", "infeasible"), "premise: SCIP decides the program"
+    r = base._confirm(make_solver(p, "daqp"), p, "scip", None, None, 1e-6, time.perf_counter(), "daqp: a claim", 0)
+    assert r.status == ref.status
+    assert r.message.startswith(f"{r.status}, proven by scip (") and "daqp: a claim is no proof" in r.message, r.message
+
+
 def test_scip_does_not_polish_an_incumbent_after_its_time_limit(monkeypatch):
     """SCIP stopped by its time limit returns its incumbent at once: the HiGHS polish (which took 5 to 14 ms on
     level-set programs) is for proven optima, not for an answer that is already late."""

@@ -23,7 +23,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..mpc import RESERVE_SHARE
+from ..mpc import FALLBACK_POST_SHARE, RESERVE_DECAY, RESERVE_MAX_SHARE, RESERVE_SHARE
 from ..simulate import simulate
 from ..solvers import BOUND_TOL
 from ..tables import time_stats
@@ -105,9 +105,11 @@ def cut_off_study(setup: dict, t_final: float, t_s: float = T_S, reserve_share: 
     return rows
 
 
-def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2) -> list[dict]:
-    """``n`` diverse states (:func:`flnotes.bench.exactness.mpc_cases`), each solved cold with ``time_limit = t_s``."""
+def diverse(setup: dict, n: int, t_s: float = T_S, seed: int = 2, fallback_deadline: bool = True) -> list[dict]:
+    """``n`` diverse states (:func:`flnotes.bench.exactness.mpc_cases`), each solved cold with ``time_limit = t_s``
+    (``fallback_deadline``: :attr:`flnotes.MPC.fallback_deadline`)."""
     mpc = make_mpc(setup, time_limit=t_s)
+    mpc.fallback_deadline = fallback_deadline
     out = []
     for c in mpc_cases(setup, n, seed=seed):
         mpc.reset()
@@ -381,11 +383,14 @@ def run(fast: bool) -> dict:
              "machine). A solver call need not stop at its limit: DAQP reads its clock every 32 iterations of a "
              "node's active-set solve and every 32 nodes of its branch and bound (a search of short nodes runs on by "
              "up to 32 of them), SCIP at its own pace. The controller keeps back from the engine "
-             f"{100 * RESERVE_SHARE:.0f} % of t_s, or the lateness and fallback time it has measured so far "
-             "(MPC.reserve); no solver or round starts without time left, no SCIP model is built with less than 20 ms "
+             f"{100 * RESERVE_SHARE:.0f} % of t_s, or the lateness and fallback time it has measured on its own CPU "
+             f"time (MPC.reserve; decaying by {RESERVE_DECAY:g} per step, cleared by reset, at most "
+             f"{100 * RESERVE_MAX_SHARE:.0f} % of t_s); the fallback's repairs stop at {100 * (1 - FALLBACK_POST_SHARE):.0f} "
+             "% of t_s; no solver or round starts without time left, no SCIP model is built with less than 20 ms "
              "left, and the models a step built are freed at the next step. The engine solves in a worker thread: a "
              "solve that has not returned at the cut-off (t_s less the largest of half the reserve, the longest "
-             "fallback and CUT_OFF_MIN_S) is "
+             "fallback, the longest time from a cut-off to its answer and CUT_OFF_MIN_S, at most "
+             f"{100 * RESERVE_MAX_SHARE:.0f} % of t_s) is "
              f"answered with its best plan so far while it runs on (MPC(cut_off=True), the default): {c['cut_offs']} "
              "answers were given so.",
              "gap = (J - J_lb) / max(1, |J|) at the steps that hit the limit: J the cost of the returned plan, J_lb the "

@@ -37,6 +37,20 @@ Array = np.ndarray
 #: Share of :attr:`MPC.time_limit` that :attr:`MPC.reserve` keeps back from the engine at least.
 RESERVE_SHARE = 0.2
 
+#: Largest share of :attr:`MPC.time_limit` that what a controller has measured (its engine's lateness after its budget,
+#: its longest fallback) may keep back from the engine or leave for the answer after the cut-off: whatever was
+#: measured, the engine keeps at least ``1 - RESERVE_MAX_SHARE`` of the limit (less what the step spent before it).
+RESERVE_MAX_SHARE = 0.4
+
+#: Factor by which the measured lateness and fallback time shrink at every step (:attr:`MPC.reserve`): one slow
+#: fallback (a cold state, a burst of load) is forgotten over tens of steps, not kept for good. :meth:`MPC.reset`
+#: clears them.
+RESERVE_DECAY = 0.9
+
+#: Share of :attr:`MPC.time_limit` left after the fallback's deadline for the work after it (the checks of the plan,
+#: the QP of its gap): the repairs of :func:`flnotes.mpc.fallback.fallback_plan` stop at ``time_limit`` less this.
+FALLBACK_POST_SHARE = 0.1
+
 #: Seconds the cut-off leaves for the answer at least (:meth:`MPC._engine_solve`): the thread that answers waits for
 #: Python's interpreter lock up to one switch interval (5 ms by default) while the solve runs Python code, then
 #: checks the plan (1 to 3 ms). Measured on the Quad-1D at N_p = 20 with no reserve share: the answers at a cut-off
@@ -120,7 +134,12 @@ class MPC:
     time_limit
         Seconds per control step, or ``None``. The whole step counts: the checks before the solve, the engine
         (screening QP, node bounds, every round; each solver call gets the time left) and the fallback after
-        it, for which :attr:`reserve` seconds are kept back. On hit the status is ``"time_limit"`` and the plan
+        it. :attr:`reserve` seconds are kept back from the engine for its overrun and the fallback (what this
+        controller measured of them, decaying, at most :data:`RESERVE_MAX_SHARE` of the limit), and the fallback's
+        repairs stop at :data:`FALLBACK_POST_SHARE` of the limit before it; an answer can still come after the
+        limit when the machine does not give the controller the CPU (``info["cpu_time"]`` against ``solve_time``
+        tells the two apart) or when one call that does not check the time (a forward pass, a QP, the exact
+        first input of the fallback) outlasts what is left. On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -128,7 +147,7 @@ class MPC:
         False). ``bound`` is a valid lower bound of eq. (MPC_form_miqp) (the QP without the network, the levels
         proven empty, a solver's bound) and ``gap = (objective - bound) / max(1, |objective|)``; both NaN for a
         plan that fails the check. A solver call need not stop at its limit (DAQP reads its clock every 32
-        iterations and nodes): :attr:`reserve` grows to what this controller has measured of that, and with
+        iterations and nodes): :attr:`reserve` follows what this controller has measured of that, and with
         ``cut_off`` (the default) the step answers at its cut-off while such a call runs on.
         ``python -m flnotes.bench deadline`` reports the answers after the limit. With a time limit, the controller
         solves once when it is built (:meth:`NetworkEngine.warm_up`), so that its first step does not pay the
@@ -160,6 +179,10 @@ class MPC:
         ``[0, 0.5]``, which ``python -m flnotes.bench deadline`` sets to 0 to measure the cut-off alone.
     cut_off
         Whether steps answer at the cut-off (the ``cut_off`` argument resolved against the time limit).
+    fallback_deadline
+        Under a time limit, whether the fallback's repairs stop at their deadline (default True, see ``time_limit``).
+        ``False`` lets them run to the end, so that the answer is late by them: the tests and benchmarks with a limit
+        far below any solve set it to obtain the repaired plans, which depend on the states only.
 
     Examples
     --------
@@ -249,8 +272,10 @@ class MPC:
         self.time_limit, self.gap = time_limit, float(gap)
         self.cut_off = bool(time_limit is not None and engine and (cut_off is None or cut_off))
         self.reserve_share = RESERVE_SHARE
-        self._fallback_s = 0.0  # the longest fallback run so far (s): see reserve
-        self._late_s = 0.0  # the largest answer after its limit measured so far (s): see reserve
+        self.fallback_deadline = True
+        self._fallback_s = 0.0  # the longest fallback (CPU s of this controller's thread), decaying: see reserve
+        self._late_s = 0.0  # the engine's largest lateness after its budget (its CPU share), decaying: see reserve
+        self._answer_s = 0.0  # the longest wall time from a cut-off to its answer, decaying: see _engine_solve
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
@@ -285,8 +310,10 @@ class MPC:
     def reserve(self) -> float:
         """Seconds of :attr:`time_limit` kept back from the engine, for the answer it gives after its budget and the
         fallback after it: :attr:`reserve_share` (:data:`RESERVE_SHARE`) of the limit, or what this controller has
-        measured so far when that is more (the engine's largest lateness after its budget plus the longest fallback
-        it ran), at most half the limit.
+        measured when that is more (the engine's largest lateness after its budget plus the longest fallback it
+        ran, both on this controller's own CPU time, not on waiting for the machine), the measured part at most
+        :data:`RESERVE_MAX_SHARE` of the limit. The measures shrink by :data:`RESERVE_DECAY` at every step and
+        :meth:`reset` clears them, so one slow fallback never keeps the engine from optimizing the later steps.
 
         The engine answers after its budget by what a solver call overran its time limit: DAQP reads its clock every
         32 iterations of a node's active-set solve and every 32 nodes of its branch and bound, so a search of short
@@ -294,15 +321,25 @@ class MPC:
         to 2 ms. The lateness is measured after every step; the
         fallback of a cold state without a feasible plan took 25 to 35 ms on the Quad-1D at N_p = 20. With
         :attr:`cut_off` a solve that has not returned by ``time_limit`` less the largest of half the reserve, the
-        longest fallback and :data:`CUT_OFF_MIN_S` is answered from what it has found so far, and its lateness is
-        measured when it ends.
+        longest fallback and :data:`CUT_OFF_MIN_S` (at most :data:`RESERVE_MAX_SHARE` of the limit) is answered from
+        what it has found so far, and its lateness is measured when it ends.
         """
         if self.time_limit is None:
             return 0.0
         tl = float(self.time_limit)
         if not 0.0 <= self.reserve_share <= 0.5:
             raise ValueError(f"reserve_share must be in [0, 0.5], got {self.reserve_share!r}")
-        return min(max(self.reserve_share * tl, self._late_s + self._fallback_s), 0.5 * tl)
+        return max(self.reserve_share * tl, min(self._late_s + self._fallback_s, RESERVE_MAX_SHARE * tl))
+
+    @property
+    def measured(self) -> dict:
+        """What this controller has measured (seconds, decaying by :data:`RESERVE_DECAY` per step, cleared by
+        :meth:`reset`): ``late`` (the engine's lateness after its budget, scaled by the CPU share of its solve: waiting
+        for the machine does not count) and ``fallback`` (the longest fallback's CPU time), which :attr:`reserve`
+        keeps back from the engine; ``answer`` (the longest wall time from a cut-off to its answer, waiting for the
+        machine included), which moves the cut-off earlier (:meth:`_engine_solve`) but never by more than
+        :data:`RESERVE_MAX_SHARE` of the limit."""
+        return dict(late=self._late_s, fallback=self._fallback_s, answer=self._answer_s)
 
     @property
     def backend(self) -> str:
@@ -313,11 +350,12 @@ class MPC:
         return self.options.bounds
 
     def reset(self) -> None:
-        """Forget the previous plan, the history and the kept LP bounds (``MPCOptions.bound_cache``); called by
-        :func:`flnotes.simulate` at the start of a run."""
+        """Forget the previous plan, the history, the kept LP bounds (``MPCOptions.bound_cache``) and the measures of
+        :attr:`reserve`; called by :func:`flnotes.simulate` at the start of a run."""
         self._finish_running()
         self.history = []
         self._plan = None
+        self._fallback_s = self._late_s = self._answer_s = 0.0  # what was measured on other states and loads
         if isinstance(self.solver, NetworkEngine):
             self.solver.reset()
 
@@ -397,8 +435,11 @@ class MPC:
             return self._solve_step(z, z_ref)
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self._finish_running()  # a solve the last step answered at its cut-off ends first, inside this step's budget
+        self._fallback_s *= RESERVE_DECAY
+        self._late_s *= RESERVE_DECAY
+        self._answer_s *= RESERVE_DECAY
         release_retired()  # the solver models the last step kept alive are freed here, inside this step's budget
         z = self._check_z(z)
         R = self._check_ref(z_ref)
@@ -414,16 +455,17 @@ class MPC:
             if self.cut_off:
                 step = self._engine_solve(z, R, inc, budget, t0)
             else:
+                c_s = time.thread_time()
                 step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
                 if budget is not None:  # how late the engine answered after its budget (see reserve)
-                    self._late_s = max(self._late_s, step.solve_time - budget)
+                    self._measure_late(step.solve_time - budget, time.thread_time() - c_s, step.solve_time)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
             # never a plan that breaks the program labelled as a solution
             step.status, step.v = "error", None
             step.message += "; the returned plan fails the forward-pass check"
         t_post = time.perf_counter()
         if step.v is None:
-            step = self._fallback(z, R, step, shifted)
+            step = self._fallback(z, R, step, shifted, t0)
         elif step.status == "time_limit" and not np.isfinite(step.bound):
             self._record_gap(z, R, step, -np.inf)  # the engine had no bound (no QP solved): the QP's
         step.u_nn_pred = self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))
@@ -433,6 +475,9 @@ class MPC:
         step.info["plan_feasible"] = self.plan_feasible(step.z_pred, step.v_pred)
         step.solve_time = time.perf_counter() - t0
         step.info["post_time"] = step.solve_time - (t_post - t0)
+        step.info["cpu_time"] = time.thread_time() - c0  # this thread's CPU time (a cut-off solve's is its own)
+        if "cut_off_at" in step.info:  # how long the answer took after the cut-off, on the wall clock
+            self._answer_s = max(self._answer_s, t0 + step.solve_time - step.info.pop("cut_off_at"))
         self._plan = (step.z_pred, step.v_pred)
         self.history.append(step)
         return step
@@ -462,8 +507,10 @@ class MPC:
         """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
 
         The solve runs in a worker thread with ``budget`` seconds; this thread waits for it until the cut-off,
-        ``t0 + time_limit`` less the largest of half of :attr:`reserve`, the longest fallback run so far and
-        :data:`CUT_OFF_MIN_S` (the rest of the reserve is for the engine's overrun after its budget).
+        ``t0 + time_limit`` less the largest of half of :attr:`reserve`, the longest fallback run so far (CPU time),
+        the longest time an answer took after its cut-off (wall clock: on a loaded machine the answer waits for a
+        core) and :data:`CUT_OFF_MIN_S`, at most :data:`RESERVE_MAX_SHARE` of the limit (the rest of the reserve is
+        for the engine's overrun after its budget); these measures decay by :data:`RESERVE_DECAY` per step.
         A solve that has not returned then is asked to stop (:meth:`NetworkEngine.stop`) and the step answers with
         what it has published (:meth:`NetworkEngine.answer_now`: its best plan that passed the forward-pass check
         and its lower bound, ``info["cut_off"]`` True). The solver calls release the GIL (DAQP, HiGHS, SCIP), so the
@@ -473,14 +520,17 @@ class MPC:
         box: dict = {}
 
         def run() -> None:
+            c_s = time.thread_time()
             try:
                 box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
             except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
                 box["error"] = exc
+            box["cpu"] = time.thread_time() - c_s
 
         self.solver.go()
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
-        answer_s = max(0.5 * self.reserve, self._fallback_s, CUT_OFF_MIN_S)
+        answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
+                       RESERVE_MAX_SHARE * self.time_limit)
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
         worker.start()
         worker.join(max(t0 + float(self.time_limit) - answer_s - time.perf_counter(), 0.0))
@@ -488,7 +538,9 @@ class MPC:
             self.solver.stop()
             unmute_c_output()  # a SCIP call running on must not silence what the caller writes from now on
             box["cut_off"] = True
+            t_cut = time.perf_counter()
             step = self.solver.answer_now()
+            step.info["cut_off_at"] = t_cut
             step.solve_time = time.perf_counter() - t0
             return step
         step = self._finish_running()
@@ -512,8 +564,14 @@ class MPC:
                 box["error"].add_note("raised by the solve that the previous step answered at its cut-off")
             raise box["error"]
         step = box["step"]
-        self._late_s = max(self._late_s, step.solve_time - budget)  # how late the engine answered after its budget
+        self._measure_late(step.solve_time - budget, box.get("cpu", step.solve_time), step.solve_time)
         return step
+
+    def _measure_late(self, late: float, cpu: float, wall: float) -> None:
+        """Keep the engine's lateness after its budget (see :attr:`reserve`), scaled by the share of its solve that
+        was its own CPU work (``cpu / wall``): the time the machine gave to other processes is not kept back."""
+        if late > 0.0:
+            self._late_s = max(self._late_s, late * min(1.0, max(cpu, 0.0) / max(wall, 1e-12)))
 
     # ------------------------------------------------------------------ the fallback
     def _engine_time(self, t0: float) -> Optional[float]:
@@ -523,8 +581,12 @@ class MPC:
         left = self.time_limit - (time.perf_counter() - t0) - self.reserve
         return max(left, 1e-9)  # positive: the engine then returns at its first check of the time
 
-    def _fallback(self, z: Array, R: Array, step: StepResult, shifted) -> StepResult:
+    def _fallback(self, z: Array, R: Array, step: StepResult, shifted, t0: Optional[float] = None) -> StepResult:
         """No plan from this solve: apply :meth:`fallback_plan`, flagged, the solve's status and message kept.
+
+        Under a time limit its repairs stop at ``t0 + time_limit`` less :data:`FALLBACK_POST_SHARE` of the limit
+        (``deadline`` of :func:`flnotes.mpc.fallback.fallback_plan`; the first input is made admissible whatever the
+        time), and its CPU time is what :attr:`reserve` keeps back for it.
 
         When the fallback plan satisfies the whole program (:meth:`Prediction.feasible`), its optimality gap is
         recorded against a valid lower bound of eq. (MPC_form_miqp): the optimum ``J_c`` of the QP without the
@@ -532,10 +594,13 @@ class MPC:
         """
         f, _ = self.pred.linear(z, R)
         engine_bound = step.bound
-        t_fb = time.perf_counter()
+        deadline = (None if self.time_limit is None or t0 is None or not self.fallback_deadline
+                    else t0 + (1.0 - FALLBACK_POST_SHARE) * float(self.time_limit))
+        c_fb = time.thread_time()
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,
-                                                qp_repair_failed=bool(step.info.get("repair_failed")))
-        self._fallback_s = max(self._fallback_s, time.perf_counter() - t_fb)
+                                                qp_repair_failed=bool(step.info.get("repair_failed")),
+                                                deadline=deadline)
+        self._fallback_s = max(self._fallback_s, time.thread_time() - c_fb)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)
         step.fallback, step.input_admissible = True, ok

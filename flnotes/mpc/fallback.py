@@ -12,6 +12,7 @@ samples (its flag then means "none found", not "none exists").
 """
 from __future__ import annotations
 
+import time
 from typing import Optional
 
 import numpy as np
@@ -23,14 +24,24 @@ Array = np.ndarray
 
 
 
-def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
+def _past(deadline: Optional[float]) -> bool:
+    """Has ``deadline`` (a :func:`time.perf_counter` value, ``None``: none) passed?"""
+    return deadline is not None and time.perf_counter() >= deadline
+
+
+def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True,
+                deadline: Optional[float] = None) -> tuple[Array, Array]:
     """A plan built step by step from ``v_guess`` (N_p, m), each input replaced by :meth:`feasible_tail`.
 
-    With ``first=False`` the first input is kept as given. Check the result with :meth:`plan_feasible`.
+    With ``first=False`` the first input is kept as given. The repair stops at ``deadline`` (a
+    :func:`time.perf_counter` value; the later inputs are then kept as guessed). Check the result with
+    :meth:`plan_feasible`.
     """
     V = np.array(v_guess, float).reshape(pred.N, pred.m)
     zk = np.asarray(z, float)
     for k in range(pred.N):
+        if _past(deadline):
+            break
         if first or k:
             V[k] = feasible_tail(pred, zk, V[k], last=k == pred.N - 1)
         zk = pred.Ad @ zk + pred.Bd @ V[k]
@@ -120,7 +131,8 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
     return cand[i[np.argmin(np.sum((cand[i] - v_guess) ** 2, axis=1))]].copy()
 
 
-def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None) -> tuple[Array, Array]:
+def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
+              deadline: Optional[float] = None) -> tuple[Array, Array]:
     """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
 
     At step ``k`` the QP ``min J(V)`` over the boxes and terminal rows is solved with ``v(0..k-1)`` fixed
@@ -128,7 +140,9 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     later steps' boxes in view, which a repair of a fixed guess does not. ``f`` is the cost's linear part
     (:meth:`Prediction.linear`); ``V_qp`` the QP's optimum without fixed steps when the caller has it. The QP is
     solved again only after a step whose ``v(k)`` was moved: fixing ``v(k)`` at the QP's own value leaves its
-    (unique: ``H`` is positive definite) optimum where it is. Check the result with :meth:`Prediction.feasible`.
+    (unique: ``H`` is positive definite) optimum where it is. The build stops at ``deadline`` (a
+    :func:`time.perf_counter` value; the later inputs are then the last QP's). Check the result with
+    :meth:`Prediction.feasible`.
     """
     N, m = pred.N, pred.m
     z = np.asarray(z, float)
@@ -137,6 +151,9 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     resolve = V_qp is None
     zk = z
     for k in range(N):
+        if _past(deadline):
+            V[k:] = guess[k:]
+            break
         if resolve:
             G = np.eye(N * m)[: k * m] if k else None
             fixed = V[:k].reshape(-1)
@@ -150,7 +167,8 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
 
 
 def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]],
-                  f: Optional[Array] = None, qp_repair_failed: bool = False) -> tuple[Array, Array, str, bool]:
+                  f: Optional[Array] = None, qp_repair_failed: bool = False,
+                  deadline: Optional[float] = None) -> tuple[Array, Array, str, bool]:
     """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
 
     Safety first, in this order:
@@ -169,6 +187,11 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     ``qp_repair_failed``: the caller has already built the plan along the QP for this ``z`` and ``f`` and seen it
     fail the check (the MPC engine's first incumbent), so it is not built again.
 
+    ``deadline`` (a :func:`time.perf_counter` value; ``None``: none) bounds the repairs of 2. and of the plan's rest in
+    3.: none starts after it and each stops at it (a plan cut short is rejected by the check like any other). The
+    shifted plan's check and step 3.'s first input (exact for one and two inputs) are made whatever the time: safety
+    does not wait for the clock. ``what`` then says that the repairs were stopped.
+
     For the QP-based constraint models (``constraint`` other than ``"network"``) the same order applies
     with the network as the judge of admissibility: the fallback never claims more than it checks.
     Returns ``(z_pred, v_pred, what, admissible)``.
@@ -177,13 +200,15 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     if shifted is not None and pred.feasible(z, shifted[1]):
         return shifted[0], shifted[1], "the previous plan shifted by one step", True
     found = []
-    if shifted is not None:
-        found.append((repair_plan(pred, z, shifted[1]), "the shifted previous plan repaired step by step"))
-    if f is not None and not qp_repair_failed:
-        found.append((qp_repair(pred, z, f), "the plan built along the QP without the network, repaired step by step"))
+    if shifted is not None and not _past(deadline):
+        found.append((repair_plan(pred, z, shifted[1], deadline=deadline),
+                      "the shifted previous plan repaired step by step"))
+    if f is not None and not qp_repair_failed and not _past(deadline):
+        found.append((qp_repair(pred, z, f, deadline=deadline),
+                      "the plan built along the QP without the network, repaired step by step"))
     found = [(plan, what) for plan, what in found if pred.feasible(z, plan[1])]
-    if not found:
-        plan = repair_plan(pred, z, np.zeros((pred.N, pred.m)))
+    if not found and not _past(deadline):
+        plan = repair_plan(pred, z, np.zeros((pred.N, pred.m)), deadline=deadline)
         if pred.feasible(z, plan[1]):
             found.append((plan, "zero inputs repaired step by step"))
     if found:
@@ -191,14 +216,17 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
             found.sort(key=lambda pw: pred.cost(pw[0][1], f, 0.0))
         (Zr, Vr), what = found[0]
         return Zr, Vr, what, True
+    stopped = "; the repairs stopped at the step's deadline" if _past(deadline) else ""
     V = np.array(shifted[1] if shifted is not None else np.zeros((pred.N, pred.m)), float)
     V[0], ok = safe_input(pred, z, V[0])
-    Zr, Vr = repair_plan(pred, z, V, first=False)
+    Zr, Vr = repair_plan(pred, z, V, first=False, deadline=deadline)
+    if not stopped and _past(deadline):
+        stopped = "; the repairs stopped at the step's deadline"
     if ok:
         return Zr, Vr, ("an admissible first input (|Phi_NN(z, v)| <= u_max^eps at the measured state); "
-                        "the rest of the plan violates the program"), True
+                        "the rest of the plan violates the program" + stopped), True
     return Zr, Vr, ("the least-violation input: no v satisfies |Phi_NN(z, v)| <= u_max^eps at the measured "
-                    "state (input bound violated, flagged)"), False
+                    "state (input bound violated, flagged)" + stopped), False
 
 
 def safe_input(pred: Prediction, z: Array, v_guess: Array) -> tuple[Array, bool]:

@@ -16,6 +16,8 @@ import numpy as np
 from ..bounds import NodeBounds
 from ..encoding import encode
 from ..result import StepResult
+from ..solvers import BOX_TOL
+from ..solvers.scip import _quiet_c_output
 from ..tightening import EmptyBoxError
 from .levers import node_bounds, repeat_bounds
 from .options import MPCOptions
@@ -23,8 +25,16 @@ from .prediction import Prediction
 
 Array = np.ndarray
 
-#: SCIP's default feasibility tolerance (``numerics/feastol``).
-_SCIP_FEASTOL = 1e-6
+#: SCIP's feasibility tolerance here (``numerics/feastol``): the engine's (:class:`flnotes.solvers.ScipSolver`, 1e-9),
+#: not SCIP's default 1e-6, under which the reference labelled optimal plans up to 6.3e-5 (relative) above a cheaper
+#: plan that passes the forward-pass check (the big-M rows let a binary sit 1e-6 off its value).
+SCIP_FEASTOL = 1e-9
+
+#: How far (relative to ``max(1, |bound|)``) a plan of SCIP may lie outside the ``v``-box and still be moved onto its
+#: face: SCIP keeps a bound to its tolerance on the transformed (presolved, aggregated) program, which for ``v`` tied
+#: to the states by the dynamics rows was measured up to 1.9e-5 outside ``v_hi`` at a feasibility tolerance of 1e-6.
+#: The moved plan is what the controller checks (forward pass) and whose cost it reports.
+V_BOX_SNAP = 1e-4
 
 
 class ReferenceProgram:
@@ -79,11 +89,13 @@ class ReferenceProgram:
                                   message="infeasible: a step's LP bounds exclude |Phi_NN| <= u_max^eps")
             cv = self._build(nb, u_in)
         cv["z0"].value, cv["zr"].value = z0, z_ref
-        opts = {"limits/gap": gap}
+        opts = {"limits/gap": gap, "numerics/feastol": SCIP_FEASTOL}
         if time_limit is not None:
             opts["limits/time"] = float(time_limit)
         try:
-            with warnings.catch_warnings():  # cvxpy warns on infinite bounds and on SCIP's "gaplimit" status
+            # cvxpy warns on infinite bounds and on SCIP's "gaplimit" status; SoPlex prints its tolerance notices to the
+            # C streams (silenced as in the engine's SCIP back-end)
+            with warnings.catch_warnings(), _quiet_c_output():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 warnings.simplefilter("ignore", UserWarning)
                 cv["prob"].solve(solver=cp.SCIP, scip_params=opts)
@@ -108,11 +120,15 @@ class ReferenceProgram:
         res = StepResult(None, status, bound=bound, nodes=nodes, n_binaries=int(cv["n_bin"]), rounds=1,
                          encoded_steps=tuple(range(p.N)), backend="cvxpy-scip", message=f"SCIP status {scip_status}")
         if status in ("optimal", "time_limit") and cv["v"].value is not None:
-            V = np.asarray(cv["v"].value, float)
-            # SCIP keeps variable bounds to its feasibility tolerance (1e-6): a plan up to that far outside the
-            # v-box is moved onto it (the checks that follow see the plan the controller would apply)
+            V = np.asarray(cv["v"].value, float).reshape(p.N, p.m)
+            # SCIP keeps variable bounds to its tolerance on its transformed program: a plan on the v-box face up to
+            # V_BOX_SNAP outside it is moved onto it (the checks that follow, the forward pass among them, see the
+            # plan the controller applies, and its cost is that plan's)
             out = np.maximum(V - p.v_hi, p.v_lo - V)
-            if np.all(out <= _SCIP_FEASTOL):
+            tol = V_BOX_SNAP * np.maximum(1.0, np.maximum(np.abs(p.v_lo), np.abs(p.v_hi)))
+            if np.all(out <= tol):
+                if np.any(out > BOX_TOL):
+                    res.message += f"; moved onto the v-box face (SCIP's plan was {float(out.max()):.1e} outside)"
                 V = np.clip(V, p.v_lo, p.v_hi)
             f, c0 = p.linear(z0, z_ref)
             res.v, res.v_pred, res.z_pred = V[0].copy(), V, p.predict(z0, V)

@@ -251,7 +251,8 @@ VERIFY_MIN_LEFT = 0.02
 def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, claim: str, nodes: int) -> MIQPResult:
     """Re-solve ``p`` with ``backend`` (warm-started with ``w`` when it is feasible) to check a claim that is no proof.
 
-    Returns the verifying solver's result, its message prefixed with the claim that was checked.
+    Returns the verifying solver's result; its message says what that solver proved (or that it did not decide), then
+    the claim that was checked.
     """
     if backend not in available_backends():  # pragma: no cover - SCIP and HiGHS are requirements
         return _result(p, "time_limit" if w is not None else "error", w, -np.inf, nodes, t0, solver.name,
@@ -272,7 +273,11 @@ def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, cl
     out = verifier.solve(warm_start=ws, time_limit=left, gap=gap)
     if time_limit is not None:
         retire(verifier)  # freed at the next release, not inside this time-limited call
-    out.message = f"{claim}, not a proof: verified by {backend}: {out.message}"
+    if out.status in ("optimal", "infeasible"):  # the message says first what was proven, and by which solver
+        out.message = (f"{out.status}, proven by {backend} ({out.message}), which solved the program again because "
+                       f"{claim} is no proof")
+    else:
+        out.message = f"{claim}, not a proof; {backend} did not decide it: {out.message}"
     out.nodes += int(nodes)
     out.backend = solver.name
     out.time = time.perf_counter() - t0

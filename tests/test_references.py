@@ -1,0 +1,165 @@
+"""The references are exact: the MPC's cold ``cvxpy-scip`` program and the CLF-CBF's ``cvxpy`` back-end.
+
+The MPC reference runs SCIP at the engine's feasibility tolerance (1e-9) and moves a plan that lies on the ``v``-box
+face up to SCIP's tolerance onto it; its plan is then checked by the forward pass. The CLF-CBF ``cvxpy`` back-end
+checks every answer against the exact method of one input (the linear pieces of ``Phi_NN(z, .)``). Both are compared
+here with the engine (MPC) and the exact method (CLF-CBF) on states of the audited kinds: uniform, at and near the
+faces of the domain box, and with the network bound active; the MPC also on states whose optimum lies on the
+``v``-box face. No solver chatter reaches the C streams.
+"""
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes.bench import exactness as ex
+from flnotes.control import ClfCbfController, DistanceCBF, QuadraticCLF
+from flnotes.mpc import MPC
+
+from _nets import test_net
+
+S = fl.paper.QUAD_SETTING
+EPS = 0.03  # above the small network's largest error on its training grid (0.028)
+COMMON = dict(horizon=4, ts=S["ts"], Q=S["Q"], R=S["R"])
+
+
+def rel(a, b):
+    return abs(a - b) / max(1.0, abs(b))
+
+
+@pytest.fixture(scope="module")
+def quad_small():
+    return fl.quad1d(), test_net("quad1d-8x8")[0]
+
+
+def _agree(eng, ref, z, R):
+    a, b = eng(z, R), ref(z, R)
+    assert b.status == a.status, (z, a.message, b.message)
+    if a.status == "optimal":
+        assert not b.fallback and ref.plan_feasible(b.z_pred, b.v_pred), b.message
+        assert rel(b.objective, a.objective) <= 1e-6, (z, a.objective, b.objective, b.message)
+    return a, b
+
+
+def test_the_mpc_reference_is_exact_on_the_v_box_face(quad_small, capfd):
+    """States whose optimum puts an input on the face of a narrowed v-box: the reference returns that optimum (not
+    an error), its plan on the box and through the forward pass, at the engine's cost to 1e-6; nothing on the C
+    streams."""
+    sysm, net = quad_small
+    vb = (-2.0, 2.0)
+    eng = MPC(sysm, net, EPS, v_box=vb, **COMMON)
+    ref = MPC(sysm, net, EPS, v_box=vb, backend="cvxpy-scip", bounds="box", **COMMON)
+    rng = np.random.default_rng(0)
+    lo, hi = sysm.lo[:3], sysm.hi[:3]
+    on_face = 0
+    for _ in range(fl.scale(12, 8)):
+        z = rng.uniform(0.8 * lo, 0.8 * hi)
+        R = np.zeros((COMMON["horizon"] + 1, 3))
+        R[:, 0] = rng.uniform(-4, 4)
+        eng.reset(), ref.reset()
+        a, b = _agree(eng, ref, z, R)
+        if a.status == "optimal" and np.any(np.abs(np.abs(a.v_pred) - vb[1]) <= 1e-9):
+            on_face += 1
+            assert np.all(np.abs(b.v_pred) <= vb[1])
+    assert on_face >= 2, "premise: optima on the v-box face"
+    out = capfd.readouterr()
+    assert "GMP" not in out.err and "GMP" not in out.out
+
+
+def test_the_mpc_reference_is_exact_on_the_audited_states(quad_small):
+    """Uniform states, states on and near the faces of the box, the input bound strongly active, sine and step
+    references: the reference and the engine return the same status and the same optimum to 1e-6."""
+    sysm, net = quad_small
+    setup = dict(system=sysm, N=COMMON["horizon"], ts=COMMON["ts"])
+    eng = MPC(sysm, net, EPS, **COMMON)
+    ref = MPC(sysm, net, EPS, backend="cvxpy-scip", bounds="horizon", **COMMON)
+    seen = set()
+    for c in ex.mpc_cases(setup, fl.scale(18, 12), seed=4):
+        eng.reset(), ref.reset()
+        a, _ = _agree(eng, ref, c["z"], c["z_ref"])
+        seen.add((c["category"], a.status))
+    assert {cat for cat, st in seen if st == "optimal"} >= {"uniform", "edge"}, f"premise: optima of each kind {seen}"
+
+
+def test_compare_to_reference_on_an_unseen_system():
+    """fl.studies.compare_to_reference on the shipped VdP-gain network (a system not in the book): every optimum of
+    the engine equals the cold reference's to 1e-6."""
+    from flnotes.studies import unseen as us
+
+    cases = us.diverse_cases("VdP-gain", fl.scale(8, 4), seed=0, horizon=4)  # a short horizon: the cold solves are
+    # slow (10 to 170 s each at the case's N_p = 12 on a loaded machine; there 24 states gave at most 7.7e-7)
+    rows = fl.studies.compare_to_reference(us.unseen_mpc("VdP-gain", horizon=4), [(c["z"], c["z_ref"]) for c in cases])
+    opt = [r for r in rows if r["status"] == "optimal"]
+    assert opt, "premise: optimal steps"
+    for r in rows:
+        assert r["scip_status"] == r["status"], r
+    assert max(r["rel_diff"] for r in opt) <= 1e-6, rows
+
+
+# ----------------------------------------------------------------------------- CLF-CBF
+@pytest.fixture(scope="module")
+def msd():
+    net, _ = fl.paper_net("MSD")
+    return fl.msd(), net
+
+
+def _msd_states(sysm, n, seed):
+    """Uniform states, states on a face of the box and near it (1 %), and states near the origin where the network
+    bound is active on the Lcost optimum."""
+    rng = np.random.default_rng(seed)
+    lo, hi = sysm.lo[:2], sysm.hi[:2]
+    out = []
+    for j in range(n):
+        z = rng.uniform(lo, hi)
+        if j % 3 == 1:
+            i = int(rng.integers(2))
+            z[i] = (lo[i] if rng.integers(2) else hi[i]) * (1.0 - rng.uniform(0.0, 0.01))
+        elif j % 3 == 2:
+            z = rng.uniform(-0.5, 0.5, 2)
+        out.append(z)
+    return out
+
+
+@pytest.mark.parametrize("cost", ["linear", "quadratic"])
+def test_the_clf_cbf_cvxpy_backend_returns_the_exact_optimum(msd, cost, capfd):
+    """The cvxpy back-end (HiGHS for Lcost, SCIP for Qcost) on uniform states, states at the box's faces and states
+    where the bound is active: the same status as the exact 1-D method and its optimum to 1e-6, every message
+    naming the check; nothing on the C streams."""
+    sysm, net = msd
+    P = fl.paper.MSD_SETTING
+    ctrl = ClfCbfController(sysm, net, fl.paper.TABLE1["MSD"]["eps"], QuadraticCLF(P["P"]),
+                            DistanceCBF(P["z_o"], P["r_o"]), lambda z: -P["K_nominal"] @ z, cost=cost,
+                            backend="cvxpy", time_limit=5.0)
+    exact = ctrl.with_backend("exact")
+    active = 0
+    for z in _msd_states(sysm, fl.scale(12, 6), seed=1):
+        r, rx = ctrl.step(z), exact.step(z)
+        assert r.status == rx.status and r.fallback == rx.fallback, (z, r.message, rx.message)
+        if rx.status == "optimal":
+            assert rel(r.objective, rx.objective) <= 1e-6, (z, r.objective, rx.objective, r.message)
+            assert "exact 1-D method" in r.message, r.message
+            active += bool(abs(abs(rx.info["phi_nn"][0]) - ctrl.u_eps[0]) <= 1e-6)
+    assert active >= 1, "premise: states where the network bound is active"
+    assert "GMP" not in capfd.readouterr().err
+
+
+def test_a_cvxpy_failure_is_replaced_by_the_exact_optimum_and_said(msd, monkeypatch):
+    """When cvxpy's solver fails (SolverError, as SCIP did near the domain edge), the step returns the exact
+    method's optimum, and its message says that the solver failed."""
+    import cvxpy as cp
+
+    sysm, net = msd
+    P = fl.paper.MSD_SETTING
+    ctrl = ClfCbfController(sysm, net, fl.paper.TABLE1["MSD"]["eps"], QuadraticCLF(P["P"]),
+                            DistanceCBF(P["z_o"], P["r_o"]), cost="linear", backend="cvxpy")
+    z = np.array([1.0, 0.3])
+    rx = ctrl.with_backend("exact").step(z)
+    assert rx.status == "optimal", "premise: a feasible state"
+
+    def fails(*a, **k):
+        raise cp.error.SolverError("Solver 'HIGHS' failed")
+
+    monkeypatch.setattr(ctrl._impl.problem, "solve", fails)
+    r = ctrl.step(z)
+    assert r.status == "optimal" and not r.fallback
+    assert r.objective == rx.objective and np.array_equal(r.v, rx.v)
+    assert "failed" in r.message and "exact 1-D method" in r.message, r.message
