@@ -92,3 +92,31 @@ def test_grid_check_refuses_what_it_cannot_check():
     H2 = fl.ExponentialCBF(fl.AffineCBF([-1.0, 0.0], 1.0), sysm.A, sysm.B, k1=1.0)
     with pytest.raises(ValueError, match="kappa"):
         fl.studies.exponential_cbf_grid_check(sysm, net, EPS, H2, kappa=0.0)
+
+
+def test_failure_set_under_the_bound_matches_the_closed_form():
+    """A wall h = 1 - z1 does not contain v: it fails exactly where z2 > kappa (1 - z1); h = 2 - z2 never fails."""
+    sysm, _ = double_integrator()
+    kappa, n = 2.0, 41
+    g = np.linspace(-3, 3, n)
+    Z = np.array(np.meshgrid(g, g, indexing="ij")).reshape(2, -1).T
+    wall = fl.studies.cbf_failure_set_bounded(sysm, fl.AffineCBF([-1.0, 0.0], 1.0), kappa, n=n)
+    safe = Z[:, 0] <= 1.0
+    expected = safe & (Z[:, 1] > kappa * (1.0 - Z[:, 0]) + 1e-9)
+    assert wall["safe"] == safe.sum() and wall["failing"] == expected.sum() > 0
+    assert np.allclose(np.sort(wall["Z_fail"], axis=0), np.sort(Z[expected], axis=0))
+    # h = 2 - z2: the condition -v + kappa (2 - z2) >= 0 holds with v = -2 on the whole safe set
+    assert fl.studies.cbf_failure_set_bounded(sysm, fl.AffineCBF([0.0, -1.0], 2.0), kappa, n=n)["failing"] == 0
+    with pytest.raises(ValueError, match="kappa"):
+        fl.studies.cbf_failure_set_bounded(sysm, fl.AffineCBF([0.0, -1.0], 2.0), 0.0, n=n)
+
+
+def test_sampled_decrease_and_change_within_a_sample():
+    """With v = 0 from z0 = [0, 1], z1 grows by ts per sample: V = ||z||^2 rises at every sample."""
+    sysm, _ = double_integrator()
+    ts = 0.1
+    log = fl.simulate(sysm, lambda z: np.zeros(1), t_final=1.0, ts=ts, z0=np.array([0.0, 1.0]), progress=False)
+    r = fl.studies.sampled_clf_decrease(log, fl.QuadraticCLF(np.eye(2)))
+    assert r["rise_fraction"] == 1.0 and r["max_rise_ratio"] > 1.0 and np.isnan(r["max_delta"])
+    change = fl.studies.largest_change_within_sample(log, lambda Z: Z[:, 0])
+    assert 0.8 * ts <= change <= ts + 1e-9

@@ -1,4 +1,4 @@
-"""Figures of the CLF-CBF chapter: the paper's Fig. 3, the exact 1-D picture, solve times."""
+"""Figures of the CLF-CBF chapter: the paper's Fig. 4, the exact 1-D picture, solve times."""
 from __future__ import annotations
 
 from typing import Any, Mapping, Optional, Sequence
@@ -96,7 +96,7 @@ def clfcbf_signals(logs: Mapping[str, Any], eps: float, axes=None, t_max: Option
 
 
 def clfcbf_figure3(logs: Mapping[str, Any], H: Any, eps: float, t_max: Optional[float] = None):
-    """The paper's Fig. 3 reproduced: phase portrait (left), states, ``v`` and ``u`` over time (right)."""
+    """The paper's Fig. 4 reproduced: phase portrait (left), states, ``v`` and ``u`` over time (right)."""
     fig = plt.figure(figsize=(10.5, 6.2))
     gs = fig.add_gridspec(3, 2, width_ratios=[1.0, 1.35])
     ax_p = fig.add_subplot(gs[:, 0])

@@ -12,7 +12,7 @@ __all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_c
 
 
 def plot_terminal_bisection(term, ax=None):
-    """The bisection on the level ``alpha`` (the book's mu): the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha O_inf``
+    """The bisection on the level ``alpha`` (the book's psi): the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha O_inf``
     against ``u_max^eps``.
 
     Parameters
@@ -29,8 +29,8 @@ def plot_terminal_bisection(term, ax=None):
     ax.scatter(H[ok, 0], H[ok, 1], color=COLORS["nominal"], zorder=2, label="certified (MILP upper bound)")
     ax.scatter(H[~ok, 0], H[~ok, 1], color=COLORS["unsafe"], marker="x", zorder=2, label="fails")
     ax.axhline(float(np.max(term.u_eps)), color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max}^{\varepsilon}$")
-    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\mu = {term.alpha:.3g}$")
-    ax.set(xlabel=r"level $\mu$", ylabel=r"$\max_{z \in \mu O_\infty} |\Phi_{NN}(z, K_f z)|$")
+    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\psi = {term.alpha:.3g}$")
+    ax.set(xlabel=r"level $\psi$", ylabel=r"$\max_{z \in \psi O_\infty} |\Phi_{NN}(z, K_f z)|$")
     ax.legend(loc="upper left")
     return ax
 
@@ -99,7 +99,7 @@ def _line(color, label):
 
 
 def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Optional[str] = None):
-    """Certified ``delta(t_s)`` (bracket) against the budget ``u_max - eps`` it must stay under.
+    """Certified ``Delta(t_s)`` (bracket) against the budget ``u_max - eps`` it must stay under.
 
     Parameters
     ----------
@@ -111,10 +111,10 @@ def plot_drift_curve(curve: dict, u_max: float, eps: float, ax=None, title: Opti
     if ax is None:
         _, ax = new_axes(figsize=(5.0, 3.4))
     ts = curve["ts"]
-    ax.plot(ts, curve["upper"][:, 0], "o-", color=COLORS["nn"], label=r"$\delta(t_s)$, certified upper bound")
+    ax.plot(ts, curve["upper"][:, 0], "o-", color=COLORS["nn"], label=r"$\Delta(t_s)$, certified upper bound")
     ax.plot(ts, curve["lower"][:, 0], "v", color=COLORS["true"], ms=4, label="attained (lower end)")
     ax.axhline(u_max - eps, color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max} - \varepsilon$")
-    ax.set(xlabel=r"hold time $t_s$ [s]", ylabel=r"$\delta(t_s)$", title=title)
+    ax.set(xlabel=r"hold time $t_s$ [s]", ylabel=r"$\Delta(t_s)$", title=title)
     ax.set_ylim(bottom=0)
     ax.legend(loc="upper left")
     return ax

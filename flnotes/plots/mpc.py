@@ -1,4 +1,4 @@
-"""Figures of the book: the MPC chapter (the paper's Figures 4, 5 and 6, and the inter-sample input).
+"""Figures of the book: the MPC chapter (the paper's Figures 5, 6 and 7, and the inter-sample input).
 
 Each function turns run logs of :func:`flnotes.simulate` driven by
 :class:`flnotes.mpc.MPC` into one figure and returns it.
@@ -25,7 +25,7 @@ def _ref_on(reference: Optional[Callable[[Array], Array]], t: Array) -> Optional
 
 def plot_mpc_tracking(log, reference: Optional[Callable[[Array], Array]] = None, components: Sequence[int] = (0, 1, 2),
                       title: Optional[str] = None):
-    """The paper's Figure 4: the states ``z = [x, x', x'']`` of the closed loop and the reference (grey).
+    """The paper's Figure 5: the states ``z = [x, x', x'']`` of the closed loop and the reference (grey).
 
     Parameters
     ----------
@@ -59,7 +59,7 @@ def plot_mpc_tracking(log, reference: Optional[Callable[[Array], Array]] = None,
 
 def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, every: int = 1, between: bool = True,
                    t_max: Optional[float] = None, ax=None, title: Optional[str] = None):
-    """The paper's Figure 5: the input ``u = Phi``, ``Phi_NN`` and the predicted input trajectories.
+    """The paper's Figure 6: the input ``u = Phi``, ``Phi_NN`` and the predicted input trajectories.
 
     Parameters
     ----------
@@ -117,7 +117,7 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
 
 def plot_horizon_sweep(runs: Mapping[int, object], reference: Optional[Callable[[Array], Array]] = None,
                        title: Optional[str] = None):
-    """The paper's Figure 6: the displacement ``x(t)`` and the per-step computation time for several ``N_p``.
+    """The paper's Figure 7: the displacement ``x(t)`` and the per-step computation time for several ``N_p``.
 
     Parameters
     ----------
@@ -159,7 +159,7 @@ def plot_intersample(logs: Mapping[str, object], u_max: float, eps: Optional[flo
     logs
         ``{label: SimLog}``.
     u_max, eps
-        Bounds drawn as in Figure 5.
+        Bounds drawn as in Figure 6.
     t_window
         ``(t0, t1)`` to zoom on, e.g. around the largest violation.
     """

@@ -32,7 +32,7 @@ def new_axes(nrows: int = 1, ncols: int = 1, figsize: Optional[Sequence[float]] 
 
 
 def bound_lines(ax, u_max: float, eps: Optional[float] = None, label: bool = True) -> None:
-    """Draw ``±u_max`` (blue) and ``±u_max^eps = ±(u_max - eps)`` (green) as in the paper's Fig. 5."""
+    """Draw ``±u_max`` (blue) and ``±u_max^eps = ±(u_max - eps)`` (green) as in the paper's Fig. 6."""
     for s in (1, -1):
         ax.axhline(s * u_max, color=COLORS["u_max"], ls="--", lw=1,
                    label=r"$\pm u_{\max}$" if (label and s == 1) else None)

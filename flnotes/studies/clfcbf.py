@@ -13,7 +13,8 @@ from ..tables import Table, time_stats
 Array = np.ndarray
 
 __all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms",
-           "exponential_cbf_grid_check"]
+           "exponential_cbf_grid_check", "sampled_clf_decrease", "largest_change_within_sample",
+           "cbf_failure_set_bounded"]
 
 
 def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
@@ -204,3 +205,99 @@ def solve_time_table(logs: dict, system: str = "MSD") -> Table:
 def paper_mean_ms(system: str = "MSD") -> dict:
     """The paper's mean time per step (Table 2, ms) of each controller of ``system``, by name."""
     return {name: ref["mean"] for (sysname, name), ref in paper.TABLE2_MS.items() if sysname == system}
+
+
+def sampled_clf_decrease(log: SimLog, V: Any) -> dict:
+    """How the CLF ``V`` behaves from one sample to the next along a run (eq. CLF_CBF).
+
+    The CLF row of eq. (CLF_CBF) is a continuous-time condition imposed at the
+    samples; with the input held between them it does not make the *sampled*
+    ``V(z_k)`` decrease. This reports whether it did.
+
+    Parameters
+    ----------
+    log
+        A run of :func:`flnotes.simulate` of a CLF-CBF controller.
+    V
+        The CLF (an object with ``value(Z)``).
+
+    Returns
+    -------
+    dict
+        ``steps`` (sample pairs), ``rise_fraction`` (share of ``k`` with
+        ``V(z_{k+1}) > V(z_k)``), ``max_rise_ratio`` (largest ``V(z_{k+1}) / V(z_k)``),
+        ``max_delta`` (largest CLF slack of the steps, ``nan`` if not logged),
+        ``last_V`` and ``last_u`` (the last four samples, to read a cycle off).
+    """
+    Vz = np.asarray(V.value(log.z), float)
+    if len(Vz) < 2:
+        raise ValueError(f"the run has {len(Vz)} samples: need at least 2 to compare V from one to the next")
+    ratio = Vz[1:] / np.maximum(Vz[:-1], np.finfo(float).tiny)
+    deltas = [float(s.info["delta"]) for s in log.steps if s.info and s.info.get("delta") is not None]
+    return dict(steps=int(len(ratio)), rise_fraction=float(np.mean(ratio > 1.0)), max_rise_ratio=float(ratio.max()),
+                max_delta=float(max(deltas)) if deltas else np.nan, last_V=Vz[-4:].copy(),
+                last_u=np.asarray(log.u, float)[-4:, 0].copy())
+
+
+def largest_change_within_sample(log: SimLog, fn: Any) -> float:
+    """The largest change ``max - min`` of ``fn(z(t))`` within one sampling interval of a run.
+
+    Parameters
+    ----------
+    log
+        A run of :func:`flnotes.simulate` (its fine trajectory ``t_fine``, ``z_fine``).
+    fn
+        A vectorized function of the states, ``fn(Z)`` with ``Z`` of shape (N, n_z).
+
+    Returns
+    -------
+    float
+        ``max_k (max - min)`` of ``fn`` over the fine points of interval ``k``.
+    """
+    if len(log.t_fine) == 0:
+        raise ValueError("the run has no fine trajectory (t_fine is empty): simulate it with fl.simulate")
+    f = np.asarray(fn(log.z_fine), float).reshape(len(log.t_fine))
+    k = np.clip(np.searchsorted(log.t, log.t_fine, side="right") - 1, 0, None)
+    hi = np.full(k.max() + 1, -np.inf)
+    lo = np.full(k.max() + 1, np.inf)
+    np.maximum.at(hi, k, f)
+    np.minimum.at(lo, k, f)
+    return float(np.max(hi - lo))
+
+
+def cbf_failure_set_bounded(system: Any, H: Any, kappa: float, n: int = 801, h: float = 1e-6) -> dict:
+    """Safe grid states at which no ``v`` with ``|Phi(z, v)| <= u_max`` satisfies the CBF condition (CLF_CBF_d).
+
+    On an ``n`` by ``n`` grid of the domain box's ``z``-part, the states with
+    ``H(z) >= 0`` are kept; at each, ``a_H v + b_H`` with ``a_H = grad H^T B`` and
+    ``b_H = grad H^T A z + kappa H(z)`` is maximized over the admissible interval of ``v``
+    (``Phi`` affine in the single input, checked). ``grad H`` is taken by central
+    differences of step ``h`` (vectorized over the grid).
+
+    Returns
+    -------
+    dict
+        ``grid`` (states of the grid), ``safe`` (of them with ``H >= 0``), ``failing``
+        (safe states with a negative best margin), ``Z_fail`` (those states).
+    """
+    if system.m != 1 or system.n_z != 2:
+        raise ValueError(f"the grid check is for one input and two states, got m = {system.m}, n_z = {system.n_z}")
+    if not (np.isfinite(kappa) and kappa > 0):
+        raise ValueError(f"kappa must be a positive gain, got {kappa!r}")
+    lo, hi = system.lo, system.hi
+    g1, g2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n), indexing="ij")
+    Z = np.column_stack([g1.ravel(), g2.ravel()])
+    Hz = H.value(Z)
+    Z, Hz = Z[Hz >= 0], Hz[Hz >= 0]
+    G = np.column_stack([(H.value(Z + h * e) - H.value(Z - h * e)) / (2 * h) for e in np.eye(2)])
+    a_H = G @ system.B[:, 0]
+    b_H = np.einsum("ij,ij->i", G, Z @ system.A.T) + kappa * Hz
+    phi0 = system.Phi(Z, np.zeros((len(Z), 1)))[:, 0]
+    slope = system.Phi(Z, np.ones((len(Z), 1)))[:, 0] - phi0
+    if not (np.all(slope > 0) and np.allclose(system.Phi(Z, np.full((len(Z), 1), 2.0))[:, 0], phi0 + 2 * slope)):
+        raise ValueError("Phi must be affine in v with a positive slope for this check")
+    u_max = float(system.u_max[0])
+    v_a, v_b = (-u_max - phi0) / slope, (u_max - phi0) / slope
+    best = np.maximum(a_H * v_a, a_H * v_b) + b_H
+    fail = best < 0
+    return dict(grid=int(n * n), safe=int(len(Z)), failing=int(fail.sum()), Z_fail=Z[fail])

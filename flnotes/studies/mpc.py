@@ -111,7 +111,7 @@ def run_closed_loop(system: FLSystem, net: ReLUNet, eps, t_final: float, referen
 def horizon_sweep(system: FLSystem, net: ReLUNet, eps, horizons: Sequence[int], t_final: float,
                   reference: Callable[[Array], Array], z0: Array, known: Optional[Mapping[int, tuple]] = None,
                   **mpc_kwargs) -> tuple[dict, list[dict]]:
-    """Closed-loop runs for several prediction horizons ``N_p`` (the paper's Figure 6).
+    """Closed-loop runs for several prediction horizons ``N_p`` (the paper's Figure 7).
 
     ``known`` maps a horizon to an existing ``(log, mpc)`` run of the same
     length (it is reused, not rerun). Returns ``({N_p: log}, rows)`` where each
