@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from functools import partial
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -34,6 +35,7 @@ import numpy as np
 from .. import paper
 from ..mpc import MPC, sine_reference
 from ..nmpc import NonlinearMPC, SaturatedInput
+from ..parallel import task_key, using
 from ..simulate import simulate
 from ..systems import FLSystem
 from ..tables import time_stats
@@ -280,22 +282,41 @@ def run_methods(s: dict, z0: Array, reference: Callable[[Array], Array], t_final
     return logs
 
 
+def _monte_carlo_run(s: dict, t_final: float, band: float, iterations: int, task: tuple) -> dict:
+    """One task of :func:`monte_carlo`: one method on one scenario, its row."""
+    sc, mth = task
+    ref = scenario_reference(s["system"], sc)
+    log = run_methods(s, sc["z0"], ref, t_final, (mth,), iterations)[mth]
+    return dict(scenario=sc["index"], method=mth, amplitude=sc["amplitude"], omega=sc["omega"],
+                u_ref_max=sc["u_ref_max"], bound_active=sc["bound_active"],
+                **run_metrics(log, ref, s["Q"], s["R"], band))
+
+
 def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence[str]] = None,
-                band: float = 0.1, iterations: int = 1) -> list[dict]:
+                band: float = 0.1, iterations: int = 1, workers: Optional[int] = None, client=None,
+                progress: bool = False, resume: bool = False) -> list[dict]:
     """Every method on every scenario: one row of :func:`run_metrics` per (scenario, method).
 
     Rows also carry the scenario (``scenario``, ``amplitude``, ``omega``, ``u_ref_max``,
-    ``bound_active``) and ``method``.
+    ``bound_active``) and ``method``, in the order scenario by scenario, method by method.
+    Each (scenario, method) run is one task of :class:`flnotes.parallel.Executor`: in this
+    process by default, on ``workers`` local processes, or on a Dask ``client``; the rows come
+    back in the same order whatever runs them. ``progress`` shows a bar; ``resume`` keeps each
+    finished row in the cache folder and reuses it when the same run is asked again. Under a
+    ``time_limit``, a run's plans depend on the time its solves take (rows with a late step can
+    differ between runs); the timing columns (``ms_*``) always do.
     """
-    rows = []
-    for sc in scenarios:
-        ref = scenario_reference(s["system"], sc)
-        logs = run_methods(s, sc["z0"], ref, t_final, methods, iterations)
-        for mth, log in logs.items():
-            rows.append(dict(scenario=sc["index"], method=mth, amplitude=sc["amplitude"], omega=sc["omega"],
-                             u_ref_max=sc["u_ref_max"], bound_active=sc["bound_active"],
-                             **run_metrics(log, ref, s["Q"], s["R"], band)))
-    return rows
+    mths = tuple(METHODS if methods is None else methods)
+    tasks = [(sc, mth) for sc in scenarios for mth in mths]
+    keys = None
+    if resume:
+        net_key = [np.asarray(a).tolist() for a in (*s["net"].W, *s["net"].b)]
+        keys = [task_key("monte_carlo", s["name"], s["eps"], s["horizon"], s["ts"], np.asarray(s["Q"]).tolist(),
+                         np.asarray(s["R"]).tolist(), s["time_limit"], net_key, t_final, band, iterations,
+                         {k: v for k, v in sc.items()}, mth) for sc, mth in tasks]
+    with using(workers, client) as ex:
+        return ex.map(partial(_monte_carlo_run, s, t_final, band, iterations), tasks, keys=keys,
+                      cache="monte_carlo" if resume else None, desc="Monte Carlo", progress=progress)
 
 
 def method_table(rows: Sequence[dict], methods: Optional[Sequence[str]] = None, only_active: bool = False) -> list[dict]:

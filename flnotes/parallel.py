@@ -1,0 +1,314 @@
+"""One way to run independent tasks in parallel: local processes (joblib) or a Dask cluster.
+
+Every job of the package whose work splits into independent tasks (the boxes of a
+certification round, PSO restarts, the scenarios of a Monte Carlo, the networks of a
+sweep, the shipped references, the benchmark's sections) runs them through
+:class:`Executor`. Three engines, one contract:
+
+``"serial"``
+    ``workers=1`` (the default of every job): the tasks run one after the other in this
+    process, as before this module existed;
+``"joblib"``
+    ``workers=N`` (N > 1): N local worker processes (:mod:`joblib`'s ``loky`` backend),
+    each with one BLAS thread;
+``"dask"``
+    ``client=`` a :class:`dask.distributed.Client` or a scheduler address
+    (``"tcp://host:8786"``): the tasks go to whatever cluster the client is connected to (a
+    ``LocalCluster``, ``dask-jobqueue`` on a batch system, Kubernetes); a task whose worker dies
+    is re-run on another worker (Dask's own rescheduling, plus ``retries``).
+
+The contract that makes the engines interchangeable:
+
+* **the same numbers**: a task is a pure function of its arguments (a task that draws random
+  numbers gets its own seed, :func:`task_seeds`), and :meth:`Executor.map` returns the results
+  in the order of submission, so a reduction over them is the same whatever the number of
+  workers or the engine;
+* **no silent partial result**: a task that fails, or a worker that dies and is not re-run,
+  raises :class:`TaskFailed` naming the task; :meth:`Executor.map` never returns fewer results
+  than tasks;
+* **resumable**: with ``cache=`` (a name) and ``keys=`` (one string per task), each finished
+  result is stored in the package's cache folder (:func:`flnotes.config.cache_dir`) as soon as it
+  arrives, and a later run with the same keys loads it instead of running the task again;
+* **progress**: ``progress=True`` shows a :mod:`tqdm` bar (a widget in a notebook).
+
+No scheduler, queue or socket of our own: joblib and Dask do that.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
+
+import numpy as np
+
+from .config import cache_dir, one_blas_thread
+
+__all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead"]
+
+ENGINES = ("serial", "joblib", "dask")
+
+
+class TaskFailed(RuntimeError):
+    """A task of :meth:`Executor.map` failed or lost its worker; no partial result is returned."""
+
+
+def task_seeds(seed: int, n: int) -> list[int]:
+    """``n`` independent seeds for ``n`` tasks, derived from ``seed`` (:class:`numpy.random.SeedSequence`).
+
+    Task ``k`` always gets the same seed, whichever worker runs it and however many there are.
+    """
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    return [int(s.generate_state(1, np.uint64)[0] >> np.uint64(1)) for s in np.random.SeedSequence(seed).spawn(n)]
+
+
+def task_key(*parts: Any) -> str:
+    """A short stable key of a task's arguments (JSON of ``parts``, SHA-1), for :meth:`Executor.map` ``keys=``."""
+    blob = json.dumps(parts, sort_keys=True, default=lambda o: getattr(o, "tolist", lambda: repr(o))())
+    return hashlib.sha1(blob.encode()).hexdigest()[:16]
+
+
+def _run(fn: Callable, item: Any) -> Any:
+    """One task on a worker: one BLAS thread, so that N workers use N cores."""
+    with one_blas_thread():
+        return fn(item)
+
+
+def _is_client(obj: Any) -> bool:
+    return type(obj).__name__ == "Client" and type(obj).__module__.startswith("distributed")
+
+
+class Executor:
+    """Runs independent tasks in this process, in local worker processes, or on a Dask cluster.
+
+    Parameters
+    ----------
+    workers
+        Number of local worker processes; 1 (default) runs the tasks in this process, N > 1 uses
+        joblib's ``loky`` processes with one BLAS thread each. Not with ``client``.
+    client
+        A :class:`dask.distributed.Client`, or a scheduler address (str) to which one is connected
+        (and closed again by :meth:`close`).
+    retries
+        Dask only: times a failed task is re-submitted (a task whose worker dies is also rescheduled
+        by the scheduler itself).
+
+    Examples
+    --------
+    >>> with Executor(workers=2) as ex:                       # doctest: +SKIP
+    ...     squares = ex.map(pow2, range(10), progress=True)
+    """
+
+    def __init__(self, workers: Optional[int] = None, client: Any = None, retries: int = 2):
+        if client is not None and workers not in (None, 1):
+            raise ValueError(f"give either workers={workers} (local processes) or client= (a Dask cluster), not both: "
+                             f"the cluster's size is set where the cluster is started")
+        if not isinstance(retries, (int, np.integer)) or retries < 0:
+            raise ValueError(f"retries must be an integer >= 0, got {retries!r}")
+        self.retries = int(retries)
+        self._own_client = False
+        self.client = None
+        if client is not None:
+            if isinstance(client, str):
+                from distributed import Client
+
+                client = Client(client)
+                self._own_client = True
+            elif not _is_client(client):
+                raise TypeError(f"client must be a dask.distributed.Client or a scheduler address such as "
+                                f"'tcp://127.0.0.1:8786', got {type(client).__name__}")
+            self.client = client
+            self.engine = "dask"
+            self.workers = max(1, len(client.scheduler_info().get("workers", {})))
+            return
+        w = 1 if workers is None else workers
+        if isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 1:
+            raise ValueError(f"workers must be an integer >= 1 (the number of local processes), got {workers!r}")
+        self.workers = int(w)
+        self.engine = "serial" if self.workers == 1 else "joblib"
+
+    def __repr__(self) -> str:
+        where = f" at {self.client.scheduler.address}" if self.client is not None else ""
+        return f"Executor({self.engine}, {self.workers} worker{'s' if self.workers != 1 else ''}{where})"
+
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the Dask client if this executor opened it (from an address)."""
+        if self._own_client and self.client is not None:
+            self.client.close()
+            self.client = None
+
+    # ------------------------------------------------------------------ the one method
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], *, keys: Optional[Sequence[str]] = None,
+            cache: Optional[str] = None, desc: Optional[str] = None, progress: bool = False) -> list:
+        """``[fn(item) for item in items]``, run in parallel; the results in the order of ``items``.
+
+        Parameters
+        ----------
+        fn
+            A function of one argument, picklable (a module-level function, or a closure: joblib and
+            Dask pickle it with cloudpickle). It must not depend on anything but its argument: that is
+            what makes the result independent of the engine.
+        items
+            The tasks' arguments.
+        keys, cache
+            Resume: with ``cache`` (a name, e.g. ``"montecarlo"``) and ``keys`` (one stable string per
+            task, see :func:`task_key`), each result is written to ``cache_dir()/tasks/<cache>/<key>.pkl``
+            as it arrives and loaded from there by a later run. Both or neither.
+        desc, progress
+            A :mod:`tqdm` progress bar labelled ``desc``.
+
+        Raises
+        ------
+        TaskFailed
+            A task raised, or its worker died and it could not be re-run: the message names the task;
+            the results already finished stay in the cache (if any) for the next run.
+        """
+        items = list(items)
+        if (keys is None) != (cache is None):
+            raise ValueError("resuming needs both cache= (a name) and keys= (one per task), or neither")
+        if keys is not None and len(keys) != len(items):
+            raise ValueError(f"keys has {len(keys)} entries for {len(items)} tasks: give one key per task")
+        if keys is not None and len(set(keys)) != len(keys):
+            raise ValueError("keys must be distinct: two tasks with the same key would share a cached result")
+        folder = _task_folder(cache) if cache is not None else None
+        results: list = [None] * len(items)
+        todo = []
+        for k in range(len(items)):
+            if folder is not None and (folder / f"{keys[k]}.pkl").is_file():
+                results[k] = pickle.loads((folder / f"{keys[k]}.pkl").read_bytes())
+            else:
+                todo.append(k)
+        bar = _bar(len(items), len(items) - len(todo), desc, progress)
+
+        def done(k: int, value: Any) -> None:
+            results[k] = value
+            if folder is not None:
+                tmp = folder / f"{keys[k]}.{os.getpid()}.tmp"
+                tmp.write_bytes(pickle.dumps(value))
+                tmp.replace(folder / f"{keys[k]}.pkl")
+            if bar is not None:
+                bar.update(1)
+
+        def name(k: int) -> str:
+            return f"task {k}" + (f" (key {keys[k]})" if keys is not None else "") + (f" of {desc!r}" if desc else "")
+
+        resume = (f"; the {len(items) - len(todo)} results finished before are kept in {folder} and a rerun with "
+                  f"the same keys resumes from them" if folder is not None else "")
+        try:
+            if self.engine == "serial" or not todo:
+                for k in todo:
+                    try:
+                        value = _run(fn, items[k])
+                    except Exception as exc:
+                        raise TaskFailed(f"{name(k)} raised {type(exc).__name__}: {exc}") from exc
+                    done(k, value)
+            elif self.engine == "joblib":
+                self._map_joblib(fn, items, todo, done, name, resume)
+            else:
+                self._map_dask(fn, items, todo, done, name, resume, keys)
+        finally:
+            if bar is not None:
+                bar.close()
+        return results
+
+    def _map_joblib(self, fn, items, todo, done, name, resume) -> None:
+        from joblib import Parallel, delayed
+        from joblib.externals.loky.process_executor import TerminatedWorkerError
+
+        par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1, return_as="generator")
+        k = None
+        try:
+            for k, value in zip(todo, par(delayed(_run)(fn, items[j]) for j in todo)):
+                done(k, value)
+        except TerminatedWorkerError as exc:
+            raise TaskFailed(f"a local worker process died (killed, or out of memory) while the tasks from "
+                             f"{name(k if k is not None else todo[0])} on were running; no partial result is "
+                             f"returned{resume}. ({exc.__class__.__name__})") from exc
+        except TaskFailed:
+            raise
+        except Exception as exc:
+            raise TaskFailed(f"a task from {name(k if k is not None else todo[0])} on raised "
+                             f"{type(exc).__name__}: {exc}{resume}") from exc
+
+    def _map_dask(self, fn, items, todo, done, name, resume, keys) -> None:
+        from distributed import as_completed
+
+        client = self.client
+        prefix = f"flnotes-{getattr(fn, '__name__', 'task')}-{time.time_ns()}"
+        futures = client.map(_run, [fn] * len(todo), [items[k] for k in todo], pure=False,
+                             retries=self.retries, key=[f"{prefix}-{k}" for k in todo])
+        where = {f.key: k for f, k in zip(futures, todo)}
+        try:
+            for fut in as_completed(futures):
+                k = where[fut.key]
+                try:
+                    value = fut.result()
+                except Exception as exc:
+                    msg = (f"lost its worker more often than the cluster allows (distributed's "
+                           f"allowed-failures): {exc}" if type(exc).__name__ == "KilledWorker"
+                           else f"raised {type(exc).__name__}: {exc}")
+                    raise TaskFailed(f"{name(k)} {msg}; no partial result is returned{resume}") from exc
+                done(k, value)
+        finally:
+            client.cancel([f for f in futures if not f.done()])
+
+
+@contextmanager
+def using(workers: Optional[int] = None, client: Any = None) -> Iterator[Executor]:
+    """The :class:`Executor` of a job's ``workers=`` and ``client=`` keywords, as a context.
+
+    ``client`` may be a Dask client, a scheduler address or an :class:`Executor` (used as it is, and
+    left open); an executor made here is closed at the end (a client opened from an address too).
+    """
+    if isinstance(client, Executor):
+        if workers not in (None, 1):
+            raise ValueError("give either workers= or an Executor as client=, not both")
+        yield client
+        return
+    ex = Executor(workers=workers, client=client)
+    try:
+        yield ex
+    finally:
+        ex.close()
+
+
+def _task_folder(cache: str) -> Path:
+    if not isinstance(cache, str) or not cache or any(c in cache for c in "/\\") or cache.startswith("."):
+        raise ValueError(f"cache must be a plain name such as 'montecarlo' (a folder of the cache), got {cache!r}")
+    path = cache_dir() / "tasks" / cache
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _bar(total: int, initial: int, desc: Optional[str], progress: bool):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, desc=desc, unit="task")
+
+
+def _noop(x: Any) -> Any:
+    return x
+
+
+def measure_overhead(executor: Executor, n_tasks: int = 200) -> float:
+    """Seconds per task that the engine adds (a trivial task's round trip, averaged over ``n_tasks``).
+
+    The per-task scheduler overhead of the scaling model (:func:`flnotes.bench.parallel.scaling_model`).
+    """
+    executor.map(_noop, range(min(n_tasks, 2 * executor.workers)))     # warm the workers up
+    t0 = time.perf_counter()
+    executor.map(_noop, range(n_tasks))
+    return (time.perf_counter() - t0) / n_tasks
