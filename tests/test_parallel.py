@@ -1,0 +1,209 @@
+"""flnotes.parallel: the same numbers on 1 worker, 2 local joblib workers and a 2-worker Dask LocalCluster.
+
+The certified bracket, a Monte Carlo table and a sweep table are compared exactly between the three
+(the columns that are wall times excepted); a worker killed in the middle of a run either leaves a
+run that completes with the same result (Dask reschedules the task) or a clear error and nothing
+partial (joblib), after which a rerun resumes from the finished tasks.
+"""
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes import paper
+from flnotes.error import certify_error, pso_max_error
+from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
+from flnotes.studies import compare as C
+
+pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None, silence_logs=40)
+    cl = Client(cluster)
+    yield cl
+    cl.close()
+    cluster.close()
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path / "cache"))
+
+
+def engines(client):
+    """The three ways to run the same job: (label, keywords)."""
+    return [("1 worker", dict(workers=1)), ("2 joblib workers", dict(workers=2)), ("2-worker LocalCluster", dict(client=client))]
+
+
+def _same(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("lower", "upper", "argmax", "n_boxes", "converged"))
+
+
+# ------------------------------------------------------------------------------ the three jobs
+def test_certified_bracket_is_bit_identical_on_every_engine(client):
+    sysm = paper.system("Quad-1D")
+    net, _ = paper.paper_net("Quad-1D")
+    # a small schedule: 1024 boxes bisected per round, 512 per task, so that most rounds have four tasks
+    kw = dict(rtol=0.05, batch=1024, chunk=512, n_samples=500)
+    whole = certify_error(sysm, net, **{**kw, "chunk": 10**9})          # each round as one evaluation, in process
+    assert whole.converged.all() and len(whole.history[0]) > 3         # premise: several rounds were run
+    for label, where in engines(client):
+        br = certify_error(sysm, net, **kw, **where)
+        assert _same(br, whole), label
+        assert np.array_equal(br.history[0][:, :2], whole.history[0][:, :2]), label
+
+
+def test_certified_bracket_two_outputs_on_a_cluster(client):
+    net, _, ref = fl.arm.arm_net()
+    sysm = fl.arm.two_link_arm()
+    kw = dict(rtol=0.5, batch=128, chunk=64, n_samples=200, max_boxes=1500, initial_per_axis=2)  # seconds, not minutes
+    one = certify_error(sysm, net, **kw)
+    on_cluster = certify_error(sysm, net, **kw, client=client)
+    assert one.lower.shape == (2,) and _same(one, on_cluster)
+    assert all(len(h) > 3 for h in one.history)                        # premise: several rounds per output
+    assert np.all(one.upper >= one.lower)
+
+
+def test_pso_restarts_are_the_same_on_every_engine(client):
+    sysm = paper.system("MSD")
+    net, _ = paper.paper_net("MSD")
+    ests = [pso_max_error(sysm, net, n_particles=20, n_iter=20, seed=3, restarts=4, **where) for _, where in engines(client)]
+    for e in ests[1:]:
+        assert np.array_equal(e.eps, ests[0].eps) and np.array_equal(e.argmax, ests[0].argmax)
+    # the best of the restarts is at least each restart run alone with its own seed
+    alone = [pso_max_error(sysm, net, n_particles=20, n_iter=20, seed=s).eps[0] for s in task_seeds(3, 4)]
+    assert ests[0].eps[0] == max(alone)
+    assert ests[0].settings["winner"] == [int(np.argmax(alone))]
+
+
+def _drop_times(rows, prefixes):
+    return [{k: v for k, v in r.items() if not k.startswith(prefixes)} for r in rows]
+
+
+def test_monte_carlo_table_is_the_same_on_every_engine(client):
+    s = C.setting("MSD", horizon=4, time_limit=None)                  # no time limit: plans do not depend on timing
+    scenarios = C.draw_scenarios("MSD", 2, seed=5)
+    tables = {label: C.monte_carlo(s, scenarios, 0.6, methods=("network", "measured"), **where)
+              for label, where in engines(client)}
+    ref = tables["1 worker"]
+    assert [(r["scenario"], r["method"]) for r in ref] == [(i, m) for i in (0, 1) for m in ("network", "measured")]
+    assert all(r["completed"] for r in ref)                           # premise: the runs went to the end
+    for label, rows in tables.items():
+        # every column but the wall times of the steps, exactly (NaN in the same places)
+        a, b = _drop_times(rows, ("ms_",)), _drop_times(ref, ("ms_",))
+        assert [list(r) for r in a] == [list(r) for r in b], label
+        for ra, rb in zip(a, b):
+            for k in ra:
+                x, y = np.asarray(ra[k]), np.asarray(rb[k])
+                same = np.array_equal(x, y, equal_nan=True) if x.dtype.kind == "f" else np.array_equal(x, y)
+                assert same, (label, k, ra[k], rb[k])
+
+
+def test_sweep_table_is_the_same_on_every_engine(client):
+    msd = fl.msd()
+    kw = dict(widths=(3, 4), depths=(1,), n_per_axis=(5,), max_iter=20, n_samples=300, rtol=0.3, max_time=None,
+              cache=False, recompute=True)
+    tables = {label: fl.studies.architecture_sweep(msd, **kw, **where) for label, where in engines(client)}
+    ref = _drop_times(tables["1 worker"], ("train_time", "certify_time"))
+    assert [(r["width"], r["depth"], r["n_s"]) for r in ref] == [(3, 1, 5), (4, 1, 5)]
+    assert all(r["converged"] for r in ref)
+    for label, rows in tables.items():
+        assert _drop_times(rows, ("train_time", "certify_time")) == ref, label
+
+
+# ------------------------------------------------------------------------------ faults and resuming
+def _die_once(item):
+    """Kill this worker process the first time task 1 runs (a marker file says it happened), else square."""
+    k, marker = item
+    if k == 1:
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            pass
+        else:
+            os.close(fd)
+            os.kill(os.getpid(), signal.SIGKILL)
+    return k * k
+
+
+def test_a_killed_dask_worker_leaves_the_same_result(client, tmp_path):
+    marker = str(tmp_path / "killed")
+    with using(client=client) as ex:
+        out = ex.map(_die_once, [(k, marker) for k in range(6)])
+    assert Path(marker).exists()                                       # premise: a worker really died mid-run
+    assert out == [k * k for k in range(6)]
+    client.wait_for_workers(2, timeout=60)                             # the nanny restarts it for the next tests
+
+
+def test_a_killed_joblib_worker_fails_clearly_then_resumes(tmp_path):
+    marker = str(tmp_path / "killed")
+    items = [(k, marker) for k in range(6)]
+    keys = [task_key("die", k) for k in range(6)]
+    with pytest.raises(TaskFailed, match="worker process died.*rerun with the same keys resumes"):
+        Executor(workers=2).map(_die_once, items, keys=keys, cache="faults")
+    assert Path(marker).exists()
+    done_before = {p.stem for p in (Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "faults").glob("*.pkl")}
+    assert keys[1] not in done_before                                  # nothing of the killed task was kept
+    out = Executor(workers=2).map(_die_once, items, keys=keys, cache="faults")
+    assert out == [k * k for k in range(6)]
+
+
+def _count_calls(item):
+    k, folder = item
+    Path(folder, f"{k}.{os.getpid()}.{np.random.default_rng().integers(1 << 60)}").touch()
+    return -k
+
+
+def test_resume_runs_only_the_missing_tasks(tmp_path):
+    calls = tmp_path / "calls"
+    calls.mkdir()
+    items = [(k, str(calls)) for k in range(5)]
+    keys = [task_key("count", k) for k in range(5)]
+    ex = Executor()
+    assert ex.map(_count_calls, items[:3], keys=keys[:3], cache="count") == [0, -1, -2]
+    assert ex.map(_count_calls, items, keys=keys, cache="count", progress=True, desc="resume") == [0, -1, -2, -3, -4]
+    assert sorted(int(p.name.split(".")[0]) for p in calls.iterdir()) == [0, 1, 2, 3, 4]   # each task ran once
+
+
+def _fail_on_two(k):
+    if k == 2:
+        raise ArithmeticError("bad task")
+    return k
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failing_task_is_named(workers):
+    with pytest.raises(TaskFailed, match="ArithmeticError: bad task"):
+        Executor(workers=workers).map(_fail_on_two, range(4))
+
+
+# ------------------------------------------------------------------------------ bad input
+def test_bad_options_are_refused(client):
+    with pytest.raises(ValueError, match="workers must be an integer >= 1"):
+        Executor(workers=0)
+    with pytest.raises(ValueError, match="either workers=.*or client="):
+        Executor(workers=2, client=client)
+    with pytest.raises(TypeError, match="dask.distributed.Client or a scheduler address"):
+        Executor(client=3)
+    with pytest.raises(ValueError, match="both cache="):
+        Executor().map(abs, [1], keys=["a"])
+    with pytest.raises(ValueError, match="one key per task"):
+        Executor().map(abs, [1, 2], keys=["a"], cache="x")
+    with pytest.raises(ValueError, match="plain name"):
+        Executor().map(abs, [1], keys=["a"], cache="../x")
+    with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
+        certify_error(paper.system("MSD"), paper.paper_net("MSD")[0], chunk=0)
+    with pytest.raises(ValueError, match="restarts must be an integer >= 1"):
+        pso_max_error(paper.system("MSD"), paper.paper_net("MSD")[0], restarts=0)
+    assert Executor(workers=2).engine == "joblib" and Executor().engine == "serial"
+    assert Executor(client=client).engine == "dask" and Executor(client=client).workers == 2
