@@ -115,6 +115,10 @@ class ErrorBracket:
     history
         Per output, an array of rows ``(boxes evaluated, lower, upper)`` after
         each branch-and-bound round.
+    eval_s
+        Wall-clock time per output spent evaluating boxes (in this process or in the
+        workers' tasks, as seen from the caller), shape (m,); ``time_s - eval_s`` is the
+        serial part (bracket, pruning, choice of the next boxes).
     """
 
     lower: Array
@@ -128,6 +132,7 @@ class ErrorBracket:
     method: str = "interval"
     partition: Optional[list] = None
     history: Optional[list] = None
+    eval_s: Optional[Array] = None
 
     @property
     def eps(self) -> Array:
@@ -746,7 +751,7 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
     lo0[:, degenerate], hi0[:, degenerate] = lo[degenerate], hi[degenerate]
 
     lower, upper, argmax = np.zeros(m), np.zeros(m), np.zeros((m, n))
-    n_boxes, conv, times = np.zeros(m, int), np.zeros(m, bool), np.zeros(m)
+    n_boxes, conv, times, eval_s = np.zeros(m, int), np.zeros(m, bool), np.zeros(m), np.zeros(m)
     parts, hists = [], []
     for i in range(m):
         t0 = time.perf_counter()
@@ -761,17 +766,19 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
 
             bar = tqdm(desc=f"certify output {i}" if m > 1 else "certify", unit="box")
         try:
+            rounds = _Rounds(ev, chunk, executor)
             res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition,
-                                    _Rounds(ev, chunk, executor), bar)
+                                    rounds, bar)
         finally:
             if bar is not None:
                 bar.close()
         lower[i], upper[i], argmax[i], n_boxes[i], conv[i], part, hist = res
         times[i] = time.perf_counter() - t0
+        eval_s[i] = rounds.seconds
         parts.append(part)
         hists.append(hist)
     return ErrorBracket(lower, upper, argmax, n_boxes, conv, times, rtol, atol, method,
-                        parts if keep_partition else None, hists)
+                        parts if keep_partition else None, hists, eval_s)
 
 
 def _boxes_task(ev: _Evaluator, box: tuple[Array, Array]) -> tuple[Array, Array, Array, Array]:
@@ -785,8 +792,16 @@ class _Rounds:
     def __init__(self, ev: _Evaluator, chunk: int, executor):
         self.ev, self.chunk, self.executor = ev, chunk, executor
         self.fn = partial(_boxes_task, ev)
+        self.seconds = 0.0          # wall time spent evaluating boxes (in tasks, as seen from here)
 
     def __call__(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
+        t0 = time.perf_counter()
+        try:
+            return self._evaluate(lo, hi)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def _evaluate(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
         c = self.chunk
         parts = [(lo[k:k + c], hi[k:k + c]) for k in range(0, len(lo), c)]
         if self.executor.engine == "serial" or len(parts) == 1:
