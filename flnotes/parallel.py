@@ -48,7 +48,7 @@ import numpy as np
 
 from .config import cache_dir, one_blas_thread
 
-__all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead"]
+__all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead", "parse_workers"]
 
 ENGINES = ("serial", "joblib", "dask")
 
@@ -312,3 +312,30 @@ def measure_overhead(executor: Executor, n_tasks: int = 200) -> float:
     t0 = time.perf_counter()
     executor.map(_noop, range(n_tasks))
     return (time.perf_counter() - t0) / n_tasks
+
+
+def parse_workers(argv: Sequence[str]) -> tuple[Optional[int], Optional[str], list[str]]:
+    """The options ``--workers N`` and ``--scheduler ADDRESS`` of a command line: ``(workers, scheduler, rest)``.
+
+    ``ValueError`` saying what to change for a missing or bad value, or both options given.
+    """
+    workers, scheduler, rest = None, None, []
+    it = iter(argv)
+    for a in it:
+        key, eq, val = a.partition("=")
+        if key not in ("--workers", "--scheduler"):
+            rest.append(a)
+            continue
+        val = val if eq else next(it, "")
+        if not val or val.startswith("--"):
+            raise ValueError(f"{key} needs a value: --workers N (local processes) or --scheduler ADDRESS "
+                             f"(a Dask scheduler, e.g. tcp://127.0.0.1:8786)")
+        if key == "--workers":
+            if not val.isdigit() or int(val) < 1:
+                raise ValueError(f"--workers must be a whole number >= 1, got {val!r}")
+            workers = int(val)
+        else:
+            scheduler = val
+    if workers not in (None, 1) and scheduler is not None:
+        raise ValueError("give --workers N (local processes) or --scheduler ADDRESS (a Dask cluster), not both")
+    return workers, scheduler, rest

@@ -207,3 +207,21 @@ def test_bad_options_are_refused(client):
         pso_max_error(paper.system("MSD"), paper.paper_net("MSD")[0], restarts=0)
     assert Executor(workers=2).engine == "joblib" and Executor().engine == "serial"
     assert Executor(client=client).engine == "dask" and Executor(client=client).workers == 2
+
+
+def test_command_lines_take_workers_or_a_scheduler():
+    from flnotes.bench import parse_args
+    from flnotes.parallel import parse_workers
+    from flnotes.studies.shipped import main as shipped_main
+
+    assert parse_workers(["--workers", "3", "x"]) == (3, None, ["x"])
+    assert parse_workers(["--scheduler=tcp://127.0.0.1:8786"]) == (None, "tcp://127.0.0.1:8786", [])
+    for bad, msg in ((["--workers"], "needs a value"), (["--workers", "two"], "whole number"),
+                     (["--workers", "2", "--scheduler", "tcp://a:1"], "not both")):
+        with pytest.raises(ValueError, match=msg):
+            parse_workers(bad)
+    assert parse_args(["--fast", "--workers", "2", "error"]) == dict(fast=True, workers=2, scheduler=None,
+                                                                     sections=["error"])
+    with pytest.raises(ValueError, match="unknown section"):
+        parse_args(["nosuch"])
+    assert shipped_main(["--workers", "0"]) == 2 and shipped_main(["nosuch"]) == 2

@@ -89,34 +89,22 @@ def _run_section(name: str, fast: bool, scheduler: Optional[str] = None) -> dict
 
 def parse_args(argv: list[str]) -> dict:
     """``[--fast] [--workers N | --scheduler ADDRESS] [section ...]`` as a dict (``ValueError`` with the usage otherwise)."""
+    from ..parallel import parse_workers
+
     usage = ("usage: python -m flnotes.bench [--fast] [--workers N | --scheduler ADDRESS] [section ...]; "
              f"sections: {', '.join(SECTIONS)}")
-    out = dict(fast=False, workers=None, scheduler=None, sections=[])
-    it = iter(argv)
-    for a in it:
-        key, _, val = a.partition("=")
-        if key in ("--workers", "--scheduler"):
-            val = val or next(it, "")
-            if not val:
-                raise ValueError(f"{key} needs a value. {usage}")
-            if key == "--workers":
-                if not val.isdigit() or int(val) < 1:
-                    raise ValueError(f"--workers must be a whole number >= 1, got {val!r}. {usage}")
-                out["workers"] = int(val)
-            else:
-                out["scheduler"] = val
-        elif a == "--fast":
-            out["fast"] = True
-        elif a.startswith("-"):
-            raise ValueError(f"unknown option {a!r}. {usage}")
-        else:
-            out["sections"].append(a)
-    if out["workers"] not in (None, 1) and out["scheduler"]:
-        raise ValueError(f"give --workers or --scheduler, not both. {usage}")
-    unknown = [a for a in out["sections"] if a not in SECTIONS]
+    try:
+        workers, scheduler, rest = parse_workers(argv)
+    except ValueError as exc:
+        raise ValueError(f"{exc}. {usage}") from None
+    bad = [a for a in rest if a.startswith("-") and a != "--fast"]
+    if bad:
+        raise ValueError(f"unknown option(s) {bad}. {usage}")
+    sections = [a for a in rest if not a.startswith("-")]
+    unknown = [a for a in sections if a not in SECTIONS]
     if unknown:
         raise ValueError(f"unknown section(s) {unknown}. {usage}")
-    return out
+    return dict(fast="--fast" in rest, workers=workers, scheduler=scheduler, sections=sections)
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -160,14 +160,14 @@ def book_sweep(name: str = "MSD", recompute: bool = False) -> list[dict]:
 
 
 def write_sweep(name: str = "MSD", folder=None, workers: Optional[int] = None, client=None,
-                progress: bool = False) -> None:
+                progress: bool = False, resume: bool = False) -> None:
     """Recompute chapter 5's sweep on this machine and write it as the shipped table (``make reference``).
 
-    ``workers``, ``client``: where its networks are trained (:func:`architecture_sweep`).
+    ``workers``, ``client``, ``progress``, ``resume``: see :func:`architecture_sweep`.
     """
     architecture_sweep(paper.system(name), **paper.SWEEP_SETTINGS, cache=False, recompute=True,
                        ship_to=DATA_DIR if folder is None else folder, workers=workers, client=client,
-                       progress=progress)
+                       progress=progress, resume=resume)
 
 
 def fresh_vs_shipped(names: Sequence[str] = ("MSD", "Quad-1D"), **overrides) -> list[dict]:
