@@ -41,6 +41,7 @@ import os
 import pickle
 import time
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
@@ -124,7 +125,7 @@ class Executor:
                                 f"'tcp://127.0.0.1:8786', got {type(client).__name__}")
             self.client = client
             self.engine = "dask"
-            self.workers = max(1, len(client.scheduler_info().get("workers", {})))
+            self.workers = max(1, len(client.nthreads()))          # the cluster's workers now
             return
         w = 1 if workers is None else workers
         if isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 1:
@@ -246,7 +247,7 @@ class Executor:
 
         client = self.client
         prefix = f"flnotes-{getattr(fn, '__name__', 'task')}-{time.time_ns()}"
-        futures = client.map(_run, [fn] * len(todo), [items[k] for k in todo], pure=False,
+        futures = client.map(partial(_run, fn), [items[k] for k in todo], pure=False,   # fn serialized once
                              retries=self.retries, key=[f"{prefix}-{k}" for k in todo])
         where = {f.key: k for f, k in zip(futures, todo)}
         try:
