@@ -8,7 +8,6 @@ partial (joblib), after which a rerun resumes from the finished tasks.
 from __future__ import annotations
 
 import os
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,8 @@ from flnotes import paper
 from flnotes.error import certify_error, pso_max_error
 from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
 from flnotes.studies import compare as C
+
+from _parallel_tasks import count_calls, die_once, fail_on_two
 
 pytest.importorskip("distributed")
 
@@ -61,6 +62,16 @@ def test_certified_bracket_is_bit_identical_on_every_engine(client):
         br = certify_error(sysm, net, **kw, **where)
         assert _same(br, whole), label
         assert np.array_equal(br.history[0][:, :2], whole.history[0][:, :2]), label
+
+
+def test_certification_progress_bar_changes_nothing(capsys):
+    sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.05, batch=1024, chunk=512, n_samples=500)
+    quiet = certify_error(sysm, net, **kw)
+    shown = certify_error(sysm, net, **kw, progress=True)
+    assert _same(quiet, shown)
+    err = capsys.readouterr().err
+    assert "certify" in err and "box" in err
 
 
 def test_certified_bracket_two_outputs_on_a_cluster(client):
@@ -122,24 +133,10 @@ def test_sweep_table_is_the_same_on_every_engine(client):
 
 
 # ------------------------------------------------------------------------------ faults and resuming
-def _die_once(item):
-    """Kill this worker process the first time task 1 runs (a marker file says it happened), else square."""
-    k, marker = item
-    if k == 1:
-        try:
-            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            pass
-        else:
-            os.close(fd)
-            os.kill(os.getpid(), signal.SIGKILL)
-    return k * k
-
-
 def test_a_killed_dask_worker_leaves_the_same_result(client, tmp_path):
     marker = str(tmp_path / "killed")
     with using(client=client) as ex:
-        out = ex.map(_die_once, [(k, marker) for k in range(6)])
+        out = ex.map(die_once, [(k, marker) for k in range(6)])
     assert Path(marker).exists()                                       # premise: a worker really died mid-run
     assert out == [k * k for k in range(6)]
     client.wait_for_workers(2, timeout=60)                             # the nanny restarts it for the next tests
@@ -150,18 +147,12 @@ def test_a_killed_joblib_worker_fails_clearly_then_resumes(tmp_path):
     items = [(k, marker) for k in range(6)]
     keys = [task_key("die", k) for k in range(6)]
     with pytest.raises(TaskFailed, match="worker process died.*rerun with the same keys resumes"):
-        Executor(workers=2).map(_die_once, items, keys=keys, cache="faults")
+        Executor(workers=2).map(die_once, items, keys=keys, cache="faults")
     assert Path(marker).exists()
     done_before = {p.stem for p in (Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "faults").glob("*.pkl")}
     assert keys[1] not in done_before                                  # nothing of the killed task was kept
-    out = Executor(workers=2).map(_die_once, items, keys=keys, cache="faults")
+    out = Executor(workers=2).map(die_once, items, keys=keys, cache="faults")
     assert out == [k * k for k in range(6)]
-
-
-def _count_calls(item):
-    k, folder = item
-    Path(folder, f"{k}.{os.getpid()}.{np.random.default_rng().integers(1 << 60)}").touch()
-    return -k
 
 
 def test_resume_runs_only_the_missing_tasks(tmp_path):
@@ -170,21 +161,15 @@ def test_resume_runs_only_the_missing_tasks(tmp_path):
     items = [(k, str(calls)) for k in range(5)]
     keys = [task_key("count", k) for k in range(5)]
     ex = Executor()
-    assert ex.map(_count_calls, items[:3], keys=keys[:3], cache="count") == [0, -1, -2]
-    assert ex.map(_count_calls, items, keys=keys, cache="count", progress=True, desc="resume") == [0, -1, -2, -3, -4]
+    assert ex.map(count_calls, items[:3], keys=keys[:3], cache="count") == [0, -1, -2]
+    assert ex.map(count_calls, items, keys=keys, cache="count", progress=True, desc="resume") == [0, -1, -2, -3, -4]
     assert sorted(int(p.name.split(".")[0]) for p in calls.iterdir()) == [0, 1, 2, 3, 4]   # each task ran once
-
-
-def _fail_on_two(k):
-    if k == 2:
-        raise ArithmeticError("bad task")
-    return k
 
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_failing_task_is_named(workers):
     with pytest.raises(TaskFailed, match="ArithmeticError: bad task"):
-        Executor(workers=workers).map(_fail_on_two, range(4))
+        Executor(workers=workers).map(fail_on_two, range(4))
 
 
 # ------------------------------------------------------------------------------ bad input
