@@ -191,9 +191,11 @@ class Executor:
             else:
                 todo.append(k)
         bar = _bar(len(items), len(items) - len(todo), desc, progress)
+        finished = set(range(len(items))) - set(todo)
 
         def done(k: int, value: Any) -> None:
             results[k] = value
+            finished.add(k)
             if folder is not None:
                 tmp = folder / f"{keys[k]}.{os.getpid()}.tmp"
                 tmp.write_bytes(pickle.dumps(value))
@@ -204,45 +206,46 @@ class Executor:
         def name(k: int) -> str:
             return f"task {k}" + (f" (key {keys[k]})" if keys is not None else "") + (f" of {desc!r}" if desc else "")
 
-        resume = (f"; the {len(items) - len(todo)} results finished before are kept in {folder} and a rerun with "
-                  f"the same keys resumes from them" if folder is not None else "")
+        def resume() -> str:
+            return (f"; the {len(finished)} of {len(items)} results finished are kept in {folder} and a rerun with "
+                    f"the same keys resumes from them" if folder is not None else "")
+
+        def first_pending() -> int:
+            return next(k for k in todo if k not in finished)
+
         try:
             if self.engine == "serial" or not todo:
                 for k in todo:
                     try:
                         value = _run(fn, items[k])
                     except Exception as exc:
-                        raise TaskFailed(f"{name(k)} raised {type(exc).__name__}: {exc}") from exc
+                        raise TaskFailed(f"{name(k)} raised {type(exc).__name__}: {exc}{resume()}") from exc
                     done(k, value)
             elif self.engine == "joblib":
-                self._map_joblib(fn, items, todo, done, name, resume)
+                self._map_joblib(fn, items, todo, done, lambda: name(first_pending()), resume)
             else:
-                self._map_dask(fn, items, todo, done, name, resume, keys)
+                self._map_dask(fn, items, todo, done, name, resume)
         finally:
             if bar is not None:
                 bar.close()
         return results
 
-    def _map_joblib(self, fn, items, todo, done, name, resume) -> None:
+    def _map_joblib(self, fn, items, todo, done, pending, resume) -> None:
         from joblib import Parallel, delayed
         from joblib.externals.loky.process_executor import TerminatedWorkerError
 
         par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1, return_as="generator")
-        k = None
         try:
             for k, value in zip(todo, par(delayed(_run)(fn, items[j]) for j in todo)):
                 done(k, value)
         except TerminatedWorkerError as exc:
             raise TaskFailed(f"a local worker process died (killed, or out of memory) while the tasks from "
-                             f"{name(k if k is not None else todo[0])} on were running; no partial result is "
-                             f"returned{resume}. ({exc.__class__.__name__})") from exc
-        except TaskFailed:
-            raise
+                             f"{pending()} on were running; no partial result is returned{resume()}. "
+                             f"({exc.__class__.__name__})") from exc
         except Exception as exc:
-            raise TaskFailed(f"a task from {name(k if k is not None else todo[0])} on raised "
-                             f"{type(exc).__name__}: {exc}{resume}") from exc
+            raise TaskFailed(f"a task from {pending()} on raised {type(exc).__name__}: {exc}{resume()}") from exc
 
-    def _map_dask(self, fn, items, todo, done, name, resume, keys) -> None:
+    def _map_dask(self, fn, items, todo, done, name, resume) -> None:
         from distributed import as_completed
 
         client = self.client
@@ -259,7 +262,7 @@ class Executor:
                     msg = (f"lost its worker more often than the cluster allows (distributed's "
                            f"allowed-failures): {exc}" if type(exc).__name__ == "KilledWorker"
                            else f"raised {type(exc).__name__}: {exc}")
-                    raise TaskFailed(f"{name(k)} {msg}; no partial result is returned{resume}") from exc
+                    raise TaskFailed(f"{name(k)} {msg}; no partial result is returned{resume()}") from exc
                 done(k, value)
         finally:
             client.cancel([f for f in futures if not f.done()])
