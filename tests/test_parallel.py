@@ -210,3 +210,20 @@ def test_command_lines_take_workers_or_a_scheduler():
     with pytest.raises(ValueError, match="unknown section"):
         parse_args(["nosuch"])
     assert shipped_main(["--workers", "0"]) == 2 and shipped_main(["nosuch"]) == 2
+
+
+def test_scaling_model_saturates_where_it_should():
+    from flnotes.bench.parallel import scaling_model
+
+    n, t_box, t_ser, o = 1_000_000, 100e-6, 5e-6, 2e-3
+    fixed = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(1, 2, 8, 32), batch=4096, chunk=1024)}
+    assert fixed[1]["speedup"] == 1.0 and fixed[1]["tasks_per_round"] == 8
+    assert 1.0 < fixed[2]["speedup"] < 2.0                       # the serial part and the overhead cost something
+    assert fixed[32]["wall_s"] == fixed[8]["wall_s"]               # 8 tasks per round: no gain beyond 8 workers
+    scaled = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(8, 128, 4096), scale_batch=True)}
+    floor = n * (t_ser + o / 1024)
+    assert scaled[128]["wall_s"] < fixed[8]["wall_s"] and scaled[4096]["wall_s"] > floor
+    assert scaled[4096]["wall_s"] < 1.2 * floor                    # beyond W_half the time is the serial floor
+    assert scaled[8]["W_half"] == pytest.approx(t_box / (t_ser + o / 1024))
+    with pytest.raises(ValueError):
+        scaling_model(0, t_box, t_ser, o)

@@ -43,10 +43,10 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
 
     (the serial part: bracket, pruning and choice of the next boxes in the caller; the tasks, ``W``
     at a time; the engine's per-task cost, paid by the scheduler one task after another), and
-    ``ceil(n_boxes / (2 batch))`` rounds are needed. With the schedule fixed, no more than ``k``
-    workers can be busy; with ``scale_batch=True`` the batch grows to ``W chunk / 2`` so that every
-    worker has a task (another schedule: a sound bracket, not bit for bit the same, and somewhat more
-    boxes, which the model does not count). Then the time tends to
+    ``n_boxes / (2 batch)`` rounds are needed (the last one counted in proportion). With the schedule
+    fixed, no more than ``k`` workers can be busy; with ``scale_batch=True`` the batch grows to
+    ``W chunk / 2`` so that every worker has a task (another schedule: a sound bracket, not bit for
+    bit the same, and somewhat more boxes, which the model does not count). Then the time tends to
     ``n_boxes (t_serial_box + overhead / chunk)``: the workers beyond
     ``W_half = t_box / (t_serial_box + overhead / chunk)`` cut less than the serial part they leave.
 
@@ -61,9 +61,9 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
 
     def wall(W: int, b: int) -> tuple[float, int, int]:
         k = math.ceil(2 * b / chunk)
-        rounds = math.ceil(n_boxes / (2 * b))
+        rounds = n_boxes / (2 * b)                  # a fraction: the last round is a partial one
         per_round = 2 * b * t_serial_box + math.ceil(k / W) * min(chunk, 2 * b) * t_box + (k * overhead if W > 1 else 0.0)
-        return rounds * per_round, k, rounds
+        return rounds * per_round, k, math.ceil(rounds)
 
     base, _, _ = wall(1, batch)
     w_half = t_box / (t_serial_box + overhead / chunk) if (t_serial_box + overhead) > 0 else math.inf
