@@ -23,9 +23,9 @@ The contract that makes the engines interchangeable:
   numbers gets its own seed, :func:`task_seeds`), and :meth:`Executor.map` returns the results
   in the order of submission, so a reduction over them is the same whatever the number of
   workers or the engine;
-* **no silent partial result**: a task that fails, or a worker that dies and is not re-run,
-  raises :class:`TaskFailed` naming the task; :meth:`Executor.map` never returns fewer results
-  than tasks;
+* **no silent partial result**: a task that fails on a worker, or a worker that dies and is not
+  re-run, raises :class:`TaskFailed` naming the task (in this process, the task's own exception is
+  raised, with a note naming it); :meth:`Executor.map` never returns fewer results than tasks;
 * **resumable**: with ``cache=`` (a name) and ``keys=`` (one string per task), each finished
   result is stored in the package's cache folder (:func:`flnotes.config.cache_dir`) as soon as it
   arrives, and a later run with the same keys loads it instead of running the task again;
@@ -172,8 +172,10 @@ class Executor:
         Raises
         ------
         TaskFailed
-            A task raised, or its worker died and it could not be re-run: the message names the task;
-            the results already finished stay in the cache (if any) for the next run.
+            On workers: a task raised, or its worker died and it could not be re-run; the message names
+            the task. In this process (``workers=1``) a task's exception is raised as it is, with a note
+            naming the task. Either way the results already finished stay in the cache (if any) for the
+            next run, and no partial list is returned.
         """
         items = list(items)
         if (keys is None) != (cache is None):
@@ -215,11 +217,12 @@ class Executor:
 
         try:
             if self.engine == "serial" or not todo:
-                for k in todo:
+                for k in todo:           # in this process: a task's own exception, as without an executor
                     try:
                         value = _run(fn, items[k])
                     except Exception as exc:
-                        raise TaskFailed(f"{name(k)} raised {type(exc).__name__}: {exc}{resume()}") from exc
+                        exc.add_note(f"(in {name(k)}{resume()})")
+                        raise
                     done(k, value)
             elif self.engine == "joblib":
                 self._map_joblib(fn, items, todo, done, lambda: name(first_pending()), resume)

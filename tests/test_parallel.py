@@ -166,10 +166,12 @@ def test_resume_runs_only_the_missing_tasks(tmp_path):
     assert sorted(int(p.name.split(".")[0]) for p in calls.iterdir()) == [0, 1, 2, 3, 4]   # each task ran once
 
 
-@pytest.mark.parametrize("workers", [1, 2])
-def test_a_failing_task_is_named(workers):
+def test_a_failing_task_is_named():
     with pytest.raises(TaskFailed, match="ArithmeticError: bad task"):
-        Executor(workers=workers).map(fail_on_two, range(4))
+        Executor(workers=2).map(fail_on_two, range(4))
+    with pytest.raises(ArithmeticError, match="bad task") as info:        # in process: the task's own exception
+        Executor(workers=1).map(fail_on_two, range(4))
+    assert any("task 2" in n for n in info.value.__notes__)
 
 
 # ------------------------------------------------------------------------------ bad input
