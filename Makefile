@@ -21,12 +21,12 @@ all: book
 help:
 	@echo "make book         build the book at full scale into _build/html (runs every notebook)"
 	@echo "make test         ruff, unit tests + every notebook through nbmake, FLNOTES_FAST=1"
-	@echo "make bench        solver benchmarks (python -m flnotes.bench)"
+	@echo "make bench        solver benchmarks (python -m flnotes.bench); WORKERS=N or SCHEDULER=address to spread them"
 	@echo "make book-instructor  the instructor edition (reference solutions, all tests, rubrics) into _build/instructor"
 	@echo "make assignments  students' notebooks and autograder bundles (otter-grader) into _build/assignments"
 	@echo "make grade SUBMISSIONS=dir  grade a folder of submissions in the sandbox: _build/grades/gradebook.csv"
 	@echo "make students-edition  the tree published for students (no masters, hidden tests, rubrics) into _build/students"
-	@echo "make reference    retrain and recertify the shipped networks and sweep table (changes the book's numbers)"
+	@echo "make reference    retrain and recertify the shipped networks and sweep table (changes the book's numbers); WORKERS=N or SCHEDULER=address"
 	@echo "make clean        remove _build and caches (keeps .venv)"
 
 # ---------------------------------------------------------------------------------
@@ -60,15 +60,20 @@ test: venv sandbox
 	  -n $(TEST_JOBS) --dist loadscope --no-loadscope-reorder \
 	  --ignore-glob="**/.ipynb_checkpoints/*" -p no:cacheprovider -ra
 
+# Where `make bench` and `make reference` run their independent tasks: WORKERS=N local processes, or
+# SCHEDULER=tcp://host:8786 a Dask cluster (flnotes.parallel); neither: one after the other, in one process.
+WORKERS   ?=
+SCHEDULER ?=
+PARALLEL  := $(if $(WORKERS),--workers $(WORKERS)) $(if $(SCHEDULER),--scheduler $(SCHEDULER))
+
 bench: venv
-	$(PY) -m flnotes.bench
+	$(PY) -m flnotes.bench $(PARALLEL)
 
 # Rewrites flnotes/data/: the book's networks, their certified eps and chapter 5's sweep, trained on this
-# machine. Only to change them on purpose; commit the result.
+# machine. Only to change them on purpose; commit the result. An interrupted run resumes from the networks
+# already finished (python -m flnotes.studies.shipped --fresh starts over).
 reference: venv
-	$(PY) -c "import flnotes.paper as p, flnotes.studies as s; print(*p.write_references(), sep='\n'); s.write_sweep()"
-	$(PY) -c "from flnotes.arm import make_arm_reference; print(make_arm_reference())"
-	$(PY) -c "from flnotes.studies.unseen import write_unseen_references as w; print(*w(), sep='\n')"
+	$(PY) -m flnotes.studies.shipped $(PARALLEL)
 
 # Students' notebooks, autograder bundles (read-only, SHA-256 recorded in SHA256SUMS) and reference
 # solutions of the otter-grader master notebooks (book/assignments/master) into _build/assignments;

@@ -216,11 +216,13 @@ ARM_SETTINGS = dict(widths=(32, 32), n_per_axis=8, seed=0, max_iter=3000, max_tr
 ARM_EPS_SETTINGS = dict(rtol=0.05, n_samples=10_000, seed=0)
 
 
-def make_arm_reference(folder=None):
+def make_arm_reference(folder=None, workers: Optional[int] = None, client=None, progress: bool = False):
     """Train the arm's network with :data:`ARM_SETTINGS`, certify ``eps`` per output and write the reference.
 
     Minutes of CPU: only to change the shipped network on purpose. Returns the
     path of the JSON file written (see :func:`flnotes.reference.save_reference`).
+    ``workers``, ``client``: where the certification's boxes are evaluated (:func:`flnotes.certify_error`;
+    the bracket is the same on any of them); the training runs here.
     """
     from .error import certify_error
     from .network import fit_relu
@@ -228,7 +230,7 @@ def make_arm_reference(folder=None):
 
     sysm = two_link_arm()
     net, report = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **ARM_SETTINGS)
-    bracket = certify_error(sysm, net, **ARM_EPS_SETTINGS)
+    bracket = certify_error(sysm, net, **ARM_EPS_SETTINGS, workers=workers, client=client, progress=progress)
     return save_reference(ARM_REFERENCE, net, report, dict(ARM_SETTINGS, system="Arm"), bracket=bracket,
                           eps_settings=ARM_EPS_SETTINGS, folder=folder)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
@@ -31,6 +32,7 @@ from . import interval as iv
 from ._checks import as_batch, check_box
 from .interval import Interval, NotCertifiable
 from .network import ReLUNet, uniform_grid
+from .parallel import task_seeds, using
 from .systems import FLSystem
 
 Array = np.ndarray
@@ -113,6 +115,10 @@ class ErrorBracket:
     history
         Per output, an array of rows ``(boxes evaluated, lower, upper)`` after
         each branch-and-bound round.
+    eval_s
+        Wall-clock time per output spent evaluating boxes (in this process or in the
+        workers' tasks, as seen from the caller), shape (m,); ``time_s - eval_s`` is the
+        serial part (bracket, pruning, choice of the next boxes).
     """
 
     lower: Array
@@ -126,6 +132,7 @@ class ErrorBracket:
     method: str = "interval"
     partition: Optional[list] = None
     history: Optional[list] = None
+    eval_s: Optional[Array] = None
 
     @property
     def eps(self) -> Array:
@@ -198,7 +205,8 @@ def _best(X: Array, E: Array) -> tuple[Array, Array]:
 # ============================================================================ estimates
 def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n_particles: int = 100,
                   n_iter: int = 300, seed: int = 0, inertia: float = 0.7298, c_cognitive: float = 1.49618,
-                  c_social: float = 1.49618, v_max: float = 0.2, record: bool = False) -> ErrorEstimate:
+                  c_social: float = 1.49618, v_max: float = 0.2, record: bool = False, restarts: int = 1,
+                  workers: Optional[int] = None, client=None) -> ErrorEstimate:
     """Particle swarm search for ``max |Phi_i - Phi_NN,i|`` over a box (Sec. III-A.3, eq. epsilon_find).
 
     The paper's derivative-free estimator (Kennedy & Eberhart 1995): a swarm
@@ -229,16 +237,44 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     record
         Keep the particle positions of every iteration (for output 0), for
         :func:`flnotes.plots.pso_swarm`.
+    restarts
+        Independent swarms; the best per output is kept. ``1`` (default) runs one swarm
+        seeded with ``seed``; ``R > 1`` runs ``R`` swarms seeded with
+        :func:`flnotes.parallel.task_seeds` ``(seed, R)``, so the result does not depend on where
+        they ran (ties go to the first restart).
+    workers, client
+        Where the restarts run (:class:`flnotes.parallel.Executor`): this process by default,
+        ``workers=N`` local processes, or a Dask client / scheduler address.
 
     Returns
     -------
     ErrorEstimate
         ``eps`` (m,), ``argmax`` (m, n_in) and the best value per iteration in
-        ``history`` (m, n_iter + 1).
+        ``history`` (m, n_iter + 1) (of the winning restart, per output); ``n_evals`` and
+        ``time_s`` count all restarts (``time_s`` is the wall time of the whole call).
     """
     fun, lo, hi = _resolve(f, net, lo, hi)
     if n_particles < 2 or n_iter < 1:
         raise ValueError(f"need n_particles >= 2 and n_iter >= 1, got {n_particles} and {n_iter}")
+    if isinstance(restarts, bool) or not isinstance(restarts, (int, np.integer)) or restarts < 1:
+        raise ValueError(f"restarts must be an integer >= 1, got {restarts!r}")
+    if restarts > 1:
+        t0 = time.perf_counter()
+        opts = dict(n_particles=n_particles, n_iter=n_iter, inertia=inertia, c_cognitive=c_cognitive,
+                    c_social=c_social, v_max=v_max, record=record)
+        seeds = task_seeds(seed, restarts)
+        with using(workers, client) as ex:
+            runs = ex.map(partial(_pso_restart, f, net, lo, hi, opts), seeds)
+        E = np.array([r.eps for r in runs])                             # (R, m)
+        win = E.argmax(0)                                               # first best restart per output
+        m_out = net.n_out
+        best = ErrorEstimate("pso", E[win, np.arange(m_out)], np.array([runs[w].argmax[i] for i, w in enumerate(win)]),
+                             int(sum(r.n_evals for r in runs)), time.perf_counter() - t0,
+                             np.array([runs[w].history[i] for i, w in enumerate(win)]),
+                             dict(runs[0].settings, seed=seed, restarts=int(restarts), restart_seeds=seeds,
+                                  winner=win.tolist()),
+                             runs[win[0]].swarm, runs[win[0]].swarm_best)
+        return best
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     n, m = net.n_in, net.n_out
@@ -277,6 +313,11 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
                          dict(n_particles=n_particles, n_iter=n_iter, seed=seed, inertia=inertia,
                               c_cognitive=c_cognitive, c_social=c_social, v_max=v_max),
                          swarm if record else None, swarm_best if record else None)
+
+
+def _pso_restart(f, net: ReLUNet, lo: Array, hi: Array, opts: dict, seed: int) -> ErrorEstimate:
+    """One restart of :func:`pso_max_error` (a task)."""
+    return pso_max_error(f, net, lo, hi, seed=seed, **opts)
 
 
 def sample_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n: int = 100_000,
@@ -561,7 +602,8 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
                   lipschitz: Optional[Union[float, Array]] = None, rtol: float = 0.05, atol: float = 0.0,
                   seeds: Optional[Union[Array, ErrorEstimate]] = None, n_samples: int = 10_000, seed: int = 0,
                   batch: int = 4096, initial_per_axis: int = 4, max_boxes: int = 20_000_000,
-                  max_time: Optional[float] = None, keep_partition: bool = False) -> ErrorBracket:
+                  max_time: Optional[float] = None, keep_partition: bool = False, chunk: int = 1024,
+                  workers: Optional[int] = None, client=None, progress: bool = False) -> ErrorBracket:
     """A certified bracket ``lower <= max_Z |Phi_i - Phi_NN,i| <= upper`` (eq. epsilon_find), per output.
 
     Branch and bound over sub-boxes of ``Z = [lo, hi]``. For each box ``B`` an
@@ -636,6 +678,19 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         than requested (``converged`` is False).
     keep_partition
         Keep the final sub-boxes (for :func:`flnotes.plots.partition_slice`).
+    chunk
+        Boxes per task: each round's boxes are evaluated in consecutive chunks of this many, one
+        task each. The chunks, their order and the merge (concatenation in chunk order, then the
+        same selection as a single evaluation) do not depend on ``workers`` or ``client``: the
+        bracket is bit-identical on 1 worker, N local workers or a Dask cluster.
+    workers, client
+        Where the chunks run (:class:`flnotes.parallel.Executor`): ``workers=1`` (default) in this
+        process, ``workers=N`` in N local processes, ``client=`` a Dask client or scheduler address.
+        Only the box evaluations are parallel; the bracket, the pruning and the choice of the next
+        boxes stay in this process. A round has at most ``ceil(2 batch / chunk)`` tasks, so more
+        workers than that only help with a larger ``batch`` (a different schedule, the same soundness).
+    progress
+        Show a :mod:`tqdm` bar of the boxes evaluated and the current bracket.
 
     Returns
     -------
@@ -657,6 +712,16 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         raise ValueError(f"need rtol >= 0, atol >= 0 and at least one positive, got rtol={rtol}, atol={atol}")
     if batch < 1 or initial_per_axis < 1:
         raise ValueError("batch and initial_per_axis must be >= 1")
+    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+        raise ValueError(f"chunk must be an integer >= 1 (boxes per task), got {chunk!r}")
+    with using(workers, client) as executor:
+        return _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch,
+                        initial_per_axis, max_boxes, max_time, keep_partition, int(chunk), executor, progress)
+
+
+def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch, initial_per_axis,
+             max_boxes, max_time, keep_partition, chunk, executor, progress) -> ErrorBracket:
+    """The body of :func:`certify_error` (arguments checked, executor open)."""
     f_enc, method = _interval_f(f, net, f_interval, lipschitz, fun)
     n, m = net.n_in, net.n_out
     whole = f_enc(Interval(lo[None], hi[None], check=False))  # fails early (NotCertifiable) if Phi is undefined somewhere
@@ -686,7 +751,7 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     lo0[:, degenerate], hi0[:, degenerate] = lo[degenerate], hi[degenerate]
 
     lower, upper, argmax = np.zeros(m), np.zeros(m), np.zeros((m, n))
-    n_boxes, conv, times = np.zeros(m, int), np.zeros(m, bool), np.zeros(m)
+    n_boxes, conv, times, eval_s = np.zeros(m, int), np.zeros(m, bool), np.zeros(m), np.zeros(m)
     parts, hists = [], []
     for i in range(m):
         t0 = time.perf_counter()
@@ -695,19 +760,64 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         low0 = ev.point_lower(X0[top])
         k = low0.argmax()
         LB, best_x = low0[k], X0[top][k].copy()
-        res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition)
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(desc=f"certify output {i}" if m > 1 else "certify", unit="box")
+        try:
+            rounds = _Rounds(ev, chunk, executor)
+            res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition,
+                                    rounds, bar)
+        finally:
+            if bar is not None:
+                bar.close()
         lower[i], upper[i], argmax[i], n_boxes[i], conv[i], part, hist = res
         times[i] = time.perf_counter() - t0
+        eval_s[i] = rounds.seconds
         parts.append(part)
         hists.append(hist)
     return ErrorBracket(lower, upper, argmax, n_boxes, conv, times, rtol, atol, method,
-                        parts if keep_partition else None, hists)
+                        parts if keep_partition else None, hists, eval_s)
+
+
+def _boxes_task(ev: _Evaluator, box: tuple[Array, Array]) -> tuple[Array, Array, Array, Array]:
+    """One task of a round: :meth:`_Evaluator.boxes` on one chunk of boxes."""
+    return ev.boxes(*box)
+
+
+class _Rounds:
+    """Evaluates a round's boxes in fixed chunks through an executor and merges them in chunk order."""
+
+    def __init__(self, ev: _Evaluator, chunk: int, executor):
+        self.ev, self.chunk, self.executor = ev, chunk, executor
+        self.fn = partial(_boxes_task, ev)
+        self.seconds = 0.0          # wall time spent evaluating boxes (in tasks, as seen from here)
+
+    def __call__(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
+        t0 = time.perf_counter()
+        try:
+            return self._evaluate(lo, hi)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def _evaluate(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
+        c = self.chunk
+        parts = [(lo[k:k + c], hi[k:k + c]) for k in range(0, len(lo), c)]
+        if self.executor.engine == "serial" or len(parts) == 1:
+            out = [self.ev.boxes(*p) for p in parts]          # the same chunks, in this process
+        else:
+            out = self.executor.map(self.fn, parts)
+        if len(out) == 1:
+            return out[0]
+        return tuple(np.concatenate([o[j] for o in out]) for j in range(4))
 
 
 def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x: Array, rtol: float, atol: float,
-                      batch: int, max_boxes: int, max_time: Optional[float], keep: bool):
+                      batch: int, max_boxes: int, max_time: Optional[float], keep: bool, evaluate: Callable,
+                      bar=None):
     t0 = time.perf_counter()
-    ub, low, pts, axis = ev.boxes(lo0, hi0)
+    ub, low, pts, axis = evaluate(lo0, hi0)
     n_eval = len(lo0)
     olo, ohi, oub, oax = lo0, hi0, ub, axis
     pruned_max = -np.inf
@@ -728,6 +838,9 @@ def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x:
             olo, ohi, oub, oax = olo[keep_open], ohi[keep_open], oub[keep_open], oax[keep_open]
         cur_upper = max(pruned_max, float(oub.max()) if len(oub) else -np.inf)
         hist.append((n_eval, LB, cur_upper))
+        if bar is not None:
+            bar.update(n_eval - bar.n)
+            bar.set_postfix_str(f"{LB:.6g} <= max error <= {cur_upper:.6g}, {len(oub):,} open", refresh=False)
         if not len(oub):
             converged = True
             break
@@ -746,7 +859,7 @@ def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x:
         clo, chi = np.vstack([slo, slo]), np.vstack([shi, shi])
         chi[rows, sax] = cut
         clo[len(sel) + rows, sax] = cut
-        ub, low, pts, ax = ev.boxes(clo, chi)
+        ub, low, pts, ax = evaluate(clo, chi)
         n_eval += len(clo)
         olo, ohi = np.vstack([olo[rest], clo]), np.vstack([ohi[rest], chi])
         oub, oax = np.concatenate([oub[rest], ub]), np.concatenate([oax[rest], ax])

@@ -14,6 +14,7 @@ import numpy as np
 
 from .config import cache_dir
 from .network import ReLUNet, TrainingReport, fit_relu
+from .parallel import task_key, using
 from .reference import load_reference, save_reference, weights_sha256
 from .systems import FLSystem, msd, quad1d
 
@@ -202,7 +203,23 @@ def paper_eps(name: str, refresh: bool = False, **overrides):
     return br
 
 
-def write_references(names: Optional[Sequence[str]] = None, folder=None) -> list[str]:
+def _reference_task(ref: str):
+    """One task of :func:`write_references`: train and certify the reference ``ref``; ``(net, report, bracket)``."""
+    sys_name, settings = REFERENCES[ref]
+    sysm = system(sys_name)
+    net, rep = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **settings)
+    return net, rep, certify_book_eps(sys_name, net)
+
+
+def library_versions() -> dict:
+    """Versions of the libraries a trained network depends on (part of a resumable task's key)."""
+    import importlib.metadata as md
+
+    return {d: md.version(d) for d in ("numpy", "scipy", "scikit-learn")}
+
+
+def write_references(names: Optional[Sequence[str]] = None, folder=None, workers: Optional[int] = None,
+                     client=None, progress: bool = False, resume: bool = False) -> list[str]:
     """Train, certify and write the shipped references (``make reference``); returns the files written.
 
     Each network of :data:`REFERENCES` is trained with its settings, its
@@ -210,15 +227,25 @@ def write_references(names: Optional[Sequence[str]] = None, folder=None) -> list
     :func:`flnotes.reference.save_reference` with the library versions of
     this machine. Run it only to change the book's networks on purpose: the
     rendered book's numbers follow them.
+
+    Each reference is one task of :class:`flnotes.parallel.Executor` (``workers`` local processes
+    or a Dask ``client``; training uses one BLAS thread either way, so the weights are those of a
+    serial run on the same machine); the files are written here, in the order of ``names``.
+    ``resume`` keeps each finished network in the cache folder, so an interrupted run restarts
+    from the ones not yet done.
     """
-    out = []
-    for ref in (names or list(REFERENCES)):
+    refs = list(names or REFERENCES)
+    for ref in refs:
         if ref not in REFERENCES:
             raise ValueError(f"unknown reference {ref!r}; choose from {sorted(REFERENCES)}")
+    keys = ([task_key("reference", r, _normalized(REFERENCES[r][1]), REFERENCES[r][0], _normalized(EPS_SETTINGS),
+                      _EPS_VERSION, library_versions()) for r in refs] if resume else None)
+    with using(workers, client) as ex:
+        done = ex.map(_reference_task, refs, keys=keys, cache="reference" if resume else None,
+                      desc="references", progress=progress)
+    out = []
+    for ref, (net, rep, br) in zip(refs, done):
         sys_name, settings = REFERENCES[ref]
-        sysm = system(sys_name)
-        net, rep = fit_relu(sysm.phi_stacked, sysm.lo, sysm.hi, **settings)
-        br = certify_book_eps(sys_name, net)
         out.append(str(save_reference(ref, net, rep, dict(system=sys_name, **settings), bracket=br,
                                       eps_settings=dict(EPS_SETTINGS, version=_EPS_VERSION), folder=folder)))
     return out

@@ -23,7 +23,9 @@ that imports :mod:`flnotes.paper`.
 ``multi``
     chapter 10: the two-link arm, the exact two-input CLF-CBF against SCIP, obstacle and MPC runs;
 ``compare``
-    chapter 11: the five methods of the comparative study, their metrics and the Monte Carlo.
+    chapter 11: the five methods of the comparative study, their metrics and the Monte Carlo;
+``shipped``
+    ``make reference``: every shipped network and table, rewritten on local workers or a Dask cluster.
 """
 from . import cheap_networks, compare, guarantees, multi, realtime, unseen
 from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross_check_exact,

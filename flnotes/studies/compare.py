@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from functools import partial
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -46,6 +47,7 @@ from .. import paper
 from ..intersample import intersample_drift
 from ..mpc import MPC, sine_reference
 from ..nmpc import NonlinearMPC, SaturatedInput
+from ..parallel import task_key, using
 from ..simulate import simulate
 from ..systems import FLSystem
 from ..tables import time_stats
@@ -487,13 +489,35 @@ def extremes(table: dict, column: str, keys: Sequence[str]) -> dict:
     return dict(min=lo, max=hi, at_min=names(lo), at_max=names(hi))
 
 
+def _scenario_task(s: dict, t_final: float, methods: Optional[Sequence], band: float, iterations: int,
+                   sc: dict) -> list[dict]:
+    """One task of :func:`monte_carlo`: :func:`run_scenario` on one scenario."""
+    return run_scenario(s, sc, t_final, methods, band, iterations)
+
+
 def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence] = None,
-                band: float = 0.1, iterations: int = 1) -> list[dict]:
-    """Every method (or variant) on every scenario: the rows of :func:`run_scenario`, scenario by scenario."""
-    rows = []
-    for sc in scenarios:
-        rows += run_scenario(s, sc, t_final, methods, band, iterations)
-    return rows
+                band: float = 0.1, iterations: int = 1, workers: Optional[int] = None, client=None,
+                progress: bool = False, resume: bool = False) -> list[dict]:
+    """Every method (or variant) on every scenario: the rows of :func:`run_scenario`, scenario by scenario.
+
+    Each scenario is one task of :class:`flnotes.parallel.Executor`: in this process by default, on
+    ``workers`` local processes, or on a Dask ``client``; the rows come back in the same order whatever
+    runs them. ``progress`` shows a bar; ``resume`` keeps each finished scenario's rows in the cache
+    folder and reuses them when the same run is asked again. Under a ``time_limit``, a run's plans
+    depend on the time its solves take (rows with a late step can differ between runs); the timing
+    columns (``ms_*``) always do.
+    """
+    keys = None
+    if resume:
+        net_key = [np.asarray(a).tolist() for a in (*s["net"].W, *s["net"].b)]
+        mkey = None if methods is None else [repr(m) for m in methods]
+        keys = [task_key("monte_carlo", s["name"], s["eps"], s["horizon"], s["ts"], np.asarray(s["Q"]).tolist(),
+                         np.asarray(s["R"]).tolist(), s["time_limit"], net_key, t_final, band, iterations,
+                         {k: v for k, v in sc.items()}, mkey) for sc in scenarios]
+    with using(workers, client) as ex:
+        per = ex.map(partial(_scenario_task, s, t_final, methods, band, iterations), list(scenarios), keys=keys,
+                     cache="monte_carlo" if resume else None, desc="Monte Carlo", progress=progress)
+    return [row for rows in per for row in rows]
 
 
 def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_active: bool = False) -> list[dict]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from functools import partial
 from typing import Optional, Sequence
 
 import numpy as np
@@ -17,6 +18,7 @@ from .. import paper
 from ..config import cache_dir
 from ..error import certify_error, pso_max_error, sample_max_error
 from ..network import fit_relu
+from ..parallel import task_key, using
 from ..reference import DATA_DIR, load_reference, load_table, save_table, weights_sha256
 from ..systems import FLSystem
 
@@ -55,7 +57,8 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
                        seed: int = 0,
                        rtol: float = 0.05, max_time: float = 20.0, n_samples: int = 20_000,
                        cache: bool = True, progress: bool = False, recompute: bool = False,
-                       ship_to: Optional[str] = None) -> list[dict]:
+                       ship_to: Optional[str] = None, workers: Optional[int] = None, client=None,
+                       resume: bool = False) -> list[dict]:
     """Train small networks over a grid of widths, depths and grid densities; estimate and certify each eps.
 
     One row per network with ``width``, ``depth``, ``n_s``, ``n_binaries``
@@ -74,6 +77,13 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
     ``cache=False`` skips the disk). ``ship_to`` (a folder) writes the
     computed table there as the shipped one (see
     :func:`flnotes.paper.write_sweep`).
+
+    Each network (train, estimate, certify) is one task of :class:`flnotes.parallel.Executor`:
+    in this process by default, on ``workers`` local processes or on a Dask ``client``; the rows
+    come back in the order of the grid (grid density, then depth, then width) whatever runs them,
+    and each task trains with one BLAS thread, so the table is the same (except the two time
+    columns, and ``max_time`` when a certification runs out of it). ``progress`` shows a bar;
+    ``resume`` keeps each finished network's row in the cache folder for a rerun.
     """
     args = dict(system=system.name, lo=system.lo.tolist(), hi=system.hi.tolist(), widths=list(widths),
                 depths=list(depths), n_per_axis=list(n_per_axis), max_iter=max_iter, max_train=max_train, seed=seed, rtol=rtol,
@@ -84,22 +94,12 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
     path = cache_dir() / f"sweep-{system.name}-{hashlib.sha1(json.dumps(args, sort_keys=True).encode()).hexdigest()[:12]}.json"
     if cache and not recompute and path.exists():
         return json.loads(path.read_text())
-    rows = []
-    for n_s in n_per_axis:
-        for depth in depths:
-            for width in widths:
-                net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(width,) * depth,
-                                    n_per_axis=n_s, max_train=max_train, max_iter=max_iter, seed=seed)
-                smp = sample_max_error(system, net, n=n_samples, seed=seed)
-                pso = pso_max_error(system, net, n_particles=50, n_iter=100, seed=seed)
-                br = certify_error(system, net, rtol=rtol, seeds=pso, n_samples=1000, max_time=max_time)
-                rows.append(dict(width=width, depth=depth, n_s=n_s, n_binaries=width * depth,
-                                 eps_sample=float(smp.eps[0]), eps_pso=float(pso.eps[0]),
-                                 eps_lower=float(br.lower[0]), eps_certified=float(br.upper[0]),
-                                 converged=bool(br.converged[0]), train_time_s=rep.time_s,
-                                 certify_time_s=float(br.time_s[0])))
-                if progress:
-                    print(rows[-1], flush=True)
+    tasks = [(n_s, depth, width) for n_s in n_per_axis for depth in depths for width in widths]
+    opts = dict(max_train=max_train, max_iter=max_iter, seed=seed, rtol=rtol, max_time=max_time, n_samples=n_samples)
+    keys = [task_key("sweep", args, t) for t in tasks] if resume else None
+    with using(workers, client) as ex:
+        rows = ex.map(partial(_sweep_network, system, opts), tasks, keys=keys, cache="sweep" if resume else None,
+                      desc=f"sweep {system.name}", progress=progress)
     if cache:
         tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp")  # one per process: parallel runs never share it
         tmp.write_text(json.dumps(rows))
@@ -107,6 +107,22 @@ def architecture_sweep(system: FLSystem, widths: Sequence[int] = (5, 10, 20), de
     if ship_to is not None:
         save_table(f"sweep-{system.name}", args, rows, folder=ship_to)
     return rows
+
+
+def _sweep_network(system: FLSystem, opts: dict, task: tuple) -> dict:
+    """One task of :func:`architecture_sweep`: train, estimate and certify one network, its row."""
+    n_s, depth, width = task
+    seed = opts["seed"]
+    net, rep = fit_relu(system.phi_stacked, system.lo, system.hi, widths=(width,) * depth,
+                        n_per_axis=n_s, max_train=opts["max_train"], max_iter=opts["max_iter"], seed=seed)
+    smp = sample_max_error(system, net, n=opts["n_samples"], seed=seed)
+    pso = pso_max_error(system, net, n_particles=50, n_iter=100, seed=seed)
+    br = certify_error(system, net, rtol=opts["rtol"], seeds=pso, n_samples=1000, max_time=opts["max_time"])
+    return dict(width=width, depth=depth, n_s=n_s, n_binaries=width * depth,
+                eps_sample=float(smp.eps[0]), eps_pso=float(pso.eps[0]),
+                eps_lower=float(br.lower[0]), eps_certified=float(br.upper[0]),
+                converged=bool(br.converged[0]), train_time_s=rep.time_s,
+                certify_time_s=float(br.time_s[0]))
 
 
 def estimates_table(estimates: dict, brackets: Optional[dict] = None) -> list[dict]:
@@ -143,10 +159,15 @@ def book_sweep(name: str = "MSD", recompute: bool = False) -> list[dict]:
     return architecture_sweep(paper.system(name), **paper.SWEEP_SETTINGS, recompute=recompute)
 
 
-def write_sweep(name: str = "MSD", folder=None) -> None:
-    """Recompute chapter 5's sweep on this machine and write it as the shipped table (``make reference``)."""
+def write_sweep(name: str = "MSD", folder=None, workers: Optional[int] = None, client=None,
+                progress: bool = False, resume: bool = False) -> None:
+    """Recompute chapter 5's sweep on this machine and write it as the shipped table (``make reference``).
+
+    ``workers``, ``client``, ``progress``, ``resume``: see :func:`architecture_sweep`.
+    """
     architecture_sweep(paper.system(name), **paper.SWEEP_SETTINGS, cache=False, recompute=True,
-                       ship_to=DATA_DIR if folder is None else folder)
+                       ship_to=DATA_DIR if folder is None else folder, workers=workers, client=client,
+                       progress=progress, resume=resume)
 
 
 def fresh_vs_shipped(names: Sequence[str] = ("MSD", "Quad-1D"), **overrides) -> list[dict]:

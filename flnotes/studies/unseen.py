@@ -33,6 +33,7 @@ from ..mpc import MPC, MPCOptions, sine_reference
 from ..mpc.bang_bang import bang_bang_incumbent
 from ..mpc.fallback import qp_repair
 from ..network import ReLUNet, fit_relu
+from ..parallel import task_key, using
 from ..reference import load_reference, save_reference
 from ..result import StepResult
 from ..simulate import simulate
@@ -255,17 +256,35 @@ def unseen_net(name: str) -> tuple[ReLUNet, float, object]:
     return ref.net, float(np.max(ref.bracket["upper"])), ref
 
 
-def write_unseen_references(names: Optional[Sequence[str]] = None, folder=None) -> list[str]:
+def _unseen_task(name: str):
+    """One task of :func:`write_unseen_references`: ``(net, report, bracket)`` of the case ``name``."""
+    c = case(name)
+    s = c.make()
+    net, rep = fit_relu(s.phi_stacked, s.lo, s.hi, **c.net_settings)
+    return net, rep, certify_error(s, net, **EPS_SETTINGS)
+
+
+def write_unseen_references(names: Optional[Sequence[str]] = None, folder=None, workers: Optional[int] = None,
+                            client=None, progress: bool = False, resume: bool = False) -> list[str]:
     """Train (:func:`flnotes.fit_relu`) and certify (:func:`flnotes.certify_error`) the cases' networks and ship them.
 
     Minutes of CPU: only to change the shipped networks on purpose. Returns the JSON files written.
+    Each case is one task of :class:`flnotes.parallel.Executor` (``workers``, ``client``); the files
+    are written here in the order of ``names``; ``resume`` keeps finished cases in the cache folder.
     """
+    from ..paper import library_versions
+
+    names = list(names or CASES)
+    for name in names:
+        case(name)                                   # an unknown name fails here, before any work
+    keys = ([task_key("unseen", n, {k: list(v) if isinstance(v, tuple) else v for k, v in case(n).net_settings.items()},
+                      EPS_SETTINGS, library_versions()) for n in names] if resume else None)
+    with using(workers, client) as ex:
+        done = ex.map(_unseen_task, names, keys=keys, cache="unseen" if resume else None, desc="unseen references",
+                      progress=progress)
     out = []
-    for name in (names or list(CASES)):
+    for name, (net, rep, br) in zip(names, done):
         c = case(name)
-        s = c.make()
-        net, rep = fit_relu(s.phi_stacked, s.lo, s.hi, **c.net_settings)
-        br = certify_error(s, net, **EPS_SETTINGS)
         out.append(str(save_reference(c.reference_name, net, rep, dict(system=name, **c.net_settings), bracket=br,
                                       eps_settings=EPS_SETTINGS, folder=folder)))
     return out

@@ -1,0 +1,348 @@
+"""One way to run independent tasks in parallel: local processes (joblib) or a Dask cluster.
+
+Every job of the package whose work splits into independent tasks (the boxes of a
+certification round, PSO restarts, the scenarios of a Monte Carlo, the networks of a
+sweep, the shipped references, the benchmark's sections) runs them through
+:class:`Executor`. Three engines, one contract:
+
+``"serial"``
+    ``workers=1`` (the default of every job): the tasks run one after the other in this
+    process, as before this module existed;
+``"joblib"``
+    ``workers=N`` (N > 1): N local worker processes (:mod:`joblib`'s ``loky`` backend),
+    each with one BLAS thread;
+``"dask"``
+    ``client=`` a :class:`dask.distributed.Client` or a scheduler address
+    (``"tcp://host:8786"``): the tasks go to whatever cluster the client is connected to (a
+    ``LocalCluster``, ``dask-jobqueue`` on a batch system, Kubernetes); a task whose worker dies
+    is re-run on another worker (Dask's own rescheduling, plus ``retries``).
+
+The contract that makes the engines interchangeable:
+
+* **the same numbers**: a task is a pure function of its arguments (a task that draws random
+  numbers gets its own seed, :func:`task_seeds`), and :meth:`Executor.map` returns the results
+  in the order of submission, so a reduction over them is the same whatever the number of
+  workers or the engine;
+* **no silent partial result**: a task that fails on a worker, or a worker that dies and is not
+  re-run, raises :class:`TaskFailed` naming the task (in this process, the task's own exception is
+  raised, with a note naming it); :meth:`Executor.map` never returns fewer results than tasks;
+* **resumable**: with ``cache=`` (a name) and ``keys=`` (one string per task), each finished
+  result is stored in the package's cache folder (:func:`flnotes.config.cache_dir`) as soon as it
+  arrives, and a later run with the same keys loads it instead of running the task again;
+* **progress**: ``progress=True`` shows a :mod:`tqdm` bar (a widget in a notebook).
+
+No scheduler, queue or socket of our own: joblib and Dask do that.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import time
+from contextlib import contextmanager
+from functools import partial
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
+
+import numpy as np
+
+from .config import cache_dir, one_blas_thread
+
+__all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead", "parse_workers"]
+
+ENGINES = ("serial", "joblib", "dask")
+
+
+class TaskFailed(RuntimeError):
+    """A task of :meth:`Executor.map` failed or lost its worker; no partial result is returned."""
+
+
+def task_seeds(seed: int, n: int) -> list[int]:
+    """``n`` independent seeds for ``n`` tasks, derived from ``seed`` (:class:`numpy.random.SeedSequence`).
+
+    Task ``k`` always gets the same seed, whichever worker runs it and however many there are.
+    """
+    if n < 0:
+        raise ValueError(f"n must be >= 0, got {n}")
+    return [int(s.generate_state(1, np.uint64)[0] >> np.uint64(1)) for s in np.random.SeedSequence(seed).spawn(n)]
+
+
+def task_key(*parts: Any) -> str:
+    """A short stable key of a task's arguments (JSON of ``parts``, SHA-1), for :meth:`Executor.map` ``keys=``."""
+    blob = json.dumps(parts, sort_keys=True, default=lambda o: getattr(o, "tolist", lambda: repr(o))())
+    return hashlib.sha1(blob.encode()).hexdigest()[:16]
+
+
+def _run(fn: Callable, item: Any) -> Any:
+    """One task on a worker: one BLAS thread, so that N workers use N cores."""
+    with one_blas_thread():
+        return fn(item)
+
+
+def _is_client(obj: Any) -> bool:
+    return type(obj).__name__ == "Client" and type(obj).__module__.startswith("distributed")
+
+
+class Executor:
+    """Runs independent tasks in this process, in local worker processes, or on a Dask cluster.
+
+    Parameters
+    ----------
+    workers
+        Number of local worker processes; 1 (default) runs the tasks in this process, N > 1 uses
+        joblib's ``loky`` processes with one BLAS thread each. Not with ``client``.
+    client
+        A :class:`dask.distributed.Client`, or a scheduler address (str) to which one is connected
+        (and closed again by :meth:`close`).
+    retries
+        Dask only: times a failed task is re-submitted (a task whose worker dies is also rescheduled
+        by the scheduler itself).
+
+    Examples
+    --------
+    >>> with Executor(workers=2) as ex:                       # doctest: +SKIP
+    ...     squares = ex.map(pow2, range(10), progress=True)
+    """
+
+    def __init__(self, workers: Optional[int] = None, client: Any = None, retries: int = 2):
+        if client is not None and workers not in (None, 1):
+            raise ValueError(f"give either workers={workers} (local processes) or client= (a Dask cluster), not both: "
+                             f"the cluster's size is set where the cluster is started")
+        if not isinstance(retries, (int, np.integer)) or retries < 0:
+            raise ValueError(f"retries must be an integer >= 0, got {retries!r}")
+        self.retries = int(retries)
+        self._own_client = False
+        self.client = None
+        if client is not None:
+            if isinstance(client, str):
+                from distributed import Client
+
+                client = Client(client)
+                self._own_client = True
+            elif not _is_client(client):
+                raise TypeError(f"client must be a dask.distributed.Client or a scheduler address such as "
+                                f"'tcp://127.0.0.1:8786', got {type(client).__name__}")
+            self.client = client
+            self.engine = "dask"
+            self.workers = max(1, len(client.nthreads()))          # the cluster's workers now
+            return
+        w = 1 if workers is None else workers
+        if isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 1:
+            raise ValueError(f"workers must be an integer >= 1 (the number of local processes), got {workers!r}")
+        self.workers = int(w)
+        self.engine = "serial" if self.workers == 1 else "joblib"
+
+    def __repr__(self) -> str:
+        where = f" at {self.client.scheduler.address}" if self.client is not None else ""
+        return f"Executor({self.engine}, {self.workers} worker{'s' if self.workers != 1 else ''}{where})"
+
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the Dask client if this executor opened it (from an address)."""
+        if self._own_client and self.client is not None:
+            self.client.close()
+            self.client = None
+
+    # ------------------------------------------------------------------ the one method
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], *, keys: Optional[Sequence[str]] = None,
+            cache: Optional[str] = None, desc: Optional[str] = None, progress: bool = False) -> list:
+        """``[fn(item) for item in items]``, run in parallel; the results in the order of ``items``.
+
+        Parameters
+        ----------
+        fn
+            A function of one argument, picklable (a module-level function, or a closure: joblib and
+            Dask pickle it with cloudpickle). It must not depend on anything but its argument: that is
+            what makes the result independent of the engine.
+        items
+            The tasks' arguments.
+        keys, cache
+            Resume: with ``cache`` (a name, e.g. ``"montecarlo"``) and ``keys`` (one stable string per
+            task, see :func:`task_key`), each result is written to ``cache_dir()/tasks/<cache>/<key>.pkl``
+            as it arrives and loaded from there by a later run. Both or neither.
+        desc, progress
+            A :mod:`tqdm` progress bar labelled ``desc``.
+
+        Raises
+        ------
+        TaskFailed
+            On workers: a task raised, or its worker died and it could not be re-run; the message names
+            the task. In this process (``workers=1``) a task's exception is raised as it is, with a note
+            naming the task. Either way the results already finished stay in the cache (if any) for the
+            next run, and no partial list is returned.
+        """
+        items = list(items)
+        if (keys is None) != (cache is None):
+            raise ValueError("resuming needs both cache= (a name) and keys= (one per task), or neither")
+        if keys is not None and len(keys) != len(items):
+            raise ValueError(f"keys has {len(keys)} entries for {len(items)} tasks: give one key per task")
+        if keys is not None and len(set(keys)) != len(keys):
+            raise ValueError("keys must be distinct: two tasks with the same key would share a cached result")
+        folder = _task_folder(cache) if cache is not None else None
+        results: list = [None] * len(items)
+        todo = []
+        for k in range(len(items)):
+            if folder is not None and (folder / f"{keys[k]}.pkl").is_file():
+                results[k] = pickle.loads((folder / f"{keys[k]}.pkl").read_bytes())
+            else:
+                todo.append(k)
+        bar = _bar(len(items), len(items) - len(todo), desc, progress)
+        finished = set(range(len(items))) - set(todo)
+
+        def done(k: int, value: Any) -> None:
+            results[k] = value
+            finished.add(k)
+            if folder is not None:
+                tmp = folder / f"{keys[k]}.{os.getpid()}.tmp"
+                tmp.write_bytes(pickle.dumps(value))
+                tmp.replace(folder / f"{keys[k]}.pkl")
+            if bar is not None:
+                bar.update(1)
+
+        def name(k: int) -> str:
+            return f"task {k}" + (f" (key {keys[k]})" if keys is not None else "") + (f" of {desc!r}" if desc else "")
+
+        def resume() -> str:
+            return (f"; the {len(finished)} of {len(items)} results finished are kept in {folder} and a rerun with "
+                    f"the same keys resumes from them" if folder is not None else "")
+
+        def first_pending() -> int:
+            return next(k for k in todo if k not in finished)
+
+        try:
+            if self.engine == "serial" or not todo:
+                for k in todo:           # in this process: a task's own exception, as without an executor
+                    try:
+                        value = _run(fn, items[k])
+                    except Exception as exc:
+                        exc.add_note(f"(in {name(k)}{resume()})")
+                        raise
+                    done(k, value)
+            elif self.engine == "joblib":
+                self._map_joblib(fn, items, todo, done, lambda: name(first_pending()), resume)
+            else:
+                self._map_dask(fn, items, todo, done, name, resume)
+        finally:
+            if bar is not None:
+                bar.close()
+        return results
+
+    def _map_joblib(self, fn, items, todo, done, pending, resume) -> None:
+        from joblib import Parallel, delayed
+        from joblib.externals.loky.process_executor import TerminatedWorkerError
+
+        par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1, return_as="generator")
+        try:
+            for k, value in zip(todo, par(delayed(_run)(fn, items[j]) for j in todo)):
+                done(k, value)
+        except TerminatedWorkerError as exc:
+            raise TaskFailed(f"a local worker process died (killed, or out of memory) while the tasks from "
+                             f"{pending()} on were running; no partial result is returned{resume()}. "
+                             f"({exc.__class__.__name__})") from exc
+        except Exception as exc:
+            raise TaskFailed(f"a task from {pending()} on raised {type(exc).__name__}: {exc}{resume()}") from exc
+
+    def _map_dask(self, fn, items, todo, done, name, resume) -> None:
+        from distributed import as_completed
+
+        client = self.client
+        prefix = f"flnotes-{getattr(fn, '__name__', 'task')}-{time.time_ns()}"
+        futures = client.map(partial(_run, fn), [items[k] for k in todo], pure=False,   # fn serialized once
+                             retries=self.retries, key=[f"{prefix}-{k}" for k in todo])
+        where = {f.key: k for f, k in zip(futures, todo)}
+        try:
+            for fut in as_completed(futures):
+                k = where[fut.key]
+                try:
+                    value = fut.result()
+                except Exception as exc:
+                    msg = (f"lost its worker more often than the cluster allows (distributed's "
+                           f"allowed-failures): {exc}" if type(exc).__name__ == "KilledWorker"
+                           else f"raised {type(exc).__name__}: {exc}")
+                    raise TaskFailed(f"{name(k)} {msg}; no partial result is returned{resume()}") from exc
+                done(k, value)
+        finally:
+            client.cancel([f for f in futures if not f.done()])
+
+
+@contextmanager
+def using(workers: Optional[int] = None, client: Any = None) -> Iterator[Executor]:
+    """The :class:`Executor` of a job's ``workers=`` and ``client=`` keywords, as a context.
+
+    ``client`` may be a Dask client, a scheduler address or an :class:`Executor` (used as it is, and
+    left open); an executor made here is closed at the end (a client opened from an address too).
+    """
+    if isinstance(client, Executor):
+        if workers not in (None, 1):
+            raise ValueError("give either workers= or an Executor as client=, not both")
+        yield client
+        return
+    ex = Executor(workers=workers, client=client)
+    try:
+        yield ex
+    finally:
+        ex.close()
+
+
+def _task_folder(cache: str) -> Path:
+    if not isinstance(cache, str) or not cache or any(c in cache for c in "/\\") or cache.startswith("."):
+        raise ValueError(f"cache must be a plain name such as 'montecarlo' (a folder of the cache), got {cache!r}")
+    path = cache_dir() / "tasks" / cache
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _bar(total: int, initial: int, desc: Optional[str], progress: bool):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, desc=desc, unit="task")
+
+
+def _noop(x: Any) -> Any:
+    return x
+
+
+def measure_overhead(executor: Executor, n_tasks: int = 200) -> float:
+    """Seconds per task that the engine adds (a trivial task's round trip, averaged over ``n_tasks``).
+
+    The per-task scheduler overhead of the scaling model (:func:`flnotes.bench.parallel.scaling_model`).
+    """
+    executor.map(_noop, range(min(n_tasks, 2 * executor.workers)))     # warm the workers up
+    t0 = time.perf_counter()
+    executor.map(_noop, range(n_tasks))
+    return (time.perf_counter() - t0) / n_tasks
+
+
+def parse_workers(argv: Sequence[str]) -> tuple[Optional[int], Optional[str], list[str]]:
+    """The options ``--workers N`` and ``--scheduler ADDRESS`` of a command line: ``(workers, scheduler, rest)``.
+
+    ``ValueError`` saying what to change for a missing or bad value, or both options given.
+    """
+    workers, scheduler, rest = None, None, []
+    it = iter(argv)
+    for a in it:
+        key, eq, val = a.partition("=")
+        if key not in ("--workers", "--scheduler"):
+            rest.append(a)
+            continue
+        val = val if eq else next(it, "")
+        if not val or val.startswith("--"):
+            raise ValueError(f"{key} needs a value: --workers N (local processes) or --scheduler ADDRESS "
+                             f"(a Dask scheduler, e.g. tcp://127.0.0.1:8786)")
+        if key == "--workers":
+            if not val.isdigit() or int(val) < 1:
+                raise ValueError(f"--workers must be a whole number >= 1, got {val!r}")
+            workers = int(val)
+        else:
+            scheduler = val
+    if workers not in (None, 1) and scheduler is not None:
+        raise ValueError("give --workers N (local processes) or --scheduler ADDRESS (a Dask cluster), not both")
+    return workers, scheduler, rest

@@ -1,0 +1,34 @@
+"""Tasks for tests/test_parallel.py, in a module that imports little: a new worker process loads it fast."""
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+
+def die_once(item):
+    """Kill this worker process the first time task 1 runs (a marker file says it happened), else square."""
+    k, marker = item
+    if k == 1:
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            pass
+        else:
+            os.close(fd)
+            os.kill(os.getpid(), signal.SIGKILL)
+    return k * k
+
+
+def count_calls(item):
+    """Leave a file per call in ``folder`` (the task's number, the process, a counter), return ``-k``."""
+    k, folder = item
+    n = len(list(Path(folder).glob(f"{k}.*")))
+    Path(folder, f"{k}.{os.getpid()}.{n}").touch()
+    return -k
+
+
+def fail_on_two(k):
+    if k == 2:
+        raise ArithmeticError("bad task")
+    return k

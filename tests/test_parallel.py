@@ -1,0 +1,231 @@
+"""flnotes.parallel: the same numbers on 1 worker, 2 local joblib workers and a 2-worker Dask LocalCluster.
+
+The certified bracket, a Monte Carlo table and a sweep table are compared exactly between the three
+(the columns that are wall times excepted); a worker killed in the middle of a run either leaves a
+run that completes with the same result (Dask reschedules the task) or a clear error and nothing
+partial (joblib), after which a rerun resumes from the finished tasks.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import flnotes as fl
+from flnotes import paper
+from flnotes.error import certify_error, pso_max_error
+from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
+from flnotes.studies import compare as C
+
+from _parallel_tasks import count_calls, die_once, fail_on_two
+
+pytest.importorskip("distributed")
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                           dashboard_address=None, silence_logs=40)
+    cl = Client(cluster)
+    yield cl
+    cl.close()
+    cluster.close()
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path / "cache"))
+
+
+def engines(client):
+    """The three ways to run the same job: (label, keywords)."""
+    return [("1 worker", dict(workers=1)), ("2 joblib workers", dict(workers=2)), ("2-worker LocalCluster", dict(client=client))]
+
+
+def _same(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("lower", "upper", "argmax", "n_boxes", "converged"))
+
+
+# ------------------------------------------------------------------------------ the three jobs
+def test_certified_bracket_is_bit_identical_on_every_engine(client):
+    sysm = paper.system("Quad-1D")
+    net, _ = paper.paper_net("Quad-1D")
+    # a small schedule: 1024 boxes bisected per round, 512 per task, so that most rounds have four tasks
+    kw = dict(rtol=0.05, batch=1024, chunk=512, n_samples=500)
+    whole = certify_error(sysm, net, **{**kw, "chunk": 10**9})          # each round as one evaluation, in process
+    assert whole.converged.all() and len(whole.history[0]) > 3         # premise: several rounds were run
+    for label, where in engines(client):
+        br = certify_error(sysm, net, **kw, **where)
+        assert _same(br, whole), label
+        assert np.array_equal(br.history[0][:, :2], whole.history[0][:, :2]), label
+
+
+def test_certification_progress_bar_changes_nothing(capsys):
+    sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.05, batch=1024, chunk=512, n_samples=500)
+    quiet = certify_error(sysm, net, **kw)
+    shown = certify_error(sysm, net, **kw, progress=True)
+    assert _same(quiet, shown)
+    err = capsys.readouterr().err
+    assert "certify" in err and "box" in err
+
+
+def test_certified_bracket_two_outputs_on_a_cluster(client):
+    net, _, ref = fl.arm.arm_net()
+    sysm = fl.arm.two_link_arm()
+    kw = dict(rtol=0.5, batch=128, chunk=64, n_samples=200, max_boxes=1500, initial_per_axis=2)  # seconds, not minutes
+    one = certify_error(sysm, net, **kw)
+    on_cluster = certify_error(sysm, net, **kw, client=client)
+    assert one.lower.shape == (2,) and _same(one, on_cluster)
+    assert all(len(h) > 3 for h in one.history)                        # premise: several rounds per output
+    assert np.all(one.upper >= one.lower)
+
+
+def test_pso_restarts_are_the_same_on_every_engine(client):
+    sysm = paper.system("MSD")
+    net, _ = paper.paper_net("MSD")
+    ests = [pso_max_error(sysm, net, n_particles=20, n_iter=20, seed=3, restarts=4, **where) for _, where in engines(client)]
+    for e in ests[1:]:
+        assert np.array_equal(e.eps, ests[0].eps) and np.array_equal(e.argmax, ests[0].argmax)
+    # the best of the restarts is at least each restart run alone with its own seed
+    alone = [pso_max_error(sysm, net, n_particles=20, n_iter=20, seed=s).eps[0] for s in task_seeds(3, 4)]
+    assert ests[0].eps[0] == max(alone)
+    assert ests[0].settings["winner"] == [int(np.argmax(alone))]
+
+
+def _drop_times(rows, prefixes):
+    return [{k: v for k, v in r.items() if not k.startswith(prefixes)} for r in rows]
+
+
+def test_monte_carlo_table_is_the_same_on_every_engine(client):
+    s = C.setting("MSD", horizon=4, time_limit=None)                  # no time limit: plans do not depend on timing
+    scenarios = C.draw_scenarios("MSD", 2, seed=5)
+    tables = {label: C.monte_carlo(s, scenarios, 0.6, methods=("network", "measured"), **where)
+              for label, where in engines(client)}
+    ref = tables["1 worker"]
+    assert [(r["scenario"], r["method"]) for r in ref] == [(i, m) for i in (0, 1) for m in ("network", "measured")]
+    assert all(r["completed"] for r in ref)                           # premise: the runs went to the end
+    for label, rows in tables.items():
+        # every column but the wall times of the steps, exactly (NaN in the same places)
+        a, b = _drop_times(rows, ("ms_",)), _drop_times(ref, ("ms_",))
+        assert [list(r) for r in a] == [list(r) for r in b], label
+        for ra, rb in zip(a, b):
+            for k in ra:
+                x, y = np.asarray(ra[k]), np.asarray(rb[k])
+                same = np.array_equal(x, y, equal_nan=True) if x.dtype.kind == "f" else np.array_equal(x, y)
+                assert same, (label, k, ra[k], rb[k])
+
+
+def test_sweep_table_is_the_same_on_every_engine(client):
+    msd = fl.msd()
+    kw = dict(widths=(3, 4), depths=(1,), n_per_axis=(5,), max_iter=20, n_samples=300, rtol=0.3, max_time=None,
+              cache=False, recompute=True)
+    tables = {label: fl.studies.architecture_sweep(msd, **kw, **where) for label, where in engines(client)}
+    ref = _drop_times(tables["1 worker"], ("train_time", "certify_time"))
+    assert [(r["width"], r["depth"], r["n_s"]) for r in ref] == [(3, 1, 5), (4, 1, 5)]
+    assert all(r["converged"] for r in ref)
+    for label, rows in tables.items():
+        assert _drop_times(rows, ("train_time", "certify_time")) == ref, label
+
+
+# ------------------------------------------------------------------------------ faults and resuming
+def test_a_killed_dask_worker_leaves_the_same_result(client, tmp_path):
+    marker = str(tmp_path / "killed")
+    with using(client=client) as ex:
+        out = ex.map(die_once, [(k, marker) for k in range(6)])
+    assert Path(marker).exists()                                       # premise: a worker really died mid-run
+    assert out == [k * k for k in range(6)]
+    client.wait_for_workers(2, timeout=60)                             # the nanny restarts it for the next tests
+
+
+def test_a_killed_joblib_worker_fails_clearly_then_resumes(tmp_path):
+    marker = str(tmp_path / "killed")
+    items = [(k, marker) for k in range(6)]
+    keys = [task_key("die", k) for k in range(6)]
+    with pytest.raises(TaskFailed, match="worker process died.*rerun with the same keys resumes"):
+        Executor(workers=2).map(die_once, items, keys=keys, cache="faults")
+    assert Path(marker).exists()
+    done_before = {p.stem for p in (Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "faults").glob("*.pkl")}
+    assert keys[1] not in done_before                                  # nothing of the killed task was kept
+    out = Executor(workers=2).map(die_once, items, keys=keys, cache="faults")
+    assert out == [k * k for k in range(6)]
+
+
+def test_resume_runs_only_the_missing_tasks(tmp_path):
+    calls = tmp_path / "calls"
+    calls.mkdir()
+    items = [(k, str(calls)) for k in range(5)]
+    keys = [task_key("count", k) for k in range(5)]
+    ex = Executor()
+    assert ex.map(count_calls, items[:3], keys=keys[:3], cache="count") == [0, -1, -2]
+    assert ex.map(count_calls, items, keys=keys, cache="count", progress=True, desc="resume") == [0, -1, -2, -3, -4]
+    assert sorted(int(p.name.split(".")[0]) for p in calls.iterdir()) == [0, 1, 2, 3, 4]   # each task ran once
+
+
+def test_a_failing_task_is_named():
+    with pytest.raises(TaskFailed, match="ArithmeticError: bad task"):
+        Executor(workers=2).map(fail_on_two, range(4))
+    with pytest.raises(ArithmeticError, match="bad task") as info:        # in process: the task's own exception
+        Executor(workers=1).map(fail_on_two, range(4))
+    assert any("task 2" in n for n in info.value.__notes__)
+
+
+# ------------------------------------------------------------------------------ bad input
+def test_bad_options_are_refused(client):
+    with pytest.raises(ValueError, match="workers must be an integer >= 1"):
+        Executor(workers=0)
+    with pytest.raises(ValueError, match="either workers=.*or client="):
+        Executor(workers=2, client=client)
+    with pytest.raises(TypeError, match="dask.distributed.Client or a scheduler address"):
+        Executor(client=3)
+    with pytest.raises(ValueError, match="both cache="):
+        Executor().map(abs, [1], keys=["a"])
+    with pytest.raises(ValueError, match="one key per task"):
+        Executor().map(abs, [1, 2], keys=["a"], cache="x")
+    with pytest.raises(ValueError, match="plain name"):
+        Executor().map(abs, [1], keys=["a"], cache="../x")
+    with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
+        certify_error(paper.system("MSD"), paper.paper_net("MSD")[0], chunk=0)
+    with pytest.raises(ValueError, match="restarts must be an integer >= 1"):
+        pso_max_error(paper.system("MSD"), paper.paper_net("MSD")[0], restarts=0)
+    assert Executor(workers=2).engine == "joblib" and Executor().engine == "serial"
+    assert Executor(client=client).engine == "dask" and Executor(client=client).workers == 2
+
+
+def test_command_lines_take_workers_or_a_scheduler():
+    from flnotes.bench import parse_args
+    from flnotes.parallel import parse_workers
+    from flnotes.studies.shipped import main as shipped_main
+
+    assert parse_workers(["--workers", "3", "x"]) == (3, None, ["x"])
+    assert parse_workers(["--scheduler=tcp://127.0.0.1:8786"]) == (None, "tcp://127.0.0.1:8786", [])
+    for bad, msg in ((["--workers"], "needs a value"), (["--workers", "two"], "whole number"),
+                     (["--workers", "2", "--scheduler", "tcp://a:1"], "not both")):
+        with pytest.raises(ValueError, match=msg):
+            parse_workers(bad)
+    assert parse_args(["--fast", "--workers", "2", "error"]) == dict(fast=True, workers=2, scheduler=None,
+                                                                     sections=["error"])
+    with pytest.raises(ValueError, match="unknown section"):
+        parse_args(["nosuch"])
+    assert shipped_main(["--workers", "0"]) == 2 and shipped_main(["nosuch"]) == 2
+
+
+def test_scaling_model_saturates_where_it_should():
+    from flnotes.bench.parallel import scaling_model
+
+    n, t_box, t_ser, o = 1_000_000, 100e-6, 5e-6, 2e-3
+    fixed = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(1, 2, 8, 32), batch=4096, chunk=1024)}
+    assert fixed[1]["speedup"] == 1.0 and fixed[1]["tasks_per_round"] == 8
+    assert 1.0 < fixed[2]["speedup"] < 2.0                       # the serial part and the overhead cost something
+    assert fixed[32]["wall_s"] == fixed[8]["wall_s"]               # 8 tasks per round: no gain beyond 8 workers
+    scaled = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(8, 128, 4096), scale_batch=True)}
+    floor = n * (t_ser + o / 1024)
+    assert scaled[128]["wall_s"] < fixed[8]["wall_s"] and scaled[4096]["wall_s"] > floor
+    assert scaled[4096]["wall_s"] < 1.2 * floor                    # beyond W_half the time is the serial floor
+    assert scaled[8]["W_half"] == pytest.approx(t_box / (t_ser + o / 1024))
+    with pytest.raises(ValueError):
+        scaling_model(0, t_box, t_ser, o)
