@@ -165,6 +165,7 @@ def test_study_on_one_short_scenario(quad_setting):
     table = C.method_table(rows, ("network", "nmpc"))
     assert [r["method"] for r in table] == [C.LABELS["network"], C.LABELS["nmpc"]]
     assert table[0]["cost_vs_miqp"] == 1.0
+    assert table[0]["non_optimal"] == table[0]["time_limit"] == 0  # no time limit: every MIQP step solved to the end
 
 
 # ------------------------------------------------------------------ the linear input models (one MPC engine)
