@@ -126,6 +126,9 @@ def test_run_metrics_on_a_constructed_run():
     # plans: the first stays within 5 (Phi(z(1), v(1)) = 2 + 1 = 3), the second reaches 4 + 1.5 = 5.5
     assert m["plans"] == 2 and m["plans_violating"] == 1 and np.isclose(m["plan_excess_max"], 0.5)
     assert m["infeasible_steps"] == 1 and m["fallback_steps"] == 1 and m["non_optimal_steps"] == 1
+    assert m["time_limit_steps"] == 0
+    log.status = ["optimal", "time_limit", "infeasible"]
+    assert C.run_metrics(log, ref, Q, R, band=0.6)["time_limit_steps"] == 1  # limit hits, apart from late answers
     # cost: ts * sum_k (2 z1^2 + 0.5 v^2) over k = 0, 1, 2
     assert np.isclose(m["cost"], 0.1 * ((2 * 1.0 + 0) + (2 * 0.25 + 0.5) + (0 + 0.5 * 4)))
     assert np.isclose(m["rms_error"], np.sqrt((1 + 0.25) / 4))
@@ -162,6 +165,7 @@ def test_study_on_one_short_scenario(quad_setting):
     table = C.method_table(rows, ("network", "nmpc"))
     assert [r["method"] for r in table] == [C.LABELS["network"], C.LABELS["nmpc"]]
     assert table[0]["cost_vs_miqp"] == 1.0
+    assert table[0]["non_optimal"] == table[0]["time_limit"] == 0  # no time limit: every MIQP step solved to the end
 
 
 # ------------------------------------------------------------------ the linear input models (one MPC engine)

@@ -377,7 +377,8 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
         ``violating_after_admissible`` (those of them whose step's input passed the controller's own
         check at the sample, ``input_admissible``), ``inadmissible_steps`` (steps flagged not
         admissible), the plan statistics of :func:`plan_violations`, ``infeasible_steps`` (status
-        ``"infeasible"``), ``fallback_steps``, ``non_optimal_steps``, ``cost`` (the tracking cost
+        ``"infeasible"``), ``fallback_steps``, ``non_optimal_steps``, ``time_limit_steps`` (status ``"time_limit"``: the
+        solve reached its time limit), ``cost`` (the tracking cost
         ``t_s sum_k ||z_k - z_ref(t_k)||_Q^2 + ||v_k||_R^2`` over the steps run: compare it between
         runs of the same length only, see :func:`method_table`), ``rms_error`` (of the position
         ``z_1`` over the run), ``settling_s`` (:func:`settling_time` of ``z_1`` with ``band``), the
@@ -409,6 +410,7 @@ def run_metrics(log, reference: Callable[[Array], Array], Q: Array, R: Array, ba
         infeasible_steps=int(sum(str(s).startswith("infeasible") for s in log.status)),
         fallback_steps=int(np.sum(log.fallback)),
         non_optimal_steps=int(sum(s not in ("optimal", "nominal") for s in log.status)),
+        time_limit_steps=int(sum(s == "time_limit" for s in log.status)),
         cost=cost, rms_error=float(np.sqrt(np.mean(pos**2))),
         settling_s=settling_time(log.t, pos, band),
         ms_min=st["min_ms"], ms_median=st["median_ms"], ms_max=st["max_ms"],
@@ -526,7 +528,8 @@ def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_
     Columns: hold, scenarios, runs that completed, the largest ``|u|`` at the samples and between
     them over all runs, runs and steps violating the bound at the samples, intervals violating it
     between samples, the fraction of plans violating the true bound at a later predicted step,
-    infeasible and fallback steps, the median tracking cost relative to the MIQP's on the same
+    infeasible and fallback steps, the steps not solved to the end (``non_optimal``) and those that
+    reached the time limit (``time_limit``), the median tracking cost relative to the MIQP's on the same
     scenario over the scenarios where both runs completed (``cost_vs_miqp`` of :func:`run_scenario`)
     and how many those are (``cost_runs``), the fraction of runs settled, the per-step wall times pooled over all runs
     (min of the minima, median of the medians, max of the maxima) and the steps slower than ``t_s``.
@@ -549,6 +552,8 @@ def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_
             violating_intervals=int(sum(r["violating_intervals"] for r in rr)),
             plans_violating=(sum(r["plans_violating"] for r in rr) / plans) if plans else np.nan,
             infeasible=int(sum(r["infeasible_steps"] for r in rr)), fallback=int(sum(r["fallback_steps"] for r in rr)),
+            non_optimal=int(sum(r["non_optimal_steps"] for r in rr)),
+            time_limit=int(sum(r["time_limit_steps"] for r in rr)),
             cost_vs_miqp=float(np.median(ratio)) if ratio else np.nan, cost_runs=len(ratio),
             settled=float(np.mean([np.isfinite(r["settling_s"]) for r in rr])),
             ms_min=float(np.nanmin([r["ms_min"] for r in rr])), ms_median=float(np.nanmedian([r["ms_median"] for r in rr])),
