@@ -8,6 +8,7 @@ import numpy as np
 from .. import paper
 from ..control import ClfCbfController, _cbf_list
 from ..simulate import SimLog
+from ..systems import FLSystem
 from ..tables import Table, time_stats
 
 Array = np.ndarray
@@ -50,6 +51,17 @@ def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
         out["min_H"] = float(min(np.min(h(Z)) for h in Hs))
         out["min_H_between"] = float(min(np.min(h(Zf)) for h in Hs))
     return out
+
+
+def _state_grid(system: FLSystem, kappa: float, n: int) -> Array:
+    """The ``n x n`` grid of the z-box of a one-input, two-state ``system`` (rows), after checking ``kappa > 0``."""
+    if system.m != 1 or system.n_z != 2:
+        raise ValueError(f"the grid check is for one input and two states, got m = {system.m}, n_z = {system.n_z}")
+    if not (np.isfinite(kappa) and kappa > 0):
+        raise ValueError(f"kappa must be a positive gain, got {kappa!r}")
+    lo, hi = system.lo, system.hi
+    g1, g2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n), indexing="ij")
+    return np.column_stack([g1.ravel(), g2.ravel()])
 
 
 def exponential_cbf_grid_check(system: Any, net: Any, eps: float, H2: Any, kappa: float, n: int = 201) -> dict:
@@ -100,20 +112,14 @@ def exponential_cbf_grid_check(system: Any, net: Any, eps: float, H2: Any, kappa
     from ..control import ExponentialCBF
     if not isinstance(H2, ExponentialCBF):
         raise TypeError(f"H2 must be an ExponentialCBF (constant gradient), got {type(H2).__name__}")
-    if system.m != 1 or system.n_z != 2:
-        raise ValueError(f"the grid check is for one input and two states, got m = {system.m}, n_z = {system.n_z}")
-    if not (np.isfinite(kappa) and kappa > 0):
-        raise ValueError(f"kappa must be a positive gain, got {kappa!r}")
-    lo, hi = system.lo, system.hi
-    g1, g2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n), indexing="ij")
-    Z = np.column_stack([g1.ravel(), g2.ravel()])
+    Z = _state_grid(system, kappa, n)
     Z = Z[(H2.h.value(Z) >= 0) & (H2.value(Z) >= 0)]
     if len(Z) == 0:
         raise ValueError("no grid state lies in the safe set {h >= 0, H_2 >= 0}: refine the grid or check H2")
     g = H2.grad(Z[0])
     a_H = float(g @ system.B[:, 0])
     b_H = Z @ (system.A.T @ g) + kappa * H2.value(Z)
-    v_lo, v_hi = float(lo[2]), float(hi[2])
+    v_lo, v_hi = float(system.lo[2]), float(system.hi[2])
     phi0 = system.Phi(Z, np.zeros((len(Z), 1)))[:, 0]
     slope = system.Phi(Z, np.ones((len(Z), 1)))[:, 0] - phi0
     at_hi = system.Phi(Z, np.full((len(Z), 1), v_hi))[:, 0]
@@ -280,13 +286,7 @@ def cbf_failure_set_bounded(system: Any, H: Any, kappa: float, n: int = 801, h: 
         ``grid`` (states of the grid), ``safe`` (of them with ``H >= 0``), ``failing``
         (safe states with a negative best margin), ``Z_fail`` (those states).
     """
-    if system.m != 1 or system.n_z != 2:
-        raise ValueError(f"the grid check is for one input and two states, got m = {system.m}, n_z = {system.n_z}")
-    if not (np.isfinite(kappa) and kappa > 0):
-        raise ValueError(f"kappa must be a positive gain, got {kappa!r}")
-    lo, hi = system.lo, system.hi
-    g1, g2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n), indexing="ij")
-    Z = np.column_stack([g1.ravel(), g2.ravel()])
+    Z = _state_grid(system, kappa, n)
     Hz = H.value(Z)
     Z, Hz = Z[Hz >= 0], Hz[Hz >= 0]
     G = np.column_stack([(H.value(Z + h * e) - H.value(Z - h * e)) / (2 * h) for e in np.eye(2)])
