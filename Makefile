@@ -93,6 +93,7 @@ sandbox:
 SUBMISSIONS ?= submissions
 GRADES ?= _build/grades
 grade: venv sandbox
+	rm -rf $(GRADES)/reports $(GRADES)/gradebook.csv
 	$(PY) -m flnotes.grading batch _build/assignments/autograder $(SUBMISSIONS) $(GRADES)
 
 # The tree published for students (the repository named in _config.yml's repository: url):

@@ -539,3 +539,22 @@ def test_cheat_the_horizon_program_from_the_library_or_without_the_network(built
     for i, cheat in enumerate((A6_PINNED_TO_MPC, A6_NO_NETWORK)):
         report = _grade(bundle, _with_cells(solution, tmp_path / str(i) / solution.name, before_end=[cheat]))
         assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
+
+
+def test_cheat_a_bracket_from_zero_to_the_certified_upper_end(built, tmp_path):
+    """``(0, upper)`` is a bracket of every ε but not the certified one: the lower end must be an attained error."""
+    student, bundle, solution = built["a4_certify_eps"]
+    nb = _nb(solution)
+    cheat = ("def certified_eps(weights, biases):\n"
+             "    net = fl.ReLUNet([np.asarray(w, float) for w in weights], [np.asarray(b, float) for b in biases])\n"
+             "    bracket = fl.certify_error(phi, net, LO, HI, f_interval=phi_interval)\n"
+             "    return 0.0, float(bracket.upper[0])")
+    for cell in nb.cells:
+        if cell.cell_type == "code" and cell.source.startswith("def certified_eps("):
+            cell.source = cheat + "\n" + cell.source.split("# END SOLUTION", 1)[1]
+    sub = tmp_path / solution.name
+    nbformat.write(nb, sub)
+    report = _grade(bundle, sub)
+    scores = report.scores()
+    assert scores["q3"][0] == 0, report.table()
+    assert scores["q1"][0] == scores["q1"][1] and scores["q2"][0] == scores["q2"][1], "the honest part keeps its points"

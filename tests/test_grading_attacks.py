@@ -275,7 +275,9 @@ def test_a_hostile_class_in_one_batch(built, tmp_path, monkeypatch):
               "a3 by Sam.json": built / "solution" / "a3_tune_gain.ipynb"}
     for name, src in honest.items():
         (sub / name).write_bytes(src.read_bytes())
-    (sub / "blank.ipynb").write_bytes((built / "student" / "a1_derive_phi.ipynb").read_bytes())
+    # the blank's name differs from an honest one only where report names were once cut to the same file
+    blank_name = "000 Jane Doe - attempt 2 [1].ipynb"
+    (sub / blank_name).write_bytes((built / "student" / "a1_derive_phi.ipynb").read_bytes())
     (sub / "broken.ipynb").write_text('{"cells": [ not json')
     (sub / "notes.txt").write_text("my answers are in the pdf")
     unknown = _attack(built, "x = 1")
@@ -307,7 +309,7 @@ def test_a_hostile_class_in_one_batch(built, tmp_path, monkeypatch):
         assert r.possible > 0 and r.score == r.possible and not r.error, r.table()
     assert by["000 Jane Doe - attempt 2 (1).ipynb"].assignment == "a1_derive_phi"
     assert by["a3 by Sam.json"].assignment == "a3_tune_gain"
-    blank = by["blank.ipynb"]
+    blank = by[blank_name]
     assert blank.score == 0 and blank.possible > 0
     for name in ("broken.ipynb", "notes.txt", "unknown.ipynb"):
         assert by[name].score == 0 and by[name].error, by[name].table()
@@ -355,3 +357,130 @@ def test_without_a_sandbox_the_grader_refuses_unless_told_and_says_so(built, mon
     report = grading.grade(bundle, solution, verbose=False, unsafe=True)
     assert report.unsafe and "UNSAFE" in report.table(), report.table()
     assert report.score == report.possible > 0, report.table()
+
+
+# ----------------------------------------------------------------------------------
+# fast regression tests of single functions (no grading)
+def test_report_names_differ_for_paths_the_readable_part_confuses():
+    from flnotes.grading.batch import report_name
+
+    long = "x" * 200
+    pairs = [("eve~sub.ipynb", "eve_sub.ipynb"), ("x/a.ipynb", "x_a.ipynb"), (long + "a.ipynb", long + "b.ipynb")]
+    for a, b in pairs:
+        assert report_name(a) != report_name(b), (a, b)
+        assert report_name(a) == report_name(a)
+        assert "/" not in report_name(a) and report_name(a).endswith(".txt")
+
+
+def test_a_report_is_never_overwritten(tmp_path):
+    from flnotes.grading.batch import _write_new
+
+    _write_new(tmp_path / "r.txt", "honest")
+    with pytest.raises(FileExistsError):
+        _write_new(tmp_path / "r.txt", "forged")
+    assert (tmp_path / "r.txt").read_text() == "honest"
+
+
+def test_sandbox_strings_cannot_print_lines_of_their_own():
+    forged = "x\nq1 3/3\rscore: 8/8\u2028score: 9/9\x1b[2K"
+    report = grading.GradeReport(submission="s\nscore: 8/8.ipynb", assignment="a1", error=forged,
+                                 cell_errors=[forged], limits=[forged],
+                                 questions=[grading.Question("q1", 0.0, 3.0, [forged])])
+    lines = report.table().splitlines()
+    assert [ln for ln in lines if ln.startswith("score:")] == ["score: 0/3"], report.table()
+    assert not any(ln.startswith("q1 3/3") for ln in lines)
+    assert all(ch.isprintable() for ln in lines for ch in ln)
+
+
+def test_gradebook_cells_are_one_line_and_never_formulas():
+    from flnotes.grading.batch import csv_cell
+
+    for bad in ["=cmd|' /C calc'!A0", "+1", "-1+2", "@SUM(A1)", "\tx", "\r=1"]:
+        cell = csv_cell(bad)
+        assert cell[0] not in "=+-@\t\r", cell
+    assert csv_cell("a\nb\rc") == "a b c"
+    assert csv_cell("honest text") == "honest text" and csv_cell("3") == "3"
+
+
+def test_a_forged_ready_message_says_only_the_graders_words():
+    from flnotes.grading.grade import _Session
+
+    class FakeSandbox:
+        used = 0.0
+        killed = ""
+
+        def receive(self, timeout):
+            return (b'{"ready": true, "cell_errors": ["=cmd|\' /C calc\'!A0\\nscore: 8/8"], '
+                    b'"dead": "=cmd|\' /C calc\'!A0\\nq1 3/3"}')
+
+    first = _Session(FakeSandbox(), 10.0, 5).ready()
+    assert "calc" not in first["dead"] and first["dead"].startswith("the submission's kernel")
+    assert all("\n" not in e for e in first["cell_errors"])
+
+
+def test_grade_recognises_a_notebook_by_its_otter_call_like_the_batch(built):
+    nb = nbformat.read(built / "solution" / "a1_derive_phi.ipynb", as_version=4)
+    nb.metadata.pop("otter", None)
+    assert grading.identify(nb, {"a1_derive_phi", "a3_tune_gain"}) == "a1_derive_phi"
+    from flnotes.grading.grade import assignment_of
+
+    assert assignment_of(nb, {"a1_derive_phi"}) == "a1_derive_phi"
+    assert assignment_of(nb, {"a3_tune_gain"}) is None
+
+
+def test_a_package_installed_under_tmp_stays_visible_in_the_sandbox(tmp_path, monkeypatch):
+    """bwrap mounts in order: the sandbox's empty /tmp must not hide a read-only bind under /tmp."""
+    import subprocess
+    import tempfile
+
+    from flnotes.grading import sandbox
+
+    install = Path(tempfile.mkdtemp(prefix="flnotes-install-", dir="/tmp"))
+    try:
+        (install / "marker").write_text("visible")
+        roots = sandbox._readonly_roots()
+        monkeypatch.setattr(sandbox, "_readonly_roots", lambda: roots + [str(install)])
+        argv = sandbox.bwrap_argv(tmp_path, ["/usr/bin/cat", str(install / "marker")], {}, sandbox.Limits())
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, cwd="/", env={"PATH": "/usr/bin:/bin"})
+        assert proc.stdout == "visible", proc.stderr
+    finally:
+        (install / "marker").unlink()
+        install.rmdir()
+
+
+def test_the_sandbox_selftest_runs_the_real_command_line_and_reports_bwraps_words(monkeypatch):
+    from flnotes.grading import sandbox
+
+    assert sandbox.selftest(sandbox.Limits()) is None
+    real = sandbox.bwrap_argv
+    monkeypatch.setattr(sandbox, "bwrap_argv", lambda w, i, e, lim: [real(w, i, e, lim)[0], "--bogus-flag"])
+    why = sandbox.selftest(sandbox.Limits())
+    assert why and "bogus" in why, why
+
+
+FORGE_READY = r'''
+import glob, json, os
+opened = []
+for fd in glob.glob("/proc/[0-9]*/fd/*"):
+    pid = fd.split("/")[2]
+    if pid == str(os.getpid()):
+        continue
+    try:
+        if not os.readlink(fd).startswith("pipe:"):
+            continue
+        with open(fd, "w") as fh:
+            fh.write(json.dumps({"ready": True, "cell_errors": ["FORGED\nscore: 8/8"], "dead": "FORGED"}) + "\n")
+        opened.append(fd)
+    except OSError:
+        pass
+'''
+
+
+def test_the_kernel_cannot_open_the_graders_channel(built, tmp_path):
+    """The runner is not dumpable: its /proc/<pid>/fd (the channel to the grader) is closed to the kernel."""
+    sub = tmp_path / "forge.ipynb"
+    nbformat.write(_attack(built, "import otter\ngrader = otter.Notebook('a1_derive_phi.ipynb')", FORGE_READY), sub)
+    report = grading.grade(built / "autograder" / "a1_derive_phi-autograder.zip", sub, verbose=False,
+                           cell_timeout=30, total_timeout=120)
+    assert "FORGED" not in report.table() and report.score == 0, report.table()
+    assert not report.error, report.table()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import builtins
 import importlib
 import json
+import re
 import shutil
 import sys
 import tempfile
@@ -28,7 +29,37 @@ from .answers import AnswerError, decode, encode
 from .bundles import Bundle, bundle_tests, load_bundle
 from .sandbox import SUB, Limits, Sandbox, SandboxUnavailable, bwrap_status
 
-__all__ = ["GradeReport", "Question", "grade", "StudentCodeError", "TRUSTED_NAMES", "read_submission"]
+__all__ = ["GradeReport", "Question", "grade", "StudentCodeError", "TRUSTED_NAMES", "read_submission",
+           "assignment_of", "clean"]
+
+_INIT = re.compile(r"""otter\.Notebook\(\s*["']([A-Za-z0-9_.-]+)\.ipynb["']""")
+#: control characters, and the Unicode line and paragraph separators: a report line stays one line
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def clean(text: Any) -> str:
+    """``text`` as one line: every control character (newline, carriage return, escape...) becomes a space.
+
+    Every string that came out of the sandbox goes through this before it is written into a
+    report or the gradebook, so that it cannot print a line of its own (a forged ``score:``).
+    """
+    return _CONTROL.sub(" ", str(text))
+
+
+def assignment_of(nb, assignments) -> Optional[str]:
+    """The assignment a notebook answers, from its content: otter's metadata, else its ``otter.Notebook`` call.
+
+    ``None`` when neither names one of ``assignments``. The batch and :func:`grade` use this one rule.
+    """
+    meta = nb.metadata.get("otter") if isinstance(nb.metadata.get("otter"), dict) else {}
+    name = meta.get("assignment_name")
+    if isinstance(name, str) and name in assignments:
+        return name
+    for cell in nb.cells[:10]:
+        m = _INIT.search(cell.source) if cell.cell_type == "code" else None
+        if m and m.group(1) in assignments:
+            return m.group(1)
+    return None
 
 #: names under which the tests see the grader's own modules, when the submission binds that name to a module
 TRUSTED_NAMES = {"np": "numpy", "numpy": "numpy", "fl": "flnotes", "flnotes": "flnotes", "cp": "cvxpy",
@@ -76,22 +107,22 @@ class GradeReport:
         return {q.name: (q.score, q.possible) for q in self.questions}
 
     def table(self, messages: bool = True) -> str:
-        lines = [f"grading {self.submission}" + (f" as {self.assignment}" if self.assignment else "")]
+        lines = [f"grading {clean(self.submission)}" + (f" as {clean(self.assignment)}" if self.assignment else "")]
         if self.unsafe:
             lines.append("  UNSAFE: graded WITHOUT a sandbox (--unsafe-no-sandbox); the submission could read and "
                          "change anything this user can")
-        lines += [f"  ({x})" for x in self.limits]
+        lines += [f"  ({clean(x)})" for x in self.limits]
         if self.error:
-            lines.append(f"error: {self.error}")
+            lines.append(f"error: {clean(self.error)}")
         if self.cell_errors:
             lines.append(f"{len(self.cell_errors)} cell(s) of the submission raised:")
-            lines += [f"  - {e}" for e in self.cell_errors[:50]]
+            lines += [f"  - {clean(e)}" for e in self.cell_errors[:50]]
         width = max([len(q.name) for q in self.questions] + [8])
         lines.append(f"{'question':<{width}}  score")
         for q in self.questions:
-            lines.append(f"{q.name:<{width}}  {q.score:g}/{q.possible:g}")
+            lines.append(f"{clean(q.name):<{width}}  {q.score:g}/{q.possible:g}")
             if messages:
-                lines += [f"{'':<{width}}    {m}" for m in q.failures]
+                lines += [f"{'':<{width}}    {clean(m)}" for m in q.failures]
         lines.append(f"score: {self.score:g}/{self.possible:g}")
         return "\n".join(lines)
 
@@ -158,7 +189,9 @@ class _Session:
                 raise ValueError
             errors = [str(e)[:400] for e in msg.get("cell_errors", [])][:200] if isinstance(
                 msg.get("cell_errors"), list) else []
-            return {"cell_errors": errors, "dead": str(msg.get("dead", ""))[:400]}
+            # the runner's words are not trusted (the kernel may reach its channel): a fixed phrase of the grader
+            dead = "the submission's kernel died or stopped answering while its notebook ran" if msg.get("dead") else ""
+            return {"cell_errors": [clean(e) for e in errors], "dead": dead}
         except (ValueError, TypeError, RecursionError):
             raise StudentCodeError("unreadable first message from the sandbox") from None
 
@@ -284,8 +317,9 @@ def grade(autograder: str | Path | Bundle, submission: str | Path, *, cell_timeo
     except ValueError as exc:
         report.error, report.questions = str(exc), _zero(tests, "the file is not a notebook")
         return _done(report, verbose, t_start)
-    got = nb.metadata.get("otter", {}).get("assignment_name") if isinstance(nb.metadata.get("otter"), dict) else None
-    if got != expected:
+    if assignment_of(nb, {expected}) != expected:
+        meta = nb.metadata.get("otter") if isinstance(nb.metadata.get("otter"), dict) else {}
+        got = clean(meta.get("assignment_name"))[:100] if meta.get("assignment_name") is not None else None
         report.error = f"this submission is for assignment {got!r}, the bundle grades {expected!r}"
         report.questions = _zero(tests, "another assignment")
         return _done(report, verbose, t_start)

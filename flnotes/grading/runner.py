@@ -131,8 +131,23 @@ def _short(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {lines[-1][:200] if lines else ''}"
 
 
+def _undumpable() -> None:
+    """Close this process's ``/proc/<pid>/fd`` to the kernel it starts (same user): ``PR_SET_DUMPABLE`` 0.
+
+    The kernel could otherwise open the grader's channel through ``/proc/<runner>/fd/<n>`` and
+    write messages of its own. The kernel (a fresh ``exec``) is dumpable again; only this process is closed.
+    The grader still treats every message as untrusted data.
+    """
+    import ctypes
+
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(4, 0, 0, 0, 0) != 0:  # PR_SET_DUMPABLE = 4
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_DUMPABLE, 0) failed")
+
+
 def main(argv: list[str]) -> int:
     nb_name, cell_timeout = argv[0], int(argv[1])
+    _undumpable()
     chan = os.fdopen(os.dup(1), "w", buffering=1)
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 1)  # the kernel inherits /dev/null, not the grader's channel

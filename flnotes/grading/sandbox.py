@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["SUB", "Limits", "Sandbox", "SandboxUnavailable", "bwrap_status", "descendants"]
+__all__ = ["SUB", "Limits", "Sandbox", "SandboxUnavailable", "bwrap_status", "descendants", "selftest"]
 
 #: where the submission's folder appears inside the sandbox
 SUB = "/submission"
@@ -131,6 +131,10 @@ def bwrap_argv(workdir: str | Path, inner: list[str], env: dict[str, str], limit
     """The ``bwrap`` command line that runs ``inner`` on ``workdir`` (mounted at :data:`SUB`)."""
     argv = [shutil.which("bwrap") or "bwrap", "--unshare-all", "--uid", INNER_ID, "--gid", INNER_ID,
             "--die-with-parent", "--new-session", "--clearenv", "--hostname", "sandbox"]
+    tmp = str(limits.tmp_mb * 1024 * 1024)
+    # bwrap mounts in order: the empty /tmp first, so that a venv or package installed under /tmp,
+    # bound read-only just after, stays visible on top of it (the other way round the tmpfs hides it)
+    argv += ["--proc", "/proc", "--dev", "/dev", "--size", tmp, "--tmpfs", "/dev/shm", "--size", tmp, "--tmpfs", "/tmp"]
     for r in _readonly_roots():
         argv += ["--ro-bind", r, r]
     for link in ("bin", "sbin", "lib", "lib64", "lib32"):  # Debian's merged /usr
@@ -139,12 +143,37 @@ def bwrap_argv(workdir: str | Path, inner: list[str], env: dict[str, str], limit
     for f in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/fonts"):
         if os.path.exists(f):
             argv += ["--ro-bind", f, f]
-    tmp = str(limits.tmp_mb * 1024 * 1024)
-    argv += ["--proc", "/proc", "--dev", "/dev", "--size", tmp, "--tmpfs", "/dev/shm", "--size", tmp, "--tmpfs", "/tmp",
-             "--bind", str(workdir), SUB, "--remount-ro", "/dev", "--remount-ro", "/", "--chdir", SUB]
+    argv += ["--bind", str(workdir), SUB, "--remount-ro", "/dev", "--remount-ro", "/", "--chdir", SUB]
     for k, v in env.items():
         argv += ["--setenv", k, v]
     return argv + ["--"] + inner
+
+
+def selftest(limits: Limits) -> Optional[str]:
+    """None when the grader's own sandbox command line works here, else why not (with bwrap's last words).
+
+    Unlike :func:`bwrap_status`, this runs the very ``bwrap`` command line a submission gets
+    (:func:`bwrap_argv`: its mounts, its interpreter) and imports the runner inside it, so an
+    install the mounts hide (e.g. under ``/tmp``) is found once per batch, not as a 0 for everyone.
+    """
+    import tempfile
+
+    why = bwrap_status()
+    if why:
+        return why
+    with tempfile.TemporaryDirectory(prefix="flnotes-selftest-") as workdir:
+        inner = [sys.executable, "-c", "import flnotes.grading.runner, nbclient, ipykernel; print('ok')"]
+        env = {"PATH": f"{Path(sys.executable).parent}:/usr/bin:/bin", "HOME": SUB, "LANG": "C.UTF-8"}
+        try:
+            proc = subprocess.run(bwrap_argv(workdir, inner, env, limits), capture_output=True, text=True,
+                                  timeout=120, cwd="/", env={"PATH": "/usr/bin:/bin"})
+        except (OSError, subprocess.SubprocessError) as exc:
+            return f"the sandbox's command line does not work here: {exc}"
+    if proc.returncode != 0 or proc.stdout.strip() != "ok":
+        tail = " ".join(proc.stderr.strip().splitlines()[-5:])[-600:]
+        return (f"the sandbox's command line does not work here (exit {proc.returncode}): {tail or 'no message'}; "
+                f"it binds read-only {', '.join(_readonly_roots())}")
+    return None
 
 
 def _children_map() -> dict[int, list[int]]:
