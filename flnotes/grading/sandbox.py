@@ -130,7 +130,9 @@ def _readonly_roots() -> list[str]:
 def bwrap_argv(workdir: str | Path, inner: list[str], env: dict[str, str], limits: Limits) -> list[str]:
     """The ``bwrap`` command line that runs ``inner`` on ``workdir`` (mounted at :data:`SUB`)."""
     argv = [shutil.which("bwrap") or "bwrap", "--unshare-all", "--uid", INNER_ID, "--gid", INNER_ID,
-            "--die-with-parent", "--new-session", "--clearenv", "--hostname", "sandbox"]
+            "--die-with-parent", "--as-pid-1", "--new-session", "--clearenv", "--hostname", "sandbox"]
+    # --as-pid-1: the runner (non-dumpable) is the sandbox's first process; no bwrap helper inside holds
+    # the channel's pipes where the kernel could open them through /proc/1/fd
     tmp = str(limits.tmp_mb * 1024 * 1024)
     # bwrap mounts in order: the empty /tmp first, so that a venv or package installed under /tmp,
     # bound read-only just after, stays visible on top of it (the other way round the tmpfs hides it)
