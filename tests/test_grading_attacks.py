@@ -275,6 +275,10 @@ def test_a_hostile_class_in_one_batch(built, tmp_path, monkeypatch):
               "a3 by Sam.json": built / "solution" / "a3_tune_gain.ipynb"}
     for name, src in honest.items():
         (sub / name).write_bytes(src.read_bytes())
+    # an honest notebook without otter's metadata: known by its otter.Notebook("a1_....ipynb") line alone
+    bare = nbformat.read(solution, as_version=4)
+    bare.metadata.pop("otter", None)
+    nbformat.write(bare, sub / "zzz_last_student_download")
     # the blank's name differs from an honest one only where report names were once cut to the same file
     blank_name = "000 Jane Doe - attempt 2 [1].ipynb"
     (sub / blank_name).write_bytes((built / "student" / "a1_derive_phi.ipynb").read_bytes())
