@@ -120,6 +120,29 @@ def _per_box(name: str, budget: int) -> dict:
                 n_boxes_shipped=int(np.sum(shipped["n_boxes"])), shipped_time_s=float(np.sum(shipped["time_s"])))
 
 
+def _side_by_side(engines: dict, job, same, repeats: int, rows: list, notes: list, name) -> object:
+    """Run ``job(engine)`` on every engine in turn, ``repeats`` rounds (alternating), keep the best wall time of each.
+
+    Appends one row per engine to ``rows`` (``job`` named by ``name(first result)``, wall time, speed-up against the
+    first engine, ``same_result``: equal to the first result by ``same``) and a note per differing result; returns
+    the first result.
+    """
+    best, ref, differs = {}, None, set()
+    for _ in range(repeats):
+        for label, ex in engines.items():
+            out, w = _timed(lambda: job(ex))
+            best[label] = min(best.get(label, math.inf), w)
+            ref = out if ref is None else ref
+            if not same(out, ref):
+                differs.add(label)
+                notes.append(f"DIFFERENT result of {name(ref)} on {label}")
+    first = engines_first(engines)
+    for label in engines:
+        rows.append(dict(job=name(ref), engine=label, wall_s=best[label], speedup=best[first] / best[label],
+                         same_result=label not in differs))
+    return ref
+
+
 def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
     """Speed-ups of certification and Monte Carlo (1 vs 2 workers, joblib and LocalCluster) and the scaling model."""
     from distributed import Client, LocalCluster
@@ -146,34 +169,16 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         cname, crtol = ("Quad-1D", 0.01) if fast else ("MSD", paper.EPS_SETTINGS["rtol"])
         sysm, (net, _) = paper.system(cname), paper.paper_net(cname)
         repeats = 1 if fast else 2
-        best, ref = {}, None
-        for _ in range(repeats):                    # side by side, alternating; the best of each
-            for label, ex in engines.items():
-                br, w = _timed(lambda: certify_error(sysm, net, rtol=crtol, client=ex))
-                best[label] = min(best.get(label, math.inf), w)
-                ref = br if ref is None else ref
-                if not _same_bracket(br, ref):
-                    notes.append(f"DIFFERENT bracket on {label}: {br.lower}, {br.upper} vs {ref.lower}, {ref.upper}")
-        job = f"certify eps of {cname} to rtol {crtol:g} ({int(ref.n_boxes.sum()):,} boxes)"
-        for label in engines:
-            rows.append(dict(job=job, engine=label, wall_s=best[label], speedup=best[engines_first(engines)] / best[label],
-                             same_result=not any(n.startswith(f"DIFFERENT bracket on {label}") for n in notes)))
+        _side_by_side(engines, lambda ex: certify_error(sysm, net, rtol=crtol, client=ex), _same_bracket,
+                            repeats, rows, notes, lambda ref: f"certify eps of {cname} to rtol {crtol:g} "
+                                                              f"({int(ref.n_boxes.sum()):,} boxes)")
         # ---------------------------------------------------------------- Monte Carlo
         s = C.setting("MSD", time_limit=None)     # no time limit: the plans do not depend on the machine's timing
         n_sc, t_final = (2, 0.6) if fast else (4, 2.0)
         scenarios = C.draw_scenarios("MSD", n_sc, seed=0)
-        best, ref_rows = {}, None
-        for _ in range(repeats):
-            for label, ex in engines.items():
-                mc, w = _timed(lambda: C.monte_carlo(s, scenarios, t_final, client=ex))
-                best[label] = min(best.get(label, math.inf), w)
-                ref_rows = mc if ref_rows is None else ref_rows
-                if not _same_rows(mc, ref_rows):
-                    notes.append(f"DIFFERENT Monte Carlo table on {label}")
-        job = f"Monte Carlo MSD, {n_sc} scenarios x {len(C.METHODS)} methods, {t_final:g} s, no time limit"
-        for label in engines:
-            rows.append(dict(job=job, engine=label, wall_s=best[label], speedup=best[engines_first(engines)] / best[label],
-                             same_result=not any(n.startswith(f"DIFFERENT Monte Carlo table on {label}") for n in notes)))
+        _side_by_side(engines, lambda ex: C.monte_carlo(s, scenarios, t_final, client=ex), _same_rows, repeats,
+                      rows, notes, lambda _: f"Monte Carlo MSD, {n_sc} scenarios x {len(C.METHODS)} methods, "
+                                             f"{t_final:g} s, no time limit")
         # ---------------------------------------------------------------- scaling model
         overhead = {label: measure_overhead(ex, 40 if fast else 400) for label, ex in engines.items()
                     if not label.startswith("1 ")}
