@@ -58,7 +58,7 @@ test: venv sandbox
 	  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
 	  $(PY) -m pytest tests/ --nbmake book/ --nbmake-timeout=$(NBMAKE_TIMEOUT) \
 	  -n $(TEST_JOBS) --dist loadscope --no-loadscope-reorder \
-	  --ignore-glob="**/.ipynb_checkpoints/*" -p no:cacheprovider -ra
+	  --ignore-glob="**/.ipynb_checkpoints/*" -p no:cacheprovider -ra --durations=25
 
 # Where `make bench` and `make reference` run their independent tasks: WORKERS=N local processes, or
 # SCHEDULER=tcp://host:8786 a Dask cluster (flnotes.parallel); neither: one after the other, in one process.
