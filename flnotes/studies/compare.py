@@ -155,7 +155,7 @@ def label(variant) -> str:
     v = _variant(variant)
     base = LABELS[v.method]
     if v.margin != "eps":
-        return f"{base}, eps+delta"
+        return f"{base}, eps+Delta"
     return base if v.hold == OWN_HOLD[v.method] else f"{base}, {v.hold} held"
 
 
