@@ -6,7 +6,7 @@ The course's systems have one input, so the set ``V(z) = {v : |Phi(z, v)| <= u_m
 of eq. (contraint_new_set) is an interval. A system with two inputs makes it a
 set in the ``v``-plane, and the arm makes it a *genuinely* two-dimensional one:
 
-* computed torque ``tau = Phi(z, v) = M(q) v + C(q, q') q' + g(q)`` is affine in
+* computed torque ``u = Phi(z, v) = M(q) v + C(q, q') q' + g(q)`` is affine in
   ``v`` for a fixed ``z``, so ``V(z)`` is the parallelogram
   ``{v : -u_max <= M(q) v + h(q, q') <= u_max}`` (``h = C q' + g``) cut by the
   ``v``-box. The inertia matrix ``M(q)`` is full (``M_12 != 0``): each torque
@@ -28,7 +28,7 @@ extra constraint doing the real work. The arm has no such singularity.
 Coordinates
 -----------
 The plant state is ``x = (q_1, q_2, q_1', q_2')`` (joint angles measured from the
-downward vertical, the arm moves in a vertical plane), the input ``u = tau``
+downward vertical, the arm moves in a vertical plane), the input ``u``
 (joint torques, N m). ``fl.brunovsky((2, 2))`` orders the linearizing state as
 two chains: ``z = (q_1, q_1', q_2, q_2')`` and ``z'' = v`` per chain, i.e.
 ``v = (q_1'', q_2'')``.
@@ -127,7 +127,7 @@ def two_link_arm(tau_max=(8.0, 2.0), q1_box: float = 1.5, q2_box: float = 2.0, w
                  g: float = 9.81) -> FLSystem:
     """The two-link planar arm in a vertical plane with torque limits ``|tau_i| <= tau_max,i``.
 
-    Computed torque: ``u = tau = Phi(z, v) = M(q) v + C(q, q') q' + g(q)`` makes
+    Computed torque: ``u = Phi(z, v) = M(q) v + C(q, q') q' + g(q)`` makes
     ``q'' = v`` (eq. coor_Phi with the Brunovsky pair ``fl.brunovsky((2, 2))``),
     ``z = (q_1, q_1', q_2, q_2')``; see :func:`arm_parameters` for ``M``, ``C``, ``g``.
     The input bound of eq. (constraintU) is ``|tau_i| <= tau_max,i``. With the

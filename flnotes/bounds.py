@@ -2,10 +2,10 @@
 
 Feasibility-based bound tightening (FBBT) propagates an input box through the
 network with interval arithmetic (Grimstad & Andersson 2019, Sec. 4.3): for
-layer ``k`` with the box ``[l^{k-1}, u^{k-1}]`` of ``y^{k-1}``,
+layer ``k`` with the box ``[y^{k-1}_lo, y^{k-1}_hi]`` of ``y^{k-1}`` (eq-04-fbbt),
 
-    L^k = W^k_+ l^{k-1} + W^k_- u^{k-1} + b^k,   U^k = W^k_+ u^{k-1} + W^k_- l^{k-1} + b^k,
-    l^k = max(L^k, 0),                           u^k = max(U^k, 0),
+    L^k = W^k_+ y^{k-1}_lo + W^k_- y^{k-1}_hi + b^k,   U^k = W^k_+ y^{k-1}_hi + W^k_- y^{k-1}_lo + b^k,
+    y^k_lo = max(L^k, 0),                              y^k_hi = max(U^k, 0),
 
 with ``W_+ = max(W, 0)`` and ``W_- = min(W, 0)``. A neuron with ``L >= 0`` is
 stably active, one with ``U <= 0`` stably inactive: neither needs a binary.

@@ -1,55 +1,59 @@
-"""A bound on the true input between samples: the margin ``delta(t_s)`` of ``u_max^{eps+delta}``.
+"""A bound on the true input between samples: the margin ``Delta(t_s)`` of ``u_max^{eps+Delta}`` (eq-09-margin).
 
 The controllers impose ``|Phi_NN(z_k, v_k)| <= u_max^eps`` (eq. Phi_NN_ep) at the
 sampling instants ``t_k``. With ``v_k`` held over ``[t_k, t_k + t_s]`` the plant is
 exactly linearized and ``z`` follows the chain of integrators (eq. linearizedDyna)
 exactly,
 
-    z(t_k + tau) = e^{A tau} z_k + Gamma(tau) v_k,   Gamma(tau) = int_0^tau e^{A s} ds B,   0 <= tau <= t_s,
+    z(t_k + vartheta) = A_d(vartheta) z_k + B_d(vartheta) v_k,   A_d(vartheta) = e^{A vartheta},
+    B_d(vartheta) = int_0^vartheta e^{A s} ds B,   0 <= vartheta <= t_s,
 
 while the true input ``u(t) = Phi(z(t), v_k)`` moves with ``z``. Let
 
-    delta_i(t_s) = max { |Phi_i(z(tau), v) - Phi_i(z, v)| : (z, v) in Z, tau in [0, t_s] },
+    Delta_i(t_s) = max { |Phi_i(z(vartheta), v) - Phi_i(z, v)| : (z, v) in Z, vartheta in [0, t_s] }   (eq-09-delta),
 
-with ``Z`` the domain box over ``(z, v)`` where ``eps`` is certified and ``z(tau)``
+with ``Z`` the domain box over ``(z, v)`` where ``eps`` is certified and ``z(vartheta)``
 the flow above from ``z`` with ``v`` held. Then for every ``t`` in the interval
 
-    |u(t)| = |Phi(z(t), v_k)| <= |Phi(z_k, v_k)| + delta
-           <= |Phi_NN(z_k, v_k)| + eps + delta,
+    |u(t)| = |Phi(z(t), v_k)| <= |Phi(z_k, v_k)| + Delta
+           <= |Phi_NN(z_k, v_k)| + eps + Delta,
 
-so ``|Phi_NN(z_k, v_k)| <= u_max^{eps+delta} = u_max - eps - delta`` at the samples
+so ``|Phi_NN(z_k, v_k)| <= u_max^{eps+Delta} = u_max - eps - Delta`` at the samples
 gives ``|u(t)| <= u_max`` at **every instant**. The exact condition:
 
 * ``(z_k, v_k)`` lies in ``Z`` (the box where ``eps`` holds; eq. approx_err is only
   used at the sample, never at ``z(t)``), and
-* ``Phi`` is defined along the flow, ``z(tau)`` for ``tau in [0, t_s]``. The
-  intermediate states ``z(tau)`` may leave ``Z``: ``delta`` is a property of
+* ``Phi`` is defined along the flow, ``z(vartheta)`` for ``vartheta in [0, t_s]``. The
+  intermediate states ``z(vartheta)`` may leave ``Z``: ``Delta`` is a property of
   ``Phi`` alone, and its certificate evaluates ``Phi`` on the reachable set (an
-  interval enclosure of ``e^{A tau} z + Gamma(tau) v`` over each sub-box), so no
+  interval enclosure of ``A_d(vartheta) z + B_d(vartheta) v`` over each sub-box), so no
   network and no ``eps`` is needed there. Where ``Phi`` is undefined on the
   reachable set (Quad-1D's ``|zeta| >= 1``) the certificate refuses
   (:class:`flnotes.interval.NotCertifiable`).
 
-Only admissible samples matter: a sample with ``|Phi_NN(z_k, v_k)| <= u_max^{eps+delta}``
-in ``Z`` has ``|Phi(z_k, v_k)| <= u_max - delta <= u_max``. So the maximum may be taken
+Only admissible samples matter: a sample with ``|Phi_NN(z_k, v_k)| <= u_max^{eps+Delta}``
+in ``Z`` has ``|Phi(z_k, v_k)| <= u_max - Delta <= u_max``. So the maximum may be taken
 over ``S = {(z, v) in Z : |Phi(z, v)| <= u_max}`` only (``admissible=True``, the
 default), which is smaller than the whole box where the map is steep far from
 the admissible set (Quad-1D: about 0.16 instead of 0.41 at ``t_s = 0.1``).
 
-``delta`` is certified like ``eps``: branch and bound with rigorous interval
-enclosures (:mod:`flnotes.interval`) of ``f(z, v, tau) = Phi(z(tau), v) - Phi(z, v)``
+``Delta`` is certified like ``eps``: branch and bound with rigorous interval
+enclosures (:mod:`flnotes.interval`) of ``f(z, v, vartheta) = Phi(z(vartheta), v) - Phi(z, v)``
 over sub-boxes of ``Z x [0, t_s]``. With ``admissible=False`` this is
 :func:`flnotes.certify_error` against the zero network (so that it bounds
 ``max |f|``); with ``admissible=True`` a branch and bound of the same kind
 (natural and mean-value enclosures, best-first bisection) also discards every
 sub-box on which the enclosure of ``Phi(z, v)`` lies outside ``[-u_max, u_max]``,
 and takes lower values only at points proved admissible. The result is a bracket
-``lower <= delta <= upper``; use ``upper``. Since ``z(0) = z``, ``delta(t_s)``
+``lower <= Delta <= upper``; use ``upper``. Since ``z(0) = z``, ``Delta(t_s)``
 grows with ``t_s`` and vanishes as ``t_s -> 0`` (for a locally Lipschitz
 ``Phi``, about linearly): :func:`drift_curve` computes it on a list of ``t_s``.
 
+The code names ``Delta`` ``delta`` (``DriftBound.delta``, the ``delta`` arguments and table columns); it is the
+book's ``Delta(t_s)``, not the CLF slack ``delta`` of eq. (CLF_CBF).
+
 Use: ``delta = intersample_drift(system, ts).upper`` and ``flnotes.MPC(system, net, eps + delta, ...)``
-(the MPC's bound is then ``u_max^{eps+delta}``, :func:`margin`, which refuses ``eps + delta >= u_max``).
+(the MPC's bound is then ``u_max^{eps+Delta}``, :func:`margin`, which refuses ``eps + Delta >= u_max``).
 """
 from __future__ import annotations
 
@@ -83,14 +87,15 @@ def _nilpotent_powers(A: Array, B: Array) -> tuple[list, list]:
         As.append(Ak), ABs.append(Ak @ B)
         Ak = Ak @ A
     raise ValueError("A must be nilpotent (a Brunovsky chain of integrators, A^n = 0): the exact flow "
-                     "e^{A tau} z + Gamma(tau) v is then a polynomial in tau")
+                     "A_d(t) z + B_d(t) v is then a polynomial in the time t since the sample")
 
 
 def flow(system: FLSystem, z: Array, v: Array, tau: Array) -> Array:
-    """``z(tau) = e^{A tau} z + Gamma(tau) v`` of eq. (linearizedDyna) with ``v`` held, vectorized.
+    """``z(vartheta) = A_d(vartheta) z + B_d(vartheta) v`` of eq. (linearizedDyna) with ``v`` held, vectorized.
 
-    For a chain of integrators ``A`` is nilpotent and
-    ``e^{A tau} = sum_k A^k tau^k / k!``, ``Gamma(tau) = sum_k A^k B tau^{k+1} / (k+1)!``.
+    For a chain of integrators ``A`` is nilpotent and ``A_d(vartheta) = e^{A vartheta} = sum_k A^k vartheta^k / k!``,
+    ``B_d(vartheta) = sum_k A^k B vartheta^{k+1} / (k+1)!`` (eq-09-delta). The argument ``tau`` is the time
+    ``vartheta`` since the sample.
 
     Parameters
     ----------
@@ -130,16 +135,16 @@ def flow_interval(system: FLSystem, z: Interval, v: Interval, tau: Interval) -> 
 
 @dataclass
 class DriftBound:
-    """A certified bracket ``lower <= delta(t_s) <= upper`` per output (see the module docstring).
+    """A certified bracket ``lower <= Delta(t_s) <= upper`` per output (see the module docstring).
 
     Attributes
     ----------
     ts
         The hold time ``t_s``.
     lower, upper
-        Shape (m,). ``upper`` is the margin to use in ``u_max^{eps+delta}``.
+        Shape (m,). ``upper`` is the margin to use in ``u_max^{eps+Delta}``.
     argmax
-        Where ``lower`` is attained: rows ``(z, v, tau)``, shape (m, n_z + m + 1).
+        Where ``lower`` is attained: rows ``(z, v, vartheta)``, shape (m, n_z + m + 1).
     z_lo, z_hi, v_lo, v_hi
         The box of samples ``(z_k, v_k)`` it holds for.
     bracket
@@ -164,11 +169,11 @@ class DriftBound:
 
     @property
     def delta(self) -> Array:
-        """The certified margin: ``upper``."""
+        """The certified margin ``Delta(t_s)``: ``upper``."""
         return self.upper
 
     def __str__(self) -> str:
-        return (f"delta(t_s = {self.ts:g}) in [{np.array2string(self.lower, precision=5)}, "
+        return (f"Delta(t_s = {self.ts:g}) in [{np.array2string(self.lower, precision=5)}, "
                 f"{np.array2string(self.upper, precision=5)}] ({self.time_s:.1f} s)")
 
 
@@ -181,10 +186,10 @@ def intersample_drift(system: FLSystem, ts: float, *, z_box: Optional[tuple] = N
                       admissible: bool = True, rtol: float = 0.02, atol: float = 0.0, n_samples: int = 200_000,
                       seed: int = 0, max_time: Optional[float] = 30.0, max_boxes: int = 20_000_000,
                       batch: int = 4096) -> DriftBound:
-    """Certify ``delta(t_s) = max |Phi(z(tau), v) - Phi(z, v)|`` over ``(z, v) in Z``, ``tau in [0, t_s]``.
+    """Certify ``Delta(t_s) = max |Phi(z(vartheta), v) - Phi(z, v)|`` over ``(z, v) in Z``, ``vartheta in [0, t_s]``.
 
-    Branch and bound over the box ``Z x [0, t_s]`` of ``(z, v, tau)``, with
-    ``f(z, v, tau) = Phi(z(tau), v) - Phi(z, v)`` written with
+    Branch and bound over the box ``Z x [0, t_s]`` of ``(z, v, vartheta)``, with
+    ``f(z, v, vartheta) = Phi(z(vartheta), v) - Phi(z, v)`` written with
     :func:`flow_interval` and ``system.phi_interval`` (rigorous,
     outward-rounded): first :func:`flnotes.certify_error` against the zero
     network over the whole box; with ``admissible=True`` its upper end then caps
@@ -200,7 +205,7 @@ def intersample_drift(system: FLSystem, ts: float, *, z_box: Optional[tuple] = N
         Hold time ``t_s`` > 0.
     z_box, v_box
         ``(lo, hi)`` of the samples ``z_k`` and ``v_k``; default the domain box
-        (use the MPC's ``v_box`` if it is smaller: ``delta`` shrinks with it).
+        (use the MPC's ``v_box`` if it is smaller: ``Delta`` shrinks with it).
         They must lie in the domain box, where ``eps`` holds.
     admissible
         ``True`` (default): maximize over the admissible samples
@@ -222,7 +227,7 @@ def intersample_drift(system: FLSystem, ts: float, *, z_box: Optional[tuple] = N
     if not isinstance(system, FLSystem):
         raise TypeError(f"system must be a flnotes.FLSystem, got {type(system).__name__}")
     if system.phi_interval is None:
-        raise ValueError(f"{system.name} has no phi_interval: certifying delta needs Phi written with flnotes.interval")
+        raise ValueError(f"{system.name} has no phi_interval: certifying the drift Delta needs Phi written with flnotes.interval")
     if not (np.isfinite(ts) and ts > 0):
         raise ValueError(f"ts must be a positive hold time, got {ts!r}")
     n, m = system.n_z, system.m
@@ -366,7 +371,7 @@ def _admissible_bnb(f, f_interval, phi_interval, lo: Array, hi: Array, u_max: Ar
 
 
 def drift_curve(system: FLSystem, ts_values: Sequence[float], **kwargs) -> dict:
-    """``delta(t_s)`` for several hold times: how the margin shrinks with ``t_s``.
+    """``Delta(t_s)`` for several hold times: how the margin shrinks with ``t_s``.
 
     Returns
     -------
@@ -384,30 +389,33 @@ def drift_curve(system: FLSystem, ts_values: Sequence[float], **kwargs) -> dict:
 
 
 def margin(system: FLSystem, eps, delta) -> Array:
-    """``u_max^{eps+delta} = u_max - eps - delta``: the bound on ``|Phi_NN|`` at the samples that keeps
-    ``|u(t)| <= u_max`` at every instant (module docstring).
+    """``u_max^{eps+Delta} = u_max - eps - Delta`` (eq-09-margin): the bound on ``|Phi_NN|`` at the samples that
+    keeps ``|u(t)| <= u_max`` at every instant (module docstring).
 
     Parameters
     ----------
     eps
         Certified approximation error (``ErrorBracket.upper``), scalar or (m,).
     delta
-        Certified drift (``DriftBound.upper``), scalar or (m,).
+        Certified drift ``Delta(t_s)`` (``DriftBound.upper``), scalar or (m,).
 
     Raises
     ------
     ValueError
-        If ``eps + delta >= u_max``: no input is admissible with this hold
-        time; shorten ``t_s`` or the v-box.
+        If ``eps + Delta >= u_max``: the margin leaves no admissible input. The
+        condition is sufficient, not necessary (``Delta`` is a worst case over the
+        box), so this says only that the margin cannot certify this hold time;
+        shorten ``t_s`` or the v-box.
     """
     m = system.m
     eps, delta = as_vector(eps, m, "eps"), as_vector(delta, m, "delta")
     if np.any(eps < 0) or np.any(delta < 0):
-        raise ValueError(f"eps and delta must be >= 0, got {eps} and {delta}")
+        raise ValueError(f"eps and delta (the drift Delta) must be >= 0, got {eps} and {delta}")
     u = system.u_max - eps - delta
     if np.any(u <= 0):
-        raise ValueError(f"eps + delta = {eps + delta} >= u_max = {system.u_max}: no input is admissible at every "
-                         f"instant with this hold time; shorten t_s (delta shrinks with it) or the v-box")
+        raise ValueError(f"eps + Delta = {eps + delta} >= u_max = {system.u_max}: the margin u_max - eps - Delta "
+                         f"leaves no input, so it cannot certify |u(t)| <= u_max between samples at this hold time; "
+                         f"shorten t_s (Delta shrinks with it) or the v-box")
     return u
 
 
@@ -427,7 +435,7 @@ class AdmissibleLaw:
     u_bound
         The bound at the samples, e.g. :func:`margin` ``(system, eps, delta)``, shape (m,) or scalar.
     k
-        The nominal law ``z -> v`` (e.g. ``lambda z: K @ z``).
+        The nominal law ``z -> v`` (e.g. ``lambda z: K_f @ z`` with a terminal gain ``K_f``).
     n_v
         Grid points on the v-box (single-input systems only).
     """

@@ -131,7 +131,7 @@ class NonlinearMPC:
 
     The program, solved at every sampling instant for the measured ``x(0) = to_x(z)``::
 
-        min   sum_{k=0}^{N_p-1} ||T(x_k) - z_ref(k)||_Q^2 + ||v_k||_R^2 + ||T(x_N) - z_ref(N)||_P^2
+        min   sum_{k=0}^{N_p-1} ||T(x_k) - z_ref(k)||_Q^2 + ||v_k||_R^2 + ||T(x_{N_p}) - z_ref(N_p)||_{P_f}^2
         s.t.  x_0 = x(0),  x_{k+1} = F_RK4(x_k, u_k)            (u held over t_s, multiple shooting)
               -u_max <= u_k <= u_max                             (eq. constraintU, a plain bound)
               z_lo <= T(x_k) <= z_hi,  v_lo <= v_k <= v_hi        (the domain box of the other methods)

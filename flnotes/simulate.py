@@ -60,7 +60,7 @@ class Controller(Protocol):
 
 
 class FeedbackLaw:
-    """Wrap a plain law ``k(z) -> v`` (e.g. the nominal ``k(z) = -K z``) as a :class:`Controller`."""
+    """Wrap a plain law ``k(z) -> v`` (e.g. the nominal ``k(z) = -K_nominal z``) as a :class:`Controller`."""
 
     def __init__(self, k: Callable[[Array], Array], name: str = "k(z)"):
         self.k, self.name = k, name

@@ -3,39 +3,43 @@
 The paper leaves recursive feasibility and stability of its MPC open ("adopting
 the standard MPC axioms" is named as future work). The standard remedy (Mayne,
 Rawlings, Rao & Scokaert 2000, Sec. 3.3, axioms A1-A4) adds to eq.
-(MPC_form_miqp) a terminal cost ``V_f(z) = z' P z`` on ``z(N_p)`` and a terminal
-constraint ``z(N_p) in Z_f`` such that, with a local law ``v = K z``,
+(MPC_form_miqp) a terminal cost ``V_f(z) = z' P_f z`` on ``z(N_p)`` and a terminal
+constraint ``z(N_p) in Z_f`` such that, with a local law ``v = K_f z``,
 
-* A1: ``Z_f`` lies in the state box ``X_z`` (eq. MPC_form_miqp_d) and contains 0;
-* A2: ``K z`` is admissible on ``Z_f``: ``v_lo <= K z <= v_hi`` and the network
-  constraint ``|Phi_NN(z, K z)| <= u_max^eps`` (eq. MPC_form_miqp_b) hold;
-* A3: ``Z_f`` is positively invariant under ``z+ = (A_d + B_d K) z``;
-* A4: ``V_f((A_d + B_d K) z) - V_f(z) + l(z, K z) <= 0`` on ``Z_f``.
+* A1: ``Z_f`` lies in the state box ``Z_z`` (eq. MPC_form_miqp_d) and contains 0;
+* A2: ``K_f z`` is admissible on ``Z_f``: ``v_lo <= K_f z <= v_hi`` and the network
+  constraint ``|Phi_NN(z, K_f z)| <= u_max^eps`` (eq. MPC_form_miqp_b) hold;
+* A3: ``Z_f`` is positively invariant under ``z+ = (A_d + B_d K_f) z``;
+* A4: ``V_f((A_d + B_d K_f) z) - V_f(z) + ell(z, K_f z) <= 0`` on ``Z_f``.
 
-Here ``K`` and ``P`` are the LQR gain and the solution of the discrete algebraic
+Here ``K_f`` and ``P_f`` are the LQR gain and the solution of the discrete algebraic
 Riccati equation of the Brunovsky model ``(A_d, B_d)`` (eq. MPC_form_miqp_c) with
-the stage weights ``l(z, v) = z'Qz + v'Rv``, so A4 holds with equality. ``Z_f``
-is a polytope ``{z : F z <= alpha g}`` (the MPC stays a mixed-integer QP with
-linear constraints): ``{F z <= g}`` is the maximal output-admissible set of
-``z+ = (A_d + B_d K) z`` for the boxes (Gilbert & Tan 1991), which gives A1 and A3
-and the v-box part of A2 for every level ``alpha in (0, 1]``; the level ``alpha``
+the stage cost ``ell(z, v) = z'Qz + v'Rv``, so A4 holds with equality. ``Z_f``
+is a polytope ``{z : F_inf z <= psi f_inf}`` (the MPC stays a mixed-integer QP with
+linear constraints): ``O_inf = {F_inf z <= f_inf}`` is the maximal output-admissible set of
+``z+ = (A_d + B_d K_f) z`` for the boxes (Gilbert & Tan 1991), which gives A1 and A3
+and the v-box part of A2 for every level ``psi in (0, 1]``; the level ``psi``
 is the largest for which the network part of A2 is **proved by a mixed-integer
 program** over the network, the big-M encoding of eq. (MIP_general): the maximum
-of ``+-Phi_NN(z, K z)`` over ``alpha {F z <= g}`` is at most ``u_max^eps``.
+of ``+-Phi_NN(z, K_f z)`` over ``psi O_inf`` is at most ``u_max^eps``.
+
+The code keeps short names for these: :class:`TerminalSet` stores ``K_f`` as ``K``, ``P_f`` as ``P``,
+``F_inf, f_inf`` as ``F, g`` and the level ``psi`` as ``alpha`` (not the binaries ``alpha^k_j`` of
+eq. MIP_general).
 
 With these ingredients the MPC is recursively feasible and its nominal closed
 loop asymptotically stable (Mayne et al. 2000, Thm. 1): if ``(v(0), ..., v(N_p-1))``
-is feasible at ``z``, the shifted plan ``(v(1), ..., v(N_p-1), K z(N_p))`` is
+is feasible at ``z``, the shifted plan ``(v(1), ..., v(N_p-1), K_f z(N_p))`` is
 feasible at ``A_d z + B_d v(0)`` (A2, A3), and its cost shows that the optimal
-cost decreases by at least ``l(z, v(0))`` (A4). :func:`shifted_plan` builds that
+cost decreases by at least ``ell(z, v(0))`` (A4). :func:`shifted_plan` builds that
 candidate; :func:`region_of_attraction` draws the set of states from which the
 horizon program is feasible, with and without the terminal constraint, as decided
 by :class:`flnotes.MPC` itself.
 
 Use: ``term = terminal_set(...)`` (the whole construction), then
 ``flnotes.MPC(..., P=term.P, terminal=term)``: the MPC reads ``TerminalSet.P``
-(terminal weight on ``z(N_p)``), ``TerminalSet.constraint()`` (``F_f z(N_p) <= g_f``)
-and ``TerminalSet.K`` (the last input ``K z(N_p)`` of its shifted warm start, the
+(terminal weight ``P_f`` on ``z(N_p)``), ``TerminalSet.constraint()`` (``F_inf z(N_p) <= psi f_inf``)
+and ``TerminalSet.K`` (the gain ``K_f``: the last input ``K_f z(N_p)`` of its shifted warm start, the
 candidate of the proof).
 """
 from __future__ import annotations
@@ -65,11 +69,11 @@ __all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "NETW
 def lqr(Ad: Array, Bd: Array, Q: Array, R: Array) -> tuple[Array, Array]:
     """LQR gain and terminal weight of the discrete model (eq. MPC_form_miqp_c), axiom A4 of Mayne et al. 2000.
 
-    ``P`` solves the discrete algebraic Riccati equation
+    ``P`` (the book's ``P_f``) solves the discrete algebraic Riccati equation
     ``P = A_d'PA_d - A_d'PB_d (R + B_d'PB_d)^{-1} B_d'PA_d + Q`` and
-    ``K = -(R + B_d'PB_d)^{-1} B_d'PA_d``, so that with ``v = K z``
+    ``K = -(R + B_d'PB_d)^{-1} B_d'PA_d`` (the book's ``K_f``), so that with ``v = K z``
     ``z+'Pz+ - z'Pz + z'Qz + v'Rv = 0``: the terminal cost ``||z(N_p)||_P^2``
-    decreases by exactly the stage cost ``l(z, v) = ||z||_Q^2 + ||v||_R^2`` of
+    decreases by exactly the stage cost ``ell(z, v) = ||z||_Q^2 + ||v||_R^2`` of
     eq. (MPC_form_miqp_a).
 
     Parameters
@@ -142,7 +146,7 @@ def max_admissible_set(A_cl: Array, C: Array, d: Array, max_iter: int = 200,
     Parameters
     ----------
     A_cl
-        Closed-loop matrix ``A_d + B_d K``, (n, n), Schur stable.
+        Closed-loop matrix ``A_d + B_d K_f``, (n, n), Schur stable.
     C, d
         The constraints ``C z <= d``, (p, n) and (p,), with ``d > 0``.
     max_iter
@@ -151,7 +155,8 @@ def max_admissible_set(A_cl: Array, C: Array, d: Array, max_iter: int = 200,
     Returns
     -------
     F, g, t_star
-        ``O_inf = {F z <= g}`` (irredundant) and the determinedness index ``t*``.
+        ``O_inf = {F_inf z <= f_inf}`` (``F = F_inf``, ``g = f_inf``; irredundant) and the determinedness
+        index ``t^star``.
     """
     A_cl = np.atleast_2d(np.asarray(A_cl, float))
     n = A_cl.shape[0]
@@ -188,7 +193,8 @@ def _bounding_box(F: Array, g: Array) -> tuple[Array, Array]:
 # ============================================================================ the MILP certificate
 @dataclass
 class NetworkMax:
-    """``max_{z in S} s Phi_NN,i(z, K z)`` over a polytope ``S``, from one MILP per sign and output.
+    """``max_{z in S} s Phi_NN,i(z, K z)`` over a polytope ``S`` (a gain ``K``, e.g. the terminal ``K_f``),
+    from one MILP per sign and output.
 
     Attributes
     ----------
@@ -236,9 +242,10 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
     net
         ``Phi_NN`` with ``n_in = n_z + m`` inputs ``(z, v)`` and ``m`` outputs.
     K
-        Gain (m, n_z) of the law ``v = K z``.
+        Gain (m, n_z) of the law ``v = K z`` (the terminal gain ``K_f`` in :func:`terminal_set`).
     F, g
-        The polytope, (p, n_z) and (p,); it must be bounded and non-empty.
+        The polytope ``{F z <= g}``, (p, n_z) and (p,); it must be bounded and non-empty (in
+        :func:`terminal_set`: ``F_inf z <= psi f_inf``).
     mip_rel_gap, time_limit
         Solver options (relative gap, seconds); a MILP that stops without proving optimality raises
         ``RuntimeError`` (a certificate must be a proof).
@@ -335,33 +342,34 @@ class TerminalSet:
     Attributes
     ----------
     K, P
-        LQR gain (m, n_z) of the terminal law ``v = K z`` and terminal weight (n_z, n_z) (:func:`lqr`).
+        The book's ``K_f`` and ``P_f``: LQR gain (m, n_z) of the terminal law ``v = K_f z`` and terminal
+        weight (n_z, n_z) (:func:`lqr`).
     F, g
-        The maximal output-admissible set ``O_inf = {F z <= g}`` of ``A_d + B_d K``
-        for the state box and the v-box (:func:`max_admissible_set`).
+        The book's ``F_inf, f_inf``: the maximal output-admissible set ``O_inf = {F_inf z <= f_inf}`` of
+        ``A_d + B_d K_f`` for the state box and the v-box (:func:`max_admissible_set`).
     alpha
-        The level: ``Z_f = alpha O_inf = {F z <= alpha g}``, the largest in
+        The book's level ``psi``: ``Z_f = psi O_inf = {F_inf z <= psi f_inf}``, the largest in
         ``(0, 1]`` (within ``tol``) for which the MILP proves
-        ``max_{Z_f} |Phi_NN(z, K z)| <= u_max^eps``.
+        ``max_{Z_f} |Phi_NN(z, K_f z)| <= u_max^eps``.
     u_eps
         ``u_max^eps = u_max - eps`` (eq. Phi_NN_ep), shape (m,).
     certificate
-        The :class:`NetworkMax` at ``alpha``: ``upper <= u_eps`` is the proof.
+        The :class:`NetworkMax` at ``psi``: ``upper <= u_eps`` is the proof.
     failed
         The :class:`NetworkMax` at the smallest level tried that failed
-        (``None`` when ``alpha = 1``): ``upper > u_eps`` for some output there.
+        (``None`` when ``psi = 1``): ``upper > u_eps`` for some output there.
     alpha_failed
-        That level (``alpha < alpha_failed <= alpha (1 + tol)``), or ``None``.
+        That level (``psi < alpha_failed <= psi (1 + tol)``), or ``None``.
     history
         One row per level tried, in order: ``(level, upper, lower, passed)`` with ``upper``, ``lower`` the
-        largest over the outputs of :class:`NetworkMax`'s bounds on ``max |Phi_NN(z, K z)|`` over that
+        largest over the outputs of :class:`NetworkMax`'s bounds on ``max |Phi_NN(z, K_f z)|`` over that
         level's set, and ``passed`` whether ``upper <= u_eps`` for every output.
     t_star
-        Determinedness index of ``O_inf``.
+        Determinedness index ``t^star`` of ``O_inf``.
     Ad, Bd, Q, R, ts, z_lo, z_hi, v_lo, v_hi
         The model, weights and boxes it was built for.
     tol
-        Relative tolerance of the bisection on ``alpha``.
+        Relative tolerance of the bisection on the level ``psi``.
     discretization
         How ``(A_d, B_d)`` was computed (``"rk4"`` or ``"exact"``).
     time_s
@@ -394,20 +402,20 @@ class TerminalSet:
 
     @property
     def A_cl(self) -> Array:
-        """``A_d + B_d K``."""
+        """``A_d + B_d K_f``."""
         return self.Ad + self.Bd @ self.K
 
     def constraint(self) -> tuple[Array, Array]:
-        """``(F_f, g_f)`` of the terminal constraint ``F_f z(N_p) <= g_f``, i.e. ``F z <= alpha g``."""
+        """``(F_inf, psi f_inf)`` of the terminal constraint ``F_inf z(N_p) <= psi f_inf`` (``Z_f``)."""
         return self.F.copy(), self.alpha * self.g
 
     def contains(self, z: Array, tol: float = 1e-9) -> Array:
-        """Boolean mask: is ``z`` (n_z,) or (N, n_z) in ``Z_f = {F z <= alpha g}``?"""
+        """Boolean mask: is ``z`` (n_z,) or (N, n_z) in ``Z_f = {F_inf z <= psi f_inf}``?"""
         Z = as_batch(z, self.F.shape[1], "z")
         return np.all(Z @ self.F.T <= self.alpha * self.g + tol, axis=1)
 
     def terminal_cost(self, z: Array) -> Array:
-        """``V_f(z) = z' P z``, for (n_z,) or (N, n_z)."""
+        """``V_f(z) = z' P_f z``, for (n_z,) or (N, n_z)."""
         Z = as_batch(z, self.F.shape[1], "z")
         return np.einsum("ij,jk,ik->i", Z, self.P, Z)
 
@@ -424,28 +432,28 @@ class TerminalSet:
         return np.vstack(out)[:n]
 
     def summary(self) -> str:
-        return (f"terminal set: {len(self.g)} faces (t* = {self.t_star}), alpha = {self.alpha:.4g}; "
-                f"max |Phi_NN(z, Kz)| on Z_f in [{self.certificate.lower.max():.5g}, {self.certificate.upper.max():.5g}] "
+        return (f"terminal set: {len(self.g)} faces (t^star = {self.t_star}), psi = {self.alpha:.4g}; "
+                f"max |Phi_NN(z, K_f z)| on Z_f in [{self.certificate.lower.max():.5g}, {self.certificate.upper.max():.5g}] "
                 f"<= u_max^eps = {self.u_eps.max():.5g}; {len(self.history)} MILP pairs, {self.time_s:.2f} s")
 
 
 def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discretization: str = "rk4",
                  z_box: Optional[tuple] = None, v_box: Optional[tuple] = None, tol: float = 1e-2,
                  max_bisections: int = 40, mip_rel_gap: float = 1e-6) -> TerminalSet:
-    """Terminal cost ``P``, law ``v = K z`` and certified terminal set ``Z_f`` for eq. (MPC_form_miqp).
+    """Terminal cost ``P_f``, law ``v = K_f z`` and certified terminal set ``Z_f`` for eq. (MPC_form_miqp).
 
     The construction follows the axioms of Mayne et al. 2000 (see the module
     docstring):
 
-    1. ``K``, ``P`` from the Riccati equation of ``(A_d, B_d)`` with ``Q``, ``R`` (:func:`lqr`, A4);
-    2. ``O_inf = {F z <= g}``, the maximal output-admissible set of ``A_d + B_d K``
-       for ``z in X_z`` and ``v_lo <= K z <= v_hi`` (:func:`max_admissible_set`,
-       A1, A3 and the box part of A2); every ``alpha O_inf`` with ``alpha in (0, 1]``
+    1. ``K_f``, ``P_f`` from the Riccati equation of ``(A_d, B_d)`` with ``Q``, ``R`` (:func:`lqr`, A4);
+    2. ``O_inf = {F_inf z <= f_inf}``, the maximal output-admissible set of ``A_d + B_d K_f``
+       for ``z in Z_z`` and ``v_lo <= K_f z <= v_hi`` (:func:`max_admissible_set`,
+       A1, A3 and the box part of A2); every ``psi O_inf`` with ``psi in (0, 1]``
        keeps these properties (a linear map and a convex set containing 0);
-    3. the network part of A2, ``|Phi_NN(z, K z)| <= u_max^eps`` (eq. MPC_form_miqp_b),
-       is proved on ``alpha O_inf`` by MILPs (:func:`network_max`), and the largest
-       such ``alpha`` is found by bisection: the sets are nested, so the
-       maximum is non-decreasing in ``alpha``. The bisection stops when the
+    3. the network part of A2, ``|Phi_NN(z, K_f z)| <= u_max^eps`` (eq. MPC_form_miqp_b),
+       is proved on ``psi O_inf`` by MILPs (:func:`network_max`), and the largest
+       such level ``psi`` is found by bisection: the sets are nested, so the
+       maximum is non-decreasing in ``psi``. The bisection stops when the
        smallest failing level is within a factor ``1 + tol`` of the largest passing one.
 
     Parameters
@@ -456,7 +464,7 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
         ``Phi_NN`` on ``system``'s stacked input ``(z, v)``.
     eps
         Certified error bound (scalar or (m,)): ``u_max^eps = u_max - eps``. To
-        also keep ``|u| <= u_max`` between samples pass ``eps + delta``
+        also keep ``|u| <= u_max`` between samples pass ``eps + Delta``
         (:mod:`flnotes.intersample`).
     ts
         Sampling time of the MPC.
@@ -465,9 +473,9 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     discretization
         ``"rk4"`` (the paper) or ``"exact"``, as in the MPC.
     z_box, v_box
-        ``(lo, hi)`` of the state box ``X_z`` and of ``v``; default the network's domain box.
+        ``(lo, hi)`` of the state box ``Z_z`` and of ``v``; default the network's domain box.
     tol
-        Relative tolerance of the bisection on ``alpha``.
+        Relative tolerance of the bisection on the level ``psi``.
 
     Returns
     -------
@@ -535,8 +543,8 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
             else:
                 hi, failed = mid, c
         else:
-            raise RuntimeError(f"the bisection on alpha did not reach tol = {tol} in {max_bisections} steps "
-                               f"(alpha in [{lo:.3g}, {hi:.3g}])")
+            raise RuntimeError(f"the bisection on the level psi did not reach tol = {tol} in {max_bisections} steps "
+                               f"(psi in [{lo:.3g}, {hi:.3g}])")
         alpha, a_fail = lo, hi
     return TerminalSet(K=K, P=P, F=F, g=g, alpha=alpha, u_eps=u_eps, certificate=best, failed=failed,
                        alpha_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd,
@@ -550,10 +558,10 @@ def shifted_plan(term: TerminalSet, z_pred: Array, v_pred: Array) -> tuple[Array
     """The candidate of the recursive-feasibility proof (Mayne et al. 2000, Sec. 3.3).
 
     Given a feasible plan ``z(0..N_p)``, ``v(0..N_p-1)`` of eq. (MPC_form_miqp)
-    with ``z(N_p) in Z_f``, the plan from ``z(1)`` is ``v(1), ..., v(N_p-1), K z(N_p)``,
-    with states ``z(1), ..., z(N_p), (A_d + B_d K) z(N_p)``. It is feasible: the
-    old constraints hold for the kept steps, ``K z(N_p)`` is admissible on
-    ``Z_f`` (A2) and ``(A_d + B_d K) z(N_p)`` is in ``Z_f`` (A3).
+    with ``z(N_p) in Z_f``, the plan from ``z(1)`` is ``v(1), ..., v(N_p-1), K_f z(N_p)``,
+    with states ``z(1), ..., z(N_p), (A_d + B_d K_f) z(N_p)``. It is feasible for the
+    nominal model: the old constraints hold for the kept steps, ``K_f z(N_p)`` is admissible on
+    ``Z_f`` (A2) and ``(A_d + B_d K_f) z(N_p)`` is in ``Z_f`` (A3).
 
     Returns
     -------

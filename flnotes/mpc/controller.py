@@ -101,13 +101,13 @@ class MPC:
 
     At each sampling instant
 
-        min   sum_{k=0}^{N_p-1} ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2  (+ ||z(N_p) - z_ref(N_p)||_P^2)
+        min   sum_{k=0}^{N_p-1} ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2  (+ ||z(N_p) - z_ref(N_p)||_{P_f}^2)
         s.t.  |Phi_NN(z(k), v(k))| <= u_max^eps = u_max - eps,   k = 0..N_p-1   (MPC_form_miqp_b)
               z(k+1) = A_d z(k) + B_d v(k)                                       (MPC_form_miqp_c)
-              z(k) in X_z (k = 1..N_p), v(k) in the network's v-range            (MPC_form_miqp_d)
-              F z(N_p) <= g  (optional terminal set)
+              z(k) in Z_z (k = 1..N_p), v(k) in the network's v-range Z_v        (MPC_form_miqp_d)
+              z(N_p) in Z_f, F_inf z(N_p) <= psi f_inf  (optional terminal set)
 
-    ``X_z`` is the network's domain box, where ``|Phi - Phi_NN| <= eps`` (eq. approx_err) holds, so every
+    ``Z_z x Z_v`` is the network's domain box, where ``|Phi - Phi_NN| <= eps`` (eq. approx_err) holds, so every
     predicted step satisfies the true bound ``|Phi(z(k), v(k))| <= u_max`` for the nominal model.
 
     Parameters
@@ -117,16 +117,17 @@ class MPC:
     net
         ``Phi_NN`` on ``system``'s domain box.
     eps
-        Error bound of eq. (approx_err), scalar or (m,). A margin such as the intersample drift ``delta``
-        is added here: ``eps + delta`` gives ``u_max^{eps + delta}``.
+        Error bound of eq. (approx_err), scalar or (m,). A margin such as the intersample drift ``Delta(t_s)``
+        is added here: ``eps + Delta`` gives ``u_max^{eps+Delta}``.
     horizon, ts
         ``N_p`` and the sampling time ``t_s`` (seconds).
     Q, R, P
-        Stage weights (n_z, n_z), (m, m) and the optional terminal weight on ``z(N_p)`` (the paper's cost
+        Stage weights (n_z, n_z), (m, m) and the optional terminal weight ``P_f`` on ``z(N_p)`` (the paper's cost
         stops at ``k = N_p - 1``: ``P=None`` reproduces it). Scalars or vectors are made diagonal.
     terminal
         Optional terminal set: ``(F, g)`` for ``F z(N_p) <= g``, or an object with ``constraint() -> (F, g)``
-        (:class:`flnotes.TerminalSet`; its gain ``K`` then gives the shifted plan's last input ``v = K z``).
+        (:class:`flnotes.TerminalSet`, ``Z_f``; its gain ``K``, the book's ``K_f``, then gives the shifted plan's
+        last input ``v = K_f z``).
     options
         An :class:`MPCOptions` (the levers and the constraint model); or give its fields as keywords
         (``backend=``, ``bounds=``, ``screening=``, ``lazy=``, ``warm_start=``, ``encode=``,
@@ -623,7 +624,7 @@ class MPC:
     def shifted_plan(self, z: Array) -> Optional[tuple[Array, Array]]:
         """The previous plan shifted by one step, re-predicted from the measured ``z``.
 
-        Its new last input is ``K z(N_p)`` when a terminal set with a gain ``K`` is given (the candidate of
+        Its new last input is ``K_f z(N_p)`` when a terminal set with a gain ``K_f`` is given (the candidate of
         the recursive-feasibility argument), else :meth:`feasible_tail`. ``None`` without a previous plan.
         """
         if self._plan is None:

@@ -36,9 +36,10 @@ class Prediction:
     horizon
         ``N_p``.
     Q, R, P
-        Weights of ``sum_k ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2 + ||z(N_p) - z_ref(N_p)||_P^2``.
+        Weights of ``sum_k ||z(k) - z_ref(k)||_Q^2 + ||v(k)||_R^2 + ||z(N_p) - z_ref(N_p)||_P^2`` (``P``: the
+        terminal weight ``P_f``).
     z_lo, z_hi, v_lo, v_hi
-        The state box ``X_z`` (eq. MPC_form_miqp_d), imposed on ``z(1..N_p)``, and the input range.
+        The state box ``Z_z`` (eq. MPC_form_miqp_d), imposed on ``z(1..N_p)``, and the input range.
     u_eps
         ``u_max^eps = u_max - eps`` (m,), eq. (Phi_NN_ep).
     terminal

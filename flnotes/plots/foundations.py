@@ -486,7 +486,7 @@ def plot_relu_bigm(L: float = -1.0, U: float = 2.0, alphas: Sequence[float] = (0
     ax.plot(a, np.maximum(a, 0.0), color=COLORS["true"], lw=2.4, label=r"$y = \max(0, a)$ ($\alpha \in \{0,1\}$)")
     ax.plot([L, 0], [0, 0], color=COLORS["nn"], lw=2.4, label=r"$\alpha = 0$ piece")
     ax.plot([0, U], [0, U], color=COLORS["u_max_eps"], lw=2.4, ls="--", label=r"$\alpha = 1$ piece")
-    ax.set(xlabel="pre-activation $a = w^T y^{in} + b$", ylabel=r"$y^\star = \bar y^\star$",
+    ax.set(xlabel="pre-activation $a = W y^{in} + b$", ylabel=r"$y^\star = \bar y^\star$",
            title=f"one neuron with L = {L:g}, U = {U:g}")
     ax.legend(loc="upper left")
     return fig
@@ -572,9 +572,9 @@ def plot_unstable_fixed_z(counts: Array, n_full_box: int, n_hidden: int, title: 
 
 def unstable_vs_box_size(system: FLSystem, net: ReLUNet, radii: Sequence[float] = tuple(np.logspace(-3, 0, 13)),
                          n_centers: int = 200, seed: int = 0) -> Array:
-    """Mean fraction of unstable neurons for boxes of relative half-width ``r`` at random centres.
+    """Mean fraction of unstable neurons for boxes of relative half-width ``r`` (the book's ``r_box``) at random centres.
 
-    A box is ``c ± r (hi - lo)``, clipped to the domain, with centres ``c``
+    A box is ``w_c ± r (hi - lo)``, clipped to the domain, with centres ``w_c``
     uniform in the domain; ``r = 1`` gives the whole domain from any centre.
 
     Returns
@@ -598,7 +598,7 @@ def plot_unstable_vs_box_size(radii: Sequence[float], fractions: dict):
     fig, ax = new_axes(figsize=(6.0, 3.6))
     for name, fr in fractions.items():
         ax.semilogx(radii, fr, "o-", ms=4, label=name)
-    ax.set(xlabel="relative half-width $r$ of the box", ylabel="unstable neurons / $\\Sigma_k n_k$", ylim=(0, 1.02),
+    ax.set(xlabel="relative half-width $r_{box}$ of the box", ylabel="unstable neurons / $\\Sigma_k n_k$", ylim=(0, 1.02),
            title="binaries needed vs size of the input box (FBBT)")
     ax.legend()
     return fig

@@ -12,7 +12,7 @@ __all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_c
 
 
 def plot_terminal_bisection(term, ax=None):
-    """The bisection on the level ``alpha`` (the book's psi): the MILP's ``max |Phi_NN(z, Kz)|`` over ``alpha O_inf``
+    """The bisection on the level ``psi`` (``TerminalSet.alpha``): the MILP's ``max |Phi_NN(z, K_f z)|`` over ``psi O_inf``
     against ``u_max^eps``.
 
     Parameters
@@ -172,7 +172,7 @@ def plot_guaranteed_loop(logs: dict, u_max: float, bounds: dict, t_window: Optio
         The input bound.
     bounds
         ``{label: value}``: the bounds at the samples, drawn as dotted lines ``+-value`` (e.g.
-        ``{"u_max^eps": ..., "u_max^{eps+delta}": ...}``, labels in LaTeX without dollars).
+        ``{"u_max^eps": ..., "u_max^{eps+Delta}": ...}``, labels in LaTeX without dollars).
     t_window
         ``(t0, t1)`` to zoom on.
     unit

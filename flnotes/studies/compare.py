@@ -22,8 +22,9 @@ plant, cost, horizon, sampling time, references and initial states:
 
 Each method runs with the hold its prediction assumes (``v`` for the first four, ``u`` for the
 NMPC); a :class:`Variant` runs a method with the other hold (the FL methods with ``u`` held), or the
-MIQP with the margin ``u_max^{eps+delta}`` of eq. (eq-09-margin), ``delta`` the certified drift of
-``Phi`` over one sampling interval (:func:`with_drift`). :func:`study_variants` lists the rows of the
+MIQP with the margin ``u_max^{eps+Delta}`` of eq. (eq-09-margin), ``Delta`` the certified drift of
+``Phi`` over one sampling interval (:func:`with_drift`; stored as ``delta``, the option's name is ``"eps+delta"``).
+:func:`study_variants` lists the rows of the
 chapter.
 
 The metrics of one closed-loop run are computed by :func:`run_metrics`; :func:`monte_carlo`
@@ -70,7 +71,8 @@ LABELS = {"network": "MIQP (network)", "measured": "constant extension", "previo
 #: What the actuator holds over a sampling interval (see :func:`flnotes.simulate`).
 HOLDS = ("v", "u")
 
-#: The bounds the MIQP may impose at the samples: ``u_max^eps`` or ``u_max^{eps+delta}`` (eq-09-margin).
+#: The bounds the MIQP may impose at the samples: ``u_max^eps`` (``"eps"``) or ``u_max^{eps+Delta}`` (``"eps+delta"``,
+#: eq-09-margin).
 MARGINS = ("eps", "eps+delta")
 
 #: The hold each method's prediction assumes: the Brunovsky chain is exact with ``v`` held, the NMPC's RK4
@@ -94,7 +96,7 @@ class Variant:
         (:data:`OWN_HOLD`). The NMPC runs with ``u`` held only: its prediction holds ``u``.
     margin
         ``"eps"`` (``u_max^eps``, every method's own bound) or ``"eps+delta"``: the MIQP imposes
-        ``|Phi_NN| <= u_max - eps - delta`` at every predicted step, ``delta`` the certified drift of
+        ``|Phi_NN| <= u_max - eps - Delta`` at every predicted step, ``Delta`` the certified drift of
         eq. (eq-09-delta), so that ``|u(t)| <= u_max`` at every instant with ``v`` held. Only for the
         MIQP with ``v`` held (with ``u`` held the bound holds between samples already).
 
@@ -153,7 +155,7 @@ def label(variant) -> str:
     v = _variant(variant)
     base = LABELS[v.method]
     if v.margin != "eps":
-        return f"{base}, eps+delta"
+        return f"{base}, eps+Delta"
     return base if v.hold == OWN_HOLD[v.method] else f"{base}, {v.hold} held"
 
 
@@ -190,10 +192,10 @@ def setting(name: str, horizon: int = 10, ts: float = 0.1, time_limit: Optional[
 def with_drift(s: dict) -> dict:
     """The setting ``s`` with the certified drift of ``Phi`` over one sampling interval (eq. eq-09-delta).
 
-    ``delta`` is :func:`flnotes.intersample_drift` at ``s["ts"]`` over the domain box, without a time
-    budget (so that the bracket, hence ``delta``, is the same on every machine). Adds ``drift`` (the
-    :class:`flnotes.intersample.DriftBound`), ``delta`` (its upper end: the margin) and ``margin_fits``
-    (``eps + delta < u_max``: only then does ``u_max^{eps+delta}`` leave any input).
+    The drift ``Delta(t_s)`` is :func:`flnotes.intersample_drift` at ``s["ts"]`` over the domain box, without a time
+    budget (so that the bracket, hence ``Delta``, is the same on every machine). Adds ``drift`` (the
+    :class:`flnotes.intersample.DriftBound`), ``delta`` (its upper end: the margin ``Delta``) and ``margin_fits``
+    (``eps + Delta < u_max``: only then does ``u_max^{eps+Delta}`` leave any input).
     """
     d = intersample_drift(s["system"], s["ts"], max_time=None)
     if not np.all(d.bracket.converged):
@@ -204,7 +206,7 @@ def with_drift(s: dict) -> dict:
 
 def study_variants(s: dict) -> list:
     """The rows of the chapter for setting ``s``: the five methods with their own hold, the four FL
-    methods with ``u`` held, and the MIQP with ``u_max^{eps+delta}`` where the margin fits
+    methods with ``u`` held, and the MIQP with ``u_max^{eps+Delta}`` where the margin fits
     (``s`` from :func:`with_drift`; without ``delta`` that row is left out)."""
     out = [Variant(m) for m in METHODS] + [Variant(m, hold="u") for m in METHODS if OWN_HOLD[m] == "v"]
     if s.get("margin_fits"):
@@ -230,7 +232,7 @@ def make_controller(method, s: dict, iterations: int = 1):
             if "delta" not in s:
                 raise ValueError("margin='eps+delta' needs the certified drift: pass compare.with_drift(setting)")
             if not s["margin_fits"]:
-                raise ValueError(f"eps + delta = {s['eps'] + s['delta']:.4g} >= u_max = {s['system'].u_max[0]:.4g} "
+                raise ValueError(f"eps + Delta = {s['eps'] + s['delta']:.4g} >= u_max = {s['system'].u_max[0]:.4g} "
                                  f"for {s['name']} at t_s = {s['ts']}: the margin leaves no input; use a shorter t_s")
             eps = s["eps"] + s["delta"]
         return MPC(s["system"], s["net"], eps, time_limit=s["time_limit"], **common), var.hold

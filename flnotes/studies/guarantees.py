@@ -8,13 +8,13 @@
 ``fallback_table``
     the steps of a run that had no admissible plan, as the MPC recorded them;
 ``margin_study``
-    closed loops with ``u_max^eps`` and ``u_max^{eps+delta}`` for several sampling times: the true input on a
+    closed loops with ``u_max^eps`` and ``u_max^{eps+Delta}`` for several sampling times: the true input on a
     fine grid between the samples, the tracking and the feasibility;
 ``intersample_sample``
     sampled pairs ``(z, v)`` admissible at the sample: the share whose true input stays within ``u_max`` over the
-    whole hold (what the uniform worst case ``delta`` does not say);
+    whole hold (what the uniform worst case ``Delta`` does not say);
 ``guaranteed_loop``
-    the MPC with the terminal ingredients built for ``u_max^{eps+delta}`` on the true plant: the network bound
+    the MPC with the terminal ingredients built for ``u_max^{eps+Delta}`` on the true plant: the network bound
     active or not at each step, and the true input checked densely along the exact flow between the samples.
 """
 from __future__ import annotations
@@ -38,7 +38,7 @@ __all__ = ["nominal_loop", "plan_costs", "terminal_sweep", "fallback_table", "ma
 
 
 def _stage_costs(Z: Array, V: Array, Q: Array, R: Array) -> Array:
-    """``l(z_k, v_k) = z_k'Q z_k + v_k'R v_k`` for the applied steps (regulation to the origin)."""
+    """``ell(z_k, v_k) = z_k'Q z_k + v_k'R v_k`` for the applied steps (regulation to the origin)."""
     Z, V = Z[: len(V)], np.asarray(V, float).reshape(len(V), -1)
     return np.einsum("ij,jk,ik->i", Z, Q, Z) + np.einsum("ij,jk,ik->i", V, R, V)
 
@@ -69,8 +69,8 @@ def nominal_loop(mpc: MPC, z0: Array, n_steps: int, Ad: Array, Bd: Array, z_box:
     Returns
     -------
     dict
-        ``t`` (K+1,), ``z`` (K+1, n_z), ``v`` (K, m), ``steps`` (the K step records), ``box_exit`` (bool) and
-        ``time_s``, with ``K <= n_steps`` the steps applied.
+        ``t`` (n+1,), ``z`` (n+1, n_z), ``v`` (n, m), ``steps`` (the n step records), ``box_exit`` (bool) and
+        ``time_s``, with ``n <= n_steps`` the steps applied.
     """
     Ad, Bd = np.asarray(Ad, float), np.asarray(Bd, float)
     n, m = Bd.shape
@@ -93,7 +93,8 @@ def nominal_loop(mpc: MPC, z0: Array, n_steps: int, Ad: Array, Bd: Array, z_box:
 
 
 def plan_costs(steps: Sequence, Q: Array, R: Array, P: Optional[Array] = None) -> Array:
-    """The cost of eq. (MPC_form_miqp_a) (plus ``z(N_p)'P z(N_p)``) of each step's plan, regulation to the origin.
+    """The cost of eq. (MPC_form_miqp_a) (plus ``V_f(z(N_p)) = z(N_p)' P_f z(N_p)``, ``P_f`` passed as ``P``) of each
+    step's plan, regulation to the origin.
 
     Computed from the plan itself (``z_pred``, ``v_pred``); NaN for a step without a proven optimal plan of its own
     (status other than ``"optimal"``, or a fallback).
@@ -110,7 +111,7 @@ def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSyst
     Z, V, steps = run["z"], run["v"], run["steps"]
     stage = _stage_costs(Z, V, Q, R)
     J = plan_costs(steps, Q, R, P)
-    # the Lyapunov decrease of the proof: J(z_{k+1}) <= J(z_k) - l(z_k, v_k) between consecutive optimal steps
+    # the Lyapunov decrease of the proof: J(z_{k+1}) <= J(z_k) - ell(z_k, v_k) between consecutive optimal steps
     dec = J[1:] - J[:-1] + stage[: len(J) - 1]
     ok = np.isfinite(dec)
     u = system.Phi(Z[: len(V)], V) if len(V) else np.zeros((0, system.m))
@@ -134,7 +135,8 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
     """Regulation to the origin for several ``N_p``, without and with the terminal ingredients.
 
     Without: the paper's program, eq. (MPC_form_miqp) (``P=None``, no terminal constraint). With: terminal cost
-    ``P = terminal.P`` and ``F z(N_p) <= g`` (``terminal=terminal``). Both use the terminal ingredients' ``t_s``,
+    ``P_f`` (``P=terminal.P``) and ``z(N_p) in Z_f``, ``F_inf z(N_p) <= psi f_inf``
+    (``terminal=terminal``). Both use the terminal ingredients' ``t_s``,
     ``Q``, ``R``, discretization and v-box. ``"nominal"`` runs :func:`nominal_loop`, ``"true"`` runs
     :func:`flnotes.simulate` on the true plant with ``v`` held (which stops when the state leaves the domain box).
 
@@ -144,8 +146,8 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
         ``runs[(N_p, with_terminal, plant)]``: dict with ``t``, ``z``, ``v``, ``steps``, ``objective`` (the optimal
         cost per step from its plan, :func:`plan_costs`); ``rows``: one dict per run with the number of steps applied,
         whether the run completed, the infeasible and fallback steps, the steps whose applied input was not
-        admissible, whether the state left the box, the closed-loop cost ``sum_k l(z_k, v_k)``, the final ``|z|``,
-        ``max_cost_increase`` (largest ``(J_{k+1} - J_k + l(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
+        admissible, whether the state left the box, the closed-loop cost ``sum_k ell(z_k, v_k)``, the final ``|z|``,
+        ``max_cost_increase`` (largest ``(J_{k+1} - J_k + ell(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
         steps: ``<= 0`` is the proof's Lyapunov decrease), ``decay_rate`` (``ln(|z(T/2)| / |z(T)|) / (T/2)``, per
         second, over the second half of a completed run; NaN if it stopped early), the largest true ``|u|`` at
         the samples, and the time.
@@ -199,19 +201,20 @@ def margin_study(system: FLSystem, net: ReLUNet, eps: float, ts_values: Sequence
                  reference: Callable[[Array], Array], z0: Array, horizon: Optional[int] = None,
                  lookahead: Optional[float] = None, n_fine: int = 20, drift: Optional[dict] = None,
                  **mpc_kwargs) -> tuple[dict, list[dict]]:
-    """Closed loops on the true plant (``v`` held) with ``u_max^eps`` and with ``u_max^{eps+delta(t_s)}``.
+    """Closed loops on the true plant (``v`` held) with ``u_max^eps`` and with ``u_max^{eps+Delta(t_s)}``.
 
-    For each ``t_s`` the drift ``delta(t_s)`` is certified (:func:`flnotes.intersample.intersample_drift`, or
+    For each ``t_s`` the drift ``Delta(t_s)`` is certified (:func:`flnotes.intersample.intersample_drift`, or
     taken from ``drift[t_s]``), and the MPC (``mpc_kwargs`` as in :class:`flnotes.MPC`) is run with ``eps`` and with
-    ``eps + delta`` as its ``eps``. Give exactly one of ``horizon`` (the same ``N_p`` for every ``t_s``: a shorter
+    ``eps + Delta`` as its ``eps``. Give exactly one of ``horizon`` (the same ``N_p`` for every ``t_s``: a shorter
     ``t_s`` also shortens the look-ahead) and ``lookahead`` (seconds: ``N_p = round(lookahead / t_s)``).
-    When ``eps + delta >= u_max`` no input is admissible at every instant and that run is not made (``run = False`` in its row).
+    When ``eps + Delta >= u_max`` the margin leaves no input (the sufficient condition cannot be met) and that run
+    is not made (``run = False`` in its row).
 
     Returns
     -------
     logs, rows
-        ``logs[(t_s, margin)]`` the :class:`flnotes.SimLog` s (``margin`` is ``"eps"`` or ``"eps+delta"``);
-        ``rows``: ``t_s``, ``margin``, ``delta``, the bound ``u_max - eps (- delta)``, whether the run was made and
+        ``logs[(t_s, margin)]`` the :class:`flnotes.SimLog` s (``margin`` is ``"eps"`` or ``"eps+Delta"``);
+        ``rows``: ``t_s``, ``margin``, ``Delta``, the bound ``u_max - eps (- Delta)``, whether the run was made and
         completed, the largest true ``|u|`` at the samples and on the fine grid between them (``n_fine`` points per
         interval), whether ``|u(t)| <= u_max`` held everywhere, the RMS position error over the second half, and the
         infeasible, time-limit and fallback steps.
@@ -223,9 +226,9 @@ def margin_study(system: FLSystem, net: ReLUNet, eps: float, ts_values: Sequence
     for ts in ts_values:
         ts = float(ts)
         delta = float(np.max(drift[ts].upper if drift and ts in drift else intersample_drift(system, ts).upper))
-        for label, e in (("eps", eps), ("eps+delta", eps + delta)):
+        for label, e in (("eps", eps), ("eps+Delta", eps + delta)):
             N = int(horizon) if horizon is not None else max(1, int(round(lookahead / ts)))
-            row = dict(t_s=ts, N_p=N, margin=label, delta=delta, bound=u_max - e, run=bool(e < u_max))
+            row = dict(t_s=ts, N_p=N, margin=label, Delta=delta, bound=u_max - e, run=bool(e < u_max))
             if not row["run"]:
                 rows.append(row)
                 continue
@@ -251,10 +254,10 @@ def intersample_sample(system: FLSystem, net: ReLUNet, u_bound: float, ts: float
     """Sampled pairs admissible at the sample: does the true input stay within ``u_max`` over the whole hold?
 
     ``n_samples`` uniform pairs ``(z, v)`` of the domain box are drawn (``seed``); those with
-    ``|Phi_NN(z, v)| <= u_bound`` (e.g. ``u_max^eps``) are followed along the exact flow ``z(tau)`` with ``v`` held
-    (:func:`flnotes.intersample.flow`) on ``n_tau`` equally spaced ``tau in [0, ts]``, and a pair counts as kept when
-    ``|Phi(z(tau), v)| <= u_max`` at every one of them (``Phi`` undefined along the flow counts as not kept).
-    The certified ``delta`` is a uniform worst case over the box; this is the share of pairs for which the bound holds
+    ``|Phi_NN(z, v)| <= u_bound`` (e.g. ``u_max^eps``) are followed along the exact flow ``z(vartheta)`` with ``v``
+    held (:func:`flnotes.intersample.flow`) on ``n_tau`` equally spaced ``vartheta in [0, ts]``, and a pair counts as
+    kept when ``|Phi(z(vartheta), v)| <= u_max`` at every one of them (``Phi`` undefined along the flow counts as not
+    kept). The certified ``Delta`` is a uniform worst case over the box; this is the share of pairs for which the bound holds
     over the interval anyway (a sample: a statement about these pairs, not a certificate).
 
     Returns
@@ -286,18 +289,19 @@ def intersample_sample(system: FLSystem, net: ReLUNet, u_bound: float, ts: float
 def guaranteed_loop(system: FLSystem, net: ReLUNet, eps: float, delta: float, terminal: TerminalSet, z0: Array,
                     t_final: float, horizon: int, n_fine: int = 40, n_dense: int = 201, active_tol: float = 1e-6,
                     **mpc_kwargs) -> tuple:
-    """The MPC with ``u_max^{eps+delta}`` and the terminal ingredients built for it, on the true plant (``v`` held).
+    """The MPC with ``u_max^{eps+Delta}`` and the terminal ingredients built for it, on the true plant (``v`` held).
 
-    ``terminal`` must be :func:`flnotes.terminal_set` for ``eps + delta`` (its ``u_eps`` is checked), so that
-    the theorem's hypotheses hold with the margin: then every step has a plan, ``|Phi_NN(z_k, v_k)| <=
-    u_max^{eps+delta}`` at the samples, and ``|u(t)| <= u_max`` between them. The true input is checked twice
+    ``delta`` is the certified drift ``Delta(t_s)``. ``terminal`` must be :func:`flnotes.terminal_set` for
+    ``eps + Delta`` (its ``u_eps`` is checked), so that the theorem's hypotheses hold with the margin: then, from a
+    start in ``X_{N_p}``, every step has a plan, ``|Phi_NN(z_k, v_k)| <= u_max^{eps+Delta}`` at the samples, and
+    ``|u(t)| <= u_max`` between them. The true input is checked twice
     between the samples: on the simulator's ``n_fine`` points per interval, and on ``n_dense`` points of the
-    exact flow ``z(t_k + tau)`` from each sampled state with ``v_k`` held (:func:`flnotes.intersample.flow`).
+    exact flow ``z(t_k + vartheta)`` from each sampled state with ``v_k`` held (:func:`flnotes.intersample.flow`).
 
     Returns
     -------
     log, row
-        The :class:`flnotes.SimLog` and a dict: ``bound`` (``u_max^{eps+delta}``), ``max_abs_phi_nn`` at the samples,
+        The :class:`flnotes.SimLog` and a dict: ``bound`` (``u_max^{eps+Delta}``), ``max_abs_phi_nn`` at the samples,
         ``active_steps`` (steps with ``|Phi_NN| >= bound - active_tol``: the network bound is active),
         ``statuses`` (count per status), ``fallback``, ``max_abs_u_between`` (the larger of the two checks),
         ``within_u_max``, ``final_norm_z``, ``mean_ms``, ``max_ms``.
@@ -306,8 +310,8 @@ def guaranteed_loop(system: FLSystem, net: ReLUNet, eps: float, delta: float, te
         raise TypeError(f"terminal must be a flnotes.terminal.TerminalSet, got {type(terminal).__name__}")
     u_max, e = system.u_max, eps + delta
     if not np.allclose(terminal.u_eps, u_max - e, rtol=0, atol=1e-12):
-        raise ValueError(f"terminal was built for u_max^eps = {terminal.u_eps}, not for u_max - eps - delta = "
-                         f"{u_max - e}: pass the terminal_set built with eps + delta")
+        raise ValueError(f"terminal was built for u_max^eps = {terminal.u_eps}, not for u_max - eps - Delta = "
+                         f"{u_max - e}: pass the terminal_set built with eps + Delta (eps + delta)")
     mpc = MPC(system, net, e, horizon=int(horizon), ts=terminal.ts, Q=terminal.Q, R=terminal.R, P=terminal.P,
               terminal=terminal, discretization=terminal.discretization, v_box=(terminal.v_lo, terminal.v_hi),
               **mpc_kwargs)
@@ -323,7 +327,7 @@ def guaranteed_loop(system: FLSystem, net: ReLUNet, eps: float, delta: float, te
     bound = float(np.max(u_max - e))
     phi_nn = np.abs(np.asarray(log.u_nn, float)).max(axis=1)
     st = list(log.status)
-    row = dict(t_s=terminal.ts, N_p=int(horizon), eps=float(eps), delta=float(delta), bound=bound, steps=K,
+    row = dict(t_s=terminal.ts, N_p=int(horizon), eps=float(eps), Delta=float(delta), bound=bound, steps=K,
                completed=log.message == "", max_abs_phi_nn=float(phi_nn.max()),
                active_steps=int(np.sum(phi_nn >= bound - active_tol)),
                statuses={s: st.count(s) for s in sorted(set(st))}, fallback=int(np.sum(log.fallback)),

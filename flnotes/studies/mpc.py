@@ -166,7 +166,7 @@ def shifted_plans(log, mpc: "MPC") -> dict:
     At every step ``k`` whose own plan passed the check (``info["plan_feasible"]``,
     no fallback), a fresh clone of ``mpc`` is given that plan as its previous one
     and builds :meth:`flnotes.MPC.shifted_plan` at the measured ``z_{k+1}``
-    (the last input extended: ``K z(N_p)`` with a terminal set, else
+    (the last input extended: ``K_f z(N_p)`` with a terminal set, else
     :meth:`flnotes.MPC.feasible_tail`); :meth:`flnotes.MPC.plan_feasible` then checks
     it against eq. (MPC_form_miqp_b)-(d) (and the terminal rows, if any).
 

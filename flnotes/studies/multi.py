@@ -26,7 +26,7 @@ Array = np.ndarray
 __all__ = ["identity_residual", "ARM_CLF_CBF", "ARM_MPC", "shipped_network", "sampled_error", "arm_clf_cbf", "comparison_states",
            "exact_vs_mip", "nominal_run", "obstacle_run", "torque_checks", "setpoint_reference", "mpc_run"]
 
-#: The CLF-CBF setting of the chapter: CLF ``z^T P z``, nominal law ``k(z) = -K z``, a disc obstacle of radius
+#: The CLF-CBF setting of the chapter: CLF ``z^T P z``, nominal law ``k(z) = -K_nominal z``, a disc obstacle of radius
 #: ``radius`` (m) at ``center`` in the workspace kept away from the second link (``n_points`` barriers, gain ``k1``),
 #: the start ``z0``, sampling time ``ts`` and length ``t_final`` (s).
 ARM_CLF_CBF = dict(
@@ -209,7 +209,7 @@ def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip
 
 
 def nominal_run(system: FLSystem, setting: Optional[dict] = None) -> SimLog:
-    """The nominal law ``k(z) = -K z`` (clipped to the ``v``-box) alone on the true plant, from the chapter's start."""
+    """The nominal law ``k(z) = -K_nominal z`` (clipped to the ``v``-box) alone on the true plant, from the chapter's start."""
     S = dict(ARM_CLF_CBF, **(setting or {}))
     K, lo, hi = S["K"], system.lo[system.n_z:], system.hi[system.n_z:]
     return simulate(system, lambda z: np.clip(-K @ z, lo, hi), t_final=S["t_final"], ts=S["ts"], z0=S["z0"],
