@@ -45,6 +45,8 @@ def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
         pso = pso_max_error(sysm, net, **paper.EPS_SETTINGS["pso"])
         br = paper.paper_eps(name)
         n_s = "x".join(str(k) for k in rep.n_per_axis) if len(set(rep.n_per_axis)) > 1 else str(rep.n_per_axis[0])
+        if rep.n_train < rep.n_grid:  # trained on a fixed random subset of the grid (chapter 2)
+            n_s += f" ({rep.n_train // 1000}k subset)" if rep.n_train % 1000 == 0 else f" ({rep.n_train:,} subset)"
         rows.append({"system": name, "source": "flnotes", "K": net.K, "n_bar": net.widths[0], "n_s": n_s,
                      "eps (PSO)": round(float(pso.eps[0]), 5),
                      "eps certified": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
