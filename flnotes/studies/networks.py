@@ -173,7 +173,7 @@ def write_sweep(name: str = "MSD", folder=None, workers: Optional[int] = None, c
 
 
 def fresh_vs_shipped(names: Sequence[str] = ("MSD", "Quad-1D"), **overrides) -> list[dict]:
-    """Train the book's networks anew on this machine and compare them with the shipped ones (chapter 2).
+    """Train the book's networks anew on this machine and compare them with the shipped ones (the benchmark report).
 
     For each system one row for the shipped reference and one for a network
     trained now with the same settings (``overrides`` change them, e.g. fewer
