@@ -37,7 +37,7 @@ from .systems import FLSystem
 
 Array = np.ndarray
 
-__all__ = ["ErrorEstimate", "ErrorBracket", "NotCertifiable", "pso_max_error", "sample_max_error",
+__all__ = ["ErrorEstimate", "ErrorBracket", "NotCertifiable", "pso_max_error", "pso_moves", "sample_max_error",
            "grid_max_error", "de_max_error", "certify_error", "error_function", "worst_violation", "local_max_error",
            "enclosure_widths"]
 
@@ -205,7 +205,7 @@ def _best(X: Array, E: Array) -> tuple[Array, Array]:
 # ============================================================================ estimates
 def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n_particles: int = 100,
                   n_iter: int = 300, seed: int = 0, inertia: float = 0.7298, c_cognitive: float = 1.49618,
-                  c_social: float = 1.49618, v_max: float = 0.2, record: bool = False, restarts: int = 1,
+                  c_social: float = 1.49618, nu_max: float = 0.2, record: bool = False, restarts: int = 1,
                   workers: Optional[int] = None, client=None) -> ErrorEstimate:
     """Particle swarm search for ``max |Phi_i - Phi_NN,i|`` over a box (Sec. III-A.3, eq. epsilon_find).
 
@@ -230,10 +230,10 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     seed
         Seed of the initial swarm and of the random pulls.
     inertia, c_cognitive, c_social
-        The velocity update ``w v + c1 r1 (p_best - x) + c2 r2 (g_best - x)``;
+        ``c_0, c_1, c_2`` of the velocity update of :func:`pso_moves` (eq. (5.4) of the book);
         the defaults are Clerc's constriction values, a standard stable choice.
-    v_max
-        Largest step per move, as a fraction of the box size.
+    nu_max
+        Largest velocity component per move, ``nu_max (hi - lo)``: a fraction of the box size.
     record
         Keep the particle positions of every iteration (for output 0), for
         :func:`flnotes.plots.pso_swarm`.
@@ -261,7 +261,7 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     if restarts > 1:
         t0 = time.perf_counter()
         opts = dict(n_particles=n_particles, n_iter=n_iter, inertia=inertia, c_cognitive=c_cognitive,
-                    c_social=c_social, v_max=v_max, record=record)
+                    c_social=c_social, nu_max=nu_max, record=record)
         seeds = task_seeds(seed, restarts)
         with using(workers, client) as ex:
             runs = ex.map(partial(_pso_restart, f, net, lo, hi, opts), seeds)
@@ -278,41 +278,52 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     n, m = net.n_in, net.n_out
-    step_max = v_max * (hi - lo)
     eps, argmax, history = np.zeros(m), np.zeros((m, n)), np.zeros((m, n_iter + 1))
+    swarm = swarm_best = None
     for i in range(m):  # one swarm per output: eq. (epsilon_find) is a separate maximization for each i
 
-        def cost(X: Array) -> Array:
+        def cost(X: Array, i: int = i) -> Array:
             return np.abs(fun(X)[:, i] - net(X)[:, i])
 
-        x = rng.uniform(lo, hi, (n_particles, n))                   # positions
-        vel = rng.uniform(-1.0, 1.0, (n_particles, n)) * step_max   # velocities
-        p_best, p_cost = x.copy(), cost(x)                          # each particle's best so far
-        g = p_cost.argmax()
-        g_best, g_cost = p_best[g].copy(), p_cost[g]                # the swarm's best so far
-        history[i, 0] = g_cost
-        trail = [(x.copy(), g_best.copy())] if (record and i == 0) else None
-        for k in range(n_iter):
-            r1, r2 = rng.random((2, n_particles, n))
-            vel = inertia * vel + c_cognitive * r1 * (p_best - x) + c_social * r2 * (g_best - x)
-            vel = np.clip(vel, -step_max, step_max)
-            x = np.clip(x + vel, lo, hi)                            # stay inside the box Z
-            c = cost(x)
-            better = c > p_cost
-            p_best[better], p_cost[better] = x[better], c[better]
-            g = p_cost.argmax()
-            if p_cost[g] > g_cost:
-                g_best, g_cost = p_best[g].copy(), p_cost[g]
-            history[i, k + 1] = g_cost
-            if trail is not None:
-                trail.append((x.copy(), g_best.copy()))
-        eps[i], argmax[i] = g_cost, g_best
+        trail = [] if (record and i == 0) else None
+        argmax[i], eps[i], history[i] = pso_moves(cost, lo, hi, n_particles, n_iter, rng, inertia, c_cognitive,
+                                                  c_social, nu_max, trail)
         if trail is not None:
             swarm, swarm_best = np.array([t[0] for t in trail]), np.array([t[1] for t in trail])
     return ErrorEstimate("pso", eps, argmax, m * n_particles * (n_iter + 1), time.perf_counter() - t0, history,
                          dict(n_particles=n_particles, n_iter=n_iter, seed=seed, inertia=inertia,
-                              c_cognitive=c_cognitive, c_social=c_social, v_max=v_max),
-                         swarm if record else None, swarm_best if record else None)
+                              c_cognitive=c_cognitive, c_social=c_social, nu_max=nu_max),
+                         swarm, swarm_best)
+
+
+def pso_moves(cost, lo: Array, hi: Array, n_particles: int, n_iter: int, rng: np.random.Generator,
+              c0: float, c1: float, c2: float, nu_max: float, trail: Optional[list] = None):
+    """The particle swarm of eq. (5.4): maximize ``cost`` over the box ``[lo, hi]``.
+
+    Returns the best point, its cost and the best cost after each move (``n_iter + 1``,
+    start included). ``trail``, if a list, receives ``(positions, best point)`` per move.
+    """
+    nu_bound = nu_max * (hi - lo)                                   # |nu| <= nu_max, per axis
+    w = rng.uniform(lo, hi, (n_particles, len(lo)))                 # positions w_p
+    nu = rng.uniform(-1.0, 1.0, w.shape) * nu_bound                 # velocities nu_p
+    w_own, c_own = w.copy(), cost(w)                                # each particle's best point, hat w_p
+    w_best, c_best = w_own[c_own.argmax()].copy(), c_own.max()      # the swarm's best point, hat w
+    history = [c_best]
+    if trail is not None:
+        trail.append((w.copy(), w_best.copy()))
+    for _ in range(n_iter):
+        xi1, xi2 = rng.random((2, *w.shape))
+        nu = np.clip(c0 * nu + c1 * xi1 * (w_own - w) + c2 * xi2 * (w_best - w), -nu_bound, nu_bound)
+        w = np.clip(w + nu, lo, hi)                                 # stay inside the box Z
+        c = cost(w)
+        better = c > c_own
+        w_own[better], c_own[better] = w[better], c[better]
+        if c_own.max() > c_best:
+            w_best, c_best = w_own[c_own.argmax()].copy(), c_own.max()
+        history.append(c_best)
+        if trail is not None:
+            trail.append((w.copy(), w_best.copy()))
+    return w_best, c_best, np.array(history)
 
 
 def _pso_restart(f, net: ReLUNet, lo: Array, hi: Array, opts: dict, seed: int) -> ErrorEstimate:

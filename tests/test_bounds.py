@@ -126,3 +126,19 @@ def test_bad_boxes_raise():
         fl.fbbt(net, np.zeros((2, 3)), np.ones((3, 3)))
     with pytest.raises(ValueError, match="NaN"):
         fl.fbbt(net, np.array([0.0, np.nan, 0.0]), np.ones(3))
+
+
+def test_exact_preactivation_range_is_the_true_range_and_within_fbbt():
+    """Chapter 4's exact ranges: a hand network whose ranges are known, and a random one against samples and FBBT."""
+    absnet = fl.ReLUNet([np.array([[1.0], [-1.0]]), np.array([[1.0, 1.0]])], [np.zeros(2), np.zeros(1)])
+    L, U = fl.studies.exact_preactivation_range(absnet, np.array([-2.0]), np.array([3.0]))
+    assert np.allclose(L, [-2.0, -3.0]) and np.allclose(U, [3.0, 2.0])
+    net = _random_net(2, (6, 5), seed=4)
+    lo, hi = np.array([-1.0, -2.0]), np.array([1.5, 1.0])
+    L, U = fl.studies.exact_preactivation_range(net, lo, hi, layer=-1, neurons=[0, 2, 4])
+    pre = fl.sample_preactivations(net, lo, hi, n=50_000)[-1][:, [0, 2, 4]]
+    b = fl.fbbt(net, lo, hi)
+    assert np.all(L <= pre.min(0) + 1e-7) and np.all(U >= pre.max(0) - 1e-7), "the exact range holds every sample"
+    assert np.all(L >= b.L[-1][[0, 2, 4]] - 1e-7) and np.all(U <= b.U[-1][[0, 2, 4]] + 1e-7), "and lies within FBBT"
+    with pytest.raises(ValueError, match="neurons must be indices"):
+        fl.studies.exact_preactivation_range(net, lo, hi, neurons=[5])

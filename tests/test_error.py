@@ -244,3 +244,16 @@ def test_singular_phi_is_not_certifiable():
     lo[2], hi[2] = -12.0, 12.0  # |zeta| reaches 1 (90 degrees of pitch): Phi is undefined there
     with pytest.raises(NotCertifiable, match="arcsin|sqrt"):
         certify_error(q, net, lo, hi)
+
+
+def test_pso_moves_respect_the_velocity_clip_and_the_box():
+    """eq. (5.4) of the book: every move is at most nu_max (hi - lo) per axis and stays in the box."""
+    lo, hi = np.array([-1.0, 0.0]), np.array([1.0, 4.0])
+    trail: list = []
+    w_best, c_best, history = fl.error.pso_moves(lambda W: -np.sum((W - [0.3, 3.9]) ** 2, axis=1), lo, hi, 12, 40,
+                                                 np.random.default_rng(0), 0.7298, 1.49618, 1.49618, 0.05, trail)
+    W = np.array([t[0] for t in trail])                                   # (n_iter + 1, particles, 2)
+    assert W.shape == (41, 12, 2) and np.all((W >= lo) & (W <= hi))
+    assert np.all(np.abs(np.diff(W, axis=0)) <= 0.05 * (hi - lo) + 1e-15), "a move is larger than the velocity clip"
+    assert np.all(np.diff(history) >= 0) and history[-1] == c_best, "the swarm's best never gets worse"
+    assert np.isclose(c_best, -np.sum((w_best - [0.3, 3.9]) ** 2))

@@ -7,7 +7,7 @@ chapter shows. They are the only part of the package, with the benchmarks,
 that imports :mod:`flnotes.paper`.
 
 ``networks``
-    chapters 2 and 5: fresh against shipped networks, Table 1, sweeps over architectures;
+    chapters 2, 4 and 5: fresh against shipped networks, exact node ranges, Table 1, sweeps over architectures;
 ``clfcbf``
     chapter 6: checks of a CLF-CBF run, Table 2's rows, the exact method against a back-end;
 ``mpc``
@@ -34,11 +34,11 @@ from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, shifted_plans,
                   table2, tracking_error)
-from .networks import (architecture_sweep, book_sweep, estimates_table, fresh_vs_shipped, table1_rows,
-                       width_experiment, write_sweep)
+from .networks import (architecture_sweep, book_sweep, estimates_table, exact_preactivation_range, fresh_vs_shipped,
+                       table1_rows, width_experiment, write_sweep)
 
 __all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "unseen", "architecture_sweep", "book_sweep",
-           "estimates_table",
+           "estimates_table", "exact_preactivation_range",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",
            "sampled_clf_decrease", "largest_change_within_sample", "cbf_failure_set_bounded",

@@ -1,4 +1,4 @@
-"""Studies of chapters 2 and 5: the book's networks against fresh ones, Table 1, sweeps over architectures.
+"""Studies of chapters 2, 4 and 5: the book's networks against fresh ones, exact node ranges, Table 1, sweeps.
 
 These functions produce the chapters' tables; they train and certify many
 networks, so their results for the book's settings ship as reference data
@@ -25,7 +25,7 @@ from ..systems import FLSystem
 Array = np.ndarray
 
 __all__ = ["table1_rows", "architecture_sweep", "book_sweep", "write_sweep", "fresh_vs_shipped",
-           "width_experiment", "estimates_table"]
+           "width_experiment", "estimates_table", "exact_preactivation_range"]
 
 
 def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
@@ -45,6 +45,8 @@ def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
         pso = pso_max_error(sysm, net, **paper.EPS_SETTINGS["pso"])
         br = paper.paper_eps(name)
         n_s = "x".join(str(k) for k in rep.n_per_axis) if len(set(rep.n_per_axis)) > 1 else str(rep.n_per_axis[0])
+        if rep.n_train < rep.n_grid:  # trained on a fixed random subset of the grid (chapter 2)
+            n_s += f" ({rep.n_train // 1000}k subset)" if rep.n_train % 1000 == 0 else f" ({rep.n_train:,} subset)"
         rows.append({"system": name, "source": "flnotes", "K": net.K, "n_bar": net.widths[0], "n_s": n_s,
                      "eps (PSO)": round(float(pso.eps[0]), 5),
                      "eps certified": f"[{br.lower[0]:.5f}, {br.upper[0]:.5f}]",
@@ -171,7 +173,7 @@ def write_sweep(name: str = "MSD", folder=None, workers: Optional[int] = None, c
 
 
 def fresh_vs_shipped(names: Sequence[str] = ("MSD", "Quad-1D"), **overrides) -> list[dict]:
-    """Train the book's networks anew on this machine and compare them with the shipped ones (chapter 2).
+    """Train the book's networks anew on this machine and compare them with the shipped ones (the benchmark report).
 
     For each system one row for the shipped reference and one for a network
     trained now with the same settings (``overrides`` change them, e.g. fewer
@@ -230,3 +232,45 @@ def width_experiment(system: FLSystem, n_bars: Sequence[int] = (5, 10, 20, 30), 
                          sample_max_error=float(sample_max_error(system, net, n=n_test, seed=seed + 1).eps[0]),
                          time_s=rep.time_s))
     return rows
+
+
+def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
+                              neurons: Optional[Sequence[int]] = None) -> tuple[Array, Array]:
+    """The exact range of every pre-activation of one hidden layer over the box ``[lo, hi]`` (chapter 4).
+
+    Minimizes and maximizes each pre-activation ``(W^k y^{k-1} + b^k)_j`` of hidden layer ``layer``
+    over the big-M program of eq. (MIP_general) with FBBT bounds and the input box, with HiGHS:
+    two mixed-integer programs per neuron, each solved to optimality (an error otherwise).
+    ``neurons`` selects some neurons of the layer (all by default).
+
+    Returns
+    -------
+    L, U
+        The smallest and largest pre-activation of each selected neuron, shape (len(neurons),).
+    """
+    import cvxpy as cp
+
+    from ..bounds import fbbt
+    from ..encoding import encode
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    if lo.shape != (net.n_in,) or hi.shape != (net.n_in,):
+        raise ValueError(f"lo and hi must have shape ({net.n_in},), got {lo.shape} and {hi.shape}")
+    x = cp.Variable(net.n_in)
+    enc = encode(net, x, fbbt(net, lo, hi))
+    pre = enc.ybar[layer] - enc.yund[layer]
+    n_k = pre.shape[0]
+    neurons = list(range(n_k)) if neurons is None else [int(j) for j in neurons]
+    if not neurons or min(neurons) < 0 or max(neurons) >= n_k:
+        raise ValueError(f"neurons must be indices of the layer's {n_k} neurons, got {neurons}")
+    c = cp.Parameter(n_k)
+    prob = cp.Problem(cp.Maximize(c @ pre), enc.constraints + [x >= lo, x <= hi])
+    L, U = np.empty(len(neurons)), np.empty(len(neurons))
+    for i, j in enumerate(neurons):
+        for sign, out in ((1.0, U), (-1.0, L)):
+            c.value = sign * np.eye(n_k)[j]
+            prob.solve(solver="HIGHS")
+            if prob.status != "optimal":
+                raise RuntimeError(f"neuron {j}: HiGHS returned {prob.status!r}, not an optimum")
+            out[i] = sign * prob.value
+    return L, U
