@@ -15,13 +15,13 @@ constraint ``z(N_p) in Z_f`` such that, with a local law ``v = K z``,
 Here ``K`` and ``P`` are the LQR gain and the solution of the discrete algebraic
 Riccati equation of the Brunovsky model ``(A_d, B_d)`` (eq. MPC_form_miqp_c) with
 the stage weights ``l(z, v) = z'Qz + v'Rv``, so A4 holds with equality. ``Z_f``
-is a polytope ``{z : F z <= alpha g}`` (the MPC stays a mixed-integer QP with
+is a polytope ``{z : F z <= psi g}`` (the MPC stays a mixed-integer QP with
 linear constraints): ``{F z <= g}`` is the maximal output-admissible set of
 ``z+ = (A_d + B_d K) z`` for the boxes (Gilbert & Tan 1991), which gives A1 and A3
-and the v-box part of A2 for every level ``alpha in (0, 1]``; the level ``alpha``
+and the v-box part of A2 for every level ``psi in (0, 1]``; the level ``psi``
 is the largest for which the network part of A2 is **proved by a mixed-integer
 program** over the network, the big-M encoding of eq. (MIP_general): the maximum
-of ``+-Phi_NN(z, K z)`` over ``alpha {F z <= g}`` is at most ``u_max^eps``.
+of ``+-Phi_NN(z, K z)`` over ``psi {F z <= g}`` is at most ``u_max^eps``.
 
 With these ingredients the MPC is recursively feasible and its nominal closed
 loop asymptotically stable (Mayne et al. 2000, Thm. 1): if ``(v(0), ..., v(N_p-1))``
@@ -339,19 +339,19 @@ class TerminalSet:
     F, g
         The maximal output-admissible set ``O_inf = {F z <= g}`` of ``A_d + B_d K``
         for the state box and the v-box (:func:`max_admissible_set`).
-    alpha
-        The level: ``Z_f = alpha O_inf = {F z <= alpha g}``, the largest in
+    psi
+        The level (the book's psi): ``Z_f = psi O_inf = {F z <= psi g}``, the largest in
         ``(0, 1]`` (within ``tol``) for which the MILP proves
         ``max_{Z_f} |Phi_NN(z, K z)| <= u_max^eps``.
     u_eps
         ``u_max^eps = u_max - eps`` (eq. Phi_NN_ep), shape (m,).
     certificate
-        The :class:`NetworkMax` at ``alpha``: ``upper <= u_eps`` is the proof.
+        The :class:`NetworkMax` at ``psi``: ``upper <= u_eps`` is the proof.
     failed
         The :class:`NetworkMax` at the smallest level tried that failed
-        (``None`` when ``alpha = 1``): ``upper > u_eps`` for some output there.
-    alpha_failed
-        That level (``alpha < alpha_failed <= alpha (1 + tol)``), or ``None``.
+        (``None`` when ``psi = 1``): ``upper > u_eps`` for some output there.
+    psi_failed
+        That level (``psi < psi_failed <= psi (1 + tol)``), or ``None``.
     history
         One row per level tried, in order: ``(level, upper, lower, passed)`` with ``upper``, ``lower`` the
         largest over the outputs of :class:`NetworkMax`'s bounds on ``max |Phi_NN(z, K z)|`` over that
@@ -361,7 +361,7 @@ class TerminalSet:
     Ad, Bd, Q, R, ts, z_lo, z_hi, v_lo, v_hi
         The model, weights and boxes it was built for.
     tol
-        Relative tolerance of the bisection on ``alpha``.
+        Relative tolerance of the bisection on ``psi``.
     discretization
         How ``(A_d, B_d)`` was computed (``"rk4"`` or ``"exact"``).
     time_s
@@ -372,11 +372,11 @@ class TerminalSet:
     P: Array
     F: Array
     g: Array
-    alpha: float
+    psi: float
     u_eps: Array
     certificate: NetworkMax
     failed: Optional[NetworkMax]
-    alpha_failed: Optional[float]
+    psi_failed: Optional[float]
     history: list
     t_star: int
     Ad: Array
@@ -398,13 +398,13 @@ class TerminalSet:
         return self.Ad + self.Bd @ self.K
 
     def constraint(self) -> tuple[Array, Array]:
-        """``(F_f, g_f)`` of the terminal constraint ``F_f z(N_p) <= g_f``, i.e. ``F z <= alpha g``."""
-        return self.F.copy(), self.alpha * self.g
+        """``(F_f, g_f)`` of the terminal constraint ``F_f z(N_p) <= g_f``, i.e. ``F z <= psi g``."""
+        return self.F.copy(), self.psi * self.g
 
     def contains(self, z: Array, tol: float = 1e-9) -> Array:
-        """Boolean mask: is ``z`` (n_z,) or (N, n_z) in ``Z_f = {F z <= alpha g}``?"""
+        """Boolean mask: is ``z`` (n_z,) or (N, n_z) in ``Z_f = {F z <= psi g}``?"""
         Z = as_batch(z, self.F.shape[1], "z")
-        return np.all(Z @ self.F.T <= self.alpha * self.g + tol, axis=1)
+        return np.all(Z @ self.F.T <= self.psi * self.g + tol, axis=1)
 
     def terminal_cost(self, z: Array) -> Array:
         """``V_f(z) = z' P z``, for (n_z,) or (N, n_z)."""
@@ -413,7 +413,7 @@ class TerminalSet:
 
     def sample(self, n: int, seed: int = 0) -> Array:
         """``n`` uniform points of ``Z_f`` (rejection sampling in its bounding box)."""
-        lo, hi = _bounding_box(self.F, self.alpha * self.g)
+        lo, hi = _bounding_box(self.F, self.psi * self.g)
         rng = np.random.default_rng(seed)
         out, got = [], 0
         while got < n:
@@ -424,7 +424,7 @@ class TerminalSet:
         return np.vstack(out)[:n]
 
     def summary(self) -> str:
-        return (f"terminal set: {len(self.g)} faces (t* = {self.t_star}), alpha = {self.alpha:.4g}; "
+        return (f"terminal set: {len(self.g)} faces (t* = {self.t_star}), psi = {self.psi:.4g}; "
                 f"max |Phi_NN(z, Kz)| on Z_f in [{self.certificate.lower.max():.5g}, {self.certificate.upper.max():.5g}] "
                 f"<= u_max^eps = {self.u_eps.max():.5g}; {len(self.history)} MILP pairs, {self.time_s:.2f} s")
 
@@ -440,12 +440,12 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     1. ``K``, ``P`` from the Riccati equation of ``(A_d, B_d)`` with ``Q``, ``R`` (:func:`lqr`, A4);
     2. ``O_inf = {F z <= g}``, the maximal output-admissible set of ``A_d + B_d K``
        for ``z in X_z`` and ``v_lo <= K z <= v_hi`` (:func:`max_admissible_set`,
-       A1, A3 and the box part of A2); every ``alpha O_inf`` with ``alpha in (0, 1]``
+       A1, A3 and the box part of A2); every ``psi O_inf`` with ``psi in (0, 1]``
        keeps these properties (a linear map and a convex set containing 0);
     3. the network part of A2, ``|Phi_NN(z, K z)| <= u_max^eps`` (eq. MPC_form_miqp_b),
-       is proved on ``alpha O_inf`` by MILPs (:func:`network_max`), and the largest
-       such ``alpha`` is found by bisection: the sets are nested, so the
-       maximum is non-decreasing in ``alpha``. The bisection stops when the
+       is proved on ``psi O_inf`` by MILPs (:func:`network_max`), and the largest
+       such ``psi`` is found by bisection: the sets are nested, so the
+       maximum is non-decreasing in ``psi``. The bisection stops when the
        smallest failing level is within a factor ``1 + tol`` of the largest passing one.
 
     Parameters
@@ -467,7 +467,7 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     z_box, v_box
         ``(lo, hi)`` of the state box ``X_z`` and of ``v``; default the network's domain box.
     tol
-        Relative tolerance of the bisection on ``alpha``.
+        Relative tolerance of the bisection on ``psi``.
 
     Returns
     -------
@@ -522,7 +522,7 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     ok, cert = check(1.0)
     failed, a_fail = None, None
     if ok:
-        alpha, best = 1.0, cert
+        psi, best = 1.0, cert
     else:
         lo, hi, best, failed = 0.0, 1.0, None, cert
         for _ in range(max_bisections):
@@ -535,11 +535,11 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
             else:
                 hi, failed = mid, c
         else:
-            raise RuntimeError(f"the bisection on alpha did not reach tol = {tol} in {max_bisections} steps "
-                               f"(alpha in [{lo:.3g}, {hi:.3g}])")
-        alpha, a_fail = lo, hi
-    return TerminalSet(K=K, P=P, F=F, g=g, alpha=alpha, u_eps=u_eps, certificate=best, failed=failed,
-                       alpha_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd,
+            raise RuntimeError(f"the bisection on psi did not reach tol = {tol} in {max_bisections} steps "
+                               f"(psi in [{lo:.3g}, {hi:.3g}])")
+        psi, a_fail = lo, hi
+    return TerminalSet(K=K, P=P, F=F, g=g, psi=psi, u_eps=u_eps, certificate=best, failed=failed,
+                       psi_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd,
                        Q=weight_matrix(Q, n, "Q"), R=weight_matrix(R, m, "R", definite=True), ts=float(ts),
                        z_lo=z_lo, z_hi=z_hi, v_lo=v_lo, v_hi=v_hi, tol=tol,
                        discretization=discretization, time_s=time.perf_counter() - t0)
