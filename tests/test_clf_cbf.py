@@ -361,3 +361,15 @@ def test_auto_backend_and_clear_errors(msd):
         ClfCbfController(sysm, net, 6.0, V, H, k)
     with pytest.raises(ValueError, match="cost must be"):
         ClfCbfController(sysm, net, EPS, V, H, k, cost="cubic")
+
+
+def test_highs_alone_check_compares_one_highs_solve_with_the_exact_method(msd):
+    """The chapter's check of a single HiGHS solve: never better than the exact optimum, MILP only."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend="scip")
+    Z = np.array([[1.0, -2.0], [0.257, 0.0156], [-1.0, 2.0]])
+    r = fl.studies.highs_alone_check(ctrl, Z)
+    assert r["states"] == 3 and 0 <= r["wrong"] <= 3 and r["min_gap"] >= -1e-6
+    with pytest.raises(ValueError, match="no mixed-integer QP"):
+        fl.studies.highs_alone_check(ctrl.with_backend("scip", cost="quadratic"), Z)
