@@ -330,27 +330,30 @@ def highs_alone_check(controller: ClfCbfController, Z: Array, tol: float = 1e-6)
     Returns
     -------
     dict
-        ``states``; ``wrong`` (states where the statuses differ or the optimal values differ by more
-        than ``tol`` relative, ``|J - J_exact| / max(1, |J_exact|)``); ``min_gap`` (the smallest
-        signed relative gap ``(J - J_exact) / max(1, |J_exact|)`` over the states both solved:
-        negative would mean HiGHS beat the exact optimum); and at the worst state ``worst_z``,
-        ``worst_highs``, ``worst_exact`` (optimal values) and ``worst_gap``.
+        ``states``; ``wrong_value`` (states where both report ``"optimal"`` but the optimal values
+        differ by more than ``tol`` relative, ``|J - J_exact| / max(1, |J_exact|)``);
+        ``wrong_status`` (states where the statuses differ) and ``status_pairs`` (their
+        ``(HiGHS, exact)`` status pairs, counted); ``min_gap`` (the smallest signed relative gap
+        ``(J - J_exact) / max(1, |J_exact|)`` where both are optimal: negative would mean HiGHS beat
+        the exact optimum); and at the largest gap, ``worst_z``, ``worst_highs``, ``worst_exact``
+        (optimal values) and ``worst_gap`` (``None`` and NaN when no value is wrong).
     """
     if controller.cost != "linear":
         raise ValueError(f"HiGHS has no mixed-integer QP solver: give the linear-cost controller, got cost={controller.cost!r}")
     Z = np.atleast_2d(np.asarray(Z, float))
     hi = controller.with_backend("highs", screening=False, solver_options=dict(cross_check=False))
     ex = controller.with_backend("exact")
-    wrong, gaps, worst = 0, [], (None, np.nan, np.nan, -np.inf)
+    gaps, pairs, worst = [], {}, (None, np.nan, np.nan, np.nan)
     for z in Z:
         r, rx = hi.step(z), ex.step(z)
-        both = r.status == rx.status == "optimal"
-        gap = (r.objective - rx.objective) / max(1.0, abs(rx.objective)) if both else np.inf
-        if both:
+        if r.status != rx.status:
+            pairs[(r.status, rx.status)] = pairs.get((r.status, rx.status), 0) + 1
+        elif r.status == "optimal":
+            gap = (r.objective - rx.objective) / max(1.0, abs(rx.objective))
             gaps.append(gap)
-        if r.status != rx.status or abs(gap) > tol:
-            wrong += 1
-            if gap > worst[3]:
+            if gap > tol and not gap <= worst[3]:
                 worst = (z.copy(), float(r.objective), float(rx.objective), float(gap))
-    return dict(states=int(len(Z)), wrong=int(wrong), min_gap=float(min(gaps)) if gaps else np.nan,
+    gaps = np.array(gaps)
+    return dict(states=int(len(Z)), wrong_value=int(np.sum(np.abs(gaps) > tol)), wrong_status=int(sum(pairs.values())),
+                status_pairs=pairs, min_gap=float(gaps.min()) if len(gaps) else np.nan,
                 worst_z=worst[0], worst_highs=worst[1], worst_exact=worst[2], worst_gap=worst[3])
