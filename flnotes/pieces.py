@@ -708,11 +708,10 @@ def compare_exact_mip(exact: Any, mip: Any, Z: Array, boundary_tol: float = 1e-7
         An optimum counts as on the network's bound when ``min_i | |Phi_NN,i| - u_max^eps_i | <= boundary_tol``.
     fresh
         Solve each state with a new copy of ``mip`` (``mip.with_backend(mip.backend)``, built
-        outside the timed step). A persistent MIP model tightens ``u_max^eps`` by a small
-        margin whenever its solver's tolerance lets a point through the forward-pass check, and
-        keeps that margin for the states that follow; over a long sequence of unrelated states
-        its optima then belong to a slightly smaller program. A fresh model per state
-        solves the program itself.
+        outside the timed step) instead of one persistent model updated in place. The program
+        solved is the same either way: the small margin by which a MIP back-end tightens
+        ``u_max^eps`` when its solver's tolerance lets a point through the forward-pass check is
+        reset at every solve, so no state's answer depends on the states before it.
 
     Returns
     -------

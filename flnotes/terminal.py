@@ -24,8 +24,7 @@ program** over the network, the big-M encoding of eq. (MIP_general): the maximum
 of ``+-Phi_NN(z, K_f z)`` over ``psi O_inf`` is at most ``u_max^eps``.
 
 The code keeps short names for these: :class:`TerminalSet` stores ``K_f`` as ``K``, ``P_f`` as ``P``,
-``F_inf, f_inf`` as ``F, g`` and the level ``psi`` as ``alpha`` (not the binaries ``alpha^k_j`` of
-eq. MIP_general).
+``F_inf, f_inf`` as ``F, g`` and the level ``psi`` as ``psi``.
 
 With these ingredients the MPC is recursively feasible and its nominal closed
 loop asymptotically stable (Mayne et al. 2000, Thm. 1): if ``(v(0), ..., v(N_p-1))``
@@ -347,8 +346,8 @@ class TerminalSet:
     F, g
         The book's ``F_inf, f_inf``: the maximal output-admissible set ``O_inf = {F_inf z <= f_inf}`` of
         ``A_d + B_d K_f`` for the state box and the v-box (:func:`max_admissible_set`).
-    alpha
-        The book's level ``psi``: ``Z_f = psi O_inf = {F_inf z <= psi f_inf}``, the largest in
+    psi
+        The level ``psi``: ``Z_f = psi O_inf = {F_inf z <= psi f_inf}``, the largest in
         ``(0, 1]`` (within ``tol``) for which the MILP proves
         ``max_{Z_f} |Phi_NN(z, K_f z)| <= u_max^eps``.
     u_eps
@@ -358,8 +357,8 @@ class TerminalSet:
     failed
         The :class:`NetworkMax` at the smallest level tried that failed
         (``None`` when ``psi = 1``): ``upper > u_eps`` for some output there.
-    alpha_failed
-        That level (``psi < alpha_failed <= psi (1 + tol)``), or ``None``.
+    psi_failed
+        That level (``psi < psi_failed <= psi (1 + tol)``), or ``None``.
     history
         One row per level tried, in order: ``(level, upper, lower, passed)`` with ``upper``, ``lower`` the
         largest over the outputs of :class:`NetworkMax`'s bounds on ``max |Phi_NN(z, K_f z)|`` over that
@@ -380,11 +379,11 @@ class TerminalSet:
     P: Array
     F: Array
     g: Array
-    alpha: float
+    psi: float
     u_eps: Array
     certificate: NetworkMax
     failed: Optional[NetworkMax]
-    alpha_failed: Optional[float]
+    psi_failed: Optional[float]
     history: list
     t_star: int
     Ad: Array
@@ -407,12 +406,12 @@ class TerminalSet:
 
     def constraint(self) -> tuple[Array, Array]:
         """``(F_inf, psi f_inf)`` of the terminal constraint ``F_inf z(N_p) <= psi f_inf`` (``Z_f``)."""
-        return self.F.copy(), self.alpha * self.g
+        return self.F.copy(), self.psi * self.g
 
     def contains(self, z: Array, tol: float = 1e-9) -> Array:
         """Boolean mask: is ``z`` (n_z,) or (N, n_z) in ``Z_f = {F_inf z <= psi f_inf}``?"""
         Z = as_batch(z, self.F.shape[1], "z")
-        return np.all(Z @ self.F.T <= self.alpha * self.g + tol, axis=1)
+        return np.all(Z @ self.F.T <= self.psi * self.g + tol, axis=1)
 
     def terminal_cost(self, z: Array) -> Array:
         """``V_f(z) = z' P_f z``, for (n_z,) or (N, n_z)."""
@@ -421,7 +420,7 @@ class TerminalSet:
 
     def sample(self, n: int, seed: int = 0) -> Array:
         """``n`` uniform points of ``Z_f`` (rejection sampling in its bounding box)."""
-        lo, hi = _bounding_box(self.F, self.alpha * self.g)
+        lo, hi = _bounding_box(self.F, self.psi * self.g)
         rng = np.random.default_rng(seed)
         out, got = [], 0
         while got < n:
@@ -432,7 +431,7 @@ class TerminalSet:
         return np.vstack(out)[:n]
 
     def summary(self) -> str:
-        return (f"terminal set: {len(self.g)} faces (t^star = {self.t_star}), psi = {self.alpha:.4g}; "
+        return (f"terminal set: {len(self.g)} faces (t^star = {self.t_star}), psi = {self.psi:.4g}; "
                 f"max |Phi_NN(z, K_f z)| on Z_f in [{self.certificate.lower.max():.5g}, {self.certificate.upper.max():.5g}] "
                 f"<= u_max^eps = {self.u_eps.max():.5g}; {len(self.history)} MILP pairs, {self.time_s:.2f} s")
 
@@ -530,7 +529,7 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     ok, cert = check(1.0)
     failed, a_fail = None, None
     if ok:
-        alpha, best = 1.0, cert
+        psi, best = 1.0, cert
     else:
         lo, hi, best, failed = 0.0, 1.0, None, cert
         for _ in range(max_bisections):
@@ -545,9 +544,9 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
         else:
             raise RuntimeError(f"the bisection on the level psi did not reach tol = {tol} in {max_bisections} steps "
                                f"(psi in [{lo:.3g}, {hi:.3g}])")
-        alpha, a_fail = lo, hi
-    return TerminalSet(K=K, P=P, F=F, g=g, alpha=alpha, u_eps=u_eps, certificate=best, failed=failed,
-                       alpha_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd,
+        psi, a_fail = lo, hi
+    return TerminalSet(K=K, P=P, F=F, g=g, psi=psi, u_eps=u_eps, certificate=best, failed=failed,
+                       psi_failed=a_fail, history=history, t_star=t_star, Ad=Ad, Bd=Bd,
                        Q=weight_matrix(Q, n, "Q"), R=weight_matrix(R, m, "R", definite=True), ts=float(ts),
                        z_lo=z_lo, z_hi=z_hi, v_lo=v_lo, v_hi=v_hi, tol=tol,
                        discretization=discretization, time_s=time.perf_counter() - t0)

@@ -147,6 +147,36 @@ def test_persistent_model_matches_bigm_form_update(msd):
     assert np.array_equal(kw["lb"][keep], lb[keep]) and np.array_equal(kw["ub"][keep], ub[keep])
 
 
+@pytest.mark.parametrize("backend", ["scip", "highs"])
+def test_a_margin_left_by_an_earlier_solve_does_not_shrink_the_next_program(msd, backend):
+    """The margin that tightens u_max^eps after a point slipped through the solver's tolerance is per solve."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend=backend, screening=False)
+    z = np.array([1.0, -2.0])
+    ref = ctrl.with_backend(backend).step(z)
+    assert abs(abs(ref.info["phi_nn"][0]) - (5.0 - EPS)) <= 1e-6, "premise: the optimum lies on the network's bound"
+    ctrl._impl.margin = 1e-2  # what an earlier state's solve may leave behind
+    r = ctrl.step(z)
+    assert r.status == ref.status == "optimal"
+    assert rel(r.objective, ref.objective) <= 1e-9 and np.allclose(r.v, ref.v, rtol=0, atol=1e-9), (r.v, ref.v)
+
+
+def test_the_same_state_gets_the_same_plan_after_hundreds_of_unrelated_states(msd):
+    """The persistent SCIP model's answer at a state does not depend on the states solved before it."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="quadratic", backend="scip")
+    rng = np.random.default_rng(7)
+    probes = [S["z0"], np.array([1.0, -2.0]), np.array([0.257, 0.0156])]
+    first = [ctrl.step(z) for z in probes]
+    unscreened = sum(not ctrl.step(z).screened for z in rng.uniform(sysm.lo[:2], sysm.hi[:2], (200, 2)))
+    assert unscreened >= 20, "premise: many of the unrelated states reach the MIQP"
+    for z, a in zip(probes, first):
+        b = ctrl.step(z)
+        assert b.status == a.status and b.objective == a.objective and np.array_equal(b.v, a.v), (z, a.v, b.v)
+
+
 # --------------------------------------------------------------------------- closed loop
 # States of the book's closed loops where HiGHS once returned a sub-optimal point as "optimal" (with its MIP
 # presolve on, resp. with feasibility tolerances of 1e-8), with the chapter's certified eps.
@@ -331,3 +361,15 @@ def test_auto_backend_and_clear_errors(msd):
         ClfCbfController(sysm, net, 6.0, V, H, k)
     with pytest.raises(ValueError, match="cost must be"):
         ClfCbfController(sysm, net, EPS, V, H, k, cost="cubic")
+
+
+def test_highs_alone_check_compares_one_highs_solve_with_the_exact_method(msd):
+    """The chapter's check of a single HiGHS solve: never better than the exact optimum, MILP only."""
+    sysm, net = msd
+    V, H, k = parts()
+    ctrl = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend="scip")
+    Z = np.array([[1.0, -2.0], [0.257, 0.0156], [-1.0, 2.0]])
+    r = fl.studies.highs_alone_check(ctrl, Z)
+    assert r["states"] == 3 and r["wrong_value"] + r["wrong_status"] <= 3 and r["min_gap"] >= -1e-6
+    with pytest.raises(ValueError, match="no mixed-integer QP"):
+        fl.studies.highs_alone_check(ctrl.with_backend("scip", cost="quadratic"), Z)

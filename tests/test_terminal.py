@@ -2,7 +2,7 @@
 
 Properties checked: P solves the Riccati equation; the terminal set is positively invariant (by sampling and by
 LPs) and inside the boxes; its MILP certificate is never below the dense-sampling maximum and is within
-u_max^eps; the level alpha is the largest within tolerance; the MPC with the terminal option is recursively
+u_max^eps; the level psi is the largest within tolerance; the MPC with the terminal option is recursively
 feasible in a nominal closed loop, its plans end in Z_f and its optimal cost decreases Lyapunov-wise; its
 region of attraction is decided by the MPC itself; the shifted plan closes the loop on the true plant.
 """
@@ -70,7 +70,7 @@ def test_terminal_set_invariant_and_in_boxes(setup):
         assert term._lp_max(T.K[i], F, g) <= T.v_hi[i] + 1e-9
         assert -term._lp_max(-T.K[i], F, g) >= T.v_lo[i] - 1e-9
     # the irredundant description keeps the box and v-box rows' meaning: O_inf itself is invariant too
-    Z1 = Z / T.alpha
+    Z1 = Z / T.psi
     assert np.all(np.all(Z1 @ T.A_cl.T @ T.F.T <= T.g + 1e-9, axis=1))
 
 
@@ -88,18 +88,18 @@ def test_certificate_bounds_sampled_max(setup):
     assert np.allclose(T.u_eps, system.u_max - eps)
 
 
-def test_alpha_is_largest_within_tolerance(setup):
+def test_psi_is_largest_within_tolerance(setup):
     name, system, net, eps, T = setup
-    assert 0 < T.alpha <= 1
-    if T.alpha == 1.0:
+    assert 0 < T.psi <= 1
+    if T.psi == 1.0:
         return
-    assert T.alpha < T.alpha_failed <= T.alpha * (1 + T.tol) + 1e-12
-    bigger = term.network_max(net, T.K, T.F, T.alpha * (1 + T.tol) * T.g)
-    assert np.any(bigger.upper > T.u_eps), f"{name}: alpha (1 + tol) still passes the certificate"
+    assert T.psi < T.psi_failed <= T.psi * (1 + T.tol) + 1e-12
+    bigger = term.network_max(net, T.K, T.F, T.psi * (1 + T.tol) * T.g)
+    assert np.any(bigger.upper > T.u_eps), f"{name}: psi (1 + tol) still passes the certificate"
     # the failure is real, not only an upper bound: a point of the larger set violates the constraint
     assert np.any(bigger.lower > T.u_eps)
     passed = [h for h in T.history if h[3]]
-    assert max(h[0] for h in passed) == T.alpha
+    assert max(h[0] for h in passed) == T.psi
 
 
 def _plan_cost(T, Z, V):
@@ -237,17 +237,17 @@ def test_shifted_plan_closes_the_loop_on_the_true_plant(quad_terminal):
 def test_scip_confirms_the_highs_certificate(quad_terminal):
     """The same MILP at the certified level, solved by SCIP: the same maximum, within u_max^eps."""
     system, net, eps, T = quad_terminal
-    scip = term.network_max(net, T.K, T.F, T.alpha * T.g, backend="scip")
+    scip = term.network_max(net, T.K, T.F, T.psi * T.g, backend="scip")
     assert np.all(scip.upper <= T.u_eps)
     assert np.allclose(scip.upper, T.certificate.upper, rtol=0, atol=1e-6)
     # the point SCIP returns attains its bound (forward pass), so the bound is tight, not merely valid
     assert np.all(scip.lower >= scip.upper - 1e-6)
     # and at the level that failed, SCIP also finds a violating point
-    bad = term.network_max(net, T.K, T.F, T.alpha_failed * T.g, backend="scip")
+    bad = term.network_max(net, T.K, T.F, T.psi_failed * T.g, backend="scip")
     assert np.any(bad.lower > T.u_eps)
 
 
 def test_network_max_refuses_unknown_backend(quad_terminal):
     system, net, eps, T = quad_terminal
     with pytest.raises(ValueError, match="backend must be one of"):
-        term.network_max(net, T.K, T.F, T.alpha * T.g, backend="cplex-ish")
+        term.network_max(net, T.K, T.F, T.psi * T.g, backend="cplex-ish")

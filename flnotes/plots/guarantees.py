@@ -29,7 +29,7 @@ def plot_terminal_bisection(term, ax=None):
     ax.scatter(H[ok, 0], H[ok, 1], color=COLORS["nominal"], zorder=2, label="certified (MILP upper bound)")
     ax.scatter(H[~ok, 0], H[~ok, 1], color=COLORS["unsafe"], marker="x", zorder=2, label="fails")
     ax.axhline(float(np.max(term.u_eps)), color=COLORS["u_max_eps"], ls=":", label=r"$u_{\max}^{\varepsilon}$")
-    ax.axvline(term.alpha, color=COLORS["true"], ls="--", lw=1, label=rf"$\psi = {term.alpha:.3g}$")
+    ax.axvline(term.psi, color=COLORS["true"], ls="--", lw=1, label=rf"$\psi = {term.psi:.3g}$")
     ax.set(xlabel=r"level $\psi$", ylabel=r"$\max_{z \in \psi O_\infty} |\Phi_{NN}(z, K_f z)|$")
     ax.legend(loc="upper left")
     return ax

@@ -29,8 +29,8 @@ that imports :mod:`flnotes.paper`.
 """
 from . import cheap_networks, compare, guarantees, multi, realtime, unseen
 from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross_check_exact,
-                     exponential_cbf_grid_check, largest_change_within_sample, paper_mean_ms, sampled_clf_decrease,
-                     solve_time_table)
+                     exponential_cbf_grid_check, highs_alone_check, largest_change_within_sample, paper_mean_ms,
+                     sampled_clf_decrease, solve_time_table)
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, shifted_plans,
                   table2, tracking_error)
@@ -42,7 +42,7 @@ __all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "unse
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",
            "sampled_clf_decrease", "largest_change_within_sample", "cbf_failure_set_bounded",
-           "solve_time_table", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
+           "solve_time_table", "highs_alone_check", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
            "compare_to_reference",
            "hardest_steps", "horizon_sweep", "lever_study", "prediction_mismatch", "recorded_problems",
            "run_closed_loop", "shifted_plans", "table2", "tracking_error"]

@@ -1,7 +1,7 @@
 """Studies of chapter 6: checks of a CLF-CBF run, Table 2's rows, the exact method against a back-end."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -15,7 +15,7 @@ Array = np.ndarray
 
 __all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms",
            "exponential_cbf_grid_check", "sampled_clf_decrease", "largest_change_within_sample",
-           "cbf_failure_set_bounded"]
+           "cbf_failure_set_bounded", "highs_alone_check"]
 
 
 def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
@@ -185,7 +185,7 @@ def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
                 exact_ms_max=float(t.max()), exact_ms_mean=float(t.mean()))
 
 
-def solve_time_table(logs: dict, system: str = "MSD") -> Table:
+def solve_time_table(logs: dict, system: str = "MSD", ts: Optional[float] = None) -> Table:
     """Table 2's rows: min / median / max / mean solve time (ms) per controller, beside the paper's.
 
     Parameters
@@ -194,17 +194,33 @@ def solve_time_table(logs: dict, system: str = "MSD") -> Table:
         ``{controller name: SimLog}``, e.g. ``{"Lcost": ..., "Qcost": ..., "k(z)": ...}``.
     system
         The paper's system name for the reference rows of ``flnotes.paper.TABLE2_MS``.
+    ts
+        The sampling time (s); if given, the column ``over_ts`` counts the steps whose wall-clock
+        time exceeded it (a machine-dependent count: :func:`flnotes.simulate` applies each input at
+        its sample, as if it had been computed instantly).
+
+    Returns
+    -------
+    Table
+        Per controller: wall-clock ``min``, ``median``, ``max``, ``mean`` (ms), the controller's CPU
+        time ``cpu_median`` and ``cpu_max`` (ms), ``over_ts`` when ``ts`` is given, and the paper's numbers.
     """
+    if ts is not None and not (np.isfinite(ts) and ts > 0):
+        raise ValueError(f"ts must be a positive sampling time in seconds, got {ts!r}")
     rows = Table()
     for name, log in logs.items():
         st = time_stats(log.solve_time)
         cpu = np.array([r.info.get("cpu_time", np.nan) for r in log.steps], float) * 1e3
         ref = paper.TABLE2_MS.get((system, name), {})
         backend = (log.steps[0].backend or "numpy") if log.steps else ""
-        rows.append(dict(controller=name, backend=backend, steps=len(log.solve_time),
-                         min=st["min_ms"], median=st["median_ms"], max=st["max_ms"], mean=st["mean_ms"],
-                         cpu_median=float(np.nanmedian(cpu)) if np.isfinite(cpu).any() else None,
-                         paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
+        has_cpu = bool(np.isfinite(cpu).any())
+        row = dict(controller=name, backend=backend, steps=len(log.solve_time),
+                   min=st["min_ms"], median=st["median_ms"], max=st["max_ms"], mean=st["mean_ms"],
+                   cpu_median=float(np.nanmedian(cpu)) if has_cpu else None,
+                   cpu_max=float(np.nanmax(cpu)) if has_cpu else None)
+        if ts is not None:
+            row["over_ts"] = int(np.sum(np.asarray(log.solve_time, float) > ts))
+        rows.append(dict(row, paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
     return rows
 
 
@@ -301,3 +317,43 @@ def cbf_failure_set_bounded(system: Any, H: Any, kappa: float, n: int = 801, h: 
     best = np.maximum(a_H * v_a, a_H * v_b) + b_H
     fail = best < 0
     return dict(grid=int(n * n), safe=int(len(Z)), failing=int(fail.sum()), Z_fail=Z[fail])
+
+
+def highs_alone_check(controller: ClfCbfController, Z: Array, tol: float = 1e-6) -> dict:
+    """HiGHS alone (one solve, no cross-check, no screening) against the exact 1-D method at the states ``Z``.
+
+    The MILP of eq. (CLF_CBF) (the controller's program, linear cost) is solved at each state by
+    ``controller.with_backend("highs", screening=False, solver_options=dict(cross_check=False))``:
+    flnotes' HiGHS settings (presolve on, tolerances 1e-8) without the second solve that the
+    back-end normally adds, and compared with ``backend="exact"``.
+
+    Returns
+    -------
+    dict
+        ``states``; ``wrong_value`` (states where both report ``"optimal"`` but the optimal values
+        differ by more than ``tol`` relative, ``|J - J_exact| / max(1, |J_exact|)``);
+        ``wrong_status`` (states where the statuses differ) and ``status_pairs`` (their
+        ``(HiGHS, exact)`` status pairs, counted); ``min_gap`` (the smallest signed relative gap
+        ``(J - J_exact) / max(1, |J_exact|)`` where both are optimal: negative would mean HiGHS beat
+        the exact optimum); and at the largest gap, ``worst_z``, ``worst_highs``, ``worst_exact``
+        (optimal values) and ``worst_gap`` (``None`` and NaN when no value is wrong).
+    """
+    if controller.cost != "linear":
+        raise ValueError(f"HiGHS has no mixed-integer QP solver: give the linear-cost controller, got cost={controller.cost!r}")
+    Z = np.atleast_2d(np.asarray(Z, float))
+    hi = controller.with_backend("highs", screening=False, solver_options=dict(cross_check=False))
+    ex = controller.with_backend("exact")
+    gaps, pairs, worst = [], {}, (None, np.nan, np.nan, np.nan)
+    for z in Z:
+        r, rx = hi.step(z), ex.step(z)
+        if r.status != rx.status:
+            pairs[(r.status, rx.status)] = pairs.get((r.status, rx.status), 0) + 1
+        elif r.status == "optimal":
+            gap = (r.objective - rx.objective) / max(1.0, abs(rx.objective))
+            gaps.append(gap)
+            if gap > tol and not gap <= worst[3]:
+                worst = (z.copy(), float(r.objective), float(rx.objective), float(gap))
+    gaps = np.array(gaps)
+    return dict(states=int(len(Z)), wrong_value=int(np.sum(np.abs(gaps) > tol)), wrong_status=int(sum(pairs.values())),
+                status_pairs=pairs, min_gap=float(gaps.min()) if len(gaps) else np.nan,
+                worst_z=worst[0], worst_highs=worst[1], worst_exact=worst[2], worst_gap=worst[3])

@@ -120,6 +120,7 @@ def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSyst
     done = len(V) == n_planned and not run["box_exit"] and k2 > 0 and nz[k2] > 0 and nz[-1] > 0
     rate = float(np.log(nz[k2] / nz[-1]) / ((len(V) - k2) * run["t"][1])) if done else np.nan
     return dict(steps=len(V), completed=len(V) == n_planned and not run["box_exit"],
+                optimal=int(sum(s.status == "optimal" and not s.fallback for s in steps[: len(V)])),
                 infeasible=int(sum(s.status == "infeasible" for s in steps)),
                 fallback=int(sum(bool(s.fallback) for s in steps)),
                 not_admissible=int(sum(not s.input_admissible for s in steps)),
@@ -145,8 +146,10 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
     runs, rows
         ``runs[(N_p, with_terminal, plant)]``: dict with ``t``, ``z``, ``v``, ``steps``, ``objective`` (the optimal
         cost per step from its plan, :func:`plan_costs`); ``rows``: one dict per run with the number of steps applied,
-        whether the run completed, the infeasible and fallback steps, the steps whose applied input was not
-        admissible, whether the state left the box, the closed-loop cost ``sum_k ell(z_k, v_k)``, the final ``|z|``,
+        whether the run completed, ``optimal`` (the applied steps whose plan is a proven optimum, status
+        ``"optimal"`` without fallback: the hypothesis of the stability theorem), the infeasible and fallback
+        steps, the steps whose applied input was not admissible, whether the state left the box, the
+        closed-loop cost ``sum_k ell(z_k, v_k)``, the final ``|z|``,
         ``max_cost_increase`` (largest ``(J_{k+1} - J_k + ell(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
         steps: ``<= 0`` is the proof's Lyapunov decrease), ``decay_rate`` (``ln(|z(T/2)| / |z(T)|) / (T/2)``, per
         second, over the second half of a completed run; NaN if it stopped early), the largest true ``|u|`` at

@@ -23,7 +23,8 @@ from ..tables import Table, time_stats
 
 Array = np.ndarray
 
-__all__ = ["identity_residual", "ARM_CLF_CBF", "ARM_MPC", "shipped_network", "sampled_error", "arm_clf_cbf", "comparison_states",
+__all__ = ["identity_residual", "ARM_CLF_CBF", "ARM_MPC", "shipped_network", "sampled_error", "error_at_states",
+           "arm_clf_cbf", "comparison_states",
            "exact_vs_mip", "nominal_run", "obstacle_run", "torque_checks", "setpoint_reference", "mpc_run"]
 
 #: The CLF-CBF setting of the chapter: CLF ``z^T P z``, nominal law ``k(z) = -K_nominal z``, a disc obstacle of radius
@@ -72,7 +73,8 @@ def shipped_network() -> dict:
     dict
         ``net``, ``eps`` (shape (2,)), ``widths``, ``n_train``, ``n_grid``, ``train_s``,
         ``grid_max_error``, ``lower``, ``upper`` (the bracket, shape (2,)), ``cert_s``
-        (seconds per output), ``n_boxes``, ``rtol``, ``converged``, ``method``.
+        (seconds per output), ``n_boxes``, ``rtol``, ``converged``, ``method``, and ``sha256``, the checksum of
+        the weights the bracket was certified for, written with it (:func:`flnotes.reference.save_reference`).
     """
     net, eps, ref = arm_net()
     rep, br = ref.report, ref.bracket
@@ -80,7 +82,43 @@ def shipped_network() -> dict:
                 train_s=float(rep.time_s), grid_max_error=np.asarray(rep.grid_max_error, float),
                 lower=np.asarray(br["lower"], float), upper=np.asarray(br["upper"], float),
                 cert_s=np.asarray(br["time_s"], float), n_boxes=np.asarray(br["n_boxes"], int),
-                rtol=float(br["rtol"]), converged=bool(np.all(br["converged"])), method=str(br["method"]))
+                rtol=float(br["rtol"]), converged=bool(np.all(br["converged"])), method=str(br["method"]),
+                sha256=str(ref.meta["sha256"]))
+
+
+def error_at_states(system: FLSystem, net: ReLUNet, sets: Sequence[dict]) -> Array:
+    """The largest ``|Phi_i(z, v) - Phi_NN,i(z, v)|`` over the whole ``v``-box, at each state of ``sets``.
+
+    Exact for a ``Phi`` affine in ``v`` (checked): on each linear region of ``Phi_NN(z, .)`` the
+    error of each output is the absolute value of an affine function of ``v``, convex, so its maximum over
+    the region is attained at a vertex; the regions tile the ``v``-box, so the maximum over their vertices
+    is the maximum over the box.
+
+    Parameters
+    ----------
+    system
+        A two-input :class:`flnotes.FLSystem` (the arm).
+    net
+        ``Phi_NN``.
+    sets
+        The output of :func:`flnotes.pieces.input_sets` (their ``regions``).
+
+    Returns
+    -------
+    Array
+        Shape (len(sets), m): per state and output, the error's maximum over the ``v``-box, to set against ``eps``
+        (a bound over the whole ``(z, v)``-box).
+    """
+    out = []
+    for S in sets:
+        V = np.vstack(S["regions"].polygons)
+        Zr = np.repeat(np.asarray(S["z"], float)[None], len(V), 0)
+        phi = system.Phi(Zr, V)
+        mid = 0.5 * (V[:-1] + V[1:])
+        if not np.allclose(system.Phi(Zr[:-1], mid), 0.5 * (phi[:-1] + phi[1:]), rtol=1e-9, atol=1e-9):
+            raise ValueError("Phi must be affine in v for the vertex maximum to be exact")
+        out.append(np.abs(phi - np.asarray(net(np.column_stack([Zr, V])), float)).max(0))
+    return np.array(out)
 
 
 def sampled_error(system: FLSystem, net: ReLUNet, n: int, seed: int = 0, chunk: int = 200_000) -> dict:
@@ -180,9 +218,9 @@ def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip
     For each cost, the chapter's controller (:func:`arm_clf_cbf`, ``backend="exact"``)
     and its ``with_backend(mip)`` solve eq. (CLF_CBF) at the ``n`` states of
     :func:`comparison_states` (half with the optimum on the network's bound);
-    :func:`flnotes.pieces.compare_exact_mip` compares the optima, with a fresh MIP
-    model per state (``fresh=True``: the program itself, without the tightening margin
-    a persistent model accumulates over unrelated states).
+    :func:`flnotes.pieces.compare_exact_mip` compares the optima, with one persistent MIP
+    model updated in place from state to state, as the controller runs (its tightening
+    margin is reset at every solve, so the states before do not change a state's program).
 
     Returns
     -------
@@ -196,7 +234,7 @@ def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip
         ex = arm_clf_cbf(system, net, eps, cost=cost, backend="exact")
         Z, on = comparison_states(ex, n, seed=seed)
         other = ex.with_backend(mip)
-        r = compare_exact_mip(ex, other, Z, fresh=True)
+        r = compare_exact_mip(ex, other, Z)
         r["boundary_states"] = int(on.sum())
         out[cost] = r
         name = "Lcost" if cost == "linear" else "Qcost"
