@@ -12,7 +12,7 @@ __all__ = ["plot_terminal_bisection", "plot_region_of_attraction", "plot_drift_c
 
 
 def plot_terminal_bisection(term, ax=None):
-    """The bisection on the level ``psi`` (``TerminalSet.alpha``): the MILP's ``max |Phi_NN(z, K_f z)|`` over ``psi O_inf``
+    """The bisection on the level ``psi`` (``TerminalSet.psi``): the MILP's ``max |Phi_NN(z, K_f z)|`` over ``psi O_inf``
     against ``u_max^eps``.
 
     Parameters
