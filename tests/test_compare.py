@@ -166,6 +166,10 @@ def test_study_on_one_short_scenario(quad_setting):
     assert [r["method"] for r in table] == [C.LABELS["network"], C.LABELS["nmpc"]]
     assert table[0]["cost_vs_miqp"] == 1.0
     assert table[0]["non_optimal"] == table[0]["time_limit"] == 0  # no time limit: every MIQP step solved to the end
+    assert [r["solved"] for r in table] == ["to the end"] * 2
+    marked = C.method_table(rows, ("network", "nmpc"), time_limit=0.1)  # a limit marks the MIQP's line only
+    assert [r["method"] for r in marked] == [C.LABELS["network"] + " *", C.LABELS["nmpc"]]
+    assert [r["solved"] for r in marked] == ["time limit", "to the end"]
 
 
 # ------------------------------------------------------------------ the linear input models (one MPC engine)
