@@ -8,7 +8,7 @@ The exact constraint ``|Phi(z, v)| <= u_max`` is, at a *fixed* state ``zbar``, a
 
 What differs between the methods is the state ``zbar_k`` at which step ``k``'s rows are written:
 
-* ``"measured"`` (constant extension; Nevistić & Morari 1995, Kandler et al. 2012): ``zbar_k = z(0)``,
+* ``"measured"`` (constant extension; Nevistić & del Re 1994, Kandler et al. 2012): ``zbar_k = z(0)``,
   the measured state, at every predicted step;
 * ``"previous"`` (Kurtz & Henson 1998): ``zbar_k`` the state predicted for that instant at the previous
   sampling instant (the previous plan shifted by one step; ``zbar_0 = z(0)``), optionally re-linearized
