@@ -166,6 +166,10 @@ def test_study_on_one_short_scenario(quad_setting):
     assert [r["method"] for r in table] == [C.LABELS["network"], C.LABELS["nmpc"]]
     assert table[0]["cost_vs_miqp"] == 1.0
     assert table[0]["non_optimal"] == table[0]["time_limit"] == 0  # no time limit: every MIQP step solved to the end
+    assert [r["solved"] for r in table] == ["to the end"] * 2
+    marked = C.method_table(rows, ("network", "nmpc"), time_limit=0.1)  # a limit marks the MIQP's line only
+    assert [r["method"] for r in marked] == [C.LABELS["network"] + " *", C.LABELS["nmpc"]]
+    assert [r["solved"] for r in marked] == ["time limit", "to the end"]
 
 
 # ------------------------------------------------------------------ the linear input models (one MPC engine)
@@ -358,3 +362,31 @@ def test_monte_carlo_figure_draws_the_variants():
     assert len(bars) == 4 and [b.get_hatch() for b in bars] == [None, None, "//", "//"]  # variants hatched
     assert [t.get_text() for t in fig.axes[0].get_xticklabels()] == [C.label(k) for k in keys]
     assert np.isclose(bars[2].get_height(), 0.2)
+
+
+@pytest.mark.parametrize("name", ["Quad-1D", "MSD", "arm"])
+def test_batched_input_maps_equal_input_map_per_state(name):
+    from flnotes.mpc.linear import LinearModel
+    sysm = fl.two_link_arm() if name == "arm" else fl.paper.system(name)
+    n_z, m = sysm.n_z, sysm.m
+    lm = LinearModel(SimpleNamespace(N=5, m=m), None, sysm)  # the rows need only the prediction's sizes
+    Z = np.random.default_rng(3).uniform(sysm.lo[:n_z], sysm.hi[:n_z], (5, n_z))
+    a, B = lm.input_maps(Z)
+    G, g_lo, g_hi = lm.rows(Z)
+    for k in range(5):
+        a_k, B_k = sysm.input_map(Z[k])
+        assert np.allclose(a[k], a_k, rtol=1e-12, atol=1e-12) and np.allclose(B[k], B_k, rtol=1e-12, atol=1e-12)
+        blk = slice(k * m, (k + 1) * m)
+        assert np.allclose(G[blk, blk], B_k) and np.allclose(g_hi[blk], sysm.u_max - a_k)
+        assert np.allclose(g_lo[blk], -sysm.u_max - a_k)
+    assert np.count_nonzero(G) <= 5 * m * m, "only the diagonal blocks"
+
+
+def test_batched_input_maps_reject_a_map_not_affine_in_v():
+    from flnotes.mpc.linear import LinearModel
+    A, B = fl.brunovsky(2)
+    cubic = fl.FLSystem("cubic", A, B, phi=lambda z, v: v**3 + z[:, :1], lo=[-1, -1, -1], hi=[1, 1, 1], u_max=1.0,
+                        f=lambda x, u: np.array([x[1], u[0]]), to_z=lambda x: x, to_x=lambda z: z)
+    lm = LinearModel(SimpleNamespace(N=3, m=1), None, cubic)
+    with pytest.raises(ValueError, match="not affine in v"):
+        lm.input_maps(np.zeros((3, 2)))

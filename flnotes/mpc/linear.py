@@ -49,18 +49,41 @@ class LinearModel:
     def __init__(self, pred: Prediction, opts: MPCOptions, system: FLSystem):
         self.pred, self.opts, self.system = pred, opts, system
         self.u_max = np.asarray(system.u_max, float)
+        # the points of the v-box at which every map is checked to be affine (as FLSystem.input_map checks it)
+        self._v_test = np.random.default_rng(0).uniform(system.lo[system.n_z:], system.hi[system.n_z:], (8, system.m))
+
+    def input_maps(self, zbar: Array, rtol: float = 1e-9) -> tuple[Array, Array]:
+        """``a`` (N, m) and ``B`` (N, m, m) with ``Phi(zbar_k, v) = a_k + B_k v`` at every state of ``zbar`` (N, n_z).
+
+        The batched form of :meth:`flnotes.FLSystem.input_map` (eq. coor_Phi): two calls of ``Phi`` on all the
+        states at once, not two per state. A map that is not affine in ``v`` (checked at eight seeded points of the
+        ``v``-box per state) raises ``ValueError``.
+        """
+        sysm = self.system
+        zbar = np.asarray(zbar, float)
+        if zbar.ndim != 2 or zbar.shape[1] != sysm.n_z:
+            raise ValueError(f"zbar must have shape (N, {sysm.n_z}), got {zbar.shape}")
+        N, m = len(zbar), sysm.m
+        E = np.vstack([np.zeros(m), np.eye(m)])                                   # v = 0, then each unit vector
+        U = np.asarray(sysm.Phi(np.repeat(zbar, m + 1, axis=0), np.tile(E, (N, 1))), float).reshape(N, m + 1, m)
+        a, B = U[:, 0], np.transpose(U[:, 1:] - U[:, :1], (0, 2, 1))             # B[k][i, j] = dPhi_i / dv_j
+        Vt = self._v_test
+        Ut = np.asarray(sysm.Phi(np.repeat(zbar, len(Vt), axis=0), np.tile(Vt, (N, 1))), float).reshape(N, len(Vt), m)
+        err = np.abs(Ut - (a[:, None, :] + np.einsum("tj,kij->kti", Vt, B)))
+        if np.any(err > rtol * (1.0 + np.abs(Ut))):
+            k = int(np.argmax(err.max(axis=(1, 2))))
+            raise ValueError(f"Phi of {sysm.name} is not affine in v at z = {np.array2string(zbar[k], precision=4)} "
+                             f"(error {err[k].max():.2e}): the linear models need Phi(z, v) = a(z) + B(z) v")
+        return a, B
 
     def rows(self, zbar: Array) -> tuple[Array, Array, Array]:
         """Rows ``g_lo <= G V <= g_hi`` of ``|Phi(zbar_k, v(k))| <= u_max`` for the states ``zbar`` (N_p, n_z)."""
         p = self.pred
         N, m = p.N, p.m
-        G = np.zeros((N * m, N * m))
-        g_lo, g_hi = np.zeros(N * m), np.zeros(N * m)
-        for k in range(N):
-            a, B = self.system.input_map(zbar[k])
-            G[k * m:(k + 1) * m, k * m:(k + 1) * m] = B
-            g_lo[k * m:(k + 1) * m], g_hi[k * m:(k + 1) * m] = -self.u_max - a, self.u_max - a
-        return G, g_lo, g_hi
+        a, B = self.input_maps(zbar[:N])
+        G = np.zeros((N, m, N, m))
+        G[np.arange(N), :, np.arange(N), :] = B                                  # block k of the diagonal: B_k
+        return G.reshape(N * m, N * m), (-self.u_max - a).reshape(-1), (self.u_max - a).reshape(-1)
 
     def solve(self, z0: Array, z_ref: Array, previous: Optional[Array] = None) -> StepResult:
         """The QP at ``z0``; ``previous`` is the previous plan's predicted states (N_p + 1, n_z) or ``None``."""

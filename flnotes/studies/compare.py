@@ -524,8 +524,13 @@ def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Opt
     return [row for rows in per for row in rows]
 
 
-def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_active: bool = False) -> list[dict]:
+def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_active: bool = False,
+                 time_limit: Optional[float] = None) -> list[dict]:
     """One line per method (or variant) from the rows of :func:`monte_carlo` (or of single runs).
+
+    ``time_limit`` is the setting's (``s["time_limit"]``): it applies to the MIQP only, so with a limit the
+    MIQP's lines depend on the machine that ran them. Column ``solved`` says it (``"to the end"``, or
+    ``"time limit"``) and the label of such a line ends with ``" *"``; no conclusion may rest on those lines.
 
     Columns: hold, scenarios, runs that completed, the largest ``|u|`` at the samples and between
     them over all runs, runs and steps violating the bound at the samples, intervals violating it
@@ -533,7 +538,9 @@ def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_
     infeasible and fallback steps, the steps not solved to the end (``non_optimal``) and those that
     reached the time limit (``time_limit``), the median tracking cost relative to the MIQP's on the same
     scenario over the scenarios where both runs completed (``cost_vs_miqp`` of :func:`run_scenario`)
-    and how many those are (``cost_runs``), the fraction of runs settled, the per-step wall times pooled over all runs
+    and how many those are (``cost_runs``), ``settled``: the fraction of runs whose position error ``|z_1 - x_ref|``
+    stays within the band of :func:`run_metrics` (0.1 by default) from some sampling instant to the end of the run
+    (:func:`settling_time` finite), the per-step wall times pooled over all runs
     (min of the minima, median of the medians, max of the maxima) and the steps slower than ``t_s``.
     ``methods`` defaults to the variants present in ``rows``, in their order.
     """
@@ -546,8 +553,10 @@ def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_
             continue
         plans = sum(r["plans"] for r in rr)
         ratio = [r["cost_vs_miqp"] for r in rr if np.isfinite(r["cost_vs_miqp"])]
+        limited = time_limit is not None and var.method == "network"
         out.append(dict(
-            method=label(var), hold=var.hold, scenarios=len(rr), completed=int(sum(r["completed"] for r in rr)),
+            method=label(var) + (" *" if limited else ""), solved="time limit" if limited else "to the end",
+            hold=var.hold, scenarios=len(rr), completed=int(sum(r["completed"] for r in rr)),
             max_u_samples=max(r["max_abs_u_samples"] for r in rr), max_u_between=max(r["max_abs_u_between"] for r in rr),
             runs_violating=int(sum(r["violating_samples"] > 0 for r in rr)),
             violating_samples=int(sum(r["violating_samples"] for r in rr)),
