@@ -48,5 +48,6 @@ def test_summary_counts_late_steps_and_gaps_only_against_proven_references():
 def test_configurations_start_with_the_default_and_name_no_highs_row():
     rows = B.configurations()
     assert rows[0] == ("default (auto)", {})
+    assert all(o["time_limit"] == B.ROW_LIMIT for _, o in rows[1:])
     assert {"SCIP only", "DAQP only"} <= {n for n, _ in rows}
     assert not any("HIGHS" in n.upper() for n, _ in rows)
