@@ -51,3 +51,9 @@ def test_configurations_start_with_the_default_and_name_no_highs_row():
     assert all(o["time_limit"] == B.ROW_LIMIT for _, o in rows[1:])
     assert {"SCIP only", "DAQP only"} <= {n for n, _ in rows}
     assert not any("HIGHS" in n.upper() for n, _ in rows)
+
+
+def test_hardest_picks_the_longest_steps_in_order():
+    recs = [dict(cpu=c) for c in (0.1, 3.0, 0.2, 5.0, 3.0)]
+    assert B.hardest(recs, 2) == [1, 3]
+    assert B.hardest(recs, 10) == [0, 1, 2, 3, 4]
