@@ -5,10 +5,12 @@ Two sets of states. *Loop*: the states of closed loops of the Monte Carlo of the
 (:func:`flnotes.studies.compare.draw_scenarios`, MIQP with default options and no time limit), replayed in order so
 that each controller warm-starts from its own previous answer as in closed loop. *Cold*: diverse states solved
 cold (:func:`cold_states`: uniform in the domain box, on its faces, with the input bound strongly active, with
-random references). Each configuration is asked, without a time limit, for the optimum at every state; a step's
-CPU time (``time.process_time``, this process) and wall time are recorded with its status. The cold reference
+random references). Each configuration (:func:`configurations`) is asked for the optimum at every state (the
+default without a time limit, the one-back-end rows with :data:`ROW_LIMIT` seconds per step); a step's CPU time
+(``time.process_time``, this process) and wall time are recorded with its status. The cold reference
 (``backend="cvxpy-scip"``, the whole program written with :func:`flnotes.encode`, LP node bounds, solved cold by
-SCIP, :data:`REFERENCE_LIMIT` seconds per state) gives the gap of each optimum. Speed is measured here, never
+SCIP, :data:`REFERENCE_LIMIT` seconds per state) gives the gap of the optima at the :data:`REFERENCE_STATES` states of
+each set where the default took longest. Speed is measured here, never
 asserted in tests; the machine may be shared, so single timings are noisy (CPU time less so).
 """
 from __future__ import annotations
@@ -33,7 +35,7 @@ REFERENCE_LIMIT = 120.0
 REFERENCE_STATES = 10
 
 #: Seconds per step given to the side-by-side rows (one back-end for every program): a row whose solver takes minutes on
-#: some program still ends; a step stopped there counts as ``time_limit`` (never as optimal). The default row has none.
+#: some program still ends; a step stopped there counts as ``time_limit`` (never as optimal). The default rows have none.
 ROW_LIMIT = 30.0
 
 #: The kinds of :func:`cold_states`.
