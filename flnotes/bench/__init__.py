@@ -26,8 +26,8 @@ from typing import Optional
 
 from ..tables import Table
 
-SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "unseen", "compare", "multi",
-            "parallel")
+SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "unseen", "compare",
+            "msd_realtime", "multi", "parallel")
 
 #: Sections that start workers of their own: run in this process, after the others, never inside a worker.
 IN_PROCESS = ("parallel",)

@@ -1,0 +1,196 @@
+"""Benchmark: the MSD's MPC (chapter "A comparative study": ``N_p = 10``, ``t_s = 0.1`` s, the (20, 20, 20) network)
+on hard states, per back-end, side by side on the same programs.
+
+Two sets of states. *Loop*: the states of closed loops of the Monte Carlo of the comparative study
+(:func:`flnotes.studies.compare.draw_scenarios`, MIQP with default options and no time limit), replayed in order so
+that each controller warm-starts from its own previous answer as in closed loop. *Cold*: diverse states solved
+cold (:func:`cold_states`: uniform in the domain box, on its faces, with the input bound strongly active, with
+random references). Each configuration (:func:`configurations`) is asked for the optimum at every state (the
+default without a time limit, the one-back-end rows with :data:`ROW_LIMIT` seconds per step); a step's CPU time
+(``time.process_time``, this process) and wall time are recorded with its status. The cold reference
+(``backend="cvxpy-scip"``, the whole program written with :func:`flnotes.encode`, LP node bounds, solved cold by
+SCIP, :data:`REFERENCE_LIMIT` seconds per state) gives the gap of the optima at the :data:`REFERENCE_STATES` states of
+each set where the default took longest. Speed is measured here, never
+asserted in tests; the machine may be shared, so single timings are noisy (CPU time less so).
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..mpc import MPC
+from ..solvers import available_backends
+from ..studies import compare as C
+from ..tables import time_stats
+
+Array = np.ndarray
+
+#: Seconds the cold reference gets per state (a state it does not prove within them has no gap).
+REFERENCE_LIMIT = 120.0
+
+#: States of each set solved by the cold reference: those where the default took the most CPU time (the reference
+#: takes up to minutes per state on these programs).
+REFERENCE_STATES = 10
+
+#: Seconds per step given to the side-by-side rows (one back-end for every program): a row whose solver takes minutes on
+#: some program still ends; a step stopped there counts as ``time_limit`` (never as optimal). The default rows have none.
+ROW_LIMIT = 30.0
+
+#: The kinds of :func:`cold_states`.
+COLD_KINDS = ("uniform", "face", "active", "reference")
+
+
+def setting() -> dict:
+    """Chapter 11's MSD setting, no time limit (:func:`flnotes.studies.compare.setting`)."""
+    return C.setting("MSD", time_limit=None)
+
+
+def controller(s: dict, **options) -> MPC:
+    """The MIQP of setting ``s`` with the given :class:`flnotes.MPCOptions` fields (none: the default)."""
+    return MPC(s["system"], s["net"], s["eps"], horizon=s["horizon"], ts=s["ts"], Q=s["Q"], R=s["R"], **options)
+
+
+def loop_states(s: dict, n_scenarios: int, t_final: float, seed: int = 0) -> list[list[tuple[Array, Array]]]:
+    """The states ``(z, z_ref)`` of the Monte Carlo's closed loops with the default MIQP, one list per scenario."""
+    out = []
+    for sc in C.draw_scenarios(s["name"], n_scenarios, seed):
+        log = C.run_methods(s, sc["z0"], C.scenario_reference(s["system"], sc), t_final, methods=("network",))["network"]
+        out.append([(np.asarray(z, float), np.asarray(C.step_field(st, "z_ref"), float))
+                    for z, st in zip(log.z[:-1], log.steps)])
+    return out
+
+
+def cold_states(s: dict, n: int, seed: int = 1) -> list[tuple[str, Array, Array]]:
+    """``n`` diverse states ``(kind, z, z_ref)``, the kinds of :data:`COLD_KINDS` in turn.
+
+    ``"uniform"``: ``z`` uniform in the domain box, reference zero; ``"face"``: one coordinate on a face of the box;
+    ``"active"``: ``z`` uniform, a constant reference at the far side of the box (``-0.9 sign(z_1)`` times the box),
+    so that the input bound is active over the horizon; ``"reference"``: ``z`` uniform and the sine reference of a
+    Monte Carlo scenario, at a random time.
+    """
+    rng = np.random.default_rng(seed)
+    sysm, N, ts = s["system"], s["horizon"], s["ts"]
+    lo, hi = sysm.lo[: sysm.n_z], sysm.hi[: sysm.n_z]
+    scen = C.draw_scenarios(s["name"], max(1, n), seed + 1)
+    out = []
+    for i in range(n):
+        kind = COLD_KINDS[i % len(COLD_KINDS)]
+        z = rng.uniform(lo, hi)
+        R = np.zeros((N + 1, sysm.n_z))
+        if kind == "face":
+            j = rng.integers(sysm.n_z)
+            z[j] = hi[j] if rng.random() < 0.5 else lo[j]
+        elif kind == "active":
+            target = np.zeros(sysm.n_z)
+            target[0] = -0.9 * np.sign(z[0] if z[0] != 0 else 1.0) * (hi[0] if z[0] < 0 else -lo[0])
+            R[:] = target
+        elif kind == "reference":
+            t = rng.uniform(0, 10)
+            R = np.asarray(C.scenario_reference(sysm, scen[i])(t + ts * np.arange(N + 1)), float)
+        out.append((kind, z, R))
+    return out
+
+
+def timed(ctrl: MPC, z: Array, R: Array) -> tuple[object, float, float]:
+    """One step: ``(StepResult, CPU s of this process, wall s)``."""
+    c0, t0 = time.process_time(), time.perf_counter()
+    res = ctrl(z, R)
+    return res, time.process_time() - c0, time.perf_counter() - t0
+
+
+def replay(ctrl: MPC, groups: Sequence[Sequence[tuple[Array, Array]]]) -> list[dict]:
+    """Every state of every group, in order, the controller reset at the start of each group (warm start within)."""
+    out = []
+    for g in groups:
+        ctrl.reset()
+        for z, R in g:
+            res, cpu, wall = timed(ctrl, z, R)
+            out.append(dict(status=res.status, objective=float(res.objective) if res.v is not None else np.nan,
+                            cpu=cpu, wall=wall, backend=res.backend, n_bin=res.n_binaries, nodes=res.nodes))
+    return out
+
+
+def configurations() -> list[tuple[str, dict]]:
+    """The rows: the default; the default without constraint generation (every needed step encoded at once: measured
+    on hard MSD states, fewer rounds on cold states, more work along the loop, where the warm start and the steps active
+    at the previous solve seed the rounds); then one back-end for every program (SCIP, DAQP, and Gurobi/CPLEX when
+    importable), these with :data:`ROW_LIMIT` seconds per step.
+
+    HiGHS solves MILPs and convex QPs, not the mixed-integer QP of eq. (MPC_form_miqp): it has no row of its own
+    (the engine uses it for its LP bounds and QPs in every row).
+    """
+    one = lambda b: dict(backend=b, time_limit=ROW_LIMIT, cut_off=False)  # noqa: E731
+    rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)), ("SCIP only", one("scip")),
+            ("DAQP only", one("daqp"))]
+    have = available_backends()
+    rows += [(f"{b.upper()} only", one(b)) for b in ("gurobi", "cplex") if b in have]
+    return rows
+
+
+def summarize(name: str, states: str, recs: list[dict], ref: Optional[list], ts: float) -> dict:
+    """One table row: CPU and wall time statistics, steps over ``ts``, statuses and the largest gap to ``ref``."""
+    cpu, wall = time_stats([r["cpu"] for r in recs], (50, 99)), time_stats([r["wall"] for r in recs], (50, 99))
+    statuses = {}
+    for r in recs:
+        statuses[r["status"]] = statuses.get(r["status"], 0) + 1
+    gaps = [abs(r["objective"] - J) / max(1.0, abs(J)) for r, J in zip(recs, ref or [])
+            if J is not None and np.isfinite(J) and r["status"] == "optimal"]
+    return {"configuration": name, "states": states, "n": len(recs),
+            "cpu_median_ms": cpu["median_ms"], "cpu_p99_ms": cpu["p99_ms"], "cpu_max_ms": cpu["max_ms"],
+            "wall_median_ms": wall["median_ms"], "wall_p99_ms": wall["p99_ms"], "wall_max_ms": wall["max_ms"],
+            "cpu_over_ts": int(sum(r["cpu"] > ts for r in recs)), "wall_over_ts": int(sum(r["wall"] > ts for r in recs)),
+            "statuses": ", ".join(f"{k} {v}" for k, v in sorted(statuses.items())),
+            "max_gap_ref": float(max(gaps)) if gaps else np.nan, "compared": len(gaps)}
+
+
+def reference_optima(s: dict, flat: Sequence[tuple[Array, Array]], limit: float = REFERENCE_LIMIT) -> list:
+    """The cold reference's optimum at each state (``None`` where it did not prove one within ``limit`` s)."""
+    ref = controller(s, backend="cvxpy-scip", bounds="lp", time_limit=limit, gap=1e-9)
+    out = []
+    for z, R in flat:
+        ref.reset()
+        res = ref(z, R)
+        out.append(float(res.objective) if res.status == "optimal" and res.v is not None else None)
+    return out
+
+
+def hardest(recs: list[dict], n: int) -> list[int]:
+    """Indices of the ``n`` steps of ``recs`` that took the most CPU time."""
+    return sorted(np.argsort([-r["cpu"] for r in recs], kind="stable")[:n].tolist())
+
+
+def run(fast: bool) -> dict:
+    """``run(fast) -> {"title", "rows", "notes", "figures"}`` of the ``msd_realtime`` section."""
+    s = setting()
+    n_sc, t_final, n_cold, n_ref, limit = (1, 0.5, 4, 2, 20.0) if fast else (5, 3.0, 100, REFERENCE_STATES,
+                                                                          REFERENCE_LIMIT)
+    loops = loop_states(s, n_sc, t_final)
+    cold = cold_states(s, n_cold)
+    sets = {"loop": loops, "cold": [[(z, R)] for _, z, R in cold]}
+    recs = {name: {k: replay(controller(s, **opts), g) for k, g in sets.items()} for name, opts in configurations()}
+    refs, n_proven = {}, {}
+    for k, g in sets.items():  # the cold reference at the states the default found hardest (fast mode: quickest)
+        flat = [x for grp in g for x in grp]
+        cpu = [r["cpu"] for r in recs["default (auto)"][k]]
+        pick = sorted(np.argsort(cpu if fast else np.negative(cpu), kind="stable")[:n_ref].tolist())  # fast: quickest
+        opt = reference_optima(s, [flat[i] for i in pick], limit)
+        refs[k] = [None] * len(flat)
+        for i, J in zip(pick, opt):
+            refs[k][i] = J
+        n_proven[k] = (sum(J is not None for J in opt), len(pick))
+    rows = [summarize(name, k, recs[name][k], refs[k], s["ts"]) for name, _ in configurations() for k in sets]
+    notes = [f"MSD, N_p = {s['horizon']}, t_s = {s['ts']} s, Q = diag(10, 1), R = 0.01, eps = {s['eps']:.4f}, the "
+             f"shipped (20, 20, 20) network; loop: {n_sc} Monte Carlo scenarios x {t_final} s in closed loop with the "
+             f"default MIQP ({len(recs['default (auto)']['loop'])} states), replayed in order (warm start); cold: "
+             f"{n_cold} states ({', '.join(COLD_KINDS)}), reset before each; no time limit for the two default rows, "
+             f"{ROW_LIMIT:g} s per step for the one-back-end rows.",
+             "cpu: time.process_time of the step (this process); wall: time.perf_counter; over_ts: steps longer than "
+             "t_s. max_gap_ref: largest |J - J_ref| / max(1, |J_ref|) over the optimal steps compared with the cold "
+             f"reference (cvxpy-scip, LP node bounds, gap 1e-9, {limit:g} s per state), run at the {n_ref} states of "
+             f"each set where the default took the {'least' if fast else 'most'} CPU time; it proved "
+             + ", ".join(f"{p} of {n} {k} states" for k, (p, n) in n_proven.items()) + ".",
+             "HiGHS solves no mixed-integer QP: no row of its own (the engine uses it for LP bounds and QPs)."]
+    return dict(title="MSD real time: per-step time of the MIQP on hard states, per back-end", rows=rows, notes=notes,
+                figures=[])
