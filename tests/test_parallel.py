@@ -205,6 +205,9 @@ def test_bad_options_are_refused(client):
         Executor().map(abs, [1, 2], keys=["a"], cache="x")
     with pytest.raises(ValueError, match="plain name"):
         Executor().map(abs, [1], keys=["a"], cache="../x")
+    with pytest.raises(ValueError, match="one finite number per task"):
+        Executor().map(abs, [1, 2], cost=[1.0])
+    assert Executor(workers=2).map(abs, [-1, -2, -3], cost=[1.0, 3.0, 2.0]) == [1, 2, 3]   # started 2, 3, 1
     with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
         certify_error(paper.system("MSD"), paper.paper_net("MSD")[0], chunk=0)
     with pytest.raises(ValueError, match="restarts must be an integer >= 1"):
@@ -229,6 +232,20 @@ def test_command_lines_take_workers_or_a_scheduler():
     with pytest.raises(ValueError, match="unknown section"):
         parse_args(["nosuch"])
     assert shipped_main(["--workers", "0"]) == 2 and shipped_main(["nosuch"]) == 2
+
+
+def test_a_round_is_cut_into_an_even_number_of_equal_chunks():
+    from flnotes.error import MIN_CHUNK, chunk_sizes
+
+    for n in (0, 1, 2 * MIN_CHUNK - 1, 2 * MIN_CHUNK, 1016, 1840, 3376, 7808, 8192, 8193):
+        for c in (64, 512, 1024):
+            sizes = chunk_sizes(n, c)
+            assert sum(sizes) == n and max(sizes, default=0) - min(sizes, default=0) <= 1, (n, c)
+            if n < 2 * min(MIN_CHUNK, c):
+                assert sizes == ([n] if n else []), (n, c)             # a small round stays whole, in process
+            else:
+                assert len(sizes) % 2 == 0 and max(sizes) <= c and len(sizes) - 2 < n / c, (n, c)
+    assert chunk_sizes(8192, 1024) == [1024] * 8 and chunk_sizes(3376, 1024) == [844] * 4
 
 
 def test_scaling_model_saturates_where_it_should():

@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import paper
 from ..arm import arm_net, two_link_arm
-from ..error import certify_error
+from ..error import certify_error, chunk_sizes
 from ..parallel import Executor, measure_overhead
 from ..reference import load_reference
 
@@ -38,9 +38,10 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
     """Predicted wall time of a certification of ``n_boxes`` boxes on ``W`` workers.
 
     Each branch-and-bound round bisects ``batch`` boxes, i.e. evaluates ``2 batch`` boxes in
-    ``k = ceil(2 batch / chunk)`` tasks; a round takes
+    ``k = ceil(2 batch / chunk)`` tasks (rounded up to an even number, :func:`flnotes.error.chunk_sizes`) of
+    ``c = 2 batch / k`` boxes; a round takes
 
-        ``2 batch t_serial_box + ceil(k / W) chunk t_box + k overhead``   (``overhead = 0`` for W = 1)
+        ``2 batch t_serial_box + ceil(k / W) c t_box + k overhead``   (``overhead = 0`` for W = 1)
 
     (the serial part: bracket, pruning and choice of the next boxes in the caller; the tasks, ``W``
     at a time; the engine's per-task cost, paid by the scheduler one task after another), and
@@ -61,9 +62,10 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
         raise ValueError("n_boxes, batch, chunk must be >= 1 and the times >= 0")
 
     def wall(W: int, b: int) -> tuple[float, int, int]:
-        k = math.ceil(2 * b / chunk)
+        sizes = chunk_sizes(2 * b, chunk)            # the tasks of a full round, as certify_error cuts it
+        k = len(sizes)
         rounds = n_boxes / (2 * b)                  # a fraction: the last round is a partial one
-        per_round = 2 * b * t_serial_box + math.ceil(k / W) * min(chunk, 2 * b) * t_box + (k * overhead if W > 1 else 0.0)
+        per_round = 2 * b * t_serial_box + math.ceil(k / W) * max(sizes) * t_box + (k * overhead if W > 1 else 0.0)
         return rounds * per_round, k, math.ceil(rounds)
 
     base, _, _ = wall(1, batch)
