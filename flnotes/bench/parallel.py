@@ -172,7 +172,7 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         warm_sc = C.draw_scenarios("MSD", 2, seed=1)
         wsys, (wnet, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
         for label, ex in engines.items():
-            _, w = _timed(lambda: (C.monte_carlo(s, warm_sc, 0.3, client=ex),
+            _, w = _timed(lambda: (C.monte_carlo(s, warm_sc, 0.2, client=ex),
                                    certify_error(wsys, wnet, rtol=0.2, batch=512, chunk=256, client=ex)))
             startup[label] += w
         notes.append("worker start-up and warm-up runs (not in the times below): "
