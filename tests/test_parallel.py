@@ -207,7 +207,7 @@ def test_bad_options_are_refused(client):
         Executor().map(abs, [1], keys=["a"], cache="../x")
     with pytest.raises(ValueError, match="one finite number per task"):
         Executor().map(abs, [1, 2], cost=[1.0])
-    assert Executor(workers=2).map(abs, [-1, -2, -3], cost=[1.0, 3.0, 2.0]) == [1, 2, 3]   # started 2, 3, 1
+    assert Executor(client=client).map(abs, [-1, -2, -3], cost=[1.0, 3.0, 2.0]) == [1, 2, 3]   # started 2, 3, 1
     with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
         certify_error(paper.system("MSD"), paper.paper_net("MSD")[0], chunk=0)
     with pytest.raises(ValueError, match="restarts must be an integer >= 1"):
