@@ -30,6 +30,7 @@ import numpy as np
 
 from . import interval as iv
 from ._checks import as_batch, check_box
+from .config import one_blas_thread
 from .interval import Interval, NotCertifiable
 from .network import ReLUNet, uniform_grid
 from .parallel import task_seeds, using
@@ -39,7 +40,7 @@ Array = np.ndarray
 
 __all__ = ["ErrorEstimate", "ErrorBracket", "NotCertifiable", "pso_max_error", "pso_moves", "sample_max_error",
            "grid_max_error", "de_max_error", "certify_error", "error_function", "worst_violation", "local_max_error",
-           "enclosure_widths"]
+           "enclosure_widths", "chunk_sizes", "MIN_CHUNK"]
 
 
 # ============================================================================ results
@@ -690,16 +691,19 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     keep_partition
         Keep the final sub-boxes (for :func:`flnotes.plots.partition_slice`).
     chunk
-        Boxes per task: each round's boxes are evaluated in consecutive chunks of this many, one
-        task each. The chunks, their order and the merge (concatenation in chunk order, then the
-        same selection as a single evaluation) do not depend on ``workers`` or ``client``: the
-        bracket is bit-identical on 1 worker, N local workers or a Dask cluster.
+        Most boxes per task: each round's boxes are evaluated in consecutive chunks of at most this
+        many, one task each (:func:`chunk_sizes`: equal chunks, an even number of them, so that two
+        workers get the same share). The chunks, their order and the merge (concatenation in chunk
+        order, then the same selection as a single evaluation) do not depend on ``workers`` or
+        ``client``: the bracket is bit-identical on 1 worker, N local workers or a Dask cluster.
     workers, client
         Where the chunks run (:class:`flnotes.parallel.Executor`): ``workers=1`` (default) in this
         process, ``workers=N`` in N local processes, ``client=`` a Dask client or scheduler address.
         Only the box evaluations are parallel; the bracket, the pruning and the choice of the next
-        boxes stay in this process. A round has at most ``ceil(2 batch / chunk)`` tasks, so more
-        workers than that only help with a larger ``batch`` (a different schedule, the same soundness).
+        boxes stay in this process, and so does a round of fewer than ``2 MIN_CHUNK`` boxes (the first
+        rounds). A round has at most ``ceil(2 batch / chunk)`` tasks (rounded up to an even number), so
+        more workers than that only help with a larger ``batch`` (a different schedule, the same
+        soundness).
     progress
         Show a :mod:`tqdm` bar of the boxes evaluated and the current bracket.
 
@@ -797,8 +801,29 @@ def _boxes_task(ev: _Evaluator, box: tuple[Array, Array]) -> tuple[Array, Array,
     return ev.boxes(*box)
 
 
+#: Fewest boxes a round is cut into tasks for: a round of fewer than ``2 MIN_CHUNK`` boxes is evaluated whole, in the
+#: caller's process (a task of fewer boxes would cost the engine's overhead more than it saves).
+MIN_CHUNK = 128
+
+
+def chunk_sizes(n: int, chunk: int) -> list[int]:
+    """The sizes of the consecutive chunks, one task each, that a round of ``n`` boxes is cut into (:func:`certify_error`).
+
+    ``k = ceil(n / chunk)`` chunks, rounded up to an even number, and at least two when ``n >= 2 min(MIN_CHUNK,
+    chunk)`` (one whole chunk below), of equal sizes (the first ``n mod k`` one box larger): two workers get the same
+    share of every round, also of the rounds that do not fill ``2 batch`` boxes (the first and the last ones).
+    Depends on ``n`` and ``chunk`` only, never on the workers: so the chunks, hence the bracket, are the same
+    wherever they run.
+    """
+    if n < 2 * min(MIN_CHUNK, chunk):
+        return [n] if n else []
+    k = max(2, -(-n // chunk))
+    k += k % 2
+    return [n // k + (1 if j < n % k else 0) for j in range(k)]
+
+
 class _Rounds:
-    """Evaluates a round's boxes in fixed chunks through an executor and merges them in chunk order."""
+    """Evaluates a round's boxes in fixed chunks (:func:`chunk_sizes`) through an executor, merged in chunk order."""
 
     def __init__(self, ev: _Evaluator, chunk: int, executor):
         self.ev, self.chunk, self.executor = ev, chunk, executor
@@ -813,10 +838,11 @@ class _Rounds:
             self.seconds += time.perf_counter() - t0
 
     def _evaluate(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
-        c = self.chunk
-        parts = [(lo[k:k + c], hi[k:k + c]) for k in range(0, len(lo), c)]
+        ends = np.cumsum([0] + chunk_sizes(len(lo), self.chunk))
+        parts = [(lo[a:b], hi[a:b]) for a, b in zip(ends[:-1], ends[1:])]
         if self.executor.engine == "serial" or len(parts) == 1:
-            out = [self.ev.boxes(*p) for p in parts]          # the same chunks, in this process
+            with one_blas_thread():                         # the same chunks, in this process, as on a worker
+                out = [self.ev.boxes(*p) for p in parts]
         else:
             out = self.executor.map(self.fn, parts)
         if len(out) == 1:

@@ -151,7 +151,8 @@ class Executor:
 
     # ------------------------------------------------------------------ the one method
     def map(self, fn: Callable[[Any], Any], items: Iterable[Any], *, keys: Optional[Sequence[str]] = None,
-            cache: Optional[str] = None, desc: Optional[str] = None, progress: bool = False) -> list:
+            cache: Optional[str] = None, desc: Optional[str] = None, progress: bool = False,
+            cost: Optional[Sequence[float]] = None) -> list:
         """``[fn(item) for item in items]``, run in parallel; the results in the order of ``items``.
 
         Parameters
@@ -168,6 +169,11 @@ class Executor:
             as it arrives and loaded from there by a later run. Both or neither.
         desc, progress
             A :mod:`tqdm` progress bar labelled ``desc``.
+        cost
+            One guess of the run time per task (any unit): on workers the tasks start in decreasing ``cost``
+            (ties in the order of ``items``), so that a long task does not start last and keep one worker busy
+            while the others wait. In this process the tasks run in the order of ``items``. Only the order in
+            which the tasks start depends on it, never the results or their order.
 
         Raises
         ------
@@ -178,6 +184,10 @@ class Executor:
             next run, and no partial list is returned.
         """
         items = list(items)
+        if cost is not None:
+            cost = np.asarray(cost, float)
+            if cost.shape != (len(items),) or not np.all(np.isfinite(cost)):
+                raise ValueError(f"cost must give one finite number per task ({len(items)}), got shape {cost.shape}")
         if (keys is None) != (cache is None):
             raise ValueError("resuming needs both cache= (a name) and keys= (one per task), or neither")
         if keys is not None and len(keys) != len(items):
@@ -192,6 +202,7 @@ class Executor:
                 results[k] = pickle.loads((folder / f"{keys[k]}.pkl").read_bytes())
             else:
                 todo.append(k)
+        start = todo if cost is None else sorted(todo, key=lambda k: -cost[k])   # stable: ties in item order
         bar = _bar(len(items), len(items) - len(todo), desc, progress)
         finished = set(range(len(items))) - set(todo)
 
@@ -213,7 +224,7 @@ class Executor:
                     f"the same keys resumes from them" if folder is not None else "")
 
         def first_pending() -> int:
-            return next(k for k in todo if k not in finished)
+            return next(k for k in start if k not in finished)
 
         try:
             if self.engine == "serial" or not todo:
@@ -225,9 +236,9 @@ class Executor:
                         raise
                     done(k, value)
             elif self.engine == "joblib":
-                self._map_joblib(fn, items, todo, done, lambda: name(first_pending()), resume)
+                self._map_joblib(fn, items, start, done, lambda: name(first_pending()), resume)
             else:
-                self._map_dask(fn, items, todo, done, name, resume)
+                self._map_dask(fn, items, start, done, name, resume)
         finally:
             if bar is not None:
                 bar.close()
@@ -237,7 +248,10 @@ class Executor:
         from joblib import Parallel, delayed
         from joblib.externals.loky.process_executor import TerminatedWorkerError
 
-        par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1, return_as="generator")
+        # one task per batch: the tasks are coarse (closed loops, chunks of boxes, networks), and joblib's automatic
+        # batching would bundle several of them for one worker while the other waits
+        par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1, return_as="generator",
+                       batch_size=1)
         try:
             for k, value in zip(todo, par(delayed(_run)(fn, items[j]) for j in todo)):
                 done(k, value)

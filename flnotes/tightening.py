@@ -91,8 +91,17 @@ class LPTightener:
     eliminated and ``alpha`` relaxed (projected on ``(a, y)`` it is the
     triangle hull of the ReLU on ``[L, U]``). Optional output rows
     ``out_lo <= W^K y^{K-1} + b^K <= out_hi``. The input box and the big-M
-    coefficients are changed in place; every LP is re-solved warm from the
-    previous basis.
+    coefficients are changed in place; the LPs of one box are re-solved warm
+    from the previous basis.
+
+    The bounds of a box depend on that box (and ``prior``) only, never on the
+    boxes tightened before: :meth:`tighten` first passes HiGHS the model as
+    built again (:meth:`restart`). Left to carry over, the previous box's basis
+    (a warm start into another optimal vertex of a degenerate LP) and the
+    matrix layout (HiGHS drops an entry set to zero and appends it again when
+    it comes back) changed the bounds in their last digits, hence the MPC's
+    programs, and a closed loop's result depended on which loops had run
+    before it in the same process.
     """
 
     def __init__(self, net: ReLUNet, out_bounds: Optional[tuple[Array, Array]] = None, tol: float = 1e-7):
@@ -193,13 +202,18 @@ class LPTightener:
         h.setOptionValue("threads", 1)
         h.setOptionValue("presolve", "off")  # tiny LPs re-solved warm: presolve only costs time
         h.passModel(lp)
-        self.h = h
+        self.h, self._lp = h, lp  # the model as built, passed again by restart()
         self._lb, self._ub = lb.copy(), ub.copy()
         self._cost = np.zeros(self.n)
         self._all = np.arange(self.n, dtype=np.int32)
         self.n_lp = 0
 
     # -- model changes -------------------------------------------------------------
+    def restart(self) -> None:
+        """Back to the model as built (its matrix layout, no basis): what follows depends on nothing done before."""
+        self.h.passModel(self._lp)
+        self._lb[:], self._ub[:] = self._lp.col_lower_, self._lp.col_upper_
+
     def set_box(self, lo: Array, hi: Array) -> None:
         """Bounds of the input ``x``."""
         self._lb[self.x], self._ub[self.x] = lo, hi
@@ -259,8 +273,10 @@ class LPTightener:
         layer is reached (a stable neuron needs no binary; its bounds only feed the interval
         bounds of later layers): about half the LPs for the same binaries. With ``deadline`` (a
         ``time.perf_counter()`` value), :class:`DeadlineReached` is raised before an LP that would start after it.
+        The result depends on the arguments only: the model is restarted first (:meth:`restart`).
         """
         net = self.net
+        self.restart()
         start = fbbt(net, lo, hi)
         if prior is not None:
             start = intersect(start, prior)

@@ -120,6 +120,23 @@ def test_monte_carlo_table_is_the_same_on_every_engine(client):
                 assert same, (label, k, ra[k], rb[k])
 
 
+def test_a_scenario_does_not_depend_on_the_scenarios_run_before_it():
+    # One process runs scenario after scenario (1 worker, or a worker given several): a scenario's rows must be
+    # those it has alone, or the table would depend on how the scenarios were spread over the workers. Scenario 3
+    # after 2 (seed 5, N_p = 4) is a case where the MIQP's LP node bounds carried over from one loop to the next.
+    sc = C.draw_scenarios("MSD", 4, seed=5)
+    alone = C.run_scenario(C.setting("MSD", horizon=4), sc[3], 0.6, methods=("network",))
+    s = C.setting("MSD", horizon=4)
+    C.run_scenario(s, sc[2], 0.3, methods=("network",))
+    after = C.run_scenario(s, sc[3], 0.6, methods=("network",))
+    assert alone[0]["completed"] and alone[0]["steps"] == 6              # premise: the loop ran to its end
+    a, b = _drop_times(after, ("ms_", "over_ts")), _drop_times(alone, ("ms_", "over_ts"))
+    assert list(a[0]) == list(b[0])
+    for k in a[0]:
+        x, y = np.asarray(a[0][k]), np.asarray(b[0][k])
+        assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), (k, a[0][k], b[0][k])
+
+
 def test_sweep_table_is_the_same_on_every_engine(client):
     msd = fl.msd()
     kw = dict(widths=(3, 4), depths=(1,), n_per_axis=(5,), max_iter=20, n_samples=300, rtol=0.3, max_time=None,
@@ -188,6 +205,9 @@ def test_bad_options_are_refused(client):
         Executor().map(abs, [1, 2], keys=["a"], cache="x")
     with pytest.raises(ValueError, match="plain name"):
         Executor().map(abs, [1], keys=["a"], cache="../x")
+    with pytest.raises(ValueError, match="one finite number per task"):
+        Executor().map(abs, [1, 2], cost=[1.0])
+    assert Executor(client=client).map(abs, [-1, -2, -3], cost=[1.0, 3.0, 2.0]) == [1, 2, 3]   # started 2, 3, 1
     with pytest.raises(ValueError, match="chunk must be an integer >= 1"):
         certify_error(paper.system("MSD"), paper.paper_net("MSD")[0], chunk=0)
     with pytest.raises(ValueError, match="restarts must be an integer >= 1"):
@@ -212,6 +232,20 @@ def test_command_lines_take_workers_or_a_scheduler():
     with pytest.raises(ValueError, match="unknown section"):
         parse_args(["nosuch"])
     assert shipped_main(["--workers", "0"]) == 2 and shipped_main(["nosuch"]) == 2
+
+
+def test_a_round_is_cut_into_an_even_number_of_equal_chunks():
+    from flnotes.error import MIN_CHUNK, chunk_sizes
+
+    for n in (0, 1, 2 * MIN_CHUNK - 1, 2 * MIN_CHUNK, 1016, 1840, 3376, 7808, 8192, 8193):
+        for c in (64, 512, 1024):
+            sizes = chunk_sizes(n, c)
+            assert sum(sizes) == n and max(sizes, default=0) - min(sizes, default=0) <= 1, (n, c)
+            if n < 2 * min(MIN_CHUNK, c):
+                assert sizes == ([n] if n else []), (n, c)             # a small round stays whole, in process
+            else:
+                assert len(sizes) % 2 == 0 and max(sizes) <= c and len(sizes) - 2 < n / c, (n, c)
+    assert chunk_sizes(8192, 1024) == [1024] * 8 and chunk_sizes(3376, 1024) == [844] * 4
 
 
 def test_scaling_model_saturates_where_it_should():

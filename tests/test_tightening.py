@@ -82,6 +82,33 @@ def test_batched_lp_bounds_match_box_by_box(small_net):
         assert _contains(one, pre)
 
 
+def _flat(b):
+    return np.concatenate([*b.L, *b.U, b.out_L, b.out_U])
+
+
+def test_the_bounds_of_a_box_do_not_depend_on_the_boxes_tightened_before():
+    # The LP is kept between calls (one per network and output bound) and warm-started; the bounds of a box must
+    # still be those of a fresh LP to the last bit, or an MPC step's program, hence a closed loop, would depend on
+    # the loops that ran before it in the same process. The paper's MSD network with the MPC's output bound.
+    sysm, (net, _) = fl.paper.system("MSD"), fl.paper.paper_net("MSD")
+    c = sysm.u_max - float(np.max(fl.paper.paper_eps("MSD").upper))
+    rng = np.random.default_rng(0)
+    mid = rng.uniform(sysm.lo, sysm.hi, (200, net.n_in))
+    mid = mid[np.abs(net(mid)[:, 0]) < c[0]][:6]                 # each box holds an admissible input
+    half = 0.3 * (sysm.hi - sysm.lo) * rng.uniform(0.1, 1.0, (6, net.n_in))
+    lo, hi = np.maximum(mid - half, sysm.lo), np.minimum(mid + half, sysm.hi)
+    fresh = [_flat(fl.LPTightener(net, out_bounds=(-c, c)).tighten(lo[t], hi[t], skip_stable=True)) for t in range(6)]
+    used = fl.LPTightener(net, out_bounds=(-c, c))
+    for t in (5, 4, 3, 2, 1, 0):                         # the other boxes first, in another order
+        assert np.array_equal(_flat(used.tighten(lo[t], hi[t], skip_stable=True)), fresh[t]), t
+    batch = lp_bounds(net, lo, hi, out_bounds=(-c, c), skip_stable=True)
+    for t in range(6):
+        one = lp_bounds(net, lo[t], hi[t], out_bounds=(-c, c), skip_stable=True)
+        assert np.array_equal(_flat(one), fresh[t]) and np.array_equal(
+            np.concatenate([*(a[t] for a in batch.L), *(a[t] for a in batch.U), batch.out_L[t], batch.out_U[t]]),
+            fresh[t]), t
+
+
 def test_output_bounds_that_no_input_meets_raise(small_net):
     s, net = small_net
     with pytest.raises(EmptyBoxError):

@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import paper
 from ..arm import arm_net, two_link_arm
-from ..error import certify_error
+from ..error import certify_error, chunk_sizes
 from ..parallel import Executor, measure_overhead
 from ..reference import load_reference
 
@@ -38,9 +38,10 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
     """Predicted wall time of a certification of ``n_boxes`` boxes on ``W`` workers.
 
     Each branch-and-bound round bisects ``batch`` boxes, i.e. evaluates ``2 batch`` boxes in
-    ``k = ceil(2 batch / chunk)`` tasks; a round takes
+    ``k = ceil(2 batch / chunk)`` tasks (rounded up to an even number, :func:`flnotes.error.chunk_sizes`) of
+    ``c = 2 batch / k`` boxes; a round takes
 
-        ``2 batch t_serial_box + ceil(k / W) chunk t_box + k overhead``   (``overhead = 0`` for W = 1)
+        ``2 batch t_serial_box + ceil(k / W) c t_box + k overhead``   (``overhead = 0`` for W = 1)
 
     (the serial part: bracket, pruning and choice of the next boxes in the caller; the tasks, ``W``
     at a time; the engine's per-task cost, paid by the scheduler one task after another), and
@@ -61,9 +62,10 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
         raise ValueError("n_boxes, batch, chunk must be >= 1 and the times >= 0")
 
     def wall(W: int, b: int) -> tuple[float, int, int]:
-        k = math.ceil(2 * b / chunk)
+        sizes = chunk_sizes(2 * b, chunk)            # the tasks of a full round, as certify_error cuts it
+        k = len(sizes)
         rounds = n_boxes / (2 * b)                  # a fraction: the last round is a partial one
-        per_round = 2 * b * t_serial_box + math.ceil(k / W) * min(chunk, 2 * b) * t_box + (k * overhead if W > 1 else 0.0)
+        per_round = 2 * b * t_serial_box + math.ceil(k / W) * max(sizes) * t_box + (k * overhead if W > 1 else 0.0)
         return rounds * per_round, k, math.ceil(rounds)
 
     base, _, _ = wall(1, batch)
@@ -84,7 +86,8 @@ def _timed(fn):
 
 
 def _drop_times(rows):
-    return [{k: v for k, v in r.items() if not k.startswith("ms_")} for r in rows]
+    """The rows without their timing columns (step wall times, steps slower than t_s): those are the machine's."""
+    return [{k: v for k, v in r.items() if not (k.startswith("ms_") or k == "over_ts")} for r in rows]
 
 
 def _same_rows(a, b) -> bool:
@@ -163,17 +166,26 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         startup = {}
         for label, ex in engines.items():          # start the workers and import the package in them
             _, startup[label] = _timed(lambda: ex.map(_warm, range(4 * ex.workers)))
-        notes.append("worker start-up (not in the times below): "
-                     + ", ".join(f"{k} {v:.1f} s" for k, v in startup.items() if not k.startswith("1 ")))
+        # ---------------------------------------------------------------- a small run of both jobs, untimed: every
+        # process pays its first solves, IPOPT's start and the first box evaluations before the timings
+        s = C.setting("MSD", time_limit=None)     # no time limit: the plans do not depend on the machine's timing
+        warm_sc = C.draw_scenarios("MSD", 2, seed=1)
+        wsys, (wnet, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+        for label, ex in engines.items():
+            _, w = _timed(lambda: (C.monte_carlo(s, warm_sc, 0.2, client=ex),
+                                   certify_error(wsys, wnet, rtol=0.2, batch=512, chunk=256, client=ex)))
+            startup[label] += w
+        notes.append("worker start-up and warm-up runs (not in the times below): "
+                     + ", ".join(f"{k} {v:.1f} s" for k, v in startup.items()))
         # ---------------------------------------------------------------- certification
         cname, crtol = ("Quad-1D", 0.01) if fast else ("MSD", paper.EPS_SETTINGS["rtol"])
         sysm, (net, _) = paper.system(cname), paper.paper_net(cname)
         repeats = 1 if fast else 2
-        _side_by_side(engines, lambda ex: certify_error(sysm, net, rtol=crtol, client=ex), _same_bracket,
-                            repeats, rows, notes, lambda ref: f"certify eps of {cname} to rtol {crtol:g} "
-                                                              f"({int(ref.n_boxes.sum()):,} boxes)")
+        br = _side_by_side(engines, lambda ex: certify_error(sysm, net, rtol=crtol, client=ex), _same_bracket,
+                           repeats, rows, notes, lambda ref: f"certify eps of {cname} to rtol {crtol:g} "
+                                                             f"({int(ref.n_boxes.sum()):,} boxes)")
+        notes.append(_amdahl_note(br))
         # ---------------------------------------------------------------- Monte Carlo
-        s = C.setting("MSD", time_limit=None)     # no time limit: the plans do not depend on the machine's timing
         n_sc, t_final = (2, 0.6) if fast else (4, 2.0)
         scenarios = C.draw_scenarios("MSD", n_sc, seed=0)
         _side_by_side(engines, lambda ex: C.monte_carlo(s, scenarios, t_final, client=ex), _same_rows, repeats,
@@ -224,11 +236,43 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
                 notes=notes, figures=[])
 
 
+def _amdahl_note(br) -> str:
+    """The serial fraction of a certification run on 1 worker and the speed-up it leaves to 2 workers (Amdahl).
+
+    Serial: the time outside the box evaluations (``time_s - eval_s``) and the rounds evaluated whole in the caller
+    (fewer than ``2 MIN_CHUNK`` boxes); the other rounds' chunks (:func:`flnotes.error.chunk_sizes`) are shared by
+    2 workers, a round taking as long as its busier worker (time per box taken as constant).
+    """
+    total, ser = float(np.sum(br.time_s)), float(np.sum(br.time_s - br.eval_s))
+    boxes = np.concatenate([np.diff(np.r_[0, h[:, 0]]) for h in br.history]).astype(int)
+    ev = total - ser
+    busy = 0.0
+    for n in boxes:
+        sizes = chunk_sizes(int(n), 1024)
+        loads = [0, 0]
+        for c in sizes:
+            loads[loads.index(min(loads))] += c
+        busy += n if len(sizes) <= 1 else max(loads)
+    whole = float(sum(n for n in boxes if len(chunk_sizes(int(n), 1024)) <= 1))
+    f = (ser + ev * whole / boxes.sum()) / total                 # serial fraction
+    par = ev * (busy - whole) / boxes.sum() / total               # the parallel rounds, as 2 workers share them
+    return (f"certification on 1 worker: serial fraction {f:.3f} (bracket, pruning and choice of boxes "
+            f"{ser / total:.3f}, rounds evaluated whole in process {ev * whole / boxes.sum() / total:.3f}); "
+            f"Amdahl bound of 2 workers, with the chunks as cut: {1.0 / (f + par):.2f} (no engine overhead counted)")
+
+
 def engines_first(engines: dict) -> str:
     return next(iter(engines))
 
 
 def _warm(k: int) -> int:
-    import flnotes  # noqa: F401  (the workers import the package once, before the timings)
+    """Import, in a worker, what the timed tasks use (the package, its solvers, CasADi), once, before the timings."""
+    import casadi  # noqa: F401
+    import daqp  # noqa: F401
+    import highspy  # noqa: F401
+    import pyscipopt  # noqa: F401
+
+    import flnotes  # noqa: F401
+    from flnotes.studies import compare  # noqa: F401
 
     return k

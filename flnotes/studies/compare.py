@@ -28,8 +28,8 @@ MIQP with the margin ``u_max^{eps+Delta}`` of eq. (eq-09-margin), ``Delta`` the 
 chapter.
 
 The metrics of one closed-loop run are computed by :func:`run_metrics`; :func:`monte_carlo`
-draws the scenarios of :func:`draw_scenarios` and runs every variant on each, one scenario at a
-time (:func:`run_scenario`).
+draws the scenarios of :func:`draw_scenarios` and runs every variant on each, one closed loop per task
+(:func:`run_row`; :func:`run_scenario` for one scenario).
 
 Same result on every machine: with ``time_limit=None`` (the default of :func:`setting`) every program
 is solved to its end and every count of a run is the machine's speed-independent answer; the wall
@@ -57,7 +57,8 @@ Array = np.ndarray
 
 __all__ = ["METHODS", "LABELS", "HOLDS", "MARGINS", "U_TOL", "Variant", "label", "setting", "with_drift",
            "study_variants", "make_controller", "Timed", "draw_scenarios", "scenario_reference", "run_methods",
-           "run_metrics", "plan_violations", "settling_time", "run_scenario", "relative_costs", "monte_carlo",
+           "run_metrics", "plan_violations", "settling_time", "run_scenario", "run_row", "relative_costs",
+           "TASK_WEIGHT", "task_cost", "monte_carlo",
            "method_table", "extremes",
            "cost_vs_miqp", "step_field"]
 
@@ -449,17 +450,22 @@ def run_scenario(s: dict, sc: dict, t_final: float, methods: Optional[Sequence] 
     ``bound_active``), ``method`` (the variant's key), ``hold``, ``margin`` and ``cost_vs_miqp``: the
     run's tracking cost over the MIQP's (``"network"``, ``v`` held, ``eps``) on this scenario, NaN
     unless both runs completed. The cost sums over the steps run, so a run that stopped early would
-    look cheap: only runs of the full length are compared.
+    look cheap: only runs of the full length are compared. Each row is :func:`run_row` of one variant:
+    a run depends on its scenario and variant only, not on the runs before it.
     """
+    variants = [_variant(m) for m in (METHODS if methods is None else methods)]
+    return relative_costs([run_row(s, sc, t_final, v, band, iterations) for v in variants])
+
+
+def run_row(s: dict, sc: dict, t_final: float, method, band: float = 0.1, iterations: int = 1) -> dict:
+    """One closed loop of the Monte Carlo: ``method`` (a method name, a key or a :class:`Variant`) on scenario
+    ``sc``; the row of :func:`run_scenario` without ``cost_vs_miqp`` (which needs the scenario's other rows)."""
+    var = _variant(method)
     ref = scenario_reference(s["system"], sc)
-    logs = run_methods(s, sc["z0"], ref, t_final, methods, iterations)
-    rows = []
-    for key, log in logs.items():
-        var = _variant(key)
-        rows.append(dict(scenario=sc["index"], method=key, hold=var.hold, margin=var.margin,
-                         amplitude=sc["amplitude"], omega=sc["omega"], u_ref_max=sc["u_ref_max"],
-                         bound_active=sc["bound_active"], **run_metrics(log, ref, s["Q"], s["R"], band)))
-    return relative_costs(rows)
+    log = run_methods(s, sc["z0"], ref, t_final, [var], iterations)[var.key]
+    return dict(scenario=sc["index"], method=var.key, hold=var.hold, margin=var.margin,
+                amplitude=sc["amplitude"], omega=sc["omega"], u_ref_max=sc["u_ref_max"],
+                bound_active=sc["bound_active"], **run_metrics(log, ref, s["Q"], s["R"], band))
 
 
 def relative_costs(rows: Sequence[dict]) -> list[dict]:
@@ -493,10 +499,28 @@ def extremes(table: dict, column: str, keys: Sequence[str]) -> dict:
     return dict(min=lo, max=hi, at_min=names(lo), at_max=names(hi))
 
 
-def _scenario_task(s: dict, t_final: float, methods: Optional[Sequence], band: float, iterations: int,
-                   sc: dict) -> list[dict]:
-    """One task of :func:`monte_carlo`: :func:`run_scenario` on one scenario."""
-    return run_scenario(s, sc, t_final, methods, band, iterations)
+#: Relative CPU time of one closed loop per method, to start the longest tasks of :func:`monte_carlo` first
+#: (measured on the MSD's Monte Carlo of the benchmark, N_p = 10: the MIQP took most of a scenario; only the
+#: order in which the tasks start depends on it, never a result).
+TASK_WEIGHT = {"network": 8.0, "nmpc": 2.0, "previous": 1.0, "measured": 1.0, "saturated": 0.5}
+
+
+def task_cost(s: dict, sc: dict, t_final: float, variant) -> float:
+    """A guess of the relative run time of one task of :func:`monte_carlo` (``variant`` on scenario ``sc``).
+
+    :data:`TASK_WEIGHT` of the method times the steps times ``N_p``, doubled for the MIQP when the reference needs
+    more input than ``u_max`` (``bound_active``: its binaries are then active). Used to start the longest tasks
+    first, so that the last ones to end are short; the results do not depend on it.
+    """
+    var = _variant(variant)
+    w = TASK_WEIGHT[var.method] * (2.0 if var.method == "network" and sc["bound_active"] else 1.0)
+    return w * (t_final / s["ts"]) * s["horizon"]
+
+
+def _row_task(s: dict, t_final: float, band: float, iterations: int, task: tuple) -> dict:
+    """One task of :func:`monte_carlo`: :func:`run_row` of one (scenario, variant)."""
+    sc, var = task
+    return run_row(s, sc, t_final, var, band, iterations)
 
 
 def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Optional[Sequence] = None,
@@ -504,24 +528,29 @@ def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Opt
                 progress: bool = False, resume: bool = False) -> list[dict]:
     """Every method (or variant) on every scenario: the rows of :func:`run_scenario`, scenario by scenario.
 
-    Each scenario is one task of :class:`flnotes.parallel.Executor`: in this process by default, on
-    ``workers`` local processes, or on a Dask ``client``; the rows come back in the same order whatever
-    runs them. ``progress`` shows a bar; ``resume`` keeps each finished scenario's rows in the cache
-    folder and reuses them when the same run is asked again. Under a ``time_limit``, a run's plans
-    depend on the time its solves take (rows with a late step can differ between runs); the timing
-    columns (``ms_*``) always do.
+    Each closed loop (a scenario and a variant, :func:`run_row`) is one task of
+    :class:`flnotes.parallel.Executor`: in this process by default, on ``workers`` local processes, or on a
+    Dask ``client``. The tasks start longest first (:func:`task_cost`), so that the workers end together; the
+    rows come back in the order of the scenarios and variants whatever runs them, and ``cost_vs_miqp`` is
+    computed here, per scenario (:func:`relative_costs`). ``progress`` shows a bar; ``resume`` keeps each
+    finished run's row in the cache folder and reuses it when the same run is asked again. Under a
+    ``time_limit``, a run's plans depend on the time its solves take (rows with a late step can differ between
+    runs); the timing columns (``ms_*``, ``over_ts``) always do.
     """
+    variants = [_variant(m) for m in (METHODS if methods is None else methods)]
+    tasks = [(sc, v) for sc in scenarios for v in variants]
     keys = None
     if resume:
         net_key = [np.asarray(a).tolist() for a in (*s["net"].W, *s["net"].b)]
-        mkey = None if methods is None else [repr(m) for m in methods]
-        keys = [task_key("monte_carlo", s["name"], s["eps"], s["horizon"], s["ts"], np.asarray(s["Q"]).tolist(),
-                         np.asarray(s["R"]).tolist(), s["time_limit"], net_key, t_final, band, iterations,
-                         {k: v for k, v in sc.items()}, mkey) for sc in scenarios]
+        keys = [task_key("monte_carlo", s["name"], s["eps"], s.get("delta"), s["horizon"], s["ts"],
+                         np.asarray(s["Q"]).tolist(), np.asarray(s["R"]).tolist(), s["time_limit"], net_key, t_final,
+                         band, iterations, dict(sc), repr(v)) for sc, v in tasks]
     with using(workers, client) as ex:
-        per = ex.map(partial(_scenario_task, s, t_final, methods, band, iterations), list(scenarios), keys=keys,
-                     cache="monte_carlo" if resume else None, desc="Monte Carlo", progress=progress)
-    return [row for rows in per for row in rows]
+        rows = ex.map(partial(_row_task, s, t_final, band, iterations), tasks, keys=keys,
+                      cache="monte_carlo" if resume else None, desc="Monte Carlo", progress=progress,
+                      cost=[task_cost(s, sc, t_final, v) for sc, v in tasks])
+    n = len(variants)
+    return [r for k in range(0, len(rows), n) for r in relative_costs(rows[k:k + n])]
 
 
 def method_table(rows: Sequence[dict], methods: Optional[Sequence] = None, only_active: bool = False,
