@@ -128,6 +128,7 @@ class ScipSolver(Solver):
     """
 
     name = "scip"
+    supports_node_limit = True
 
     def _build(self) -> None:
         scip = _require("scip")
@@ -238,6 +239,8 @@ class ScipSolver(Solver):
         m, p = self._m, self.problem
         m.freeTransform()
         m.setParam("limits/time", float(time_limit) if time_limit else 1e20)
+        nl = getattr(self, "_node_limit", None)
+        m.setParam("limits/totalnodes", -1 if nl is None else int(nl))  # a work budget (Solver.solve)
         m.setParam("limits/gap", 0.5 * gap)  # SCIP divides by min(|primal|, |dual|): keep a margin
         m.setParam("limits/absgap", 0.5 * gap)
         if ws is not None and self._warm_ok(ws):
