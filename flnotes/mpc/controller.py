@@ -21,7 +21,7 @@ from ..bounds import fbbt
 from ..config import no_cyclic_gc, one_blas_thread
 from ..network import ReLUNet
 from ..result import StepResult
-from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired, unmute_c_output
+from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
 from ..solvers.base import _require
 from ..systems import FLSystem
 from . import fallback
@@ -592,7 +592,6 @@ class MPC:
         worker.join(max(t0 + float(self.time_limit) - answer_s - time.perf_counter(), 0.0))
         if worker.is_alive():
             self.solver.stop()
-            unmute_c_output()  # a SCIP call running on must not silence what the caller writes from now on
             box["cut_off"] = True
             t_cut = time.perf_counter()
             step = self.solver.answer_now()

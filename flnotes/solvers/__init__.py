@@ -68,8 +68,8 @@ from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver, rele
 from .daqp import DAQP_STATUS, DaqpSolver
 from .highs import HIGHS_STATUS, HighsSolver
 from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, MIQPResult, next_margin, project_to_box
-from .scip import SCIP_STATUS, ScipSolver, unmute_c_output
+from .scip import C_NOTICES, SCIP_STATUS, ScipSolver
 
 __all__ = ["SOLVER_BACKENDS", "Solver", "available_backends", "make_solver", "release_retired", "retire",
            "DAQP_STATUS", "DaqpSolver", "HIGHS_STATUS", "HighsSolver", "BOUND_TOL", "BOX_TOL", "FEAS_TOL", "MIQP",
-           "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "unmute_c_output"]
+           "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "C_NOTICES"]
