@@ -508,7 +508,7 @@ class MPC:
             else:
                 c_s = time.thread_time()
                 step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap,
-                                         node_limit=self.node_limit)
+                                         node_limit=self.node_limit, safety_deadline=self._safety(t0))
                 if budget is not None:  # how late the engine answered after its budget (see reserve)
                     self._measure_late(step.solve_time - budget, time.thread_time() - c_s, step.solve_time)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
@@ -526,7 +526,8 @@ class MPC:
         step.info["z_ref"] = R
         if self.node_limit is not None:  # did the wall clock decide anything in this step (see work_limit)?
             step.info["work_limit"] = self.node_limit
-            step.info["safety_net"] = bool(step.info.get("cut_off")) or "deadline" in step.message
+            step.info["safety_net"] = (bool(step.info.get("safety_net")) or bool(step.info.get("cut_off"))
+                                       or "deadline" in step.message)
         step.info["plan_feasible"] = self.plan_feasible(step.z_pred, step.v_pred)
         step.solve_time = time.perf_counter() - t0
         step.info["post_time"] = step.solve_time - (t_post - t0)
@@ -578,7 +579,7 @@ class MPC:
             c_s = time.thread_time()
             try:
                 box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap,
-                                                node_limit=self.node_limit)
+                                                node_limit=self.node_limit, safety_deadline=self._safety(t0))
             except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
                 box["error"] = exc
             box["cpu"] = time.thread_time() - c_s
@@ -604,6 +605,12 @@ class MPC:
         step = self._finish_running()
         step.info["cut_off"] = False
         return step
+
+    def _safety(self, t0: float) -> Optional[float]:
+        """Under a work budget with the cut-off: the step's time limit (a :func:`time.perf_counter` value), at which a
+        solver call stops as a safety net (:meth:`NetworkEngine.solve`), so that a call answered at the cut-off does
+        not run on into the next step; ``None`` otherwise (without the cut-off the budget alone decides)."""
+        return t0 + float(self.time_limit) if self.node_limit is not None and self.cut_off else None
 
     def _finish_running(self) -> Optional[StepResult]:
         """Wait for the solve of :meth:`_engine_solve` to end; re-raise its error; measure how late it was after

@@ -244,13 +244,16 @@ class NetworkEngine:
                                eliminate_stable=self.opts.eliminate_stable, lo=lo, hi=hi, order=self.order)
 
     def solve(self, z0: Array, z_ref: Array, incumbent: Optional[Array] = None, time_limit: Optional[float] = None,
-              gap: float = 1e-6, node_limit: Optional[int] = None) -> StepResult:
+              gap: float = 1e-6, node_limit: Optional[int] = None,
+              safety_deadline: Optional[float] = None) -> StepResult:
         """Solve at the measured ``z0`` for ``z_ref`` (N_p + 1, n_z); ``incumbent`` is a plan ``V`` known feasible.
 
         ``node_limit`` (a work budget, with ``time_limit=None``): branch-and-bound nodes in all of this solve's
         rounds (each solver call gets what is left, ``Solver.solve(node_limit=...)``); no decision of the solve then
         reads the clock, so the same state gives the same status and plan on every run, machine and load. The
-        solve stops only at the budget, or when :meth:`stop` is called (the caller's wall-clock safety net).
+        solve stops only at the budget, or when :meth:`stop` is called (the caller's wall-clock safety net); a solver
+        call also stops at ``safety_deadline`` (a :func:`time.perf_counter` value, the caller's time limit), so that a
+        call the caller no longer waits for does not run on: a result it decided is flagged ``info["safety_net"]``.
 
         Returns a :class:`flnotes.StepResult` with the plan (``v`` is ``None`` when there is none:
         infeasible, time limit without a plan, solver failure); the caller applies its fallback then. At a
@@ -269,9 +272,11 @@ class NetworkEngine:
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
             if work and status == "time_limit" and msg.startswith("time limit"):  # say which limit stopped it
-                msg = ("stopped by the caller (wall-clock safety net)" if self._stop.is_set() else
+                msg = ("wall-clock safety net" if self._stop.is_set() or st.get("safety") else
                        f"work limit ({node_limit} nodes)") + msg[len("time limit"):]
             res = _step_result(pred, z0, f, c0, status, V, bound, msg, st, inc_from_warm, screened)
+            if work:
+                res.info["safety_net"] = bool(st.get("safety")) or self._stop.is_set()
             res.solve_time = time.perf_counter() - t0
             return res
 
@@ -323,6 +328,8 @@ class NetworkEngine:
             return time_limit is not None and (time_limit - (time.perf_counter() - t0) < need or self._stop.is_set())
 
         deadline = None if time_limit is None else t0 + time_limit  # no LP of the node bounds starts after it
+        if work:
+            deadline = safety_deadline  # under a budget only the safety net stops the LPs (flagged where it does)
 
         def limit_s() -> Optional[float]:  # what _lp_level reads: any limit (a work budget too) skips its recentring
             return np.inf if work else remaining()
@@ -371,6 +378,7 @@ class NetworkEngine:
                                                                      deadline, limit_s())
                             st["lp_rounds"] += 1
                     except DeadlineReached:
+                        st["safety"] = work
                         return done("time_limit", inc_V, lb, "time limit during the LP bounds of a level-set round")
                     if empty:  # nothing cheaper than J_up
                         if J_up >= inc_J:
@@ -409,7 +417,12 @@ class NetworkEngine:
                       if inc_V is not None else None)
                 if out_of_time():  # no solver starts without time left (it would answer after the limit)
                     return done("time_limit", inc_V, lb, "time limit before the round's solver started")
-                res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap, node_limit=nodes_left())
+                safety = (None if not work or safety_deadline is None else
+                          max(safety_deadline - time.perf_counter(), 1e-3))  # a safety net only (see above)
+                res = solver.solve(warm_start=w0, time_limit=remaining() if not work else safety, gap=gap,
+                                   node_limit=nodes_left())
+                if work and safety is not None and _status(res.status) == "time_limit" and "timelimit" in res.message:
+                    st["safety"] = True  # the clock stopped this call, not the budget
                 if (time_limit is not None or work) and backend != "daqp":
                     retire(solver)  # a SCIP or HiGHS model is freed at the next step, not inside this one
                 st["nodes"] += int(res.nodes)
@@ -455,6 +468,7 @@ class NetworkEngine:
                     try:
                         nb = self._lp_steps(nb, lo, hi, sorted(set(new) - lp_done), deadline)
                     except DeadlineReached:
+                        st["safety"] = work
                         return done("time_limit", inc_V, lb, "time limit during the LP bounds of added steps")
                     lp_done |= set(new)
                 enc = sorted(set(enc) | set(new))
