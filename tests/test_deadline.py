@@ -645,3 +645,21 @@ def test_no_solver_notice_reaches_the_c_streams_across_a_cut_off(quad, monkeypat
     assert "written by the caller" in out.err
     assert "GMP" not in out.err and "GMP" not in out.out, out.err
     assert not scip.c_output_filtered()
+
+
+def test_late_answers_are_counted_per_system_with_the_load_recorded():
+    """bench deadline's late answers: per system and kind of run, the answers counted, those after t_s on the wall
+    clock and of them those late by their own CPU time, the load average at start and end; the busy process of the
+    loaded condition runs during the runs and is gone after them."""
+    from flnotes.bench import deadline as dl
+
+    with dl.busy_core() as busy:
+        assert busy.proc.poll() is None, "the busy process runs"
+    assert busy.proc.poll() is not None, "and is stopped at the end"
+    rows = dl.late_answers(["Cubic3"], steps=3, n_states=1, loaded=True)
+    assert [(r["run"], r["answers"]) for r in rows] == [("closed loop", 3), ("cold states", 1)]
+    for r in rows:
+        assert r["condition"] == "busy process on a core" and r["t_s_ms"] == 200.0
+        assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
+        assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
+    assert len(dl.late_answers_notes(rows)) == 3

@@ -412,7 +412,31 @@ def run(fast: bool) -> dict:
                  f"(MPC.reserve_share = 0: the reserve is only what the controller has measured), without and with "
                  f"the cut-off: {off['over_t_s']} and {on['over_t_s']} of {on['steps']} answers after t_s, slowest "
                  f"{off['ms_max']:.1f} and {on['ms_max']:.1f} ms; {on['cut_offs']} answers at the cut-off.")
-    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs)
+    late = []
+    for wl in (None, "auto"):
+        for loaded in (False, True):
+            late += late_answers(steps=10 if fast else 100, n_states=3 if fast else 30, loaded=loaded, work_limit=wl)
+    notes += late_answers_notes(late)
+    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs,
+                late_answers=late)
+
+
+def late_answers_notes(rows: Sequence[dict]) -> list[str]:
+    """The rows of :func:`late_answers` as notes, one per system, condition and time model."""
+    out = ["Late answers per system (time_limit = t_s, default options; the book's two systems and the five not in "
+           "it): answers after t_s on the wall clock, of them late by the step's own CPU time (> t_s), the slowest "
+           "answer and the most CPU time over t_s, the longest time after the engine at a fallback step (fallback and "
+           "checks, wall clock) over t_s, and the 1-minute load average at the start and the end of the system's "
+           "runs. 'busy process on a core': a second process runs a plain CPU loop meanwhile (busy_core). "
+           "work_limit='auto': the budgeted MPC (NODES_PER_SECOND times t_s nodes, SCIP for every mixed-integer "
+           "program), whose safety-net hits are steps the wall clock decided."]
+    for r in rows:
+        out.append(f"{r['system']}, {r['run']}, {r['condition']}, work_limit={r['work_limit']}: {r['late_wall']} of "
+                   f"{r['answers']} answers after t_s = {r['t_s_ms']:g} ms ({r['late_cpu']} late by CPU); slowest "
+                   f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
+                   f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
+                   f"fallbacks, {r['safety_net']} safety-net hits; load {r['load_start']:.1f} -> {r['load_end']:.1f}")
+    return out
 
 
 # ----------------------------------------------------------------------------------- late answers, idle and loaded
@@ -528,5 +552,6 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              limit_hits=int(sum(s.status == "time_limit" for s, _, _ in recs)),
                              fallbacks=int(sum(s.fallback for s, _, _ in recs)),
                              safety_net=int(sum(bool(s.info.get("safety_net")) for s, _, _ in recs)),
+                             work_limit=work_limit,
                              load_start=float(load0), load_end=float(load1)))
     return rows
