@@ -59,10 +59,10 @@ CUT_OFF_MIN_S = 0.01
 
 #: Branch-and-bound nodes per second of ``time_limit`` that ``work_limit="auto"`` gives a step (at least one node):
 #: ``node_limit = max(1, floor(NODES_PER_SECOND * time_limit))``, a constant, so that the budget is the same on every
-#: machine. Measured with ``python -m flnotes.bench deadline`` (the SCIP nodes and the CPU time of the cold states of
-#: the Quad-1D at N_p = 10 and 20, on a loaded two-core machine): 4 to 7 nodes per CPU second of the whole step, the
-#: root node (presolve, root LP, node bounds before it) taking most of a step, so a limit of one sampling period of
-#: 0.1 s gives the root node only.
+#: machine. Measured (SCIP back-end without a limit, 12 cold states of the Quad-1D at N_p = 10 and at N_p = 20, on a
+#: loaded two-core machine): 4 and 7 nodes per CPU second of the whole step, most programs closing at the root node;
+#: the round 10 gives the root node alone at t_s = 0.1 s and two nodes at 0.2 s. ``python -m flnotes.bench deadline``
+#: counts the steps where the budget outlasted the limit (the safety net's hits).
 NODES_PER_SECOND = 10.0
 
 #: The values of :class:`MPC`'s ``work_limit`` besides a positive number of nodes.
