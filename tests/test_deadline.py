@@ -6,6 +6,9 @@ so which path each step takes depends on the states only, not on the machine's s
 under a time limit) the step answers while the engine runs on in its thread; the tests of the cut-off hold the
 solver in a gate, so that what they check does not depend on thread timing either.
 """
+import contextlib
+import os
+
 import numpy as np
 import pytest
 
@@ -414,7 +417,7 @@ def test_late_answers_are_told_apart_by_their_cpu_time():
 class Gate:
     """Holds the engine's first solver call (``calls`` of them) until :meth:`release`: a solver that overruns its
     limit by as long as the test wants, without any timing in the test. ``then`` replaces the held call's result
-    (e.g. an exception to raise); ``mute`` silences the C output while held, as SCIP does."""
+    (e.g. an exception to raise); ``mute`` filters the C output while held, as a SCIP call does."""
 
     def __init__(self, monkeypatch, calls: int = 1, then=None, mute: bool = False):
         import threading
@@ -433,10 +436,9 @@ class Gate:
             solve = solver.solve
 
             def held(*a, **k):
-                if mute:  # as a SCIP call does while it solves
-                    scip._mute_c_output()
-                self.entered.set()
-                assert self.released.wait(120.0), "the test never released the gate"
+                with scip._quiet_c_output() if mute else contextlib.nullcontext():  # as a SCIP call while it solves
+                    self.entered.set()
+                    assert self.released.wait(120.0), "the test never released the gate"
                 if self.then is not None:
                     raise self.then
                 return solve(*a, **k)
@@ -447,9 +449,6 @@ class Gate:
         monkeypatch.setattr(engine, "make_solver", make_solver)
 
     def release(self):
-        from flnotes.solvers import unmute_c_output
-
-        unmute_c_output()  # whatever the held call silenced (a no-op when the cut-off gave it back)
         self.released.set()
 
 
@@ -481,7 +480,7 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert gate.entered.is_set() and not gate.released.is_set(), "premise: the answer came while the solver was held"
     from flnotes.solvers import scip
 
-    assert not scip._muted, "the held call's silencing of the C output ended with the answer"
+    assert scip.c_output_filtered(), "the held call's filter of the C output stays while the call runs on"
     assert s.status == "time_limit" and s.info["cut_off"], s.message
     assert check_step(mpc, s) and not s.fallback and s.input_admissible, s.message
     assert s.objective >= exact.objective - 1e-6 * max(1.0, abs(exact.objective))  # never below the optimum
@@ -616,3 +615,51 @@ def test_a_slow_answer_after_a_cut_off_moves_the_next_cut_off_by_a_bounded_share
     mpc.set_previous_plan(None)
     s = mpc(easy[0]["z"], easy[0]["z_ref"])
     assert s.status == "optimal" and not s.info["cut_off"], s.message
+
+
+def test_no_solver_notice_reaches_the_c_streams_across_a_cut_off(quad, monkeypatch, capfd):
+    """SoPlex's tolerance notice (forced at every SCIP model by an LP tolerance below what it accepts) never reaches
+    file descriptors 1 or 2: not from a step's SCIP calls, nor from one that runs on after its step answered at the
+    cut-off; what the caller writes meanwhile comes out."""
+    from flnotes.solvers import scip
+
+    params = {"params": {"numerics/lpfeastolfactor": 1e-3}}  # LP tolerance 1e-12 with SCIP's 1e-9: the notice
+    setup, z, R, prev, _ = engine_state(quad)
+    probe = rt.make_mpc(setup, backend="scip", solver_options=params)
+    monkeypatch.setattr(scip, "_quiet_c_output", contextlib.nullcontext)
+    probe.set_previous_plan(prev)
+    probe(z, R)
+    assert "Cannot set feasibility tolerance" in capfd.readouterr().err, "premise: these settings print the notice"
+    monkeypatch.undo()
+    mpc = rt.make_mpc(setup, backend="scip", solver_options=params, time_limit=5.0)
+    gate = Gate(monkeypatch)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert s.info["cut_off"] and gate.entered.is_set(), "premise: the step answered while its SCIP call was held"
+    gate.release()  # the held call now solves, in its thread, after its step answered
+    os.write(2, b"written by the caller\n")
+    mpc.reset()  # waits for it
+    mpc.set_previous_plan(prev)
+    mpc(z, R)  # and a whole step with SCIP calls
+    out = capfd.readouterr()
+    assert "written by the caller" in out.err
+    assert "GMP" not in out.err and "GMP" not in out.out, out.err
+    assert not scip.c_output_filtered()
+
+
+def test_late_answers_are_counted_per_system_with_the_load_recorded():
+    """bench deadline's late answers: per system and kind of run, the answers counted, those after t_s on the wall
+    clock and of them those late by their own CPU time, the load average at start and end; the busy process of the
+    loaded condition runs during the runs and is gone after them."""
+    from flnotes.bench import deadline as dl
+
+    with dl.busy_core() as busy:
+        assert busy.proc.poll() is None, "the busy process runs"
+    assert busy.proc.poll() is not None, "and is stopped at the end"
+    rows = dl.late_answers(["Cubic3"], steps=3, n_states=1, loaded=True)
+    assert [(r["run"], r["answers"]) for r in rows] == [("closed loop", 3), ("cold states", 1)]
+    for r in rows:
+        assert r["condition"] == "busy process on a core" and r["t_s_ms"] == 200.0
+        assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
+        assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
+    assert len(dl.late_answers_notes(rows)) == 3

@@ -412,4 +412,146 @@ def run(fast: bool) -> dict:
                  f"(MPC.reserve_share = 0: the reserve is only what the controller has measured), without and with "
                  f"the cut-off: {off['over_t_s']} and {on['over_t_s']} of {on['steps']} answers after t_s, slowest "
                  f"{off['ms_max']:.1f} and {on['ms_max']:.1f} ms; {on['cut_offs']} answers at the cut-off.")
-    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs)
+    late = []
+    for wl in (None, "auto"):
+        for loaded in (False, True):
+            late += late_answers(steps=10 if fast else 100, n_states=3 if fast else 30, loaded=loaded, work_limit=wl)
+    notes += late_answers_notes(late)
+    return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs,
+                late_answers=late)
+
+
+def late_answers_notes(rows: Sequence[dict]) -> list[str]:
+    """The rows of :func:`late_answers` as notes, one per system, condition and time model."""
+    out = ["Late answers per system (time_limit = t_s, default options; the book's two systems and the five not in "
+           "it): answers after t_s on the wall clock, of them late by the step's own CPU time (> t_s), the slowest "
+           "answer and the most CPU time over t_s, the longest time after the engine at a fallback step (fallback and "
+           "checks, wall clock) over t_s, and the 1-minute load average at the start and the end of the system's "
+           "runs. 'busy process on a core': a second process runs a plain CPU loop meanwhile (busy_core). "
+           "work_limit='auto': the budgeted MPC (NODES_PER_SECOND times t_s nodes, SCIP for every mixed-integer "
+           "program), whose safety-net hits are steps the wall clock decided."]
+    for r in rows:
+        out.append(f"{r['system']}, {r['run']}, {r['condition']}, work_limit={r['work_limit']}: {r['late_wall']} of "
+                   f"{r['answers']} answers after t_s = {r['t_s_ms']:g} ms ({r['late_cpu']} late by CPU); slowest "
+                   f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
+                   f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
+                   f"fallbacks, {r['safety_net']} safety-net hits; load {r['load_start']:.1f} -> {r['load_end']:.1f}")
+    return out
+
+
+# ----------------------------------------------------------------------------------- late answers, idle and loaded
+#: The two systems of the book and the five not in it (:data:`flnotes.studies.unseen.CASES`), in this order.
+BOOK_SYSTEMS = ("Quad-1D", "MSD")
+
+
+class busy_core:
+    """A second process that keeps one core busy (a plain CPU loop in a subprocess) inside a ``with`` block: the
+    loaded condition of :func:`late_answers`, on a two-core machine the other core."""
+
+    def __enter__(self):
+        import subprocess
+        import sys
+
+        self.proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        return self
+
+    def __exit__(self, *exc):
+        self.proc.kill()
+        self.proc.wait()
+        return False
+
+
+def _book_mpc(name: str, time_limit: Optional[float], work_limit=None):
+    """The book system's MPC at ``time_limit`` (Quad-1D: Sec. IV-B; MSD: chapter 11's setting) with its reference
+    ``x_ref = 1.5 sin t`` and start."""
+    from ..mpc import MPC, sine_reference
+    from ..studies.compare import setting
+
+    s = setting(name)
+    mpc = MPC(s["system"], s["net"], s["eps"], horizon=s["horizon"], ts=s["ts"], Q=s["Q"], R=s["R"],
+              time_limit=time_limit, work_limit=work_limit)
+    z0 = np.asarray(quad_setup()["z0"] if name == "Quad-1D" else np.zeros(mpc.n_z), float)
+    return mpc, sine_reference(1.5, 1.0, mpc.n_z), z0
+
+
+def _system_run(name: str, steps: int, n_states: int, work_limit=None) -> dict:
+    """One system with ``time_limit = t_s``: its closed loop of ``steps`` steps (true plant) and ``n_states`` cold
+    states; per answer the wall and CPU time (this process's, a cut-off solve running on included) and the time
+    after the engine (``post_time``: the fallback and the checks)."""
+    from ..studies import unseen as U
+
+    if name in BOOK_SYSTEMS:
+        mpc, ref, z0 = _book_mpc(name, None)
+        ts = mpc.ts
+        mpc = mpc.clone(time_limit=ts, work_limit=work_limit)
+        cases = [dict(z=c["z"], z_ref=c["z_ref"]) for c in mpc_cases(dict(quad_setup(horizon=mpc.N), N=mpc.N), n_states)] \
+            if name == "Quad-1D" else _msd_cases(mpc, n_states)
+    else:
+        c = U.case(name)
+        mpc, ref, z0, ts = U.unseen_mpc(name, time_limit=c.ts, work_limit=work_limit), c.reference(), np.array(c.z0), c.ts
+        cases = U.diverse_cases(name, n_states)
+    timed = U.TimedController(mpc)
+    simulate(mpc.system, timed, t_final=steps * ts, ts=ts, z0=z0, reference=ref, progress=False)
+    loop = [(s, w, c) for s, w, c in zip(mpc.history, timed.wall, timed.cpu)]
+    cold = []
+    for cs in cases:
+        mpc.reset()
+        w0, c0 = time.perf_counter(), time.process_time()
+        s = mpc(cs["z"], cs["z_ref"])
+        cold.append((s, time.perf_counter() - w0, time.process_time() - c0))
+    return dict(ts=ts, loop=loop, cold=cold)
+
+
+def _msd_cases(mpc, n: int, seed: int = 0) -> list[dict]:
+    """``n`` cold MSD states: uniform in 90 % of the box, constant position references in 80 % of its range."""
+    rng = np.random.default_rng(seed)
+    mid, half = (mpc.z_lo + mpc.z_hi) / 2, (mpc.z_hi - mpc.z_lo) / 2
+    out = []
+    for _ in range(n):
+        R = np.zeros((mpc.N + 1, mpc.n_z))
+        R[:, 0] = mid[0] + rng.uniform(-0.8, 0.8) * half[0]
+        out.append(dict(z=mid + rng.uniform(-0.9, 0.9, mpc.n_z) * half, z_ref=R))
+    return out
+
+
+def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_states: int = 30,
+                 loaded: bool = False, work_limit=None) -> list[dict]:
+    """Answers after ``t_s`` per system (the book's two and the five not in it), closed loop and cold states, with
+    ``time_limit = t_s`` and default options (``work_limit`` of :class:`flnotes.MPC` when given).
+
+    ``loaded``: the runs are made with a second process keeping a core busy (:class:`busy_core`). Per system and
+    kind of run: ``answers``, ``late_wall`` (answers after ``t_s`` on the wall clock), ``late_cpu`` (of those, the
+    answers whose step also used more than ``t_s`` of CPU time: late by the controller's own work; the others waited
+    for the machine), the slowest answer and the most CPU time over ``t_s``, ``post_max_over_ts`` (the longest time
+    after the engine, the fallback and the checks, over ``t_s``) at the fallback steps, limit hits, fallbacks,
+    safety-net hits (under a work budget), and the load average (1 min) at the start and the end of the system's run.
+    """
+    import os
+    from contextlib import nullcontext
+
+    from ..studies import unseen as U
+
+    rows = []
+    for name in names or (*BOOK_SYSTEMS, *U.CASES):
+        with busy_core() if loaded else nullcontext():
+            load0 = os.getloadavg()[0]
+            run = _system_run(name, steps, n_states, work_limit)
+            load1 = os.getloadavg()[0]
+        ts = run["ts"]
+        for kind in ("loop", "cold"):
+            recs = run[kind]
+            wall = np.array([w for _, w, _ in recs])
+            cpu = np.array([c for _, _, c in recs])
+            post = [s.info.get("post_time", 0.0) for s, _, _ in recs if s.fallback]
+            rows.append(dict(system=name, run="closed loop" if kind == "loop" else "cold states",
+                             condition="busy process on a core" if loaded else "as found",
+                             t_s_ms=1e3 * ts, answers=len(recs), late_wall=int(np.sum(wall > ts)),
+                             late_cpu=int(np.sum((wall > ts) & (cpu > ts))),
+                             wall_max_over_ts=float(wall.max() / ts), cpu_max_over_ts=float(cpu.max() / ts),
+                             post_max_over_ts=float(max(post) / ts) if post else 0.0,
+                             limit_hits=int(sum(s.status == "time_limit" for s, _, _ in recs)),
+                             fallbacks=int(sum(s.fallback for s, _, _ in recs)),
+                             safety_net=int(sum(bool(s.info.get("safety_net")) for s, _, _ in recs)),
+                             work_limit=work_limit,
+                             load_start=float(load0), load_end=float(load1)))
+    return rows

@@ -19,6 +19,7 @@ the tuning pair. Speed is measured here, never asserted in tests.
 """
 from __future__ import annotations
 
+import os
 import time
 
 from ..studies import unseen as U
@@ -48,7 +49,9 @@ def run(fast: bool) -> dict:
     for name in names:
         t0 = time.perf_counter()
         c = U.case(name)
+        load0 = os.getloadavg()[0]
         r = U.deadline_row(name, steps=int(round((c.t_final / 4 if fast else c.t_final) / c.ts)))
+        r.update(load_start=load0, load_end=os.getloadavg()[0])
         rows.append(dict(kind="closed loop, time_limit = t_s", **r))
         notes.append(f"{name}: closed loop with time_limit = t_s in {time.perf_counter() - t0:.0f} s: "
                      f"{r['limit_hits']} of {r['steps']} steps hit the limit ({r['cut_offs']} answered at the cut-off "
@@ -56,7 +59,8 @@ def run(fast: bool) -> dict:
                      f"than t_s of CPU time), slowest answer {r['wall_max_over_ts']:.2f} t_s (wall), most CPU time "
                      f"of a step {r['cpu_max_over_ts']:.2f} t_s; plans at the limit: largest distance to the optimum "
                      f"{r['opt_gap_max']:.1e}, {r['opt_gap_over']} above 1e-4, {r['opt_undecided']} without a proven "
-                     "optimum" + (f"; late answers: {r['late']}" if r["late"] else ""))
+                     f"optimum; load average {r['load_start']:.1f} -> {r['load_end']:.1f}"
+                     + (f"; late answers: {r['late']}" if r["late"] else ""))
     n = 9 if fast else 30
     for name in names:
         t0 = time.perf_counter()
@@ -66,8 +70,10 @@ def run(fast: bool) -> dict:
         notes.append(f"{name}: {n} diverse states (cold) in {time.perf_counter() - t0:.0f} s; p99 = "
                      f"{r['wall_p99_ms']:.0f} ms = {r['p99_over_ts_wall']:.1f} t_s (wall); "
                      + (r["miss"] or "every state <= t_s (wall)"))
+        load0 = os.getloadavg()[0]
         lim, lw, lc, _ = U.diverse_run(name, n, seed=0, time_limit=U.case(name).ts)
         d = U.diverse_deadline_row(name, lim, lw, lc, steps)
+        d.update(load_start=load0, load_end=os.getloadavg()[0])
         rows.append(dict(kind="diverse states, time_limit = t_s", **d))
         notes.append(f"{name}: the same {n} states with time_limit = t_s: p99 = {d['wall_p99_over_ts']:.2f} t_s, "
                      f"slowest {d['wall_max_over_ts']:.2f} t_s (wall), most CPU time of a step "
@@ -79,7 +85,8 @@ def run(fast: bool) -> dict:
                      f"{d['without_plan_undecided']} undecided); first inputs flagged {d['inputs_flagged']}, above "
                      f"u_max^eps unflagged {d['inputs_not_admissible']}; plans at the limit: largest distance to the "
                      f"optimum {d['opt_gap_max']:.1e}, {d['opt_gap_over']} above 1e-4, {d['opt_undecided']} without "
-                     "a proven optimum" + (f"; late answers: {d['late']}" if d["late"] else ""))
+                     f"a proven optimum; load average {d['load_start']:.1f} -> {d['load_end']:.1f}"
+                     + (f"; late answers: {d['late']}" if d["late"] else ""))
         b = U.bang_bang_row(name, n, seed=0)
         rows.append(dict(kind="diverse states, time_limit = t_s, one-switch plans off and on", **b))
         notes.append(f"{name}: one-switch plans (MPCOptions.bang_bang) on the same {n} states: the repaired relaxation "

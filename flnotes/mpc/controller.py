@@ -21,7 +21,7 @@ from ..bounds import fbbt
 from ..config import no_cyclic_gc, one_blas_thread
 from ..network import ReLUNet
 from ..result import StepResult
-from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired, unmute_c_output
+from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
 from ..solvers.base import _require
 from ..systems import FLSystem
 from . import fallback
@@ -56,6 +56,17 @@ FALLBACK_POST_SHARE = 0.1
 #: checks the plan (1 to 3 ms). Measured on the Quad-1D at N_p = 20 with no reserve share: the answers at a cut-off
 #: 4 to 6 ms before t_s came up to 1.7 ms after it.
 CUT_OFF_MIN_S = 0.01
+
+#: Branch-and-bound nodes per second of ``time_limit`` that ``work_limit="auto"`` gives a step (at least one node):
+#: ``node_limit = max(1, floor(NODES_PER_SECOND * time_limit))``, a constant, so that the budget is the same on every
+#: machine. Measured (SCIP back-end without a limit, 12 cold states of the Quad-1D at N_p = 10 and at N_p = 20, on a
+#: loaded two-core machine): 4 and 7 nodes per CPU second of the whole step, most programs closing at the root node;
+#: the round 10 gives the root node alone at t_s = 0.1 s and two nodes at 0.2 s. ``python -m flnotes.bench deadline``
+#: counts the steps where the budget outlasted the limit (the safety net's hits).
+NODES_PER_SECOND = 10.0
+
+#: The values of :class:`MPC`'s ``work_limit`` besides a positive number of nodes.
+WORK_LIMITS = (None, "auto")
 
 
 def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, phase: float = 0.0
@@ -153,6 +164,18 @@ class MPC:
         ``python -m flnotes.bench deadline`` reports the answers after the limit. With a time limit, the controller
         solves once when it is built (:meth:`NetworkEngine.warm_up`), so that its first step does not pay the
         process's one-off costs.
+    work_limit
+        A work budget per step instead of the wall clock (a time limit is needed, and kept as a safety net only):
+        ``None`` (default: the engine's decisions read the clock), a positive number of branch-and-bound nodes for
+        all the rounds of a step, or ``"auto"`` (:data:`NODES_PER_SECOND` times ``time_limit``). With a budget no
+        decision of the engine reads the clock (its solver calls get a node limit, no time limit; node bounds,
+        incumbent searches and rounds run to their end), so the same state gives the same status and plan on every
+        run, machine and load: a step that spends its budget answers with status ``"time_limit"`` and a message
+        saying "work limit". The wall clock still answers at the cut-off when the budget takes longer than the
+        limit (``info["safety_net"]`` True, as when the fallback's repairs stop at their deadline): those steps
+        depend on timing, and :meth:`summary` counts them. DAQP's branch and bound takes no node limit (DAQP 0.11:
+        a time limit and a per-node iteration limit only), so under a budget ``backend="auto"`` solves every
+        mixed-integer program with SCIP, and ``backend="daqp"`` with a budget is an error.
     cut_off
         With a time limit and the network engine (default on there): the engine solves in a worker thread and the
         step answers at its cut-off, before ``time_limit``, with the best plan the engine has found so far when the
@@ -196,9 +219,10 @@ class MPC:
                  Q=None, R=None, P=None, *, terminal=None, options: Optional[MPCOptions] = None,
                  time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
                  v_box: Optional[tuple] = None, solver_options: Optional[dict] = None,
-                 cut_off: Optional[bool] = None, **levers):
+                 cut_off: Optional[bool] = None, work_limit=None, **levers):
         self._init_args = dict(system=system, net=net, eps=eps, horizon=horizon, ts=ts, Q=Q, R=R, P=P,
                                terminal=terminal, options=options, time_limit=time_limit, gap=gap, cut_off=cut_off,
+                               work_limit=work_limit,
                                discretization=discretization, v_box=v_box, solver_options=solver_options, **levers)
         if options is not None and levers:
             raise ValueError(f"give either options=MPCOptions(...) or the keywords {sorted(levers)}, not both")
@@ -229,6 +253,7 @@ class MPC:
             if cut_off and not engine:
                 raise ValueError(f"cut_off needs the network engine (constraint='network', a persistent back-end); "
                                  f"these options are {o}: leave cut_off unset")
+        self.node_limit = self._work_budget(work_limit, time_limit, engine, o)
         used = ("daqp", "scip") if o.backend == "auto" else ("scip",) if o.is_reference else (o.backend,)
         for b in used:
             _require(b)  # ImportError naming the package, here, not at a solve
@@ -295,6 +320,30 @@ class MPC:
         self.history: list[StepResult] = []
         self._plan: Optional[tuple[Array, Array]] = None
         self._qp_plan: Optional[Array] = None
+
+    @staticmethod
+    def _work_budget(work_limit, time_limit: Optional[float], engine: bool, o: MPCOptions) -> Optional[int]:
+        """``work_limit`` validated and resolved to a node budget per step (``None``: the wall clock decides)."""
+        if work_limit is None:
+            return None
+        if isinstance(work_limit, str):
+            if work_limit not in WORK_LIMITS:
+                raise ValueError(f"work_limit must be None, 'auto' or a positive number of nodes, got {work_limit!r}")
+        elif isinstance(work_limit, bool) or not isinstance(work_limit, (int, np.integer)) or work_limit < 1:
+            raise ValueError(f"work_limit must be None, 'auto' or a positive number of nodes, got {work_limit!r}")
+        if time_limit is None:
+            raise ValueError("work_limit replaces the wall clock inside a time-limited step (which stays as a safety "
+                             "net): give time_limit=... too, or leave work_limit unset")
+        if not engine:
+            raise ValueError(f"work_limit budgets the network engine's branch and bound (constraint='network', a "
+                             f"persistent back-end); these options are {o}: leave work_limit unset")
+        if o.backend not in ("auto", "scip"):
+            raise ValueError(f"work_limit needs a back-end that takes a node limit: SCIP (backend='scip', or 'auto', "
+                             f"which then solves every mixed-integer program with SCIP); {o.backend!r} stops on the "
+                             f"clock only (DAQP's branch and bound has no node limit): leave work_limit unset")
+        if work_limit == "auto":
+            return max(1, int(np.floor(NODES_PER_SECOND * float(time_limit))))
+        return int(work_limit)
 
     # ------------------------------------------------------------------ state
     @property
@@ -376,6 +425,8 @@ class MPC:
         args = {**self._init_args, **changes}
         if args.get("time_limit") is None and "cut_off" not in changes:
             args["cut_off"] = None  # a clone without a time limit has no cut-off to keep
+            if "work_limit" not in changes:
+                args["work_limit"] = None  # nor a work budget
         levers = sorted(set(changes) & set(MPCOptions.__dataclass_fields__))
         if "options" in changes and changes["options"] is not None:
             args = {k: v for k, v in args.items() if k not in MPCOptions.__dataclass_fields__}
@@ -457,7 +508,8 @@ class MPC:
                 step = self._engine_solve(z, R, inc, budget, t0)
             else:
                 c_s = time.thread_time()
-                step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
+                step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap,
+                                         node_limit=self.node_limit, safety_deadline=self._safety(t0))
                 if budget is not None:  # how late the engine answered after its budget (see reserve)
                     self._measure_late(step.solve_time - budget, time.thread_time() - c_s, step.solve_time)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
@@ -473,6 +525,10 @@ class MPC:
         if o.constraint == "network" or step.fallback:
             step.input_admissible = bool(step.input_admissible and np.all(np.abs(step.u_nn_pred[0]) <= self.u_eps + BOUND_TOL))
         step.info["z_ref"] = R
+        if self.node_limit is not None:  # did the wall clock decide anything in this step (see work_limit)?
+            step.info["work_limit"] = self.node_limit
+            step.info["safety_net"] = (bool(step.info.get("safety_net")) or bool(step.info.get("cut_off"))
+                                       or "deadline" in step.message)
         step.info["plan_feasible"] = self.plan_feasible(step.z_pred, step.v_pred)
         step.solve_time = time.perf_counter() - t0
         step.info["post_time"] = step.solve_time - (t_post - t0)
@@ -523,7 +579,8 @@ class MPC:
         def run() -> None:
             c_s = time.thread_time()
             try:
-                box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap)
+                box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap,
+                                                node_limit=self.node_limit, safety_deadline=self._safety(t0))
             except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
                 box["error"] = exc
             box["cpu"] = time.thread_time() - c_s
@@ -537,16 +594,24 @@ class MPC:
         worker.join(max(t0 + float(self.time_limit) - answer_s - time.perf_counter(), 0.0))
         if worker.is_alive():
             self.solver.stop()
-            unmute_c_output()  # a SCIP call running on must not silence what the caller writes from now on
             box["cut_off"] = True
             t_cut = time.perf_counter()
             step = self.solver.answer_now()
+            if self.node_limit is not None:  # the budget took longer than the limit: the clock decided this step
+                step.message = step.message.replace("time limit: cut off", "wall-clock safety net: cut off at the "
+                                                    "time limit before the work limit", 1)
             step.info["cut_off_at"] = t_cut
             step.solve_time = time.perf_counter() - t0
             return step
         step = self._finish_running()
         step.info["cut_off"] = False
         return step
+
+    def _safety(self, t0: float) -> Optional[float]:
+        """Under a work budget with the cut-off: the step's time limit (a :func:`time.perf_counter` value), at which a
+        solver call stops as a safety net (:meth:`NetworkEngine.solve`), so that a call answered at the cut-off does
+        not run on into the next step; ``None`` otherwise (without the cut-off the budget alone decides)."""
+        return t0 + float(self.time_limit) if self.node_limit is not None and self.cut_off else None
 
     def _finish_running(self) -> Optional[StepResult]:
         """Wait for the solve of :meth:`_engine_solve` to end; re-raise its error; measure how late it was after
@@ -565,7 +630,8 @@ class MPC:
                 box["error"].add_note("raised by the solve that the previous step answered at its cut-off")
             raise box["error"]
         step = box["step"]
-        self._measure_late(step.solve_time - budget, box.get("cpu", step.solve_time), step.solve_time)
+        if budget is not None:
+            self._measure_late(step.solve_time - budget, box.get("cpu", step.solve_time), step.solve_time)
         return step
 
     def _measure_late(self, late: float, cpu: float, wall: float) -> None:
@@ -577,7 +643,7 @@ class MPC:
     # ------------------------------------------------------------------ the fallback
     def _engine_time(self, t0: float) -> Optional[float]:
         """The seconds left for the engine: the time limit less what this step has spent and :attr:`reserve`."""
-        if self.time_limit is None:
+        if self.time_limit is None or self.node_limit is not None:  # a work budget: no clock inside the engine
             return None
         left = self.time_limit - (time.perf_counter() - t0) - self.reserve
         return max(left, 1e-9)  # positive: the engine then returns at its first check of the time
@@ -675,6 +741,7 @@ class MPC:
             ms_mean=float(s["wall_ms"].mean()), ms_median=float(np.median(s["wall_ms"])),
             time_limit_hits=int(sum(st == "time_limit" for st in s["status"])),
             cut_offs=int(sum(bool(r.info.get("cut_off")) for r in self.history)),
+            safety_net_hits=int(sum(bool(r.info.get("safety_net")) for r in self.history)),
             fallbacks=int(s["fallback"].sum()), screened=int(s["screened"].sum()), miqp_steps=int(mi.sum()),
             nodes_mean=float(s["nodes"][mi].mean()) if mi.any() else 0.0, binaries_full=self.n_binaries_full,
             binaries_mean=float(s["n_binaries"][mi].mean()) if mi.any() else 0.0,
@@ -686,4 +753,5 @@ class MPC:
         term = ", terminal set" if self.terminal is not None else ""
         return (f"MPC({self.system.name}, N_p={self.N}, ts={self.ts}, {self.options}{term}, "
                 f"time_limit={self.time_limit}" + (f", cut_off={self.cut_off}" if self.time_limit is not None else "")
+                + (f", work_limit={self.node_limit} nodes" if self.node_limit is not None else "")
                 + ")")

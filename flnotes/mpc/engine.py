@@ -244,8 +244,16 @@ class NetworkEngine:
                                eliminate_stable=self.opts.eliminate_stable, lo=lo, hi=hi, order=self.order)
 
     def solve(self, z0: Array, z_ref: Array, incumbent: Optional[Array] = None, time_limit: Optional[float] = None,
-              gap: float = 1e-6) -> StepResult:
+              gap: float = 1e-6, node_limit: Optional[int] = None,
+              safety_deadline: Optional[float] = None) -> StepResult:
         """Solve at the measured ``z0`` for ``z_ref`` (N_p + 1, n_z); ``incumbent`` is a plan ``V`` known feasible.
+
+        ``node_limit`` (a work budget, with ``time_limit=None``): branch-and-bound nodes in all of this solve's
+        rounds (each solver call gets what is left, ``Solver.solve(node_limit=...)``); no decision of the solve then
+        reads the clock, so the same state gives the same status and plan on every run, machine and load. The
+        solve stops only at the budget, or when :meth:`stop` is called (the caller's wall-clock safety net); a solver
+        call also stops at ``safety_deadline`` (a :func:`time.perf_counter` value, the caller's time limit), so that a
+        call the caller no longer waits for does not run on: a result it decided is flagged ``info["safety_net"]``.
 
         Returns a :class:`flnotes.StepResult` with the plan (``v`` is ``None`` when there is none:
         infeasible, time limit without a plan, solver failure); the caller applies its fallback then. At a
@@ -258,9 +266,17 @@ class NetworkEngine:
         f, c0 = pred.linear(z0, z_ref)
         self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
         st = dict(nodes=0, rounds=0, tightened=0, n_bin=0, steps=(), lp_rounds=0, backend=o.backend)
+        if node_limit is not None and time_limit is not None:
+            raise ValueError("give the solve a node_limit (work budget) or a time_limit, not both")
+        work = node_limit is not None
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
+            if work and status == "time_limit" and msg.startswith("time limit"):  # say which limit stopped it
+                msg = ("wall-clock safety net" if self._stop.is_set() or st.get("safety") else
+                       f"work limit ({node_limit} nodes)") + msg[len("time limit"):]
             res = _step_result(pred, z0, f, c0, status, V, bound, msg, st, inc_from_warm, screened)
+            if work:
+                res.info["safety_net"] = bool(st.get("safety")) or self._stop.is_set()
             res.solve_time = time.perf_counter() - t0
             return res
 
@@ -302,11 +318,21 @@ class NetworkEngine:
         def remaining() -> Optional[float]:
             return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 1e-3)
 
-        def out_of_time(need: float = SOLVE_MIN_LEFT) -> bool:  # less than ``need`` seconds of the time limit left
-            # (or the caller answered at a cut-off and asked this solve to stop: :meth:`stop`)
+        def nodes_left() -> Optional[int]:  # of the work budget (None: no budget)
+            return None if node_limit is None else int(node_limit) - int(st["nodes"])
+
+        def out_of_time(need: float = SOLVE_MIN_LEFT) -> bool:  # less than ``need`` seconds of the time limit left,
+            # or the work budget spent (or the caller answered at a cut-off and asked this solve to stop: :meth:`stop`)
+            if work:
+                return nodes_left() <= 0 or self._stop.is_set()
             return time_limit is not None and (time_limit - (time.perf_counter() - t0) < need or self._stop.is_set())
 
         deadline = None if time_limit is None else t0 + time_limit  # no LP of the node bounds starts after it
+        if work:
+            deadline = safety_deadline  # under a budget only the safety net stops the LPs (flagged where it does)
+
+        def limit_s() -> Optional[float]:  # what _lp_level reads: any limit (a work budget too) skips its recentring
+            return np.inf if work else remaining()
 
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
         if level and o.first_level == "incumbent":
@@ -317,7 +343,7 @@ class NetworkEngine:
         # cheaper than its level J_up proves that nothing cheaper exists)
         lb, J_up, n_round = J_c, -np.inf, 0
         while True:
-            if time_limit is not None:
+            if time_limit is not None or work:
                 if n_round and self.margin == 0.0:
                     lb = max(lb, J_up)
                 n_round += 1
@@ -344,14 +370,15 @@ class NetworkEngine:
                             enc_f = (sorted(set(st_f) & active) if o.lazy else st_f) if st_f is not None else []
                             if st_f is not None and unstable_count(override, enc_f) > LP_AUTO_BINARIES:
                                 empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, enc_f,
-                                                                         deadline, remaining())
+                                                                         deadline, limit_s())
                                 lp_done = set(enc_f)
                                 st["lp_rounds"] += 1
                         elif not empty and o.lp:
                             empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, None,
-                                                                     deadline, remaining())
+                                                                     deadline, limit_s())
                             st["lp_rounds"] += 1
                     except DeadlineReached:
+                        st["safety"] = work
                         return done("time_limit", inc_V, lb, "time limit during the LP bounds of a level-set round")
                     if empty:  # nothing cheaper than J_up
                         if J_up >= inc_J:
@@ -381,7 +408,8 @@ class NetworkEngine:
                                        eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
                                        hi=hi if restrict else None, order=self.order)
                 st["n_bin"], st["steps"] = int(prob.n_integer), tuple(enc)
-                st["backend"] = backend = pick_backend(o.backend, int(prob.n_integer))
+                st["backend"] = backend = ("scip" if work and o.backend == "auto" and prob.n_integer else
+                                           pick_backend(o.backend, int(prob.n_integer)))  # DAQP: no node limit
                 if backend == "scip" and out_of_time(VERIFY_MIN_LEFT):  # a SCIP model takes 10 ms and more to build
                     return done("time_limit", inc_V, lb, "time limit: too little time left to build a SCIP model")
                 solver = make_solver(prob, backend, **self.solver_options.get(backend, {}))
@@ -389,8 +417,13 @@ class NetworkEngine:
                       if inc_V is not None else None)
                 if out_of_time():  # no solver starts without time left (it would answer after the limit)
                     return done("time_limit", inc_V, lb, "time limit before the round's solver started")
-                res = solver.solve(warm_start=w0, time_limit=remaining(), gap=gap)
-                if time_limit is not None and backend != "daqp":
+                safety = (None if not work or safety_deadline is None else
+                          max(safety_deadline - time.perf_counter(), 1e-3))  # a safety net only (see above)
+                res = solver.solve(warm_start=w0, time_limit=remaining() if not work else safety, gap=gap,
+                                   node_limit=nodes_left())
+                if work and safety is not None and _status(res.status) == "time_limit" and "timelimit" in res.message:
+                    st["safety"] = True  # the clock stopped this call, not the budget
+                if (time_limit is not None or work) and backend != "daqp":
                     retire(solver)  # a SCIP or HiGHS model is freed at the next step, not inside this one
                 st["nodes"] += int(res.nodes)
                 st["rounds"] += 1
@@ -426,7 +459,7 @@ class NetworkEngine:
                 new = sorted(viol - set(enc))
                 if not new or not o.lazy:
                     break
-                if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                if (time_limit is not None and time.perf_counter() - t0 > time_limit) or (work and out_of_time()):
                     # out of time between constraint-generation rounds: this round's optimum is a lower bound
                     # of the program restricted to the level set (fewer steps encoded: a relaxation)
                     lb_r = max(lb, min(float(res.objective), J_up)) if self.margin == 0.0 else lb
@@ -435,6 +468,7 @@ class NetworkEngine:
                     try:
                         nb = self._lp_steps(nb, lo, hi, sorted(set(new) - lp_done), deadline)
                     except DeadlineReached:
+                        st["safety"] = work
                         return done("time_limit", inc_V, lb, "time limit during the LP bounds of added steps")
                     lp_done |= set(new)
                 enc = sorted(set(enc) | set(new))

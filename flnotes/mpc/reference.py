@@ -94,7 +94,7 @@ class ReferenceProgram:
             opts["limits/time"] = float(time_limit)
         try:
             # cvxpy warns on infinite bounds and on SCIP's "gaplimit" status; SoPlex prints its tolerance notices to the
-            # C streams (silenced as in the engine's SCIP back-end)
+            # C streams (filtered out as in the engine's SCIP back-end)
             with warnings.catch_warnings(), _quiet_c_output():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 warnings.simplefilter("ignore", UserWarning)

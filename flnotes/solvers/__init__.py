@@ -57,6 +57,13 @@ solvers' rows, and the network bound checked with the forward pass to
 tighten ``u_max^eps`` in the rows they hand to a solver until the returned
 point passes that check (:func:`next_margin`).
 
+Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
+bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's
+``limits/totalnodes``, HiGHS's ``mip_max_nodes``; DAQP 0.11's branch and bound has a time limit and a per-node
+iteration limit only, so it refuses a node limit on a mixed-integer program). What SoPlex, SCIP's LP solver, writes
+straight to the C streams whatever SCIP's verbosity (a tolerance notice, :data:`C_NOTICES`) is dropped by a filter on
+file descriptors 1 and 2 while any SCIP call runs; everything else written meanwhile passes.
+
 Layout: :mod:`.problem` (the program, its result, the tolerance policy),
 :mod:`.base` (the persistent-model interface and back-end selection), and one
 module per back-end (:mod:`.highs`, :mod:`.scip`, :mod:`.daqp`, :mod:`.gurobi`,
@@ -68,8 +75,8 @@ from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver, rele
 from .daqp import DAQP_STATUS, DaqpSolver
 from .highs import HIGHS_STATUS, HighsSolver
 from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, MIQPResult, next_margin, project_to_box
-from .scip import SCIP_STATUS, ScipSolver, unmute_c_output
+from .scip import C_NOTICES, SCIP_STATUS, ScipSolver
 
 __all__ = ["SOLVER_BACKENDS", "Solver", "available_backends", "make_solver", "release_retired", "retire",
            "DAQP_STATUS", "DaqpSolver", "HIGHS_STATUS", "HighsSolver", "BOUND_TOL", "BOX_TOL", "FEAS_TOL", "MIQP",
-           "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "unmute_c_output"]
+           "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "C_NOTICES"]

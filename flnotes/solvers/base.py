@@ -59,6 +59,10 @@ class Solver:
 
     name = "base"
     supports_miqp = True
+    #: Whether :meth:`solve` takes a ``node_limit`` (a work budget of the branch and bound that does not depend on the
+    #: machine's speed or load): SCIP (``limits/totalnodes``) and HiGHS (``mip_max_nodes``) do; DAQP's branch and
+    #: bound (0.11) has a time limit and a per-node iteration limit but no node limit.
+    supports_node_limit = False
 
     def __init__(self, problem: MIQP, **options):
         if not isinstance(problem, MIQP):
@@ -123,7 +127,7 @@ class Solver:
             self._push(changed)
 
     def solve(self, warm_start: Optional[Array] = None, time_limit: Optional[float] = None,
-              gap: float = 1e-6) -> MIQPResult:
+              gap: float = 1e-6, node_limit: Optional[int] = None) -> MIQPResult:
         """Solve the current program.
 
         Parameters
@@ -137,6 +141,10 @@ class Solver:
         gap
             Relative optimality gap ``|obj - bound| / max(1, |obj|)`` at which
             the search stops.
+        node_limit
+            Branch-and-bound nodes at most (a positive integer; ``None``: no limit), for back-ends with
+            :attr:`supports_node_limit`; the search stops there with status ``"time_limit"`` and its incumbent.
+            Unlike a time limit, the same program stops at the same node on every machine and load.
         """
         ws = None
         if warm_start is not None:
@@ -149,6 +157,13 @@ class Solver:
             raise ValueError(f"time_limit must be positive seconds or None, got {time_limit}")
         if not gap >= 0:
             raise ValueError(f"gap must be >= 0, got {gap}")
+        if node_limit is not None:
+            if isinstance(node_limit, bool) or int(node_limit) != node_limit or node_limit < 1:
+                raise ValueError(f"node_limit must be a positive integer or None, got {node_limit!r}")
+            if not self.supports_node_limit and self.problem.is_mip:
+                raise ValueError(f"the {self.name!r} back-end takes no node limit (its branch and bound stops on the "
+                                 f"clock only): use backend='scip' for a work budget, or node_limit=None")
+        self._node_limit = None if node_limit is None or not self.problem.is_mip else int(node_limit)
         t0 = time.perf_counter()
         try:
             return self._solve(ws, time_limit, float(gap), t0)

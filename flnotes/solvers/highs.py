@@ -67,6 +67,7 @@ class HighsSolver(Solver):
 
     name = "highs"
     supports_miqp = False
+    supports_node_limit = True
 
     def _build(self) -> None:
         hp = _require("highs")
@@ -140,6 +141,9 @@ class HighsSolver(Solver):
         hp, h, p = self._hp, self._h, self.problem
         h.changeObjectiveOffset(p.c0)
         h.setOptionValue("time_limit", float(time_limit) if time_limit else hp.kHighsInf)
+        nl = getattr(self, "_node_limit", None)
+        if p.is_mip:
+            h.setOptionValue("mip_max_nodes", 2**31 - 1 if nl is None else int(nl))  # a work budget (Solver.solve)
         h.setOptionValue("mip_rel_gap", gap)
         h.setOptionValue("mip_abs_gap", gap)
         if p.is_mip:

@@ -43,55 +43,130 @@ MIQP_PARAMS = ("lean", "default")
 LEAN_PRESOLVE_ROUNDS = 1
 
 
-_MUTE_LOCK = threading.Lock()
-_muted: list = []  # the saved descriptors (stdout, stderr, /dev/null) while the C output is silenced
+#: What SoPlex (SCIP's LP solver) writes straight to the C streams, whatever SCIP's verbosity (``hideOutput`` does not
+#: reach it): with SCIP's feasibility tolerance at 1e-9, an LP tolerance SCIP tightens by its factor 1e-3 for a
+#: numerically hard LP is below what SoPlex accepts without GMP, and it says so on file descriptor 2 ("Cannot set
+#: feasibility tolerance to small value 1e-12 without GMP - using 1e-10."). Lines that start with one of these are
+#: dropped by :class:`_quiet_c_output`; everything else passes.
+C_NOTICES = (b"Cannot set feasibility tolerance to small value",)
+
+_FILTER_LOCK = threading.Lock()
+_filter: dict = dict(depth=0, fds=[])  # the SCIP calls running, and per filtered descriptor (fd, saved, read end, thread)
 
 
-def _mute_c_output() -> None:
-    """Point file descriptors 1 and 2 at /dev/null (SoPlex prints tolerance notices straight to the C streams)."""
-    with _MUTE_LOCK:
-        if _muted:
-            return
+def _split_notices(buf: bytes, final: bool = False) -> tuple[bytes, bytes]:
+    """``buf`` less the lines that are notices of :data:`C_NOTICES`: ``(what to write now, what to hold)``. A last
+    piece without its line end is held only while it may still become a notice (``final``: nothing is held)."""
+    out, parts = [], buf.splitlines(keepends=True)
+    hold = b""
+    if parts and not parts[-1].endswith((b"\n", b"\r")):
+        last = parts.pop()
+        head = last.lstrip()
+        if not final and any(n.startswith(head) or head.startswith(n) for n in C_NOTICES):
+            hold = last
+        else:
+            parts.append(last)
+    for part in parts:
+        if not part.lstrip().startswith(C_NOTICES):
+            out.append(part)
+    return b"".join(out), hold
+
+
+def _forward(r: int, saved: int) -> None:
+    """Copy what arrives on the pipe ``r`` to the descriptor ``saved``, without the notices, until the pipe closes."""
+    pending = b""
+    while True:
         try:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            null = os.open(os.devnull, os.O_WRONLY)
-            saved = (os.dup(1), os.dup(2))
-            os.dup2(null, 1)
-            os.dup2(null, 2)
+            chunk = os.read(r, 65536)
         except OSError:
+            break
+        if not chunk:
+            break
+        now, pending = _split_notices(pending + chunk)
+        while now:
+            try:
+                now = now[os.write(saved, now):]
+            except OSError:
+                break
+    now, _ = _split_notices(pending, final=True)
+    if now:
+        try:
+            os.write(saved, now)
+        except OSError:
+            pass
+
+
+def _flush_c_streams() -> None:
+    """Flush Python's and C's buffered output, so that it goes out on the descriptor it was written for."""
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except Exception:  # a closed or replaced stream: nothing to flush
+            pass
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except Exception:  # pragma: no cover - no C library to flush
+        pass
+
+
+def _filter_enter() -> None:
+    """A SCIP call starts: file descriptors 1 and 2 go through a filter that drops :data:`C_NOTICES` (the first of
+    the calls running at once starts it)."""
+    with _FILTER_LOCK:
+        _filter["depth"] += 1
+        if _filter["depth"] > 1:
             return
-        _muted.extend((*saved, null))
+        _flush_c_streams()
+        for fd in (1, 2):
+            try:
+                saved = os.dup(fd)
+                r, w = os.pipe()
+                os.dup2(w, fd)
+                os.close(w)
+            except OSError:
+                continue
+            t = threading.Thread(target=_forward, args=(r, saved), name=f"flnotes-c-output-{fd}", daemon=True)
+            t.start()
+            _filter["fds"].append((fd, saved, r, t))
 
 
-def unmute_c_output() -> None:
-    """Give file descriptors 1 and 2 back (no-op when they are not silenced).
-
-    The descriptors belong to the whole process: a SCIP call that runs on in another thread after its caller has
-    moved on (a controller that answered at its cut-off) would otherwise keep silencing what the rest of the process
-    writes. Such a caller calls this; the rest of that SCIP call may then print its notices.
-    """
-    with _MUTE_LOCK:
-        if not _muted:
+def _filter_leave() -> None:
+    """A SCIP call ends: the last one running gives file descriptors 1 and 2 back (what the filter holds is written
+    first)."""
+    with _FILTER_LOCK:
+        if _filter["depth"] == 0:
             return
-        saved1, saved2, null = _muted
-        os.dup2(saved1, 1)
-        os.dup2(saved2, 2)
-        for fd in (saved1, saved2, null):
-            os.close(fd)
-        _muted.clear()
+        _filter["depth"] -= 1
+        if _filter["depth"] > 0:
+            return
+        _flush_c_streams()
+        for fd, saved, r, t in _filter["fds"]:
+            os.dup2(saved, fd)  # the pipe's last write end closes: the forwarding thread reads to its end
+            t.join(5.0)
+            os.close(saved)
+            os.close(r)
+        _filter["fds"].clear()
+
+
+def c_output_filtered() -> bool:
+    """Whether file descriptors 1 and 2 go through the filter of :class:`_quiet_c_output` now (a SCIP call runs)."""
+    return _filter["depth"] > 0
 
 
 class _quiet_c_output:
-    """Silence file descriptors 1 and 2 (C-level output of a solver library) inside a ``with`` block
-    (:func:`unmute_c_output` gives them back early)."""
+    """Inside a ``with`` block (a SCIP call), file descriptors 1 and 2 pass through a filter that drops the notices
+    of :data:`C_NOTICES` and forwards everything else. The filter stays while any such call runs, in any thread: a
+    SCIP call that runs on after its caller answered at a cut-off drops its notices too, and what the rest of the
+    process writes meanwhile still comes out."""
 
     def __enter__(self):
-        _mute_c_output()
+        _filter_enter()
         return self
 
     def __exit__(self, *exc):
-        unmute_c_output()
+        _filter_leave()
         return False
 
 
@@ -128,6 +203,7 @@ class ScipSolver(Solver):
     """
 
     name = "scip"
+    supports_node_limit = True
 
     def _build(self) -> None:
         scip = _require("scip")
@@ -238,6 +314,8 @@ class ScipSolver(Solver):
         m, p = self._m, self.problem
         m.freeTransform()
         m.setParam("limits/time", float(time_limit) if time_limit else 1e20)
+        nl = getattr(self, "_node_limit", None)
+        m.setParam("limits/totalnodes", -1 if nl is None else int(nl))  # a work budget (Solver.solve)
         m.setParam("limits/gap", 0.5 * gap)  # SCIP divides by min(|primal|, |dual|): keep a margin
         m.setParam("limits/absgap", 0.5 * gap)
         if ws is not None and self._warm_ok(ws):
