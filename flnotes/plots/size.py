@@ -25,7 +25,8 @@ def size_plot(rows: Sequence[dict], t_s_ms: float = 100.0, path=None):
     """
     if not rows:
         raise ValueError("rows must hold at least one row of flnotes.studies.size.size_rows")
-    fig, (ax_t, ax_e) = new_axes(1, 2, figsize=(10.0, 3.8))
+    fig, axes = new_axes(1, 2, figsize=(10.0, 3.8))
+    ax_t, ax_e = axes[0]
     series = sorted({(r["system"], r["N_p"]) for r in rows})
     markers = {2: "o", 3: "s", 4: "^"}
     for i, (s, N) in enumerate(series):
@@ -49,7 +50,11 @@ def size_plot(rows: Sequence[dict], t_s_ms: float = 100.0, path=None):
                           textcoords="offset points")
         ax_e.plot([], [], "o", color=f"C{i}", label=s)
     ax_e.set_xscale("log")
-    ax_e.set_yscale("log")
+    ax_e.set_ylim(bottom=0.0)
+    hidden = sorted({int(r["hidden"]) for r in rows})
+    for ax in (ax_t, ax_e):
+        ax.set_xticks(hidden, [str(h) for h in hidden])
+        ax.minorticks_off()
     ax_e.set_xlabel("hidden neurons")
     ax_e.set_ylabel("certified eps / u_max")
     ax_e.legend(fontsize=7.5, title="o depth 2, s 3, ^ 4", title_fontsize=7)

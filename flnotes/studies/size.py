@@ -64,7 +64,8 @@ def _check(system: str, widths: Sequence[int]) -> tuple[int, ...]:
 
 def size_settings(system: str, widths: Sequence[int]) -> dict:
     """The training settings of the network: the book's :data:`flnotes.paper.NET_SETTINGS` with ``widths``."""
-    return {**paper.NET_SETTINGS[system], "widths": _check(system, widths)}
+    w = _check(system, widths)
+    return {**paper.NET_SETTINGS[system], "widths": w}
 
 
 def size_reference_name(system: str, widths: Sequence[int]) -> tuple[str, Optional[Path]]:
