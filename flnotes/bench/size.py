@@ -23,7 +23,7 @@ def settings(fast: bool) -> dict:
     if fast:
         return dict(systems=("Quad-1D",), sizes=((10, 10), (10, 10, 10)), horizons=(10,), n_loops=1, loop_steps=3,
                     n_cold=2, seed=0, time_limit=CAP_S)
-    return dict(systems=study.SYSTEMS, sizes=study.SIZES, horizons=(10, 20), n_loops=2, loop_steps=30, n_cold=10,
+    return dict(systems=study.SYSTEMS, sizes=None, horizons=(10, 20), n_loops=2, loop_steps=30, n_cold=10,
                 seed=0, time_limit=CAP_S)
 
 

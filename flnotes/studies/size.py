@@ -37,11 +37,13 @@ __all__ = ["SYSTEMS", "SIZES", "SIZE_DIR", "TS", "size_label", "size_reference_n
 #: The two systems of the study (:func:`flnotes.paper.system`).
 SYSTEMS: tuple[str, ...] = ("Quad-1D", "MSD")
 
-#: The hidden widths of the study, the same for both systems: widths 10 to 40, depths 2 to 4 (a subset of the
-#: full grid that keeps the trend along each axis and includes the (20, 20, 20) and (30, 30) class).
-SIZES: tuple[tuple[int, ...], ...] = ((10, 10), (20, 20), (30, 30), (40, 40),
-                                      (10, 10, 10), (20, 20, 20), (30, 30, 30),
-                                      (10, 10, 10, 10), (20, 20, 20, 20))
+#: The hidden widths of the study per system: widths 10 to 40, depths 2 to 4. A subset of the full grid that keeps
+#: the trend along each axis and includes the (20, 20, 20) and (30, 30) class; the deeper and wider networks that
+#: the grid leaves out took too long to train on the machine that wrote the files.
+SIZES: dict[str, tuple[tuple[int, ...], ...]] = {
+    "Quad-1D": ((10, 10), (20, 20), (30, 30), (40, 40), (10, 10, 10), (20, 20, 20), (30, 30, 30), (10, 10, 10, 10)),
+    "MSD": ((10, 10), (20, 20), (30, 30), (40, 40), (10, 10, 10), (20, 20, 20), (30, 30, 30), (10, 10, 10, 10)),
+}
 
 #: Folder of the study's shipped networks (package data).
 SIZE_DIR: Path = DATA_DIR / "size"
@@ -57,8 +59,8 @@ def _check(system: str, widths: Sequence[int]) -> tuple[int, ...]:
     if system not in SYSTEMS:
         raise ValueError(f"unknown system {system!r}; choose one of {list(SYSTEMS)}")
     w = tuple(int(x) for x in widths)
-    if w not in SIZES:
-        raise ValueError(f"widths {w} are not in the study; choose one of {[list(s) for s in SIZES]}")
+    if w not in SIZES[system]:
+        raise ValueError(f"widths {w} are not in the study of {system}; choose one of {[list(s) for s in SIZES[system]]}")
     return w
 
 
@@ -113,18 +115,20 @@ def _size_task(task: tuple) -> tuple:
     return net, rep, paper.certify_book_eps(system, net)
 
 
-def write_size_references(systems: Sequence[str] = SYSTEMS, sizes: Sequence[Sequence[int]] = SIZES, folder=None,
+def write_size_references(systems: Sequence[str] = SYSTEMS, sizes: Optional[Sequence[Sequence[int]]] = None, folder=None,
                           workers: Optional[int] = None, client=None, progress: bool = False,
                           resume: bool = False) -> list[str]:
     """Train (:func:`flnotes.fit_relu`) and certify (:func:`flnotes.paper.certify_book_eps`) the study's networks.
 
+    ``sizes`` (default: :data:`SIZES` of each system) selects networks of the study.
     Every (system, widths) pair not already shipped as one of the book's networks is one task of
     :class:`flnotes.parallel.Executor` (``workers`` local processes or a Dask ``client``; training with one
     BLAS thread either way); the files are written here, into ``folder`` (default :data:`SIZE_DIR`), in the order
     of ``systems`` then ``sizes``. ``resume`` keeps each finished network in the cache folder. Minutes of CPU:
     only to change the shipped networks on purpose. Returns the JSON files written.
     """
-    tasks = [(s, _check(s, w)) for s in systems for w in sizes if size_reference_name(s, w)[1] is not None]
+    tasks = [(s, _check(s, w)) for s in systems for w in (SIZES[s] if sizes is None else sizes)
+             if size_reference_name(s, w)[1] is not None]
     keys = ([task_key("size", s, paper._normalized(size_settings(s, w)), paper._normalized(paper.EPS_SETTINGS),
                       paper._EPS_VERSION, paper.library_versions()) for s, w in tasks] if resume else None)
     with using(workers, client) as ex:
@@ -139,18 +143,18 @@ def write_size_references(systems: Sequence[str] = SYSTEMS, sizes: Sequence[Sequ
     return out
 
 
-def network_table(systems: Sequence[str] = SYSTEMS, sizes: Sequence[Sequence[int]] = SIZES) -> list[dict]:
+def network_table(systems: Sequence[str] = SYSTEMS, sizes: Optional[Sequence[Sequence[int]]] = None) -> list[dict]:
     """One row per shipped network of the study: its size, the neurons unstable over the box and its certified bracket.
 
     Columns: ``system``, ``network``, ``depth``, ``hidden``, ``unstable`` (FBBT over the domain box: the binaries
     of one encoded step of eq. MIP_general_c), ``eps lower`` and ``eps`` (the certified bracket), ``eps/u_max``,
     ``grid max error`` (of the training report) and ``training iterations``. The same on every machine: it
-    reads the shipped files only.
+    reads the shipped files only. ``sizes`` defaults to :data:`SIZES` of each system.
     """
     rows = []
     for s in systems:
         sysm = paper.system(s)
-        for w in sizes:
+        for w in (SIZES[s] if sizes is None else sizes):
             net, eps, br = size_net(s, w)
             name, where = size_reference_name(s, w)
             rep = load_reference(name, folder=where).report
@@ -184,7 +188,7 @@ def size_cases(system: str, horizon: int, n_loops: int = 2, n_cold: int = 10, se
     """
     from .compare import draw_scenarios, scenario_reference
 
-    _check(system, SIZES[0])
+    _check(system, SIZES[system][0])
     sysm = paper.system(system)
     loops = draw_scenarios(system, n_loops, seed=seed) if n_loops else []
     rng = np.random.default_rng(task_seeds(seed, 2)[1])
@@ -295,20 +299,21 @@ def _row_task(task: tuple) -> dict:
     return size_row(size_run(system, widths, cases, loop_steps=loop_steps, time_limit=time_limit))
 
 
-def size_rows(systems: Sequence[str] = SYSTEMS, sizes: Sequence[Sequence[int]] = SIZES,
+def size_rows(systems: Sequence[str] = SYSTEMS, sizes: Optional[Sequence[Sequence[int]]] = None,
               horizons: Sequence[int] = (10, 20), n_loops: int = 2, loop_steps: int = 30, n_cold: int = 10,
               seed: int = 0, time_limit: Optional[float] = 1.0, workers: Optional[int] = None, client=None,
               progress: bool = False) -> list[dict]:
     """:func:`size_row` for every system, network and ``N_p`` of the grid, on the same seeded programs.
 
-    One task of :class:`flnotes.parallel.Executor` per (system, ``N_p``, network); the rows in that order.
+    ``sizes`` defaults to :data:`SIZES` of each system. One task of :class:`flnotes.parallel.Executor` per
+    (system, ``N_p``, network); the rows in that order.
     Tasks side by side share the machine: their wall times include the competition (the CPU times less so).
     """
     tasks = []
     for s in systems:
         for N in horizons:
             cases = size_cases(s, N, n_loops=n_loops, n_cold=n_cold, seed=seed)
-            tasks += [(s, _check(s, w), cases, int(loop_steps), time_limit) for w in sizes]
+            tasks += [(s, _check(s, w), cases, int(loop_steps), time_limit) for w in (SIZES[s] if sizes is None else sizes)]
     with using(workers, client) as ex:
         return ex.map(_row_task, tasks, desc="size study", progress=progress)
 
