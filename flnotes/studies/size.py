@@ -55,9 +55,13 @@ def size_label(widths: Sequence[int]) -> str:
     return f"{w[0]}x{len(w)}" if len(set(w)) == 1 else "-".join(str(x) for x in w)
 
 
-def _check(system: str, widths: Sequence[int]) -> tuple[int, ...]:
+def _check_system(system: str) -> None:
     if system not in SYSTEMS:
         raise ValueError(f"unknown system {system!r}; choose one of {list(SYSTEMS)}")
+
+
+def _check(system: str, widths: Sequence[int]) -> tuple[int, ...]:
+    _check_system(system)
     w = tuple(int(x) for x in widths)
     if w not in SIZES[system]:
         raise ValueError(f"widths {w} are not in the study of {system}; choose one of {[list(s) for s in SIZES[system]]}")
@@ -188,7 +192,7 @@ def size_cases(system: str, horizon: int, n_loops: int = 2, n_cold: int = 10, se
     """
     from .compare import draw_scenarios, scenario_reference
 
-    _check(system, SIZES[system][0])
+    _check_system(system)
     sysm = paper.system(system)
     loops = draw_scenarios(system, n_loops, seed=seed) if n_loops else []
     rng = np.random.default_rng(task_seeds(seed, 2)[1])
@@ -203,25 +207,6 @@ def size_cases(system: str, horizon: int, n_loops: int = 2, n_cold: int = 10, se
         z = mid + rng.uniform(-1.0, 1.0, nz) * spread * half
         cold.append(dict(z=z, z_ref=scenario_reference(sysm, sc)(t0 + TS * np.arange(int(horizon) + 1))))
     return dict(system=system, horizon=int(horizon), loops=loops, cold=cold)
-
-
-class _Timed:
-    """An MPC for :func:`flnotes.simulate` that records the wall and CPU time of each step (s)."""
-
-    def __init__(self, mpc):
-        self.mpc, self.net = mpc, mpc.net
-        self.wall: list[float] = []
-        self.cpu: list[float] = []
-
-    def reset(self) -> None:
-        self.mpc.reset()
-
-    def step(self, z: Array, t: float, reference=None):
-        w0, c0 = time.perf_counter(), time.process_time()
-        res = self.mpc.step(z, t, reference)
-        self.cpu.append(time.process_time() - c0)
-        self.wall.append(time.perf_counter() - w0)
-        return res
 
 
 def size_run(system: str, widths: Sequence[int], cases: dict, loop_steps: int = 30,
@@ -239,21 +224,22 @@ def size_run(system: str, widths: Sequence[int], cases: dict, loop_steps: int = 
     from ..mpc import MPC
     from ..simulate import simulate
     from .compare import scenario_reference
+    from .unseen import TimedController
 
     sysm = paper.system(system)
     net, eps, _ = size_net(system, widths)
     Q, R = _weights(system)
     N = cases["horizon"]
     mpc = MPC(sysm, net, eps, horizon=N, ts=TS, Q=Q, R=R, time_limit=time_limit)
-    timed = _Timed(mpc)
-    steps, kinds = [], []
+    timed = TimedController(mpc)
+    steps, kinds, wall, cpu = [], [], [], []
     for sc in cases["loops"]:
-        timed.reset()
         simulate(sysm, timed, t_final=loop_steps * TS, ts=TS, z0=sc["z0"], reference=scenario_reference(sysm, sc),
-                 net=net, progress=False)
+                 net=net, progress=False)                       # resets the controller and its timer first
         steps += list(mpc.history)
         kinds += ["loop"] * len(mpc.history)
-    wall, cpu = list(timed.wall), list(timed.cpu)
+        wall += timed.wall
+        cpu += timed.cpu
     for cs in cases["cold"]:
         mpc.reset()
         w0, c0 = time.perf_counter(), time.process_time()
