@@ -38,10 +38,11 @@ __all__ = ["SYSTEMS", "SIZES", "SIZE_DIR", "TS", "size_label", "size_reference_n
 SYSTEMS: tuple[str, ...] = ("Quad-1D", "MSD")
 
 #: The hidden widths of the study per system: widths 10 to 40, depths 2 to 4. A subset of the full grid that keeps
-#: the trend along each axis and includes the (20, 20, 20) and (30, 30) class; the deeper and wider networks that
-#: the grid leaves out took too long to train on the machine that wrote the files.
+#: the trend along each axis and includes the (20, 20, 20) and (30, 30) class. The Quad-1D's (30, 30, 30) and
+#: (10, 10, 10, 10) are not shipped yet: their training (60 000 points) did not finish on the loaded machine that
+#: wrote the files; ``write_size_references(["Quad-1D"], [(30, 30, 30), (10, 10, 10, 10)])`` after adding them here.
 SIZES: dict[str, tuple[tuple[int, ...], ...]] = {
-    "Quad-1D": ((10, 10), (20, 20), (30, 30), (40, 40), (10, 10, 10), (20, 20, 20), (30, 30, 30), (10, 10, 10, 10)),
+    "Quad-1D": ((10, 10), (20, 20), (30, 30), (40, 40), (10, 10, 10), (20, 20, 20)),
     "MSD": ((10, 10), (20, 20), (30, 30), (40, 40), (10, 10, 10), (20, 20, 20), (30, 30, 30), (10, 10, 10, 10)),
 }
 
