@@ -67,6 +67,7 @@ def test_fast_bench_section_produces_the_table(tmp_path, monkeypatch):
     steps = args["n_loops"] * args["loop_steps"] + args["n_cold"]
     for r in rows:
         assert r["steps"] == steps and r["optimal"] + r["limit"] + r["other"] == steps
+        assert 0 <= r["limit, cpu < cap/2"] <= r["limit"]
         assert r["median ms"] <= r["p99 ms"] <= r["max ms"]
         assert r["binaries max"] <= r["binaries (paper)"]
         widths = next(w for w in study.SIZES[r["system"]] if study.size_label(w) == r["network"])

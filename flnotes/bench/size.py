@@ -46,8 +46,11 @@ def run(fast: bool = False) -> dict:
             best = nums[f"largest within t_s, {s} N_p={N}"]
             notes.append(f"{s}, N_p = {N}: largest network with every step proven optimal within t_s (wall): "
                          f"{best or 'none'}")
-    notes.append("wall time includes waiting for a shared core (this machine's load); CPU time (time.process_time) "
-                 "is what the process used, including a cut-off solve's worker thread")
+    hits, waited = sum(r["limit"] for r in rows), sum(r["limit, cpu < cap/2"] for r in rows)
+    notes.append(f"wall time includes waiting for a shared core (this machine's load); CPU time (time.process_time) "
+                 f"is what the process used, including a cut-off solve's worker thread; of the {hits} steps stopped at "
+                 f"the limit, {waited} used less than half of it in CPU time (they waited for the machine more than "
+                 "they computed)")
     figures = [str(size_plot(rows, t_s_ms=study.TS * 1e3, path=out_dir() / "size.png"))]
     return dict(title="Time per MPC step versus network size (Quad-1D, MSD; N_p = 10, 20)", rows=rows, notes=notes,
                 figures=figures)

@@ -263,19 +263,23 @@ def size_row(run: dict) -> dict:
 
     ``binaries (paper)``: ``N_p`` times the neurons unstable over the box, the binaries of eq. (MIP_general_c)
     with every predicted step encoded; ``binaries max``: the most the engine encoded at a step. ``optimal``:
-    steps proven optimal; ``limit``: steps stopped at the time limit; ``other``: any other status (infeasible,
-    error). Times in ms, wall (:func:`time.perf_counter`, waits for a shared core included) and CPU
+    steps proven optimal; ``limit``: steps stopped at the time limit, and ``limit, cpu < cap/2`` those of them that
+    used less than half the limit in CPU time (they waited for a shared core more than they computed); ``other``:
+    any other status (infeasible, error). Times in ms, wall (:func:`time.perf_counter`, waits for a shared core included) and CPU
     (:func:`time.process_time`).
     """
     sw, sc = time_stats(run["wall"], (50, 99)), time_stats(run["cpu"], (50, 99))
     st = run["status"]
     n_opt, n_lim = sum(s == "optimal" for s in st), sum(s == "time_limit" for s in st)
+    cap = run["time_limit"]
+    waited = 0 if cap is None else int(sum(s == "time_limit" and c < 0.5 * cap for s, c in zip(st, run["cpu"])))
     return {"system": run["system"], "network": size_label(run["widths"]), "depth": len(run["widths"]),
             "hidden": run["hidden"],
             "unstable": run["unstable"], "eps": run["eps"], "eps/u_max": run["eps"] / run["u_max"],
             "N_p": run["horizon"], "binaries (paper)": run["horizon"] * run["unstable"],
             "binaries max": int(run["n_binaries"].max()), "steps": len(st), "screened": int(run["screened"].sum()),
-            "optimal": int(n_opt), "limit": int(n_lim), "other": int(len(st) - n_opt - n_lim),
+            "optimal": int(n_opt), "limit": int(n_lim), "limit, cpu < cap/2": waited,
+            "other": int(len(st) - n_opt - n_lim),
             "median ms": sw["median_ms"], "p99 ms": sw["p99_ms"], "max ms": sw["max_ms"],
             "cpu median ms": sc["median_ms"], "cpu p99 ms": sc["p99_ms"], "cpu max ms": sc["max_ms"],
             "over t_s": int(np.sum(run["wall"] > TS)), "cpu over t_s": int(np.sum(run["cpu"] > TS))}
