@@ -42,13 +42,14 @@ def size_plot(rows: Sequence[dict], t_s_ms: float = 100.0, path=None):
     ax_t.set_yscale("log")
     ax_t.set_xlabel("hidden neurons")
     ax_t.set_ylabel("time per step [ms] (median o, p99 -, max)")
-    ax_t.legend(fontsize=7.5, loc="upper left")
-    for i, s in enumerate(sorted({r["system"] for r in rows})):
+    ax_t.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
+    color = {s: f"C{i}" for i, (s, N) in reversed(list(enumerate(series)))}   # each system's first series colour
+    for s in sorted({r["system"] for r in rows}):
         for r in {r["network"]: r for r in rows if r["system"] == s}.values():     # one point per network
-            ax_e.plot(r["hidden"], r["eps/u_max"], markers.get(r["depth"], "o"), color=f"C{i}", ms=5)
+            ax_e.plot(r["hidden"], r["eps/u_max"], markers.get(r["depth"], "o"), color=color[s], ms=5)
             ax_e.annotate(r["network"], (r["hidden"], r["eps/u_max"]), fontsize=6.5, xytext=(3, 2),
                           textcoords="offset points")
-        ax_e.plot([], [], "o", color=f"C{i}", label=s)
+        ax_e.plot([], [], "o", color=color[s], label=s)
     ax_e.set_xscale("log")
     ax_e.set_ylim(bottom=0.0)
     hidden = sorted({int(r["hidden"]) for r in rows})
