@@ -1,6 +1,6 @@
 """Benchmarks behind ``make bench``: per-step solve times and certification times.
 
-Each section module (``training``, ``error``, ``clfcbf``, ``mpc``, ``exactness``, ``compare``, ``multi``,
+Each section module (``training``, ``error``, ``clfcbf``, ``mpc``, ``exactness``, ``size``, ``compare``, ``multi``,
 ``parallel``, ...) defines ``run(fast: bool) -> dict`` returning
 
     {"title": str, "rows": [dict, ...], "notes": [str, ...], "figures": [path, ...]}
@@ -26,7 +26,7 @@ from typing import Optional
 
 from ..tables import Table
 
-SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "unseen", "compare",
+SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "size", "unseen", "compare",
             "msd_realtime", "multi", "parallel")
 
 #: Sections that start workers of their own: run in this process, after the others, never inside a worker.

@@ -21,6 +21,7 @@ from .multi import input_sets_plot
 from .compare import METHOD_COLORS, plot_methods_run, plot_monte_carlo
 from .guarantees import plot_drift_curve, plot_region_of_attraction, plot_terminal_bisection, plot_terminal_sweep
 from .deadline import answer_times, gap_histogram
+from .size import size_plot
 
 __all__ = [
     'METHOD_COLORS', 'plot_methods_run', 'plot_monte_carlo', 'plot_terminal_sweep',
@@ -34,5 +35,6 @@ __all__ = [
     'exact_1d_plot', 'solve_time_plot', 'cbf_failure_plot', 'wall_runs_plot', 'plot_mpc_tracking',
     'plot_mpc_input', 'plot_horizon_sweep', 'plot_intersample', 'plot_step_times', 'explore_horizon',
     'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player', 'input_sets_plot',
-    'plot_drift_curve', 'plot_region_of_attraction', 'plot_terminal_bisection', 'gap_histogram', 'answer_times'
+    'plot_drift_curve', 'plot_region_of_attraction', 'plot_terminal_bisection', 'gap_histogram', 'answer_times',
+    'size_plot'
 ]

@@ -16,6 +16,8 @@ that imports :mod:`flnotes.paper`.
     chapter 8: networks cheaper to encode (other seeds, a weight penalty, other widths) against the MPC's work;
 ``unseen``
     chapter 8: five systems not in the book, their shipped networks, the default MPC on them;
+``size``
+    the benchmark report: the time per MPC step against the width and depth of the network (Quad-1D, MSD);
 ``realtime``
     chapter 8: the MPC under a time limit in a periodic loop, and where the garbage collector runs;
 ``guarantees``
@@ -27,7 +29,7 @@ that imports :mod:`flnotes.paper`.
 ``shipped``
     ``make reference``: every shipped network and table, rewritten on local workers or a Dask cluster.
 """
-from . import cheap_networks, compare, guarantees, multi, realtime, unseen
+from . import cheap_networks, compare, guarantees, multi, realtime, size, unseen
 from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross_check_exact,
                      exponential_cbf_grid_check, highs_alone_check, largest_change_within_sample, paper_mean_ms,
                      sampled_clf_decrease, solve_time_table)
@@ -37,8 +39,8 @@ from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compar
 from .networks import (architecture_sweep, book_sweep, estimates_table, exact_preactivation_range, fresh_vs_shipped,
                        table1_rows, width_experiment, write_sweep)
 
-__all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "unseen", "architecture_sweep", "book_sweep",
-           "estimates_table", "exact_preactivation_range",
+__all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
+           "book_sweep", "estimates_table", "exact_preactivation_range",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",
            "sampled_clf_decrease", "largest_change_within_sample", "cbf_failure_set_bounded",

@@ -2,8 +2,9 @@
 
 ``python -m flnotes.studies.shipped [--workers N | --scheduler ADDRESS] [--fresh] [part ...]`` writes, in
 this order, the book's networks (:func:`flnotes.paper.write_references`), chapter 5's sweep
-(:func:`flnotes.studies.write_sweep`), the two-link arm's network (:func:`flnotes.arm.make_arm_reference`)
-and the networks of the systems not in the book (:func:`flnotes.studies.unseen.write_unseen_references`).
+(:func:`flnotes.studies.write_sweep`), the two-link arm's network (:func:`flnotes.arm.make_arm_reference`),
+the networks of the systems not in the book (:func:`flnotes.studies.unseen.write_unseen_references`) and
+the networks of the time-versus-size study (:func:`flnotes.studies.size.write_size_references`, into ``size/``).
 Each part spreads its networks (or, for the arm, its certification's boxes) over the workers; the files
 are written by this process. A run that stops (a killed worker, a lost connection) is resumed from the
 networks already finished (kept in the cache folder, :func:`flnotes.config.cache_dir`); ``--fresh`` starts
@@ -12,9 +13,10 @@ over. Only to change the book's networks on purpose: commit the result.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 from typing import Optional, Sequence
 
-PARTS = ("references", "sweep", "arm", "unseen")
+PARTS = ("references", "sweep", "arm", "unseen", "size")
 
 
 def write_all(parts: Sequence[str] = PARTS, workers: Optional[int] = None, client=None, resume: bool = True,
@@ -24,6 +26,7 @@ def write_all(parts: Sequence[str] = PARTS, workers: Optional[int] = None, clien
     from ..arm import make_arm_reference
     from ..parallel import using
     from .networks import write_sweep
+    from .size import write_size_references
     from .unseen import write_unseen_references
 
     bad = [p for p in parts if p not in PARTS]
@@ -40,6 +43,9 @@ def write_all(parts: Sequence[str] = PARTS, workers: Optional[int] = None, clien
             out.append(str(make_arm_reference(folder=folder, client=ex, progress=progress)))
         if "unseen" in parts:
             out += write_unseen_references(folder=folder, client=ex, progress=progress, resume=resume)
+        if "size" in parts:
+            out += write_size_references(folder=None if folder is None else Path(folder) / "size", client=ex,
+                                         progress=progress, resume=resume)
     return out
 
 
