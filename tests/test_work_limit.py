@@ -111,6 +111,14 @@ def test_work_limit_is_validated_and_every_kept_combination_runs(quad):
             rt.make_mpc(quad, time_limit=1.0).clone(work_limit=bad)
     with pytest.raises(ValueError, match="give time_limit"):
         rt.make_mpc(quad).clone(work_limit=3)
+    with pytest.raises(ValueError, match="at most"):
+        rt.make_mpc(quad, time_limit=1.0).clone(work_limit=10**30)
+    for bad in ("0.1", True, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="time_limit must be"):
+            rt.make_mpc(quad).clone(time_limit=bad)
+    for bad in (-1.0, float("nan"), 2.0, "1e-6"):
+        with pytest.raises(ValueError, match="gap must be"):
+            rt.make_mpc(quad).clone(gap=bad)
     with pytest.raises(ValueError, match="node limit"):
         rt.make_mpc(quad, backend="daqp", time_limit=1.0).clone(work_limit=3)
     with pytest.raises(ValueError, match="network engine"):

@@ -65,6 +65,8 @@ CUT_OFF_MIN_S = 0.01
 #: counts the steps where the budget outlasted the limit (the safety net's hits).
 NODES_PER_SECOND = 10.0
 
+#: The largest node budget a step takes (the solvers' node-limit parameters are C integers).
+MAX_WORK_LIMIT = 2**31 - 1
 #: The values of :class:`MPC`'s ``work_limit`` besides a positive number of nodes.
 WORK_LIMITS = (None, "auto")
 
@@ -240,8 +242,12 @@ class MPC:
                              f"-> u in R^{system.m}")
         if int(horizon) != horizon or horizon < 1:
             raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
-        if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
+        if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(time_limit, (int, float, np.number))
+                                       or not (np.isfinite(time_limit) and time_limit > 0)):
             raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
+        if (isinstance(gap, bool) or not isinstance(gap, (int, float, np.number))
+                or not (np.isfinite(gap) and 0 <= gap < 1)):
+            raise ValueError(f"gap must be a relative optimality gap in [0, 1) (e.g. 1e-6), got {gap!r}")
         if not (np.isfinite(ts) and ts > 0):
             raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
         engine = o.constraint == "network" and not o.is_reference
@@ -338,9 +344,14 @@ class MPC:
             raise ValueError(f"work_limit budgets the network engine's branch and bound (constraint='network', a "
                              f"persistent back-end); these options are {o}: leave work_limit unset")
         if o.backend not in ("auto", "scip"):
+            why = ("DAQP's branch and bound has no node limit" if o.backend == "daqp" else
+                   "the package passes no node limit to this optional back-end")
             raise ValueError(f"work_limit needs a back-end that takes a node limit: SCIP (backend='scip', or 'auto', "
                              f"which then solves every mixed-integer program with SCIP); {o.backend!r} stops on the "
-                             f"clock only (DAQP's branch and bound has no node limit): leave work_limit unset")
+                             f"clock only ({why}): leave work_limit unset")
+        if work_limit != "auto" and work_limit > MAX_WORK_LIMIT:
+            raise ValueError(f"work_limit = {work_limit} nodes is more than SCIP's node limit takes "
+                             f"(at most {MAX_WORK_LIMIT}); give fewer nodes, or no work_limit")
         if work_limit == "auto":
             return max(1, int(np.floor(NODES_PER_SECOND * float(time_limit))))
         return int(work_limit)
