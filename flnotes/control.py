@@ -45,6 +45,7 @@ clipped to ``[v_lo, v_hi]``; it never raises from inside a simulation.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Union
 
@@ -1049,7 +1050,9 @@ class _CvxpyBackend:
         for _ in range(6):
             self.u_in.value = c.u_eps - self.margin
             try:
-                with _quiet_c_output():  # SoPlex prints its tolerance notices to the C streams
+                with _quiet_c_output(), warnings.catch_warnings():  # SoPlex prints its notices to the C streams;
+                    # cvxpy warns of an inaccurate solution: its status (optimal_inaccurate) is kept in the detail
+                    warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
                     self.problem.solve(solver=self.solver, **self._opts())
             except cp.error.SolverError as exc:
                 if soft or self.exact is None:
