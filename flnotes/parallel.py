@@ -15,7 +15,8 @@ sweep, the shipped references, the benchmark's sections) runs them through
     ``client=`` a :class:`dask.distributed.Client` or a scheduler address
     (``"tcp://host:8786"``): the tasks go to whatever cluster the client is connected to (a
     ``LocalCluster``, ``dask-jobqueue`` on a batch system, Kubernetes); a task whose worker dies
-    is re-run on another worker (Dask's own rescheduling, plus ``retries``).
+    is re-run on another worker (Dask's own rescheduling, up to its ``allowed-failures``; ``retries``
+  re-runs a task that raised).
 
 The contract that makes the engines interchangeable:
 
@@ -28,7 +29,9 @@ The contract that makes the engines interchangeable:
   raised, with a note naming it); :meth:`Executor.map` never returns fewer results than tasks;
 * **resumable**: with ``cache=`` (a name) and ``keys=`` (one string per task), each finished
   result is stored in the package's cache folder (:func:`flnotes.config.cache_dir`) as soon as it
-  arrives, and a later run with the same keys loads it instead of running the task again;
+  arrives, and a later run with the same keys loads it instead of running the task again; each file
+  stores its key with the result and is checked when loaded: a damaged file, or one holding another
+  task's result, is refused with a ``ValueError`` naming it (delete it to recompute that task);
 * **progress**: ``progress=True`` shows a :mod:`tqdm` bar (a widget in a notebook).
 
 No scheduler, queue or socket of our own: joblib and Dask do that.
@@ -80,6 +83,46 @@ def _run(fn: Callable, item: Any) -> Any:
         return fn(item)
 
 
+def _run_indexed(fn: Callable, k: int, item: Any) -> tuple:
+    """One task on a local worker: ``(k, True, result)``, or ``(k, False, exception)`` if it raised."""
+    try:
+        return k, True, _run(fn, item)
+    except Exception as exc:
+        return k, False, exc
+
+
+_FORMAT = "flnotes.parallel result 1"
+
+
+def _save(path: Path, key: str, value: Any) -> None:
+    """Write one task's result with its key, atomically (a temporary file, then a rename)."""
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp")
+    tmp.write_bytes(pickle.dumps({"format": _FORMAT, "key": key, "value": value}))
+    tmp.replace(path)
+
+
+def _load(path: Path, key: str) -> Any:
+    """The result stored in ``path`` for the task ``key``; ``ValueError`` naming the file if it is not that.
+
+    A file that cannot be read, that is not a result file of :meth:`Executor.map`, or that holds the result
+    of another task (another key: copied from another run) is refused, never used and never silently
+    recomputed: deleting it makes the next run compute that task again.
+    """
+    fix = f"delete {path} (or the whole folder {path.parent} to start fresh) and run again"
+    try:
+        blob = pickle.loads(path.read_bytes())
+    except Exception as exc:
+        raise ValueError(f"the resume file {path} cannot be read ({type(exc).__name__}: {exc}): it is damaged; "
+                         f"{fix}") from exc
+    if not (isinstance(blob, dict) and blob.get("format") == _FORMAT and "key" in blob and "value" in blob):
+        raise ValueError(f"the resume file {path} is not a task result written by flnotes.parallel "
+                         f"(it holds a {type(blob).__name__}); {fix}")
+    if blob["key"] != key:
+        raise ValueError(f"the resume file {path} holds the result of another task (key {blob['key']!r}, "
+                         f"not {key!r}): it was copied or renamed from another run; {fix}")
+    return blob["value"]
+
+
 def _is_client(obj: Any) -> bool:
     return type(obj).__name__ == "Client" and type(obj).__module__.startswith("distributed")
 
@@ -91,13 +134,17 @@ class Executor:
     ----------
     workers
         Number of local worker processes; 1 (default) runs the tasks in this process, N > 1 uses
-        joblib's ``loky`` processes with one BLAS thread each. Not with ``client``.
+        joblib's ``loky`` processes with one BLAS thread each. Not with ``client`` (not even 1).
     client
         A :class:`dask.distributed.Client`, or a scheduler address (str) to which one is connected
         (and closed again by :meth:`close`).
     retries
-        Dask only: times a failed task is re-submitted (a task whose worker dies is also rescheduled
-        by the scheduler itself).
+        Dask only: times a task that raised (or was declared ``KilledWorker``) is re-submitted; 0 by
+        default, for a task is a pure function of its arguments (it would raise again). A task whose
+        worker dies is rescheduled by the scheduler itself, up to distributed's ``allowed-failures``
+        times (config ``distributed.scheduler.allowed-failures``, 3 by default), after which it fails
+        with ``KilledWorker`` and :meth:`map` raises :class:`TaskFailed` naming it; each retry starts that
+        count again.
 
     Examples
     --------
@@ -105,8 +152,8 @@ class Executor:
     ...     squares = ex.map(pow2, range(10), progress=True)
     """
 
-    def __init__(self, workers: Optional[int] = None, client: Any = None, retries: int = 2):
-        if client is not None and workers not in (None, 1):
+    def __init__(self, workers: Optional[int] = None, client: Any = None, retries: int = 0):
+        if client is not None and workers is not None:
             raise ValueError(f"give either workers={workers} (local processes) or client= (a Dask cluster), not both: "
                              f"the cluster's size is set where the cluster is started")
         if not isinstance(retries, (int, np.integer)) or retries < 0:
@@ -123,6 +170,7 @@ class Executor:
             elif not _is_client(client):
                 raise TypeError(f"client must be a dask.distributed.Client or a scheduler address such as "
                                 f"'tcp://127.0.0.1:8786', got {type(client).__name__}")
+            _check_open(client)
             self.client = client
             self.engine = "dask"
             self.workers = max(1, len(client.nthreads()))          # the cluster's workers now
@@ -166,7 +214,8 @@ class Executor:
         keys, cache
             Resume: with ``cache`` (a name, e.g. ``"montecarlo"``) and ``keys`` (one stable string per
             task, see :func:`task_key`), each result is written to ``cache_dir()/tasks/<cache>/<key>.pkl``
-            as it arrives and loaded from there by a later run. Both or neither.
+            as it arrives (with its key) and loaded from there by a later run. Both or neither. A file
+            that cannot be read or holds another key's result is refused (``ValueError`` naming the file).
         desc, progress
             A :mod:`tqdm` progress bar labelled ``desc``.
         cost
@@ -179,9 +228,12 @@ class Executor:
         ------
         TaskFailed
             On workers: a task raised, or its worker died and it could not be re-run; the message names
-            the task. In this process (``workers=1``) a task's exception is raised as it is, with a note
+            the task (joblib cannot tell which task's process died: the message lists the unfinished
+            ones). In this process (``workers=1``) a task's exception is raised as it is, with a note
             naming the task. Either way the results already finished stay in the cache (if any) for the
             next run, and no partial list is returned.
+        ValueError
+            Bad options, a closed Dask client, or a resume file that cannot be used (named).
         """
         items = list(items)
         if cost is not None:
@@ -195,11 +247,13 @@ class Executor:
         if keys is not None and len(set(keys)) != len(keys):
             raise ValueError("keys must be distinct: two tasks with the same key would share a cached result")
         folder = _task_folder(cache) if cache is not None else None
+        if self.client is not None:
+            _check_open(self.client)
         results: list = [None] * len(items)
         todo = []
         for k in range(len(items)):
             if folder is not None and (folder / f"{keys[k]}.pkl").is_file():
-                results[k] = pickle.loads((folder / f"{keys[k]}.pkl").read_bytes())
+                results[k] = _load(folder / f"{keys[k]}.pkl", keys[k])
             else:
                 todo.append(k)
         start = todo if cost is None else sorted(todo, key=lambda k: -cost[k])   # stable: ties in item order
@@ -210,9 +264,7 @@ class Executor:
             results[k] = value
             finished.add(k)
             if folder is not None:
-                tmp = folder / f"{keys[k]}.{os.getpid()}.tmp"
-                tmp.write_bytes(pickle.dumps(value))
-                tmp.replace(folder / f"{keys[k]}.pkl")
+                _save(folder / f"{keys[k]}.pkl", keys[k], value)
             if bar is not None:
                 bar.update(1)
 
@@ -223,8 +275,10 @@ class Executor:
             return (f"; the {len(finished)} of {len(items)} results finished are kept in {folder} and a rerun with "
                     f"the same keys resumes from them" if folder is not None else "")
 
-        def first_pending() -> int:
-            return next(k for k in start if k not in finished)
+        def unfinished() -> str:
+            left = [k for k in start if k not in finished]
+            shown = ", ".join(map(str, left[:10])) + (", ..." if len(left) > 10 else "")
+            return f"{len(left)} task{'s' if len(left) != 1 else ''} unfinished ({shown})"
 
         try:
             if self.engine == "serial" or not todo:
@@ -236,7 +290,7 @@ class Executor:
                         raise
                     done(k, value)
             elif self.engine == "joblib":
-                self._map_joblib(fn, items, start, done, lambda: name(first_pending()), resume)
+                self._map_joblib(fn, items, start, done, name, unfinished, resume)
             else:
                 self._map_dask(fn, items, start, done, name, resume)
         finally:
@@ -244,45 +298,91 @@ class Executor:
                 bar.close()
         return results
 
-    def _map_joblib(self, fn, items, todo, done, pending, resume) -> None:
+    def _map_joblib(self, fn, items, todo, done, name, unfinished, resume) -> None:
         from joblib import Parallel, delayed
         from joblib.externals.loky.process_executor import TerminatedWorkerError
 
         # one task per batch: the tasks are coarse (closed loops, chunks of boxes, networks), and joblib's automatic
-        # batching would bundle several of them for one worker while the other waits
-        par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1, return_as="generator",
-                       batch_size=1)
+        # batching would bundle several of them for one worker while the other waits. The results come as the
+        # tasks end (in any order), each stored at once; ``map`` puts them back in the order of the items.
+        par = Parallel(n_jobs=self.workers, backend="loky", inner_max_num_threads=1,
+                       return_as="generator_unordered", batch_size=1)
+        gen = par(delayed(_run_indexed)(fn, k, items[k]) for k in todo)
         try:
-            for k, value in zip(todo, par(delayed(_run)(fn, items[j]) for j in todo)):
+            for k, ok, value in gen:
+                if not ok:
+                    raise TaskFailed(f"{name(k)} raised {type(value).__name__}: {value}{resume()}") from value
                 done(k, value)
         except TerminatedWorkerError as exc:
-            raise TaskFailed(f"a local worker process died (killed, or out of memory) while the tasks from "
-                             f"{pending()} on were running; no partial result is returned{resume()}. "
-                             f"({exc.__class__.__name__})") from exc
-        except Exception as exc:
-            raise TaskFailed(f"a task from {pending()} on raised {type(exc).__name__}: {exc}{resume()}") from exc
+            raise TaskFailed(f"a local worker process died (killed, or out of memory) with {unfinished()}; joblib "
+                             f"does not tell which of them was running on it; no partial result is returned"
+                             f"{resume()}. ({exc.__class__.__name__})") from exc
+        finally:
+            gen.close()             # stops the tasks not started yet
 
     def _map_dask(self, fn, items, todo, done, name, resume) -> None:
-        from distributed import as_completed
+        import queue
 
         client = self.client
         prefix = f"flnotes-{getattr(fn, '__name__', 'task')}-{time.time_ns()}"
-        futures = client.map(partial(_run, fn), [items[k] for k in todo], pure=False,   # fn serialized once
-                             retries=self.retries, key=[f"{prefix}-{k}" for k in todo])
-        where = {f.key: k for f, k in zip(futures, todo)}
         try:
-            for fut in as_completed(futures):
-                k = where[fut.key]
+            futures = client.map(partial(_run, fn), [items[k] for k in todo], pure=False,   # fn serialized once
+                                 retries=self.retries, key=[f"{prefix}-{k}" for k in todo])
+        except Exception as exc:   # the function or an argument cannot be serialized for the cluster
+            raise TaskFailed(f"the tasks could not be sent to the cluster: the function {_fn_name(fn)} or an "
+                             f"argument cannot be serialized ({type(exc).__name__}: {exc}); make it a module-level "
+                             f"function of picklable arguments") from exc
+        which = {f.key: k for f, k in zip(futures, todo)}
+        pending = dict(zip(todo, futures))
+        ended: queue.Queue = queue.Queue()
+        for fut in futures:      # called by the client's own thread when the task ends: no event loop of this thread
+            fut.add_done_callback(ended.put)
+        del futures
+        try:
+            # A result is fetched as soon as its task ends and the future is released at once, so that a worker
+            # dying later does not take the result with it; a task whose worker dies is rescheduled by the
+            # scheduler alone, which after distributed's allowed-failures declares it KilledWorker (naming the
+            # task that kills its worker). No retry loop here.
+            while pending:
                 try:
-                    value = fut.result()
-                except Exception as exc:
-                    msg = (f"lost its worker more often than the cluster allows (distributed's "
-                           f"allowed-failures): {exc}" if type(exc).__name__ == "KilledWorker"
-                           else f"raised {type(exc).__name__}: {exc}")
-                    raise TaskFailed(f"{name(k)} {msg}; no partial result is returned{resume()}") from exc
+                    fut = ended.get(timeout=1.0)
+                except queue.Empty:
+                    _check_open(client)          # a client closed meanwhile: say so rather than wait for ever
+                    continue
+                k = which[fut.key]
+                if k not in pending:         # told twice
+                    continue
+                if fut.status == "error":
+                    exc = fut.exception()
+                    if type(exc).__name__ == "KilledWorker":
+                        culprit = which.get(getattr(exc, "task", None), k)
+                        msg = (f"{name(culprit)} killed its worker each time it ran (distributed's "
+                               f"allowed-failures, config distributed.scheduler.allowed-failures): {exc}")
+                    else:
+                        msg = f"{name(k)} raised {type(exc).__name__}: {exc}"
+                    raise TaskFailed(f"{msg}; no partial result is returned{resume()}") from exc
+                if fut.status == "cancelled":
+                    raise TaskFailed(f"{name(k)} was cancelled on the cluster (the client or the scheduler "
+                                     f"closed?); no partial result is returned{resume()}")
+                value = fut.result()
+                del pending[k]
+                fut.release()
                 done(k, value)
         finally:
-            client.cancel([f for f in futures if not f.done()])
+            left = list(pending.values())
+            if left and client.status == "running":
+                client.cancel(left)
+
+
+def _fn_name(fn: Callable) -> str:
+    f = fn.func if isinstance(fn, partial) else fn
+    return repr(getattr(f, "__qualname__", type(f).__name__))
+
+
+def _check_open(client: Any) -> None:
+    if client.status != "running":
+        raise ValueError(f"the Dask client is closed (status {client.status!r}): connect a new Client to the "
+                         f"cluster, or pass its scheduler address as client=")
 
 
 @contextmanager
@@ -293,7 +393,7 @@ def using(workers: Optional[int] = None, client: Any = None) -> Iterator[Executo
     left open); an executor made here is closed at the end (a client opened from an address too).
     """
     if isinstance(client, Executor):
-        if workers not in (None, 1):
+        if workers is not None:
             raise ValueError("give either workers= or an Executor as client=, not both")
         yield client
         return
@@ -338,7 +438,8 @@ def measure_overhead(executor: Executor, n_tasks: int = 200) -> float:
 def parse_workers(argv: Sequence[str]) -> tuple[Optional[int], Optional[str], list[str]]:
     """The options ``--workers N`` and ``--scheduler ADDRESS`` of a command line: ``(workers, scheduler, rest)``.
 
-    ``ValueError`` saying what to change for a missing or bad value, or both options given.
+    ``ValueError`` saying what to change for a missing or bad value, an option given twice, or both options
+    given (even ``--workers 1``).
     """
     workers, scheduler, rest = None, None, []
     it = iter(argv)
@@ -351,12 +452,14 @@ def parse_workers(argv: Sequence[str]) -> tuple[Optional[int], Optional[str], li
         if not val or val.startswith("--"):
             raise ValueError(f"{key} needs a value: --workers N (local processes) or --scheduler ADDRESS "
                              f"(a Dask scheduler, e.g. tcp://127.0.0.1:8786)")
+        if (workers if key == "--workers" else scheduler) is not None:
+            raise ValueError(f"{key} is given twice: give it once")
         if key == "--workers":
             if not val.isdigit() or int(val) < 1:
                 raise ValueError(f"--workers must be a whole number >= 1, got {val!r}")
             workers = int(val)
         else:
             scheduler = val
-    if workers not in (None, 1) and scheduler is not None:
+    if workers is not None and scheduler is not None:
         raise ValueError("give --workers N (local processes) or --scheduler ADDRESS (a Dask cluster), not both")
     return workers, scheduler, rest

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from pathlib import Path
 
 
@@ -32,3 +33,31 @@ def fail_on_two(k):
     if k == 2:
         raise ArithmeticError("bad task")
     return k
+
+
+def die_on_two(k):
+    """Kill this worker process every time task 2 runs, else return ``k``."""
+    if k == 2:
+        os._exit(1)
+    return k
+
+
+def slow_zero_dying_seven(item):
+    """Record the call in ``folder``; task 0 waits until task 7 has killed its worker once; task 7 does that."""
+    k, folder = item
+    count_calls((k, folder))
+    marker = Path(folder).parent / "killed"
+    if k == 0:
+        for _ in range(600):                    # at most 60 s: a premise failure, not a hang
+            if marker.exists():
+                break
+            time.sleep(0.1)
+    if k == 7:
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            pass
+        else:
+            os.close(fd)
+            os.kill(os.getpid(), signal.SIGKILL)
+    return k * k

@@ -8,6 +8,8 @@ partial (joblib), after which a rerun resumes from the finished tasks.
 from __future__ import annotations
 
 import os
+import pickle
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,7 @@ from flnotes.error import certify_error, pso_max_error
 from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
 from flnotes.studies import compare as C
 
-from _parallel_tasks import count_calls, die_once, fail_on_two
+from _parallel_tasks import count_calls, die_on_two, die_once, fail_on_two, slow_zero_dying_seven
 
 pytest.importorskip("distributed")
 
@@ -39,6 +41,26 @@ def client():
 @pytest.fixture(autouse=True)
 def own_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path / "cache"))
+
+
+def bounded(job, timeout: float = 90.0):
+    """``job()`` in a thread, failed (not waited for) if it takes longer than ``timeout`` seconds: a hang fails."""
+    out = {}
+
+    def target():
+        try:
+            out["value"] = job()
+        except BaseException as exc:                                     # re-raised in the test's thread
+            out["error"] = exc
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(timeout)
+    if t.is_alive():
+        pytest.fail(f"no answer within {timeout} s: the run hangs")
+    if "error" in out:
+        raise out["error"]
+    return out["value"]
 
 
 def engines(client):
@@ -184,19 +206,114 @@ def test_resume_runs_only_the_missing_tasks(tmp_path):
 
 
 def test_a_failing_task_is_named():
-    with pytest.raises(TaskFailed, match="ArithmeticError: bad task"):
-        Executor(workers=2).map(fail_on_two, range(4))
+    with pytest.raises(TaskFailed, match="task 2 raised ArithmeticError: bad task"):
+        bounded(lambda: Executor(workers=2).map(fail_on_two, range(4)))
     with pytest.raises(ArithmeticError, match="bad task") as info:        # in process: the task's own exception
         Executor(workers=1).map(fail_on_two, range(4))
     assert any("task 2" in n for n in info.value.__notes__)
+
+
+def test_a_task_that_always_kills_its_dask_worker_is_named():
+    # Dask's own allowed-failures decide (KilledWorker), and the task named is the one that kills, not another.
+    # A cluster of its own (one worker, as where the failure was seen; the shared cluster is left whole), with
+    # allowed-failures 1 so that two deaths suffice; each map runs in a new thread with the same client.
+    import dask
+    from distributed import Client, LocalCluster
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, silence_logs=50)
+    one = Client(cluster, set_as_default=False)
+    try:
+        with pytest.raises(TaskFailed, match=r"task 2 killed its worker each time") as info:
+            bounded(lambda: Executor(client=one, retries=0).map(die_on_two, range(4)))
+        assert "task 0" not in str(info.value) and "KilledWorker" in repr(info.value.__cause__)
+        one.wait_for_workers(1, timeout=60)
+        assert bounded(lambda: Executor(client=one).map(die_on_two, [0, 1, 3])) == [0, 1, 3]   # the client is fine
+    finally:
+        one.close()
+        cluster.close()
+
+
+def test_joblib_keeps_each_result_as_it_arrives(tmp_path):
+    # task 0 runs until task 7 has killed its worker: the 6 tasks finished in between are stored, so that the
+    # rerun runs only tasks 0 and 7
+    calls = tmp_path / "calls"
+    calls.mkdir()
+    items = [(k, str(calls)) for k in range(8)]
+    keys = [task_key("arrive", k) for k in range(8)]
+    with pytest.raises(TaskFailed, match=r"worker process died.*2 tasks unfinished \(0, 7\).*does not tell which"):
+        bounded(lambda: Executor(workers=2).map(slow_zero_dying_seven, items, keys=keys, cache="arrive"))
+    assert (tmp_path / "killed").exists()                                # premise: a worker really died
+    kept = {p.stem for p in (Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "arrive").glob("*.pkl")}
+    assert kept == set(keys[1:7])
+    out = bounded(lambda: Executor(workers=2).map(slow_zero_dying_seven, items, keys=keys, cache="arrive"))
+    assert out == [k * k for k in range(8)]
+    runs = [int(p.name.split(".")[0]) for p in calls.iterdir()]
+    assert sorted(runs) == [0, 0, 1, 2, 3, 4, 5, 6, 7, 7]               # only the unfinished tasks ran again
+
+
+def test_a_resume_file_of_another_task_is_refused():
+    ex, keys = Executor(), [task_key("other", k) for k in range(2)]
+    assert ex.map(abs, [-1, -2], keys=keys, cache="swap") == [1, 2]
+    folder = Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "swap"
+    (folder / f"{keys[1]}.pkl").write_bytes((folder / f"{keys[0]}.pkl").read_bytes())   # copied over from another run
+    with pytest.raises(ValueError, match=f"{keys[1]}.pkl holds the result of another task.*delete"):
+        ex.map(abs, [-1, -2], keys=keys, cache="swap")
+
+
+@pytest.mark.parametrize("content", [b"", b"garbage, not a pickle", pickle.dumps({"some": "dict"}), pickle.dumps(4)])
+def test_a_damaged_resume_file_is_named(content):
+    ex, keys = Executor(), [task_key("damaged", k) for k in range(2)]
+    ex.map(abs, [-1, -2], keys=keys, cache="damaged")
+    path = Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "damaged" / f"{keys[0]}.pkl"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=f"resume file .*{keys[0]}.pkl (cannot be read|is not a task result).*delete"):
+        ex.map(abs, [-1, -2], keys=keys, cache="damaged")
+    path.unlink()                                                         # what the message says: then it recomputes
+    assert ex.map(abs, [-1, -2], keys=keys, cache="damaged") == [1, 2]
+
+
+def test_a_function_the_cluster_cannot_receive_is_named(client):
+    lock = threading.Lock()
+
+    def holds_a_lock(x):
+        with lock:
+            return x
+
+    with pytest.raises(TaskFailed, match="holds_a_lock.*cannot be serialized"):
+        bounded(lambda: Executor(client=client).map(holds_a_lock, range(2)))
+
+
+def test_a_closed_client_is_said_to_be_closed(client):
+    from distributed import Client
+
+    other = Client(client.scheduler.address, set_as_default=False)
+    ex = Executor(client=other)
+    other.close()
+    with pytest.raises(ValueError, match="client is closed"):
+        ex.map(abs, [1])
+    with pytest.raises(ValueError, match="client is closed"):
+        Executor(client=other)
+
+
+def test_monte_carlo_refuses_duplicates_with_and_without_resume():
+    s = C.setting("MSD", horizon=4, time_limit=None)
+    sc = C.draw_scenarios("MSD", 2, seed=5)
+    for resume in (False, True):
+        with pytest.raises(ValueError, match="methods must be distinct; given more than once: 'network'"):
+            C.monte_carlo(s, sc, 0.6, methods=("network", "measured", "network"), resume=resume)
+        with pytest.raises(ValueError, match="scenarios must be distinct; given more than once: 1"):
+            C.monte_carlo(s, [sc[0], sc[1], sc[1]], 0.6, methods=("network",), resume=resume)
 
 
 # ------------------------------------------------------------------------------ bad input
 def test_bad_options_are_refused(client):
     with pytest.raises(ValueError, match="workers must be an integer >= 1"):
         Executor(workers=0)
-    with pytest.raises(ValueError, match="either workers=.*or client="):
-        Executor(workers=2, client=client)
+    for w in (1, 2):                                                    # documented: not with client, not even 1
+        with pytest.raises(ValueError, match="either workers=.*or client="):
+            Executor(workers=w, client=client)
     with pytest.raises(TypeError, match="dask.distributed.Client or a scheduler address"):
         Executor(client=3)
     with pytest.raises(ValueError, match="both cache="):
@@ -224,7 +341,10 @@ def test_command_lines_take_workers_or_a_scheduler():
     assert parse_workers(["--workers", "3", "x"]) == (3, None, ["x"])
     assert parse_workers(["--scheduler=tcp://127.0.0.1:8786"]) == (None, "tcp://127.0.0.1:8786", [])
     for bad, msg in ((["--workers"], "needs a value"), (["--workers", "two"], "whole number"),
-                     (["--workers", "2", "--scheduler", "tcp://a:1"], "not both")):
+                     (["--workers", "2", "--scheduler", "tcp://a:1"], "not both"),
+                     (["--workers", "1", "--scheduler", "tcp://a:1"], "not both"),
+                     (["--workers", "2", "--workers", "3"], "--workers is given twice"),
+                     (["--scheduler", "tcp://a:1", "--scheduler=tcp://b:2"], "--scheduler is given twice")):
         with pytest.raises(ValueError, match=msg):
             parse_workers(bad)
     assert parse_args(["--fast", "--workers", "2", "error"]) == dict(fast=True, workers=2, scheduler=None,

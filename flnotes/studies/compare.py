@@ -535,9 +535,16 @@ def monte_carlo(s: dict, scenarios: Sequence[dict], t_final: float, methods: Opt
     computed here, per scenario (:func:`relative_costs`). ``progress`` shows a bar; ``resume`` keeps each
     finished run's row in the cache folder and reuses it when the same run is asked again. Under a
     ``time_limit``, a run's plans depend on the time its solves take (rows with a late step can differ between
-    runs); the timing columns (``ms_*``, ``over_ts``) always do.
+    runs); the timing columns (``ms_*``, ``over_ts``) always do. The methods (variants) and the scenarios
+    (their ``index``) must be distinct (``ValueError`` naming the one repeated). A stored row is refused if its
+    file holds another run's (:meth:`flnotes.parallel.Executor.map`).
     """
     variants = [_variant(m) for m in (METHODS if methods is None else methods)]
+    for what, names in (("methods", [v.key for v in variants]), ("scenarios", [sc["index"] for sc in scenarios])):
+        twice = sorted({n for n in names if names.count(n) > 1}, key=names.index)
+        if twice:
+            raise ValueError(f"{what} must be distinct; given more than once: {', '.join(map(repr, twice))} "
+                             f"(each run would count twice in the table): give each once")
     tasks = [(sc, v) for sc in scenarios for v in variants]
     keys = None
     if resume:
