@@ -355,9 +355,22 @@ class Executor:
                 if fut.status == "error":
                     exc = fut.exception()
                     if type(exc).__name__ == "KilledWorker":
-                        culprit = which.get(getattr(exc, "task", None), k)
-                        msg = (f"{name(culprit)} killed its worker each time it ran (distributed's "
-                               f"allowed-failures, config distributed.scheduler.allowed-failures): {exc}")
+                        # Dask blames every task that was on the dying worker, queued ones too: collect the tasks
+                        # it declares KilledWorker within a few seconds and name them all, in order
+                        killed = {which.get(getattr(exc, "task", None), k)}
+                        t_end = time.monotonic() + 5.0
+                        while time.monotonic() < t_end and len(killed) < len(pending):
+                            try:
+                                other = ended.get(timeout=0.5)
+                            except queue.Empty:
+                                continue
+                            if other.status == "error" and type(other.exception()).__name__ == "KilledWorker":
+                                killed.add(which[other.key])
+                        tasks = ", ".join(name(j) for j in sorted(killed))
+                        msg = (f"{tasks} killed its worker each time it ran (distributed's allowed-failures, config "
+                               f"distributed.scheduler.allowed-failures; Dask blames every task that was running or "
+                               f"queued on the worker that died, so with several named the culprit is among them): "
+                               f"{exc}")
                     else:
                         msg = f"{name(k)} raised {type(exc).__name__}: {exc}"
                     raise TaskFailed(f"{msg}; no partial result is returned{resume()}") from exc
