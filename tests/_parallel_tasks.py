@@ -11,14 +11,18 @@ def die_once(item):
     """Kill this worker process the first time task 1 runs (a marker file says it happened), else square."""
     k, marker = item
     if k == 1:
-        try:
-            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            pass
-        else:
-            os.close(fd)
-            os.kill(os.getpid(), signal.SIGKILL)
+        _die_first_time(marker)
     return k * k
+
+
+def _die_first_time(marker) -> None:
+    """Create ``marker`` and kill this worker process, unless ``marker`` exists already."""
+    try:
+        fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        return
+    os.close(fd)
+    os.kill(os.getpid(), signal.SIGKILL)
 
 
 def count_calls(item):
@@ -53,11 +57,5 @@ def slow_zero_dying_seven(item):
                 break
             time.sleep(0.1)
     if k == 7:
-        try:
-            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-        except FileExistsError:
-            pass
-        else:
-            os.close(fd)
-            os.kill(os.getpid(), signal.SIGKILL)
+        _die_first_time(marker)
     return k * k
