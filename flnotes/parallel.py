@@ -16,7 +16,7 @@ sweep, the shipped references, the benchmark's sections) runs them through
     (``"tcp://host:8786"``): the tasks go to whatever cluster the client is connected to (a
     ``LocalCluster``, ``dask-jobqueue`` on a batch system, Kubernetes); a task whose worker dies
     is re-run on another worker (Dask's own rescheduling, up to its ``allowed-failures``; ``retries``
-  re-runs a task that raised).
+    re-runs a task that raised).
 
 The contract that makes the engines interchangeable:
 
@@ -364,8 +364,14 @@ class Executor:
                                 other = ended.get(timeout=0.5)
                             except queue.Empty:
                                 continue
+                            j = which[other.key]
                             if other.status == "error" and type(other.exception()).__name__ == "KilledWorker":
-                                killed.add(which[other.key])
+                                killed.add(j)
+                            elif other.status == "finished" and j in pending:  # kept for a resume
+                                value = other.result()
+                                del pending[j]
+                                other.release()
+                                done(j, value)
                         tasks = ", ".join(name(j) for j in sorted(killed))
                         msg = (f"{tasks} killed its worker each time it ran (distributed's allowed-failures, config "
                                f"distributed.scheduler.allowed-failures; Dask blames every task that was running or "

@@ -47,15 +47,17 @@ def die_on_two(k):
 
 
 def slow_zero_dying_seven(item):
-    """Record the call in ``folder``; task 0 waits until task 7 has killed its worker once; task 7 does that."""
+    """Record the call in ``folder``; in the first run task 0 runs on until after task 7 has killed its worker; task 7
+    does that once."""
     k, folder = item
     count_calls((k, folder))
     marker = Path(folder).parent / "killed"
-    if k == 0:
+    if k == 0 and not marker.exists():          # the first run: still running when the pool sees its worker dead
         for _ in range(600):                    # at most 60 s: a premise failure, not a hang
             if marker.exists():
                 break
             time.sleep(0.1)
+        time.sleep(10.0)                        # the pool is shut down meanwhile (the test does not wait for it)
     if k == 7:
         _die_first_time(marker)
     return k * k
