@@ -47,17 +47,23 @@ def die_on_two(k):
 
 
 def slow_zero_dying_seven(item):
-    """Record the call in ``folder``; in the first run task 0 runs on until after task 7 has killed its worker; task 7
-    does that once."""
-    k, folder = item
+    """Record the call in ``folder``. In the first run task 0 runs on until after task 7 has killed its worker, and
+    task 7 kills it (once) only after task 0 has started and the results of tasks 1-6 are in ``stored``."""
+    k, folder, stored = item
     count_calls((k, folder))
     marker = Path(folder).parent / "killed"
     if k == 0 and not marker.exists():          # the first run: still running when the pool sees its worker dead
-        for _ in range(600):                    # at most 60 s: a premise failure, not a hang
-            if marker.exists():
-                break
-            time.sleep(0.1)
+        _wait_for(marker.exists)
         time.sleep(10.0)                        # the pool is shut down meanwhile (the test does not wait for it)
-    if k == 7:
+    if k == 7 and not marker.exists():
+        _wait_for(lambda: any(Path(folder).glob("0.*")) and len(list(Path(stored).glob("*.pkl"))) >= 6)
         _die_first_time(marker)
     return k * k
+
+
+def _wait_for(condition, seconds: float = 60.0) -> None:
+    """Poll ``condition`` every 0.1 s for at most ``seconds`` (then the test's premise check fails, no hang)."""
+    for _ in range(int(seconds * 10)):
+        if condition():
+            return
+        time.sleep(0.1)

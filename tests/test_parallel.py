@@ -217,17 +217,20 @@ def test_a_task_that_always_kills_its_dask_worker_is_named():
     # Dask's own allowed-failures decide (KilledWorker), and the task named is the one that kills, not another.
     # A cluster of its own (one worker, as where the failure was seen; the shared cluster is left whole), with
     # allowed-failures 1 so that two deaths suffice; each map runs in a new thread with the same client.
+    # worker-saturation 1.0: the scheduler hands the worker one task at a time, so no other task is queued on the
+    # worker when it dies (Dask blames every task queued there, and which ones are queued is a matter of timing).
     import dask
     from distributed import Client, LocalCluster
 
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                          "distributed.scheduler.worker-saturation": 1.0}):
         cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=50)
     one = Client(cluster, set_as_default=False)
     try:
         with pytest.raises(TaskFailed, match=r"killed its worker each time") as info:
             bounded(lambda: Executor(client=one, retries=0).map(die_on_two, range(4)))
-        named = str(info.value).split(" killed its worker")[0]   # Dask also blames a task queued on that worker
+        named = str(info.value).split(" killed its worker")[0]
         assert "task 2" in named and "task 0" not in named and "task 1" not in named, str(info.value)
         assert "KilledWorker" in repr(info.value.__cause__)
         one.wait_for_workers(1, timeout=60)
@@ -238,16 +241,18 @@ def test_a_task_that_always_kills_its_dask_worker_is_named():
 
 
 def test_joblib_keeps_each_result_as_it_arrives(tmp_path):
-    # task 0 runs until task 7 has killed its worker: the 6 tasks finished in between are stored, so that the
-    # rerun runs only tasks 0 and 7
+    # task 0 runs until task 7 has killed its worker; task 7 dies only once task 0 has started and the results of
+    # tasks 1-6 are stored (so the order does not depend on how fast each worker starts); the rerun runs only
+    # tasks 0 and 7
     calls = tmp_path / "calls"
     calls.mkdir()
-    items = [(k, str(calls)) for k in range(8)]
+    stored = Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "arrive"
+    items = [(k, str(calls), str(stored)) for k in range(8)]
     keys = [task_key("arrive", k) for k in range(8)]
     with pytest.raises(TaskFailed, match=r"worker process died.*2 tasks unfinished \(0, 7\).*does not tell which"):
         bounded(lambda: Executor(workers=2).map(slow_zero_dying_seven, items, keys=keys, cache="arrive"))
     assert (tmp_path / "killed").exists()                                # premise: a worker really died
-    kept = {p.stem for p in (Path(os.environ["FLNOTES_CACHE"]) / "tasks" / "arrive").glob("*.pkl")}
+    kept = {p.stem for p in stored.glob("*.pkl")}
     assert kept == set(keys[1:7])
     out = bounded(lambda: Executor(workers=2).map(slow_zero_dying_seven, items, keys=keys, cache="arrive"))
     assert out == [k * k for k in range(8)]
