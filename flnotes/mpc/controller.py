@@ -432,7 +432,12 @@ class MPC:
         self._plan = (Z, V)
 
     def clone(self, **changes) -> "MPC":
-        """A new controller with the same settings except ``changes`` (no history, no previous plan)."""
+        """A new controller with the same settings except ``changes`` (no history, no previous plan).
+
+        ``clone(time_limit=None)`` also leaves out ``cut_off`` and ``work_limit`` (both act only under a time
+        limit, so neither can be kept), unless given again in ``changes`` (then the combination is checked as
+        in :class:`MPC`). Any lever keyword replaces the options as :class:`MPCOptions` fields.
+        """
         args = {**self._init_args, **changes}
         if args.get("time_limit") is None and "cut_off" not in changes:
             args["cut_off"] = None  # a clone without a time limit has no cut-off to keep
