@@ -63,7 +63,10 @@ class StepResult:
         ``incumbent`` (where the first incumbent came from: ``"warm start"``, ``"repaired relaxation"``,
         ``"one-switch plan"`` or ``None``), ``region_improved`` (the QP of its linear region made it cheaper),
         ``bang_bang_s`` (seconds spent on the one-switch plans, ``None`` where they were not tried), ``lp_rounds`` and,
-        under a time limit, ``cut_off`` (the step answered at its cut-off while the engine's solve ran on)).
+        under a time limit, ``cut_off`` (the step answered at its cut-off while the engine's solve ran on)); the
+        MPC's ``cpu_time`` (seconds of CPU the step used until its answer: the calling thread's and, under a time
+        limit, the engine thread's, ``engine_cpu_time``; against ``solve_time`` it tells the controller's own work
+        from time the machine gave to other processes).
     """
 
     v: Optional[Array]

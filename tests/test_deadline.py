@@ -419,8 +419,9 @@ class Gate:
     limit by as long as the test wants, without any timing in the test. ``then`` replaces the held call's result
     (e.g. an exception to raise); ``mute`` filters the C output while held, as a SCIP call does."""
 
-    def __init__(self, monkeypatch, calls: int = 1, then=None, mute: bool = False):
+    def __init__(self, monkeypatch, calls: int = 1, then=None, mute: bool = False, spin: float = 0.0):
         import threading
+        import time
 
         from flnotes.mpc import engine
         from flnotes.solvers import scip
@@ -437,6 +438,10 @@ class Gate:
 
             def held(*a, **k):
                 with scip._quiet_c_output() if mute else contextlib.nullcontext():  # as a SCIP call while it solves
+                    c0 = time.thread_time()
+                    while time.thread_time() - c0 < spin:   # the held call works first (``spin`` s of CPU)
+                        pass
+                    self.spun = time.thread_time() - c0
                     self.entered.set()
                     assert self.released.wait(120.0), "the test never released the gate"
                 if self.then is not None:
@@ -496,6 +501,25 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert abs(again.objective - exact.objective) <= 1e-6 * max(1.0, abs(exact.objective))
     mpc.solver.go()  # what a step does before it starts a solve: an answer read then has no plan of an earlier state
     assert mpc.solver.answer_now().v is None
+
+
+def test_the_cpu_time_of_a_cut_off_step_counts_the_engine_thread(quad, monkeypatch):
+    """A step answered at its cut-off while its solver call runs on: ``info["cpu_time"]`` counts the CPU time the
+    engine's thread used before the answer (here 0.2 s of work in the held call), not only the answering thread's."""
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=2.0)
+    gate = Gate(monkeypatch, spin=0.2)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert gate.entered.is_set() and s.info["cut_off"], "premise: the answer came while the held call waited"
+    assert s.info["engine_cpu_time"] >= gate.spun >= 0.2, s.info
+    assert s.info["cpu_time"] >= s.info["engine_cpu_time"], s.info
+    assert s.info["cpu_time"] <= s.solve_time + 0.05, "no more CPU than two threads could use: one waited"
+    gate.release()
+    mpc.reset()
+    mpc.set_previous_plan(prev)
+    again = mpc(z, R)
+    assert not again.info["cut_off"] and again.info["engine_cpu_time"] <= again.info["cpu_time"], again.info
 
 
 def test_an_error_in_a_cut_off_solve_is_raised_at_the_next_step(quad, monkeypatch):

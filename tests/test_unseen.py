@@ -141,6 +141,7 @@ def test_late_steps_names_each_answer_after_ts_and_where_its_time_went():
     text = U.late_steps(h, [0.01, 0.06, 0.07], [0.01, 0.03, 0.069], ts=0.05)
     assert text.startswith("step 1: 60.0 ms wall, 30.0 ms CPU, engine 45.0 ms, time_limit, at the cut-off; ")
     assert text.endswith("step 2: 70.0 ms wall, 69.0 ms CPU, engine 20.0 ms, time_limit, fallback")
-    h[1].info["cpu_time"] = 0.004  # the answering thread's own CPU time, as fl.MPC records it
+    h[1].info["cpu_time"] = 0.004  # the controller's threads' CPU time until the answer, as fl.MPC records it
     text = U.late_steps(h, [0.01, 0.06, 0.07], [0.01, 0.03, 0.069], ts=0.05)
-    assert text.startswith("step 1: 60.0 ms wall, 30.0 ms CPU (4.0 ms of the answering thread), engine 45.0 ms, ")
+    assert text.startswith("step 1: 60.0 ms wall, 30.0 ms CPU (4.0 ms of the controller's threads until the answer), "
+                           "engine 45.0 ms, ")

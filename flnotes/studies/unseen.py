@@ -412,16 +412,17 @@ def _miss(history: Sequence[StepResult], wall: Array, ts: float) -> str:
 
 def late_steps(history: Sequence[StepResult], wall: Array, cpu: Array, ts: float) -> str:
     """The answers after ``t_s`` told apart: per late step its wall and CPU time (the process's, a cut-off solve
-    running on in its thread included), the CPU time of the thread that answered (``info["cpu_time"]`` of
-    :class:`flnotes.MPC`, where recorded), the controller's own time (``solve_time``), its status and whether it was
-    answered at the cut-off or by the fallback; the rest of the wall time was spent waiting for the machine."""
+    running on in its thread included), the CPU time the controller's threads used until the answer
+    (``info["cpu_time"]`` of :class:`flnotes.MPC`, where recorded), the controller's own time (``solve_time``),
+    its status and whether it was answered at the cut-off or by the fallback; the rest of the wall time was spent
+    waiting for the machine."""
     wall, cpu = np.asarray(wall, float), np.asarray(cpu, float)
     out = []
     for k in np.flatnonzero(wall > ts):
         s = history[k]
         own = s.info.get("cpu_time")
         out.append(f"step {k}: {wall[k] * 1e3:.1f} ms wall, {cpu[k] * 1e3:.1f} ms CPU"
-                   + (f" ({own * 1e3:.1f} ms of the answering thread)" if own is not None else "")
+                   + (f" ({own * 1e3:.1f} ms of the controller's threads until the answer)" if own is not None else "")
                    + f", engine {s.solve_time * 1e3:.1f} ms, "
                    f"{s.status}" + (", at the cut-off" if s.info.get("cut_off") else "")
                    + (", fallback" if s.fallback else ""))
