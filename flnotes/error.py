@@ -82,7 +82,7 @@ class ErrorEstimate:
 
     def __str__(self) -> str:
         return (f"{self.method}: max |Phi - Phi_NN| >= {np.array2string(self.eps, precision=4)} "
-                f"({self.n_evals:,} evaluations, {self.time_s:.2f} s)")
+                f"({self.n_evals:,} evaluations)")
 
 
 @dataclass
@@ -147,8 +147,8 @@ class ErrorBracket:
 
     def __str__(self) -> str:
         rows = [f"output {i}: {lo:.5f} <= max |Phi - Phi_NN| <= {up:.5f} (width {up - lo:.2g}, "
-                f"{n:,} boxes, {t:.1f} s{'' if c else ', NOT converged'})"
-                for i, (lo, up, n, t, c) in enumerate(zip(self.lower, self.upper, self.n_boxes, self.time_s, self.converged))]
+                f"{n:,} boxes{'' if c else ', NOT converged'})"
+                for i, (lo, up, n, c) in enumerate(zip(self.lower, self.upper, self.n_boxes, self.converged))]
         return "certified bracket (" + self.method + "):\n  " + "\n  ".join(rows)
 
 
@@ -975,8 +975,9 @@ def enclosure_widths(system: FLSystem, net: ReLUNet, x0: Array, radii: Sequence[
     lower bound), the bound from the natural interval extension
     ``Phi(B) - Phi_NN(B)`` (it ignores that the two nearly cancel and
     overestimates by O(r)), and the bound :func:`certify_error` uses (mean-value
-    form of ``Phi`` against a linear relaxation of ``Phi_NN``; O(r^2) where the
-    network is affine on the box).
+    form of ``Phi`` against a linear relaxation of ``Phi_NN``). The latter
+    overestimates by O(r^2) where every neuron is stable on the box, but only by
+    O(r), with a smaller constant, on boxes around a point where a neuron switches.
     """
     f_enc, _ = _interval_f(system, net, None, None, system.phi_stacked)
     ev = _Evaluator(f_enc, net, 0, system.hi - system.lo)
