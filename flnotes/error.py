@@ -231,7 +231,7 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     seed
         Seed of the initial swarm and of the random pulls.
     inertia, c_cognitive, c_social
-        ``c_0, c_1, c_2`` of the velocity update of :func:`pso_moves` (eq. (5.4) of the book);
+        ``c_nu, c_1, c_2`` of the velocity update of :func:`pso_moves` (eq. (5.4) of the book);
         the defaults are Clerc's constriction values, a standard stable choice.
     nu_max
         Largest velocity component per move, ``nu_max (hi - lo)``: a fraction of the box size.
