@@ -4,9 +4,9 @@
 --no-loadscope-reorder``: each test module and each notebook is one unit of work
 (its module fixtures are built once), given in collection order to the next free
 worker. The book's notebooks go first (every page's notebook is executed once, by
-nbmake), then ``test_rendered.py`` (it builds the book from the notebooks nbmake
-executed, see below), then the other long units (:data:`LONG`: the assignments'
-grader and the attacks on it, every option combination of the MPC), the other unit
+nbmake; the longest of them first), then ``test_rendered.py`` (it builds the book from the notebooks nbmake
+executed, see below), then the other long units (:data:`LONG`: every option
+combination of the MPC, the assignments' grader and the attacks on it), the other unit
 tests, and the short ones last (the master notebooks of the assignments), so that
 the workers finish at about the same time. Within a unit the order is kept.
 
@@ -43,9 +43,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 STAGING = ROOT / "_build" / "nbmake"
 
-#: The longest units after test_rendered.py, longest first (each took 3 to 8 minutes of one
-#: worker in a run of ``make test`` with ``--durations=0``; the next longest, a chapter, about one minute).
-LONG = ("test_assignments.py", "test_grading_attacks.py", "test_mpc_options.py")
+#: The longest units after test_rendered.py, longest first (9, 6 and 3 minutes of one worker in a
+#: run of ``make test`` with ``--durations=0``; the next longest, a notebook, about one minute).
+LONG = ("test_mpc_options.py", "test_assignments.py", "test_grading_attacks.py")
+#: The longest notebook (about one minute), handed out first among the notebooks, so that
+#: test_rendered.py, which waits for the last notebooks to end, does not wait for it.
+FIRST_NOTEBOOKS = ("benchmark_report.ipynb",)
 
 #: The nbmake release whose ``NotebookRun.execute`` is wrapped (pinned in requirements.txt).
 NBMAKE_VERSION = "1.5.5"
@@ -54,7 +57,9 @@ NBMAKE_VERSION = "1.5.5"
 def _rank(item: pytest.Item) -> tuple[int, int]:
     path = Path(str(item.path)).resolve()
     if path.suffix == ".ipynb":
-        return (0 if "master" not in path.relative_to(ROOT).parts else 4), 0
+        if "master" in path.relative_to(ROOT).parts:
+            return 4, 0
+        return 0, (0 if path.name in FIRST_NOTEBOOKS else 1)
     if path.parent == ROOT / "tests":
         if path.name == "test_rendered.py":
             return 1, 0

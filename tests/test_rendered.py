@@ -2,7 +2,12 @@
 
 Builds the book in fast mode (``FLNOTES_FAST=1``) into ``_build/test_html`` with the
 same strictness as ``make book`` (warnings are errors, every notebook executed),
-then checks the HTML:
+then checks the HTML. When nbmake executes every notebook of ``_toc.yml`` in the same
+pytest session (``make test``), the book is built from those executed notebooks (a
+copy of the sources with ``execute_notebooks: off``, see ``tests/conftest.py``) instead
+of executing them a second time; then the table of ``book/exec_times.md`` lists no
+execution (it does in ``make book``). Alone (``pytest tests/test_rendered.py``), the
+build executes the notebooks itself. The checks:
 
 * static checks, always: MathJax is loaded from the book's own ``_static`` (no CDN;
   other external scripts, such as the ipywidgets manager, only raise a warning), every ``<img>`` resolves to a file, every
@@ -77,8 +82,19 @@ SOURCES = ("_config.yml", "_toc.yml", "book", "_ext")
 
 
 def _toc_notebooks() -> list[Path]:
-    """The notebooks among the pages of ``_toc.yml``."""
-    return [ROOT / f"{p}.ipynb" for p in _toc_pages() if (ROOT / f"{p}.ipynb").is_file()]
+    """The notebooks among the pages of ``_toc.yml`` that the book executes.
+
+    Not those whose metadata say ``mystnb: execution_mode: off`` (the students' versions of
+    the assignments): the book shows them as committed, without outputs.
+    """
+    out = []
+    for p in _toc_pages():
+        path = ROOT / f"{p}.ipynb"
+        if path.is_file():
+            meta = json.loads(path.read_text(encoding="utf-8")).get("metadata", {})
+            if (meta.get("mystnb") or {}).get("execution_mode") != "off":
+                out.append(path)
+    return out
 
 
 def _wait_for_notebooks(run_dir: Path, staged_path, notebooks: list[Path]) -> dict[Path, Path]:
