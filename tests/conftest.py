@@ -148,20 +148,25 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         shutil.rmtree(STAGING / _run_id(config), ignore_errors=True)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def executed_notebooks(request: pytest.FixtureRequest):
     """``(run_dir, staged_path, notebooks)`` when nbmake runs in this session, else ``None``.
 
-    ``notebooks`` are the paths of this session's nbmake items; ``staged_path(run_dir,
+    ``notebooks`` are the paths of this session's nbmake items ordered before the test that
+    asks (so handed out before it: its worker never waits on one queued behind it); ``staged_path(run_dir,
     source)`` is where the executed copy of ``source`` appears (a ``.failed`` file in
     its place if nbmake failed on it).
     """
     if not request.config.getoption("nbmake", default=False):
         return None
     run_dir = STAGING / _run_id(request.config)
-    nb_items = {
-        Path(str(item.path)).resolve()
-        for item in request.session.items
-        if getattr(item, "nbmake", False)
-    }
-    return run_dir, staged_path, nb_items
+    return run_dir, staged_path, _notebooks_before(request.session.items, request.node)
+
+
+def _notebooks_before(items: list[pytest.Item], node: pytest.Node) -> set[Path]:
+    """The notebooks of the session's nbmake items that come before ``node``'s first test in the session's order."""
+    mine = [i for i, item in enumerate(items) if item.nodeid == node.nodeid or item.nodeid.startswith(node.nodeid + "::")]
+    if not mine:  # asked from outside the session's tests: nothing is known to come first
+        return set()
+    where = mine[0]
+    return {Path(str(item.path)).resolve() for item in items[:where] if getattr(item, "nbmake", False)}

@@ -156,7 +156,7 @@ def html_dir(executed_notebooks) -> Path:
     source = ROOT
     notebooks = _toc_notebooks()
     if executed_notebooks is not None and set(notebooks) <= executed_notebooks[2]:
-        # nbmake executes every notebook of the book in this session: build from its outputs
+        # nbmake executes every notebook of the book in this session, before this module: build from its outputs
         run_dir, staged_path, _ = executed_notebooks
         source = _stage_executed_book(run_dir, _wait_for_notebooks(run_dir, staged_path, notebooks))
     if BUILD_OUT.exists():
