@@ -2,7 +2,12 @@
 
 Builds the book in fast mode (``FLNOTES_FAST=1``) into ``_build/test_html`` with the
 same strictness as ``make book`` (warnings are errors, every notebook executed),
-then checks the HTML:
+then checks the HTML. When nbmake executes every notebook of ``_toc.yml`` in the same
+pytest session (``make test``), the book is built from those executed notebooks (a
+copy of the sources with ``execute_notebooks: off``, see ``tests/conftest.py``) instead
+of executing them a second time; then the table of ``book/exec_times.md`` lists no
+execution (it does in ``make book``). Alone (``pytest tests/test_rendered.py``), the
+build executes the notebooks itself. The checks:
 
 * static checks, always: MathJax is loaded from the book's own ``_static`` (no CDN;
   other external scripts, such as the ipywidgets manager, only raise a warning), every ``<img>`` resolves to a file, every
@@ -31,6 +36,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 import warnings
 from html.parser import HTMLParser
 from pathlib import Path
@@ -69,8 +75,75 @@ def _problems(log_text: str, limit: int = 40) -> str:
     return "\n  ".join(keep[:limit]) + more
 
 
+#: seconds html_dir waits for nbmake to execute the book's notebooks (they are handed out before it)
+WAIT_TIMEOUT = int(os.environ.get("FLNOTES_RENDER_WAIT", "3600"))
+#: what the staging tree of a build from executed notebooks holds, besides the notebooks
+SOURCES = ("_config.yml", "_toc.yml", "book", "_ext")
+
+
+def _toc_notebooks() -> list[Path]:
+    """The notebooks among the pages of ``_toc.yml`` that the book executes.
+
+    Not those whose metadata say ``mystnb: execution_mode: off`` (the students' versions of
+    the assignments): the book shows them as committed, without outputs.
+    """
+    out = []
+    for p in _toc_pages():
+        path = ROOT / f"{p}.ipynb"
+        if path.is_file():
+            meta = json.loads(path.read_text(encoding="utf-8")).get("metadata", {})
+            if (meta.get("mystnb") or {}).get("execution_mode") != "off":
+                out.append(path)
+    return out
+
+
+def _wait_for_notebooks(run_dir: Path, staged_path, notebooks: list[Path]) -> dict[Path, Path]:
+    """The executed copy of each notebook, once nbmake has written it; fails if one failed or never came."""
+    deadline = time.monotonic() + WAIT_TIMEOUT
+    staged = {nb: staged_path(run_dir, nb) for nb in notebooks}
+    while True:
+        failed = [nb for nb, path in staged.items() if path.with_suffix(".failed").exists()]
+        if failed:
+            why = "\n  ".join(
+                f"{nb.relative_to(ROOT)}: {staged[nb].with_suffix('.failed').read_text()}" for nb in failed
+            )
+            pytest.fail(f"the book is not built: nbmake failed on\n  {why}\n(see those notebooks' own tests)",
+                        pytrace=False)
+        missing = [nb for nb, path in staged.items() if not path.is_file()]
+        if not missing:
+            return staged
+        if time.monotonic() > deadline:
+            pytest.fail(
+                f"waited {WAIT_TIMEOUT} s (FLNOTES_RENDER_WAIT) for nbmake to execute "
+                f"{', '.join(str(nb.relative_to(ROOT)) for nb in missing)} in this session; they never "
+                f"finished. tests/conftest.py must hand the notebooks out before test_rendered.py.",
+                pytrace=False,
+            )
+        time.sleep(1.0)
+
+
+def _stage_executed_book(run_dir: Path, staged: dict[Path, Path]) -> Path:
+    """A copy of the book's sources with the executed notebooks and ``execute_notebooks: off``."""
+    src = run_dir / "book_src"
+    if src.exists():
+        shutil.rmtree(src)
+    src.mkdir(parents=True)
+    for name in SOURCES:
+        if (ROOT / name).is_dir():
+            shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns(".ipynb_checkpoints", "__pycache__"))
+        else:
+            shutil.copy2(ROOT / name, src / name)
+    config = yaml.safe_load((ROOT / "_config.yml").read_text())
+    assert config["execute"]["execute_notebooks"] == "force", "_config.yml: expected execute_notebooks: force"
+    config["execute"]["execute_notebooks"] = "off"  # the notebooks below carry nbmake's outputs
+    (src / "_config.yml").write_text(yaml.safe_dump(config, sort_keys=False))
+    for nb, executed in staged.items():
+        shutil.copy2(executed, src / nb.relative_to(ROOT))
+    return src
+
+
 @pytest.fixture(scope="module")
-def html_dir() -> Path:
+def html_dir(executed_notebooks) -> Path:
     given = os.environ.get("FLNOTES_RENDERED_HTML")
     if given:
         path = Path(given).resolve()
@@ -80,13 +153,20 @@ def html_dir() -> Path:
         pytest.fail(f"the fast build failed (see the first error of this module; log in {_BUILD_FAILURE[0]})", pytrace=False)
     env = dict(os.environ, FLNOTES_FAST="1", PYTHONDONTWRITEBYTECODE="1")
     env.pop("MPLBACKEND", None)  # let the kernels use the inline backend, so figures are rendered
+    source = ROOT
+    notebooks = _toc_notebooks()
+    if executed_notebooks is not None and set(notebooks) <= executed_notebooks[2]:
+        # nbmake executes every notebook of the book in this session, before this module: build from its outputs
+        run_dir, staged_path, _ = executed_notebooks
+        source = _stage_executed_book(run_dir, _wait_for_notebooks(run_dir, staged_path, notebooks))
     if BUILD_OUT.exists():
         shutil.rmtree(BUILD_OUT)
-    cmd = _jupyter_book_cmd() + ["build", str(ROOT), "--path-output", str(BUILD_OUT), "--all", "-W", "-n", "--keep-going"]
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=BUILD_TIMEOUT)
+    cmd = _jupyter_book_cmd() + ["build", str(source), "--path-output", str(BUILD_OUT), "--all", "-W", "-n", "--keep-going"]
+    proc = subprocess.run(cmd, cwd=source, env=env, capture_output=True, text=True, timeout=BUILD_TIMEOUT)
     log = BUILD_OUT / "build.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    log.write_text(proc.stdout + "\n" + proc.stderr)
+    log.write_text(f"built from {'the notebooks nbmake executed' if source != ROOT else 'the sources'}\n"
+                   + proc.stdout + "\n" + proc.stderr)
     if proc.returncode != 0:
         _BUILD_FAILURE.append(str(log))
         pytest.fail(
