@@ -76,6 +76,18 @@ def test_comparison_states_are_safe_and_on_the_bound_as_claimed(arm, shipped):
         assert (not r.fallback and gap <= 1e-7) == b
 
 
+def test_softened_states_count_witnesses_in_the_true_set(arm, shipped):
+    """Every softened state is counted once; a witness in the true set meets the CBF rows alone too."""
+    net, eps = shipped
+    r = study.softened_states(arm, net, eps, 30, seed=0, cost="linear", n_samples=5000)
+    ctrl = study.arm_clf_cbf(arm, net, eps, cost="linear")
+    Z, _ = study.comparison_states(ctrl, 30, seed=0)
+    assert r["states"] == 30 and r["softened"] == sum(ctrl.step(z).fallback for z in Z) > 0
+    assert 0 < r["true_feasible"] <= r["cbf_feasible"] <= r["softened"], r
+    with pytest.raises(ValueError, match="n_samples"):
+        study.softened_states(arm, net, eps, 5, n_samples=0)
+
+
 # ------------------------------------------------------------------ the obstacle in the workspace
 def test_arm_point_cbf_gradient_matches_finite_differences():
     H = fa.ArmPointCBF([0.6, -0.3], 0.1, fraction=0.7, k1=2.0)

@@ -25,7 +25,7 @@ Array = np.ndarray
 
 __all__ = ["identity_residual", "ARM_CLF_CBF", "ARM_MPC", "shipped_network", "sampled_error", "error_at_states",
            "arm_clf_cbf", "comparison_states",
-           "exact_vs_mip", "nominal_run", "obstacle_run", "torque_checks", "setpoint_reference", "mpc_run"]
+           "exact_vs_mip", "softened_states", "nominal_run", "obstacle_run", "torque_checks", "setpoint_reference", "mpc_run"]
 
 #: The CLF-CBF setting of the chapter: CLF ``z^T P z``, nominal law ``k(z) = -K_nominal z``, a disc obstacle of radius
 #: ``radius`` (m) at ``center`` in the workspace kept away from the second link (``n_points`` barriers, gain ``k1``),
@@ -244,6 +244,42 @@ def exact_vs_mip(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, mip
                          "median ms": st["median_ms"], "p99 ms": st["p99_ms"], "max ms": st["max_ms"],
                          "max rel. gap": r["max_rel_objective_gap_hard"] if key == "mip" else None})
     return Table(rows), out
+
+
+def softened_states(system: FLSystem, net: ReLUNet, eps, n: int, seed: int = 0, cost: str = "linear",
+                    n_samples: int = 20_000) -> dict:
+    """Where the exact controller ran the softened program: would the true set have met the CBF rows?
+
+    At the ``n`` states of :func:`comparison_states` (as in :func:`exact_vs_mip`), the
+    states where ``backend="exact"`` fell back on the softened program (its hard program,
+    eq. (CLF_CBF) with ``|Phi_NN| <= u_max^eps``, is infeasible) are checked on ``n_samples``
+    seeded uniform inputs of the ``v``-box: is some ``v`` in the true set
+    ``V(z) = {v : |Phi(z, v)| <= u_max}`` with every CBF row ``a_H v + b_H >= 0``? A sample
+    that does is a witness; none found is no proof of infeasibility.
+
+    Returns
+    -------
+    dict
+        ``states``, ``softened`` (count), ``true_feasible`` (softened states with a witness),
+        ``cbf_feasible`` (softened states where a sampled ``v`` meets the CBF rows alone).
+    """
+    if not (isinstance(n_samples, (int, np.integer)) and n_samples > 0):
+        raise ValueError(f"n_samples must be a positive integer, got {n_samples!r}")
+    ctrl = arm_clf_cbf(system, net, eps, cost=cost, backend="exact")
+    Z, _ = comparison_states(ctrl, n, seed=seed)
+    n_z = system.n_z
+    Vs = np.random.default_rng(seed).uniform(system.lo[n_z:], system.hi[n_z:], (n_samples, system.m))
+    soft = true_ok = cbf_ok = 0
+    for z in Z:
+        if not ctrl.step(z).fallback:
+            continue
+        soft += 1
+        d = ctrl.program_data(z)
+        cbf = np.all(Vs @ d["aH"].T + d["bH"] >= 0, axis=1)
+        inside = np.all(np.abs(system.Phi(np.broadcast_to(z, (n_samples, n_z)), Vs)) <= system.u_max, axis=1)
+        cbf_ok += bool(cbf.any())
+        true_ok += bool(np.any(cbf & inside))
+    return dict(states=len(Z), softened=soft, true_feasible=true_ok, cbf_feasible=cbf_ok)
 
 
 def nominal_run(system: FLSystem, setting: Optional[dict] = None) -> SimLog:
