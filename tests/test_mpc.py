@@ -1,10 +1,12 @@
 """The MPC of eq. (MPC_form_miqp) on the 1-D quadrotor: closed loop, exactness against SCIP, errors."""
+import dataclasses
+
 import numpy as np
 import pytest
 
 import flnotes as fl
 from flnotes.mpc import MPC, sine_reference
-from flnotes.studies import closed_loop_checks, compare_to_reference, recorded_problems
+from flnotes.studies import closed_loop_checks, compare_to_reference, input_guarantee, recorded_problems
 
 S = fl.paper.QUAD_SETTING
 EPS = fl.paper.TABLE1["Quad-1D"]["eps"]
@@ -37,6 +39,17 @@ def test_closed_loop_respects_the_input_bound_at_samples(run):
     assert np.all(np.abs(log.u_nn) <= mpc.u_eps + 1e-6)
     # the constraint matters in this run (otherwise the test would be trivially true)
     assert np.max(np.abs(log.u_nn)) >= 0.99 * mpc.u_eps[0]
+
+
+def test_input_guarantee_is_checked_at_every_step(run):
+    log, mpc, _ = run
+    g = input_guarantee(log, mpc)
+    # an admissible v exists at every state of this loop, and every applied input keeps |Phi_NN| <= u_max^eps
+    assert g["steps"] == log.n_steps and g["admissible_exists"] == g["steps"] and g["violations"] == 0
+    # the check can fail: an applied output above u_max^eps at a step where an admissible v exists is counted
+    u_nn = np.array(log.u_nn, float)
+    u_nn[3] = 2.0 * mpc.u_eps
+    assert input_guarantee(dataclasses.replace(log, u_nn=u_nn), mpc)["violations"] == 1
 
 
 def test_every_predicted_step_satisfies_the_network_constraint(run):

@@ -61,7 +61,7 @@ def test_fast_bench_section_produces_the_table(tmp_path, monkeypatch):
     args = section.settings(True)
     rows = sec["rows"]
     assert len(rows) == len(args["systems"]) * len(args["sizes"]) * len(args["horizons"])
-    cols = {"system", "network", "hidden", "eps", "N_p", "binaries (paper)", "binaries max", "optimal", "limit",
+    cols = {"system", "network", "hidden", "eps", "N_p", "binaries (box)", "binaries max", "optimal", "limit",
             "median ms", "p99 ms", "max ms", "cpu median ms", "cpu p99 ms", "cpu max ms", "over t_s"}
     assert cols <= set(rows[0])
     steps = args["n_loops"] * args["loop_steps"] + args["n_cold"]
@@ -69,7 +69,7 @@ def test_fast_bench_section_produces_the_table(tmp_path, monkeypatch):
         assert r["steps"] == steps and r["optimal"] + r["limit"] + r["other"] == steps
         assert 0 <= r["limit, cpu < cap/2"] <= r["limit"]
         assert r["median ms"] <= r["p99 ms"] <= r["max ms"]
-        assert r["binaries max"] <= r["binaries (paper)"]
+        assert r["binaries max"] <= r["binaries (box)"]
         widths = next(w for w in study.SIZES[r["system"]] if study.size_label(w) == r["network"])
         assert r["eps"] == study.size_net(r["system"], widths)[1]
     assert all(p.endswith("size.png") and (tmp_path / "size.png").is_file() for p in sec["figures"])

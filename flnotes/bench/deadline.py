@@ -339,7 +339,8 @@ def deadline_study(horizons: Sequence[int] = (10, 15, 20), t_final: float = 20.0
 
 def deadline_numbers(study: dict) -> dict:
     """The numbers chapter 8 quotes from :func:`deadline_study`, as Python numbers: the checks on misses and
-    overrun, and ``loop_<column>`` of the closed loop at the longest horizon."""
+    overrun, ``loop_<column>`` of the closed loop at the longest horizon, and ``loops_<...>`` over the closed loops
+    of every horizon (limit hits, plans more than 1e-4 above the optimum, the largest distance and its ``N_p``)."""
     c = study["checks"]
     py = lambda x: x.item() if hasattr(x, "item") else x  # noqa: E731 - numpy scalars to Python numbers
     out = {k: py(c[k]) for k in ("max_overrun_ms", "max_ms", "max_ms_cpu", "answers", "over_t_s", "over_t_s_cpu",
@@ -348,6 +349,12 @@ def deadline_numbers(study: dict) -> dict:
     loop = [r for r in study["rows"] if r["run"] == "closed loop"][-1]
     out.update({f"loop_{k}": py(loop[k]) for k in ("N_p", "steps", "limit_hits", "gap_p50", "gap_max", "cpu_ms_max",
                                                     "opt_gap_max", "opt_gap_over", "opt_undecided")})
+    loops = [r for r in study["rows"] if r["run"] == "closed loop"]  # every horizon, not the longest only
+    og = np.array([r["opt_gap_max"] for r in loops], float)
+    out.update(loops_limit_hits=int(sum(r["limit_hits"] for r in loops)),
+               loops_opt_gap_over=int(sum(r["opt_gap_over"] for r in loops)),
+               loops_opt_gap_max=float(np.nanmax(og)) if np.isfinite(og).any() else float("nan"),
+               loops_opt_gap_max_N_p=int(loops[int(np.nanargmax(og))]["N_p"]) if np.isfinite(og).any() else 0)
     return out
 
 

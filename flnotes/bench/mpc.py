@@ -284,8 +284,9 @@ def interleaved_rows(mpcs: dict, rec: dict, idx) -> list:
     between (the kept LP bounds of ``MPCOptions.bound_cache`` carry over as along the loop). Each row gives the
     wall-clock and CPU time per step (median, p99, max, and the CPU time in all), the mean nodes and the largest
     number of binaries, the mixed-integer programs solved in all (level-set and constraint-generation rounds), the
-    steps not proven optimal, the largest relative difference of the objective to the first controller's at the
-    steps both prove optimal, and with kept LP bounds the boxes they served and the boxes asked for.
+    steps not proven optimal (and those of them proven infeasible), the largest relative difference of the objective
+    to the first controller's at the steps both prove optimal, and with kept LP bounds the boxes they served and the
+    boxes asked for.
     """
     out = {k: dict(wall=[], cpu=[], obj=[], ok=[], nodes=[], nbin=[], rounds=[]) for k in mpcs}
     for i in idx:
@@ -301,6 +302,7 @@ def interleaved_rows(mpcs: dict, rec: dict, idx) -> list:
             o["nodes"].append(r.nodes)
             o["nbin"].append(r.n_binaries)
             o["rounds"].append(r.rounds)
+            o.setdefault("infeasible", []).append(r.status == "infeasible")
     first = next(iter(out.values()))
     rows = []
     for k, o in out.items():
@@ -316,6 +318,7 @@ def interleaved_rows(mpcs: dict, rec: dict, idx) -> list:
                          binaries_max=int(max(o["nbin"], default=0)),
                          programs_solved=int(sum(o["rounds"])),
                          non_optimal=int(len(o["ok"]) - sum(o["ok"])),
+                         infeasible=int(sum(o.get("infeasible", ()))),
                          max_rel_diff_to_default=float(d.max()) if d.size else np.nan,
                          boxes_served=None if cache is None else cache.served,
                          boxes_asked=None if cache is None else cache.asked))
@@ -432,11 +435,16 @@ def horizon_gap_row(setup: dict, rec: dict, idx, time_limit: float = 600.0, lazy
 
 # ----------------------------------------------------------------------------------- scaling
 def scaling_horizon(horizons, t_final: float, time_limit: Optional[float] = 30.0) -> list:
-    """Closed-loop per-step times of the default configuration for each ``N_p``."""
+    """Closed-loop per-step times of the default configuration for each ``N_p``, with the binaries of the paper's
+    program (``binaries_full``, every neuron at every step) and the free binaries the engine branched on at the steps
+    the screening QP did not settle (``binaries_free_mean``, ``binaries_free_max``)."""
     rows = []
     for N, setup, rec in _horizon_runs(horizons, t_final, time_limit):
         st = time_stats(rec["ms"] / 1e3, percentiles=(50, 95))
-        rows.append(dict(N_p=int(N), binaries_full=int(N * setup["net"].n_hidden), steps=st["n"],
+        nb = np.array([r.n_binaries for r, s in zip(rec["results"], rec["screened"]) if not s], int)
+        rows.append(dict(N_p=int(N), binaries_full=int(N * setup["net"].n_hidden),
+                         binaries_free_mean=float(nb.mean()) if nb.size else 0.0,
+                         binaries_free_max=int(nb.max()) if nb.size else 0, steps=st["n"],
                          ms_median=st["median_ms"], ms_p95=st["p95_ms"], ms_max=st["max_ms"],
                          ms_mean=st["mean_ms"], screened=int(rec["screened"].sum()),
                          infeasible=int(sum(s == "infeasible" for s in rec["status"])),

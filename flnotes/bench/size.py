@@ -40,7 +40,7 @@ def run(fast: bool = False) -> dict:
              f"seed {args['seed']}) and {args['n_cold']} cold states per row; every step capped at "
              f"time_limit = {CAP_S:g} s ('limit': steps stopped there, answered with the incumbent)",
              "eps: the certified bracket's upper end shipped with each network (the book's EPS_SETTINGS); "
-             "'binaries (paper)' = N_p x neurons unstable over the box (FBBT), 'binaries max' = most encoded at a step"]
+             "'binaries (box)' = N_p x neurons unstable over the box (FBBT), 'binaries max' = most encoded at a step"]
     for s in args["systems"]:
         for N in args["horizons"]:
             best = nums[f"largest within t_s, {s} N_p={N}"]

@@ -17,7 +17,7 @@ Array = np.ndarray
 
 __all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "horizon_sweep",
            "shifted_plans", "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps",
-           "compare_to_reference", "lever_study"]
+           "compare_to_reference", "lever_study", "input_guarantee"]
 
 
 def active_fraction(log, u_eps, rel: float = 0.02) -> float:
@@ -270,3 +270,31 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
                          max_rel_diff=float(np.max(np.abs(obj - base) / np.maximum(1.0, np.abs(base)))),
                          statuses=",".join(sorted(set(s.status for s in steps))), ms=ms))
     return rows
+
+
+def input_guarantee(log, mpc: MPC) -> dict:
+    """The guarantee on the applied input, checked at every step of a closed loop with one input.
+
+    Wherever some ``v`` in the input box with ``|Phi_NN(z_k, v)| <= u_max^eps`` exists at the measured ``z_k``
+    (eq. (Phi_NN_ep); decided exactly by :func:`flnotes.exact_1d_feasible_set`, independently of the controller),
+    the applied ``v_k`` must satisfy that bound, fallback steps included.
+
+    Returns
+    -------
+    dict
+        ``steps``; ``admissible_exists`` (steps where such a ``v`` exists); ``violations`` (of them, the steps whose
+        applied input breaks the bound); ``flagged`` (steps the controller flagged ``input_admissible=False``).
+    """
+    from ..control import exact_1d_feasible_set
+    from ..solvers import BOUND_TOL
+
+    p = mpc.pred
+    if p.m != 1:
+        raise ValueError(f"input_guarantee decides existence exactly for one input; this controller has {p.m}")
+    n = log.n_steps
+    exists = np.array([len(exact_1d_feasible_set(p.net, log.z[k], float(p.v_lo[0]), float(p.v_hi[0]),
+                                                 float(p.u_eps[0]))) > 0 for k in range(n)], bool)
+    within = np.abs(np.asarray(log.u_nn, float).reshape(n, -1)[:, 0]) <= float(p.u_eps[0]) + BOUND_TOL
+    flagged = sum(getattr(s, "input_admissible", True) is False for s in log.steps[:n])
+    return dict(steps=int(n), admissible_exists=int(exists.sum()), violations=int(np.sum(exists & ~within)),
+                flagged=int(flagged))

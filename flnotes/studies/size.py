@@ -261,8 +261,9 @@ def size_run(system: str, widths: Sequence[int], cases: dict, loop_steps: int = 
 def size_row(run: dict) -> dict:
     """The table row of one :func:`size_run`: size, ``eps``, binaries, statuses and the time per step.
 
-    ``binaries (paper)``: ``N_p`` times the neurons unstable over the box, the binaries of eq. (MIP_general_c)
-    with every predicted step encoded; ``binaries max``: the most the engine encoded at a step. ``optimal``:
+    ``binaries (box)``: ``N_p`` times the neurons unstable over the domain box (FBBT), the free binaries of
+    eq. (MIP_general_c) with every predicted step encoded (the paper's count, every neuron, is larger);
+    ``binaries max``: the most the engine encoded at a step. ``optimal``:
     steps proven optimal; ``limit``: steps stopped at the time limit, and ``limit, cpu < cap/2`` those of them that
     used less than half the limit in CPU time (they waited for a shared core more than they computed); ``other``:
     any other status (infeasible, error). Times in ms, wall (:func:`time.perf_counter`, waits for a shared core included) and CPU
@@ -276,7 +277,7 @@ def size_row(run: dict) -> dict:
     return {"system": run["system"], "network": size_label(run["widths"]), "depth": len(run["widths"]),
             "hidden": run["hidden"],
             "unstable": run["unstable"], "eps": run["eps"], "eps/u_max": run["eps"] / run["u_max"],
-            "N_p": run["horizon"], "binaries (paper)": run["horizon"] * run["unstable"],
+            "N_p": run["horizon"], "binaries (box)": run["horizon"] * run["unstable"],
             "binaries max": int(run["n_binaries"].max()), "steps": len(st), "screened": int(run["screened"].sum()),
             "optimal": int(n_opt), "limit": int(n_lim), "limit, cpu < cap/2": waited,
             "other": int(len(st) - n_opt - n_lim),
