@@ -67,3 +67,29 @@ def _wait_for(condition, seconds: float = 60.0) -> None:
         if condition():
             return
         time.sleep(0.1)
+
+
+def worker_settings(_):
+    """This worker process's environment variables of interest and the threads of its BLAS libraries."""
+    from threadpoolctl import threadpool_info
+
+    names = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "OMP_NUM_THREADS",
+             "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    return {k: os.environ.get(k) for k in names}, sorted({p["num_threads"] for p in threadpool_info()
+                                                         if p["user_api"] == "blas"})
+
+
+class CountedPickles:
+    """A task function that counts (in a file per pickling) how often it is pickled in the calling process."""
+
+    def __init__(self, folder):
+        self.folder = folder
+
+    def __call__(self, k):
+        return k + 1
+
+    def __reduce__(self):
+        if os.environ.get("FLNOTES_TEST_PARENT") == str(os.getpid()):
+            n = len(list(Path(self.folder).glob("pickled.*")))
+            Path(self.folder, f"pickled.{n}").touch()
+        return CountedPickles, (self.folder,)

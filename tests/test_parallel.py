@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import platform
 import threading
 from pathlib import Path
 
@@ -21,7 +22,8 @@ from flnotes.error import certify_error, pso_max_error
 from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
 from flnotes.studies import compare as C
 
-from _parallel_tasks import count_calls, die_on_two, die_once, fail_on_two, slow_zero_dying_seven
+from _parallel_tasks import (CountedPickles, count_calls, die_on_two, die_once, fail_on_two, slow_zero_dying_seven,
+                             worker_settings)
 
 pytest.importorskip("distributed")
 
@@ -359,6 +361,31 @@ def test_command_lines_take_workers_or_a_scheduler():
     with pytest.raises(ValueError, match="unknown section"):
         parse_args(["nosuch"])
     assert shipped_main(["--workers", "0"]) == 2 and shipped_main(["nosuch"]) == 2
+
+
+def test_local_workers_start_with_one_blas_thread_and_the_allocator_settings():
+    from flnotes.config import MALLOC_SETTINGS
+
+    with Executor(workers=2) as ex:
+        seen = ex.map(worker_settings, range(4))
+    for env, threads in seen:
+        assert {k: env[k] for k in MALLOC_SETTINGS} == {k: str(v) for k, v in MALLOC_SETTINGS.items()}
+        assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
+        assert threads in ([], [1])                                      # every BLAS library found uses one thread
+
+
+def test_the_task_function_is_pickled_once_per_map(tmp_path, monkeypatch):
+    monkeypatch.setenv("FLNOTES_TEST_PARENT", str(os.getpid()))        # count the picklings in this process only
+    with Executor(workers=2) as ex:
+        assert ex.map(CountedPickles(str(tmp_path)), range(12)) == list(range(1, 13))
+    assert len(list(tmp_path.glob("pickled.*"))) == 1                  # not once per task (12)
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc only")
+def test_keep_freed_memory_applies_on_glibc():
+    from flnotes.config import keep_freed_memory
+
+    assert keep_freed_memory() is True
 
 
 def test_a_round_is_cut_into_an_even_number_of_equal_chunks():

@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import paper
 from ..arm import arm_net, two_link_arm
+from ..config import MALLOC_SETTINGS, keep_freed_memory
 from ..error import certify_error, chunk_sizes
 from ..parallel import Executor, measure_overhead
 from ..reference import load_reference
@@ -148,30 +149,32 @@ def _side_by_side(engines: dict, job, same, repeats: int, rows: list, notes: lis
 
 
 #: Environment variables a ``LocalCluster`` writes into this process's ``os.environ`` (distributed's
-#: ``nanny.pre-spawn-environ``), inherited by every process started after it, the joblib workers too.
-_TRIM = "MALLOC_TRIM_THRESHOLD_"
+#: ``nanny.pre-spawn-environ``), inherited by every process started after it, the local workers too.
+_ALLOC = tuple(MALLOC_SETTINGS)
 
 
 def _local_cluster(LocalCluster):
-    """The benchmark's 2-worker ``LocalCluster``, without distributed's ``MALLOC_TRIM_THRESHOLD_=65536``.
+    """The benchmark's 2-worker ``LocalCluster``, its workers with the allocator settings of the local workers.
 
-    distributed sets that variable for its workers (to give memory back to the system sooner) and also leaves it in
-    this process's environment, where the joblib workers started later inherit it. With it, glibc returns freed
-    memory at once and every array of a certification round is mapped anew: measured here, the workers then spent
-    about two thirds of their time in the kernel and the certification on 2 joblib workers took 9 s instead of 3.4 s.
-    The benchmark compares the engines on equal terms: neither gets the variable, and this process's environment is
-    left as it was.
+    distributed starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (to give memory back to the system
+    sooner) and also leaves it in this process's environment, where local workers started later inherit it. With
+    it, glibc returns freed memory at once and every array of a certification round is mapped anew: measured
+    here, the workers then spent about two thirds of their time in the kernel and the certification on 2 local
+    workers took 9 s instead of 3.4 s. The benchmark compares the engines on equal terms: every engine, this
+    process too (:func:`flnotes.config.keep_freed_memory`), runs with :data:`flnotes.config.MALLOC_SETTINGS`, and
+    this process's environment is left as it was.
     """
     import dask
 
-    had = os.environ.get(_TRIM)
-    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{_TRIM}": None}):
+    had = {k: os.environ.get(k) for k in _ALLOC}
+    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in MALLOC_SETTINGS.items()}):
         cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=40)
-    if had is None:
-        os.environ.pop(_TRIM, None)
-    else:
-        os.environ[_TRIM] = had
+    for k, v in had.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
     return cluster
 
 
@@ -186,6 +189,7 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
     rows, notes = [], []
     t0 = time.perf_counter()
     load0 = os.getloadavg()
+    tuned = keep_freed_memory()        # the in-process engine with the allocator settings of the workers
     cluster = _local_cluster(LocalCluster)
     client = Client(cluster)
     engines = {"1 worker (in process)": Executor(workers=1), "2 joblib workers": Executor(workers=2),
@@ -203,6 +207,10 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
             _, w = _timed(lambda: (C.monte_carlo(s, warm_sc, 0.2, client=ex),
                                    certify_error(wsys, wnet, rtol=0.2, batch=512, chunk=256, client=ex)))
             startup[label] += w
+        notes.append("allocator: every engine runs with glibc's settings of flnotes.config.MALLOC_SETTINGS (freed "
+                     "memory kept for reuse; the local and Dask workers from their environment at start, this "
+                     "process by mallopt" + ("" if tuned else ", which failed here: the in-process row runs with "
+                                             "the C library's defaults") + ")")
         notes.append("worker start-up and warm-up runs (not in the times below): "
                      + ", ".join(f"{k} {v:.1f} s" for k, v in startup.items()))
         # ---------------------------------------------------------------- certification
