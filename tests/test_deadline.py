@@ -687,3 +687,18 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
         assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
         assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
     assert len(dl.late_answers_notes(rows)) == 3
+
+
+def test_budget_floor_runs_on_the_budget_alone_and_repeats_bit_for_bit():
+    """bench deadline's budget floor: one node per step, a time limit the steps never reach; the loop run twice gives
+    the same statuses and plans (no decision read the clock), the steps over t_s counted among those run."""
+    from flnotes.bench import deadline as dl
+
+    rows = dl.budget_floor(["Cubic3"], steps=4, n_states=2)
+    assert [(r["run"], r["steps"]) for r in rows] == [("closed loop", 4), ("cold states", 2)]
+    for r in rows:
+        assert r["nodes"] == 1 and r["safety_net"] == 0 and r["t_s_ms"] == 200.0
+        assert 0 <= r["over_t_s"] <= r["steps"] and 0 <= r["budget_hits"] <= r["steps"]
+        assert 0 < r["cpu_median_over_ts"] <= r["cpu_max_over_ts"]
+    assert rows[0]["repeat_identical"] is True
+    assert len(dl.budget_floor_notes(rows)) == 3

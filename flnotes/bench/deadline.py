@@ -424,8 +424,10 @@ def run(fast: bool) -> dict:
         for loaded in (False, True):
             late += late_answers(steps=10 if fast else 100, n_states=3 if fast else 30, loaded=loaded, work_limit=wl)
     notes += late_answers_notes(late)
+    floor = budget_floor(steps=10 if fast else 100, n_states=3 if fast else 30)
+    notes += budget_floor_notes(floor)
     return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs,
-                late_answers=late)
+                late_answers=late, budget_floor=floor)
 
 
 def late_answers_notes(rows: Sequence[dict]) -> list[str]:
@@ -481,21 +483,22 @@ def _book_mpc(name: str, time_limit: Optional[float], work_limit=None):
     return mpc, sine_reference(1.5, 1.0, mpc.n_z), z0
 
 
-def _system_run(name: str, steps: int, n_states: int, work_limit=None) -> dict:
-    """One system with ``time_limit = t_s``: its closed loop of ``steps`` steps (true plant) and ``n_states`` cold
-    states; per answer the wall and CPU time (this process's, a cut-off solve running on included) and the time
-    after the engine (``post_time``: the fallback and the checks)."""
+def _system_run(name: str, steps: int, n_states: int, work_limit=None, time_limit: Optional[float] = None) -> dict:
+    """One system with ``time_limit = t_s`` (or ``time_limit``): its closed loop of ``steps`` steps (true plant) and
+    ``n_states`` cold states; per answer the wall and CPU time (this process's, a cut-off solve running on included)
+    and the time after the engine (``post_time``: the fallback and the checks)."""
     from ..studies import unseen as U
 
     if name in BOOK_SYSTEMS:
         mpc, ref, z0 = _book_mpc(name, None)
         ts = mpc.ts
-        mpc = mpc.clone(time_limit=ts, work_limit=work_limit)
+        mpc = mpc.clone(time_limit=ts if time_limit is None else time_limit, work_limit=work_limit)
         cases = [dict(z=c["z"], z_ref=c["z_ref"]) for c in mpc_cases(dict(quad_setup(horizon=mpc.N), N=mpc.N), n_states)] \
             if name == "Quad-1D" else _msd_cases(mpc, n_states)
     else:
         c = U.case(name)
-        mpc, ref, z0, ts = U.unseen_mpc(name, time_limit=c.ts, work_limit=work_limit), c.reference(), np.array(c.z0), c.ts
+        mpc = U.unseen_mpc(name, time_limit=c.ts if time_limit is None else time_limit, work_limit=work_limit)
+        ref, z0, ts = c.reference(), np.array(c.z0), c.ts
         cases = U.diverse_cases(name, n_states)
     timed = U.TimedController(mpc)
     simulate(mpc.system, timed, t_final=steps * ts, ts=ts, z0=z0, reference=ref, progress=False)
@@ -506,7 +509,7 @@ def _system_run(name: str, steps: int, n_states: int, work_limit=None) -> dict:
         w0, c0 = time.perf_counter(), time.process_time()
         s = mpc(cs["z"], cs["z_ref"])
         cold.append((s, time.perf_counter() - w0, time.process_time() - c0))
-    return dict(ts=ts, loop=loop, cold=cold)
+    return dict(ts=ts, loop=loop, cold=cold, mpc=mpc)
 
 
 def _msd_cases(mpc, n: int, seed: int = 0) -> list[dict]:
@@ -562,3 +565,59 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              work_limit=work_limit,
                              load_start=float(load0), load_end=float(load1)))
     return rows
+
+
+# ----------------------------------------------------------------------------------- what a work budget cannot decide
+#: The time limit of :func:`budget_floor`'s runs: a safety net that a one-node budget never reaches, so that the
+#: budget alone decides every step.
+FLOOR_LIMIT = 30.0
+
+
+def budget_floor(names: Optional[Sequence[str]] = None, steps: int = 100, n_states: int = 30) -> list[dict]:
+    """The least work a budget can ask for, against ``t_s``: why ``work_limit`` cannot decide every step in time.
+
+    Per system (the book's two and the five not in it), the closed loop and the cold states of :func:`late_answers`
+    with ``work_limit=1`` (one branch-and-bound node per step, the smallest budget) and ``time_limit =``
+    :data:`FLOOR_LIMIT` (the clock never decides). Such a step still does what a budget does not cut: the node
+    bounds, the incumbent search, the root node and every level-set round's first node. ``over_t_s`` counts the
+    steps whose CPU time (``info["cpu_time"]``: this thread and the engine's) exceeds ``t_s``: on those, any budget
+    answers after ``t_s``, so a controller that must answer within ``t_s`` lets the wall clock decide there (the
+    safety net of ``work_limit``) and its answer depends on timing. ``repeat_identical`` (closed loop): the loop run
+    a second time gives the same statuses and plans bit for bit, since no decision read the clock (``safety_net``
+    counts the steps where it did: 0 unless a step took longer than :data:`FLOOR_LIMIT`).
+    """
+    from ..studies import unseen as U
+
+    rows = []
+    for name in names or (*BOOK_SYSTEMS, *U.CASES):
+        run = _system_run(name, steps, n_states, work_limit=1, time_limit=FLOOR_LIMIT)
+        ts, mpc = run["ts"], run["mpc"]
+        again = _system_run(name, steps, 0, work_limit=1, time_limit=FLOOR_LIMIT)["loop"]
+        for kind in ("loop", "cold"):
+            recs = run[kind]
+            cpu = np.array([s.info.get("cpu_time", c) for s, _, c in recs])
+            row = dict(system=name, run="closed loop" if kind == "loop" else "cold states", t_s_ms=1e3 * ts,
+                       nodes=mpc.node_limit, steps=len(recs), over_t_s=int(np.sum(cpu > ts)),
+                       cpu_median_over_ts=float(np.median(cpu) / ts), cpu_max_over_ts=float(cpu.max() / ts),
+                       budget_hits=int(sum(s.status == "time_limit" for s, _, _ in recs)),
+                       safety_net=int(sum(bool(s.info.get("safety_net")) for s, _, _ in recs)))
+            if kind == "loop":
+                row["repeat_identical"] = len(again) == len(recs) and all(
+                    a.status == b.status and np.array_equal(a.v_pred, b.v_pred) for (a, _, _), (b, _, _) in zip(recs, again))
+            rows.append(row)
+    return rows
+
+
+def budget_floor_notes(rows: Sequence[dict]) -> list[str]:
+    """The rows of :func:`budget_floor` as notes, one per system and kind of run."""
+    out = ["What a work budget cannot decide (work_limit = 1 node, the smallest budget, time limit "
+           f"{FLOOR_LIMIT:g} s so that the clock never decides): a step still computes its node bounds, its incumbent "
+           "and a first node per round. over_t_s counts the steps whose CPU time exceeds t_s: there any budget answers "
+           "late, so a controller held to t_s lets the clock decide (work_limit's safety net) and the answer depends on "
+           "timing. repeat_identical: the loop run twice gives the same statuses and plans bit for bit."]
+    for r in rows:
+        rep = f"; rerun identical: {r['repeat_identical']}" if "repeat_identical" in r else ""
+        out.append(f"{r['system']}, {r['run']}: {r['over_t_s']} of {r['steps']} steps over t_s = {r['t_s_ms']:g} ms "
+                   f"with one node (CPU median {r['cpu_median_over_ts']:.2f} t_s, max {r['cpu_max_over_ts']:.2f} t_s); "
+                   f"{r['budget_hits']} stopped by the budget, {r['safety_net']} by the clock{rep}")
+    return out

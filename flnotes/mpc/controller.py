@@ -189,7 +189,10 @@ class MPC:
         run, machine and load: a step that spends its budget answers with status ``"time_limit"`` and a message
         saying "work limit". The wall clock still answers at the cut-off when the budget takes longer than the
         limit (``info["safety_net"]`` True, as when the fallback's repairs stop at their deadline): those steps
-        depend on timing, and :meth:`summary` counts them. DAQP's branch and bound takes no node limit (DAQP 0.11:
+        depend on timing, and :meth:`summary` counts them. A budget cannot cut the node bounds, the incumbent search
+        and a round's first node: where those alone take longer than ``time_limit`` (measured per system by the
+        budget floor of ``python -m flnotes.bench deadline``: most cold MSD states at ``t_s = 0.1`` s, for one), no
+        budget answers in time and the safety net decides. DAQP's branch and bound takes no node limit (DAQP 0.11:
         a time limit and a per-node iteration limit only), so under a budget ``backend="auto"`` solves every
         mixed-integer program with SCIP, and ``backend="daqp"`` with a budget is an error.
     cut_off
