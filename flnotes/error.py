@@ -701,9 +701,10 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         process, ``workers=N`` in N local processes, ``client=`` a Dask client or scheduler address.
         Only the box evaluations are parallel; the bracket, the pruning and the choice of the next
         boxes stay in this process, and so does a round of fewer than ``2 MIN_CHUNK`` boxes (the first
-        rounds). A round has at most ``ceil(2 batch / chunk)`` tasks (rounded up to an even number), so
-        more workers than that only help with a larger ``batch`` (a different schedule, the same
-        soundness).
+        rounds). A round is cut into at most ``ceil(2 batch / chunk)`` chunks (rounded up to an even
+        number), sent as one task per worker of consecutive chunks (an engine pays its round trip per
+        task); more workers than chunks only help with a larger ``batch`` (a different schedule, the
+        same soundness).
     progress
         Show a :mod:`tqdm` bar of the boxes evaluated and the current bracket.
 
@@ -796,9 +797,9 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
                         parts if keep_partition else None, hists, eval_s)
 
 
-def _boxes_task(ev: _Evaluator, box: tuple[Array, Array]) -> tuple[Array, Array, Array, Array]:
-    """One task of a round: :meth:`_Evaluator.boxes` on one chunk of boxes."""
-    return ev.boxes(*box)
+def _boxes_task(ev: _Evaluator, chunks: list[tuple[Array, Array]]) -> list[tuple[Array, Array, Array, Array]]:
+    """One task of a round: :meth:`_Evaluator.boxes` on each of a few consecutive chunks of boxes, one call per chunk."""
+    return [ev.boxes(*box) for box in chunks]
 
 
 #: Fewest boxes a round is cut into tasks for: a round of fewer than ``2 MIN_CHUNK`` boxes is evaluated whole, in the
@@ -844,7 +845,12 @@ class _Rounds:
             with one_blas_thread():                         # the same chunks, in this process, as on a worker
                 out = [self.ev.boxes(*p) for p in parts]
         else:
-            out = self.executor.map(self.fn, parts)
+            # one task per worker, each evaluating its consecutive chunks one by one (the chunks, hence the bits, as
+            # in one process): an engine pays its round trip per task, and the chunks are of equal sizes
+            w = min(len(parts), self.executor.workers)
+            ends = [len(parts) * j // w for j in range(w + 1)]
+            out = [o for group in self.executor.map(self.fn, [parts[a:b] for a, b in zip(ends[:-1], ends[1:])])
+                   for o in group]
         if len(out) == 1:
             return out[0]
         return tuple(np.concatenate([o[j] for o in out]) for j in range(4))

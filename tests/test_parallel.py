@@ -407,9 +407,10 @@ def test_scaling_model_saturates_where_it_should():
 
     n, t_box, t_ser, o = 1_000_000, 100e-6, 5e-6, 2e-3
     fixed = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(1, 2, 8, 32), batch=4096, chunk=1024)}
-    assert fixed[1]["speedup"] == 1.0 and fixed[1]["tasks_per_round"] == 8
+    assert fixed[1]["speedup"] == 1.0 and fixed[1]["chunks_per_round"] == 8 and fixed[1]["tasks_per_round"] == 0
+    assert fixed[2]["tasks_per_round"] == 2 and fixed[32]["tasks_per_round"] == 8    # one task per busy worker
     assert 1.0 < fixed[2]["speedup"] < 2.0                       # the serial part and the overhead cost something
-    assert fixed[32]["wall_s"] == fixed[8]["wall_s"]               # 8 tasks per round: no gain beyond 8 workers
+    assert fixed[32]["wall_s"] == fixed[8]["wall_s"]               # 8 chunks per round: no gain beyond 8 workers
     scaled = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(8, 128, 4096), scale_batch=True)}
     floor = n * (t_ser + o / 1024)
     assert scaled[128]["wall_s"] < fixed[8]["wall_s"] and scaled[4096]["wall_s"] > floor

@@ -40,12 +40,12 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
     """Predicted wall time of a certification of ``n_boxes`` boxes on ``W`` workers.
 
     Each branch-and-bound round bisects ``batch`` boxes, i.e. evaluates ``2 batch`` boxes in
-    ``k = ceil(2 batch / chunk)`` tasks (rounded up to an even number, :func:`flnotes.error.chunk_sizes`) of
-    ``c = 2 batch / k`` boxes; a round takes
+    ``k = ceil(2 batch / chunk)`` chunks (rounded up to an even number, :func:`flnotes.error.chunk_sizes`) of
+    ``c = 2 batch / k`` boxes, sent as ``min(k, W)`` tasks of consecutive chunks; a round takes
 
-        ``2 batch t_serial_box + ceil(k / W) c t_box + k overhead``   (``overhead = 0`` for W = 1)
+        ``2 batch t_serial_box + ceil(k / W) c t_box + min(k, W) overhead``   (``overhead = 0`` for W = 1)
 
-    (the serial part: bracket, pruning and choice of the next boxes in the caller; the tasks, ``W``
+    (the serial part: bracket, pruning and choice of the next boxes in the caller; the chunks, ``W``
     at a time; the engine's per-task cost, paid by the scheduler one task after another), and
     ``n_boxes / (2 batch)`` rounds are needed (the last one counted in proportion). With the schedule
     fixed, no more than ``k`` workers can be busy; with ``scale_batch=True`` the batch grows to
@@ -57,7 +57,7 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
     Returns
     -------
     list of dict
-        Per ``W``: ``workers``, ``batch``, ``tasks_per_round``, ``rounds``, ``wall_s``, ``speedup``
+        Per ``W``: ``workers``, ``batch``, ``chunks_per_round``, ``tasks_per_round``, ``rounds``, ``wall_s``, ``speedup``
         (against W = 1 with the given ``batch``), ``W_half``.
     """
     if min(n_boxes, batch, chunk) < 1 or min(t_box, t_serial_box, overhead) < 0:
@@ -67,7 +67,7 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
         sizes = chunk_sizes(2 * b, chunk)            # the tasks of a full round, as certify_error cuts it
         k = len(sizes)
         rounds = n_boxes / (2 * b)                  # a fraction: the last round is a partial one
-        per_round = 2 * b * t_serial_box + math.ceil(k / W) * max(sizes) * t_box + (k * overhead if W > 1 else 0.0)
+        per_round = 2 * b * t_serial_box + math.ceil(k / W) * max(sizes) * t_box + (min(k, W) * overhead if W > 1 else 0.0)
         return rounds * per_round, k, math.ceil(rounds)
 
     base, _, _ = wall(1, batch)
@@ -76,7 +76,8 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
     for W in workers:
         b = max(batch, math.ceil(W * chunk / 2)) if scale_batch else batch
         t, k, rounds = wall(int(W), b)
-        rows.append(dict(workers=int(W), batch=b, tasks_per_round=k, rounds=rounds, wall_s=t, speedup=base / t,
+        rows.append(dict(workers=int(W), batch=b, chunks_per_round=k, tasks_per_round=min(k, int(W)) if W > 1 else 0,
+                         rounds=rounds, wall_s=t, speedup=base / t,
                          W_half=w_half))
     return rows
 
@@ -162,12 +163,15 @@ def _local_cluster(LocalCluster):
     here, the workers then spent about two thirds of their time in the kernel and the certification on 2 local
     workers took 9 s instead of 3.4 s. The benchmark compares the engines on equal terms: every engine, this
     process too (:func:`flnotes.config.keep_freed_memory`), runs with :data:`flnotes.config.MALLOC_SETTINGS`, and
-    this process's environment is left as it was.
+    this process's environment is left as it was. The workers' statistical profiler (Dask's dashboard feature, a
+    sample of every thread's stack every 10 ms, taken under the interpreter lock) is off, as for a batch job.
     """
     import dask
 
     had = {k: os.environ.get(k) for k in _ALLOC}
-    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in MALLOC_SETTINGS.items()}):
+    config = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in MALLOC_SETTINGS.items()}
+    config["distributed.worker.profile.enabled"] = False      # no stack sampling of the task thread every 10 ms
+    with dask.config.set(config):
         cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, silence_logs=40)
     for k, v in had.items():
@@ -263,8 +267,8 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         "same_result: the bracket (lower, upper, argmax, boxes) or the Monte Carlo table (all but its timing "
         "columns) is identical to the first engine's; model rows: whether the schedule is the default one (then "
         "the bracket is the same bit for bit).",
-        "model: per round, 2 batch boxes of serial work, ceil(k/W) tasks of chunk = 1024 boxes one after the other "
-        "on each worker, k per-task overheads (the largest measured); fixed: batch 4096, k = 8 tasks, so no gain "
+        "model: per round, 2 batch boxes of serial work, ceil(k/W) chunks of chunk = 1024 boxes one after the other "
+        "on each worker, min(k, W) per-task overheads (the largest measured); fixed: batch 4096, k = 8 chunks, so no gain "
         "beyond 8 workers; scaled: batch = W chunk / 2. W_half = t_box / (t_serial_box + overhead / chunk): beyond "
         "it the serial part and the scheduler's overhead dominate and more workers stop paying.",
     ]
