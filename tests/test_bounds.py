@@ -142,3 +142,35 @@ def test_exact_preactivation_range_is_the_true_range_and_within_fbbt():
     assert np.all(L >= b.L[-1][[0, 2, 4]] - 1e-7) and np.all(U <= b.U[-1][[0, 2, 4]] + 1e-7), "and lies within FBBT"
     with pytest.raises(ValueError, match="neurons must be indices"):
         fl.studies.exact_preactivation_range(net, lo, hi, neurons=[5])
+
+
+def test_slope_in_v_is_the_slope_of_the_piece():
+    """Chapter 3's monotonicity check: Phi_NN = max(0, v) + 2 max(0, -v) + 0 z has slope 1 for v > 0, -2 for v < 0."""
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 2.0]])], [np.zeros(2), np.zeros(1)])
+    v = np.array([-3.0, -0.5, 0.25, 4.0])
+    assert np.array_equal(fl.studies.slope_in_v(net, np.array([7.0]), v)[:, 0], [-2.0, -2.0, 1.0, 1.0])
+    rnd = _random_net(3, (8, 6), seed=5)
+    v = np.linspace(-2, 2, 2001)
+    z = np.array([0.3, -0.7])
+    f = lambda w: rnd(np.column_stack([np.tile(z, (len(w), 1)), w]))[:, 0]  # noqa: E731
+    fd = (f(v + 1e-7) - f(v - 1e-7)) / 2e-7
+    pattern = lambda w: np.hstack(rnd.activation_pattern(np.column_stack([np.tile(z, (len(w), 1)), w])))  # noqa: E731
+    same_piece = np.all(pattern(v - 1e-7) == pattern(v + 1e-7), axis=1)
+    assert same_piece.mean() > 0.9
+    assert np.allclose(fl.studies.slope_in_v(rnd, z, v)[same_piece, 0], fd[same_piece], atol=1e-6)
+    with pytest.raises(ValueError, match="z must have shape"):
+        fl.studies.slope_in_v(rnd, np.zeros(3), v)
+
+
+def test_bounds_figure_legend_covers_no_axes():
+    """The legend of plot_bounds_vs_samples sits outside every panel."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import flnotes.plots  # noqa: F401  (registers fl.plots)
+    net = _random_net(2, (5, 4), seed=1)
+    fig = fl.plots.plot_bounds_vs_samples(net, -np.ones(2), np.ones(2), n=2000)
+    fig.canvas.draw()
+    leg = fig.axes[0].get_legend()
+    assert leg is not None
+    box = leg.get_window_extent()
+    assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes)

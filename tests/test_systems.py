@@ -157,3 +157,28 @@ def test_check_domain():
         m.check_domain([0.0, 0.0], [11.0], what="(z, v)")
     with pytest.raises(ValueError, match=r"\(z, v\) = "):
         m.check_domain([0.0, 0.0], [11.0], what="(z, v)")
+
+
+def test_affine_v_interval_is_the_closed_form_and_drawn_exactly():
+    """eq. (1.10) for the MSD; the feasible-set figure draws these edges, not a gridded level set."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import flnotes.plots  # noqa: F401  (registers fl.plots)
+    msd = fl.msd()
+    z = np.random.default_rng(0).uniform(msd.lo[:2], msd.hi[:2], (50, 2))
+    lo, hi = fl.plots.affine_v_interval(msd, z)
+    shift = fl.systems.stribeck(z[:, 1]) + z[:, 0]
+    assert np.allclose(lo, -5 - shift) and np.allclose(hi, 5 - shift)
+    quad = fl.quad1d()
+    zq = np.random.default_rng(1).uniform(quad.lo[:3], quad.hi[:3], (50, 3))
+    lo, hi = fl.plots.affine_v_interval(quad, zq)
+    for end in (lo, hi):
+        assert np.allclose(np.abs(quad.Phi(zq, end[:, None])), quad.u_max)
+    assert np.all(hi - lo > 0)
+    fig = fl.plots.plot_feasible_set(msd, axis=1, z_fixed=[0.0, 0.0], v_lim=(-20, 20))
+    edges = [ln.get_data() for ln in fig.axes[0].lines if len(ln.get_xdata()) > 2]  # not the dashed box limits
+    assert len(edges) == 2
+    zs, upper = np.asarray(edges[1][0], float), np.asarray(edges[1][1], float)
+    assert np.allclose(upper, 5 - fl.systems.stribeck(zs))
+    with pytest.raises(ValueError, match="z must have shape"):
+        fl.plots.affine_v_interval(msd, np.zeros(2))

@@ -6,7 +6,8 @@ Plots only draw: what they show is computed by the library or by
 :mod:`flnotes.studies`.
 """
 from .style import COLORS, bound_lines, new_axes, use_book_style
-from .foundations import (static_feasible_set, fl_identity_residual, plot_feasible_set, plot_feasible_v, explore_feasible_set,
+from .foundations import (static_feasible_set, fl_identity_residual, affine_v_interval,
+                          plot_feasible_set, plot_feasible_v, explore_feasible_set,
     plot_zeta, plot_input_violation, discretization_gap, plot_discretization_gap, plot_error_slice, plot_line_cut,
     plot_width_experiment, plot_relu_bigm, bounds_looseness, plot_bounds_vs_samples, unstable_fixed_z,
     plot_unstable_fixed_z, unstable_vs_box_size, plot_unstable_vs_box_size)
@@ -26,7 +27,7 @@ from .size import size_plot
 __all__ = [
     'METHOD_COLORS', 'plot_methods_run', 'plot_monte_carlo', 'plot_terminal_sweep',
     'COLORS', 'new_axes', 'bound_lines', 'use_book_style', 'static_feasible_set', 'fl_identity_residual',
-    'plot_feasible_set', 'plot_feasible_v', 'explore_feasible_set', 'plot_zeta', 'plot_input_violation',
+    'affine_v_interval', 'plot_feasible_set', 'plot_feasible_v', 'explore_feasible_set', 'plot_zeta', 'plot_input_violation',
     'discretization_gap', 'plot_discretization_gap', 'plot_error_slice', 'plot_line_cut', 'plot_width_experiment',
     'plot_relu_bigm', 'bounds_looseness', 'plot_bounds_vs_samples', 'unstable_fixed_z', 'plot_unstable_fixed_z',
     'unstable_vs_box_size', 'plot_unstable_vs_box_size', 'static_architecture', 'error_slice', 'pso_swarm',

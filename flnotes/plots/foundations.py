@@ -85,13 +85,57 @@ def _v_axis(system: FLSystem, v_lim: Optional[Sequence[float]], n: int) -> Array
     return np.linspace(lo, hi, int(n))
 
 
+def affine_v_interval(system: FLSystem, z: Array) -> tuple[Array, Array]:
+    """The interval ``{v : |Phi(z, v)| <= u_max}`` of a single-input system whose ``Phi`` is affine in ``v``.
+
+    With ``Phi(z, v) = Phi(z, 0) + g(z) v`` and ``g(z) != 0`` (eq. contraint_new_set; both systems of the
+    course, eqs. (1.6) and (1.9)), the ends are ``(+-u_max - Phi(z, 0)) / g(z)``, ordered. The caller checks
+    affinity; a zero slope is an error.
+
+    Parameters
+    ----------
+    system
+        A single-input system.
+    z
+        States, shape (N, n_z).
+
+    Returns
+    -------
+    v_lo, v_hi
+        The ends of the interval, each shape (N,).
+    """
+    _single_input(system, "affine_v_interval")
+    z = np.asarray(z, float)
+    if z.ndim != 2 or z.shape[1] != system.n_z:
+        raise ValueError(f"z must have shape (N, {system.n_z}), got {z.shape}")
+    p0 = system.Phi(z, np.zeros((len(z), 1)))[:, 0]
+    g = system.Phi(z, np.ones((len(z), 1)))[:, 0] - p0
+    if np.any(g == 0):
+        raise ValueError("Phi does not depend on v at some state: the admissible v is not an interval")
+    ends = np.stack([(-system.u_max[0] - p0) / g, (system.u_max[0] - p0) / g])
+    return ends.min(0), ends.max(0)
+
+
+def _affine_in_v(system: FLSystem, z: Array, vs: Array) -> bool:
+    """Whether ``Phi(z, v)`` is affine in ``v`` at the states ``z`` over the values ``vs`` (to rounding)."""
+    p0 = system.Phi(z, np.zeros((len(z), 1)))[:, 0]
+    g = system.Phi(z, np.ones((len(z), 1)))[:, 0] - p0
+    for v in (vs[0], vs[len(vs) // 3], vs[-1]):
+        p = system.Phi(z, np.full((len(z), 1), v))[:, 0]
+        if not np.allclose(p, p0 + g * v, rtol=1e-9, atol=1e-9 * (1 + abs(v))):
+            return False
+    return bool(np.all(g != 0))
+
+
 def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] = None,
                       family: Optional[tuple[int, Sequence[float]]] = None, v_lim: Optional[Sequence[float]] = None,
                       n: int = 301):
     """A slice of ``V = {(z, v): |Phi(z, v)| <= u_max}`` (eq. contraint_new_set) over ``(z_axis, v)``.
 
     The box ``|u| <= u_max`` becomes, for each state, an interval of admissible
-    ``v`` that moves with the state: the shaded band.
+    ``v`` that moves with the state: the shaded band. When ``Phi`` is affine in
+    ``v`` (both systems of the course), the band's edges are the exact lines of
+    `affine_v_interval`; otherwise they are the level set of an ``n x n`` grid.
 
     Parameters
     ----------
@@ -121,6 +165,7 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
     zs = np.linspace(system.lo[axis], system.hi[axis], int(n))
     vs = _v_axis(system, v_lim, n)
     Zg, Vg = np.meshgrid(zs, vs, indexing="xy")
+    zs_fine = np.linspace(zs[0], zs[-1], 20 * int(n))  # the exact edges are cheap: draw them finely
     fam_idx, fam_vals = (None, [None]) if family is None else (int(family[0]), list(family[1]))
     colors = plt.cm.viridis(np.linspace(0.1, 0.85, len(fam_vals))) if family is not None else [COLORS["u_max"]]
     fig, ax = new_axes(figsize=(6.4, 3.8))
@@ -130,10 +175,19 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
         z[:, axis] = Zg.ravel()
         if fam_idx is not None:
             z[:, fam_idx] = val
-        ok = (np.abs(system.Phi(z, Vg.reshape(-1, 1))) <= system.u_max).all(1).reshape(Zg.shape)
-        ax.contourf(Zg, Vg, ok.astype(float), levels=[0.5, 1.5], colors=[c], alpha=0.30)
-        if ok.any() and not ok.all():
-            ax.contour(Zg, Vg, ok.astype(float), levels=[0.5], colors=[c], linewidths=1.2)
+        z_line = np.tile(z[0], (len(zs_fine), 1))
+        z_line[:, axis] = zs_fine
+        edges = affine_v_interval(system, z_line) if _affine_in_v(system, z_line, vs) else None
+        if edges is not None:  # the exact boundaries v = (+-u_max - Phi(z, 0)) / slope, clipped to the drawn range
+            v_a, v_b = np.clip(edges[0], vs[0], vs[-1]), np.clip(edges[1], vs[0], vs[-1])
+            ax.fill_between(zs_fine, v_a, v_b, where=v_a < v_b, color=c, alpha=0.30, lw=0)
+            for e in edges:
+                ax.plot(zs_fine, np.where((e >= vs[0]) & (e <= vs[-1]), e, np.nan), color=c, lw=1.2)
+        else:  # Phi not affine in v: the level set of the grid
+            ok = (np.abs(system.Phi(z, Vg.reshape(-1, 1))) <= system.u_max).all(1).reshape(Zg.shape)
+            ax.contourf(Zg, Vg, ok.astype(float), levels=[0.5, 1.5], colors=[c], alpha=0.30)
+            if ok.any() and not ok.all():
+                ax.contour(Zg, Vg, ok.astype(float), levels=[0.5], colors=[c], linewidths=1.2)
         lab = r"$|\Phi(z, v)| \leq u_{\max}$" if fam_idx is None else f"$z_{fam_idx + 1} = {val:g}$"
         handles.append(plt.Rectangle((0, 0), 1, 1, color=c, alpha=0.45, label=lab))
     for s in (system.lo[-1], system.hi[-1]):
@@ -534,7 +588,9 @@ def plot_bounds_vs_samples(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000,
         ax.set(title=f"layer {k + 1}", xlabel="neuron $j$")
         if k == 0:
             ax.set_ylabel("pre-activation")
-            ax.legend(loc="upper left")
+    # below the axes, so that it covers no neuron's interval
+    axs[0].legend(*axs[0].get_legend_handles_labels(), loc="upper left", bbox_to_anchor=(0.0, -0.2), ncol=2,
+                  frameon=False)
     return fig
 
 

@@ -38,10 +38,10 @@ from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compar
                   horizon_sweep, lever_study, prediction_mismatch, recorded_problems, run_closed_loop, shifted_plans,
                   table2, tracking_error)
 from .networks import (architecture_sweep, book_sweep, estimates_table, exact_preactivation_range, fresh_vs_shipped,
-                       table1_rows, width_experiment, write_sweep)
+                       slope_in_v, table1_rows, width_experiment, write_sweep)
 
 __all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
-           "book_sweep", "estimates_table", "exact_preactivation_range",
+           "book_sweep", "estimates_table", "exact_preactivation_range", "slope_in_v",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",
            "sampled_clf_decrease", "largest_change_within_sample", "cbf_failure_set_bounded",

@@ -25,7 +25,7 @@ from ..systems import FLSystem
 Array = np.ndarray
 
 __all__ = ["table1_rows", "architecture_sweep", "book_sweep", "write_sweep", "fresh_vs_shipped",
-           "width_experiment", "estimates_table", "exact_preactivation_range"]
+           "width_experiment", "estimates_table", "exact_preactivation_range", "slope_in_v"]
 
 
 def table1_rows(names: Sequence[str] = ("MSD", "Quad-1D")) -> list[dict]:
@@ -237,13 +237,48 @@ def width_experiment(system: FLSystem, n_bars: Sequence[int] = (5, 10, 20, 30), 
     return rows
 
 
+def slope_in_v(net, z: Array, v: Array) -> Array:
+    """``d Phi_NN / d v`` of a network with inputs ``[z, v]`` (single ``v``) at the points ``(z, v_i)`` (chapter 3).
+
+    The network is piecewise affine; at each point the derivative is that of the affine piece the
+    point lies in, ``W^K D^{K-1} W^{K-1} ... D^1 W^1 e_v`` with ``D^k`` the activation pattern
+    (eq. (MIP_general_c)), exact at the point. A check on a grid of ``v`` is a sampled check: a piece
+    narrower than the grid spacing can be missed.
+
+    Parameters
+    ----------
+    net
+        A ``ReLUNet`` whose last input is ``v``.
+    z
+        The state, shape (n_in - 1,).
+    v
+        Values of ``v``, shape (N,).
+
+    Returns
+    -------
+    Array
+        Shape (N, n_out): the slope of each output in ``v`` at each point.
+    """
+    z, v = np.asarray(z, float), np.asarray(v, float)
+    if z.shape != (net.n_in - 1,) or v.ndim != 1:
+        raise ValueError(f"z must have shape ({net.n_in - 1},) and v shape (N,), got {z.shape} and {v.shape}")
+    X = np.column_stack([np.tile(z, (len(v), 1)), v])
+    active = net.activation_pattern(X)
+    d = np.tile(net.W[0][:, -1], (len(v), 1))  # d y^0 / d v pushed through layer 1: (N, n_1)
+    for k, on in enumerate(active):
+        d = (d * on) @ net.W[k + 1].T
+    return d
+
+
 def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
                               neurons: Optional[Sequence[int]] = None) -> tuple[Array, Array]:
     """The exact range of every pre-activation of one hidden layer over the box ``[lo, hi]`` (chapter 4).
 
     Minimizes and maximizes each pre-activation ``(W^k y^{k-1} + b^k)_j`` of hidden layer ``layer``
     over the big-M program of eq. (MIP_general) with FBBT bounds and the input box, with HiGHS:
-    two mixed-integer programs per neuron, each solved to optimality (an error otherwise).
+    two mixed-integer programs per neuron, each solved to optimality with a zero relative and
+    absolute gap (``mip_rel_gap = mip_abs_gap = 0``: the returned point's value equals HiGHS'
+    dual bound, so the range is exact up to the solver's feasibility tolerances), an error otherwise.
     ``neurons`` selects some neurons of the layer (all by default).
 
     Returns
@@ -272,8 +307,9 @@ def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
     for i, j in enumerate(neurons):
         for sign, out in ((1.0, U), (-1.0, L)):
             c.value = sign * np.eye(n_k)[j]
-            prob.solve(solver="HIGHS")
-            if prob.status != "optimal":
-                raise RuntimeError(f"neuron {j}: HiGHS returned {prob.status!r}, not an optimum")
+            prob.solve(solver="HIGHS", mip_rel_gap=0.0, mip_abs_gap=0.0)
+            gap = prob.solver_stats.extra_stats.mip_gap
+            if prob.status != "optimal" or gap != 0:
+                raise RuntimeError(f"neuron {j}: HiGHS returned {prob.status!r} with gap {gap}, not a proved optimum")
             out[i] = sign * prob.value
     return L, U
