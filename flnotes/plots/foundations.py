@@ -24,7 +24,7 @@ Array = np.ndarray
 
 __all__ = [
     "static_feasible_set",
-    "fl_identity_residual", "plot_feasible_set", "plot_feasible_v", "explore_feasible_set", "plot_zeta",
+    "fl_identity_residual", "affine_v_interval", "plot_feasible_set", "plot_feasible_v", "explore_feasible_set", "plot_zeta",
     "plot_input_violation", "discretization_gap", "plot_discretization_gap",
     "plot_error_slice", "plot_line_cut", "plot_width_experiment",
     "plot_relu_bigm", "bounds_looseness", "plot_bounds_vs_samples", "unstable_fixed_z", "plot_unstable_fixed_z",
