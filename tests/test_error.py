@@ -286,3 +286,15 @@ def test_estimator_convergence_plots_against_evaluations_and_swarm_has_a_colorba
     axes = fl.plots.pso_swarm(msd, net, pso, iterations=(0, 4))
     assert len(axes[0].figure.axes) == 3, "two panels and one colorbar for the error background"
     matplotlib.pyplot.close("all")
+
+
+def test_enclosure_widths_sample_the_box_vertices():
+    """The sampled maximum of enclosure_widths covers the box's vertices, where an almost affine error peaks."""
+    import itertools
+    msd = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    pt, r = np.array([1.8, 0.33, 5.0]), 0.01
+    (row,) = fl.error.enclosure_widths(msd, net, pt, radii=(r,), n_samples=10)
+    V = np.array(list(itertools.product(*zip(pt - r, pt + r))))
+    assert row["sampled max error"] >= np.abs(msd.phi_stacked(V) - net(V))[:, 0].max()
+    assert row["sampled max error"] <= row["certify_error's bound"] <= row["natural interval bound"] + 1e-12
