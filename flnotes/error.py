@@ -21,6 +21,7 @@ holds over the whole domain ``Z``. Two kinds of tools live here:
 """
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from functools import partial
@@ -62,6 +63,11 @@ class ErrorEstimate:
         Wall-clock time.
     history
         Best error after each iteration, shape (m, n_iter) (PSO, DE), or ``None``.
+    history_evals
+        Evaluations of ``Phi`` and the network spent on output ``i`` when
+        ``history[i, k]`` was recorded, same shape as ``history`` (PSO, DE), or
+        ``None``: iterations of different methods cost different amounts, so
+        convergence is compared against this count.
     settings
         The parameters used.
     swarm, swarm_best
@@ -79,6 +85,7 @@ class ErrorEstimate:
     settings: dict = field(default_factory=dict)
     swarm: Optional[Array] = None
     swarm_best: Optional[Array] = None
+    history_evals: Optional[Array] = None
 
     def __str__(self) -> str:
         return (f"{self.method}: max |Phi - Phi_NN| >= {np.array2string(self.eps, precision=4)} "
@@ -294,17 +301,20 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     return ErrorEstimate("pso", eps, argmax, m * n_particles * (n_iter + 1), time.perf_counter() - t0, history,
                          dict(n_particles=n_particles, n_iter=n_iter, seed=seed, inertia=inertia,
                               c_cognitive=c_cognitive, c_social=c_social, nu_max=nu_max),
-                         swarm, swarm_best)
+                         swarm, swarm_best, history_evals=np.tile(n_particles * np.arange(1, n_iter + 2), (m, 1)))
 
 
 def pso_moves(cost, lo: Array, hi: Array, n_particles: int, n_iter: int, rng: np.random.Generator,
-              c0: float, c1: float, c2: float, nu_max: float, trail: Optional[list] = None):
+              c_nu: float, c1: float, c2: float, nu_max: float, trail: Optional[list] = None):
     """The particle swarm of eq. (5.4): maximize ``cost`` over the box ``[lo, hi]``.
+
+    ``c_nu`` is the inertia, ``c1, c2`` the attraction weights; each velocity
+    component is clipped to ``nu_max`` times the box's width on its axis.
 
     Returns the best point, its cost and the best cost after each move (``n_iter + 1``,
     start included). ``trail``, if a list, receives ``(positions, best point)`` per move.
     """
-    nu_bound = nu_max * (hi - lo)                                   # |nu| <= nu_max, per axis
+    nu_bound = nu_max * (hi - lo)                                   # |nu| <= nu_max (hi - lo), per axis
     w = rng.uniform(lo, hi, (n_particles, len(lo)))                 # positions w_p
     nu = rng.uniform(-1.0, 1.0, w.shape) * nu_bound                 # velocities nu_p
     w_own, c_own = w.copy(), cost(w)                                # each particle's best point, hat w_p
@@ -314,7 +324,7 @@ def pso_moves(cost, lo: Array, hi: Array, n_particles: int, n_iter: int, rng: np
         trail.append((w.copy(), w_best.copy()))
     for _ in range(n_iter):
         xi1, xi2 = rng.random((2, *w.shape))
-        nu = np.clip(c0 * nu + c1 * xi1 * (w_own - w) + c2 * xi2 * (w_best - w), -nu_bound, nu_bound)
+        nu = np.clip(c_nu * nu + c1 * xi1 * (w_own - w) + c2 * xi2 * (w_best - w), -nu_bound, nu_bound)
         w = np.clip(w + nu, lo, hi)                                 # stay inside the box Z
         c = cost(w)
         better = c > c_own
@@ -373,9 +383,13 @@ def de_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array
     fun, lo, hi = _resolve(f, net, lo, hi)
     t0 = time.perf_counter()
     m = net.n_out
-    eps, argmax, hist, count = np.zeros(m), np.zeros((m, net.n_in)), [], [0]
+    eps, argmax, hist, hist_evals, count = np.zeros(m), np.zeros((m, net.n_in)), [], [], [0]
     for i in range(m):
-        best = []
+        best, spent, start = [], [], count[0]
+
+        def record(intermediate_result) -> None:
+            best.append(-intermediate_result.fun)
+            spent.append(count[0] - start)
 
         def neg(Xt: Array) -> Array:  # DE passes candidates as columns: (n_in, S)
             X = np.atleast_2d(Xt.T)
@@ -384,13 +398,15 @@ def de_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array
 
         res = differential_evolution(neg, list(zip(lo, hi)), seed=seed, maxiter=maxiter, popsize=popsize, tol=tol,
                                      polish=False, vectorized=True, updating="deferred",
-                                     callback=lambda intermediate_result: best.append(-intermediate_result.fun))
+                                     callback=record)
         eps[i], argmax[i] = -res.fun, res.x
         hist.append(best)
+        hist_evals.append(spent)
     L = max(len(h) for h in hist)
     history = np.array([h + [h[-1]] * (L - len(h)) if h else [np.nan] * L for h in hist])
+    history_evals = np.array([h + [h[-1]] * (L - len(h)) if h else [np.nan] * L for h in hist_evals])
     return ErrorEstimate("de", eps, argmax, count[0], time.perf_counter() - t0, history,
-                         dict(seed=seed, maxiter=maxiter, popsize=popsize, tol=tol))
+                         dict(seed=seed, maxiter=maxiter, popsize=popsize, tol=tol), history_evals=history_evals)
 
 
 def local_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, n_starts: int = 20,
@@ -977,8 +993,10 @@ def enclosure_widths(system: FLSystem, net: ReLUNet, x0: Array, radii: Sequence[
                      n_samples: int = 20_000, seed: int = 0) -> list[dict]:
     """How tight are the bounds of ``max |Phi - Phi_NN|`` on boxes ``x0 +- r``?
 
-    For each radius: the largest error on the box estimated by sampling (a
-    lower bound), the bound from the natural interval extension
+    For each radius: the largest error on the box estimated at ``n_samples``
+    random points and the box's ``2^n`` vertices (a lower bound; near a vertex
+    is where an almost affine error peaks, which random points approach only to
+    first order in ``r``), the bound from the natural interval extension
     ``Phi(B) - Phi_NN(B)`` (it ignores that the two nearly cancel and
     overestimates by O(r)), and the bound :func:`certify_error` uses (mean-value
     form of ``Phi`` against a linear relaxation of ``Phi_NN``). The latter
@@ -995,7 +1013,8 @@ def enclosure_widths(system: FLSystem, net: ReLUNet, x0: Array, radii: Sequence[
         X = Interval(lo, hi, check=False)
         G = f_enc(X) - iv.net_interval(net, X)
         ub = ev.boxes(lo, hi)[0][0]
-        P = rng.uniform(lo[0], hi[0], (n_samples, system.n_in))
+        P = np.vstack([rng.uniform(lo[0], hi[0], (n_samples, system.n_in)),
+                       np.array(list(itertools.product(*zip(lo[0], hi[0]))))])  # and the 2^n vertices
         rows.append({"radius r": r, "sampled max error": float(np.abs(system.phi_stacked(P) - net(P))[:, 0].max()),
                      "natural interval bound": float(max(G.hi[0, 0], -G.lo[0, 0])),
                      "certify_error's bound": float(ub)})

@@ -26,9 +26,11 @@ an enclosure too narrow:
   kernels, which are accurate to a few ulp but not correctly rounded; their
   results are widened by :data:`LIBM_ULPS` ulp (relative) plus
   :data:`TINY` (absolute); ``sin``, ``cos``, ``tan`` also by an absolute
-  ``LIBM_ULPS * 2^-53`` (near their zeros). This is the one assumption: the
-  library's error is below ``LIBM_ULPS`` ulp (glibc and numpy document at
-  most about 4);
+  ``LIBM_ULPS * 2^-53`` (near their zeros). This is the assumption on the
+  library: its error is below ``LIBM_ULPS`` ulp. It is not proven: 16 is a
+  chosen safety factor, several times the errors of a few ulp that glibc
+  documents for these functions (its table of known maximum errors) and that
+  numpy's accuracy tests allow for its SIMD kernels;
 * the extrema of ``sin`` and ``cos`` inside an interval (``+-1`` at
   ``pi/2 + k pi`` and ``k pi``) are detected with a small slack, so an
   interval ending just short of one still gets ``+-1``: wider, never unsound;
@@ -50,7 +52,8 @@ import numpy as np
 Array = np.ndarray
 Number = Union[float, int, Array]
 
-#: Relative widening, in units of 2^-52, applied to the results of library functions (exp, log, sin, ...).
+#: Relative widening, in units of 2^-52, applied to the results of library functions (exp, log, sin, ...): a chosen
+#: safety factor, several times the few ulp that glibc and numpy document for them (not a proven bound).
 LIBM_ULPS = 16
 #: Absolute widening added to every library-function result (covers underflow).
 TINY = 1e-300

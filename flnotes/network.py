@@ -381,7 +381,8 @@ class TrainingReport:
     settings: dict = field(default_factory=dict)
 
     def __str__(self) -> str:
-        return (f"trained {self.widths} on {self.n_train:,} of {self.n_grid:,} grid points in {self.time_s:.1f} s "
+        # no time: it depends on the machine that trained (``time_s`` keeps it)
+        return (f"trained {self.widths} on {self.n_train:,} of {self.n_grid:,} grid points "
                 f"({self.n_iter} iterations); grid max |error| = {np.array2string(self.grid_max_error, precision=4)}, "
                 f"rmse = {np.array2string(self.grid_rmse, precision=4)}")
 

@@ -257,3 +257,44 @@ def test_pso_moves_respect_the_velocity_clip_and_the_box():
     assert np.all(np.abs(np.diff(W, axis=0)) <= 0.05 * (hi - lo) + 1e-15), "a move is larger than the velocity clip"
     assert np.all(np.diff(history) >= 0) and history[-1] == c_best, "the swarm's best never gets worse"
     assert np.isclose(c_best, -np.sum((w_best - [0.3, 3.9]) ** 2))
+
+
+def test_history_evals_count_the_evaluations_behind_each_best():
+    """PSO and DE record how many evaluations each entry of their history cost (their iterations differ in cost)."""
+    msd = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    pso = pso_max_error(msd, net, n_particles=7, n_iter=5, seed=0)
+    assert pso.history_evals.shape == pso.history.shape == (1, 6)
+    assert np.array_equal(pso.history_evals[0], 7 * np.arange(1, 7)) and pso.history_evals[0, -1] == pso.n_evals
+    de = fl.error.de_max_error(msd, net, seed=0, maxiter=4, popsize=5)
+    assert de.history_evals.shape == de.history.shape
+    assert np.all(np.diff(de.history_evals[0]) > 0) and 0 < de.history_evals[0, -1] <= de.n_evals
+    assert de.history_evals[0, 0] == 2 * 5 * 3, "the first generation is recorded after the initial population and one trial"
+
+
+def test_estimator_convergence_plots_against_evaluations_and_swarm_has_a_colorbar():
+    import matplotlib
+    matplotlib.use("Agg")
+    import flnotes.plots  # noqa: F401  (registers fl.plots)
+    msd = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    pso = pso_max_error(msd, net, n_particles=10, n_iter=4, seed=0, record=True)
+    grid = grid_max_error(msd, net, n_per_axis=5)
+    ax = fl.plots.estimator_convergence([pso, grid])
+    assert np.array_equal(ax.lines[0].get_xdata(), pso.history_evals[0]) and "evaluations" in ax.get_xlabel()
+    assert any(np.array_equal(line.get_xdata(), [grid.n_evals]) for line in ax.lines), "grid drawn at its evaluations"
+    axes = fl.plots.pso_swarm(msd, net, pso, iterations=(0, 4))
+    assert len(axes[0].figure.axes) == 3, "two panels and one colorbar for the error background"
+    matplotlib.pyplot.close("all")
+
+
+def test_enclosure_widths_sample_the_box_vertices():
+    """The sampled maximum of enclosure_widths covers the box's vertices, where an almost affine error peaks."""
+    import itertools
+    msd = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    pt, r = np.array([1.8, 0.33, 5.0]), 0.01
+    (row,) = fl.error.enclosure_widths(msd, net, pt, radii=(r,), n_samples=10)
+    V = np.array(list(itertools.product(*zip(pt - r, pt + r))))
+    assert row["sampled max error"] >= np.abs(msd.phi_stacked(V) - net(V))[:, 0].max()
+    assert row["sampled max error"] <= row["certify_error's bound"] <= row["natural interval bound"] + 1e-12

@@ -141,6 +141,7 @@ def test_fit_relu_small_smooth_function_and_report():
     assert 0 < rep.n_iter <= 1500 and rep.time_s > 0
     assert net.n_in == 2 and net.n_out == 1 and net.widths == (16, 16)
     assert "grid max |error|" in str(rep)
+    assert f"{rep.time_s:.1f} s" not in str(rep) and "iterations" in str(rep)  # no machine-dependent time printed
     # a random subset when the grid is larger than max_train
     _, rep2 = fl.fit_relu(f, lo, hi, widths=(4,), n_per_axis=(30, 20), max_train=100, max_iter=20, seed=1)
     assert (rep2.n_grid, rep2.n_train, rep2.n_per_axis) == (600, 100, (30, 20))

@@ -93,7 +93,8 @@ def pso_swarm(system, net, est, dims: Sequence[int] = (1, 2), iterations: Sequen
     """
     if est.swarm is None:
         raise ValueError("this estimate has no recorded swarm: run pso_max_error(..., record=True)")
-    fig, axes = new_axes(1, len(iterations), figsize=(3.4 * len(iterations), 3.4), sharey=True)
+    fig, axes = new_axes(1, len(iterations), figsize=(3.4 * len(iterations) + 0.8, 3.4), sharey=True,
+                         layout="constrained")  # room for the shared colorbar
     axes = np.asarray(axes).ravel()
     at = est.argmax[0]
     A, Bm, X = _slice_grid(system.lo, system.hi, tuple(dims), at, n)
@@ -101,7 +102,7 @@ def pso_swarm(system, net, est, dims: Sequence[int] = (1, 2), iterations: Sequen
     names = _labels(system, net.n_in)
     for ax, k in zip(axes, iterations):
         k = k if k >= 0 else len(est.swarm) + k
-        ax.pcolormesh(A, Bm, E, shading="auto", cmap="Greys")
+        mesh = ax.pcolormesh(A, Bm, E, shading="auto", cmap="Greys", vmin=0.0, vmax=float(E.max()))
         P = est.swarm[k]
         ax.plot(P[:, dims[0]], P[:, dims[1]], ".", color=COLORS["nn"], ms=5)
         ax.plot(*est.swarm_best[k][list(dims)], "*", color="#ffd92f", mec="k", ms=14)
@@ -109,27 +110,35 @@ def pso_swarm(system, net, est, dims: Sequence[int] = (1, 2), iterations: Sequen
         ax.set_xlabel(names[dims[0]])
         ax.grid(False)
     axes[0].set_ylabel(names[dims[1]])
+    fig.colorbar(mesh, ax=axes.tolist(), label=r"$|\Phi - \Phi_{NN}|$ on the slice")
     return axes
 
 
 def estimator_convergence(estimates: Sequence, bracket=None, output: int = 0, ax=None):
-    """Best error found vs iteration (PSO, DE), with grid/sample values and the certified bracket."""
+    """Best error found vs evaluations of ``Phi`` and the network, with the certified bracket.
+
+    PSO and differential evolution are drawn against ``est.history_evals``
+    (iterations of the two cost different numbers of evaluations); the other
+    estimates (grid, samples, local searches) as a marker at their total
+    number of evaluations and a dashed level.
+    """
     if ax is None:
         fig, ax = new_axes(figsize=(7.0, 3.6))
     for est in estimates:
         st = dict(_METHOD_STYLE.get(est.method, {}))
         label = st.pop("label", est.method)
-        st.pop("marker", None)
-        if est.history is not None:
-            h = est.history[output]
-            ax.plot(np.arange(len(h)), h, label=f"{label} ({est.eps[output]:.4f})", **st)
-        else:
-            ax.axhline(est.eps[output], ls="--", lw=1.2, label=f"{label} ({est.eps[output]:.4f})", **st)
+        marker = st.pop("marker", "o")
+        if est.history is not None and est.history_evals is not None:
+            ax.plot(est.history_evals[output], est.history[output], label=f"{label} ({est.eps[output]:.4f})", **st)
+        else:  # one number for its whole budget
+            ax.axhline(est.eps[output], ls="--", lw=1.0, **st)
+            ax.plot([est.n_evals], [est.eps[output]], marker, ms=7, label=f"{label} ({est.eps[output]:.4f})", **st)
     if bracket is not None:
         ax.axhspan(bracket.lower[output], bracket.upper[output], color=COLORS["u_max_eps"], alpha=0.25,
                    label=f"certified [{bracket.lower[output]:.4f}, {bracket.upper[output]:.4f}]")
         ax.axhline(bracket.upper[output], color=COLORS["u_max_eps"], lw=1.2)
-    ax.set_xlabel("iteration")
+    ax.set_xscale("log")
+    ax.set_xlabel(r"evaluations of $\Phi$ and $\Phi_{NN}$")
     ax.set_ylabel(r"largest $|\Phi - \Phi_{NN}|$ found")
     ax.legend(loc="lower right")
     return ax
