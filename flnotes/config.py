@@ -50,7 +50,8 @@ def cache_dir() -> Path:
 #: heap back to the system only when 64 MB at its top are free, and grow it 16 MB at a time. With glibc's defaults
 #: that memory is given back and mapped anew on every chunk (3,100 page faults, a quarter of the chunk's time in the
 #: kernel). The local worker processes of :class:`flnotes.parallel.Executor` start with these settings
-#: (environment variables read by glibc at start); :func:`keep_freed_memory` applies them to a running process.
+#: (environment variables read by glibc at start), the workers of a Dask cluster given to it get them through a worker
+#: plugin, and :func:`keep_freed_memory` applies them to a running process.
 MALLOC_SETTINGS: dict[str, int] = {"MALLOC_MMAP_THRESHOLD_": 32 << 20, "MALLOC_TRIM_THRESHOLD_": 64 << 20,
                                    "MALLOC_TOP_PAD_": 16 << 20}
 
@@ -61,7 +62,8 @@ def keep_freed_memory() -> bool:
     """Apply :data:`MALLOC_SETTINGS` to this process (glibc's ``mallopt``); ``True`` if applied.
 
     For a process that runs certifications (:func:`flnotes.certify_error`) itself, ``workers=1``: the local
-    worker processes already start with these settings. The process then keeps up to 64 MB of freed memory for
+    worker processes already start with these settings, and a Dask cluster's workers get them when an
+    :class:`flnotes.parallel.Executor` is made for it. The process then keeps up to 64 MB of freed memory for
     reuse instead of giving it back to the system at once, and glibc no longer adapts its thresholds (the
     settings stay until the process ends). Returns ``False``, changing nothing, where the C library is not glibc
     (macOS, Windows, musl).

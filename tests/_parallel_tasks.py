@@ -93,3 +93,30 @@ class CountedPickles:
             n = len(list(Path(self.folder).glob("pickled.*")))
             Path(self.folder, f"pickled.{n}").touch()
         return CountedPickles, (self.folder,)
+
+
+def exit_on_one(k):
+    """Task 1 calls sys.exit: raised in the caller it would end the program instead of naming the task."""
+    import sys
+
+    if k == 1:
+        sys.exit(3)
+    return k
+
+
+def generator_result(k):
+    """A result that cannot be pickled back to the caller."""
+    return (i for i in range(k))
+
+
+def sleep_zero_fail_one(k):
+    """Task 0 runs for a long time, task 1 raises at once."""
+    if k == 0:
+        time.sleep(60.0)
+    if k == 1:
+        raise ValueError("bad task")
+    return k
+
+
+def plugins_of(dask_worker):
+    return sorted(dask_worker.plugins)

@@ -22,8 +22,8 @@ from flnotes.error import certify_error, pso_max_error
 from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
 from flnotes.studies import compare as C
 
-from _parallel_tasks import (CountedPickles, count_calls, die_on_two, die_once, fail_on_two, slow_zero_dying_seven,
-                             worker_settings)
+from _parallel_tasks import (CountedPickles, count_calls, die_on_two, die_once, exit_on_one, fail_on_two,
+                             generator_result, plugins_of, sleep_zero_fail_one, slow_zero_dying_seven, worker_settings)
 
 pytest.importorskip("distributed")
 
@@ -386,6 +386,40 @@ def test_keep_freed_memory_applies_on_glibc():
     from flnotes.config import keep_freed_memory
 
     assert keep_freed_memory() is True
+
+
+def test_a_task_that_exits_or_returns_what_cannot_be_pickled_is_named():
+    with Executor(workers=2) as ex:
+        with pytest.raises(TaskFailed, match=r"task 1 raised SystemExit"):
+            ex.map(exit_on_one, range(3))
+        with pytest.raises(TaskFailed, match=r"task \d failed on its worker"):
+            ex.map(generator_result, range(3))
+        assert ex.map(abs, [-1, -2]) == [1, 2]                          # the caller's process is still usable
+
+
+def test_a_failed_map_does_not_leave_its_running_tasks_to_the_next():
+    with Executor(workers=2) as ex:
+        with pytest.raises(TaskFailed, match="task 1 raised ValueError"):
+            bounded(lambda: ex.map(sleep_zero_fail_one, range(2)), 30.0)
+        assert bounded(lambda: ex.map(abs, [-3, -4]), 30.0) == [3, 4]    # not after task 0's 60 s
+
+
+def test_dask_workers_get_the_allocator_plugin(client):
+    Executor(client=client)
+    seen = client.run(plugins_of)
+    assert seen and all("flnotes-keep-freed-memory" in p for p in seen.values())
+
+
+def test_a_cluster_without_workers_fails_instead_of_waiting_for_ever(monkeypatch):
+    from distributed import Client, LocalCluster
+
+    import flnotes.parallel as P
+
+    monkeypatch.setattr(P, "NO_WORKERS_TIMEOUT", 2.0)
+    with LocalCluster(n_workers=0, processes=True, host="127.0.0.1", dashboard_address=None) as cluster, \
+            Client(cluster) as cl:
+        with pytest.raises(TaskFailed, match="no worker for 2 s"):
+            bounded(lambda: Executor(client=cl).map(abs, [-1, -2]), 30.0)
 
 
 def test_a_round_is_cut_into_an_even_number_of_equal_chunks():
