@@ -251,3 +251,27 @@ def test_horizon_sweep_refuses_a_known_run_too_short_or_of_another_horizon(run, 
         fl.studies.horizon_sweep(sysm, net, EPS, (mpc.N,), 7.0, ref, S["z0"], known={mpc.N: (log, mpc)})
     with pytest.raises(ValueError, match="key it by its own horizon"):
         fl.studies.horizon_sweep(sysm, net, EPS, (5,), 2.0, ref, S["z0"], known={5: (log, mpc)})
+
+
+def test_separation_names_a_direction_only_without_overlap():
+    sep = fl.studies.separation
+    assert sep([5.0, 6.0], [3.0, 4.0]) == "lower" and sep([5.0, 6.0], [7.0]) == "higher"
+    assert sep([5.0, 6.0], [4.0, 5.5]) == "overlapping" and sep([5.0], [5.0]) == "overlapping"
+    with pytest.raises(ValueError, match="at least one value"):
+        sep([], [1.0])
+
+
+def test_lever_repeats_keeps_the_optimum_and_spans_the_repeats(run, quad):
+    log, mpc, _ = run
+    sysm, net = quad
+    problems = recorded_problems(log, range(15, 17))
+    configs = {"cold": dict(warm_start=False), "warm": dict()}
+    settings = dict(horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], time_limit=30.0)
+    rows = fl.studies.lever_repeats(sysm, net, EPS, problems, configs, repeats=2, **settings)
+    assert [r["configuration"] for r in rows] == ["cold", "warm"]
+    for r in rows:
+        assert len(r["mean_ms_runs"]) == 2 and r["mean_ms_min"] == min(r["mean_ms_runs"]) <= r["mean_ms_max"]
+        assert r["nodes_min"] == r["nodes_max"], "no time limit hit: the node counts repeat exactly"
+        assert r["max_rel_diff"] < 1e-6 and "time_limit" not in r["statuses"]
+    with pytest.raises(ValueError, match="repeats"):
+        fl.studies.lever_repeats(sysm, net, EPS, problems, configs, repeats=1, **settings)

@@ -18,7 +18,7 @@ Array = np.ndarray
 
 __all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "log_head", "horizon_sweep",
            "shifted_plans", "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps",
-           "compare_to_reference", "lever_study", "input_guarantee"]
+           "compare_to_reference", "lever_study", "lever_repeats", "separation", "input_guarantee"]
 
 
 def active_fraction(log, u_eps, rel: float = 0.02) -> float:
@@ -298,6 +298,39 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
                          nodes=float(np.mean([s.nodes for s in steps])),
                          max_rel_diff=float(np.max(np.abs(obj - base) / np.maximum(1.0, np.abs(base)))),
                          statuses=",".join(sorted(set(s.status for s in steps))), ms=ms))
+    return rows
+
+
+def separation(a: Sequence[float], b: Sequence[float]) -> str:
+    """How the values ``b`` of repeated runs stand against the values ``a``: ``"lower"`` if every ``b`` is below
+    every ``a``, ``"higher"`` if every ``b`` is above every ``a``, else ``"overlapping"`` (no direction shown)."""
+    a, b = np.asarray(a, float).reshape(-1), np.asarray(b, float).reshape(-1)
+    if a.size == 0 or b.size == 0:
+        raise ValueError("separation needs at least one value on each side")
+    return "lower" if b.max() < a.min() else "higher" if b.min() > a.max() else "overlapping"
+
+
+def lever_repeats(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],
+                  configs: Mapping[str, dict], repeats: int = 3, **common) -> list[dict]:
+    """:func:`lever_study` run ``repeats`` times, interleaved (every configuration once per repeat, in turn).
+
+    Repeating identical runs measures how far the mean time of one configuration moves from run to run on this
+    machine, next to the difference between configurations. Returns one row per configuration: the node counts
+    (the same in every repeat unless a time limit cut a solve), the mean time (ms) of every repeat
+    (``mean_ms_runs``) and their range, and the largest relative difference of the optimal cost from the first
+    configuration over the repeats.
+    """
+    if int(repeats) != repeats or repeats < 2:
+        raise ValueError(f"repeats must be an integer >= 2 (one run shows no spread), got {repeats!r}")
+    runs = [lever_study(system, net, eps, problems, configs, **common) for _ in range(int(repeats))]
+    rows = []
+    for j, label in enumerate(configs):
+        rs = [run[j] for run in runs]
+        means = [r["mean_ms"] for r in rs]
+        rows.append(dict(configuration=label, repeats=int(repeats), nodes_min=min(r["nodes"] for r in rs),
+                         nodes_max=max(r["nodes"] for r in rs), mean_ms_min=min(means), mean_ms_max=max(means),
+                         mean_ms_runs=np.array(means), max_rel_diff=max(r["max_rel_diff"] for r in rs),
+                         statuses=",".join(sorted({st for r in rs for st in r["statuses"].split(",")}))))
     return rows
 
 
