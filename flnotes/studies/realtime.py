@@ -7,9 +7,9 @@ pause ends, whichever is later, so a pause longer than the slack of a period sti
 runs the book's closed loop (true plant) under ``time_limit = t_s``, records every collection with
 :data:`gc.callbacks` (its generation, its duration, whether it started inside a step) and replays the periodic
 schedule with the measured step times and the measured pauses between answers. It runs the loop as set up
-and after :func:`gc.freeze` once the controller is built (the pair repeated, interleaved, to measure the spread
-between identical loops), which moves every object alive then out of the
-collector's reach, so that a full collection walks only what the loop allocates. Counts of objects are the same on
+and after :func:`gc.freeze` once the controller is built, which moves every object alive then out of the
+collector's reach, so that a full collection walks only what the loop allocates; the pair of loops can be repeated,
+interleaved, to measure how far identical loops move from run to run. Counts of objects are the same on
 every machine; times are this machine's.
 """
 from __future__ import annotations
