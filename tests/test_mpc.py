@@ -228,3 +228,50 @@ def test_shifted_plans_are_checked_against_the_network(run, quad):
         in_box = np.all((Z >= sysm.lo[:3] - 1e-9) & (Z <= sysm.hi[:3] + 1e-9))
         found += bool(np.all(np.abs(u_nn) <= mpc.u_eps + 1e-6) and in_box)
     assert found == counts["admissible"]
+
+
+def test_horizon_sweep_reuses_the_first_seconds_of_a_known_run(run, quad):
+    """A known, longer run is not rerun: the sweep's run is its first t_final seconds, step for step."""
+    log, mpc, ref = run
+    sysm, net = quad
+    logs, rows = fl.studies.horizon_sweep(sysm, net, EPS, (mpc.N,), 2.0, ref, S["z0"], known={mpc.N: (log, mpc)})
+    head = logs[mpc.N]
+    assert head.n_steps == 20 and len(head.t) == 21 and np.allclose(head.t, log.t[:21])
+    # wall-clock times cannot repeat in a rerun: equal arrays mean the known run's own steps
+    assert np.array_equal(head.solve_time, log.solve_time[:20]) and head.steps == log.steps[:20]
+    assert np.array_equal(head.u_fine, log.u_fine[:len(head.u_fine)]) and head.t_fine[-1] < 2.0 <= log.t_fine[-1]
+    assert rows[0]["mean_ms"] == pytest.approx(1e3 * np.mean(log.solve_time[:20]))
+    assert rows[0]["miqp_steps"] == sum(not s.screened for s in log.steps[:20])
+
+
+def test_horizon_sweep_refuses_a_known_run_too_short_or_of_another_horizon(run, quad):
+    log, mpc, ref = run
+    sysm, net = quad
+    with pytest.raises(ValueError, match="t_final <="):
+        fl.studies.horizon_sweep(sysm, net, EPS, (mpc.N,), 7.0, ref, S["z0"], known={mpc.N: (log, mpc)})
+    with pytest.raises(ValueError, match="key it by its own horizon"):
+        fl.studies.horizon_sweep(sysm, net, EPS, (5,), 2.0, ref, S["z0"], known={5: (log, mpc)})
+
+
+def test_separation_names_a_direction_only_without_overlap():
+    sep = fl.studies.separation
+    assert sep([5.0, 6.0], [3.0, 4.0]) == "lower" and sep([5.0, 6.0], [7.0]) == "higher"
+    assert sep([5.0, 6.0], [4.0, 5.5]) == "overlapping" and sep([5.0], [5.0]) == "overlapping"
+    with pytest.raises(ValueError, match="at least one value"):
+        sep([], [1.0])
+
+
+def test_lever_repeats_keeps_the_optimum_and_spans_the_repeats(run, quad):
+    log, mpc, _ = run
+    sysm, net = quad
+    problems = recorded_problems(log, range(15, 17))
+    configs = {"cold": dict(warm_start=False), "warm": dict()}
+    settings = dict(horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], time_limit=30.0)
+    rows = fl.studies.lever_repeats(sysm, net, EPS, problems, configs, repeats=2, **settings)
+    assert [r["configuration"] for r in rows] == ["cold", "warm"]
+    for r in rows:
+        assert len(r["mean_ms_runs"]) == 2 and r["mean_ms_min"] == min(r["mean_ms_runs"]) <= r["mean_ms_max"]
+        assert r["nodes_min"] == r["nodes_max"], "no time limit hit: the node counts repeat exactly"
+        assert r["max_rel_diff"] < 1e-6 and "time_limit" not in r["statuses"]
+    with pytest.raises(ValueError, match="repeats"):
+        fl.studies.lever_repeats(sysm, net, EPS, problems, configs, repeats=1, **settings)

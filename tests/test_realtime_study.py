@@ -45,3 +45,32 @@ def test_gc_study_freezes_and_restores_the_collector():
         assert r["plans_not_admissible"] == 0 and r["inputs_not_admissible"] == 0 and r["u_within"]
     n = realtime.gc_numbers([plain, after])
     assert n["walked_ratio"] == pytest.approx(after["walked"] / plain["walked"])
+
+
+def test_gc_numbers_span_the_repeats_and_word_a_direction_only_without_overlap():
+    def row(run, hits, late):
+        return dict(run=run, steps=10, limit_hits=hits, late_step=late, late_periodic=late, step_max_ms=50.0 + late,
+                    gc_at_answer=0, gc_between=0, full=0, gc_max_ms=0.0, walked=100, full_ms=1.0)
+    plain, frozen = "as set up", "gc.freeze() after set-up"
+    rows = [row(plain, 0, 1), row(frozen, 13, 4), row(plain, 2, 0), row(frozen, 9, 1)]
+    n = realtime.gc_numbers(rows)
+    assert n["repeats"] == 2 and n["plain_limit_hits"] == 0 and n["frozen_limit_hits"] == 13
+    assert (n["plain_limit_hits_min"], n["plain_limit_hits_max"]) == (0, 2)
+    assert (n["frozen_limit_hits_min"], n["frozen_limit_hits_max"]) == (9, 13)
+    assert n["limit_hits_effect"] == realtime.EFFECT_WORDS["higher"]
+    assert n["late_step_effect"] == realtime.EFFECT_WORDS["overlapping"]  # 0..1 against 1..4: they share 1
+    lower = realtime.gc_numbers([row(plain, 5, 3), row(frozen, 1, 0)])
+    assert lower["limit_hits_effect"] == lower["late_step_effect"] == realtime.EFFECT_WORDS["lower"]
+    with pytest.raises(ValueError, match="pairs"):
+        realtime.gc_numbers(rows[:3])
+    with pytest.raises(ValueError, match="pairs"):
+        realtime.gc_numbers([rows[1], rows[0]])
+
+
+def test_gc_study_repeats_the_pair_interleaved():
+    setup = quad_setup(horizon=3)
+    rows = realtime.gc_study(setup, t_final=0.2, repeats=2)
+    assert [(r["repeat"], r["run"]) for r in rows] == [(0, "as set up"), (0, "gc.freeze() after set-up"),
+                                                       (1, "as set up"), (1, "gc.freeze() after set-up")]
+    with pytest.raises(ValueError, match="repeats"):
+        realtime.gc_study(setup, t_final=0.2, repeats=0)

@@ -1,6 +1,7 @@
 """Studies of chapters 7 and 8: checks of an MPC run, Table 2's MPC row, horizon sweeps, lever studies."""
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, Mapping, Optional, Sequence
 
 import numpy as np
@@ -9,15 +10,15 @@ from .. import paper
 from ..mpc import MPC, MPCOptions
 from ..mpc.levers import node_bounds
 from ..network import ReLUNet
-from ..simulate import simulate
+from ..simulate import SimLog, simulate
 from ..systems import FLSystem
 from ..tables import time_stats
 
 Array = np.ndarray
 
-__all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "horizon_sweep",
+__all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "log_head", "horizon_sweep",
            "shifted_plans", "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps",
-           "compare_to_reference", "lever_study", "input_guarantee"]
+           "compare_to_reference", "lever_study", "lever_repeats", "separation", "input_guarantee"]
 
 
 def active_fraction(log, u_eps, rel: float = 0.02) -> float:
@@ -108,28 +109,56 @@ def run_closed_loop(system: FLSystem, net: ReLUNet, eps, t_final: float, referen
     return log, mpc
 
 
+def log_head(log: SimLog, t_final: float) -> SimLog:
+    """The first ``t_final`` seconds of a closed-loop run, as the run of that length would have logged them.
+
+    The loop is causal (each step sees only the past), so the first
+    ``K = round(t_final / ts)`` steps of a longer run are the steps of the
+    shorter one: the sample arrays keep ``K`` steps (``K + 1`` instants), the
+    fine arrays the same steps. Raises ``ValueError`` if the run has fewer
+    than ``K`` steps.
+    """
+    K = int(round(t_final / log.ts))
+    if K < 1 or K > log.n_steps:
+        raise ValueError(f"log_head: t_final = {t_final} s asks for {K} steps of ts = {log.ts} s, the run has "
+                         f"{log.n_steps}: pass 0 < t_final <= {log.n_steps * log.ts:.6g} s")
+    n_fine = len(log.t_fine) // max(1, log.n_steps)
+    f = K * n_fine
+    return dataclasses.replace(
+        log, t=log.t[:K + 1], x=log.x[:K + 1], z=log.z[:K + 1], v=log.v[:K], u=log.u[:K],
+        u_nn=None if log.u_nn is None else log.u_nn[:K], solve_time=log.solve_time[:K], status=list(log.status[:K]),
+        fallback=log.fallback[:K], t_fine=log.t_fine[:f], x_fine=log.x_fine[:f], z_fine=log.z_fine[:f],
+        u_fine=log.u_fine[:f], in_domain=log.in_domain[:K + 1], steps=list(log.steps[:K]),
+        message=log.message if K == log.n_steps else "")
+
+
 def horizon_sweep(system: FLSystem, net: ReLUNet, eps, horizons: Sequence[int], t_final: float,
                   reference: Callable[[Array], Array], z0: Array, known: Optional[Mapping[int, tuple]] = None,
                   **mpc_kwargs) -> tuple[dict, list[dict]]:
     """Closed-loop runs for several prediction horizons ``N_p`` (the paper's Figure 7).
 
-    ``known`` maps a horizon to an existing ``(log, mpc)`` run of the same
-    length (it is reused, not rerun). Returns ``({N_p: log}, rows)`` where each
-    row holds ``N_p``, the per-step time statistics (ms), the binaries
-    ``N_p sum_k n_k`` and after elimination, and the tracking error over the
-    second half of the run.
+    ``known`` maps a horizon to an existing ``(log, mpc)`` run with that
+    ``N_p`` and the same settings, at least ``t_final`` long: it is not rerun,
+    its first ``t_final`` seconds (:func:`log_head`) are the sweep's run. Returns
+    ``({N_p: log}, rows)`` where each row holds ``N_p``, the per-step time
+    statistics (ms), the binaries ``N_p sum_k n_k`` and after elimination
+    (over the steps of the row's run), and the tracking error over the second
+    half of the run.
     """
     logs, rows = {}, []
-    known = dict(known or {})
+    known = {int(k): v for k, v in (known or {}).items()}
     for Np in horizons:
-        if int(Np) in known and abs(known[int(Np)][0].t[-1] - t_final) < 1e-9:
+        if int(Np) in known:
             log, mpc = known[int(Np)]
+            if mpc.N != int(Np):
+                raise ValueError(f"known[{int(Np)}] is a run with N_p = {mpc.N}: key it by its own horizon")
+            log = log_head(log, t_final)
         else:
             log, mpc = run_closed_loop(system, net, eps, t_final, reference, z0, horizon=int(Np), **mpc_kwargs)
         logs[int(Np)] = log
         st = time_stats(log.solve_time)
         chk = closed_loop_checks(log, mpc, reference)
-        mi = [s.n_binaries for s in mpc.history if not s.screened]
+        mi = [s.n_binaries for s in log.steps if not s.screened]
         rows.append(dict(N_p=int(Np), min_ms=st["min_ms"], max_ms=st["max_ms"], mean_ms=st["mean_ms"], median_ms=st["median_ms"],
                          binaries=mpc.n_binaries_full, binaries_after_mean=float(np.mean(mi)) if mi else 0.0,
                          miqp_steps=len(mi), active_fraction=chk["active_fraction"],
@@ -269,6 +298,39 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
                          nodes=float(np.mean([s.nodes for s in steps])),
                          max_rel_diff=float(np.max(np.abs(obj - base) / np.maximum(1.0, np.abs(base)))),
                          statuses=",".join(sorted(set(s.status for s in steps))), ms=ms))
+    return rows
+
+
+def separation(a: Sequence[float], b: Sequence[float]) -> str:
+    """How the values ``b`` of repeated runs stand against the values ``a``: ``"lower"`` if every ``b`` is below
+    every ``a``, ``"higher"`` if every ``b`` is above every ``a``, else ``"overlapping"`` (no direction shown)."""
+    a, b = np.asarray(a, float).reshape(-1), np.asarray(b, float).reshape(-1)
+    if a.size == 0 or b.size == 0:
+        raise ValueError("separation needs at least one value on each side")
+    return "lower" if b.max() < a.min() else "higher" if b.min() > a.max() else "overlapping"
+
+
+def lever_repeats(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],
+                  configs: Mapping[str, dict], repeats: int = 3, **common) -> list[dict]:
+    """:func:`lever_study` run ``repeats`` times, interleaved (every configuration once per repeat, in turn).
+
+    Repeating identical runs measures how far the mean time of one configuration moves from run to run on this
+    machine, next to the difference between configurations. Returns one row per configuration: the node counts
+    (the same in every repeat unless a time limit cut a solve), the mean time (ms) of every repeat
+    (``mean_ms_runs``) and their range, and the largest relative difference of the optimal cost from the first
+    configuration over the repeats.
+    """
+    if int(repeats) != repeats or repeats < 2:
+        raise ValueError(f"repeats must be an integer >= 2 (one run shows no spread), got {repeats!r}")
+    runs = [lever_study(system, net, eps, problems, configs, **common) for _ in range(int(repeats))]
+    rows = []
+    for j, label in enumerate(configs):
+        rs = [run[j] for run in runs]
+        means = [r["mean_ms"] for r in rs]
+        rows.append(dict(configuration=label, repeats=int(repeats), nodes_min=min(r["nodes"] for r in rs),
+                         nodes_max=max(r["nodes"] for r in rs), mean_ms_min=min(means), mean_ms_max=max(means),
+                         mean_ms_runs=np.array(means), max_rel_diff=max(r["max_rel_diff"] for r in rs),
+                         statuses=",".join(sorted({st for r in rs for st in r["statuses"].split(",")}))))
     return rows
 
 

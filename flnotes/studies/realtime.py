@@ -6,9 +6,10 @@ runs after the answer, between two answers. In a periodic loop the next step sta
 pause ends, whichever is later, so a pause longer than the slack of a period still makes an answer late. This study
 runs the book's closed loop (true plant) under ``time_limit = t_s``, records every collection with
 :data:`gc.callbacks` (its generation, its duration, whether it started inside a step) and replays the periodic
-schedule with the measured step times and the measured pauses between answers. It runs the loop twice: as set up,
+schedule with the measured step times and the measured pauses between answers. It runs the loop as set up
 and after :func:`gc.freeze` once the controller is built, which moves every object alive then out of the
-collector's reach, so that a full collection walks only what the loop allocates. Counts of objects are the same on
+collector's reach, so that a full collection walks only what the loop allocates; the pair of loops can be repeated,
+interleaved, to measure how far identical loops move from run to run. Counts of objects are the same on
 every machine; times are this machine's.
 """
 from __future__ import annotations
@@ -22,8 +23,9 @@ import numpy as np
 from ..mpc import MPC
 from ..simulate import simulate
 from ..solvers import BOUND_TOL
+from .mpc import separation
 
-__all__ = ["periodic_schedule", "gc_loop_row", "gc_study", "gc_numbers"]
+__all__ = ["periodic_schedule", "gc_loop_row", "gc_study", "gc_numbers", "EFFECT_WORDS"]
 
 
 def periodic_schedule(step_s, pause_s, t_s: float) -> np.ndarray:
@@ -157,25 +159,52 @@ def gc_loop_row(make_mpc: Callable[[], MPC], setup: dict, t_final: float, freeze
                 u_within=bool(log.summary()["u_within_bound_at_samples"]))
 
 
-def gc_study(setup: dict, t_final: float, time_limit: float | None = None) -> list[dict]:
+def gc_study(setup: dict, t_final: float, time_limit: float | None = None, repeats: int = 1) -> list[dict]:
     """:func:`gc_loop_row` for the book's closed loop (``setup`` as :func:`flnotes.bench.mpc.quad_setup`), with
-    ``time_limit`` (default ``t_s``), as set up and after :func:`gc.freeze`: two rows."""
+    ``time_limit`` (default ``t_s``), as set up and after :func:`gc.freeze`.
+
+    The pair of loops is run ``repeats`` times, interleaved (as set up, frozen, as set up, ...), so that the spread
+    of the timing-dependent counts between identical loops is measured next to the difference between the two
+    settings. Returns ``2 * repeats`` rows, each with its ``repeat`` number.
+    """
+    if int(repeats) != repeats or repeats < 1:
+        raise ValueError(f"repeats must be a positive integer, got {repeats!r}")
     limit = float(setup["ts"]) if time_limit is None else float(time_limit)
 
     def make() -> MPC:
         return MPC(setup["system"], setup["net"], setup["eps"], horizon=setup["N"], ts=setup["ts"], Q=setup["Q"],
                    R=setup["R"], time_limit=limit)
 
-    return [gc_loop_row(make, setup, t_final, freeze=f) for f in (False, True)]
+    return [dict(repeat=i, **gc_loop_row(make, setup, t_final, freeze=f)) for i in range(int(repeats))
+            for f in (False, True)]
+
+
+#: How :func:`gc_numbers` words the frozen loops' count against the loops as set up, over the repeats
+#: (keyed by :func:`flnotes.studies.mpc.separation`).
+EFFECT_WORDS = {"lower": "lower after the freeze in every repeat", "higher": "higher after the freeze in every repeat",
+                "overlapping": "overlapping ranges: no difference shown"}
 
 
 def gc_numbers(rows) -> dict:
-    """The figures chapter 8 quotes from :func:`gc_study` (``plain``: as set up, ``frozen``: after the freeze)."""
-    plain, frozen = rows
-    out = {}
-    for name, r in (("plain", plain), ("frozen", frozen)):
+    """The figures chapter 8 quotes from :func:`gc_study` (``plain``: as set up, ``frozen``: after the freeze).
+
+    ``{name}_{key}`` is the first repeat's value; for the timing-dependent counts (limit hits, late answers) and
+    the slowest step, ``{name}_{key}_min`` and ``_max`` span the repeats, and ``{key}_effect`` words the frozen
+    range against the plain one (:data:`EFFECT_WORDS`: a direction only when the ranges do not overlap).
+    """
+    plain, frozen = rows[0::2], rows[1::2]
+    if len(rows) < 2 or len(plain) != len(frozen) or any(
+            p["run"] != "as set up" or f["run"] != "gc.freeze() after set-up" for p, f in zip(plain, frozen)):
+        raise ValueError("gc_numbers needs the rows of gc_study: pairs of a loop as set up and one after gc.freeze()")
+    out = {"repeats": len(plain)}
+    for name, rs in (("plain", plain), ("frozen", frozen)):
         for key in ("steps", "limit_hits", "late_step", "late_periodic", "step_max_ms", "gc_at_answer", "gc_between",
                     "full", "gc_max_ms", "walked", "full_ms"):
-            out[f"{name}_{key}"] = r[key]
-    out["walked_ratio"] = frozen["walked"] / max(plain["walked"], 1)
+            out[f"{name}_{key}"] = rs[0][key]
+        for key in ("limit_hits", "late_step", "late_periodic", "step_max_ms"):
+            out[f"{name}_{key}_min"] = min(r[key] for r in rs)
+            out[f"{name}_{key}_max"] = max(r[key] for r in rs)
+    for key in ("limit_hits", "late_step", "late_periodic", "step_max_ms"):
+        out[f"{key}_effect"] = EFFECT_WORDS[separation([r[key] for r in plain], [r[key] for r in frozen])]
+    out["walked_ratio"] = frozen[0]["walked"] / max(plain[0]["walked"], 1)
     return out
