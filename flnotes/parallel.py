@@ -84,6 +84,19 @@ def _run(fn: Callable, item: Any) -> Any:
         return fn(item)
 
 
+class TaskExit(RuntimeError):
+    """A task on a Dask worker raised ``SystemExit`` or ``KeyboardInterrupt`` (which would end the worker)."""
+
+
+def _run_on_cluster(fn: Callable, item: Any) -> Any:
+    """One task on a Dask worker (:func:`_run`); ``SystemExit`` and ``KeyboardInterrupt`` raised by the task are turned
+    into :class:`TaskExit`, a task error that names the task, instead of ending the worker and the tasks queued on it."""
+    try:
+        return _run(fn, item)
+    except (SystemExit, KeyboardInterrupt) as exc:
+        raise TaskExit(f"{type(exc).__name__}: {exc}") from None
+
+
 def _run_indexed(fn: Callable, k: int, item: Any) -> tuple:
     """One task on a local worker: ``(k, True, result)``, or ``(k, False, exception)`` if it raised.
 
@@ -403,7 +416,7 @@ class Executor:
         client = self.client
         prefix = f"flnotes-{getattr(fn, '__name__', 'task')}-{time.time_ns()}"
         try:
-            futures = client.map(partial(_run, fn), [items[k] for k in todo], pure=False,   # fn serialized once
+            futures = client.map(partial(_run_on_cluster, fn), [items[k] for k in todo], pure=False,  # fn sent once
                                  retries=self.retries, key=[f"{prefix}-{k}" for k in todo])
         except Exception as exc:   # the function or an argument cannot be serialized for the cluster
             raise TaskFailed(f"the tasks could not be sent to the cluster: the function {_fn_name(fn)} or an "
@@ -469,7 +482,12 @@ class Executor:
                 if fut.status == "cancelled":
                     raise TaskFailed(f"{name(k)} was cancelled on the cluster (the client or the scheduler "
                                      f"closed?); no partial result is returned{resume()}")
-                value = fut.result()
+                try:
+                    value = fut.result()
+                except Exception as exc:   # e.g. a result the worker could not serialize
+                    raise TaskFailed(f"{name(k)} ended but its result could not be fetched from the cluster "
+                                     f"({type(exc).__name__}: {exc}; a result that cannot be pickled?); no partial "
+                                     f"result is returned{resume()}") from exc
                 del pending[k]
                 fut.release()
                 done(k, value)

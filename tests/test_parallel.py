@@ -404,6 +404,15 @@ def test_a_failed_map_does_not_leave_its_running_tasks_to_the_next():
         assert bounded(lambda: ex.map(abs, [-3, -4]), 30.0) == [3, 4]    # not after task 0's 60 s
 
 
+def test_on_a_cluster_too_a_task_that_exits_or_returns_what_cannot_be_pickled_is_named(client):
+    ex = Executor(client=client)
+    with pytest.raises(TaskFailed, match=r"task 1 raised TaskExit: SystemExit: 3"):
+        bounded(lambda: ex.map(exit_on_one, range(3)))
+    with pytest.raises(TaskFailed, match=r"task \d ended but its result could not be fetched"):
+        bounded(lambda: ex.map(generator_result, range(3)))
+    assert len(client.nthreads()) == 2 and ex.map(abs, [-1, -2]) == [1, 2]    # no worker lost
+
+
 def test_dask_workers_get_the_allocator_plugin(client):
     Executor(client=client)
     seen = client.run(plugins_of)
