@@ -111,6 +111,23 @@ def test_failure_set_under_the_bound_matches_the_closed_form():
         fl.studies.cbf_failure_set_bounded(sysm, fl.AffineCBF([0.0, -1.0], 2.0), 0.0, n=n)
 
 
+def test_failure_set_under_the_network_bound_is_the_one_of_the_smaller_bound():
+    """Phi_NN = v = Phi here: the network's set |Phi_NN| <= u_max - eps is the true set of the bound u_max - eps (in
+    the box), so its failing states are exactly those of the true check with that bound, and include the true ones."""
+    sysm, net = double_integrator()
+    A, B, eps = *fl.brunovsky(2), 0.4  # a large eps: some states lie between the two bounds
+    smaller = fl.FLSystem("DI", A, B, phi=lambda z, v: np.asarray(v, float).reshape(-1, 1), lo=sysm.lo, hi=sysm.hi,
+                          u_max=U_MAX - eps, f=sysm.f, to_z=sysm.to_z, to_x=sysm.to_x)
+    kappa, n, H = 0.5, 41, fl.DistanceCBF([1.0, 0.5], 0.4)
+    got = fl.studies.cbf_failure_set_bounded(sysm, H, kappa, n=n, net=net, eps=eps)
+    ref = fl.studies.cbf_failure_set_bounded(smaller, H, kappa, n=n)
+    assert got["failing_network"] == ref["failing"] > got["failing"] > 0 and got["decided_exactly"] > 0
+    assert np.array_equal(got["Z_fail_network"], ref["Z_fail"])
+    assert {tuple(z) for z in got["Z_fail"]} <= {tuple(z) for z in got["Z_fail_network"]}
+    with pytest.raises(ValueError, match="both net and eps"):
+        fl.studies.cbf_failure_set_bounded(sysm, H, kappa, n=n, net=net)
+
+
 def test_sampled_decrease_and_change_within_a_sample():
     """With v = 0 from z0 = [0, 1], z1 grows by ts per sample: V = ||z||^2 rises at every sample."""
     sysm, _ = double_integrator()

@@ -253,6 +253,29 @@ def test_closed_loop_optima_match_the_exact_method(runs, cost):
     chk = cross_check_exact(ctrl, log)
     assert chk["steps"] == log.n_steps
     assert chk["max_rel_diff"] <= 1e-6
+    assert "exact_over_ts" not in chk and any(np.array_equal(chk["exact_argmax_z"], z) for z in log.z)
+
+
+def test_exact_cross_check_counts_the_steps_over_ts(runs):
+    ctrl, log = runs["linear"]
+    short = cross_check_exact(ctrl, log, ts=1e-9)
+    assert short["exact_over_ts"] == short["steps"]
+    assert cross_check_exact(ctrl, log, ts=1e3)["exact_over_ts"] == 0
+    with pytest.raises(ValueError, match="ts must be"):
+        cross_check_exact(ctrl, log, ts=0.0)
+
+
+def test_solve_time_table_reports_the_mip_steps_apart(runs):
+    """The median over the steps that screening did not settle is the MIP solver's, not the screening QP's."""
+    logs = {cost: log for cost, (_, log) in runs.items()}
+    table = fl.studies.solve_time_table(logs, ts=0.05)
+    for row, (cost, log) in zip(table, logs.items()):
+        mip = np.array([not r.screened for r in log.steps])
+        assert row["mip_steps"] == mip.sum() > 0
+        assert row["mip_median"] == pytest.approx(1e3 * np.median(np.asarray(log.solve_time)[mip]))
+    law = fl.simulate(runs["linear"][1].system, fl.FeedbackLaw(lambda z: -S["K_nominal"] @ z), t_final=0.2, ts=0.05,
+                      z0=S["z0"], hold="u")
+    assert "mip_steps" not in fl.studies.solve_time_table({"k(z)": law})[0], "no MIP solver, no MIP column"
 
 
 # --------------------------------------------------------------------------- infeasibility

@@ -71,3 +71,18 @@ def test_guaranteed_loop_on_the_msd(msd_margin):
     assert len(ax.lines) >= 2
     with pytest.raises(ValueError, match="at least one"):
         plot_guaranteed_loop({}, 5.0, {})
+
+
+def test_terminal_sweep_reports_the_input_between_samples(msd_margin):
+    """On the true plant the row carries the largest |u(t)| between samples as the simulator applied it (not
+    saturated), at least the largest at the samples; the nominal model has no input between samples (NaN)."""
+    system, net, eps, _ = msd_margin
+    T = fl.terminal_set(system, net, eps, 0.1, MSD_Q, MSD_R)
+    runs, rows = G.terminal_sweep(system, net, eps, T, (2,), np.array([-1.0, 1.0]), 0.5, time_limit=30.0)
+    for r in rows:
+        if r["plant"] == "nominal":
+            assert np.isnan(r["max_abs_u_between"])
+        else:
+            log = runs[(2, r["ingredients"] == "P_f and Z_f", "true")]["log"]
+            assert r["max_abs_u_between"] == pytest.approx(np.abs(log.u_fine).max())
+            assert r["max_abs_u_between"] >= r["max_abs_u_samples"] - 1e-9

@@ -138,6 +138,10 @@ def test_obstacle_closed_loop_keeps_torques_and_avoids_the_obstacle(arm, shipped
         assert ch["fallback_steps"] == 0 and ch["left_domain_steps"] == 0
         assert ch["min_distance"] >= r, ch["min_distance"]
         assert np.all(fa.links_distance(log.z_fine[:, [0, 2]], c) >= r), "the link touches the obstacle between samples"
+        # the checks along the integrated trajectory include the samples and agree with a direct evaluation
+        d_fine = fa.links_distance(np.vstack([log.z_fine, log.z])[:, [0, 2]], c).min()
+        assert ch["min_distance_between"] == pytest.approx(d_fine) and ch["min_distance_between"] <= ch["min_distance"]
+        assert ch["min_h_between"] <= ch["min_h"] and ch["inflated_radius"] > r
 
 
 def test_mpc_short_closed_loop_keeps_torques(arm, shipped):

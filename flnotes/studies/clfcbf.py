@@ -13,6 +13,9 @@ from ..tables import Table, time_stats
 
 Array = np.ndarray
 
+#: The back-ends of :class:`flnotes.ClfCbfController` that solve the program as a MILP/MIQP (screening first).
+MIP_BACKENDS = ("scip", "highs")
+
 __all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms",
            "exponential_cbf_grid_check", "sampled_clf_decrease", "largest_change_within_sample",
            "cbf_failure_set_bounded", "highs_alone_check"]
@@ -149,7 +152,7 @@ def chapter_eps(name: str = "MSD") -> tuple[Array, str]:
     return np.atleast_1d(np.asarray(paper.paper_eps(name).upper, float)), "certified upper bound"
 
 
-def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
+def cross_check_exact(controller: ClfCbfController, log: SimLog, ts: Optional[float] = None) -> dict:
     """Re-solve the program at every sampled state of a run with the exact 1-D method and compare.
 
     Parameters
@@ -160,29 +163,37 @@ def cross_check_exact(controller: ClfCbfController, log: SimLog) -> dict:
         Its run; ``log.steps[i].objective`` is compared with the exact
         optimum at ``log.z[i]`` (of the softened program at fallback steps,
         which both methods solve alike).
+    ts
+        The sampling time (s); if given, ``exact_over_ts`` counts the states at which the exact
+        method's wall-clock time exceeded it (a machine-dependent count).
 
     Returns
     -------
     dict
         ``max_abs_diff`` and ``max_rel_diff`` (``|J - J_exact| / max(1, |J_exact|)``)
         of the optimal values, ``max_v_diff``, ``steps``, and the exact
-        method's per-step times (ms) ``exact_ms_min/median/max/mean``.
+        method's per-step times (ms) ``exact_ms_min/median/max/mean`` (and ``exact_over_ts``), and the state
+        ``exact_argmax_z`` of its slowest step.
     """
+    if ts is not None and not (np.isfinite(ts) and ts > 0):
+        raise ValueError(f"ts must be a positive sampling time in seconds, got {ts!r}")
     ex = controller.with_backend("exact")
-    J, Jx, v, vx, t = [], [], [], [], []
+    J, Jx, v, vx, t, Zs = [], [], [], [], [], []
     for z, r in zip(log.z[:-1], log.steps):
         if not np.isfinite(r.objective):
             continue
         rx = ex.step(z)
-        J.append(r.objective), Jx.append(rx.objective)
+        Zs.append(z), J.append(r.objective), Jx.append(rx.objective)
         v.append(r.v), vx.append(rx.v), t.append(rx.solve_time)
     J, Jx, t = np.array(J), np.array(Jx), np.array(t) * 1e3
     d = np.abs(J - Jx)
-    return dict(steps=len(J), max_abs_diff=float(d.max()) if len(d) else np.nan,
+    over = {} if ts is None else dict(exact_over_ts=int(np.sum(t > 1e3 * ts)))
+    return dict(over, steps=len(J), max_abs_diff=float(d.max()) if len(d) else np.nan,
                 max_rel_diff=float((d / np.maximum(1.0, np.abs(Jx))).max()) if len(d) else np.nan,
                 max_v_diff=float(np.abs(np.array(v) - np.array(vx)).max()) if len(d) else np.nan,
                 exact_ms_min=float(t.min()), exact_ms_median=float(np.median(t)),
-                exact_ms_max=float(t.max()), exact_ms_mean=float(t.mean()))
+                exact_ms_max=float(t.max()), exact_ms_mean=float(t.mean()),
+                exact_argmax_z=np.array(Zs[int(np.argmax(t))], float))
 
 
 def solve_time_table(logs: dict, system: str = "MSD", ts: Optional[float] = None) -> Table:
@@ -204,6 +215,9 @@ def solve_time_table(logs: dict, system: str = "MSD", ts: Optional[float] = None
     Table
         Per controller: wall-clock ``min``, ``median``, ``max``, ``mean`` (ms), the controller's CPU
         time ``cpu_median`` and ``cpu_max`` (ms), ``over_ts`` when ``ts`` is given, and the paper's numbers.
+        For a MIP back-end (``scip``, ``highs``, ``cvxpy``) also ``mip_steps`` (the steps that screening did not
+        settle, so that the MIP solver ran) and ``mip_median`` (ms, the median wall-clock time over those steps:
+        the time of a MILP/MIQP solve, comparable in kind with the paper's, where every step is one).
     """
     if ts is not None and not (np.isfinite(ts) and ts > 0):
         raise ValueError(f"ts must be a positive sampling time in seconds, got {ts!r}")
@@ -218,6 +232,10 @@ def solve_time_table(logs: dict, system: str = "MSD", ts: Optional[float] = None
                    min=st["min_ms"], median=st["median_ms"], max=st["max_ms"], mean=st["mean_ms"],
                    cpu_median=float(np.nanmedian(cpu)) if has_cpu else None,
                    cpu_max=float(np.nanmax(cpu)) if has_cpu else None)
+        if backend in MIP_BACKENDS or backend.startswith("cvxpy"):
+            mip = np.array([not r.screened for r in log.steps], bool)
+            row["mip_steps"] = int(mip.sum())
+            row["mip_median"] = float(np.median(np.asarray(log.solve_time, float)[mip]) * 1e3) if mip.any() else None
         if ts is not None:
             row["over_ts"] = int(np.sum(np.asarray(log.solve_time, float) > ts))
         rows.append(dict(row, paper_min=ref.get("min"), paper_max=ref.get("max"), paper_mean=ref.get("mean")))
@@ -287,21 +305,33 @@ def largest_change_within_sample(log: SimLog, fn: Any) -> float:
     return float(np.max(hi - lo))
 
 
-def cbf_failure_set_bounded(system: Any, H: Any, kappa: float, n: int = 801, h: float = 1e-6) -> dict:
-    """Safe grid states at which no ``v`` with ``|Phi(z, v)| <= u_max`` satisfies the CBF condition (CLF_CBF_d).
+def cbf_failure_set_bounded(system: Any, H: Any, kappa: float, n: int = 801, h: float = 1e-6,
+                            net: Any = None, eps: Optional[float] = None) -> dict:
+    """Safe grid states at which no admissible ``v`` satisfies the CBF condition (CLF_CBF_d).
 
     On an ``n`` by ``n`` grid of the domain box's ``z``-part, the states with
     ``H(z) >= 0`` are kept; at each, ``a_H v + b_H`` with ``a_H = grad H^T B`` and
-    ``b_H = grad H^T A z + kappa H(z)`` is maximized over the admissible interval of ``v``
+    ``b_H = grad H^T A z + kappa H(z)`` is maximized over the admissible ``v``
     (``Phi`` affine in the single input, checked). ``grad H`` is taken by central
-    differences of step ``h`` (vectorized over the grid).
+    differences of step ``h`` (vectorized over the grid). Two input sets:
+
+    - the true bound ``|Phi(z, v)| <= u_max`` (any ``v``);
+    - with ``net`` and ``eps``: the controller's set, ``|Phi_NN(z, v)| <= u_max - eps`` with ``v`` in the
+      domain box (eq. Phi_NN_ep). It lies inside the true set (``|Phi - Phi_NN| <= eps``), so every state that
+      fails the true bound fails it too; it contains the witness set ``|Phi(z, v)| <= u_max - 2 eps`` (in the
+      box), so a state that the witness set serves does not fail. The states between the two are decided
+      exactly on the network's feasible intervals (:func:`flnotes.exact_1d_feasible_set`).
 
     Returns
     -------
     dict
         ``grid`` (states of the grid), ``safe`` (of them with ``H >= 0``), ``failing``
-        (safe states with a negative best margin), ``Z_fail`` (those states).
+        (safe states with a negative best margin under the true bound), ``Z_fail`` (those states);
+        with ``net``: ``failing_network`` and ``Z_fail_network`` (the same under the network's set),
+        ``decided_exactly`` (states decided on the network's intervals).
     """
+    if (net is None) != (eps is None):
+        raise ValueError("give both net and eps (the network's set |Phi_NN| <= u_max - eps), or neither")
     Z = _state_grid(system, kappa, n)
     Hz = H.value(Z)
     Z, Hz = Z[Hz >= 0], Hz[Hz >= 0]
@@ -316,7 +346,24 @@ def cbf_failure_set_bounded(system: Any, H: Any, kappa: float, n: int = 801, h: 
     v_a, v_b = (-u_max - phi0) / slope, (u_max - phi0) / slope
     best = np.maximum(a_H * v_a, a_H * v_b) + b_H
     fail = best < 0
-    return dict(grid=int(n * n), safe=int(len(Z)), failing=int(fail.sum()), Z_fail=Z[fail])
+    out = dict(grid=int(n * n), safe=int(len(Z)), failing=int(fail.sum()), Z_fail=Z[fail])
+    if net is None:
+        return out
+    eps = float(np.asarray(eps, float).reshape(-1)[0])
+    if not (np.isfinite(eps) and 0 <= eps < u_max / 2):
+        raise ValueError(f"eps must lie in [0, u_max / 2) for the witness set, got {eps!r}")
+    from ..control import exact_1d_feasible_set
+    v_lo, v_hi = float(system.lo[2]), float(system.hi[2])
+    w_a = np.maximum(v_lo, (-(u_max - 2 * eps) - phi0) / slope)   # the witness interval, in the box
+    w_b = np.minimum(v_hi, ((u_max - 2 * eps) - phi0) / slope)
+    served = (w_a <= w_b) & (np.maximum(a_H * w_a, a_H * w_b) + b_H >= 0)
+    fail_net = fail.copy()
+    undecided = np.flatnonzero(~served & ~fail)
+    for i in undecided:
+        iv = exact_1d_feasible_set(net, Z[i], v_lo, v_hi, u_max - eps)
+        fail_net[i] = len(iv) == 0 or np.max(a_H[i] * iv.ravel()) + b_H[i] < 0
+    return dict(out, failing_network=int(fail_net.sum()), Z_fail_network=Z[fail_net],
+                decided_exactly=int(len(undecided)))
 
 
 def highs_alone_check(controller: ClfCbfController, Z: Array, tol: float = 1e-6) -> dict:

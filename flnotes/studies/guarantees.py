@@ -115,6 +115,10 @@ def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSyst
     dec = J[1:] - J[:-1] + stage[: len(J) - 1]
     ok = np.isfinite(dec)
     u = system.Phi(Z[: len(V)], V) if len(V) else np.zeros((0, system.m))
+    # the true plant's input between the samples (u(t) = Phi(z(t), v_k), not saturated by the simulator)
+    log = run.get("log")
+    ub = log.summary()["max_abs_u_between"] if log is not None else []
+    u_between = float(np.max(ub)) if len(ub) else np.nan
     # the measured decay rate over the second half of a completed run: ||z|| ~ exp(-rate t) there
     k2, nz = len(V) // 2, np.linalg.norm(Z, axis=1)
     done = len(V) == n_planned and not run["box_exit"] and k2 > 0 and nz[k2] > 0 and nz[-1] > 0
@@ -127,7 +131,8 @@ def _summarize(run: dict, Q: Array, R: Array, P: Optional[Array], system: FLSyst
                 box_exit=bool(run["box_exit"]), cost=float(stage.sum()),
                 final_norm_z=float(np.linalg.norm(Z[-1])), decay_rate=rate,
                 max_cost_increase=float(np.max(dec[ok] / (1.0 + J[:-1][ok]))) if ok.any() else np.nan,
-                max_abs_u_samples=float(np.abs(u).max()) if len(u) else np.nan, time_s=run["time_s"])
+                max_abs_u_samples=float(np.abs(u).max()) if len(u) else np.nan, max_abs_u_between=u_between,
+                time_s=run["time_s"])
 
 
 def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, horizons: Sequence[int],
@@ -153,7 +158,9 @@ def terminal_sweep(system: FLSystem, net: ReLUNet, eps, terminal: TerminalSet, h
         ``max_cost_increase`` (largest ``(J_{k+1} - J_k + ell(z_k, v_k)) / (1 + J_k)`` over consecutive optimal
         steps: ``<= 0`` is the proof's Lyapunov decrease), ``decay_rate`` (``ln(|z(T/2)| / |z(T)|) / (T/2)``, per
         second, over the second half of a completed run; NaN if it stopped early), the largest true ``|u|`` at
-        the samples, and the time.
+        the samples and, on the true plant, ``max_abs_u_between`` (the largest ``|u(t)|`` between the samples,
+        ``u(t) = Phi(z(t), v_k)`` as the simulator applies it: not saturated at ``u_max``; NaN on the nominal
+        model), and the time.
     """
     for p in plants:
         if p not in ("nominal", "true"):

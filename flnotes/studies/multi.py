@@ -311,8 +311,10 @@ def obstacle_run(system: FLSystem, net: ReLUNet, eps, cost: str = "quadratic", b
     -------
     log, checks
         ``checks``: :func:`torque_checks`, ``min_distance`` (m, the links to the
-        obstacle's centre, :func:`flnotes.arm.links_distance`, at the samples),
-        ``radius``, ``min_h`` (the barriers ``h`` at the samples), ``final_h`` (the smallest
+        obstacle's centre, :func:`flnotes.arm.links_distance`, at the samples) and ``min_distance_between``
+        (the same along the integrated trajectory, samples included), ``radius``, ``inflated_radius``
+        (the barriers' ``R``), ``min_h`` (the barriers ``h`` at the samples) and ``min_h_between`` (along the
+        integrated trajectory), ``final_h`` (the smallest
         ``h`` at the last state), ``final_delta`` (the CLF slack of the last step),
         ``fallback_steps``, ``left_domain_steps``, ``final_norm_z``, ``times`` (:func:`flnotes.time_stats`).
     """
@@ -321,8 +323,12 @@ def obstacle_run(system: FLSystem, net: ReLUNet, eps, cost: str = "quadratic", b
     log = simulate(system, ctrl, t_final=S["t_final"] if t_final is None else t_final, ts=S["ts"], z0=S["z0"],
                    hold="u", net=net, progress=False)
     s = log.summary()
+    Zf = np.vstack([log.z_fine, log.z]) if len(log.z_fine) else log.z
     checks = dict(torque_checks(log), min_distance=float(links_distance(log.z[:, [0, 2]], S["center"]).min()),
-                  radius=float(S["radius"]), min_h=float(min(h.h(log.z).min() for h in ctrl.H)),
+                  min_distance_between=float(links_distance(Zf[:, [0, 2]], S["center"]).min()),
+                  radius=float(S["radius"]), inflated_radius=float(ctrl.H[0].R),
+                  min_h=float(min(h.h(log.z).min() for h in ctrl.H)),
+                  min_h_between=float(min(h.h(Zf).min() for h in ctrl.H)),
                   final_h=float(min(h.h(log.z[-1:])[0] for h in ctrl.H)),
                   final_delta=float(log.steps[-1].info["delta"]) if log.steps else float("nan"),
                   fallback_steps=s["fallback_steps"], left_domain_steps=s["left_domain_steps"],
