@@ -26,7 +26,7 @@ from ..mpc import MPC, MPCOptions
 from ..mpc.levers import AUTO_DAQP_BINARIES, node_bounds
 from ..simulate import simulate
 from ..solvers import available_backends
-from ..tables import time_stats
+from ..tables import spread, time_stats
 
 TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
 
@@ -384,6 +384,55 @@ def cache_lever_numbers(rows: Sequence[dict]) -> dict:
     if q is not None:
         out.update(q_N_p=int(q["N_p"]), q_served=int(q["boxes_served"]), q_asked=int(q["boxes_asked"]),
                    q_cpu_on=q["cpu_s_total"], q_cpu_off=off[("Quad-1D", q["N_p"])]["cpu_s_total"])
+    return out
+
+
+#: The columns of :func:`interleaved_rows` that do not depend on the machine: two rows that agree on all of them did
+#: the same work (the same steps, nodes, binaries and programs), and differ only in time.
+WORK_COLUMNS = ("states", "nodes_mean", "binaries_max", "programs_solved", "non_optimal", "infeasible")
+
+#: The time columns of :func:`interleaved_rows` whose run-to-run spread :func:`run_to_run_spread` measures.
+SPREAD_COLUMNS = ("cpu_s_total", "cpu_ms_median", "cpu_ms_max")
+
+
+def idle_cache_pairs(rows: Sequence[dict]) -> list[tuple[dict, dict]]:
+    """The loops of :func:`cache_lever_table` on which the kept LP bounds had nothing to do: no box was LP-tightened
+    (``boxes_asked == 0``) on a loop with at least one replayed state. Both settings then ran the same work,
+    interleaved state by state, and their two rows (kept, not kept) are a pair of identical runs for
+    :func:`run_to_run_spread`."""
+    off = {(r["system"], r["N_p"]): r for r in rows if r["boxes_served"] is None}
+    return [(r, off[(r["system"], r["N_p"])]) for r in rows
+            if r["boxes_served"] is not None and r["boxes_asked"] == 0 and r["states"] > 0
+            and (r["system"], r["N_p"]) in off]
+
+
+def run_to_run_spread(pairs: Sequence[tuple[dict, dict]], columns: Sequence[str] = SPREAD_COLUMNS) -> dict:
+    """How far two runs of the same work on the same states differ in time on this machine.
+
+    Parameters
+    ----------
+    pairs
+        Pairs of rows of :func:`interleaved_rows` that ran the same work: the same configuration twice, or a lever
+        that had nothing to do (:func:`idle_cache_pairs`). Each pair must agree on every column of
+        :data:`WORK_COLUMNS`, or it is not a pair of identical runs (``ValueError``).
+    columns
+        Time columns to compare.
+
+    Returns
+    -------
+    dict
+        ``pairs`` (their number) and, per column, the largest relative difference ``|a - b| / min(a, b)`` over the
+        pairs: a difference between two settings within it is not measurable on this machine.
+    """
+    if not pairs:
+        raise ValueError("run_to_run_spread needs at least one pair of identical runs")
+    for a, b in pairs:
+        differ = [c for c in WORK_COLUMNS if not (a[c] == b[c] or (np.isnan(a[c]) and np.isnan(b[c])))]
+        if differ:
+            raise ValueError(f"not a pair of identical runs: {a['config']!r} and {b['config']!r} differ in {differ}")
+    out: dict = dict(pairs=len(pairs))
+    for c in columns:
+        out[c] = max(spread((a[c], b[c])) for a, b in pairs)
     return out
 
 
