@@ -12,7 +12,8 @@ one at a time on the same states (:func:`daqp_lever_table`, wall-clock and CPU t
 (:func:`lp_lever_table`) and with each solver setting (:func:`solver_lever_table`: ``backend="auto"``, DAQP for
 every program, SCIP's checks at SCIP's own settings), and scaling with ``N_p`` and with the width of the network
 closes the section.
-Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy.
+Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy: how noisy is
+measured on pairs of runs that did the same work (:func:`run_to_run_spread`, :func:`idle_cache_pairs`).
 """
 from __future__ import annotations
 
