@@ -145,3 +145,16 @@ def test_the_run_to_run_spread_is_measured_on_identical_runs_only():
         rt.run_to_run_spread([(rows[0], rows[1])])
     with pytest.raises(ValueError, match="at least one pair"):
         rt.run_to_run_spread([])
+
+
+def test_a_lever_table_can_run_its_default_twice():
+    from flnotes.bench import mpc as rt
+
+    configs = rt.with_repeat(rt.SOLVER_LEVERS)
+    names = list(configs)
+    assert names[:-1] == list(rt.SOLVER_LEVERS) and names[-1] == names[0] + rt.REPEAT_SUFFIX
+    assert configs[names[-1]] == configs[names[0]]
+    rows = [dict(config=n) for n in names]
+    assert rt.repeat_pairs(rows) == [(rows[0], rows[-1])] and rt.repeat_pairs(rows[:-1]) == []
+    with pytest.raises(ValueError, match="at least one"):
+        rt.with_repeat({})

@@ -220,10 +220,12 @@ LP_LEVERS = {
 }
 
 
-def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
+def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0, repeat: bool = False) -> list:
     """The LP tightening of the level-set rounds (:data:`LP_LEVERS`) on the recorded states ``idx``; see
-    :func:`interleaved_table` for the columns."""
-    return interleaved_table(setup, rec, idx, {k: dict(levers=v) for k, v in LP_LEVERS.items()}, time_limit)
+    :func:`interleaved_table` for the columns. ``repeat=True`` adds the default once more as the last row
+    (:func:`with_repeat`)."""
+    configs = {k: dict(levers=v) for k, v in LP_LEVERS.items()}
+    return interleaved_table(setup, rec, idx, with_repeat(configs) if repeat else configs, time_limit)
 
 
 #: Which solver takes a program (``MPCOptions.backend``) and how SCIP is set up, on the recorded states of a
@@ -241,9 +243,29 @@ SOLVER_LEVERS = {
 }
 
 
-def solver_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
-    """The solver levers (:data:`SOLVER_LEVERS`) on the recorded states ``idx``; see :func:`interleaved_table`."""
-    return interleaved_table(setup, rec, idx, SOLVER_LEVERS, time_limit)
+def solver_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0, repeat: bool = False) -> list:
+    """The solver levers (:data:`SOLVER_LEVERS`) on the recorded states ``idx``; see :func:`interleaved_table`.
+    ``repeat=True`` adds the default once more as the last row (:func:`with_repeat`)."""
+    return interleaved_table(setup, rec, idx, with_repeat(SOLVER_LEVERS) if repeat else SOLVER_LEVERS, time_limit)
+
+
+#: The suffix of the name of a configuration run a second time by :func:`with_repeat`.
+REPEAT_SUFFIX = ", run again"
+
+
+def with_repeat(configs: dict) -> dict:
+    """``configs`` with its first configuration once more at the end, named with :data:`REPEAT_SUFFIX`: a second,
+    separate controller with the same options, interleaved state by state with the others, so that the table holds
+    a pair of identical runs (:func:`repeat_pairs`) for :func:`run_to_run_spread`."""
+    if not configs:
+        raise ValueError("with_repeat needs at least one configuration")
+    first = next(iter(configs))
+    return {**configs, first + REPEAT_SUFFIX: configs[first]}
+
+
+def repeat_pairs(rows: Sequence[dict]) -> list[tuple[dict, dict]]:
+    """The pairs (first row, its repeat) of a table built with :func:`with_repeat` (none when it has no repeat)."""
+    return [(rows[0], r) for r in rows[1:] if r["config"] == rows[0]["config"] + REPEAT_SUFFIX]
 
 
 #: Where the level-set rounds start (``MPCOptions.first_level``) and the repaired relaxation as a first incumbent
