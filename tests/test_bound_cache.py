@@ -123,3 +123,38 @@ def test_the_chapters_numbers_pair_each_loop_with_and_without():
     assert (n["n_lp_sys"], n["n_other"], n["ratio_min"], n["ratio_max"]) == (1, 1, 1.5, 1.5)
     with pytest.raises(ValueError, match="one row with the bounds kept and one without"):
         rt.cache_lever_numbers(rows[:-1])
+
+
+def test_the_run_to_run_spread_is_measured_on_identical_runs_only():
+    from flnotes.bench import mpc as rt
+
+    def row(system, cpu, served=None, asked=None, nodes=10.0, **kw):
+        return dict(system=system, N_p=8, config="kept" if served is not None else "not kept", states=5,
+                    nodes_mean=nodes, binaries_max=30, programs_solved=6, non_optimal=0, infeasible=0,
+                    cpu_s_total=cpu, cpu_ms_median=cpu * 100, cpu_ms_max=cpu * 300, boxes_served=served,
+                    boxes_asked=asked, **kw)
+
+    rows = [row("A", 1.0, 5, 10, nodes=12.0), row("A", 1.5), row("B", 0.8, 0, 0), row("B", 0.7),
+            dict(row("C", 0.0, 0, 0), states=0), dict(row("C", 0.0), states=0)]
+    pairs = rt.idle_cache_pairs(rows)  # A tightened boxes: not the same work; C replayed no state
+    assert [(a["system"], b["system"]) for a, b in pairs] == [("B", "B")]
+    s = rt.run_to_run_spread(pairs + [(row("D", 2.0), row("D", 2.1))])
+    assert s["pairs"] == 2 and s["cpu_s_total"] == pytest.approx(0.8 / 0.7 - 1)
+    assert s["cpu_ms_max"] == pytest.approx(0.8 / 0.7 - 1)
+    with pytest.raises(ValueError, match="differ in \\['nodes_mean'\\]"):
+        rt.run_to_run_spread([(rows[0], rows[1])])
+    with pytest.raises(ValueError, match="at least one pair"):
+        rt.run_to_run_spread([])
+
+
+def test_a_lever_table_can_run_its_default_twice():
+    from flnotes.bench import mpc as rt
+
+    configs = rt.with_repeat(rt.SOLVER_LEVERS)
+    names = list(configs)
+    assert names[:-1] == list(rt.SOLVER_LEVERS) and names[-1] == names[0] + rt.REPEAT_SUFFIX
+    assert configs[names[-1]] == configs[names[0]]
+    rows = [dict(config=n) for n in names]
+    assert rt.repeat_pairs(rows) == [(rows[0], rows[-1])] and rt.repeat_pairs(rows[:-1]) == []
+    with pytest.raises(ValueError, match="at least one"):
+        rt.with_repeat({})

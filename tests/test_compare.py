@@ -390,3 +390,34 @@ def test_batched_input_maps_reject_a_map_not_affine_in_v():
     lm = LinearModel(SimpleNamespace(N=3, m=1), None, cubic)
     with pytest.raises(ValueError, match="not affine in v"):
         lm.input_maps(np.zeros((3, 2)))
+
+
+def test_cost_summary_gives_absolute_differences_next_to_the_ratios():
+    rows = [dict(miqp=100.0, nmpc_from_miqp=102.0, rel_from_miqp=0.02),
+            dict(miqp=0.04, nmpc_from_miqp=0.06, rel_from_miqp=0.5),     # a tiny cost: a large ratio, a small gap
+            dict(miqp=10.0, nmpc_from_miqp=9.0, rel_from_miqp=-0.1)]
+    s = C.cost_summary(rows)
+    assert (s["n"], s["rel_min"], s["rel_max"], s["rel_median"]) == (3, -0.1, 0.5, 0.02)
+    assert s["abs_min"] == pytest.approx(-1.0) and s["abs_max"] == pytest.approx(2.0)
+    assert s["weighted"] == pytest.approx(111.06 / 110.04 - 1)
+    with pytest.raises(ValueError, match="at least one row"):
+        C.cost_summary([])
+
+
+def test_spread_verdicts_and_counts_in_words():
+    from flnotes.tables import against_spread, counted, spread
+
+    assert spread([0.6872, 0.7817]) == pytest.approx(0.7817 / 0.6872 - 1)
+    assert against_spread(1.0, 1.1, 0.137) == "within the run-to-run spread"
+    assert against_spread(1.0, 1.2, 0.137) == "beyond the run-to-run spread"
+    assert against_spread(1.2, 1.0, 0.137) == "beyond the run-to-run spread"
+    with pytest.raises(ValueError, match="at least two positive"):
+        spread([1.0])
+    with pytest.raises(ValueError, match="at least two positive"):
+        spread([1.0, 0.0])
+    with pytest.raises(ValueError, match="spread >= 0"):
+        against_spread(1.0, 1.1, float("nan"))
+    assert [counted(n, "answer came", "answers came") for n in (0, 1, 2)] == \
+        ["0 answers came", "1 answer came", "2 answers came"]
+    with pytest.raises(ValueError, match="a count"):
+        counted(1.5, "a", "b")

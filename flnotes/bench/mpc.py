@@ -12,7 +12,8 @@ one at a time on the same states (:func:`daqp_lever_table`, wall-clock and CPU t
 (:func:`lp_lever_table`) and with each solver setting (:func:`solver_lever_table`: ``backend="auto"``, DAQP for
 every program, SCIP's checks at SCIP's own settings), and scaling with ``N_p`` and with the width of the network
 closes the section.
-Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy.
+Speed is measured here, never asserted in tests; the machine is shared, so single timings are noisy: how noisy is
+measured on pairs of runs that did the same work (:func:`run_to_run_spread`, :func:`idle_cache_pairs`).
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from ..mpc import MPC, MPCOptions
 from ..mpc.levers import AUTO_DAQP_BINARIES, node_bounds
 from ..simulate import simulate
 from ..solvers import available_backends
-from ..tables import time_stats
+from ..tables import spread, time_stats
 
 TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
 
@@ -219,10 +220,12 @@ LP_LEVERS = {
 }
 
 
-def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
+def lp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0, repeat: bool = False) -> list:
     """The LP tightening of the level-set rounds (:data:`LP_LEVERS`) on the recorded states ``idx``; see
-    :func:`interleaved_table` for the columns."""
-    return interleaved_table(setup, rec, idx, {k: dict(levers=v) for k, v in LP_LEVERS.items()}, time_limit)
+    :func:`interleaved_table` for the columns. ``repeat=True`` adds the default once more as the last row
+    (:func:`with_repeat`)."""
+    configs = {k: dict(levers=v) for k, v in LP_LEVERS.items()}
+    return interleaved_table(setup, rec, idx, with_repeat(configs) if repeat else configs, time_limit)
 
 
 #: Which solver takes a program (``MPCOptions.backend``) and how SCIP is set up, on the recorded states of a
@@ -240,9 +243,29 @@ SOLVER_LEVERS = {
 }
 
 
-def solver_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
-    """The solver levers (:data:`SOLVER_LEVERS`) on the recorded states ``idx``; see :func:`interleaved_table`."""
-    return interleaved_table(setup, rec, idx, SOLVER_LEVERS, time_limit)
+def solver_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0, repeat: bool = False) -> list:
+    """The solver levers (:data:`SOLVER_LEVERS`) on the recorded states ``idx``; see :func:`interleaved_table`.
+    ``repeat=True`` adds the default once more as the last row (:func:`with_repeat`)."""
+    return interleaved_table(setup, rec, idx, with_repeat(SOLVER_LEVERS) if repeat else SOLVER_LEVERS, time_limit)
+
+
+#: The suffix of the name of a configuration run a second time by :func:`with_repeat`.
+REPEAT_SUFFIX = ", run again"
+
+
+def with_repeat(configs: dict) -> dict:
+    """``configs`` with its first configuration once more at the end, named with :data:`REPEAT_SUFFIX`: a second,
+    separate controller with the same options, interleaved state by state with the others, so that the table holds
+    a pair of identical runs (:func:`repeat_pairs`) for :func:`run_to_run_spread`."""
+    if not configs:
+        raise ValueError("with_repeat needs at least one configuration")
+    first = next(iter(configs))
+    return {**configs, first + REPEAT_SUFFIX: configs[first]}
+
+
+def repeat_pairs(rows: Sequence[dict]) -> list[tuple[dict, dict]]:
+    """The pairs (first row, its repeat) of a table built with :func:`with_repeat` (none when it has no repeat)."""
+    return [(rows[0], r) for r in rows[1:] if r["config"] == rows[0]["config"] + REPEAT_SUFFIX]
 
 
 #: Where the level-set rounds start (``MPCOptions.first_level``) and the repaired relaxation as a first incumbent
@@ -384,6 +407,55 @@ def cache_lever_numbers(rows: Sequence[dict]) -> dict:
     if q is not None:
         out.update(q_N_p=int(q["N_p"]), q_served=int(q["boxes_served"]), q_asked=int(q["boxes_asked"]),
                    q_cpu_on=q["cpu_s_total"], q_cpu_off=off[("Quad-1D", q["N_p"])]["cpu_s_total"])
+    return out
+
+
+#: The columns of :func:`interleaved_rows` that do not depend on the machine: two rows that agree on all of them did
+#: the same work (the same steps, nodes, binaries and programs), and differ only in time.
+WORK_COLUMNS = ("states", "nodes_mean", "binaries_max", "programs_solved", "non_optimal", "infeasible")
+
+#: The time columns of :func:`interleaved_rows` whose run-to-run spread :func:`run_to_run_spread` measures.
+SPREAD_COLUMNS = ("cpu_s_total", "cpu_ms_median", "cpu_ms_max")
+
+
+def idle_cache_pairs(rows: Sequence[dict]) -> list[tuple[dict, dict]]:
+    """The loops of :func:`cache_lever_table` on which the kept LP bounds had nothing to do: no box was LP-tightened
+    (``boxes_asked == 0``) on a loop with at least one replayed state. Both settings then ran the same work,
+    interleaved state by state, and their two rows (kept, not kept) are a pair of identical runs for
+    :func:`run_to_run_spread`."""
+    off = {(r["system"], r["N_p"]): r for r in rows if r["boxes_served"] is None}
+    return [(r, off[(r["system"], r["N_p"])]) for r in rows
+            if r["boxes_served"] is not None and r["boxes_asked"] == 0 and r["states"] > 0
+            and (r["system"], r["N_p"]) in off]
+
+
+def run_to_run_spread(pairs: Sequence[tuple[dict, dict]], columns: Sequence[str] = SPREAD_COLUMNS) -> dict:
+    """How far two runs of the same work on the same states differ in time on this machine.
+
+    Parameters
+    ----------
+    pairs
+        Pairs of rows of :func:`interleaved_rows` that ran the same work: the same configuration twice, or a lever
+        that had nothing to do (:func:`idle_cache_pairs`). Each pair must agree on every column of
+        :data:`WORK_COLUMNS`, or it is not a pair of identical runs (``ValueError``).
+    columns
+        Time columns to compare.
+
+    Returns
+    -------
+    dict
+        ``pairs`` (their number) and, per column, the largest relative difference ``|a - b| / min(a, b)`` over the
+        pairs: a difference between two settings within it is not measurable on this machine.
+    """
+    if not pairs:
+        raise ValueError("run_to_run_spread needs at least one pair of identical runs")
+    for a, b in pairs:
+        differ = [c for c in WORK_COLUMNS if not (a[c] == b[c] or (np.isnan(a[c]) and np.isnan(b[c])))]
+        if differ:
+            raise ValueError(f"not a pair of identical runs: {a['config']!r} and {b['config']!r} differ in {differ}")
+    out: dict = dict(pairs=len(pairs))
+    for c in columns:
+        out[c] = max(spread((a[c], b[c])) for a, b in pairs)
     return out
 
 

@@ -60,7 +60,7 @@ __all__ = ["METHODS", "LABELS", "HOLDS", "MARGINS", "U_TOL", "Variant", "label",
            "run_metrics", "plan_violations", "settling_time", "run_scenario", "run_row", "relative_costs",
            "TASK_WEIGHT", "task_cost", "monte_carlo",
            "method_table", "extremes",
-           "cost_vs_miqp", "step_field"]
+           "cost_vs_miqp", "cost_summary", "step_field"]
 
 #: The five methods, in the order of the chapter.
 METHODS = ("network", "measured", "previous", "saturated", "nmpc")
@@ -649,3 +649,23 @@ def cost_vs_miqp(s: dict, log, indices: Sequence[int]) -> list[dict]:
                          cold_vs_warm=abs(res["cold"]["objective"] - res["miqp plan"]["objective"])
                          / max(abs(res["miqp plan"]["objective"]), 1e-12)))
     return rows
+
+
+def cost_summary(rows: Sequence[dict]) -> dict:
+    """The NMPC's cost against the MIQP's over the rows of :func:`cost_vs_miqp` to compare (those where all three
+    solves are optimal), in relative and in absolute terms.
+
+    A ratio on a tiny cost (late in a run, near the reference) is dominated by that smallness: 0.05 against 0.04 is
+    +25 %. So next to the relative differences (``rel_median``, ``rel_min``, ``rel_max``, NMPC started from the MIQP's
+    plan over the MIQP's optimum, minus 1) this gives the absolute ones, ``abs_min`` and ``abs_max``
+    (NMPC minus MIQP), and the cost-weighted ratio ``weighted`` = sum of the NMPC's costs over the sum of the MIQP's,
+    minus 1, which large costs dominate; ``n`` is the number of rows.
+    """
+    if not rows:
+        raise ValueError("cost_summary needs at least one row of cost_vs_miqp to compare")
+    J = np.array([r["miqp"] for r in rows], float)
+    Jn = np.array([r["nmpc_from_miqp"] for r in rows], float)
+    rel = np.array([r["rel_from_miqp"] for r in rows], float)
+    d = Jn - J
+    return dict(n=len(rows), rel_median=float(np.median(rel)), rel_min=float(rel.min()), rel_max=float(rel.max()),
+                abs_min=float(d.min()), abs_max=float(d.max()), weighted=float(Jn.sum() / J.sum() - 1.0))
