@@ -702,3 +702,129 @@ def test_budget_floor_runs_on_the_budget_alone_and_repeats_bit_for_bit():
         assert 0 < r["cpu_median_over_ts"] <= r["cpu_max_over_ts"]
     assert rows[0]["repeat_identical"] is True
     assert len(dl.budget_floor_notes(rows)) == 3
+
+
+def test_the_engine_limit_ends_at_the_cut_off_even_when_its_thread_starts_late(quad, monkeypatch):
+    """The engine's own time limit never runs past the step's cut-off, counted from when its thread starts: a thread
+    that waits for a core (here held 0.2 s before it runs) gets only what is left until the cut-off, so that after
+    the cut-off it does not compete with the answer. The step still answers with a checked plan."""
+    import threading
+    import time
+
+    from flnotes.mpc import controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.5)
+    seen = []
+    solve = mpc.solver.solve
+
+    def recorded(*a, **k):
+        seen.append((time.perf_counter(), k["time_limit"]))
+        return solve(*a, **k)
+
+    monkeypatch.setattr(mpc.solver, "solve", recorded)
+
+    class LateThread(threading.Thread):
+        def run(self):
+            time.sleep(0.2)
+            super().run()
+
+    monkeypatch.setattr(controller.threading, "Thread", LateThread)
+    mpc.set_previous_plan(prev)
+    t0 = time.perf_counter()
+    s = mpc(z, R)
+    mpc.reset()
+    (entered, limit), = seen
+    cut = t0 + mpc.time_limit - controller.CUT_OFF_MIN_S  # the latest cut-off: it leaves at least CUT_OFF_MIN_S
+    assert entered >= t0 + 0.2, "premise: the engine's thread started late"
+    assert entered + limit <= cut + 1e-3, (entered - t0, limit)
+    assert limit < mpc.time_limit - mpc.reserve - 0.15, "the limit was cut by the late start"
+    assert check_step(mpc, s), s.message
+
+
+def test_a_step_under_a_time_limit_switches_threads_quickly_and_restores_the_interval(quad, monkeypatch):
+    """Inside a step under a time limit a thread waiting for the interpreter lock gets it within
+    ``SWITCH_INTERVAL_S`` (the answer at a cut-off does not wait 5 ms for the engine's thread); the interval the
+    caller had is restored after the step, also when the step raises; a non-positive interval is refused."""
+    import sys
+
+    from flnotes import config
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=5.0)
+    inside = []
+    solve = mpc.solver.solve
+
+    def recorded(*a, **k):
+        inside.append(sys.getswitchinterval())
+        return solve(*a, **k)
+
+    monkeypatch.setattr(mpc.solver, "solve", recorded)
+    before = sys.getswitchinterval()
+    assert before > config.SWITCH_INTERVAL_S, "premise: Python's default interval is longer"
+    mpc.set_previous_plan(prev)
+    mpc(z, R)
+    mpc.reset()
+    assert inside and max(inside) <= config.SWITCH_INTERVAL_S
+    assert sys.getswitchinterval() == before
+    with pytest.raises(ValueError, match="z must"):
+        mpc(np.zeros(7), R)
+    assert sys.getswitchinterval() == before
+    no_limit = mpc.clone(time_limit=None)
+    no_limit(z, R)  # no limit: Python's interval is left alone
+    assert sys.getswitchinterval() == before
+    with pytest.raises(ValueError, match="positive"):
+        with config.quick_thread_switch(0.0):
+            pass
+
+
+def test_the_fallback_deadline_leaves_a_floor_for_the_checks_after_it(quad, monkeypatch):
+    """The fallback's repairs stop at ``t0 + time_limit`` less the larger of ``FALLBACK_POST_SHARE`` of the limit and
+    ``FALLBACK_POST_MIN_S``: at a short limit the floor decides."""
+    import time
+
+    from flnotes.mpc import FALLBACK_POST_MIN_S, FALLBACK_POST_SHARE, controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    seen = []
+    real = fb.fallback_plan
+
+    def recorded(*a, **k):
+        seen.append(k["deadline"])
+        return real(*a, **k)
+
+    monkeypatch.setattr(controller.fallback, "fallback_plan", recorded)
+    for tl in (0.01, 2.0):
+        mpc = rt.make_mpc(setup, time_limit=tl, cut_off=False)
+        seen.clear()
+        t0 = time.perf_counter()
+        s = mpc._fallback(z, R, fl.StepResult(None, "time_limit"), None, t0)
+        assert s.fallback and len(seen) == 1
+        assert seen[0] == pytest.approx(t0 + tl - max(FALLBACK_POST_SHARE * tl, FALLBACK_POST_MIN_S), abs=1e-12)
+    assert FALLBACK_POST_SHARE * 0.01 < FALLBACK_POST_MIN_S < FALLBACK_POST_SHARE * 2.0, "premise: both cases"
+
+
+def test_region_qp_and_the_repair_stop_when_asked(quad):
+    """``region_qp`` with its ``stop`` event set solves the first region only (no move), the same point as with no
+    moves; ``qp_repair`` with ``stop`` set keeps the QP's plan unrepaired (what the engine's incumbent search does
+    once the controller has answered at its cut-off)."""
+    import threading
+
+    from flnotes.mpc import region_qp
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup)
+    f, _ = mpc.pred.linear(z, R)
+    V_q, _, _ = mpc.pred.qp(f, z)
+    assert V_q is not None and not mpc.pred.feasible(z, V_q), "premise: the QP's plan needs a repair"
+    stop = threading.Event()
+    stop.set()
+    first = region_qp(mpc.pred, z, f, V_q, 0)
+    stopped = region_qp(mpc.pred, z, f, V_q, 20, stop=stop)
+    assert (first is None) == (stopped is None)
+    if first is not None:
+        assert np.array_equal(first, stopped)
+    _, V_r = fb.qp_repair(mpc.pred, z, f, V_q, stop=stop)
+    assert np.array_equal(V_r.reshape(-1), np.asarray(V_q).reshape(-1)), "nothing repaired after stop"
+    _, V_full = fb.qp_repair(mpc.pred, z, f, V_q)
+    assert not np.array_equal(V_full.reshape(-1), np.asarray(V_q).reshape(-1)), "without stop the plan is repaired"

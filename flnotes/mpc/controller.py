@@ -11,14 +11,13 @@ import dataclasses
 
 import threading
 import time
-from contextlib import nullcontext
 from typing import Callable, Optional
 
 import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import no_cyclic_gc, one_blas_thread
+from ..config import no_cyclic_gc, one_blas_thread, quick_thread_switch
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -50,6 +49,10 @@ RESERVE_DECAY = 0.9
 #: Share of :attr:`MPC.time_limit` left after the fallback's deadline for the work after it (the checks of the plan,
 #: the QP of its gap): the repairs of :func:`flnotes.mpc.fallback.fallback_plan` stop at ``time_limit`` less this.
 FALLBACK_POST_SHARE = 0.1
+
+#: Seconds left after the fallback's deadline at least, whatever the limit: the checks after the repairs (the
+#: admissible first input, the plan's forward pass, the QP of its gap) take 1 to 3 ms on the systems of the benchmark.
+FALLBACK_POST_MIN_S = 0.004
 
 #: Seconds the cut-off leaves for the answer at least (:meth:`MPC._engine_solve`): the thread that answers waits for
 #: Python's interpreter lock up to one switch interval (5 ms by default) while the solve runs Python code, then
@@ -164,10 +167,11 @@ class MPC:
         (screening QP, node bounds, every round; each solver call gets the time left) and the fallback after
         it. :attr:`reserve` seconds are kept back from the engine for its overrun and the fallback (what this
         controller measured of them, decaying, at most :data:`RESERVE_MAX_SHARE` of the limit), and the fallback's
-        repairs stop at :data:`FALLBACK_POST_SHARE` of the limit before it; an answer can still come after the
-        limit when the machine does not give the controller the CPU (``info["cpu_time"]`` against ``solve_time``
-        tells the two apart) or when one call that does not check the time (a forward pass, a QP, the exact
-        first input of the fallback) outlasts what is left. On hit the status is ``"time_limit"`` and the plan
+        repairs stop at :data:`FALLBACK_POST_SHARE` of the limit (at least :data:`FALLBACK_POST_MIN_S`) before
+        it. The engine's own limit ends at the cut-off (see ``cut_off``). An answer can still come after the limit
+        when the machine does not give the controller the CPU (``info["cpu_time"]`` against ``solve_time`` tells
+        the two apart) or when one call that does not check the time (a forward pass, a QP, the exact first input
+        of the fallback) outlasts what is left. On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -514,9 +518,14 @@ class MPC:
         and statistics. A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``). An
         infeasible program is reported (``status="infeasible"``), not raised. The step runs with one BLAS
         thread (:func:`flnotes.config.one_blas_thread`) and, under a time limit, without Python's cyclic garbage
-        collector (:func:`flnotes.config.no_cyclic_gc`: a collection runs after the answer, not inside it).
+        collector (:func:`flnotes.config.no_cyclic_gc`: a collection runs after the answer, not inside it) and with
+        a short interpreter-lock switch interval (:func:`flnotes.config.quick_thread_switch`: the answer at a
+        cut-off does not wait for the engine's thread).
         """
-        with one_blas_thread(), (no_cyclic_gc() if self.time_limit is not None else nullcontext()):
+        if self.time_limit is None:
+            with one_blas_thread():
+                return self._solve_step(z, z_ref)
+        with one_blas_thread(), no_cyclic_gc(), quick_thread_switch():
             return self._solve_step(z, z_ref)
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
@@ -612,20 +621,25 @@ class MPC:
 
         def run() -> None:
             c_s = time.thread_time()
+            # the engine's own limit never runs past the cut-off, counted from when this thread starts (on a busy
+            # machine a new thread can wait for a core): after the cut-off its thread would compete with the
+            # answer for the interpreter lock and the cores
+            limit = box["limit"] = None if budget is None else max(min(budget, cut - time.perf_counter()), 1e-9)
             try:
-                box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap,
+                box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=limit, gap=self.gap,
                                                 node_limit=self.node_limit, safety_deadline=self._safety(t0))
             except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
                 box["error"] = exc
             box["cpu"] = time.thread_time() - c_s
 
-        self.solver.go()
-        worker = threading.Thread(target=run, name="flnotes-mpc-solve")
         answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
                        RESERVE_MAX_SHARE * self.time_limit)
+        cut = t0 + float(self.time_limit) - answer_s  # the cut-off (a perf_counter value)
+        self.solver.go(stop_at=cut)
+        worker = threading.Thread(target=run, name="flnotes-mpc-solve")
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
         worker.start()
-        worker.join(max(t0 + float(self.time_limit) - answer_s - time.perf_counter(), 0.0))
+        worker.join(max(cut - time.perf_counter(), 0.0))
         if worker.is_alive():
             self.solver.stop()
             box["cut_off"] = True
@@ -667,8 +681,9 @@ class MPC:
                 box["error"].add_note("raised by the solve that the previous step answered at its cut-off")
             raise box["error"]
         step = box["step"]
-        if budget is not None:
-            self._measure_late(step.solve_time - budget, box.get("cpu", step.solve_time), step.solve_time)
+        if budget is not None:  # late after the limit the engine was given (see _engine_solve)
+            self._measure_late(step.solve_time - box.get("limit", budget), box.get("cpu", step.solve_time),
+                               step.solve_time)
         return step
 
     def _measure_late(self, late: float, cpu: float, wall: float) -> None:
@@ -689,6 +704,7 @@ class MPC:
         """No plan from this solve: apply :meth:`fallback_plan`, flagged, the solve's status and message kept.
 
         Under a time limit its repairs stop at ``t0 + time_limit`` less :data:`FALLBACK_POST_SHARE` of the limit
+        (at least :data:`FALLBACK_POST_MIN_S`)
         (``deadline`` of :func:`flnotes.mpc.fallback.fallback_plan`; the first input is made admissible whatever the
         time), and its CPU time is what :attr:`reserve` keeps back for it.
 
@@ -699,7 +715,8 @@ class MPC:
         f, _ = self.pred.linear(z, R)
         engine_bound = step.bound
         deadline = (None if self.time_limit is None or t0 is None or not self.fallback_deadline
-                    else t0 + (1.0 - FALLBACK_POST_SHARE) * float(self.time_limit))
+                    else t0 + float(self.time_limit) - max(FALLBACK_POST_SHARE * float(self.time_limit),
+                                                           FALLBACK_POST_MIN_S))
         c_fb = time.thread_time()
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,
                                                 qp_repair_failed=bool(step.info.get("repair_failed")),

@@ -164,17 +164,25 @@ class NetworkEngine:
         self.cache = BoundCache() if opts.bound_cache else None  # LP bounds kept for later boxes
         self.progress: Optional[Progress] = None
         self._stop = threading.Event()
+        self.stop_at: Optional[float] = None
 
     def stop(self) -> None:
         """Ask the running :meth:`solve` to return at its next check of the time (a solver call already started
         runs to its own time limit first); cleared by :meth:`go`."""
         self._stop.set()
 
-    def go(self) -> None:
+    def go(self, stop_at: Optional[float] = None) -> None:
         """Clear :meth:`stop` and :attr:`progress` for the next solve (an answer read before it publishes anything
-        then has no plan, never one of an earlier state)."""
+        then has no plan, never one of an earlier state). ``stop_at`` (a :func:`time.perf_counter` value: the
+        caller's cut-off) also stops the incumbent search's repair and region moves at that time, without waiting
+        for the caller's :meth:`stop` (on a busy machine the caller's thread can wake late)."""
         self._stop.clear()
+        self.stop_at = stop_at
         self.progress = None
+
+    def _stopped(self) -> bool:
+        """Has the caller asked this solve to stop (:meth:`stop`), or has its cut-off (``stop_at``) passed?"""
+        return self._stop.is_set() or (self.stop_at is not None and time.perf_counter() >= self.stop_at)
 
     def answer_now(self) -> StepResult:
         """The answer of the running solve at this moment, from :attr:`progress`: status ``"time_limit"``, its best
@@ -386,7 +394,12 @@ class NetworkEngine:
                                         f"the incumbent is optimal ({incumbent_from}; level set empty)")
                         delta *= 4.0
                         continue
-            nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi, cache=self.cache)
+            try:
+                nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi, deadline=deadline,
+                                                                        cache=self.cache)
+            except DeadlineReached:
+                st["safety"] = work
+                return done("time_limit", inc_V, lb, "time limit during the LP bounds of a round")
             if out_of_time():  # the node bounds (an LP each under lp) took the rest of the time
                 return done("time_limit", inc_V, lb, "time limit after the node bounds of a round")
             steps = needed_steps(nb, pred.u_eps, o.encode) if nb is not None else None
@@ -509,16 +522,19 @@ class NetworkEngine:
                  inc_from: Optional[str], deadline: Optional[float] = None, st: Optional[dict] = None
                  ) -> tuple[Optional[Array], float, Optional[str], bool, bool]:
         """The first incumbent of ``repair``: the cheaper of the warm start and the relaxation's optimum ``V_c``
-        repaired along the QP (:func:`flnotes.mpc.fallback.qp_repair`); when neither passes and ``bang_bang`` is on,
-        the cheapest one-switch plan at the input bounds (:func:`flnotes.mpc.bang_bang.bang_bang_incumbent`, given
-        up at the ``deadline``, a ``time.perf_counter()`` value); then optimized over its linear region and its
-        neighbours (:func:`flnotes.mpc.region.region_qp`). Each candidate counts only if it passes the forward-pass
-        check. Returns ``(V, J, where it came from, whether the region QP made it cheaper, whether the repaired plan
-        failed the check)``; the one-switch search's time (s) goes to ``st["bang_bang_s"]``."""
+        repaired along the QP (:func:`flnotes.mpc.fallback.qp_repair`, stopped by :meth:`stop` or at ``stop_at``); when neither
+        passes and ``bang_bang`` is on, the cheapest one-switch plan at the input bounds
+        (:func:`flnotes.mpc.bang_bang.bang_bang_incumbent`, given up at the ``deadline``, a ``time.perf_counter()``
+        value); then optimized over its linear region and its neighbours (:func:`flnotes.mpc.region.region_qp`, no
+        move after :meth:`stop` or ``stop_at``). Each candidate counts only if it passes the forward-pass check. Returns ``(V, J,
+        where it came from, whether the region QP made it cheaper, whether the repaired plan failed the check, not
+        cut short by :meth:`stop` or ``stop_at``)``;
+        the one-switch search's time (s) goes to ``st["bang_bang_s"]``."""
         pred, o = self.pred, self.opts
-        _, V_r = qp_repair(pred, z0, f, V_c)
-        failed = not pred.feasible(z0, V_r)
-        if not failed:
+        _, V_r = qp_repair(pred, z0, f, V_c, deadline=self.stop_at, stop=self._stop)
+        passed = pred.feasible(z0, V_r)
+        failed = not passed and not self._stopped()  # not cut short by the caller's cut-off
+        if passed:
             J_r = pred.cost(V_r, f, c0)
             if J_r < inc_J:
                 inc_V, inc_J, inc_from = V_r.reshape(-1), J_r, "repaired relaxation"
@@ -531,7 +547,9 @@ class NetworkEngine:
                 inc_V, inc_J, inc_from = found[0], found[1], "one-switch plan"
         if inc_V is None:
             return None, np.inf, inc_from, False, failed
-        V_p = region_qp(pred, z0, f, inc_V, REGION_MOVES)
+        if self._stopped():
+            return inc_V, inc_J, inc_from, False, failed
+        V_p = region_qp(pred, z0, f, inc_V, REGION_MOVES, stop=self._stop)
         if V_p is not None and pred.feasible(z0, V_p):
             J_p = pred.cost(V_p, f, c0)
             if J_p < inc_J:

@@ -12,6 +12,7 @@ samples (its flag then means "none found", not "none exists").
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Optional
 
@@ -132,7 +133,7 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
 
 
 def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
-              deadline: Optional[float] = None) -> tuple[Array, Array]:
+              deadline: Optional[float] = None, stop: Optional[threading.Event] = None) -> tuple[Array, Array]:
     """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
 
     At step ``k`` the QP ``min J(V)`` over the boxes and terminal rows is solved with ``v(0..k-1)`` fixed
@@ -141,7 +142,8 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     (:meth:`Prediction.linear`); ``V_qp`` the QP's optimum without fixed steps when the caller has it. The QP is
     solved again only after a step whose ``v(k)`` was moved: fixing ``v(k)`` at the QP's own value leaves its
     (unique: ``H`` is positive definite) optimum where it is. The build stops at ``deadline`` (a
-    :func:`time.perf_counter` value; the later inputs are then the last QP's). Check the result with
+    :func:`time.perf_counter` value) or once ``stop`` is set (a controller answering at its cut-off); the later
+    inputs are then the last QP's. Check the result with
     :meth:`Prediction.feasible`.
     """
     N, m = pred.N, pred.m
@@ -151,7 +153,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     resolve = V_qp is None
     zk = z
     for k in range(N):
-        if _past(deadline):
+        if _past(deadline) or (stop is not None and stop.is_set()):
             V[k:] = guess[k:]
             break
         if resolve:

@@ -10,6 +10,8 @@ and the branch and bound still proves it (see :class:`flnotes.mpc.engine.Network
 """
 from __future__ import annotations
 
+import threading
+
 from typing import Optional
 
 import numpy as np
@@ -68,7 +70,8 @@ def _region_solve(pred: Prediction, z0: Array, f: Array, G: Array, h: Array):
     return x, lam
 
 
-def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 0) -> Optional[Array]:
+def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 0,
+              stop: Optional[threading.Event] = None) -> Optional[Array]:
     """The optimum of ``J`` over the linear region of the plan ``V`` (:func:`region_rows`), or ``None``.
 
     ``f`` is the cost's linear part (:meth:`Prediction.linear`). Solved by DAQP (an active-set method, exact on
@@ -76,8 +79,9 @@ def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 
     is active at the optimum with a positive multiplier, the cost decreases across it, and the optimum ``V*``
     (whose neuron there is at ``a = 0``, so ``V*`` lies in both regions) is re-optimized with those neurons'
     pattern flipped; it stops when no such row is left, the cost stops decreasing, or after ``max_moves``
-    moves. ``None`` when the first QP gives no optimum (an empty region: ``V`` violates its own output rows, or
-    a box). Check the result with :meth:`Prediction.feasible`.
+    moves, or once ``stop`` is set (a controller answering at its cut-off). ``None`` when the first QP
+    gives no optimum (an empty region: ``V`` violates its own output rows, or a box). Check the result with
+    :meth:`Prediction.feasible`.
     """
     G, h, pat = region_rows(pred, z0, V)
     x, lam = _region_solve(pred, z0, f, G, h)
@@ -87,6 +91,8 @@ def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 
     best, J = x, cost(x)
     sizes = [p.size for p in pat]
     for _ in range(max_moves):
+        if stop is not None and stop.is_set():
+            break
         flip = lam[: sum(sizes)] > 1e-9 * max(1.0, abs(J))
         if not flip.any():
             break
