@@ -902,10 +902,13 @@ class _ExactBackend:
         out = solve_exact_1d(pw, d, c.cost, float(c.u_eps[0]), soft=soft, rho=c.penalty)
         dt = time.perf_counter() - t0
         if out is None:
-            return _Solution(status="infeasible", solver_time=dt, detail=f"{pw.n_pieces} pieces, empty feasible set")
+            return _Solution(status="infeasible", solver_time=dt,
+                             detail=f"proven infeasible: no v in [v_lo, v_hi] meets the constraints on any of the "
+                                    f"{pw.n_pieces} linear pieces of Phi_NN(z, .)")
         v, delta, obj = out
         sol = _Solution(status="optimal", v=np.array([v]), delta=delta, objective=obj, solver_time=dt,
-                        detail=f"{pw.n_pieces} pieces")
+                        detail=f"proven optimal: the closed-form minimum over all {pw.n_pieces} linear pieces of "
+                               f"Phi_NN(z, .) on [v_lo, v_hi]")
         if soft:
             sol.slack_u = np.maximum(0.0, np.abs(pw(np.array([v]))) - c.u_eps)
             sol.slack_H = np.maximum(0.0, -(d["aH"][:, 0] * v + d["bH"]))

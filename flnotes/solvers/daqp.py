@@ -175,8 +175,8 @@ class DaqpSolver(Solver):
                         time_limit - (time.perf_counter() - t0), 1e-3))
                     if rel.status == "infeasible":
                         return _result(p, "infeasible", None, np.inf, res.nodes, t0, self.name,
-                                       f"daqp: {res.message}, not a proof: verified: the continuous relaxation is "
-                                       "infeasible (HiGHS)")
+                                       "infeasible, proven by highs: the continuous relaxation is infeasible "
+                                       f"(checked because daqp: {res.message} is no proof)")
                 feas = MIQP(None, np.zeros(p.n), 0.0, p.A, p.rl, p.ru, p.lb, p.ub, p.integrality)
                 chk = _confirm(self, feas, verifier, None, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
                 if chk.status != "infeasible":  # feasible after all (or undecided): the program itself
@@ -296,10 +296,12 @@ class DaqpSolver(Solver):
                 J_best = p.objective(best)
                 if abs(J_best - bound) <= gap * max(1.0, abs(J_best)):
                     return _result(p, "optimal", best, bound, nodes, t0, self.name,
-                                   msg + f" (regularized by {float(dr.max()):.0e}: gap certified "
-                                   f"{J_best - bound:.1e})")
+                                   msg + f" (regularized by {float(dr.max()):.0e}: optimal within the relative gap "
+                                   f"{gap:.0e}, certified: objective - bound = {J_best - bound:.1e}, "
+                                   f"relative {(J_best - bound) / max(1.0, abs(J_best)):.1e})")
                 return _result(p, "unproven", best, bound, nodes, t0, self.name,
-                               msg + f" (regularized: gap {J_best - bound:.1e} above the requested gap)")
+                               msg + f" (regularized: objective - bound = {J_best - bound:.1e}, relative "
+                               f"{(J_best - bound) / max(1.0, abs(J_best)):.1e}, above the requested gap {gap:.0e})")
             if status == "optimal" and w is not None:
                 return _result(p, "optimal", best, np.nan, nodes, t0, self.name, msg)
             return _result(p, "unproven" if best is not None else "error", best, -np.inf, nodes, t0, self.name, msg)
