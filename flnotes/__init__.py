@@ -8,7 +8,7 @@ The data flow, one direction::
 
 Layers, lowest first (a module imports only from layers below it)::
 
-    base         config, _checks, errors, tables (Table, time_stats), result (StepResult, STATUSES)
+    base         config, _checks, errors, tables (Table, time_stats), repeats, result (StepResult, STATUSES)
     models       systems, network, reference (shipped data), interval
     solvers      solvers/ (MIQP, one module per back-end; numpy, scipy and the solver libraries only)
     constraint   bounds, tightening, encoding (big-M), error (eps), pieces, simulate (owns time)
@@ -23,6 +23,7 @@ the README's architecture section.
 """
 from .config import FAST, scale
 from .tables import Table, time_stats
+from . import repeats
 from .systems import FLSystem, brunovsky, discretize, msd, quad1d
 from .network import ReLUNet, TrainingReport, fit_relu, uniform_grid
 from .bounds import NodeBounds, fbbt, interval_affine, sample_preactivations
@@ -51,7 +52,7 @@ from .terminal import RegionOfAttraction, TerminalSet, region_of_attraction, ter
 from .intersample import DriftBound, drift_curve, intersample_drift
 
 __all__ = [
-    'FAST', 'scale', 'Table', 'time_stats', 'FLSystem', 'brunovsky', 'discretize', 'msd', 'quad1d', 'ReLUNet',
+    'FAST', 'scale', 'Table', 'time_stats', 'repeats', 'FLSystem', 'brunovsky', 'discretize', 'msd', 'quad1d', 'ReLUNet',
     'TrainingReport', 'fit_relu', 'uniform_grid', 'NodeBounds', 'fbbt', 'interval_affine',
     'sample_preactivations', 'BigMForm', 'Encoding', 'bigm_form', 'encode', 'forward_milp', 'SolverFailure',
     'Controller', 'FeedbackLaw', 'SimLog', 'StepResult', 'STATUSES', 'simulate', 'interval', 'plots', 'reference',

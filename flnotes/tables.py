@@ -5,8 +5,8 @@ notebook, as aligned text in a terminal and as Markdown in a benchmark report;
 chapters, studies and ``make bench`` all render through it.
 :func:`time_stats` reduces a sample of solve times to the figures every table
 of the book quotes (min, median, percentiles, max, mean), in milliseconds;
-:func:`spread` measures how far repeated runs of the same work differ in time, :func:`against_spread` reads a
-comparison of two settings against it, and :func:`counted` writes a glued count with its noun in the right number.
+:func:`counted` writes a glued count with its noun in the right number (reading repeated timings is
+:mod:`flnotes.repeats`).
 """
 from __future__ import annotations
 
@@ -116,27 +116,6 @@ def time_stats(times_s: Sequence[float], percentiles: Sequence[float] = (50, 90,
         return dict(n=0, min_ms=np.nan, **{k: np.nan for k in keys}, max_ms=np.nan, mean_ms=np.nan)
     return dict(n=int(t.size), min_ms=float(t.min()), **{k: float(np.percentile(t, q)) for k, q in zip(keys, percentiles)},
                 max_ms=float(t.max()), mean_ms=float(t.mean()))
-
-
-def spread(times: Sequence[float]) -> float:
-    """The run-to-run spread of repeated measurements of the same work: ``max / min - 1`` (0.1 for 10 %).
-
-    ``times`` are two or more positive times (any unit) of runs that did the same work, e.g. the same controller on
-    the same states; :func:`against_spread` reads a comparison of two settings against it.
-    """
-    t = np.asarray(times, float).ravel()
-    if t.size < 2 or not np.all(np.isfinite(t) & (t > 0)):
-        raise ValueError(f"spread needs at least two positive finite times of the same work, got {t.tolist()}")
-    return float(t.max() / t.min() - 1.0)
-
-
-def against_spread(a: float, b: float, spread_: float) -> str:
-    """A verdict on the times ``a`` and ``b`` of two settings against a run-to-run spread ``spread_`` of
-    :func:`spread`: ``"within the run-to-run spread"`` when ``max / min - 1 <= spread_`` (not a measured
-    difference on this machine), ``"beyond the run-to-run spread"`` otherwise."""
-    if not (np.isfinite(spread_) and spread_ >= 0):
-        raise ValueError(f"against_spread needs a spread >= 0, got {spread_}")
-    return "within the run-to-run spread" if spread((a, b)) <= spread_ else "beyond the run-to-run spread"
 
 
 def counted(n: int, one: str, many: str) -> str:

@@ -405,7 +405,8 @@ def test_cost_summary_gives_absolute_differences_next_to_the_ratios():
 
 
 def test_spread_verdicts_and_counts_in_words():
-    from flnotes.tables import against_spread, counted, spread
+    from flnotes.repeats import against_spread, spread
+    from flnotes.tables import counted
 
     assert spread([0.6872, 0.7817]) == pytest.approx(0.7817 / 0.6872 - 1)
     assert against_spread(1.0, 1.1, 0.137) == "within the run-to-run spread"

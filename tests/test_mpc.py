@@ -254,7 +254,7 @@ def test_horizon_sweep_refuses_a_known_run_too_short_or_of_another_horizon(run, 
 
 
 def test_separation_names_a_direction_only_without_overlap():
-    sep = fl.studies.separation
+    sep = fl.repeats.separation
     assert sep([5.0, 6.0], [3.0, 4.0]) == "lower" and sep([5.0, 6.0], [7.0]) == "higher"
     assert sep([5.0, 6.0], [4.0, 5.5]) == "overlapping" and sep([5.0], [5.0]) == "overlapping"
     with pytest.raises(ValueError, match="at least one value"):

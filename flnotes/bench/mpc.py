@@ -27,7 +27,8 @@ from ..mpc import MPC, MPCOptions
 from ..mpc.levers import AUTO_DAQP_BINARIES, node_bounds
 from ..simulate import simulate
 from ..solvers import available_backends
-from ..tables import spread, time_stats
+from ..repeats import spread
+from ..tables import time_stats
 
 TARGET_MAX_MS, TARGET_MEDIAN_MS, TARGET_GAP = 100.0, 10.0, 1e-4
 

@@ -36,7 +36,7 @@ from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   input_guarantee, log_head,
                   horizon_sweep, lever_repeats, lever_study, prediction_mismatch, recorded_problems, run_closed_loop,
-                  separation, shifted_plans,
+                  shifted_plans,
                   table2, tracking_error)
 from .networks import (architecture_sweep, book_sweep, estimates_table, exact_preactivation_range, fresh_vs_shipped,
                        slope_in_v, table1_rows, width_experiment, write_sweep)
@@ -48,6 +48,6 @@ __all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "size
            "sampled_clf_decrease", "largest_change_within_sample", "cbf_failure_set_bounded",
            "solve_time_table", "highs_alone_check", "paper_mean_ms", "active_fraction", "binaries_per_step", "closed_loop_checks",
            "compare_to_reference",
-           "hardest_steps", "log_head", "horizon_sweep", "lever_repeats", "lever_study", "separation",
+           "hardest_steps", "log_head", "horizon_sweep", "lever_repeats", "lever_study",
            "prediction_mismatch", "recorded_problems",
            "run_closed_loop", "shifted_plans", "table2", "tracking_error", "input_guarantee"]

@@ -18,7 +18,7 @@ Array = np.ndarray
 
 __all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "log_head", "horizon_sweep",
            "shifted_plans", "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps",
-           "compare_to_reference", "lever_study", "lever_repeats", "separation", "input_guarantee"]
+           "compare_to_reference", "lever_study", "lever_repeats", "input_guarantee"]
 
 
 def active_fraction(log, u_eps, rel: float = 0.02) -> float:
@@ -299,15 +299,6 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
                          max_rel_diff=float(np.max(np.abs(obj - base) / np.maximum(1.0, np.abs(base)))),
                          statuses=",".join(sorted(set(s.status for s in steps))), ms=ms))
     return rows
-
-
-def separation(a: Sequence[float], b: Sequence[float]) -> str:
-    """How the values ``b`` of repeated runs stand against the values ``a``: ``"lower"`` if every ``b`` is below
-    every ``a``, ``"higher"`` if every ``b`` is above every ``a``, else ``"overlapping"`` (no direction shown)."""
-    a, b = np.asarray(a, float).reshape(-1), np.asarray(b, float).reshape(-1)
-    if a.size == 0 or b.size == 0:
-        raise ValueError("separation needs at least one value on each side")
-    return "lower" if b.max() < a.min() else "higher" if b.min() > a.max() else "overlapping"
 
 
 def lever_repeats(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],

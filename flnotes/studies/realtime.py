@@ -23,7 +23,7 @@ import numpy as np
 from ..mpc import MPC
 from ..simulate import simulate
 from ..solvers import BOUND_TOL
-from .mpc import separation
+from ..repeats import separation
 
 __all__ = ["periodic_schedule", "gc_loop_row", "gc_study", "gc_numbers", "EFFECT_WORDS"]
 
@@ -180,7 +180,7 @@ def gc_study(setup: dict, t_final: float, time_limit: float | None = None, repea
 
 
 #: How :func:`gc_numbers` words the frozen loops' count against the loops as set up, over the repeats
-#: (keyed by :func:`flnotes.studies.mpc.separation`).
+#: (keyed by :func:`flnotes.repeats.separation`).
 EFFECT_WORDS = {"lower": "lower after the freeze in every repeat", "higher": "higher after the freeze in every repeat",
                 "overlapping": "overlapping ranges: no difference shown"}
 
