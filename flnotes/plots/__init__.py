@@ -13,7 +13,7 @@ from .foundations import (static_feasible_set, fl_identity_residual, affine_v_in
     plot_unstable_fixed_z, unstable_vs_box_size, plot_unstable_vs_box_size)
 from .error import (static_architecture, error_slice, pso_swarm, estimator_convergence, certification_progress, partition_slice,
     eps_sweep, violation_line, show_source, explore_architecture)
-from .clfcbf import (clfcbf_phase_portrait, clfcbf_signals, clfcbf_figure3, exact_1d_plot, solve_time_plot, cbf_failure_plot,
+from .clfcbf import (clfcbf_phase_portrait, clfcbf_signals, clfcbf_figure4, exact_1d_plot, solve_time_plot, cbf_failure_plot,
     wall_runs_plot)
 from .mpc import plot_mpc_tracking, plot_mpc_input, plot_horizon_sweep, plot_intersample, plot_step_times, explore_horizon
 from .realtime import step_times, scaling, lever_bars
@@ -32,7 +32,7 @@ __all__ = [
     'plot_relu_bigm', 'bounds_looseness', 'plot_bounds_vs_samples', 'unstable_fixed_z', 'plot_unstable_fixed_z',
     'unstable_vs_box_size', 'plot_unstable_vs_box_size', 'static_architecture', 'error_slice', 'pso_swarm',
     'estimator_convergence', 'certification_progress', 'partition_slice', 'eps_sweep', 'violation_line',
-    'show_source', 'explore_architecture', 'clfcbf_phase_portrait', 'clfcbf_signals', 'clfcbf_figure3',
+    'show_source', 'explore_architecture', 'clfcbf_phase_portrait', 'clfcbf_signals', 'clfcbf_figure4',
     'exact_1d_plot', 'solve_time_plot', 'cbf_failure_plot', 'wall_runs_plot', 'plot_mpc_tracking',
     'plot_mpc_input', 'plot_horizon_sweep', 'plot_intersample', 'plot_step_times', 'explore_horizon',
     'step_times', 'scaling', 'lever_bars', 'FramePlayer', 'frame_player', 'input_sets_plot',

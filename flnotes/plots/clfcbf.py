@@ -9,7 +9,7 @@ from matplotlib.patches import Circle
 
 from .style import COLORS, bound_lines, new_axes
 
-__all__ = ["clfcbf_phase_portrait", "clfcbf_signals", "clfcbf_figure3", "exact_1d_plot", "solve_time_plot",
+__all__ = ["clfcbf_phase_portrait", "clfcbf_signals", "clfcbf_figure4", "exact_1d_plot", "solve_time_plot",
            "cbf_failure_plot", "wall_runs_plot"]
 
 _NAMED = {"lcost": COLORS["lcost"], "qcost": COLORS["qcost"], "k(z)": COLORS["nominal"], "nominal": COLORS["nominal"]}
@@ -95,7 +95,7 @@ def clfcbf_signals(logs: Mapping[str, Any], eps: float, axes=None, t_max: Option
     return ax_z.figure
 
 
-def clfcbf_figure3(logs: Mapping[str, Any], H: Any, eps: float, t_max: Optional[float] = None):
+def clfcbf_figure4(logs: Mapping[str, Any], H: Any, eps: float, t_max: Optional[float] = None):
     """The paper's Fig. 4 reproduced: phase portrait (left), states, ``v`` and ``u`` over time (right)."""
     fig = plt.figure(figsize=(10.5, 6.2))
     gs = fig.add_gridspec(3, 2, width_ratios=[1.0, 1.35])
