@@ -11,6 +11,8 @@
   hard-coded answers, a checks file next to the submission, copying the network
   instead of solving the MILP, killing the kernel, looping forever, a6's program
   replaced by fl.MPC's plan or stripped of the network constraint;
+* a5's grader accepts the reference controller under either hold (u held, as in
+  chapter 6, or v held, as in chapter 1);
 * the bundles are verified (a changed bundle is refused), answers are decoded strictly,
   the students' edition holds no instructor material and points at the students' repository.
 
@@ -506,6 +508,16 @@ def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
                "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
     report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[nominal]))
     assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
+
+
+def test_a5_either_hold_scores_full(built, tmp_path):
+    """Chapter 6 holds u, chapter 1 holds v: a5's grader accepts the reference controller under either hold."""
+    _, bundle, solution = built["a5_clf_cbf_wall"]
+    hold_v = ("def closed_loop(z0):\n"
+              "    log = fl.simulate(cart, ctrl, t_final=T_FINAL, ts=TS, z0=z0, net=net, hold='v')\n"
+              "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
+    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[hold_v]))
+    assert report.scores()["q2"][0] == report.scores()["q2"][1], report.table()
 
 
 A6_PINNED_TO_MPC = """
