@@ -275,7 +275,7 @@ def slope_in_v(net, z: Array, v: Array) -> Array:
 
 
 def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
-                              neurons: Optional[Sequence[int]] = None) -> tuple[Array, Array]:
+                              neurons: Optional[Sequence[int]] = None, solver: str = "HIGHS") -> tuple[Array, Array]:
     """The exact range of every pre-activation of one hidden layer over the box ``[lo, hi]`` (chapter 4).
 
     Minimizes and maximizes each pre-activation ``(W^k y^{k-1} + b^k)_j`` of hidden layer ``layer``
@@ -283,7 +283,9 @@ def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
     two mixed-integer programs per neuron, each solved to optimality with a zero relative and
     absolute gap (``mip_rel_gap = mip_abs_gap = 0``: the returned point's value equals HiGHS'
     dual bound, so the range is exact up to the solver's feasibility tolerances), an error otherwise.
-    ``neurons`` selects some neurons of the layer (all by default).
+    ``neurons`` selects some neurons of the layer (all by default). ``solver="SCIP"`` solves the same programs with
+    SCIP (its default gap limits are zero; a status other than optimal is an error): an independent check of the
+    HiGHS ranges.
 
     Returns
     -------
@@ -307,13 +309,21 @@ def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
         raise ValueError(f"neurons must be indices of the layer's {n_k} neurons, got {neurons}")
     c = cp.Parameter(n_k)
     prob = cp.Problem(cp.Maximize(c @ pre), enc.constraints + [x >= lo, x <= hi])
+    if solver not in ("HIGHS", "SCIP"):
+        raise ValueError(f"solver must be 'HIGHS' or 'SCIP', got {solver!r}")
     L, U = np.empty(len(neurons)), np.empty(len(neurons))
     for i, j in enumerate(neurons):
         for sign, out in ((1.0, U), (-1.0, L)):
             c.value = sign * np.eye(n_k)[j]
-            prob.solve(solver="HIGHS", mip_rel_gap=0.0, mip_abs_gap=0.0)
-            gap = prob.solver_stats.extra_stats.mip_gap
-            if prob.status != "optimal" or gap != 0:
-                raise RuntimeError(f"neuron {j}: HiGHS returned {prob.status!r} with gap {gap}, not a proved optimum")
+            if solver == "SCIP":
+                prob.solve(solver="SCIP")
+                if prob.status != "optimal":
+                    raise RuntimeError(f"neuron {j}: SCIP returned {prob.status!r}, not a proved optimum")
+            else:
+                prob.solve(solver="HIGHS", mip_rel_gap=0.0, mip_abs_gap=0.0)
+                gap = prob.solver_stats.extra_stats.mip_gap
+                if prob.status != "optimal" or gap != 0:
+                    raise RuntimeError(f"neuron {j}: HiGHS returned {prob.status!r} with gap {gap}, not a proved "
+                                       "optimum")
             out[i] = sign * prob.value
     return L, U
