@@ -828,3 +828,23 @@ def test_region_qp_and_the_repair_stop_when_asked(quad):
     assert np.array_equal(V_r.reshape(-1), np.asarray(V_q).reshape(-1)), "nothing repaired after stop"
     _, V_full = fb.qp_repair(mpc.pred, z, f, V_q)
     assert not np.array_equal(V_full.reshape(-1), np.asarray(V_q).reshape(-1)), "without stop the plan is repaired"
+
+
+def test_a_proven_infeasible_program_skips_the_repairs(quad, monkeypatch):
+    """When the step has proven the program infeasible, no repair can pass the check: the fallback goes straight to
+    an admissible first input (the repair of a whole plan is not tried), so that this path costs little time. The
+    same state without the flag tries the repairs first."""
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup)
+    f, _ = mpc.pred.linear(z, R)
+    calls = []
+    real_qp, real_rep = fb.qp_repair, fb.repair_plan
+    monkeypatch.setattr(fb, "qp_repair", lambda *a, **k: calls.append("qp") or real_qp(*a, **k))
+    monkeypatch.setattr(fb, "repair_plan", lambda *a, **k: calls.append(("plan", k.get("first", True))) or
+                        real_rep(*a, **k))
+    Z, V, what, ok = fb.fallback_plan(mpc.pred, z, None, f=f, infeasible=True)
+    assert "qp" not in calls and ("plan", True) not in calls, calls
+    assert ok and np.all(np.abs(mpc.net(np.r_[z, V[0]])) <= mpc.u_eps + BOUND_TOL), what
+    calls.clear()
+    fb.fallback_plan(mpc.pred, z, None, f=f)
+    assert "qp" in calls, "premise: without the flag the repairs are tried"

@@ -51,8 +51,9 @@ RESERVE_DECAY = 0.9
 FALLBACK_POST_SHARE = 0.1
 
 #: Seconds left after the fallback's deadline at least, whatever the limit: the checks after the repairs (the
-#: admissible first input, the plan's forward pass, the QP of its gap) take 1 to 3 ms on the systems of the benchmark.
-FALLBACK_POST_MIN_S = 0.004
+#: admissible first input, the plan's forward pass, the QP of its gap) take 1 to 3 ms on the systems of the benchmark,
+#: twice that while the engine's thread still runs after a cut-off.
+FALLBACK_POST_MIN_S = 0.006
 
 #: Seconds the cut-off leaves for the answer at least (:meth:`MPC._engine_solve`): the thread that answers waits for
 #: Python's interpreter lock up to one switch interval (5 ms by default) while the solve runs Python code, then
@@ -720,7 +721,7 @@ class MPC:
         c_fb = time.thread_time()
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,
                                                 qp_repair_failed=bool(step.info.get("repair_failed")),
-                                                deadline=deadline)
+                                                deadline=deadline, infeasible=step.status == "infeasible")
         self._fallback_s = max(self._fallback_s, time.thread_time() - c_fb)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)

@@ -170,7 +170,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
 
 def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]],
                   f: Optional[Array] = None, qp_repair_failed: bool = False,
-                  deadline: Optional[float] = None) -> tuple[Array, Array, str, bool]:
+                  deadline: Optional[float] = None, infeasible: bool = False) -> tuple[Array, Array, str, bool]:
     """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
 
     Safety first, in this order:
@@ -187,7 +187,9 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     4. when none exists, the least-violation input (``input_admissible=False``).
 
     ``qp_repair_failed``: the caller has already built the plan along the QP for this ``z`` and ``f`` and seen it
-    fail the check (the MPC engine's first incumbent), so it is not built again.
+    fail the check (the MPC engine's first incumbent), so it is not built again. ``infeasible``: the caller has
+    proven the program infeasible at ``z`` (e.g. its QP without the network has no point): no plan can pass the
+    check, so the repairs of 2. are skipped and step 3. starts at once.
 
     ``deadline`` (a :func:`time.perf_counter` value; ``None``: none) bounds the repairs of 2. and of the plan's rest in
     3.: none starts after it and each stops at it (a plan cut short is rejected by the check like any other). The
@@ -202,14 +204,15 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     if shifted is not None and pred.feasible(z, shifted[1]):
         return shifted[0], shifted[1], "the previous plan shifted by one step", True
     found = []
-    if shifted is not None and not _past(deadline):
+    # infeasible (proven by the caller): no plan satisfies the program, so no repair of 2. can pass the check
+    if shifted is not None and not infeasible and not _past(deadline):
         found.append((repair_plan(pred, z, shifted[1], deadline=deadline),
                       "the shifted previous plan repaired step by step"))
-    if f is not None and not qp_repair_failed and not _past(deadline):
+    if f is not None and not infeasible and not qp_repair_failed and not _past(deadline):
         found.append((qp_repair(pred, z, f, deadline=deadline),
                       "the plan built along the QP without the network, repaired step by step"))
     found = [(plan, what) for plan, what in found if pred.feasible(z, plan[1])]
-    if not found and not _past(deadline):
+    if not found and not infeasible and not _past(deadline):
         plan = repair_plan(pred, z, np.zeros((pred.N, pred.m)), deadline=deadline)
         if pred.feasible(z, plan[1]):
             found.append((plan, "zero inputs repaired step by step"))
