@@ -5,7 +5,8 @@ Timings on a shared machine move from run to run. A comparison of two settings i
 never from one run each:
 
 - :func:`spread`: the run-to-run spread ``max / min - 1`` of repeated runs of the same work;
-- :func:`against_spread`: the times of two settings within or beyond that spread;
+- :func:`against_spread`: the times of two settings within that spread, at its edge (up to twice it) or beyond
+  it (more than twice);
 - :func:`separation`: the values of repeated runs of two settings, ``"lower"`` / ``"higher"`` only when the two
   ranges do not overlap.
 
@@ -18,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["spread", "against_spread", "separation"]
+__all__ = ["spread", "against_spread", "separation", "VERDICTS"]
 
 
 def spread(times: Sequence[float]) -> float:
@@ -33,13 +34,26 @@ def spread(times: Sequence[float]) -> float:
     return float(t.max() / t.min() - 1.0)
 
 
+#: The three verdicts of :func:`against_spread`, in order of the difference they describe.
+VERDICTS = ("within the run-to-run spread", "at the edge of the run-to-run spread", "beyond the run-to-run spread")
+
+
 def against_spread(a: float, b: float, spread_: float) -> str:
     """A verdict on the times ``a`` and ``b`` of two settings against a run-to-run spread ``spread_`` of
-    :func:`spread`: ``"within the run-to-run spread"`` when ``max / min - 1 <= spread_`` (not a measured
-    difference on this machine), ``"beyond the run-to-run spread"`` otherwise."""
+    :func:`spread`, with ``d = max(a, b) / min(a, b) - 1``:
+
+    - ``"within the run-to-run spread"`` when ``d <= spread_``: not a measured difference on this machine;
+    - ``"at the edge of the run-to-run spread"`` when ``spread_ < d <= 2 spread_``: a spread estimated from a few
+      pairs of identical runs is itself rough, so a difference up to twice it is weak evidence;
+    - ``"beyond the run-to-run spread"`` when ``d > 2 spread_``.
+
+    The verdict is a phrase for prose that must read with each of the three (:data:`VERDICTS`), e.g. "the ratio is
+    {verdict}" or "1.6 s, {verdict} of the CPU time in all".
+    """
     if not (np.isfinite(spread_) and spread_ >= 0):
         raise ValueError(f"against_spread needs a spread >= 0, got {spread_}")
-    return "within the run-to-run spread" if spread((a, b)) <= spread_ else "beyond the run-to-run spread"
+    d = spread((a, b))
+    return VERDICTS[0] if d <= spread_ else VERDICTS[1] if d <= 2 * spread_ else VERDICTS[2]
 
 
 def separation(a: Sequence[float], b: Sequence[float]) -> str:

@@ -44,13 +44,14 @@ candidate of the proof).
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import solve_discrete_are
-from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+from scipy.optimize import Bounds, LinearConstraint, OptimizeWarning, linprog, milp
 
 from ._checks import as_batch, as_vector, weight_matrix
 from .bounds import fbbt
@@ -60,7 +61,8 @@ from .systems import FLSystem
 
 Array = np.ndarray
 
-__all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "NETWORK_MAX_BACKENDS", "TerminalSet", "terminal_set",
+__all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "NETWORK_MAX_BACKENDS", "HIGHS_TOLERANCES",
+           "SCIP_FEASTOL", "FEASIBILITY_TOLERANCE", "TerminalSet", "terminal_set",
            "shifted_plan", "RegionOfAttraction", "region_of_attraction"]
 
 
@@ -218,10 +220,38 @@ class NetworkMax:
     time_s: float
 
 
-#: The back-ends :func:`network_max` proves its bound with: ``"highs"`` (HiGHS through :func:`scipy.optimize.milp`,
-#: feasibility tolerance 1e-7) and ``"scip"`` (SCIP through :mod:`flnotes.solvers`, SCIP's defaults for a MILP with
-#: the feasibility tolerance ``numerics/feastol`` = 1e-9), two independent branch and bounds.
+#: The back-ends :func:`network_max` proves its bound with: ``"highs"`` (HiGHS through :func:`scipy.optimize.milp`)
+#: and ``"scip"`` (SCIP through :mod:`flnotes.solvers`), two independent branch and bounds, each run at the
+#: feasibility tolerances of :data:`FEASIBILITY_TOLERANCE`.
 NETWORK_MAX_BACKENDS = ("highs", "scip")
+
+#: HiGHS's tolerances for the MILPs of :func:`network_max`, set explicitly. HiGHS's defaults are looser:
+#: ``mip_feasibility_tolerance`` = 1e-6 (the rows and the integrality of a MIP's solutions) and
+#: ``primal_feasibility_tolerance`` = ``dual_feasibility_tolerance`` = 1e-7 (its LPs), and
+#: :func:`scipy.optimize.milp` sets none of them. A binary of the big-M encoding that is 1e-6 away from 0 or 1 lets a
+#: neuron's output move by 1e-6 times its big-M constant, so a certificate whose margin is a few 1e-6 would rest on
+#: that default. :func:`network_max` passes these values through :func:`scipy.optimize.milp`'s options and turns
+#: HiGHS refusing one into an error.
+HIGHS_TOLERANCES = dict(mip_feasibility_tolerance=1e-9, primal_feasibility_tolerance=1e-9,
+                        dual_feasibility_tolerance=1e-9)
+
+#: SCIP's feasibility tolerance ``numerics/feastol`` for the MILPs of :func:`network_max` (SCIP's default is 1e-6).
+SCIP_FEASTOL = 1e-9
+
+#: The feasibility tolerance each back-end of :func:`network_max` runs at: a certificate's margin below
+#: ``u_max^eps`` is read against it.
+FEASIBILITY_TOLERANCE = {"highs": HIGHS_TOLERANCES["mip_feasibility_tolerance"], "scip": SCIP_FEASTOL}
+
+
+def _highs_milp(c, integrality, bounds, constraints, options):
+    """:func:`scipy.optimize.milp` with :data:`HIGHS_TOLERANCES` added to ``options``. scipy passes these
+    options to HiGHS as they are, with a warning that is expected here; an option HiGHS refuses (a name or a value)
+    raises ``OptimizeWarning`` as an error, so a run never proceeds at a tolerance other than the stated one."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Unrecognized options detected", category=RuntimeWarning)
+        warnings.simplefilter("error", OptimizeWarning)
+        return milp(c, integrality=integrality, bounds=bounds, constraints=constraints,
+                    options={**options, **HIGHS_TOLERANCES})
 
 
 def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float = 1e-6,
@@ -233,8 +263,9 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
     of the polytope and of ``K z`` on it (LPs), so the encoding is exact on the
     polytope. Each MILP is solved by HiGHS (:func:`scipy.optimize.milp`) or SCIP
     (``backend``); its dual bound is a proof that no point of the polytope gives a
-    larger value, up to the solver's feasibility tolerance (1e-7 for HiGHS, 1e-9 for
-    SCIP) and its floating-point arithmetic: not an exact-arithmetic proof.
+    larger value, up to the solver's feasibility tolerance (:data:`FEASIBILITY_TOLERANCE`: 1e-9 for both, set
+    explicitly, :data:`HIGHS_TOLERANCES` and :data:`SCIP_FEASTOL`) and its floating-point arithmetic: not an
+    exact-arithmetic proof.
 
     Parameters
     ----------
@@ -299,7 +330,7 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
             c = np.zeros(N)
             c[form.out[i]] = -s  # both minimize: min -s y^K_i = -max s y^K_i
             if backend == "highs":
-                res = milp(c, integrality=form.integrality, bounds=Bounds(lb, ub), constraints=cons, options=opts)
+                res = _highs_milp(c, form.integrality, Bounds(lb, ub), cons, opts)
                 if res.status != 0 or res.x is None:
                     raise RuntimeError(f"the MILP max of {'+' if s > 0 else '-'}Phi_NN over the polytope was not "
                                        f"solved to optimality ({res.message}); no certificate")
@@ -319,14 +350,15 @@ def network_max(net: ReLUNet, K: Array, F: Array, g: Array, mip_rel_gap: float =
 
 def _scip_max(c: Array, cons: list, lb: Array, ub: Array, integrality: Array, gap: float,
               time_limit: Optional[float], s: float) -> tuple[float, Array]:
-    """``min c'w`` over the MILP's rows with SCIP (feasibility tolerance 1e-9): ``(-bound, w)``, a proof or an error."""
+    """``min c'w`` over the MILP's rows with SCIP (feasibility tolerance :data:`SCIP_FEASTOL`): ``(-bound, w)``, a
+    proof or an error."""
     from .solvers import MIQP, make_solver
 
     A = sp.vstack([sp.csr_matrix(k.A) for k in cons]).tocsr()
     rl = np.concatenate([np.broadcast_to(k.lb, (k.A.shape[0],)) for k in cons])
     ru = np.concatenate([np.broadcast_to(k.ub, (k.A.shape[0],)) for k in cons])
     prob = MIQP(H=None, c=c, c0=0.0, A=A, rl=rl, ru=ru, lb=lb, ub=ub, integrality=integrality)
-    res = make_solver(prob, "scip", feastol=1e-9).solve(time_limit=time_limit, gap=gap)
+    res = make_solver(prob, "scip", feastol=SCIP_FEASTOL).solve(time_limit=time_limit, gap=gap)
     if res.status != "optimal" or res.w is None:
         raise RuntimeError(f"SCIP did not prove the MILP max of {'+' if s > 0 else '-'}Phi_NN over the polytope "
                            f"({res.status}: {res.message}); no certificate")

@@ -158,3 +158,20 @@ def test_a_lever_table_can_run_its_default_twice():
     assert rt.repeat_pairs(rows) == [(rows[0], rows[-1])] and rt.repeat_pairs(rows[:-1]) == []
     with pytest.raises(ValueError, match="at least one"):
         rt.with_repeat({})
+
+
+@pytest.mark.parametrize("table, levers", [("daqp_lever_table", "DAQP_LEVERS"), ("level_lever_table", "LEVEL_LEVERS"),
+                                           ("lp_lever_table", "LP_LEVERS"), ("solver_lever_table", "SOLVER_LEVERS")])
+def test_every_lever_table_can_add_a_second_run_of_its_default(monkeypatch, table, levers):
+    """More pairs of identical runs for the run-to-run spread: each lever table of the report can run its default
+    once more, as its last row, interleaved with the others."""
+    from flnotes.bench import mpc as rt
+
+    seen = []
+    monkeypatch.setattr(rt, "interleaved_table", lambda setup, rec, idx, configs, time_limit=30.0: seen.append(configs)
+                        or [dict(config=k) for k in configs])
+    once = getattr(rt, table)(None, None, [], repeat=False)
+    twice = getattr(rt, table)(None, None, [], repeat=True)
+    assert len(twice) == len(once) + 1 == len(getattr(rt, levers)) + 1
+    assert rt.repeat_pairs(twice) == [(twice[0], twice[-1])] and rt.repeat_pairs(once) == []
+    assert seen[1][twice[-1]["config"]] == seen[1][twice[0]["config"]], "the repeat runs the default's options"

@@ -410,8 +410,17 @@ def test_spread_verdicts_and_counts_in_words():
 
     assert spread([0.6872, 0.7817]) == pytest.approx(0.7817 / 0.6872 - 1)
     assert against_spread(1.0, 1.1, 0.137) == "within the run-to-run spread"
-    assert against_spread(1.0, 1.2, 0.137) == "beyond the run-to-run spread"
-    assert against_spread(1.2, 1.0, 0.137) == "beyond the run-to-run spread"
+    assert against_spread(1.0, 1.137, 0.137) == "within the run-to-run spread"  # at the spread itself: within
+    # barely above the spread is not yet "beyond": up to twice the spread is its edge
+    assert against_spread(1.0, 1.2, 0.137) == "at the edge of the run-to-run spread"
+    assert against_spread(1.2, 1.0, 0.137) == "at the edge of the run-to-run spread"
+    assert against_spread(1.0, 1.274, 0.137) == "at the edge of the run-to-run spread"
+    assert against_spread(1.0, 1.28, 0.137) == "beyond the run-to-run spread"
+    assert against_spread(1.28, 1.0, 0.137) == "beyond the run-to-run spread"
+    assert against_spread(1.0, 1.0, 0.0) == "within the run-to-run spread"  # no spread: no edge either
+    assert against_spread(1.0, 1.001, 0.0) == "beyond the run-to-run spread"
+    from flnotes.repeats import VERDICTS
+    assert len(set(VERDICTS)) == 3 and all(v.endswith("the run-to-run spread") for v in VERDICTS)
     with pytest.raises(ValueError, match="at least two positive"):
         spread([1.0])
     with pytest.raises(ValueError, match="at least two positive"):

@@ -273,5 +273,52 @@ def test_lever_repeats_keeps_the_optimum_and_spans_the_repeats(run, quad):
         assert len(r["mean_ms_runs"]) == 2 and r["mean_ms_min"] == min(r["mean_ms_runs"]) <= r["mean_ms_max"]
         assert r["nodes_min"] == r["nodes_max"], "no time limit hit: the node counts repeat exactly"
         assert r["max_rel_diff"] < 1e-6 and "time_limit" not in r["statuses"]
+    # the order alternates: cold runs first in repeat 0, warm first in repeat 1
+    assert rows[0]["run_positions"].tolist() == [0, 1] and rows[1]["run_positions"].tolist() == [1, 0]
     with pytest.raises(ValueError, match="repeats"):
         fl.studies.lever_repeats(sysm, net, EPS, problems, configs, repeats=1, **settings)
+
+
+def test_lever_repeats_alternates_the_order_of_the_configurations(monkeypatch):
+    """No configuration always runs first: the order of every other repeat is reversed, and the rows keep the order
+    of the configurations whatever order they ran in."""
+    from flnotes.studies import mpc as study
+
+    ran = []
+
+    def fake_study(system, net, eps, problems, configs, order=None, **common):
+        order = list(configs) if order is None else list(order)
+        ran.append(order)
+        return [dict(configuration=k, mean_ms=10.0 * (1 + order.index(k)), nodes=1.0, max_rel_diff=0.0,
+                     statuses="optimal") for k in configs]
+
+    monkeypatch.setattr(study, "lever_study", fake_study)
+    rows = study.lever_repeats(None, None, 0.0, [], {"a": {}, "b": {}, "c": {}}, repeats=4)
+    assert ran == [["a", "b", "c"], ["c", "b", "a"], ["a", "b", "c"], ["c", "b", "a"]]
+    assert [r["configuration"] for r in rows] == ["a", "b", "c"]
+    assert rows[0]["run_positions"].tolist() == [0, 2, 0, 2] and rows[1]["run_positions"].tolist() == [1, 1, 1, 1]
+    assert rows[0]["mean_ms_runs"].tolist() == [10.0, 30.0, 10.0, 30.0]
+
+
+def test_lever_study_runs_in_the_order_given_and_reports_in_the_order_of_the_configurations(run, quad):
+    log, mpc, _ = run
+    sysm, net = quad
+    problems = recorded_problems(log, range(15, 17))
+    configs = {"cold": dict(warm_start=False), "warm": dict()}
+    settings = dict(horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], time_limit=30.0)
+    ahead = fl.studies.lever_study(sysm, net, EPS, problems, configs, **settings)
+    reverse = fl.studies.lever_study(sysm, net, EPS, problems, configs, order=["warm", "cold"], **settings)
+    assert [r["configuration"] for r in reverse] == ["cold", "warm"]
+    for a, b in zip(ahead, reverse):  # the same work, whatever the order; the costs are relative to "cold"
+        assert a["nodes"] == b["nodes"] and a["binaries"] == b["binaries"] and b["max_rel_diff"] < 1e-6
+    with pytest.raises(ValueError, match="each configuration once"):
+        fl.studies.lever_study(sysm, net, EPS, problems, configs, order=["warm"], **settings)
+
+
+def test_prediction_mismatch_per_component_of_z(run):
+    """With v held the sampled plant is the model: every component misses the prediction by the integration
+    tolerance only; per component, the largest of them is the scalar mismatch."""
+    log, mpc, _ = run
+    per = fl.studies.prediction_mismatch(log, mpc, per_component=True)
+    assert per.shape == (log.z.shape[1],)
+    assert per.max() == fl.studies.prediction_mismatch(log, mpc) < 1e-5

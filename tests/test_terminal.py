@@ -251,3 +251,28 @@ def test_network_max_refuses_unknown_backend(quad_terminal):
     system, net, eps, T = quad_terminal
     with pytest.raises(ValueError, match="backend must be one of"):
         term.network_max(net, T.K, T.F, T.psi * T.g, backend="cplex-ish")
+
+
+def test_network_max_runs_highs_at_its_stated_tolerances(quad_terminal, monkeypatch):
+    """The HiGHS tolerances are set, not HiGHS's defaults (1e-6 for a MIP's solutions): the MILP goes to HiGHS with
+    them, and a value HiGHS refuses stops the certificate instead of running at another tolerance."""
+    from scipy.optimize import OptimizeWarning
+
+    system, net, eps, T = quad_terminal
+    assert term.FEASIBILITY_TOLERANCE == {"highs": term.HIGHS_TOLERANCES["mip_feasibility_tolerance"],
+                                          "scip": term.SCIP_FEASTOL}
+    assert max(term.HIGHS_TOLERANCES.values()) <= 1e-9 and term.SCIP_FEASTOL <= 1e-9
+    seen = []
+    real = term.milp
+
+    def spy(*args, options=None, **kwargs):
+        seen.append(dict(options))
+        return real(*args, options=options, **kwargs)
+
+    monkeypatch.setattr(term, "milp", spy)
+    cert = term.network_max(net, T.K, T.F, T.psi * T.g)
+    assert seen and all(o[k] == v for o in seen for k, v in term.HIGHS_TOLERANCES.items())
+    assert np.allclose(cert.upper, T.certificate.upper, rtol=0, atol=1e-9)
+    monkeypatch.setattr(term, "HIGHS_TOLERANCES", dict(mip_feasibility_tolerance=-1.0))  # not a valid value
+    with pytest.raises(OptimizeWarning):
+        term.network_max(net, T.K, T.F, T.psi * T.g)

@@ -184,9 +184,11 @@ def lever_table(setup: dict, rec: dict, idx, ref_obj: np.ndarray, configs: Optio
 
 
 def paper_row() -> dict:
+    """The paper's MPC row of Table 2 as a row of :func:`lever_table`. The paper gives no state count and no median:
+    those cells are ``None`` (a table shows them as ``-``), not a number."""
     t = paper.TABLE2_MS[("Quad-1D", "MPC (N_p=10)")]
-    return dict(config="paper (CPLEX via YALMIP, Table 2)", backend="cplex", states=np.nan, ms_min=t["min"],
-                ms_median=np.nan, ms_max=t["max"], ms_mean=t["mean"], source="paper")
+    return dict(config="paper (CPLEX via YALMIP, Table 2)", backend="cplex", states=None, ms_min=t["min"],
+                ms_median=None, ms_max=t["max"], ms_mean=t["mean"], source="paper")
 
 
 # ----------------------------------------------------------------------------------- the DAQP levers
@@ -204,12 +206,13 @@ DAQP_LEVERS = {
 
 
 def daqp_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0,
-                     levers: Optional[dict] = None) -> list:
+                     levers: Optional[dict] = None, repeat: bool = False) -> list:
     """Per-lever effect of :data:`DAQP_LEVERS` (DAQP back-end options) on the recorded states ``idx``
-    (warm starts as recorded); see :func:`interleaved_table` for the columns."""
+    (warm starts as recorded); see :func:`interleaved_table` for the columns. ``repeat=True`` adds the default once
+    more as the last row (:func:`with_repeat`)."""
     levers = levers or DAQP_LEVERS
-    return interleaved_table(setup, rec, idx, {k: dict(solver_options={"daqp": dict(v)}) for k, v in levers.items()},
-                             time_limit)
+    configs = {k: dict(solver_options={"daqp": dict(v)}) for k, v in levers.items()}
+    return interleaved_table(setup, rec, idx, with_repeat(configs) if repeat else configs, time_limit)
 
 
 #: ``MPCOptions.lp`` compared on the recorded states of a longer horizon (:func:`lp_lever_table`); the default
@@ -279,11 +282,12 @@ LEVEL_LEVERS = {
 }
 
 
-def level_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0) -> list:
+def level_lever_table(setup: dict, rec: dict, idx, time_limit: Optional[float] = 30.0, repeat: bool = False) -> list:
     """The first level and the repaired incumbent (:data:`LEVEL_LEVERS`) on the states ``idx`` of ``rec`` (a
     recorded loop, warm-started as recorded, or :func:`cases_record` of diverse states, cold); see
-    :func:`interleaved_table` for the columns."""
-    return interleaved_table(setup, rec, idx, LEVEL_LEVERS, time_limit)
+    :func:`interleaved_table` for the columns. ``repeat=True`` adds the default once more as the last row
+    (:func:`with_repeat`)."""
+    return interleaved_table(setup, rec, idx, with_repeat(LEVEL_LEVERS) if repeat else LEVEL_LEVERS, time_limit)
 
 
 def cases_record(cases: list) -> dict:

@@ -44,6 +44,8 @@ def _slice_mask(term, roa, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None, mark=None, mark_label: str = "start"):
     """Initial states (a 2-D slice) from which the horizon program is feasible, without and with ``z(N_p) in Z_f``.
 
+    Only the second set, ``X_{N_p}``, is a region of attraction (with the terminal cost, by the stability theorem);
+    the first is a feasible set that the closed loop may leave, so the default title says "feasible sets".
     Each grid state is a cell: light grey feasible without the terminal constraint only, green feasible with it,
     white infeasible, a red cross undecided (time limit); the terminal set's slice is outlined.
 
@@ -67,7 +69,7 @@ def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None, mark=No
     cmap = ListedColormap(["white", "0.82", COLORS["nominal"]])
     ax.pcolormesh(x, y, level, cmap=cmap, vmin=-0.5, vmax=2.5, shading="nearest", zorder=1)
     handles = [Patch(color="0.82", label="feasible, no terminal set"),
-               Patch(color=COLORS["nominal"], label=r"feasible with $z(N_p) \in Z_f$")]
+               Patch(color=COLORS["nominal"], label=r"$X_{N_p}$: feasible with $z(N_p) \in Z_f$")]
     X, Y = np.meshgrid(x, y)
     bad = np.ma.getmaskarray(level)
     if bad.any():
@@ -86,7 +88,7 @@ def plot_region_of_attraction(roa, ax=None, title: Optional[str] = None, mark=No
         handles.append(ax.scatter([mk[roa.axes[0]]], [mk[roa.axes[1]]], marker="*", s=140, color="k", zorder=4,
                                   label=mark_label))
     ax.set(xlabel=f"$z_{roa.axes[0] + 1}$", ylabel=f"$z_{roa.axes[1] + 1}$",
-           title=title or rf"region of attraction, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
+           title=title or rf"feasible sets, $N_p = {roa.horizon}$, $t_s = {roa.ts:g}$ s")
     ax.legend(handles=handles, loc="upper right", fontsize=7.5, framealpha=0.9, frameon=True)
     return ax
 

@@ -183,10 +183,16 @@ def binaries_per_step(mpc: "MPC", z: Array, bounds: Sequence[str] = ("box", "hor
     return rows
 
 
-def prediction_mismatch(log, mpc: "MPC") -> float:
-    """``max_k |z_{k+1} - (A_d z_k + B_d v_k)|`` on the true plant: 0 when the plant is exactly linearized."""
+def prediction_mismatch(log, mpc: "MPC", per_component: bool = False):
+    """``max_k |z_{k+1} - (A_d z_k + B_d v_k)|`` on the true plant: 0 when the plant is exactly linearized.
+
+    The components of ``z`` carry different units (for the Quad-1D: m, m/s, m/s^2), so the largest over all of them
+    (the default, a float) is a norm without a unit; ``per_component=True`` returns the largest mismatch of each
+    component of ``z``, shape ``(n_z,)``, each in its own unit.
+    """
     pred = log.z[:-1] @ mpc.Ad.T + log.v @ mpc.Bd.T
-    return float(np.abs(pred - log.z[1:]).max())
+    miss = np.abs(pred - log.z[1:])
+    return miss.max(axis=0) if per_component else float(miss.max())
 
 
 def shifted_plans(log, mpc: "MPC") -> dict:
@@ -270,28 +276,37 @@ def compare_to_reference(mpc: "MPC", problems: Sequence[tuple[Array, Array]], **
 
 
 def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],
-                configs: Mapping[str, dict], **common) -> list[dict]:
+                configs: Mapping[str, dict], order: Optional[Sequence[str]] = None, **common) -> list[dict]:
     """Solve the same sequence of recorded problems with several :class:`MPC` configurations.
 
     The problems are solved in order by one controller per configuration, so
     a warm start sees the previous problem's plan (as in closed loop when the
     problems are consecutive); problems from ``recorded_problems(...,
-    with_plans=True)`` instead start from the plan recorded in closed loop. Returns one row per configuration with the
+    with_plans=True)`` instead start from the plan recorded in closed loop. The configurations run one after the
+    other, in the order of ``configs`` or in ``order`` (a permutation of its names). Returns one row per
+    configuration, in the order of ``configs`` whatever order they ran in, with the
     per-solve times (ms, array ``ms`` and statistics), the mean binaries left
     free, the mean nodes, and the largest relative difference of the optimal
-    cost from the first configuration (every lever is exact, so it must be ~0).
+    cost from the first configuration of ``configs`` (every lever is exact, so it must be ~0).
     """
-    rows, base = [], None
-    for label, kw in configs.items():
-        mpc = MPC(system, net, eps, **{**common, **kw})
+    names = list(configs)
+    run_order = names if order is None else list(order)
+    if sorted(run_order) != sorted(names):
+        raise ValueError(f"order must list each configuration once, got {run_order} for {names}")
+    results = {}
+    for label in run_order:
+        mpc = MPC(system, net, eps, **{**common, **configs[label]})
         steps = []
         for prob in problems:
             if len(prob) == 3:  # replay: the previous plan it had in closed loop
                 mpc.set_previous_plan(prob[2])
             steps.append(mpc(prob[0], prob[1]))
+        results[label] = steps
+    base = np.array([s.objective for s in results[names[0]]])
+    rows = []
+    for label in names:
+        steps = results[label]
         obj = np.array([s.objective for s in steps])
-        if base is None:
-            base = obj
         ms = np.array([s.solve_time for s in steps]) * 1e3
         rows.append(dict(configuration=label, mean_ms=float(ms.mean()), max_ms=float(ms.max()),
                          binaries=float(np.mean([s.n_binaries for s in steps])),
@@ -303,24 +318,31 @@ def lever_study(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Ar
 
 def lever_repeats(system: FLSystem, net: ReLUNet, eps, problems: Sequence[tuple[Array, Array]],
                   configs: Mapping[str, dict], repeats: int = 3, **common) -> list[dict]:
-    """:func:`lever_study` run ``repeats`` times, interleaved (every configuration once per repeat, in turn).
+    """:func:`lever_study` run ``repeats`` times, interleaved (every configuration once per repeat, in turn), the
+    order of the configurations alternating from repeat to repeat.
 
-    Repeating identical runs measures how far the mean time of one configuration moves from run to run on this
-    machine, next to the difference between configurations. Returns one row per configuration: the node counts
-    (the same in every repeat unless a time limit cut a solve), the mean time (ms) of every repeat
-    (``mean_ms_runs``) and their range, and the largest relative difference of the optimal cost from the first
+    Repeat 0 runs the configurations in the order of ``configs``, repeat 1 in the reverse order, repeat 2 as
+    repeat 0, and so on, so that no configuration always runs first (or last) on a machine whose speed drifts
+    during the study. Repeating identical runs measures how far the mean time of one configuration moves from run
+    to run on this machine, next to the difference between configurations. Returns one row per configuration, in
+    the order of ``configs``: the node counts (the same in every repeat unless a time limit cut a solve), the mean
+    time (ms) of every repeat (``mean_ms_runs``) and their range, the position in which it ran in each repeat
+    (``run_positions``, 0 = first), and the largest relative difference of the optimal cost from the first
     configuration over the repeats.
     """
     if int(repeats) != repeats or repeats < 2:
         raise ValueError(f"repeats must be an integer >= 2 (one run shows no spread), got {repeats!r}")
-    runs = [lever_study(system, net, eps, problems, configs, **common) for _ in range(int(repeats))]
+    names = list(configs)
+    orders = [names if i % 2 == 0 else names[::-1] for i in range(int(repeats))]
+    runs = [lever_study(system, net, eps, problems, configs, order=o, **common) for o in orders]
     rows = []
-    for j, label in enumerate(configs):
+    for j, label in enumerate(names):
         rs = [run[j] for run in runs]
         means = [r["mean_ms"] for r in rs]
         rows.append(dict(configuration=label, repeats=int(repeats), nodes_min=min(r["nodes"] for r in rs),
                          nodes_max=max(r["nodes"] for r in rs), mean_ms_min=min(means), mean_ms_max=max(means),
-                         mean_ms_runs=np.array(means), max_rel_diff=max(r["max_rel_diff"] for r in rs),
+                         mean_ms_runs=np.array(means), run_positions=np.array([o.index(label) for o in orders]),
+                         max_rel_diff=max(r["max_rel_diff"] for r in rs),
                          statuses=",".join(sorted({st for r in rs for st in r["statuses"].split(",")}))))
     return rows
 

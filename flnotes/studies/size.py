@@ -318,8 +318,9 @@ def size_numbers(rows: Sequence[dict]) -> dict:
     and none used more than ``t_s`` of CPU time) and ``p90_within`` (the 90th percentile of the CPU time per step
     at most ``t_s``). The verdicts rest on CPU time, not on the wall clock: on a shared machine a single step that
     waited for a core would otherwise decide them. Per system and ``N_p``: ``largest within t_s, <system>
-    N_p=<N>`` and ``largest p90 within t_s, <system> N_p=<N>``, the network with the most neurons that meets each
-    (``None`` when none does).
+    N_p=<N>`` and ``largest p90 within t_s, <system> N_p=<N>``, the largest network that meets each (``None`` when
+    none does): the most neurons, and among networks with as many neurons the most binaries on the domain box
+    (``binaries (box)``, the size of the program); networks tied on both are all named (``"30x2 and 20x3"``).
     """
     out: dict = {}
     for r in rows:
@@ -332,5 +333,20 @@ def size_numbers(rows: Sequence[dict]) -> dict:
             mine = [r for r in rows if r["system"] == s and r["N_p"] == N]
             for name, flag in (("largest within t_s", "within"), ("largest p90 within t_s", "p90_within")):
                 ok = [r for r in mine if out[f"{s} {r['network']} N_p={N}"][flag]]
-                out[f"{name}, {s} N_p={N}"] = max(ok, key=lambda r: r["hidden"])["network"] if ok else None
+                out[f"{name}, {s} N_p={N}"] = _largest(ok)
     return out
+
+
+def _size_key(r: dict) -> tuple:
+    """How :func:`size_numbers` orders networks by size: neurons, then the binaries of the program on the box."""
+    return (r["hidden"], r["binaries (box)"])
+
+
+def _largest(rows: Sequence[dict]) -> Optional[str]:
+    """The largest network of ``rows`` by :func:`_size_key`, or all of them that tie (``"a and b"``); ``None`` if
+    ``rows`` is empty."""
+    if not rows:
+        return None
+    top = max(_size_key(r) for r in rows)
+    names = [r["network"] for r in rows if _size_key(r) == top]
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
