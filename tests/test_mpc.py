@@ -261,12 +261,19 @@ def test_separation_names_a_direction_only_without_overlap():
         sep([], [1.0])
 
 
-def test_lever_repeats_keeps_the_optimum_and_spans_the_repeats(run, quad):
-    log, mpc, _ = run
+@pytest.fixture(scope="module")
+def lever_setup(run, quad):
+    """Two recorded problems of the loop, the cold and warm configurations and their common settings."""
+    log, _, _ = run
     sysm, net = quad
     problems = recorded_problems(log, range(15, 17))
     configs = {"cold": dict(warm_start=False), "warm": dict()}
     settings = dict(horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], time_limit=30.0)
+    return sysm, net, problems, configs, settings
+
+
+def test_lever_repeats_keeps_the_optimum_and_spans_the_repeats(lever_setup):
+    sysm, net, problems, configs, settings = lever_setup
     rows = fl.studies.lever_repeats(sysm, net, EPS, problems, configs, repeats=2, **settings)
     assert [r["configuration"] for r in rows] == ["cold", "warm"]
     for r in rows:
@@ -300,12 +307,8 @@ def test_lever_repeats_alternates_the_order_of_the_configurations(monkeypatch):
     assert rows[0]["mean_ms_runs"].tolist() == [10.0, 30.0, 10.0, 30.0]
 
 
-def test_lever_study_runs_in_the_order_given_and_reports_in_the_order_of_the_configurations(run, quad):
-    log, mpc, _ = run
-    sysm, net = quad
-    problems = recorded_problems(log, range(15, 17))
-    configs = {"cold": dict(warm_start=False), "warm": dict()}
-    settings = dict(horizon=S["horizon"], ts=S["ts"], Q=S["Q"], R=S["R"], time_limit=30.0)
+def test_lever_study_runs_in_the_order_given_and_reports_in_the_order_of_the_configurations(lever_setup):
+    sysm, net, problems, configs, settings = lever_setup
     ahead = fl.studies.lever_study(sysm, net, EPS, problems, configs, **settings)
     reverse = fl.studies.lever_study(sysm, net, EPS, problems, configs, order=["warm", "cold"], **settings)
     assert [r["configuration"] for r in reverse] == ["cold", "warm"]
