@@ -500,12 +500,17 @@ def test_cheat_estimates_instead_of_certificates(built, tmp_path):
     assert scores["q1"][0] == scores["q1"][1], "the honest part keeps its points"
 
 
+def _a5_closed_loop(controller: str, extra: str = "") -> str:
+    """A student's ``closed_loop`` cell for a5 that simulates ``controller`` (source text) with ``extra`` options."""
+    return ("def closed_loop(z0):\n"
+            f"    log = fl.simulate(cart, {controller}, t_final=T_FINAL, ts=TS, z0=z0{extra})\n"
+            "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
+
+
 def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
     """A controller that ignores the wall: its trajectory is the plant's, but not safe."""
     _, bundle, solution = built["a5_clf_cbf_wall"]
-    nominal = ("def closed_loop(z0):\n"
-               "    log = fl.simulate(cart, lambda z: np.array([-z[0] - z[1]]), t_final=T_FINAL, ts=TS, z0=z0)\n"
-               "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
+    nominal = _a5_closed_loop("lambda z: np.array([-z[0] - z[1]])")
     report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[nominal]))
     assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
 
@@ -513,9 +518,7 @@ def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
 def test_a5_either_hold_scores_full(built, tmp_path):
     """Chapter 6 holds u, chapter 1 holds v: a5's grader accepts the reference controller under either hold."""
     _, bundle, solution = built["a5_clf_cbf_wall"]
-    hold_v = ("def closed_loop(z0):\n"
-              "    log = fl.simulate(cart, ctrl, t_final=T_FINAL, ts=TS, z0=z0, net=net, hold='v')\n"
-              "    return dict(t=log.t, z=log.z, v=log.v, u=log.u)")
+    hold_v = _a5_closed_loop("ctrl", ", net=net, hold='v'")
     report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[hold_v]))
     assert report.scores()["q2"][0] == report.scores()["q2"][1], report.table()
 
