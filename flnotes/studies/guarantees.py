@@ -15,7 +15,9 @@
     whole hold (what the uniform worst case ``Delta`` does not say);
 ``guaranteed_loop``
     the MPC with the terminal ingredients built for ``u_max^{eps+Delta}`` on the true plant: the network bound
-    active or not at each step, and the true input checked densely along the exact flow between the samples.
+    active or not at each step, and the true input checked densely along the exact flow between the samples;
+``margin_study_numbers``
+    the figures and the clause on late steps that chapter 9 quotes from ``margin_study``.
 """
 from __future__ import annotations
 
