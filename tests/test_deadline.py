@@ -848,3 +848,39 @@ def test_a_proven_infeasible_program_skips_the_repairs(quad, monkeypatch):
     calls.clear()
     fb.fallback_plan(mpc.pred, z, None, f=f)
     assert "qp" in calls, "premise: without the flag the repairs are tried"
+
+
+def test_late_and_cut_clauses_fit_their_counts():
+    from flnotes.bench import deadline as dl
+
+    assert dl.late_clause(0, 0) == "none came after the sampling period"
+    assert dl.late_clause(3, 3) == "3 came after the sampling period, 3 of them late by their own CPU time"
+    assert dl.late_clause(3, 1) == ("3 came after the sampling period, 1 of them late by their own CPU time; the other 2 "
+                                    "waited for the machine: the process did not run for part of the step, which no time "
+                                    "limit inside the process can prevent")
+    assert dl.cut_clause(0) == ("No answer was given at the cut-off: every answer came from the engine itself, at a proof "
+                                "or at its own check of the time")
+    assert dl.cut_clause(1).startswith("1 answer was given at the cut-off while the engine's solve ran on; the others")
+    assert dl.cut_clause(2).startswith("2 answers were given at the cut-off")
+
+
+def test_deadline_clauses_every_branch():
+    from flnotes.bench import deadline as dl
+
+    dn = dict(over_t_s=0, over_t_s_cpu=0, cut_offs=0, loop_limit_hits=0, loop_steps=40, loop_gap_p50=0.0,
+              loop_gap_max=0.0, loop_opt_gap_over=0, loop_opt_gap_max=float("nan"), loops_limit_hits=0,
+              loops_opt_gap_over=0, loops_opt_gap_max=float("nan"))
+    out = dl.deadline_clauses(dn)
+    assert out == dict(late_clause=dl.late_clause(0, 0), loop_clause="none of the 40 closed-loop steps hit the limit",
+                       loops_clause="no step hit the limit, so no plan was returned there", cut_clause=dl.cut_clause(0))
+    dn.update(over_t_s=2, over_t_s_cpu=1, cut_offs=3, loop_limit_hits=5, loop_gap_p50=0.123, loop_gap_max=0.5,
+              loop_opt_gap_over=1, loops_limit_hits=9, loops_opt_gap_over=2)
+    out = dl.deadline_clauses(dn)  # limit hits, the distance to the optimum not known
+    assert out["late_clause"] == dl.late_clause(2, 1) and out["cut_clause"] == dl.cut_clause(3)
+    assert out["loop_clause"] == ("5 of the 40 closed-loop steps hit the limit; their recorded gaps have median 0.12 and "
+                                  "maximum 0.50, and 1 of those plans were more than 10⁻⁴ above the optimum")
+    assert out["loops_clause"] == "2 of the 9 plans returned at the limit were more than 10⁻⁴ above the optimum"
+    dn.update(loop_opt_gap_max=2.5e-3, loops_opt_gap_max=4e-3)
+    out = dl.deadline_clauses(dn)
+    assert out["loop_clause"].endswith("above the optimum (the farthest by 2.5e-03)")
+    assert out["loops_clause"].endswith("above the optimum, the farthest by 4.0e-03")

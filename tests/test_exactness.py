@@ -192,3 +192,20 @@ def test_time_limit_fallback_applies_an_admissible_input(quad):
         else:
             assert st.fallback and not st.input_admissible
     assert checked >= 1
+
+
+def test_objection_clause_names_what_took_longer_than_t_s():
+    from flnotes.bench.exactness import objection_clause
+
+    quiet = objection_clause(dict(cpu_over_ts=0, steps=60), dict(cold_ms_max=80.0), ts_ms=100.0)
+    assert quiet == dict(objection_clause="in this build even the report's longer horizon and the cold states drawn all "
+                                          "over the box stayed within the sampling period, which a slower machine can change")
+    loop = ("on the report's longer horizon, 2 of the 60 steps of the loop used more than the sampling period of CPU "
+            "time")
+    cold = "cold states drawn all over the box took up to 250 ms"
+    assert objection_clause(dict(cpu_over_ts=2, steps=60), dict(cold_ms_max=80.0), 100.0)["objection_clause"] == (
+        "not all of it: " + loop)
+    assert objection_clause(dict(cpu_over_ts=0, steps=60), dict(cold_ms_max=250.4), 100.0)["objection_clause"] == (
+        "not all of it: " + cold)
+    assert objection_clause(dict(cpu_over_ts=2, steps=60), dict(cold_ms_max=250.4), 100.0)["objection_clause"] == (
+        "not all of it: " + loop + ", and " + cold)

@@ -86,3 +86,20 @@ def test_terminal_sweep_reports_the_input_between_samples(msd_margin):
             log = runs[(2, r["ingredients"] == "P_f and Z_f", "true")]["log"]
             assert r["max_abs_u_between"] == pytest.approx(np.abs(log.u_fine).max())
             assert r["max_abs_u_between"] >= r["max_abs_u_samples"] - 1e-9
+
+
+def test_margin_study_numbers_names_the_late_runs():
+    def row(margin, max_ms):
+        return dict(margin=margin, max_abs_u_between=1.0, rms_x_error_second_half=0.1, mean_ms=5.0, max_ms=max_ms)
+
+    out = G.margin_study_numbers([row("eps", 20.0), row("eps+Delta", 30.0)], t_s=0.05)
+    assert (out["eps_max_ms"], out["eps_delta_max_ms"], out["eps_delta_mean_ms"]) == (20.0, 30.0, 5.0)
+    assert {k for k in out if k != "late"} == {f"{m}_{c}" for m in ("eps", "eps_delta") for c in (
+        "max_abs_u_between", "rms_x_error_second_half", "mean_ms", "max_ms")}
+    assert out["late"] == ("no step of either run took longer than the sampling interval here, which a slower or busier "
+                           "machine can change")
+    tail = " took longer than the sampling interval, and an answer later than the sampling interval is not a real-time controller"
+    late = G.margin_study_numbers([row("eps", 60.0), row("eps+Delta", 30.0)], t_s=0.05)["late"]
+    assert late == "the slowest step with ε" + tail
+    late = G.margin_study_numbers([row("eps", 60.0), row("eps+Delta", 70.0)], t_s=0.05)["late"]
+    assert late == "the slowest step with ε and with ε + Δ" + tail

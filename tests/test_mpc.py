@@ -325,3 +325,42 @@ def test_prediction_mismatch_per_component_of_z(run):
     per = fl.studies.prediction_mismatch(log, mpc, per_component=True)
     assert per.shape == (log.z.shape[1],)
     assert per.max() == fl.studies.prediction_mismatch(log, mpc) < 1e-5
+
+
+def test_repeat_numbers_words_each_separation():
+    from flnotes.studies import repeat_numbers
+    from flnotes.studies.mpc import WARM_EFFECT_WORDS
+
+    def rows(cold, warm):
+        return [dict(repeats=3, mean_ms_runs=np.array(cold), mean_ms_min=min(cold), mean_ms_max=max(cold)),
+                dict(repeats=3, mean_ms_runs=np.array(warm), mean_ms_min=min(warm), mean_ms_max=max(warm))]
+
+    out = repeat_numbers(rows([5.0, 6.0, 7.0], [1.0, 2.0, 3.0]))
+    assert (out["rep_n"], out["rep_orderings"], out["rep_one_in"]) == (3, 20, 10.0)
+    assert (out["rep_cold_min"], out["rep_cold_max"], out["rep_warm_min"], out["rep_warm_max"]) == (5.0, 7.0, 1.0, 3.0)
+    assert out["warm_effect"] == "every warm-started repeat was faster than every cold one"
+    assert repeat_numbers(rows([1.0, 2.0, 3.0], [5.0, 6.0, 7.0]))["warm_effect"] == (
+        "every warm-started repeat was slower than every cold one")
+    assert repeat_numbers(rows([1.0, 4.0, 3.0], [2.0, 6.0, 7.0]))["warm_effect"] == (
+        "the ranges overlap, so no time difference is shown")
+    assert set(WARM_EFFECT_WORDS) == {"lower", "higher", "overlapping"}
+    with pytest.raises(ValueError, match="two rows"):
+        repeat_numbers(rows([1.0, 2.0], [3.0, 4.0])[:1])
+
+
+def test_time_limit_numbers_says_whether_warm_start_fell_back_less():
+    from flnotes.studies import time_limit_numbers
+
+    def chk(fb, hits=7, steps=20):
+        return dict(fallback_steps=fb, time_limit_steps=hits, steps=steps)
+
+    g = dict(warm=dict(admissible_exists=19), cold=dict(admissible_exists=18))
+    out = time_limit_numbers(dict(warm=chk(2, 5), cold=chk(4, 6, 21)), g)
+    assert (out["tl_warm_exists"], out["tl_cold_exists"], out["tl_warm_hits"], out["tl_cold_hits"]) == (19, 18, 5, 6)
+    assert (out["tl_warm_fb"], out["tl_cold_fb"], out["tl_steps"]) == (2, 4, 20)
+    assert out["tl_clause"] == ("with a limit of 1 ms per step the loop fell back at 2 of its 20 steps with it and at 4 "
+                                "without it, counts that depend on the machine's speed")
+    for w, c in ((4, 4), (5, 0)):  # not fewer fallbacks with warm start: the value did not show
+        assert time_limit_numbers(dict(warm=chk(w), cold=chk(c)), g)["tl_clause"] == (
+            f"with a limit of 1 ms per step the loop fell back at {w} of its 20 steps with it and at {c} without it, so "
+            "that value did not show in this build, counts that depend on the machine's speed")

@@ -74,3 +74,24 @@ def test_gc_study_repeats_the_pair_interleaved():
                                                        (1, "as set up"), (1, "gc.freeze() after set-up")]
     with pytest.raises(ValueError, match="repeats"):
         realtime.gc_study(setup, t_final=0.2, repeats=0)
+
+
+def _gc_row(run, full, full_ms):
+    return dict(run=run, full=full, full_ms=full_ms)
+
+
+def test_gc_clauses_span_the_repeats_and_count_the_full_collections():
+    rows = [_gc_row("as set up", 0, 3.0), _gc_row("gc.freeze() after set-up", 0, 1.0),
+            _gc_row("as set up", 0, 5.0), _gc_row("gc.freeze() after set-up", 0, 2.0)]
+    out = realtime.gc_clauses(rows)
+    assert (out["plain_full_ms_min"], out["plain_full_ms_max"]) == (3.0, 5.0)
+    assert (out["frozen_full_ms_min"], out["frozen_full_ms_max"]) == (1.0, 2.0)
+    assert out["full_clause"] == ("no full collection fell due during the loops as set up (column full), so that cost "
+                                  "did not land in them; a longer run, or one that allocates more, can meet it")
+    rows[0]["full"] = 1
+    assert realtime.gc_clauses(rows)["full_clause"] == (
+        "1 full collection fell due during the loops as set up (column full), each a pause of that size between two "
+        "answers")
+    rows[2]["full"] = 2
+    rows[1]["full"] = 5  # the frozen loops do not count
+    assert realtime.gc_clauses(rows)["full_clause"].startswith("3 full collections fell due")

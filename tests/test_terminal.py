@@ -276,3 +276,17 @@ def test_network_max_runs_highs_at_its_stated_tolerances(quad_terminal, monkeypa
     monkeypatch.setattr(term, "HIGHS_TOLERANCES", dict(mip_feasibility_tolerance=-1.0))  # not a valid value
     with pytest.raises(OptimizeWarning):
         term.network_max(net, T.K, T.F, T.psi * T.g)
+
+
+def test_power_text_and_margin_numbers():
+    from flnotes.terminal import margin_numbers, power_text
+
+    assert (power_text(1e-9), power_text(1e-6), power_text(1e3), power_text(2.5e-7)) == ("10⁻⁹", "10⁻⁶", "10³", "2.5e-07")
+    out = margin_numbers(1e-4, dict(highs=1e-9, scip=1e-8), 1e-6)
+    assert out == dict(margin=1e-4, margin_tol=pytest.approx(1e4), margin_tol_default=pytest.approx(100.0))
+    out = margin_numbers(1e-3, dict(highs=1e-9), 1e-6, clause=True)
+    assert out["default_clause"] == "and 1,000 times HiGHS's default tolerance for a MIP's solutions (10⁻⁶)"
+    out = margin_numbers(5e-6, dict(highs=1e-9), 1e-6, clause=True)
+    assert out["default_clause"] == (
+        "but only 5.0 times HiGHS's default tolerance for a MIP's solutions (10⁻⁶): at the default, HiGHS's certificate "
+        "would sit within a few tolerances of failing, which is why the package sets the tolerances itself")

@@ -145,3 +145,23 @@ def test_late_steps_names_each_answer_after_ts_and_where_its_time_went():
     text = U.late_steps(h, [0.01, 0.06, 0.07], [0.01, 0.03, 0.069], ts=0.05)
     assert text.startswith("step 1: 60.0 ms wall, 30.0 ms CPU (4.0 ms of the controller's threads until the answer), "
                            "engine 45.0 ms, ")
+
+
+def test_bang_bang_numbers_sums_and_words_the_verdict():
+    def row(found, failed, search_ms, t_s_ms):
+        r = {key: 1 for key in U.BANG_BANG_COUNTS}
+        r.update(one_switch_found=found, repair_failed=failed, plans_with=5, plans_without=3, search_ms_max=search_ms,
+                 t_s_ms=t_s_ms, wall_max_over_ts_with=0.5 * search_ms)
+        return r
+
+    out = U.bang_bang_numbers([row(2, 4, 10.0, 100.0), row(1, 3, 30.0, 200.0)])
+    assert (out["states"], out["one_switch_found"], out["repair_failed"], out["net"]) == (2, 3, 7, 4)
+    assert (out["search_ms"], out["search_share"], out["wall_max_with"]) == (30.0, 0.15, 15.0)
+    assert out["verdict"] == ("where the repair fails, the one-switch plans gave a cold step a first incumbent at 3 of "
+                              "those 7 states, one it had no other way to get (a count that does not depend on the "
+                              "machine), for a search of at most 15% of the sampling period; that is why the default "
+                              "keeps the lever on")
+    out = U.bang_bang_numbers([row(0, 4, 10.0, 100.0), row(0, 0, 2.0, 100.0)])
+    assert out["verdict"] == ("on these states the lever found no incumbent at the 4 states where the repair failed, so "
+                              "it is not shown to pay here; its search took at most 10% of the sampling period")
+    assert all(isinstance(out[k], int) for k in U.BANG_BANG_COUNTS)

@@ -621,3 +621,83 @@ def budget_floor_notes(rows: Sequence[dict]) -> list[str]:
                    f"with one node (CPU median {r['cpu_median_over_ts']:.2f} t_s, max {r['cpu_max_over_ts']:.2f} t_s); "
                    f"{r['budget_hits']} stopped by the budget, {r['safety_net']} by the clock{rep}")
     return out
+
+
+def late_clause(late: int, late_cpu: int) -> str:
+    """The answers that came after the sampling period, in words that fit their counts.
+
+    Parameters
+    ----------
+    late
+        the answers after ``t_s`` by the wall clock.
+    late_cpu
+        of them, those late by their own CPU time.
+
+    Returns
+    -------
+    str
+        with no late answer, "none came after the sampling period"; else "N came after the sampling period, C of
+        them late by their own CPU time", followed, when some were late by the wall clock only (``C < N``), by "; the
+        other N - C waited for the machine: the process did not run for part of the step, which no time limit inside
+        the process can prevent".
+    """
+    from ..tables import counted
+
+    if late == 0:
+        return "none came after the sampling period"
+    out = f"{counted(late, 'came', 'came')} after the sampling period, {late_cpu} of them late by their own CPU time"
+    return out + ("" if late == late_cpu else f"; the other {late - late_cpu} waited for the machine: the process did "
+                  "not run for part of the step, which no time limit inside the process can prevent")
+
+
+def cut_clause(cut_offs: int) -> str:
+    """The answers given at the cut-off, in words that fit their count.
+
+    Returns
+    -------
+    str
+        with none, "No answer was given at the cut-off: every answer came from the engine itself, at a proof or at its
+        own check of the time"; else "1 answer was" / "N answers were" "given at the cut-off while the engine's solve
+        ran on; the others came from the engine itself, at a proof or at its own check of the time".
+    """
+    from ..tables import counted
+
+    if cut_offs == 0:
+        return ("No answer was given at the cut-off: every answer came from the engine itself, at a proof or at its own "
+                "check of the time")
+    return (f"{counted(cut_offs, 'answer was', 'answers were')} given at the cut-off while the engine's solve ran on; the "
+            "others came from the engine itself, at a proof or at its own check of the time")
+
+
+def deadline_clauses(numbers: dict) -> dict:
+    """The clauses the benchmark report words from :func:`deadline_numbers`.
+
+    Returns
+    -------
+    dict
+        ``late_clause``: :func:`late_clause` of the answers after ``t_s`` and of those late by their own CPU time.
+        ``loop_clause``: when the closed loop at the longest horizon hit the limit, "H of the S closed-loop steps hit
+        the limit; their recorded gaps have median ... and maximum ..., and K of those plans were more than 10⁻⁴
+        above the optimum", with " (the farthest by X)" when that distance is known (finite); else "none of the S
+        closed-loop steps hit the limit".
+        ``loops_clause``: over every horizon, when some step hit the limit, "K of the H plans returned at the limit
+        were more than 10⁻⁴ above the optimum", with ", the farthest by X" when known; else "no step hit the limit,
+        so no plan was returned there".
+        ``cut_clause``: :func:`cut_clause` of the answers given at the cut-off.
+    """
+    dn = numbers
+    if dn["loop_limit_hits"]:
+        loop_clause = (f"{dn['loop_limit_hits']} of the {dn['loop_steps']} closed-loop steps hit the limit; their recorded "
+                       f"gaps have median {dn['loop_gap_p50']:.2f} and maximum {dn['loop_gap_max']:.2f}, and "
+                       f"{dn['loop_opt_gap_over']} of those plans were more than 10⁻⁴ above the optimum"
+                       + (f" (the farthest by {dn['loop_opt_gap_max']:.1e})" if np.isfinite(dn["loop_opt_gap_max"]) else ""))
+    else:
+        loop_clause = f"none of the {dn['loop_steps']} closed-loop steps hit the limit"
+    if dn["loops_limit_hits"]:
+        loops_clause = (f"{dn['loops_opt_gap_over']} of the {dn['loops_limit_hits']} plans returned at the limit were "
+                        "more than 10⁻⁴ above the optimum"
+                        + (f", the farthest by {dn['loops_opt_gap_max']:.1e}" if np.isfinite(dn["loops_opt_gap_max"]) else ""))
+    else:
+        loops_clause = "no step hit the limit, so no plan was returned there"
+    return dict(late_clause=late_clause(dn["over_t_s"], dn["over_t_s_cpu"]), loop_clause=loop_clause,
+                loops_clause=loops_clause, cut_clause=cut_clause(dn["cut_offs"]))

@@ -373,3 +373,36 @@ def diverse_time_table(setup: dict, n: int, n_checked: int, seed: int = 2, time_
                                                                                   sm["max_ms"])
         out[f"{name}_ms_p99"] = sm["p99_ms"]
     return rows, out
+
+
+def objection_clause(horizon: dict, diverse: dict, ts_ms: float) -> dict:
+    """Whether a step still took longer than the sampling period in this build, as the benchmark report words it.
+
+    Parameters
+    ----------
+    horizon
+        the report's loop at its longest horizon: ``cpu_over_ts`` (steps that used more than ``t_s`` of CPU time)
+        and ``steps``.
+    diverse
+        the numbers of :func:`diverse_time_table` (``cold_ms_max``: the slowest cold step, ms).
+    ts_ms
+        the sampling period (ms).
+
+    Returns
+    -------
+    dict
+        ``objection_clause``: when neither the loop nor the cold states took longer than ``t_s``, "in this build
+        even the report's longer horizon and the cold states drawn all over the box stayed within the sampling
+        period, which a slower machine can change"; else "not all of it: " followed by the cases that did, joined by
+        ", and ": "on the report's longer horizon, K of the S steps of the loop used more than the sampling period of
+        CPU time" and/or "cold states drawn all over the box took up to M ms".
+    """
+    over = []
+    if horizon["cpu_over_ts"] > 0:
+        over.append(f"on the report's longer horizon, {horizon['cpu_over_ts']} of the {horizon['steps']} steps of the loop "
+                    "used more than the sampling period of CPU time")
+    if diverse["cold_ms_max"] > ts_ms:
+        over.append(f"cold states drawn all over the box took up to {diverse['cold_ms_max']:.0f} ms")
+    return dict(objection_clause="not all of it: " + ", and ".join(over) if over else
+                "in this build even the report's longer horizon and the cold states drawn all over the box stayed within "
+                "the sampling period, which a slower machine can change")

@@ -735,3 +735,209 @@ def backend_overheads(n_repeat: int = 20) -> list:
                              ms_min=st["min_ms"], cpu_ms_median=sc["median_ms"], cpu_ms_min=sc["min_ms"],
                              checked_by_other=int(other), calls=n_repeat))
     return rows
+
+
+def box_samples(pred, z, V0, n: int = 300, scale: float = 0.5, seed: int = 0) -> np.ndarray:
+    """Plans near ``V0`` in the boxes of the prediction model ``pred`` at the state ``z`` (the feasible set of the QP
+    without the network constraint): ``n`` draws ``V0 + N(0, scale^2 I)`` from ``np.random.default_rng(seed)``, of
+    which those with ``pred.feasible(z, V, network=False)`` are kept, in the order drawn (rows; possibly none)."""
+    V0 = np.asarray(V0, float).reshape(-1)
+    rng = np.random.default_rng(seed)
+    kept = []
+    for _ in range(int(n)):
+        V = V0 + rng.normal(scale=scale, size=V0.size)
+        if pred.feasible(z, V, network=False):
+            kept.append(V)
+    return np.array(kept).reshape(-1, V0.size)
+
+
+def slack_numbers(slack, grad, J_c: float) -> dict:
+    """The figures chapter 8's first exercise quotes on the slack of the level-set inequality (8.2).
+
+    Parameters
+    ----------
+    slack
+        ``J(v) - (J(v_c) + 0.5 (v - v_c)' H (v - v_c))`` at the sampled plans (at least one).
+    grad
+        ``grad J(v_c)``, the gradient of the cost at the QP's optimum ``v_c``.
+    J_c
+        ``J(v_c)``, which scales the test of a zero gradient.
+
+    Returns
+    -------
+    dict
+        ``ex1_slack_min`` (the smallest slack), ``ex1_grad`` (the norm of the gradient) and ``ex1_clause``: when the
+        norm exceeds ``1e-6 max(1, |J_c|)`` (a box constraint active at ``v_c``), "the QP's optimum sits on the
+        boundary of the boxes (the gradient there has norm G), and the smallest slack over the sampled plans is S";
+        otherwise "the QP's optimum lies inside the boxes (its gradient is zero), and the inequality holds with
+        equality".
+    """
+    slack = np.asarray(slack, float)
+    if slack.size == 0:
+        raise ValueError("slack_numbers needs the slack at one sampled plan at least")
+    g = float(np.linalg.norm(grad))
+    on_boundary = g > 1e-6 * max(1.0, abs(J_c))
+    clause = (f"the QP's optimum sits on the boundary of the boxes (the gradient there has norm {g:.3g}), and the "
+              f"smallest slack over the sampled plans is {slack.min():.3g}" if on_boundary else
+              "the QP's optimum lies inside the boxes (its gradient is zero), and the inequality holds with equality")
+    return dict(ex1_slack_min=float(slack.min()), ex1_grad=g, ex1_clause=clause)
+
+
+def screening_numbers(ms_on, ms_off, screened) -> dict:
+    """The medians chapter 8's second exercise quotes on replayed steps with and without screening, and its clause.
+
+    Parameters
+    ----------
+    ms_on, ms_off
+        the solve time (ms) of each replayed step with and without screening.
+    screened
+        for each step, whether the screening QP settled it in the recorded run.
+
+    Returns
+    -------
+    dict
+        ``scr_on`` (median with screening over the screened steps), ``not_on`` and ``not_off`` (medians with and
+        without screening over the steps not screened; each NaN when its group is empty) and ``clause``: when a
+        group is empty, "This selection of steps lacks one of the two groups, so there is no difference to read";
+        when ``|not_on - not_off| <= scr_on`` (what a screened step, the QP and forward pass, costs), "The
+        difference, D ms, is within what the QP and the forward pass cost, as the argument expects"; otherwise "The
+        difference, D ms, is larger than what the QP and the forward pass cost, so they do not explain it, ..." (no
+        cause found in the chapter, candidates named).
+    """
+    ms_on, ms_off, scr = np.asarray(ms_on, float), np.asarray(ms_off, float), np.asarray(screened, bool)
+    out = {key: float(np.median(ms[g])) if g.any() else float("nan")
+           for key, g, ms in (("scr_on", scr, ms_on), ("not_on", ~scr, ms_on), ("not_off", ~scr, ms_off))}
+    d, qp_cost = out["not_on"] - out["not_off"], out["scr_on"]  # with screening minus without; what the QP costs
+    if not (np.isfinite(d) and np.isfinite(qp_cost)):
+        out["clause"] = "This selection of steps lacks one of the two groups, so there is no difference to read"
+    elif abs(d) <= qp_cost:
+        out["clause"] = f"The difference, {d:+.2f} ms, is within what the QP and the forward pass cost, as the argument expects"
+    else:
+        out["clause"] = (f"The difference, {d:+.2f} ms, is larger than what the QP and the forward pass cost, so they do "
+                         "not explain it, and this chapter has not found its cause: one run of each on a shared machine "
+                         "does not separate it from the run-to-run variation of the timings, and a different incumbent "
+                         "or first level without screening is a candidate that is not checked here")
+    return out
+
+
+def cache_lever_clauses(rows: Sequence[dict]) -> dict:
+    """The sentence the benchmark report adds under :func:`cache_lever_table` for loops with no state to replay.
+
+    Returns
+    -------
+    dict
+        ``empty``: "" when every loop left a state to replay; for one loop ``S`` with none (``states == 0``),
+        " The loop of S is not in the table: the screening QP settled every one of its steps, so no state was left
+        to replay."; for several, " The loops of S1 and S2 are not in the table: the screening QP settled every one
+        of their steps, so no state was left to replay." (systems in the order of the rows, each once).
+    """
+    empty = list(dict.fromkeys(r["system"] for r in rows if r["states"] == 0))
+    names = " and ".join(empty)
+    if not empty:
+        return dict(empty="")
+    if len(empty) == 1:
+        return dict(empty=f" The loop of {names} is not in the table: the screening QP settled every one of its steps, "
+                          "so no state was left to replay.")
+    return dict(empty=f" The loops of {names} are not in the table: the screening QP settled every one of their steps, "
+                      "so no state was left to replay.")
+
+
+def lever_verdicts(compared: Sequence[tuple], spread_: dict) -> dict:
+    """Each setting against the default, on one time figure, judged against the run-to-run spread.
+
+    Parameters
+    ----------
+    compared
+        tuples ``(key, what, setting_row, default_row, column)``.
+    spread_
+        the run-to-run spread of each column (:func:`run_to_run_spread`).
+
+    Returns
+    -------
+    dict
+        ``key`` -> the verdict of :func:`flnotes.repeats.against_spread` on ``setting_row[column]`` against
+        ``default_row[column]``: one of :data:`flnotes.repeats.VERDICTS` (within, at the edge of, beyond the spread).
+    """
+    from ..repeats import against_spread
+
+    return {key: against_spread(x[col], y[col], spread_[col]) for key, _, x, y, col in compared}
+
+
+def lever_verdict_table(compared: Sequence[tuple], spread_: dict) -> list[dict]:
+    """The rows of the table behind :func:`lever_verdicts`: ``setting`` (``what``), ``figure`` (the column), the two
+    values, their ``ratio`` (setting over default), the ``spread`` of the column and the ``verdict``."""
+    from ..repeats import against_spread
+
+    return [dict(setting=what, figure=col, setting_value=x[col], default_value=y[col], ratio=x[col] / y[col],
+                 spread=spread_[col], verdict=against_spread(x[col], y[col], spread_[col]))
+            for _, what, x, y, col in compared]
+
+
+def lever_clauses(secant: tuple, daqp: tuple, repair: tuple, repair_cold: tuple, spread_: dict) -> dict:
+    """The clauses the benchmark report words from the lever tables, each a pair ``(setting_row, default_row)``.
+
+    Parameters
+    ----------
+    secant
+        the secant regularization off, and the default (on).
+    daqp
+        DAQP for every program, and the default.
+    repair, repair_cold
+        no repair, and the default, in the closed loop and on the cold states.
+    spread_
+        the run-to-run spread of each time column (:func:`run_to_run_spread`).
+
+    Returns
+    -------
+    dict
+        ``secant_clause`` on the CPU time in all: within the spread, "not a measured difference on this machine"; at
+        its edge, "weak evidence that the secant regularization shortens it" (or "lengthens", when the default is
+        slower than the setting); beyond it, "the secant regularization shortens it on this machine" (or
+        "lengthens").
+        ``auto_clause``: when neither the slowest step nor the CPU time in all of DAQP for every program differs
+        beyond the spread, "neither the slowest step nor the CPU time in all differs measurably, so on these steps
+        no measured gain in time supports sending the large programs to SCIP"; else "the slowest step ..., and the
+        CPU time in all ...", each "does not differ measurably" (within the spread) or "is shorter|longer with the
+        default" (", on weak evidence" at the edge of the spread).
+        ``repair_trade``: the loop's median step, slowest step and CPU time in all without → with the repair, each
+        "longer", "shorter" or "the same" with its verdict, and the CPU time in all on the cold states with its
+        verdict.
+    """
+    from ..repeats import VERDICTS, against_spread
+
+    within, edge, beyond = VERDICTS
+    verdict = lambda x, y, col: against_spread(x[col], y[col], spread_[col])  # noqa: E731 - setting x, default y
+
+    def reading(v, without, with_, what):  # a lever that changes the time from without to with_
+        d = "shortens" if with_ < without else "lengthens"
+        return {within: "not a measured difference on this machine", edge: f"weak evidence that {what} {d} it",
+                beyond: f"{what} {d} it on this machine"}[v]
+
+    def figure(what, v, alt, default):  # one figure of the default against an alternative
+        if v == within:
+            return f"{what} does not differ measurably"
+        return (f"{what} is {'shorter' if default < alt else 'longer'} with the default"
+                + (", on weak evidence" if v == edge else ""))
+
+    off, on = secant
+    out = dict(secant_clause=reading(verdict(off, on, "cpu_s_total"), off["cpu_s_total"], on["cpu_s_total"],
+                                     "the secant regularization"))
+    dq, df = daqp
+    v_max, v_tot = verdict(dq, df, "cpu_ms_max"), verdict(dq, df, "cpu_s_total")
+    if v_max == v_tot == within:
+        out["auto_clause"] = ("neither the slowest step nor the CPU time in all differs measurably, so on these steps no "
+                              "measured gain in time supports sending the large programs to SCIP")
+    else:
+        out["auto_clause"] = (figure("the slowest step", v_max, dq["cpu_ms_max"], df["cpu_ms_max"]) + ", and "
+                              + figure("the CPU time in all", v_tot, dq["cpu_s_total"], df["cpu_s_total"]))
+    (lo, ld), (co, cd) = repair, repair_cold
+    word = lambda a, b: "longer" if b > a else "shorter" if b < a else "the same"  # noqa: E731
+    out["repair_trade"] = (
+        f"with the repair, the loop's median step was {word(lo['cpu_ms_median'], ld['cpu_ms_median'])} "
+        f"({lo['cpu_ms_median']:.0f} → {ld['cpu_ms_median']:.0f} ms, {verdict(lo, ld, 'cpu_ms_median')} of median steps), "
+        f"its slowest step {word(lo['cpu_ms_max'], ld['cpu_ms_max'])} ({lo['cpu_ms_max']:.0f} → {ld['cpu_ms_max']:.0f} ms, "
+        f"{verdict(lo, ld, 'cpu_ms_max')} of slowest steps) and its CPU time in all "
+        f"{word(lo['cpu_s_total'], ld['cpu_s_total'])} ({lo['cpu_s_total']:.2f} → {ld['cpu_s_total']:.2f} s, "
+        f"{verdict(lo, ld, 'cpu_s_total')}); on the cold states the CPU time in all went {co['cpu_s_total']:.1f} → "
+        f"{cd['cpu_s_total']:.1f} s ({verdict(co, cd, 'cpu_s_total')})")
+    return out

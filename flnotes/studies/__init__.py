@@ -36,12 +36,13 @@ from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
                   input_guarantee, log_head,
                   horizon_sweep, lever_repeats, lever_study, prediction_mismatch, recorded_problems, run_closed_loop,
-                  shifted_plans,
-                  table2, tracking_error)
+                  repeat_numbers, shifted_plans,
+                  table2, time_limit_numbers, tracking_error)
 from .networks import (architecture_sweep, book_sweep, estimates_table, exact_preactivation_range, fresh_vs_shipped,
                        slope_in_v, table1_rows, width_experiment, write_sweep)
 
-__all__ = ["cheap_networks", "compare", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
+__all__ = ["repeat_numbers", "time_limit_numbers",
+           "cheap_networks", "compare", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
            "book_sweep", "estimates_table", "exact_preactivation_range", "slope_in_v",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",

@@ -15,7 +15,9 @@
     whole hold (what the uniform worst case ``Delta`` does not say);
 ``guaranteed_loop``
     the MPC with the terminal ingredients built for ``u_max^{eps+Delta}`` on the true plant: the network bound
-    active or not at each step, and the true input checked densely along the exact flow between the samples.
+    active or not at each step, and the true input checked densely along the exact flow between the samples;
+``margin_study_numbers``
+    the figures and the clause on late steps that chapter 9 quotes from ``margin_study``.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from ..terminal import TerminalSet
 Array = np.ndarray
 
 __all__ = ["nominal_loop", "plan_costs", "terminal_sweep", "fallback_table", "margin_study", "intersample_sample",
-           "guaranteed_loop"]
+           "guaranteed_loop", "margin_study_numbers"]
 
 
 def _stage_costs(Z: Array, V: Array, Q: Array, R: Array) -> Array:
@@ -345,3 +347,28 @@ def guaranteed_loop(system: FLSystem, net: ReLUNet, eps: float, delta: float, te
                final_norm_z=float(np.linalg.norm(log.z[-1])), mean_ms=float(1e3 * np.mean(log.solve_time)),
                max_ms=float(1e3 * np.max(log.solve_time)))
     return log, row
+
+
+def margin_study_numbers(rows: Sequence[dict], t_s: float) -> dict:
+    """The figures chapter 9 quotes from :func:`margin_study` run at one sampling time ``t_s`` (s).
+
+    Returns
+    -------
+    dict
+        ``{margin}_{column}`` for each row's margin (``eps``, ``eps_delta``: ``+`` as ``_``, lower case) and each of
+        ``max_abs_u_between``, ``rms_x_error_second_half``, ``mean_ms`` and ``max_ms``; ``late``: when no row's
+        slowest step took longer than ``t_s``, "no step of either run took longer than the sampling interval here,
+        which a slower or busier machine can change"; else "the slowest step with ε (and with ε + Δ) took longer
+        than the sampling interval, and an answer later than the sampling interval is not a real-time controller",
+        naming the runs that did.
+    """
+    q = {r["margin"]: r for r in rows}
+    out = {}
+    for m, r in q.items():
+        for col in ("max_abs_u_between", "rms_x_error_second_half", "mean_ms", "max_ms"):
+            out[f"{m.replace('+', '_').lower()}_{col}"] = r[col]
+    late = [{"eps": "with ε", "eps+Delta": "with ε + Δ"}[m] for m, r in q.items() if r["max_ms"] > 1e3 * t_s]
+    out["late"] = ("no step of either run took longer than the sampling interval here, which a slower or busier machine "
+                   "can change" if not late else f"the slowest step {' and '.join(late)} took longer than the sampling "
+                   "interval, and an answer later than the sampling interval is not a real-time controller")
+    return out

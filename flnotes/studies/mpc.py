@@ -18,7 +18,8 @@ Array = np.ndarray
 
 __all__ = ["active_fraction", "tracking_error", "closed_loop_checks", "table2", "run_closed_loop", "log_head", "horizon_sweep",
            "shifted_plans", "binaries_per_step", "prediction_mismatch", "recorded_problems", "hardest_steps",
-           "compare_to_reference", "lever_study", "lever_repeats", "input_guarantee"]
+           "compare_to_reference", "lever_study", "lever_repeats", "input_guarantee", "repeat_numbers",
+           "time_limit_numbers", "WARM_EFFECT_WORDS"]
 
 
 def active_fraction(log, u_eps, rel: float = 0.02) -> float:
@@ -373,3 +374,76 @@ def input_guarantee(log, mpc: MPC) -> dict:
     flagged = sum(getattr(s, "input_admissible", True) is False for s in log.steps[:n])
     return dict(steps=int(n), admissible_exists=int(exists.sum()), violations=int(np.sum(exists & ~within)),
                 flagged=int(flagged))
+
+
+#: How :func:`repeat_numbers` words the warm-started repeats against the cold ones (keyed by
+#: :func:`flnotes.repeats.separation`).
+WARM_EFFECT_WORDS = {"overlapping": "the ranges overlap, so no time difference is shown",
+                     "lower": "every warm-started repeat was faster than every cold one",
+                     "higher": "every warm-started repeat was slower than every cold one"}
+
+
+def repeat_numbers(rows: Sequence[dict]) -> dict:
+    """The figures chapter 7 quotes from :func:`lever_repeats` run on a cold and a warm-started configuration.
+
+    Parameters
+    ----------
+    rows
+        the two rows of :func:`lever_repeats`: the cold configuration first, the warm-started one second.
+
+    Returns
+    -------
+    dict
+        ``rep_n`` (repeats per configuration); ``rep_orderings`` (``comb(2 n, n)``: the equally likely orders of the
+        ``2 n`` mean times when the two configurations do not differ); ``rep_one_in`` (half of that: two of the
+        orders separate the ranges, one in each direction); ``warm_effect``, a clause: "the ranges overlap, so no
+        time difference is shown" when the ranges overlap, "every warm-started repeat was faster than every cold
+        one" when every warm time is below every cold one, "... slower ..." when every warm time is above
+        (:data:`WARM_EFFECT_WORDS`); ``rep_cold_min``, ``rep_cold_max``, ``rep_warm_min``, ``rep_warm_max`` (the
+        range of the mean times, ms).
+    """
+    import math
+
+    from ..repeats import separation
+
+    if len(rows) != 2:
+        raise ValueError(f"repeat_numbers needs two rows (cold, warm) of lever_repeats, got {len(rows)}")
+    n_rep = rows[0]["repeats"]
+    orderings = math.comb(2 * n_rep, n_rep)
+    out = dict(rep_n=n_rep, rep_orderings=orderings, rep_one_in=orderings / 2,
+               warm_effect=WARM_EFFECT_WORDS[separation(rows[0]["mean_ms_runs"], rows[1]["mean_ms_runs"])])
+    for key, r in (("cold", rows[0]), ("warm", rows[1])):
+        out[f"rep_{key}_min"], out[f"rep_{key}_max"] = r["mean_ms_min"], r["mean_ms_max"]
+    return out
+
+
+def time_limit_numbers(checks: Mapping[str, dict], guarantees: Mapping[str, dict]) -> dict:
+    """The figures chapter 7 quotes from two closed loops under a time limit of 1 ms, with and without warm start.
+
+    Parameters
+    ----------
+    checks
+        ``{"warm": ..., "cold": ...}``: :func:`closed_loop_checks` of each loop.
+    guarantees
+        the same keys: :func:`input_guarantee` of each loop.
+
+    Returns
+    -------
+    dict
+        ``tl_{key}_exists`` (steps where an admissible ``v`` existed), ``tl_{key}_hits`` (steps that hit the limit)
+        and ``tl_{key}_fb`` (fallback steps) for ``key`` in ``warm``, ``cold``; ``tl_steps`` (the steps of the warm
+        loop); ``tl_clause``: "with a limit of 1 ms per step the loop fell back at W of its N steps with it and at
+        C without it", followed by ", so that value did not show in this build" when the warm loop did not fall
+        back less often than the cold one (W >= C), and always ending ", counts that depend on the machine's speed".
+    """
+    out = {}
+    for key in ("warm", "cold"):
+        out[f"tl_{key}_exists"] = guarantees[key]["admissible_exists"]
+        out[f"tl_{key}_hits"] = checks[key]["time_limit_steps"]
+        out[f"tl_{key}_fb"] = checks[key]["fallback_steps"]
+    out["tl_steps"] = n = checks["warm"]["steps"]
+    w_fb, c_fb = checks["warm"]["fallback_steps"], checks["cold"]["fallback_steps"]
+    clause = f"with a limit of 1 ms per step the loop fell back at {w_fb} of its {n} steps with it and at {c_fb} without it"
+    clause += "" if w_fb < c_fb else ", so that value did not show in this build"
+    out["tl_clause"] = clause + ", counts that depend on the machine's speed"
+    return out

@@ -25,7 +25,7 @@ from ..simulate import simulate
 from ..solvers import BOUND_TOL
 from ..repeats import separation
 
-__all__ = ["periodic_schedule", "gc_loop_row", "gc_study", "gc_numbers", "EFFECT_WORDS"]
+__all__ = ["periodic_schedule", "gc_loop_row", "gc_study", "gc_numbers", "gc_clauses", "EFFECT_WORDS"]
 
 
 def periodic_schedule(step_s, pause_s, t_s: float) -> np.ndarray:
@@ -207,4 +207,34 @@ def gc_numbers(rows) -> dict:
     for key in ("limit_hits", "late_step", "late_periodic", "step_max_ms"):
         out[f"{key}_effect"] = EFFECT_WORDS[separation([r[key] for r in plain], [r[key] for r in frozen])]
     out["walked_ratio"] = frozen[0]["walked"] / max(plain[0]["walked"], 1)
+    return out
+
+
+def gc_clauses(rows) -> dict:
+    """The full collections of :func:`gc_study`'s loops, as chapter 8 quotes them.
+
+    Returns
+    -------
+    dict
+        ``plain_full_ms_min``, ``plain_full_ms_max``, ``frozen_full_ms_min``, ``frozen_full_ms_max``: the range over
+        the repeats of the full collection run at the end of each loop (ms; ``plain``: as set up, ``frozen``: after
+        the freeze); ``full_clause``: when no full collection fell due inside the loops as set up (column ``full``
+        summed over the repeats), "no full collection fell due during the loops as set up (column full), so that
+        cost did not land in them; a longer run, or one that allocates more, can meet it"; otherwise "N full
+        collection(s) fell due during the loops as set up (column full), each a pause of that size between two
+        answers".
+    """
+    from ..tables import counted
+
+    plain, frozen = rows[0::2], rows[1::2]
+    out = {}
+    for name, rs in (("plain", plain), ("frozen", frozen)):
+        out[f"{name}_full_ms_min"] = min(r["full_ms"] for r in rs)
+        out[f"{name}_full_ms_max"] = max(r["full_ms"] for r in rs)
+    n_full = sum(r["full"] for r in plain)
+    out["full_clause"] = (
+        "no full collection fell due during the loops as set up (column full), so that cost did not land in them; a "
+        "longer run, or one that allocates more, can meet it" if n_full == 0 else
+        f"{counted(n_full, 'full collection', 'full collections')} fell due during the loops as set up (column full), "
+        "each a pause of that size between two answers")
     return out
