@@ -396,3 +396,18 @@ def test_highs_alone_check_compares_one_highs_solve_with_the_exact_method(msd):
     assert r["states"] == 3 and r["wrong_value"] + r["wrong_status"] <= 3 and r["min_gap"] >= -1e-6
     with pytest.raises(ValueError, match="no mixed-integer QP"):
         fl.studies.highs_alone_check(ctrl.with_backend("scip", cost="quadratic"), Z)
+
+
+def test_braking_scan_finds_the_crossover_of_full_braking_near_the_segment_end():
+    """``braking_scan``: from z = [z1, 1] full braking keeps the MSD out of the disc at z1 = 0.5 and enters it from
+    the segment's end point 0.7; the crossover lies between the two fine points, and no constant input does better
+    than full braking from the first point lost."""
+    import flnotes as fl
+    from flnotes.studies import braking_scan
+
+    S = fl.paper.MSD_SETTING
+    msd, H = fl.msd(), fl.DistanceCBF(S["z_o"], S["r_o"])
+    bs = braking_scan(msd, H, 0.01, coarse=[0.5], fine=[0.68, 0.7], n_const=5)
+    assert bs["min_h"][0] > 0 and bs["min_h_fine"][0] > 0 > bs["min_h_fine"][1]
+    assert bs["i_cross"] == 1 and bs["z_safe"] == 0.68 and bs["z_lost"] == 0.7
+    assert bs["best_const"] == pytest.approx(bs["brake_at_lost"], abs=1e-9) and bs["best_const"] < 0

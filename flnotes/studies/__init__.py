@@ -30,7 +30,7 @@ that imports :mod:`flnotes.paper`.
     ``make reference``: every shipped network and table, rewritten on local workers or a Dask cluster.
 """
 from . import cheap_networks, compare, guarantees, multi, realtime, size, unseen
-from .clfcbf import (cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross_check_exact,
+from .clfcbf import (braking_scan, cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross_check_exact,
                      exponential_cbf_grid_check, highs_alone_check, largest_change_within_sample, paper_mean_ms,
                      sampled_clf_decrease, solve_time_table)
 from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compare_to_reference, hardest_steps,
@@ -41,7 +41,7 @@ from .mpc import (active_fraction, binaries_per_step, closed_loop_checks, compar
 from .networks import (architecture_sweep, book_sweep, estimates_table, exact_preactivation_range, fresh_vs_shipped,
                        slope_in_v, table1_rows, width_experiment, write_sweep)
 
-__all__ = ["repeat_numbers", "time_limit_numbers",
+__all__ = ["braking_scan", "repeat_numbers", "time_limit_numbers",
            "cheap_networks", "compare", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
            "book_sweep", "estimates_table", "exact_preactivation_range", "slope_in_v",
            "fresh_vs_shipped", "table1_rows",

@@ -18,7 +18,7 @@ MIP_BACKENDS = ("scip", "highs")
 
 __all__ = ["clf_cbf_checks", "chapter_eps", "cross_check_exact", "solve_time_table", "paper_mean_ms",
            "exponential_cbf_grid_check", "sampled_clf_decrease", "largest_change_within_sample",
-           "cbf_failure_set_bounded", "highs_alone_check"]
+           "cbf_failure_set_bounded", "highs_alone_check", "braking_scan"]
 
 
 def clf_cbf_checks(log: SimLog, H: Any = None) -> dict:
@@ -404,3 +404,39 @@ def highs_alone_check(controller: ClfCbfController, Z: Array, tol: float = 1e-6)
     return dict(states=int(len(Z)), wrong_value=int(np.sum(np.abs(gaps) > tol)), wrong_status=int(sum(pairs.values())),
                 status_pairs=pairs, min_gap=float(gaps.min()) if len(gaps) else np.nan,
                 worst_z=worst[0], worst_highs=worst[1], worst_exact=worst[2], worst_gap=worst[3])
+
+
+def braking_scan(system: FLSystem, H: Any, ts: float, z2: float = 1.0, coarse: Optional[Array] = None,
+                 fine: Optional[Array] = None, t_final: float = 1.0, n_const: int = 21) -> dict:
+    """Full braking ``u = -u_max`` from the states ``z = [z1, z2]`` of chapter 6's segment: the smallest ``H`` along
+    each run (true plant, ``u`` held, ``t_final`` seconds), on a ``coarse`` scan of ``z1`` and a ``fine`` one near the
+    segment's end, the crossover (the last ``z1`` of the fine scan that stays in ``H >= 0`` and the first that does
+    not), and, from that first ``z1``, the best smallest ``H`` over ``n_const`` constant inputs in
+    ``[-u_max, u_max]`` (the input enters as ``v = u - s(z2) - z1``, the MSD's linearizing input).
+
+    Returns ``min_h`` and ``min_h_fine`` (arrays), ``coarse``, ``fine``, ``i_cross`` (index of the first fine point
+    with ``H < 0``; 0 when none), ``z_safe``, ``z_lost``, ``best_const`` (the largest smallest-``H`` of the constant
+    inputs from ``z_lost``) and ``brake_at_lost`` (full braking's smallest ``H`` there).
+    """
+    from ..simulate import FeedbackLaw, simulate
+    from ..systems import stribeck
+
+    u_max = float(np.asarray(system.u_max).reshape(-1)[0])
+    coarse = np.arange(0.46, 0.695, 0.01) if coarse is None else np.asarray(coarse, float)
+    fine = np.round(np.arange(0.690, 0.70001, 5e-4), 4) if fine is None else np.asarray(fine, float)
+
+    def law(u: float) -> FeedbackLaw:
+        return FeedbackLaw(lambda z: np.array([u - stribeck(z[1]) - z[0]]), name=f"u = {u:g}")
+
+    def min_h(z1: float, u: float = -u_max) -> float:
+        log = simulate(system, law(u), t_final=t_final, ts=ts, z0=np.array([z1, z2]), hold="u")
+        return float(np.min(H(log.z_fine)))
+
+    mh = np.array([min_h(z1) for z1 in coarse])
+    mf = np.array([min_h(z1) for z1 in fine])
+    i_cross = int(np.argmax(mf < 0)) if np.any(mf < 0) else 0
+    z_lost = float(fine[i_cross])
+    best = max(min_h(z_lost, u) for u in np.linspace(-u_max, u_max, n_const))
+    return dict(coarse=coarse, fine=fine, min_h=mh, min_h_fine=mf, i_cross=i_cross,
+                z_safe=float(fine[i_cross - 1]) if i_cross > 0 else float("nan"), z_lost=z_lost,
+                best_const=float(best), brake_at_lost=float(mf[i_cross]))
