@@ -10,7 +10,8 @@
   (zero): patching otter, numpy or the grader from a cell, shadowing built-ins,
   hard-coded answers, a checks file next to the submission, copying the network
   instead of solving the MILP, killing the kernel, looping forever, a6's program
-  replaced by fl.MPC's plan or stripped of the network constraint;
+  replaced by fl.MPC's plan or stripped of the network constraint, a5's controller
+  replaced by a closed-form law without the network;
 * a5's grader accepts the reference controller under either hold (u held, as in
   chapter 6, or v held, as in chapter 1);
 * the bundles are verified (a changed bundle is refused), answers are decoded strictly,
@@ -512,6 +513,19 @@ def test_cheat_the_nominal_law_without_the_barrier(built, tmp_path):
     _, bundle, solution = built["a5_clf_cbf_wall"]
     nominal = _a5_closed_loop("lambda z: np.array([-z[0] - z[1]])")
     report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[nominal]))
+    assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
+
+
+def test_cheat_a_closed_form_law_without_the_network(built, tmp_path):
+    """A one-line law that brakes for the barrier in closed form, with no network and no eps in the loop.
+
+    Its trajectories are the plant's and stay in the safe set from the slow starts; the grader's start
+    where the braking needs nearly the whole input shows that it ignores the network constraint.
+    """
+    _, bundle, solution = built["a5_clf_cbf_wall"]
+    law = "lambda z: np.array([min(-z[0] - z[1], (4 * (0.4 - z[0] - 0.4 * z[1]) - z[1]) / 0.4)])"
+    closed_form = _a5_closed_loop(law, ", hold='u'")
+    report = _grade(bundle, _with_cells(solution, tmp_path / solution.name, before_end=[closed_form]))
     assert report.scores()["q2"][0] == 0 and report.scores()["q1"][0] == report.scores()["q1"][1], report.table()
 
 
