@@ -63,7 +63,7 @@ Array = np.ndarray
 
 __all__ = ["lqr", "max_admissible_set", "remove_redundant", "network_max", "NETWORK_MAX_BACKENDS", "HIGHS_TOLERANCES",
            "SCIP_FEASTOL", "FEASIBILITY_TOLERANCE", "TerminalSet", "terminal_set",
-           "shifted_plan", "RegionOfAttraction", "region_of_attraction", "power_text", "margin_numbers"]
+           "shifted_plan", "RegionOfAttraction", "region_of_attraction"]
 
 
 # ============================================================================ terminal cost
@@ -756,47 +756,3 @@ def _pair(Ad: Array, Bd: Array) -> tuple[Array, Array]:
     if Ad.shape != (n, n) or Bd.shape[0] != n:
         raise ValueError(f"Ad must be square and Bd must have as many rows: got Ad {Ad.shape}, Bd {Bd.shape}")
     return Ad, Bd
-
-
-
-
-def power_text(x: float) -> str:
-    """A tolerance as the book prints it: a power of ten as ``10⁻⁹`` (superscript exponent), any other value as
-    ``f"{x:.1e}"`` (e.g. ``"2.5e-07"``)."""
-    e = round(np.log10(x))
-    sup = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
-    return f"10{str(e).translate(sup)}" if np.isclose(x, 10.0 ** e) else f"{x:.1e}"
-
-
-def margin_numbers(margin: float, tolerances: dict, default: float, clause: bool = False) -> dict:
-    """A certificate's margin to ``u_max^eps`` in units of the solvers' feasibility tolerances (chapter 9).
-
-    Parameters
-    ----------
-    margin
-        ``u_max^eps`` minus the largest proven maximum of ``|Phi_NN|`` on the terminal set.
-    tolerances
-        the tolerances the solvers run at (:data:`FEASIBILITY_TOLERANCE`); the loosest counts.
-    default
-        HiGHS's default feasibility tolerance for a MIP's solutions.
-    clause
-        add ``default_clause``.
-
-    Returns
-    -------
-    dict
-        ``margin``; ``margin_tol`` (over the loosest tolerance); ``margin_tol_default`` (over ``default``); with
-        ``clause``, ``default_clause``: when the margin is less than 10 times ``default``, "but only R times HiGHS's
-        default tolerance for a MIP's solutions (D): at the default, HiGHS's certificate would sit within a few
-        tolerances of failing, which is why the package sets the tolerances itself"; else "and R times HiGHS's
-        default tolerance for a MIP's solutions (D)" (``D`` by :func:`power_text`).
-    """
-    ratio = margin / default
-    out = dict(margin=margin, margin_tol=margin / max(tolerances.values()), margin_tol_default=ratio)
-    if clause:
-        out["default_clause"] = (
-            f"but only {ratio:.1f} times HiGHS's default tolerance for a MIP's solutions ({power_text(default)}): at "
-            "the default, HiGHS's certificate would sit within a few tolerances of failing, which is why the package "
-            "sets the tolerances itself" if ratio < 10 else
-            f"and {ratio:,.0f} times HiGHS's default tolerance for a MIP's solutions ({power_text(default)})")
-    return out

@@ -279,7 +279,7 @@ def test_network_max_runs_highs_at_its_stated_tolerances(quad_terminal, monkeypa
 
 
 def test_power_text_and_margin_numbers():
-    from flnotes.terminal import margin_numbers, power_text
+    from flnotes.studies.guarantees import margin_numbers, power_text
 
     assert (power_text(1e-9), power_text(1e-6), power_text(1e3), power_text(2.5e-7)) == ("10⁻⁹", "10⁻⁶", "10³", "2.5e-07")
     out = margin_numbers(1e-4, dict(highs=1e-9, scip=1e-8), 1e-6)
