@@ -631,7 +631,7 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
                   seeds: Optional[Union[Array, ErrorEstimate]] = None, n_samples: int = 10_000, seed: int = 0,
                   batch: int = 4096, initial_per_axis: int = 4, max_boxes: int = 20_000_000,
                   max_time: Optional[float] = None, keep_partition: bool = False, chunk: int = 1024,
-                  workers: Optional[int] = None, client=None, progress: bool = False) -> ErrorBracket:
+                  depth: int = 1, workers: Optional[int] = None, client=None, progress: bool = False) -> ErrorBracket:
     """A certified bracket ``lower <= max_Z |Phi_i - Phi_NN,i| <= upper`` (eq. epsilon_find), per output.
 
     Branch and bound over sub-boxes of ``Z = [lo, hi]``. For each box ``B`` an
@@ -721,6 +721,20 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         number), sent as one task per worker of consecutive chunks (an engine pays its round trip per
         task); more workers than chunks only help with a larger ``batch`` (a different schedule, the
         same soundness).
+    depth
+        Levels of bisection per chunk before a task returns (default 1: a task evaluates its chunk and
+        the caller prunes and chooses the next boxes). With ``depth = d > 1`` a task then prunes its
+        boxes against the larger of the round's lower bound and the best lower value found in the
+        task (the same sound test as the caller's), and bisects its open boxes of largest upper bound,
+        at most half its chunk per level, ``d - 1`` more times. Every dependent round then carries up to
+        ``d`` times the work for one round trip of the engine: on a Dask cluster, whose round trip costs
+        tens of milliseconds, ``depth=8`` is what makes 2 workers pay (``python -m flnotes.bench
+        parallel``); in one process it changes the time little. The bracket is as sound for every
+        ``depth`` and, for a given ``depth`` and ``chunk``, bit-identical on every engine; different
+        ``depth`` (or, with ``depth > 1``, ``chunk``) values give different, equally valid brackets
+        (another order of bisection), and the shipped brackets were certified with ``depth=1``.
+        ``max_boxes`` and ``max_time`` are checked between rounds, so a run may evaluate up to
+        ``2 batch depth`` boxes beyond ``max_boxes``.
     progress
         Show a :mod:`tqdm` bar of the boxes evaluated and the current bracket.
 
@@ -746,13 +760,16 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         raise ValueError("batch and initial_per_axis must be >= 1")
     if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
         raise ValueError(f"chunk must be an integer >= 1 (boxes per task), got {chunk!r}")
+    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 1:
+        raise ValueError(f"depth must be an integer >= 1 (levels of bisection per task), got {depth!r}")
     with using(workers, client) as executor:
         return _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch,
-                        initial_per_axis, max_boxes, max_time, keep_partition, int(chunk), executor, progress)
+                        initial_per_axis, max_boxes, max_time, keep_partition, int(chunk), int(depth), executor,
+                        progress)
 
 
 def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch, initial_per_axis,
-             max_boxes, max_time, keep_partition, chunk, executor, progress) -> ErrorBracket:
+             max_boxes, max_time, keep_partition, chunk, depth, executor, progress) -> ErrorBracket:
     """The body of :func:`certify_error` (arguments checked, executor open)."""
     f_enc, method = _interval_f(f, net, f_interval, lipschitz, fun)
     n, m = net.n_in, net.n_out
@@ -798,7 +815,7 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
 
             bar = tqdm(desc=f"certify output {i}" if m > 1 else "certify", unit="box")
         try:
-            rounds = _Rounds(ev, chunk, executor)
+            rounds = _Rounds(ev, chunk, executor, depth, rtol, atol, keep_partition)
             res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition,
                                     rounds, bar)
         finally:
@@ -813,9 +830,91 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
                         parts if keep_partition else None, hists, eval_s)
 
 
-def _boxes_task(ev: _Evaluator, chunks: list[tuple[Array, Array]]) -> list[tuple[Array, Array, Array, Array]]:
-    """One task of a round: :meth:`_Evaluator.boxes` on each of a few consecutive chunks of boxes, one call per chunk."""
-    return [ev.boxes(*box) for box in chunks]
+@dataclass
+class _Leaves:
+    """What a round (or one task of it) hands back: the open boxes, the best lower value and what was pruned."""
+
+    lo: Array
+    hi: Array
+    ub: Array
+    axis: Array
+    best: float                     # largest rigorous lower value found (-inf if none)
+    best_x: Optional[Array]         # its point
+    n_eval: int                     # boxes evaluated
+    pruned_max: float               # largest upper bound of the boxes pruned inside the task (-inf if none)
+    pruned: Optional[tuple]         # (lo, hi, ub) of those boxes, with keep_partition
+
+
+def _best_of(low: Array, pts: Array) -> tuple[float, Optional[Array]]:
+    if not len(low):
+        return -np.inf, None
+    j = int(low.argmax())                           # the first of equal values: the same on every machine
+    return float(low[j]), pts[j].copy()
+
+
+def _bisect(lo: Array, hi: Array, axis: Array) -> tuple[Array, Array]:
+    """Both halves of each box, cut at the middle of its ``axis``: the lower halves first, then the upper ones."""
+    rows = np.arange(len(lo))
+    cut = 0.5 * (lo[rows, axis] + hi[rows, axis])
+    clo, chi = np.vstack([lo, lo]), np.vstack([hi, hi])
+    chi[rows, axis] = cut
+    clo[len(lo) + rows, axis] = cut
+    return clo, chi
+
+
+def _subtree(ev: _Evaluator, depth: int, LB: float, rtol: float, atol: float, keep: bool, lo: Array,
+             hi: Array) -> _Leaves:
+    """Evaluate the boxes ``lo, hi``, then ``depth - 1`` more levels of best-first bisection among them.
+
+    Each further level prunes the boxes whose upper bound cannot beat ``max(LB, best lower value found
+    here)`` by more than the tolerance (the same test as the caller's, against a lower bound at least
+    as large: sound), then bisects at most ``ceil(len(lo) / 2)`` of the open boxes, those of largest upper
+    bound (a stable sort: ties in index order), so that each level evaluates at most ``len(lo)`` boxes.
+    The result depends on the boxes, ``LB`` and the options only, never on where it runs.
+    """
+    ub, low, pts, ax = ev.boxes(lo, hi)
+    best, best_x = _best_of(low, pts)
+    n_eval, pruned_max, kept = len(lo), -np.inf, []
+    cap = max(1, -(-len(lo) // 2))
+    for _ in range(depth - 1):
+        L = max(LB, best)
+        done = ub <= L + max(atol, rtol * L)
+        if done.any():
+            pruned_max = max(pruned_max, float(ub[done].max()))
+            if keep:
+                kept.append((lo[done], hi[done], ub[done]))
+            lo, hi, ub, ax = lo[~done], hi[~done], ub[~done], ax[~done]
+        if not len(ub):
+            break
+        order = np.argsort(-ub, kind="stable")
+        sel, rest = order[:cap], np.sort(order[cap:])
+        clo, chi = _bisect(lo[sel], hi[sel], ax[sel])
+        cub, clow, cpts, cax = ev.boxes(clo, chi)
+        n_eval += len(clo)
+        b, bx = _best_of(clow, cpts)
+        if b > best:
+            best, best_x = b, bx
+        lo, hi = np.vstack([lo[rest], clo]), np.vstack([hi[rest], chi])
+        ub, ax = np.concatenate([ub[rest], cub]), np.concatenate([ax[rest], cax])
+    pruned = tuple(np.concatenate([k[j] for k in kept]) for j in range(3)) if kept else None
+    return _Leaves(lo, hi, ub, ax, best, best_x, n_eval, pruned_max, pruned)
+
+
+def _boxes_task(ev: _Evaluator, opts: tuple, chunks: list[tuple[Array, Array]]) -> list[_Leaves]:
+    """One task of a round: :func:`_subtree` on each of a few consecutive chunks of boxes, one call per chunk."""
+    return [_subtree(ev, *opts, *box) for box in chunks]
+
+
+def _merge(out: list[_Leaves]) -> _Leaves:
+    """The leaves of a round's chunks in chunk order; the best lower value the first largest one."""
+    if len(out) == 1:
+        return out[0]
+    cat = [np.concatenate([getattr(o, a) for o in out]) for a in ("lo", "hi", "ub", "axis")]
+    k = int(np.argmax([o.best for o in out]))
+    kept = [o.pruned for o in out if o.pruned is not None]
+    pruned = tuple(np.concatenate([q[j] for q in kept]) for j in range(3)) if kept else None
+    return _Leaves(*cat, out[k].best, out[k].best_x, sum(o.n_eval for o in out),
+                   max(o.pruned_max for o in out), pruned)
 
 
 #: Fewest boxes a round is cut into tasks for: a round of fewer than ``2 MIN_CHUNK`` boxes is evaluated whole, in the
@@ -840,53 +939,57 @@ def chunk_sizes(n: int, chunk: int) -> list[int]:
 
 
 class _Rounds:
-    """Evaluates a round's boxes in fixed chunks (:func:`chunk_sizes`) through an executor, merged in chunk order."""
+    """Evaluates a round's boxes in fixed chunks (:func:`chunk_sizes`) through an executor, merged in chunk order.
 
-    def __init__(self, ev: _Evaluator, chunk: int, executor):
+    Each chunk is one :func:`_subtree` of ``depth`` levels against the lower bound at the start of the round.
+    """
+
+    def __init__(self, ev: _Evaluator, chunk: int, executor, depth: int, rtol: float, atol: float, keep: bool):
         self.ev, self.chunk, self.executor = ev, chunk, executor
-        self.fn = partial(_boxes_task, ev)
+        self.depth, self.rtol, self.atol, self.keep = depth, rtol, atol, keep
         self.seconds = 0.0          # wall time spent evaluating boxes (in tasks, as seen from here)
 
-    def __call__(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
+    def __call__(self, lo: Array, hi: Array, LB: float) -> _Leaves:
         t0 = time.perf_counter()
         try:
-            return self._evaluate(lo, hi)
+            return self._evaluate(lo, hi, LB)
         finally:
             self.seconds += time.perf_counter() - t0
 
-    def _evaluate(self, lo: Array, hi: Array) -> tuple[Array, Array, Array, Array]:
+    def _evaluate(self, lo: Array, hi: Array, LB: float) -> _Leaves:
         ends = np.cumsum([0] + chunk_sizes(len(lo), self.chunk))
         parts = [(lo[a:b], hi[a:b]) for a, b in zip(ends[:-1], ends[1:])]
+        opts = (self.depth, float(LB), self.rtol, self.atol, self.keep)
         if self.executor.engine == "serial" or len(parts) == 1:
             with one_blas_thread():                         # the same chunks, in this process, as on a worker
-                out = [self.ev.boxes(*p) for p in parts]
-        else:
-            # one task per worker, each evaluating its consecutive chunks one by one (the chunks, hence the bits, as
-            # in one process): an engine pays its round trip per task, and the chunks are of equal sizes
-            w = min(len(parts), self.executor.workers)
-            ends = [len(parts) * j // w for j in range(w + 1)]
-            out = [o for group in self.executor.map(self.fn, [parts[a:b] for a, b in zip(ends[:-1], ends[1:])])
-                   for o in group]
-        if len(out) == 1:
-            return out[0]
-        return tuple(np.concatenate([o[j] for o in out]) for j in range(4))
+                return _merge(_boxes_task(self.ev, opts, parts))
+        # one task per worker, each evaluating its consecutive chunks one by one (the chunks, hence the bits, as
+        # in one process): an engine pays its round trip per task, and the chunks are of equal sizes
+        w = min(len(parts), self.executor.workers)
+        ends = [len(parts) * j // w for j in range(w + 1)]
+        fn = partial(_boxes_task, self.ev, opts)
+        return _merge([o for group in self.executor.map(fn, [parts[a:b] for a, b in zip(ends[:-1], ends[1:])])
+                       for o in group])
 
 
 def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x: Array, rtol: float, atol: float,
                       batch: int, max_boxes: int, max_time: Optional[float], keep: bool, evaluate: Callable,
                       bar=None):
     t0 = time.perf_counter()
-    ub, low, pts, axis = evaluate(lo0, hi0)
-    n_eval = len(lo0)
-    olo, ohi, oub, oax = lo0, hi0, ub, axis
+    leaves = evaluate(lo0, hi0, LB)
+    n_eval = 0
     pruned_max = -np.inf
     kept_lo, kept_hi, kept_ub = [], [], []
     hist = []
     converged = False
     while True:
-        j = low.argmax() if len(low) else None
-        if j is not None and low[j] > LB:
-            LB, best_x = low[j], pts[j].copy()
+        olo, ohi, oub, oax = leaves.lo, leaves.hi, leaves.ub, leaves.axis
+        n_eval += leaves.n_eval
+        pruned_max = max(pruned_max, leaves.pruned_max)
+        if keep and leaves.pruned is not None:
+            kept_lo.append(leaves.pruned[0]), kept_hi.append(leaves.pruned[1]), kept_ub.append(leaves.pruned[2])
+        if leaves.best > LB:
+            LB, best_x = leaves.best, leaves.best_x
         thr = LB + max(atol, rtol * LB)
         done = oub <= thr
         if done.any():
@@ -912,16 +1015,11 @@ def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x:
             rest[sel] = False
         else:
             sel, rest = np.arange(len(oub)), np.zeros(len(oub), bool)
-        slo, shi, sax = olo[sel], ohi[sel], oax[sel]
-        rows = np.arange(len(sel))
-        cut = 0.5 * (slo[rows, sax] + shi[rows, sax])
-        clo, chi = np.vstack([slo, slo]), np.vstack([shi, shi])
-        chi[rows, sax] = cut
-        clo[len(sel) + rows, sax] = cut
-        ub, low, pts, ax = evaluate(clo, chi)
-        n_eval += len(clo)
-        olo, ohi = np.vstack([olo[rest], clo]), np.vstack([ohi[rest], chi])
-        oub, oax = np.concatenate([oub[rest], ub]), np.concatenate([oax[rest], ax])
+        clo, chi = _bisect(olo[sel], ohi[sel], oax[sel])
+        leaves = evaluate(clo, chi, LB)
+        leaves = _Leaves(np.vstack([olo[rest], leaves.lo]), np.vstack([ohi[rest], leaves.hi]),
+                         np.concatenate([oub[rest], leaves.ub]), np.concatenate([oax[rest], leaves.axis]),
+                         leaves.best, leaves.best_x, leaves.n_eval, leaves.pruned_max, leaves.pruned)
     upper = max(pruned_max, float(oub.max()) if len(oub) else -np.inf)
     part = None
     if keep:

@@ -174,7 +174,8 @@ def test_random_network_against_smooth_user_function():
 
 
 # --------------------------------------------------------------------------- a known answer
-def test_bracket_contains_exact_max_for_piecewise_linear_f():
+@pytest.mark.parametrize("depth", [1, 4])
+def test_bracket_contains_exact_max_for_piecewise_linear_f(depth):
     """1-D: f(x) = |x| - 0.5 |x - 0.3| and a one-hidden-layer net fitted to it. Both are piecewise linear, so
     |f - net| is maximal at a breakpoint of f (0, 0.3), of the net (-b_j / w_j) or an end of the interval."""
     def f(X):
@@ -189,18 +190,19 @@ def test_bracket_contains_exact_max_for_piecewise_linear_f():
     kinks = -b[W != 0] / W[W != 0]
     cand = np.concatenate([[-1.0, 1.0, 0.0, 0.3], kinks[(kinks >= -1) & (kinks <= 1)]])[:, None]
     exact = np.abs(f(cand) - net(cand)).max()
-    br = certify_error(f, net, lo, hi, f_interval=f_iv, rtol=1e-6)
+    br = certify_error(f, net, lo, hi, f_interval=f_iv, rtol=1e-6, depth=depth)
     assert br.lower[0] <= exact <= br.upper[0] + 1e-12
     assert br.width[0] <= 1e-6 * exact + 1e-12
     # the same with only a Lipschitz constant of f (|f'| <= 1 + 0.5)
-    lip = certify_error(f, net, lo, hi, lipschitz=1.5, rtol=1e-4)
+    lip = certify_error(f, net, lo, hi, lipschitz=1.5, rtol=1e-4, depth=depth)
     assert lip.method == "lipschitz" and lip.converged.all()
     assert lip.lower[0] <= exact <= lip.upper[0] + 1e-12
     assert pso_max_error(f, net, lo, hi).eps[0] <= exact + 1e-12
     assert grid_max_error(f, net, lo, hi, 2001).eps[0] <= exact + 1e-12
 
 
-def test_bracket_contains_known_bump_height_in_3d():
+@pytest.mark.parametrize("depth", [1, 4])
+def test_bracket_contains_known_bump_height_in_3d(depth):
     """f = net + a tent of height 0.3 centred at x0: the error |f - net| is the tent, whose max is exactly 0.3."""
     net = _random_net(3, (10, 10), 1, seed=8)
     x0, r = np.array([0.2, -0.4, 0.1]), 0.5
@@ -213,8 +215,43 @@ def test_bracket_contains_known_bump_height_in_3d():
         return iv.net_interval(net, X) + 0.3 * iv.relu(1.0 - d / r)
 
     lo, hi = -np.ones(3), np.ones(3)
-    br = certify_error(f, net, lo, hi, f_interval=f_iv, rtol=1e-3)
+    br = certify_error(f, net, lo, hi, f_interval=f_iv, rtol=1e-3, depth=depth)
     assert br.lower[0] <= 0.3 <= br.upper[0] and br.upper[0] <= 0.3 * 1.001 + 1e-12
+
+
+@pytest.mark.parametrize("depth", [1, 3])
+def test_kept_partition_tiles_the_box_and_bounds_the_error_on_every_leaf(depth):
+    """The final sub-boxes (keep_partition) cover the box without overlap, each leaf's upper bound is at least the
+    error at points inside it, and the largest of them is the bracket's upper end; also when boxes are pruned
+    inside the tasks (depth > 1)."""
+    s = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    br = certify_error(s, net, rtol=0.05, batch=256, chunk=128, depth=depth, keep_partition=True)
+    part = br.partition[0]
+    lo, hi, ub = part["lo"], part["hi"], part["ub"]
+    assert br.converged[0] and len(ub) == len(lo) == len(hi) > 100
+    assert np.prod(hi - lo, axis=1).sum() == pytest.approx(np.prod(s.hi - s.lo), rel=1e-12)
+    assert ub.max() == br.upper[0]
+    rng = np.random.default_rng(1)
+    X = rng.uniform(s.lo, s.hi, (20_000, 3))
+    inside = np.all((X[:, None, :] >= lo[None]) & (X[:, None, :] <= hi[None]), axis=2)
+    assert inside.any(1).all()                                          # every point lies in a leaf
+    err = np.abs(s.phi_stacked(X) - net(X))[:, 0]
+    worst = np.where(inside, err[:, None], -np.inf).max(0)              # the largest sampled error in each leaf
+    assert np.all(worst <= ub + 1e-12)
+
+
+def test_deeper_tasks_give_a_sound_bracket_in_fewer_rounds():
+    s = fl.msd()
+    net, _ = fl.paper_net("MSD")
+    kw = dict(rtol=0.01, batch=512, chunk=256, n_samples=500)
+    flat, deep = certify_error(s, net, **kw), certify_error(s, net, **kw, depth=4)
+    assert flat.converged.all() and deep.converged.all()
+    assert len(deep.history[0]) < len(flat.history[0])                 # fewer dependent rounds
+    assert deep.lower[0] <= flat.upper[0] and flat.lower[0] <= deep.upper[0]   # the brackets overlap
+    assert deep.width[0] <= 0.01 * deep.lower[0] + 1e-15
+    dense = _dense_max(s.phi_stacked, net, s.lo, s.hi)
+    assert deep.upper[0] >= dense[0]
 
 
 # --------------------------------------------------------------------------- bad input
@@ -233,6 +270,9 @@ def test_bad_inputs_give_clear_errors():
         pso_max_error(lambda X: X.sum(), net, s.lo, s.hi)
     with pytest.raises(NotCertifiable, match="cannot certify"):
         certify_error(s.phi_stacked, net, s.lo, s.hi)
+    for bad in (0, 2.0, True):
+        with pytest.raises(ValueError, match="depth must be an integer >= 1"):
+            certify_error(s, net, depth=bad)
     with pytest.raises(NotCertifiable, match="flnotes.interval"):
         certify_error(s.phi_stacked, net, s.lo, s.hi, f_interval=lambda X: np.exp(X.lo[:, :1]))
 

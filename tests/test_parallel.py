@@ -88,6 +88,20 @@ def test_certified_bracket_is_bit_identical_on_every_engine(client):
         assert np.array_equal(br.history[0][:, :2], whole.history[0][:, :2]), label
 
 
+def test_deep_tasks_give_the_same_bracket_on_every_engine(client):
+    """depth > 1: each task bisects its chunk further before it returns; the chunks and what a task does with them
+    depend on the round, chunk and depth only, so the bracket is still bit-identical on every engine."""
+    sysm = paper.system("Quad-1D")
+    net, _ = paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.05, batch=1024, chunk=512, n_samples=500, depth=3)
+    one = certify_error(sysm, net, **kw)
+    assert one.converged.all() and len(one.history[0]) > 2            # premise: several rounds were run
+    for label, where in engines(client)[1:]:
+        br = certify_error(sysm, net, **kw, **where)
+        assert _same(br, one), label
+        assert np.array_equal(br.history[0][:, :2], one.history[0][:, :2]), label
+
+
 def test_certification_progress_bar_changes_nothing(capsys):
     sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
     kw = dict(rtol=0.05, batch=1024, chunk=512, n_samples=500)

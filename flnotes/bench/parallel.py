@@ -32,11 +32,13 @@ from ..parallel import Executor, measure_overhead
 from ..reference import load_reference
 
 WORKERS_MODEL = (1, 2, 8, 32, 128)
+#: Levels of bisection per task in the benchmark's deep schedule (``certify_error(depth=DEPTH)``), beside the default 1.
+DEPTH = 8
 
 
 def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: float,
                   workers: Sequence[int] = WORKERS_MODEL, batch: int = 4096, chunk: int = 1024,
-                  scale_batch: bool = False) -> list[dict]:
+                  scale_batch: bool = False, depth: int = 1) -> list[dict]:
     """Predicted wall time of a certification of ``n_boxes`` boxes on ``W`` workers.
 
     Each branch-and-bound round bisects ``batch`` boxes, i.e. evaluates ``2 batch`` boxes in
@@ -54,30 +56,37 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
     ``n_boxes (t_serial_box + overhead / chunk)``: the workers beyond
     ``W_half = t_box / (t_serial_box + overhead / chunk)`` cut less than the serial part they leave.
 
+    With ``depth = d > 1`` (``certify_error(depth=d)``) a task bisects its chunk ``d - 1`` more times before it
+    returns, so a round evaluates up to ``d`` times as many boxes for the same serial part and the same per-task
+    overhead: the model counts ``n_boxes / (2 batch d)`` rounds of ``d ceil(k / W) c t_box`` in the tasks, i.e.
+    ``t_serial_box`` and ``overhead`` divided by ``d`` per box (an upper estimate of the gain: pruning inside a
+    task leaves its last levels with fewer boxes, and the total number of boxes differs somewhat).
+
     Returns
     -------
     list of dict
         Per ``W``: ``workers``, ``batch``, ``chunks_per_round``, ``tasks_per_round``, ``rounds``, ``wall_s``, ``speedup``
         (against W = 1 with the given ``batch``), ``W_half``.
     """
-    if min(n_boxes, batch, chunk) < 1 or min(t_box, t_serial_box, overhead) < 0:
-        raise ValueError("n_boxes, batch, chunk must be >= 1 and the times >= 0")
+    if min(n_boxes, batch, chunk, depth) < 1 or min(t_box, t_serial_box, overhead) < 0:
+        raise ValueError("n_boxes, batch, chunk, depth must be >= 1 and the times >= 0")
 
     def wall(W: int, b: int) -> tuple[float, int, int]:
         sizes = chunk_sizes(2 * b, chunk)            # the tasks of a full round, as certify_error cuts it
         k = len(sizes)
-        rounds = n_boxes / (2 * b)                  # a fraction: the last round is a partial one
-        per_round = 2 * b * t_serial_box + math.ceil(k / W) * max(sizes) * t_box + (min(k, W) * overhead if W > 1 else 0.0)
+        rounds = n_boxes / (2 * b * depth)          # a fraction: the last round is a partial one
+        per_round = (2 * b * t_serial_box + depth * math.ceil(k / W) * max(sizes) * t_box
+                     + (min(k, W) * overhead if W > 1 else 0.0))
         return rounds * per_round, k, math.ceil(rounds)
 
     base, _, _ = wall(1, batch)
-    w_half = t_box / (t_serial_box + overhead / chunk) if (t_serial_box + overhead) > 0 else math.inf
+    w_half = t_box / ((t_serial_box + overhead / chunk) / depth) if (t_serial_box + overhead) > 0 else math.inf
     rows = []
     for W in workers:
         b = max(batch, math.ceil(W * chunk / 2)) if scale_batch else batch
         t, k, rounds = wall(int(W), b)
-        rows.append(dict(workers=int(W), batch=b, chunks_per_round=k, tasks_per_round=min(k, int(W)) if W > 1 else 0,
-                         rounds=rounds, wall_s=t, speedup=base / t,
+        rows.append(dict(workers=int(W), batch=b, depth=int(depth), chunks_per_round=k,
+                         tasks_per_round=min(k, int(W)) if W > 1 else 0, rounds=rounds, wall_s=t, speedup=base / t,
                          W_half=w_half))
     return rows
 
@@ -221,12 +230,27 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         cname, crtol = ("Quad-1D", 0.01) if fast else ("MSD", paper.EPS_SETTINGS["rtol"])
         sysm, (net, _) = paper.system(cname), paper.paper_net(cname)
         repeats = 1 if fast else 2
-        br = _side_by_side(engines, lambda ex: certify_error(sysm, net, rtol=crtol, client=ex), _same_bracket,
-                           repeats, rows, notes, lambda ref: f"certify eps of {cname} to rtol {crtol:g} "
-                                                             f"({int(ref.n_boxes.sum()):,} boxes)")
-        notes.append(_amdahl_note(br))
+        brs = {}
+        for depth in (1, DEPTH):
+            brs[depth] = _side_by_side(
+                engines, lambda ex, d=depth: certify_error(sysm, net, rtol=crtol, client=ex, depth=d), _same_bracket,
+                repeats, rows, notes, lambda ref, d=depth: f"certify eps of {cname} to rtol {crtol:g}, depth {d} "
+                                                  f"({int(ref.n_boxes.sum()):,} boxes, {len(ref.history[0])} rounds)")
+        base = next(r["wall_s"] for r in rows if r["job"].startswith("certify") and ", depth 1 " in r["job"])
+        for r in rows:
+            if r["job"].startswith("certify"):         # against the default schedule on 1 worker, too
+                r["vs_depth_1_on_1"] = base / r["wall_s"]
+        notes.append(_amdahl_note(brs[1]))
+        notes.append(f"depth {DEPTH} against depth 1 (certify_error(depth=...), each task bisects its chunk {DEPTH - 1} "
+                     f"more times): bracket [{brs[DEPTH].lower[0]:.8g}, {brs[DEPTH].upper[0]:.8g}] against "
+                     f"[{brs[1].lower[0]:.8g}, {brs[1].upper[0]:.8g}], {int(brs[DEPTH].n_boxes.sum()):,} boxes against "
+                     f"{int(brs[1].n_boxes.sum()):,}, {len(brs[DEPTH].history[0])} dependent rounds against "
+                     f"{len(brs[1].history[0])}: each round pays the engine's round trip once per busy worker. speedup "
+                     "is against the same depth on 1 worker, vs_depth_1_on_1 against the default depth 1 on 1 worker "
+                     "(deeper tasks evaluate their last levels in smaller batches, and the order of bisection "
+                     "changes the number of boxes)")
         # ---------------------------------------------------------------- Monte Carlo
-        n_sc, t_final = (2, 0.6) if fast else (4, 2.0)
+        n_sc, t_final = (2, 0.6) if fast else (8, 2.0)
         scenarios = C.draw_scenarios("MSD", n_sc, seed=0)
         _side_by_side(engines, lambda ex: C.monte_carlo(s, scenarios, t_final, client=ex), _same_rows, repeats,
                       rows, notes, lambda _: f"Monte Carlo MSD, {n_sc} scenarios x {len(C.METHODS)} methods, "
@@ -246,11 +270,12 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
                          f"evaluating (tasks) and {1e6 * pb['t_serial_box']:.1f} us serial, measured on "
                          f"{pb['boxes_measured']:,} boxes; the shipped certification took {pb['n_boxes_shipped']:,} boxes "
                          f"({pb['shipped_time_s']:.3g} s when it was written, on another machine or load)")
-            for scale in (False, True):
-                for r in scaling_model(pb["n_boxes_shipped"], pb["t_box"], pb["t_serial_box"], o, scale_batch=scale):
+            for scale, depth in ((False, 1), (True, 1), (False, DEPTH), (True, DEPTH)):
+                for r in scaling_model(pb["n_boxes_shipped"], pb["t_box"], pb["t_serial_box"], o, scale_batch=scale,
+                                       depth=depth):
                     rows.append(dict(job=f"model: certify {name} ({pb['n_boxes_shipped']:,} boxes)",
                                      engine=f"{r['workers']} worker{'s' if r['workers'] > 1 else ''}, batch {r['batch']}"
-                                            + (" (scaled)" if scale else " (fixed)"),
+                                            + (" (scaled)" if scale else " (fixed)") + f", depth {depth}",
                                      wall_s=r["wall_s"], speedup=r["speedup"], same_result=not scale,
                                      W_half=r["W_half"]))
     finally:
@@ -270,7 +295,8 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         "model: per round, 2 batch boxes of serial work, ceil(k/W) chunks of chunk = 1024 boxes one after the other "
         "on each worker, min(k, W) per-task overheads (the largest measured); fixed: batch 4096, k = 8 chunks, so no gain "
         "beyond 8 workers; scaled: batch = W chunk / 2. W_half = t_box / (t_serial_box + overhead / chunk): beyond "
-        "it the serial part and the scheduler's overhead dominate and more workers stop paying.",
+        "it the serial part and the scheduler's overhead dominate and more workers stop paying. Depth d: d levels of "
+        f"bisection per task, the serial part and the overhead per box divided by d (depth {DEPTH} rows).",
     ]
     return dict(title="Parallel runs: certification and Monte Carlo on 2 workers, scaling model", rows=rows,
                 notes=notes, figures=[])

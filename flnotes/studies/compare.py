@@ -508,12 +508,15 @@ TASK_WEIGHT = {"network": 8.0, "nmpc": 2.0, "previous": 1.0, "measured": 1.0, "s
 def task_cost(s: dict, sc: dict, t_final: float, variant) -> float:
     """A guess of the relative run time of one task of :func:`monte_carlo` (``variant`` on scenario ``sc``).
 
-    :data:`TASK_WEIGHT` of the method times the steps times ``N_p``, doubled for the MIQP when the reference needs
-    more input than ``u_max`` (``bound_active``: its binaries are then active). Used to start the longest tasks
-    first, so that the last ones to end are short; the results do not depend on it.
+    :data:`TASK_WEIGHT` of the method times the steps times ``N_p``, for the MIQP also times
+    ``1 + min(u_ref_max / u_max, 1)``: the closer the reference's input comes to the bound, the more of its binaries
+    are undecided, and a reference beyond the bound (``bound_active``) doubles it (on the benchmark's MSD
+    scenarios the longest loops were those whose reference came closest to the bound). Used to start the
+    longest tasks first, so that the last ones to end are short; the results do not depend on it.
     """
     var = _variant(variant)
-    w = TASK_WEIGHT[var.method] * (2.0 if var.method == "network" and sc["bound_active"] else 1.0)
+    near = min(float(sc["u_ref_max"]) / float(np.max(s["system"].u_max)), 1.0)
+    w = TASK_WEIGHT[var.method] * (1.0 + near if var.method == "network" else 1.0)
     return w * (t_final / s["ts"]) * s["horizon"]
 
 
