@@ -12,7 +12,7 @@ import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TypeVar
+from typing import Optional, TypeVar
 
 T = TypeVar("T")
 
@@ -130,6 +130,32 @@ def quick_thread_switch(interval: float = SWITCH_INTERVAL_S):
         yield
     finally:
         sys.setswitchinterval(was)
+
+
+#: Nice value given at the cut-off to the engine's thread of a time-limited :class:`flnotes.MPC` step (Linux).
+CUT_OFF_NICE = 10
+
+
+def yield_core(native_id: Optional[int], nice: int = CUT_OFF_NICE) -> bool:
+    """Lower the scheduling priority of one thread of this process to ``nice``; whether it was done.
+
+    At its cut-off a time-limited :class:`flnotes.MPC` step answers while its engine's solver call may still run
+    in C (DAQP, HiGHS, SCIP do not stop in mid-call). On a machine with fewer free cores than runnable threads the
+    answering thread then shares a core with it; at nice 10 the engine's thread gets about a tenth of that core
+    (Linux's CFS weights 1024 against 110) and the answer the rest. The thread ends after its call (each step
+    starts a new thread at this process's own priority), so nothing stays lowered. Linux only, where a thread
+    has its own nice value (``os.setpriority`` with its native id); elsewhere, for an unknown or ended thread, or
+    when the system refuses, nothing is changed and the answer is ``False``. The priority is only ever lowered.
+    """
+    if native_id is None or not sys.platform.startswith("linux") or not hasattr(os, "setpriority"):
+        return False
+    try:
+        if os.getpriority(os.PRIO_PROCESS, int(native_id)) >= nice:
+            return True
+        os.setpriority(os.PRIO_PROCESS, int(native_id), int(nice))
+    except OSError:                       # the thread has ended (ESRCH), or the system refused (EACCES, EPERM)
+        return False
+    return True
 
 
 @contextmanager

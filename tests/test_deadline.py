@@ -8,6 +8,9 @@ solver in a gate, so that what they check does not depend on thread timing eithe
 """
 import contextlib
 import os
+import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -520,6 +523,65 @@ def test_the_cpu_time_of_a_cut_off_step_counts_the_engine_thread(quad, monkeypat
     mpc.set_previous_plan(prev)
     again = mpc(z, R)
     assert not again.info["cut_off"] and again.info["engine_cpu_time"] <= again.info["cpu_time"], again.info
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
+def test_at_the_cut_off_the_engine_thread_yields_its_core_to_the_answer(quad, monkeypatch):
+    """At the cut-off the engine's thread, held in its solver call, is lowered to nice CUT_OFF_NICE (it shares a
+    core with the answer less); the answering thread keeps its priority, and the next step's engine thread starts
+    at the process's own priority again."""
+    from flnotes.config import CUT_OFF_NICE
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=2.0)
+    gate = Gate(monkeypatch)
+    mpc.set_previous_plan(prev)
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    s = mpc(z, R)
+    assert gate.entered.is_set() and s.info["cut_off"], "premise: the answer came while the held call waited"
+    tid = mpc._running[1]["tid"]
+    assert s.info["engine_yielded"] is True
+    assert os.getpriority(os.PRIO_PROCESS, tid) == max(own, CUT_OFF_NICE)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == own      # the answering thread's is kept
+    gate.release()
+    mpc.reset()
+    seen = {}
+    real = mpc.solver.solve
+
+    def spy(*a, **k):
+        seen["nice"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        return real(*a, **k)
+
+    monkeypatch.setattr(mpc.solver, "solve", spy)
+    mpc.set_previous_plan(prev)
+    again = mpc(z, R)
+    assert not again.info["cut_off"] and "engine_yielded" not in again.info
+    assert seen["nice"] == own                                                     # a new thread, not lowered
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
+def test_yield_core_lowers_one_thread_only_and_says_when_it_cannot():
+    from flnotes.config import yield_core
+
+    go, ids = threading.Event(), {}
+
+    def wait():
+        ids["tid"] = threading.get_native_id()
+        go.wait(30.0)
+
+    t = threading.Thread(target=wait)
+    t.start()
+    while "tid" not in ids:
+        time.sleep(0.001)
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert yield_core(ids["tid"], nice=max(own, 7)) is True
+    assert os.getpriority(os.PRIO_PROCESS, ids["tid"]) == max(own, 7)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == own
+    assert yield_core(ids["tid"], nice=max(own, 3)) is True                         # never raised back
+    assert os.getpriority(os.PRIO_PROCESS, ids["tid"]) == max(own, 7)
+    go.set()
+    t.join()
+    assert yield_core(None) is False
 
 
 def test_an_error_in_a_cut_off_solve_is_raised_at_the_next_step(quad, monkeypatch):

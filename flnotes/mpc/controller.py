@@ -17,7 +17,7 @@ import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import no_cyclic_gc, one_blas_thread, quick_thread_switch
+from ..config import no_cyclic_gc, one_blas_thread, quick_thread_switch, yield_core
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -615,12 +615,15 @@ class MPC:
         A solve that has not returned then is asked to stop (:meth:`NetworkEngine.stop`) and the step answers with
         what it has published (:meth:`NetworkEngine.answer_now`: its best plan that passed the forward-pass check
         and its lower bound, ``info["cut_off"]`` True). The solver calls release the GIL (DAQP, HiGHS, SCIP), so the
-        answer does not wait for a solver that overruns its own limit. The solve ends on its own (at its next check
+        answer does not wait for a solver that overruns its own limit; on Linux the engine's thread is then lowered to
+        nice :data:`flnotes.config.CUT_OFF_NICE` (:func:`flnotes.config.yield_core`, ``info["engine_yielded"]``), so
+        that where it shares a core with the answer the answer gets most of it. The solve ends on its own (at its next check
         of the time, or when its solver call returns) and the next step, or :meth:`reset`, waits for it first.
         """
         box: dict = {}
 
         def run() -> None:
+            box["tid"] = threading.get_native_id()
             c_s = time.thread_time()
             # the engine's own limit never runs past the cut-off, counted from when this thread starts (on a busy
             # machine a new thread can wait for a core): after the cut-off its thread would compete with the
@@ -643,6 +646,7 @@ class MPC:
         worker.join(max(cut - time.perf_counter(), 0.0))
         if worker.is_alive():
             self.solver.stop()
+            yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
             box["cut_off"] = True
             t_cut = time.perf_counter()
             engine_cpu = _thread_cpu(worker, box)
@@ -651,6 +655,7 @@ class MPC:
                 step.message = step.message.replace("time limit: cut off", "wall-clock safety net: cut off at the "
                                                     "time limit before the work limit", 1)
             step.info["cut_off_at"] = t_cut
+            step.info["engine_yielded"] = yielded
             step.info["engine_cpu_time"] = engine_cpu
             step.solve_time = time.perf_counter() - t0
             return step
