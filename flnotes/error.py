@@ -21,6 +21,7 @@ holds over the whole domain ``Z``. Two kinds of tools live here:
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
 import time
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ from ._checks import as_batch, check_box
 from .config import one_blas_thread
 from .interval import Interval, NotCertifiable
 from .network import ReLUNet, uniform_grid
-from .parallel import task_seeds, using
+from .parallel import load_checkpoint, save_checkpoint, task_key, task_seeds, using
 from .systems import FLSystem
 
 Array = np.ndarray
@@ -111,7 +112,8 @@ class ErrorBracket:
     converged
         Whether ``upper - lower`` reached the requested width, shape (m,).
     time_s
-        Wall-clock time per output, shape (m,).
+        Wall-clock time per output, shape (m,) (for a resumed run, with the time of the runs it resumed up to
+        their last saved state).
     rtol, atol
         Requested width: ``upper - lower <= max(atol, rtol * lower)``.
     method
@@ -631,7 +633,8 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
                   seeds: Optional[Union[Array, ErrorEstimate]] = None, n_samples: int = 10_000, seed: int = 0,
                   batch: int = 4096, initial_per_axis: int = 4, max_boxes: int = 20_000_000,
                   max_time: Optional[float] = None, keep_partition: bool = False, chunk: int = 1024,
-                  depth: int = 1, workers: Optional[int] = None, client=None, progress: bool = False) -> ErrorBracket:
+                  depth: int = 1, workers: Optional[int] = None, client=None, progress: bool = False,
+                  resume: bool = False, checkpoint_s: Optional[float] = None) -> ErrorBracket:
     """A certified bracket ``lower <= max_Z |Phi_i - Phi_NN,i| <= upper`` (eq. epsilon_find), per output.
 
     Branch and bound over sub-boxes of ``Z = [lo, hi]``. For each box ``B`` an
@@ -737,6 +740,17 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         ``2 batch depth`` boxes beyond ``max_boxes``.
     progress
         Show a :mod:`tqdm` bar of the boxes evaluated and the current bracket.
+    resume, checkpoint_s
+        With ``resume=True`` the run saves its state (open boxes, bounds, history) between rounds, at most every
+        ``checkpoint_s`` seconds (default :data:`CHECKPOINT_S`) and when it ends, in the package's cache folder
+        (``cache_dir()/tasks/certify``, one file per output), under a key made of everything its path depends on:
+        the box, the network's weights, ``Phi``'s values at the starting samples and its enclosure of the box, and
+        the options that shape the search (not ``max_boxes``, ``max_time``, ``workers`` or ``client``). The same
+        certification run again with ``resume=True`` starts from the last saved state: after an interruption (a
+        killed process, Ctrl-C) it does only the rounds that were not saved, and after a run stopped by
+        ``max_boxes`` or ``max_time`` a larger budget goes on from where it stopped. The rounds are deterministic,
+        so the bracket is bit-identical to an uninterrupted run's (tested). A damaged resume file, or one holding
+        another run's state, is refused with an error naming it; delete it to start afresh.
 
     Returns
     -------
@@ -762,14 +776,23 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         raise ValueError(f"chunk must be an integer >= 1 (boxes per task), got {chunk!r}")
     if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 1:
         raise ValueError(f"depth must be an integer >= 1 (levels of bisection per task), got {depth!r}")
+    if not isinstance(resume, bool):
+        raise ValueError(f"resume must be True or False, got {resume!r}")
+    if checkpoint_s is not None and not resume:
+        raise ValueError("checkpoint_s is how often a resumable run saves its state: it needs resume=True")
+    if checkpoint_s is None:
+        checkpoint_s = CHECKPOINT_S
+    if isinstance(checkpoint_s, bool) or not isinstance(checkpoint_s, (int, float)) or not checkpoint_s >= 0:
+        raise ValueError(f"checkpoint_s must be a number of seconds >= 0, got {checkpoint_s!r}")
     with using(workers, client) as executor:
         return _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch,
                         initial_per_axis, max_boxes, max_time, keep_partition, int(chunk), int(depth), executor,
-                        progress)
+                        progress, resume, checkpoint_s)
 
 
 def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch, initial_per_axis,
-             max_boxes, max_time, keep_partition, chunk, depth, executor, progress) -> ErrorBracket:
+             max_boxes, max_time, keep_partition, chunk, depth, executor, progress, resume,
+             checkpoint_s) -> ErrorBracket:
     """The body of :func:`certify_error` (arguments checked, executor open)."""
     f_enc, method = _interval_f(f, net, f_interval, lipschitz, fun)
     n, m = net.n_in, net.n_out
@@ -802,8 +825,13 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
     lower, upper, argmax = np.zeros(m), np.zeros(m), np.zeros((m, n))
     n_boxes, conv, times, eval_s = np.zeros(m, int), np.zeros(m, bool), np.zeros(m), np.zeros(m)
     parts, hists = [], []
+    key = None
+    if resume:      # everything the path of the branch and bound depends on, Phi through its values and enclosure
+        digest = [hashlib.sha1(np.ascontiguousarray(a, float).tobytes()).hexdigest()
+                  for a in (X0, Y0, whole.lo, whole.hi, *net.W, *net.b)]
+        key = task_key(_CHECKPOINT_FORMAT, digest, lo, hi, rtol, atol, batch, initial_per_axis, chunk, depth,
+                       keep_partition, method, None if lipschitz is None else np.asarray(lipschitz, float))
     for i in range(m):
-        t0 = time.perf_counter()
         ev = _Evaluator(f_enc, net, i, np.where(hi > lo, hi - lo, 1.0))
         top = np.argsort(E0[:, i])[::-1][:16]
         low0 = ev.point_lower(X0[top])
@@ -816,14 +844,13 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
             bar = tqdm(desc=f"certify output {i}" if m > 1 else "certify", unit="box")
         try:
             rounds = _Rounds(ev, chunk, executor, depth, rtol, atol, keep_partition)
+            cp = None if key is None else _Checkpoint(f"{key}-{i}", checkpoint_s)
             res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition,
-                                    rounds, bar)
+                                    rounds, bar, cp)
         finally:
             if bar is not None:
                 bar.close()
-        lower[i], upper[i], argmax[i], n_boxes[i], conv[i], part, hist = res
-        times[i] = time.perf_counter() - t0
-        eval_s[i] = rounds.seconds
+        lower[i], upper[i], argmax[i], n_boxes[i], conv[i], part, hist, times[i], eval_s[i] = res
         parts.append(part)
         hists.append(hist)
     return ErrorBracket(lower, upper, argmax, n_boxes, conv, times, rtol, atol, method,
@@ -917,6 +944,9 @@ def _merge(out: list[_Leaves]) -> _Leaves:
                    max(o.pruned_max for o in out), pruned)
 
 
+#: Seconds between two saves of a resumable certification's state (``certify_error(resume=True)``).
+CHECKPOINT_S = 30.0
+
 #: Fewest boxes a round is cut into tasks for: a round of fewer than ``2 MIN_CHUNK`` boxes is evaluated whole, in the
 #: caller's process (a task of fewer boxes would cost the engine's overhead more than it saves).
 MIN_CHUNK = 128
@@ -972,42 +1002,76 @@ class _Rounds:
                        for o in group])
 
 
+class _Checkpoint:
+    """The resume file of one output of a certification (:func:`flnotes.parallel.save_checkpoint`), written at most
+    every ``every_s`` seconds between rounds and when the run ends."""
+
+    def __init__(self, key: str, every_s: float):
+        self.key, self.every_s, self.last = key, every_s, time.perf_counter()
+
+    def load(self) -> Optional[dict]:
+        return load_checkpoint(CHECKPOINTS, self.key)
+
+    def due(self) -> bool:
+        return time.perf_counter() - self.last >= self.every_s
+
+    def save(self, st: dict) -> None:
+        save_checkpoint(CHECKPOINTS, self.key, st)
+        self.last = time.perf_counter()
+
+
+#: The cache folder of the certifications' resume files (``cache_dir()/tasks/certify``).
+CHECKPOINTS = "certify"
+_CHECKPOINT_FORMAT = "certify-checkpoint-1"
+
+
+def _absorb(st: dict, leaves: _Leaves, rtol: float, atol: float, keep: bool) -> None:
+    """Take a round's leaves into the state: the boxes evaluated, the lower bound, pruning, one row of history."""
+    olo, ohi, oub, oax = leaves.lo, leaves.hi, leaves.ub, leaves.axis
+    st["n_eval"] += leaves.n_eval
+    st["pruned_max"] = max(st["pruned_max"], leaves.pruned_max)
+    if keep and leaves.pruned is not None:
+        st["kept"].append(leaves.pruned)
+    if leaves.best > st["LB"]:
+        st["LB"], st["best_x"] = leaves.best, leaves.best_x
+    LB = st["LB"]
+    done = oub <= LB + max(atol, rtol * LB)
+    if done.any():
+        st["pruned_max"] = max(st["pruned_max"], float(oub[done].max()))
+        if keep:
+            st["kept"].append((olo[done], ohi[done], oub[done]))
+        olo, ohi, oub, oax = olo[~done], ohi[~done], oub[~done], oax[~done]
+    st.update(olo=olo, ohi=ohi, oub=oub, oax=oax)
+    st["hist"].append((st["n_eval"], LB, max(st["pruned_max"], float(oub.max()) if len(oub) else -np.inf)))
+
+
 def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x: Array, rtol: float, atol: float,
                       batch: int, max_boxes: int, max_time: Optional[float], keep: bool, evaluate: Callable,
-                      bar=None):
-    t0 = time.perf_counter()
-    leaves = evaluate(lo0, hi0, LB)
-    n_eval = 0
-    pruned_max = -np.inf
-    kept_lo, kept_hi, kept_ub = [], [], []
-    hist = []
+                      bar=None, checkpoint: Optional[_Checkpoint] = None):
+    t_start = time.perf_counter()
+    st = checkpoint.load() if checkpoint is not None else None
+    if st is None:
+        st = dict(LB=LB, best_x=best_x, pruned_max=-np.inf, n_eval=0, hist=[], kept=[], elapsed=0.0, eval_s=0.0)
+        _absorb(st, evaluate(lo0, hi0, LB), rtol, atol, keep)
+    prior_eval, t0 = st["eval_s"], t_start - st["elapsed"]
+
+    def snapshot() -> dict:
+        return {**st, "elapsed": time.perf_counter() - t0, "eval_s": prior_eval + evaluate.seconds}
+
     converged = False
     while True:
-        olo, ohi, oub, oax = leaves.lo, leaves.hi, leaves.ub, leaves.axis
-        n_eval += leaves.n_eval
-        pruned_max = max(pruned_max, leaves.pruned_max)
-        if keep and leaves.pruned is not None:
-            kept_lo.append(leaves.pruned[0]), kept_hi.append(leaves.pruned[1]), kept_ub.append(leaves.pruned[2])
-        if leaves.best > LB:
-            LB, best_x = leaves.best, leaves.best_x
-        thr = LB + max(atol, rtol * LB)
-        done = oub <= thr
-        if done.any():
-            pruned_max = max(pruned_max, float(oub[done].max()))
-            if keep:
-                kept_lo.append(olo[done]), kept_hi.append(ohi[done]), kept_ub.append(oub[done])
-            keep_open = ~done
-            olo, ohi, oub, oax = olo[keep_open], ohi[keep_open], oub[keep_open], oax[keep_open]
-        cur_upper = max(pruned_max, float(oub.max()) if len(oub) else -np.inf)
-        hist.append((n_eval, LB, cur_upper))
+        olo, ohi, oub, oax = st["olo"], st["ohi"], st["oub"], st["oax"]
         if bar is not None:
-            bar.update(n_eval - bar.n)
-            bar.set_postfix_str(f"{LB:.6g} <= max error <= {cur_upper:.6g}, {len(oub):,} open", refresh=False)
+            n_eval, low, up = st["hist"][-1]
+            bar.update(int(n_eval) - bar.n)
+            bar.set_postfix_str(f"{low:.6g} <= max error <= {up:.6g}, {len(oub):,} open", refresh=False)
         if not len(oub):
             converged = True
             break
-        if n_eval >= max_boxes or (max_time is not None and time.perf_counter() - t0 > max_time):
+        if st["n_eval"] >= max_boxes or (max_time is not None and time.perf_counter() - t0 > max_time):
             break
+        if checkpoint is not None and checkpoint.due():
+            checkpoint.save(snapshot())
         # bisect the `batch` open boxes with the largest upper bounds
         if len(oub) > batch:
             sel = np.argpartition(-oub, batch - 1)[:batch]
@@ -1016,16 +1080,22 @@ def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x:
         else:
             sel, rest = np.arange(len(oub)), np.zeros(len(oub), bool)
         clo, chi = _bisect(olo[sel], ohi[sel], oax[sel])
-        leaves = evaluate(clo, chi, LB)
-        leaves = _Leaves(np.vstack([olo[rest], leaves.lo]), np.vstack([ohi[rest], leaves.hi]),
-                         np.concatenate([oub[rest], leaves.ub]), np.concatenate([oax[rest], leaves.axis]),
-                         leaves.best, leaves.best_x, leaves.n_eval, leaves.pruned_max, leaves.pruned)
-    upper = max(pruned_max, float(oub.max()) if len(oub) else -np.inf)
+        leaves = evaluate(clo, chi, st["LB"])
+        _absorb(st, _Leaves(np.vstack([olo[rest], leaves.lo]), np.vstack([ohi[rest], leaves.hi]),
+                            np.concatenate([oub[rest], leaves.ub]), np.concatenate([oax[rest], leaves.axis]),
+                            leaves.best, leaves.best_x, leaves.n_eval, leaves.pruned_max, leaves.pruned),
+                rtol, atol, keep)
+    if checkpoint is not None:
+        checkpoint.save(snapshot())
+    oub = st["oub"]
+    upper = max(st["pruned_max"], float(oub.max()) if len(oub) else -np.inf)
     part = None
     if keep:
-        kept_lo.append(olo), kept_hi.append(ohi), kept_ub.append(oub)
-        part = dict(lo=np.vstack(kept_lo), hi=np.vstack(kept_hi), ub=np.concatenate(kept_ub))
-    return LB, upper, best_x, n_eval, converged, part, np.array(hist)
+        kept = st["kept"] + [(st["olo"], st["ohi"], oub)]
+        part = dict(lo=np.vstack([k[0] for k in kept]), hi=np.vstack([k[1] for k in kept]),
+                    ub=np.concatenate([k[2] for k in kept]))
+    t_all, e_all = time.perf_counter() - t0, prior_eval + evaluate.seconds
+    return st["LB"], upper, st["best_x"], st["n_eval"], converged, part, np.array(st["hist"]), t_all, e_all
 
 
 # ============================================================================ what eps is for

@@ -53,7 +53,7 @@ import numpy as np
 from .config import MALLOC_SETTINGS, cache_dir, one_blas_thread
 
 __all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead", "parse_workers",
-           "worker_env"]
+           "worker_env", "save_checkpoint", "load_checkpoint", "checkpoint_path"]
 
 ENGINES = ("serial", "joblib", "dask")
 
@@ -179,6 +179,23 @@ def _load(path: Path, key: str) -> Any:
         raise ValueError(f"the resume file {path} holds the result of another task (key {blob['key']!r}, "
                          f"not {key!r}): it was copied or renamed from another run; {fix}")
     return blob["value"]
+
+
+def checkpoint_path(cache: str, key: str) -> Path:
+    """Where :func:`save_checkpoint` keeps the state ``key`` of a long job: ``cache_dir()/tasks/<cache>/<key>.pkl``."""
+    return _task_folder(cache) / f"{key}.pkl"
+
+
+def save_checkpoint(cache: str, key: str, state: Any) -> None:
+    """Store the state ``key`` of a long job (written atomically with its key, as :meth:`Executor.map`'s results)."""
+    _save(checkpoint_path(cache, key), key, state)
+
+
+def load_checkpoint(cache: str, key: str) -> Any:
+    """The state stored by :func:`save_checkpoint` for ``key``; ``None`` when there is none. A damaged file, or one
+    that holds another job's state, is refused with a ``ValueError`` naming it (never used, never ignored)."""
+    path = checkpoint_path(cache, key)
+    return _load(path, key) if path.exists() else None
 
 
 def _is_client(obj: Any) -> bool:

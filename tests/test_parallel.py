@@ -18,7 +18,7 @@ import pytest
 
 import flnotes as fl
 from flnotes import paper
-from flnotes.error import certify_error, pso_max_error
+from flnotes.error import _Rounds, certify_error, pso_max_error
 from flnotes.parallel import Executor, TaskFailed, task_key, task_seeds, using
 from flnotes.studies import compare as C
 
@@ -100,6 +100,83 @@ def test_deep_tasks_give_the_same_bracket_on_every_engine(client):
         br = certify_error(sysm, net, **kw, **where)
         assert _same(br, one), label
         assert np.array_equal(br.history[0][:, :2], one.history[0][:, :2]), label
+
+
+_ROUNDS_CALL = _Rounds.__call__            # the real one, before any test patches it
+
+
+def _interrupt_after(monkeypatch, rounds: int, seen: list):
+    """Count the certification's rounds in ``seen``; raise KeyboardInterrupt at round ``rounds`` (0: never)."""
+    from flnotes import error
+
+    real = _ROUNDS_CALL
+
+    def counted(self, lo, hi, LB):
+        seen.append(len(lo))
+        if rounds and len(seen) == rounds:
+            raise KeyboardInterrupt("stopped by the test")
+        return real(self, lo, hi, LB)
+
+    monkeypatch.setattr(error._Rounds, "__call__", counted)
+
+
+@pytest.mark.parametrize("depth", [1, 3])
+def test_an_interrupted_certification_resumes_to_the_same_bracket(monkeypatch, tmp_path, depth):
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+    sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.02, batch=256, chunk=128, n_samples=500, depth=depth, keep_partition=True)
+    full_rounds = []
+    _interrupt_after(monkeypatch, 0, full_rounds)
+    whole = certify_error(sysm, net, **kw)                            # no resume: nothing stored
+    assert not (tmp_path / "tasks" / "certify").exists() or not any((tmp_path / "tasks" / "certify").iterdir())
+    assert whole.converged.all() and len(full_rounds) > 6             # premise: a run of several rounds
+    first = []
+    _interrupt_after(monkeypatch, len(full_rounds) // 2, first)
+    with pytest.raises(KeyboardInterrupt):
+        certify_error(sysm, net, **kw, resume=True, checkpoint_s=0)
+    rest = []
+    _interrupt_after(monkeypatch, 0, rest)
+    resumed = certify_error(sysm, net, **kw, resume=True)
+    assert _same(resumed, whole) and np.array_equal(resumed.history[0], whole.history[0])
+    for k in ("lo", "hi", "ub"):
+        assert np.array_equal(resumed.partition[0][k], whole.partition[0][k])
+    # only the rounds not saved before the interruption were run again (the one interrupted, and those after it)
+    assert len(rest) == len(full_rounds) - len(first) + 1 and rest == full_rounds[len(first) - 1:]
+    again = []
+    _interrupt_after(monkeypatch, 0, again)
+    assert _same(certify_error(sysm, net, **kw, resume=True), whole) and again == []   # the end state was saved
+
+
+def test_a_budget_stopped_certification_goes_on_with_a_larger_budget(monkeypatch, tmp_path):
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+    sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.02, batch=256, chunk=128, n_samples=500)
+    whole = certify_error(sysm, net, **kw)
+    part = certify_error(sysm, net, **kw, max_boxes=2000, resume=True)
+    assert not part.converged.all() and part.n_boxes[0] < whole.n_boxes[0]
+    assert part.lower[0] <= whole.upper[0] <= part.upper[0]           # sound, only wider
+    more = certify_error(sysm, net, **kw, resume=True)
+    assert _same(more, whole)
+    # another certification (another rtol) does not use that state
+    other = certify_error(sysm, net, **{**kw, "rtol": 0.05}, resume=True)
+    assert other.n_boxes[0] < whole.n_boxes[0] and other.width[0] <= 0.05 * other.lower[0]
+
+
+def test_a_damaged_certification_resume_file_is_named(monkeypatch, tmp_path):
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+    sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.05, batch=256, chunk=128, n_samples=500)
+    certify_error(sysm, net, **kw, resume=True)
+    files = list((tmp_path / "tasks" / "certify").glob("*.pkl"))
+    assert len(files) == 1
+    files[0].write_bytes(b"not a pickle")
+    with pytest.raises(ValueError, match=f"resume file .*{files[0].name} cannot be read.*delete"):
+        certify_error(sysm, net, **kw, resume=True)
+    with pytest.raises(ValueError, match="checkpoint_s .* needs resume=True"):
+        certify_error(sysm, net, **kw, checkpoint_s=5.0)
+    for bad in (-1.0, "5", True):
+        with pytest.raises(ValueError, match="checkpoint_s must be a number of seconds"):
+            certify_error(sysm, net, **kw, resume=True, checkpoint_s=bad)
 
 
 def test_certification_progress_bar_changes_nothing(capsys):
