@@ -1,7 +1,7 @@
 """Argument checks with messages that say what to change."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
@@ -92,3 +92,22 @@ def horizon_reference(z_ref: Any, horizon: int, n_z: int) -> np.ndarray:
     if not np.all(np.isfinite(R)):
         raise ValueError("z_ref contains NaN or inf")
     return R
+
+
+def check_int(x: Any, name: str, low: int, what: str) -> int:
+    """``x`` as an int ``>= low`` (``ValueError`` naming ``name`` and ``what`` it counts otherwise; ``bool`` refused)."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)) or x < low:
+        raise ValueError(f"{name} must be an integer >= {low} ({what}), got {x!r}")
+    return int(x)
+
+
+def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = False,
+                 none: bool = False) -> Optional[float]:
+    """``x`` as a finite float ``>= low`` (``> low`` if ``strict``; ``None`` kept if ``none``), else ``ValueError``."""
+    if x is None and none:
+        return None
+    ok = not isinstance(x, (bool, np.bool_)) and isinstance(x, (int, float, np.integer, np.floating)) and np.isfinite(x)
+    if not ok or (x <= low if strict else x < low):
+        raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low:g} ({what})"
+                         f"{' or None' if none else ''}, got {x!r}")
+    return float(x)

@@ -31,7 +31,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, check_box
+from ._checks import as_batch, check_box, check_int, check_number
 from .config import one_blas_thread
 from .interval import Interval, NotCertifiable
 from .network import ReLUNet, uniform_grid
@@ -768,14 +768,18 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         constants that samples of ``Phi`` contradict.
     """
     fun, lo, hi = _resolve(f, net, lo, hi)
-    if not (rtol >= 0 and atol >= 0 and rtol + atol > 0):
-        raise ValueError(f"need rtol >= 0, atol >= 0 and at least one positive, got rtol={rtol}, atol={atol}")
-    if batch < 1 or initial_per_axis < 1:
-        raise ValueError("batch and initial_per_axis must be >= 1")
-    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
-        raise ValueError(f"chunk must be an integer >= 1 (boxes per task), got {chunk!r}")
-    if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 1:
-        raise ValueError(f"depth must be an integer >= 1 (levels of bisection per task), got {depth!r}")
+    rtol = check_number(rtol, "rtol", "relative width of the bracket")
+    atol = check_number(atol, "atol", "absolute width of the bracket")
+    if rtol + atol <= 0:
+        raise ValueError(f"rtol or atol must be positive (the bracket's requested width), got rtol={rtol}, atol={atol}")
+    batch = check_int(batch, "batch", 1, "boxes bisected per round")
+    initial_per_axis = check_int(initial_per_axis, "initial_per_axis", 1, "first slices per axis")
+    n_samples = check_int(n_samples, "n_samples", 0, "random points for the first lower bound")
+    seed = check_int(seed, "seed", 0, "seed of those points")
+    max_boxes = check_int(max_boxes, "max_boxes", 1, "budget of boxes per output")
+    max_time = check_number(max_time, "max_time", "budget in seconds per output", strict=True, none=True)
+    chunk = check_int(chunk, "chunk", 1, "boxes per task")
+    depth = check_int(depth, "depth", 1, "levels of bisection per task")
     if not isinstance(resume, bool):
         raise ValueError(f"resume must be True or False, got {resume!r}")
     if checkpoint_s is not None and not resume:
@@ -786,8 +790,8 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         raise ValueError(f"checkpoint_s must be a number of seconds >= 0, got {checkpoint_s!r}")
     with using(workers, client) as executor:
         return _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch,
-                        initial_per_axis, max_boxes, max_time, keep_partition, int(chunk), int(depth), executor,
-                        progress, resume, checkpoint_s)
+                        initial_per_axis, max_boxes, max_time, keep_partition, chunk, depth, executor, progress,
+                        resume, checkpoint_s)
 
 
 def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch, initial_per_axis,

@@ -52,7 +52,8 @@ import numpy as np
 
 from .config import MALLOC_SETTINGS, cache_dir, one_blas_thread
 
-__all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead", "parse_workers",
+__all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead", "measure_round_trip",
+           "parse_workers",
            "worker_env", "save_checkpoint", "load_checkpoint", "checkpoint_path"]
 
 ENGINES = ("serial", "joblib", "dask")
@@ -583,14 +584,28 @@ def _noop(x: Any) -> Any:
 
 
 def measure_overhead(executor: Executor, n_tasks: int = 200) -> float:
-    """Seconds per task that the engine adds (a trivial task's round trip, averaged over ``n_tasks``).
+    """Seconds per task that the engine adds when many trivial tasks are in flight (its throughput: ``n_tasks``
+    submitted at once, the wall time divided by ``n_tasks``).
 
-    The per-task scheduler overhead of the scaling model (:func:`flnotes.bench.parallel.scaling_model`).
+    The cost of each task beyond the first ones of a round in the scaling model
+    (:func:`flnotes.bench.parallel.scaling_model`); a round's own latency is :func:`measure_round_trip`.
     """
     executor.map(_noop, range(min(n_tasks, 2 * executor.workers)))     # warm the workers up
     t0 = time.perf_counter()
     executor.map(_noop, range(n_tasks))
     return (time.perf_counter() - t0) / n_tasks
+
+
+def measure_round_trip(executor: Executor, n_maps: int = 50) -> float:
+    """Median seconds of one map of ``executor.workers`` trivial tasks, waited for before the next: the latency a
+    dependent round pays (a branch-and-bound round cannot start before the last one has answered)."""
+    executor.map(_noop, range(2 * executor.workers))                     # warm the workers up
+    times = []
+    for _ in range(n_maps):
+        t0 = time.perf_counter()
+        executor.map(_noop, range(executor.workers))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
 
 
 def parse_workers(argv: Sequence[str]) -> tuple[Optional[int], Optional[str], list[str]]:

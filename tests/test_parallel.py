@@ -552,3 +552,16 @@ def test_scaling_model_saturates_where_it_should():
     assert scaled[8]["W_half"] == pytest.approx(t_box / (t_ser + o / 1024))
     with pytest.raises(ValueError):
         scaling_model(0, t_box, t_ser, o)
+    # a round's latency: every round that leaves the process pays it once (123 rounds' worth of work: 122 full and
+    # one partial), the rounds growing from the first partition too (256 .. 4096 boxes: 5), or a given count
+    plain = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(1, 2))}
+    trip = {r["workers"]: r for r in scaling_model(n, t_box, t_ser, o, workers=(1, 2), round_trip=0.02)}
+    assert trip[1]["wall_s"] == plain[1]["wall_s"] and trip[2]["rounds"] == 123
+    assert trip[2]["wall_s"] - plain[2]["wall_s"] == pytest.approx(123 * 0.02)
+    ramp = scaling_model(n, t_box, t_ser, o, workers=(2,), round_trip=0.02, first_boxes=256)[0]
+    assert ramp["rounds"] == 128 and ramp["wall_s"] - trip[2]["wall_s"] == pytest.approx(5 * 0.02)
+    given = scaling_model(n, t_box, t_ser, o, workers=(2,), round_trip=0.02, rounds=10)[0]
+    assert given["rounds"] == 10 and given["wall_s"] - plain[2]["wall_s"] == pytest.approx(10 * 0.02)
+    # deeper tasks: the same work in fewer rounds, so less latency
+    deep = scaling_model(n, t_box, t_ser, o, workers=(2,), round_trip=0.02, depth=8)[0]
+    assert deep["rounds"] == 16 and deep["wall_s"] < trip[2]["wall_s"]

@@ -27,8 +27,8 @@ import numpy as np
 from .. import paper
 from ..arm import arm_net, two_link_arm
 from ..config import MALLOC_SETTINGS, keep_freed_memory
-from ..error import certify_error, chunk_sizes
-from ..parallel import Executor, measure_overhead
+from ..error import MIN_CHUNK, certify_error, chunk_sizes
+from ..parallel import Executor, measure_overhead, measure_round_trip
 from ..reference import load_reference
 
 WORKERS_MODEL = (1, 2, 8, 32, 128)
@@ -38,57 +38,76 @@ DEPTH = 8
 
 def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: float,
                   workers: Sequence[int] = WORKERS_MODEL, batch: int = 4096, chunk: int = 1024,
-                  scale_batch: bool = False, depth: int = 1) -> list[dict]:
+                  scale_batch: bool = False, depth: int = 1, round_trip: float = 0.0,
+                  first_boxes: Optional[int] = None, rounds: Optional[int] = None) -> list[dict]:
     """Predicted wall time of a certification of ``n_boxes`` boxes on ``W`` workers.
 
     Each branch-and-bound round bisects ``batch`` boxes, i.e. evaluates ``2 batch`` boxes in
     ``k = ceil(2 batch / chunk)`` chunks (rounded up to an even number, :func:`flnotes.error.chunk_sizes`) of
     ``c = 2 batch / k`` boxes, sent as ``min(k, W)`` tasks of consecutive chunks; a round takes
 
-        ``2 batch t_serial_box + ceil(k / W) c t_box + min(k, W) overhead``   (``overhead = 0`` for W = 1)
+        ``2 batch t_serial_box + ceil(k / W) c t_box + o(W, k)``,
+        ``o(W, k) = round_trip + max(min(k, W) - 2, 0) overhead``   (``o = 0`` for W = 1)
 
     (the serial part: bracket, pruning and choice of the next boxes in the caller; the chunks, ``W``
-    at a time; the engine's per-task cost, paid by the scheduler one task after another), and
-    ``n_boxes / (2 batch)`` rounds are needed (the last one counted in proportion). With the schedule
-    fixed, no more than ``k`` workers can be busy; with ``scale_batch=True`` the batch grows to
-    ``W chunk / 2`` so that every worker has a task (another schedule: a sound bracket, not bit for
-    bit the same, and somewhat more boxes, which the model does not count). Then the time tends to
-    ``n_boxes (t_serial_box + overhead / chunk)``: the workers beyond
+    at a time; the engine's latency for a dependent map of two tasks, :func:`flnotes.parallel.measure_round_trip`,
+    and its cost per further task in flight, :func:`flnotes.parallel.measure_overhead`). The work is
+    ``n_boxes / (2 batch)`` rounds' worth; every full round pays ``o(W, k)``, the last partial one ``o`` of its
+    tasks, and the rounds that grow from the first partition's ``first_boxes`` boxes to ``2 batch`` (those of at
+    least ``2 MIN_CHUNK`` boxes, which leave the caller's process) pay ``round_trip`` each; ``rounds`` instead gives
+    the number of rounds that pay ``o(W, k)`` (e.g. counted on a run). With the schedule fixed, no more than ``k``
+    workers can be busy; with ``scale_batch=True`` the batch grows to ``W chunk / 2`` so that every worker has a
+    task (another schedule: a sound bracket, not bit for bit the same, and somewhat more boxes, which the model
+    does not count). Then the time tends to ``n_boxes (t_serial_box + overhead / chunk)``: the workers beyond
     ``W_half = t_box / (t_serial_box + overhead / chunk)`` cut less than the serial part they leave.
 
     With ``depth = d > 1`` (``certify_error(depth=d)``) a task bisects its chunk ``d - 1`` more times before it
-    returns, so a round evaluates up to ``d`` times as many boxes for the same serial part and the same per-task
+    returns, so a round evaluates up to ``d`` times as many boxes for the same serial part and the same
     overhead: the model counts ``n_boxes / (2 batch d)`` rounds of ``d ceil(k / W) c t_box`` in the tasks, i.e.
-    ``t_serial_box`` and ``overhead`` divided by ``d`` per box (an upper estimate of the gain: pruning inside a
-    task leaves its last levels with fewer boxes, and the total number of boxes differs somewhat).
+    ``t_serial_box`` and the overheads divided by ``d`` per box (an upper estimate of the gain: pruning inside a
+    task leaves its last levels with fewer boxes, those evaluate in smaller batches, and the total number of
+    boxes differs somewhat).
 
     Returns
     -------
     list of dict
-        Per ``W``: ``workers``, ``batch``, ``chunks_per_round``, ``tasks_per_round``, ``rounds``, ``wall_s``, ``speedup``
-        (against W = 1 with the given ``batch``), ``W_half``.
+        Per ``W``: ``workers``, ``batch``, ``depth``, ``chunks_per_round``, ``tasks_per_round``, ``rounds`` (that pay
+        the engine's overhead), ``wall_s``, ``speedup`` (against W = 1 with the given ``batch``), ``W_half``.
     """
-    if min(n_boxes, batch, chunk, depth) < 1 or min(t_box, t_serial_box, overhead) < 0:
+    if min(n_boxes, batch, chunk, depth) < 1 or min(t_box, t_serial_box, overhead, round_trip) < 0:
         raise ValueError("n_boxes, batch, chunk, depth must be >= 1 and the times >= 0")
+    from ..error import MIN_CHUNK
+
+    def o(W: int, tasks: int) -> float:
+        return round_trip + max(min(tasks, W) - 2, 0) * overhead if W > 1 else 0.0
 
     def wall(W: int, b: int) -> tuple[float, int, int]:
         sizes = chunk_sizes(2 * b, chunk)            # the tasks of a full round, as certify_error cuts it
         k = len(sizes)
-        rounds = n_boxes / (2 * b * depth)          # a fraction: the last round is a partial one
-        per_round = (2 * b * t_serial_box + depth * math.ceil(k / W) * max(sizes) * t_box
-                     + (min(k, W) * overhead if W > 1 else 0.0))
-        return rounds * per_round, k, math.ceil(rounds)
+        work = n_boxes / (2 * b * depth)            # rounds' worth of work (a fraction)
+        t = work * (2 * b * t_serial_box + depth * math.ceil(k / W) * max(sizes) * t_box)
+        if rounds is not None:
+            return t + rounds * o(W, k), k, int(rounds)
+        full, frac = int(work), work - int(work)
+        ramp = 0
+        if first_boxes:
+            n = int(first_boxes)
+            while n < 2 * b:
+                ramp += n >= 2 * MIN_CHUNK
+                n *= 2
+        t += full * o(W, k) + (o(W, math.ceil(frac * k)) if frac > 0 else 0.0) + (ramp * round_trip if W > 1 else 0.0)
+        return t, k, full + (frac > 0) + ramp
 
     base, _, _ = wall(1, batch)
     w_half = t_box / ((t_serial_box + overhead / chunk) / depth) if (t_serial_box + overhead) > 0 else math.inf
-    rows = []
+    out = []
     for W in workers:
         b = max(batch, math.ceil(W * chunk / 2)) if scale_batch else batch
-        t, k, rounds = wall(int(W), b)
-        rows.append(dict(workers=int(W), batch=b, depth=int(depth), chunks_per_round=k,
-                         tasks_per_round=min(k, int(W)) if W > 1 else 0, rounds=rounds, wall_s=t, speedup=base / t,
-                         W_half=w_half))
-    return rows
+        t, k, n_rounds = wall(int(W), b)
+        out.append(dict(workers=int(W), batch=b, depth=int(depth), chunks_per_round=k,
+                        tasks_per_round=min(k, int(W)) if W > 1 else 0, rounds=n_rounds, wall_s=t, speedup=base / t,
+                        W_half=w_half))
+    return out
 
 
 def _timed(fn):
@@ -256,14 +275,34 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
                       rows, notes, lambda _: f"Monte Carlo MSD, {n_sc} scenarios x {len(C.METHODS)} methods, "
                                              f"{t_final:g} s, no time limit")
         # ---------------------------------------------------------------- scaling model
-        overhead = {label: measure_overhead(ex, 40 if fast else 400) for label, ex in engines.items()
-                    if not label.startswith("1 ")}
+        overhead, trip = {}, {}
+        for label, ex in engines.items():
+            if not label.startswith("1 "):
+                overhead[label], trip[label] = measure_overhead(ex, 40 if fast else 400), measure_round_trip(ex)
         if scheduler is not None:
             with Executor(client=scheduler) as ex:
-                overhead[f"Dask at {scheduler}"] = measure_overhead(ex, 40 if fast else 400)
-        notes.append("per-task overhead of the engine (trivial task, all workers busy): "
-                     + ", ".join(f"{k} {1e3 * v:.2f} ms" for k, v in overhead.items()))
-        o = max(overhead.values())
+                label = f"Dask at {scheduler}"
+                overhead[label], trip[label] = measure_overhead(ex, 40 if fast else 400), measure_round_trip(ex)
+        notes.append("engine costs (trivial tasks): per task with all workers busy (throughput) "
+                     + ", ".join(f"{k} {1e3 * v:.2f} ms" for k, v in overhead.items())
+                     + "; a dependent map of one task per worker (the latency every round pays) "
+                     + ", ".join(f"{k} {1e3 * v:.2f} ms" for k, v in trip.items()))
+        # the model against the measured job: the same certification's per-box times and rounds, each engine's costs
+        for depth, br in brs.items():
+            n = int(br.n_boxes.sum())
+            steps = np.diff(np.r_[0, br.history[0][:, 0]])
+            paying = int(np.sum(steps >= 2 * MIN_CHUNK))        # rounds whose boxes left the caller's process
+            for label in overhead:
+                if label not in engines:
+                    continue
+                r = scaling_model(n, float(br.eval_s.sum()) / n, float((br.time_s - br.eval_s).sum()) / n,
+                                  overhead[label], workers=(1, 2), depth=depth, round_trip=trip[label],
+                                  rounds=paying)[1]
+                measured = next(x["speedup"] for x in rows if x["job"].startswith("certify")
+                                and f", depth {depth} " in x["job"] and x["engine"] == label)
+                rows.append(dict(job=f"model check: certify {cname}, depth {depth} ({paying} rounds leave the process)",
+                                 engine=label, wall_s=r["wall_s"], speedup=r["speedup"], measured_speedup=measured))
+        o, rt = max(overhead.values()), max(trip.values())
         for name in ("Arm", "Quad-1D"):
             pb = _per_box(name, 10_000 if fast else 100_000)
             notes.append(f"{name} ({pb['n_in']}-D box, {pb['outputs']} output(s)): per box {1e6 * pb['t_box']:.1f} us "
@@ -272,11 +311,11 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
                          f"({pb['shipped_time_s']:.3g} s when it was written, on another machine or load)")
             for scale, depth in ((False, 1), (True, 1), (False, DEPTH), (True, DEPTH)):
                 for r in scaling_model(pb["n_boxes_shipped"], pb["t_box"], pb["t_serial_box"], o, scale_batch=scale,
-                                       depth=depth):
+                                       depth=depth, round_trip=rt, first_boxes=4 ** pb["n_in"]):
                     rows.append(dict(job=f"model: certify {name} ({pb['n_boxes_shipped']:,} boxes)",
                                      engine=f"{r['workers']} worker{'s' if r['workers'] > 1 else ''}, batch {r['batch']}"
                                             + (" (scaled)" if scale else " (fixed)") + f", depth {depth}",
-                                     wall_s=r["wall_s"], speedup=r["speedup"], same_result=not scale,
+                                     wall_s=r["wall_s"], speedup=r["speedup"], same_result=r["batch"] == 4096,
                                      W_half=r["W_half"]))
     finally:
         client.close()
@@ -290,10 +329,13 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         "alternating runs. On a loaded machine the speed-ups are lower than on an idle one: rerun this "
         "section alone (python -m flnotes.bench parallel) on an idle machine for the target (>= 1.7 on 2 cores).",
         "same_result: the bracket (lower, upper, argmax, boxes) or the Monte Carlo table (all but its timing "
-        "columns) is identical to the first engine's; model rows: whether the schedule is the default one (then "
-        "the bracket is the same bit for bit).",
+        "columns) is identical to the first engine's; model rows: whether the batch is the default 4096 (then "
+        "the bracket is the same bit for bit as on 1 worker with that depth).",
         "model: per round, 2 batch boxes of serial work, ceil(k/W) chunks of chunk = 1024 boxes one after the other "
-        "on each worker, min(k, W) per-task overheads (the largest measured); fixed: batch 4096, k = 8 chunks, so no gain "
+        "on each worker, the engine's round-trip latency plus its per-task cost for each task beyond two (the largest "
+        "measured); the rounds that grow from the first partition (4 slices per axis) pay the latency too. The model "
+        "check rows put the measured job's own per-box times, rounds and each engine's costs in the model, next to the "
+        "speed-up measured above: how far the model is from a measurement. Fixed: batch 4096, k = 8 chunks, so no gain "
         "beyond 8 workers; scaled: batch = W chunk / 2. W_half = t_box / (t_serial_box + overhead / chunk): beyond "
         "it the serial part and the scheduler's overhead dominate and more workers stop paying. Depth d: d levels of "
         f"bisection per task, the serial part and the overhead per box divided by d (depth {DEPTH} rows).",
