@@ -744,7 +744,8 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         With ``resume=True`` the run saves its state (open boxes, bounds, history) between rounds, at most every
         ``checkpoint_s`` seconds (default :data:`CHECKPOINT_S`) and when it ends, in the package's cache folder
         (``cache_dir()/tasks/certify``, one file per output), under a key made of everything its path depends on:
-        the box, the network's weights, ``Phi``'s values at the starting samples and its enclosure of the box, and
+        the box, the network's weights, ``Phi``'s values at the starting samples, its enclosure of the box and the
+        bounds of the first partition's boxes (so an ``f_interval`` that differs anywhere gives another key), and
         the options that shape the search (not ``max_boxes``, ``max_time``, ``workers`` or ``client``). The same
         certification run again with ``resume=True`` starts from the last saved state: after an interruption (a
         killed process, Ctrl-C) it does only the rounds that were not saved, and after a run stopped by
@@ -848,7 +849,7 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
             bar = tqdm(desc=f"certify output {i}" if m > 1 else "certify", unit="box")
         try:
             rounds = _Rounds(ev, chunk, executor, depth, rtol, atol, keep_partition)
-            cp = None if key is None else _Checkpoint(f"{key}-{i}", checkpoint_s)
+            cp = None if key is None else partial(_checkpoint_of, f"{key}-{i}", checkpoint_s)
             res = _branch_and_bound(ev, lo0, hi0, LB, best_x, rtol, atol, batch, max_boxes, max_time, keep_partition,
                                     rounds, bar, cp)
         finally:
@@ -1029,6 +1030,15 @@ CHECKPOINTS = "certify"
 _CHECKPOINT_FORMAT = "certify-checkpoint-1"
 
 
+def _checkpoint_of(key: str, every_s: float, first: _Leaves) -> _Checkpoint:
+    """The resume file of a certification whose other inputs give ``key`` and whose first partition's bounds are
+    ``first`` (they enclose ``Phi - Phi_NN`` on every box of the first partition: an ``f_interval`` that differs
+    anywhere changes them)."""
+    digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in (first.ub, first.axis, first.lo,
+                                                                                first.hi))).hexdigest()
+    return _Checkpoint(f"{key}-{digest[:12]}", every_s)
+
+
 def _absorb(st: dict, leaves: _Leaves, rtol: float, atol: float, keep: bool) -> None:
     """Take a round's leaves into the state: the boxes evaluated, the lower bound, pruning, one row of history."""
     olo, ohi, oub, oax = leaves.lo, leaves.hi, leaves.ub, leaves.axis
@@ -1051,12 +1061,14 @@ def _absorb(st: dict, leaves: _Leaves, rtol: float, atol: float, keep: bool) -> 
 
 def _branch_and_bound(ev: _Evaluator, lo0: Array, hi0: Array, LB: float, best_x: Array, rtol: float, atol: float,
                       batch: int, max_boxes: int, max_time: Optional[float], keep: bool, evaluate: Callable,
-                      bar=None, checkpoint: Optional[_Checkpoint] = None):
+                      bar=None, checkpoint: Optional[Callable[[_Leaves], _Checkpoint]] = None):
     t_start = time.perf_counter()
+    first = evaluate(lo0, hi0, LB)        # the first partition's bounds: also part of a resume file's key
+    checkpoint = checkpoint(first) if checkpoint is not None else None
     st = checkpoint.load() if checkpoint is not None else None
     if st is None:
         st = dict(LB=LB, best_x=best_x, pruned_max=-np.inf, n_eval=0, hist=[], kept=[], elapsed=0.0, eval_s=0.0)
-        _absorb(st, evaluate(lo0, hi0, LB), rtol, atol, keep)
+        _absorb(st, first, rtol, atol, keep)
     prior_eval, t0 = st["eval_s"], t_start - st["elapsed"]
 
     def snapshot() -> dict:
