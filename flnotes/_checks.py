@@ -6,9 +6,16 @@ from typing import Any, Optional
 import numpy as np
 
 
+def _floats(x: Any, name: str) -> np.ndarray:
+    try:
+        return np.asarray(x, float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({exc})") from None
+
+
 def as_vector(x: Any, n: int, name: str) -> np.ndarray:
     """``x`` as a float vector of length ``n`` (a scalar is broadcast)."""
-    a = np.asarray(x, float)
+    a = _floats(x, name)
     if a.ndim == 0:
         a = np.full(n, float(a))
     a = a.reshape(-1) if a.ndim == 2 and 1 in a.shape else a
@@ -21,7 +28,7 @@ def as_vector(x: Any, n: int, name: str) -> np.ndarray:
 
 def as_batch(x: Any, n: int, name: str) -> np.ndarray:
     """``x`` as an (N, n) float array; a single point of shape (n,) becomes (1, n)."""
-    a = np.asarray(x, float)
+    a = _floats(x, name)
     if a.ndim == 1 and a.shape[0] == n:
         a = a[None, :]
     if a.ndim != 2 or a.shape[1] != n:
@@ -111,3 +118,10 @@ def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = 
         raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low:g} ({what})"
                          f"{' or None' if none else ''}, got {x!r}")
     return float(x)
+
+
+def check_bool(x: Any, name: str, what: str) -> bool:
+    """``x`` if it is ``True`` or ``False`` (numpy's too), else ``ValueError`` naming ``name``."""
+    if not isinstance(x, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False ({what}), got {x!r}")
+    return bool(x)

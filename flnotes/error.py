@@ -31,7 +31,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, check_box, check_int, check_number
+from ._checks import as_batch, check_bool, check_box, check_int, check_number
 from .config import one_blas_thread
 from .interval import Interval, NotCertifiable
 from .network import ReLUNet, uniform_grid
@@ -445,6 +445,10 @@ def local_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Ar
 def _interval_f(f, net: ReLUNet, f_interval, lipschitz, fun) -> tuple[Callable[[Interval], Interval], str]:
     """An enclosure of ``Phi`` on stacked Interval inputs (T, n_in) -> (T, m)."""
     n, m = net.n_in, net.n_out
+    if f_interval is None and lipschitz is not None and isinstance(f, FLSystem) and f.phi_interval is not None:
+        raise ValueError(f"lipschitz was given for the system {f.name!r}, which has phi_interval (used by default): "
+                         f"drop lipschitz, or pass f={f.name}.phi_stacked with lo and hi to certify with the "
+                         f"Lipschitz constants instead")
     if f_interval is None and isinstance(f, FLSystem) and f.phi_interval is not None:
         pz = f.phi_interval
         n_z = f.n_z
@@ -568,14 +572,14 @@ _CHECK_RTOL = 1e-8
 
 
 def _check_enclosure(f_enc, fun, X0: Array, Y0: Array, whole: Interval, lo: Array, hi: Array, name: str,
-                     seed: int, n_boxes: int = 64, per_box: int = 16) -> None:
+                     seed: int, n_boxes: int = 64, per_box: int = 16) -> Interval:
     """Refuse an interval version of ``Phi`` that does not enclose ``Phi``.
 
     Checked where it is cheap: at the sample points ``X0`` (``Phi(x)`` in
     ``f_interval([x, x])``), on the whole box, and on ``n_boxes`` small random
     boxes of several sizes (``per_box`` samples each). A certificate computed
     with an interval function that misses ``Phi`` would bound the error of
-    another function: ``ValueError`` naming the argument.
+    another function: ``ValueError`` naming the argument. Returns the enclosures on the small boxes.
     """
 
     def fail(x, y, ilo, ihi, where):
@@ -606,6 +610,7 @@ def _check_enclosure(f_enc, fun, X0: Array, Y0: Array, whole: Interval, lo: Arra
     Eb = Interval(np.repeat(E.lo, per_box, 0), np.repeat(E.hi, per_box, 0), check=False)
     check(P, Y, Eb, lambda r: f"the box [{np.array2string(blo[r // per_box], precision=4)}, "
                               f"{np.array2string(bhi[r // per_box], precision=4)}]")
+    return E
 
 
 def _check_lipschitz(fun, X0: Array, Y0: Array, lipschitz, lo: Array, hi: Array, seed: int, n_pairs: int = 2000) -> None:
@@ -744,14 +749,18 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         With ``resume=True`` the run saves its state (open boxes, bounds, history) between rounds, at most every
         ``checkpoint_s`` seconds (default :data:`CHECKPOINT_S`) and when it ends, in the package's cache folder
         (``cache_dir()/tasks/certify``, one file per output), under a key made of everything its path depends on:
-        the box, the network's weights, ``Phi``'s values at the starting samples, its enclosure of the box and the
-        bounds of the first partition's boxes (so an ``f_interval`` that differs anywhere gives another key), and
-        the options that shape the search (not ``max_boxes``, ``max_time``, ``workers`` or ``client``). The same
+        the box, the network's weights, ``Phi``'s values at the starting samples, the enclosures its interval
+        version gives on the whole box, on the 64 small random boxes of the enclosure check and on the first
+        partition's boxes, and the options that shape the search (not ``max_boxes``, ``max_time``, ``workers`` or
+        ``client``). A ``Phi`` changed only where none of these looks would not be noticed: after changing ``Phi``
+        in place, delete that folder. With ``lipschitz`` only, ``Phi`` is seen at points alone, and ``resume=True``
+        is refused (``ValueError``). The same
         certification run again with ``resume=True`` starts from the last saved state: after an interruption (a
         killed process, Ctrl-C) it does only the rounds that were not saved, and after a run stopped by
         ``max_boxes`` or ``max_time`` a larger budget goes on from where it stopped. The rounds are deterministic,
-        so the bracket is bit-identical to an uninterrupted run's (tested). A damaged resume file, or one holding
-        another run's state, is refused with an error naming it; delete it to start afresh.
+        so the bracket is bit-identical to an uninterrupted run's (tested). A damaged resume file (its contents
+        are checked against their SHA-256), or one holding another run's state, is refused with an error naming
+        it; delete it to start afresh.
 
     Returns
     -------
@@ -775,20 +784,19 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         raise ValueError(f"rtol or atol must be positive (the bracket's requested width), got rtol={rtol}, atol={atol}")
     batch = check_int(batch, "batch", 1, "boxes bisected per round")
     initial_per_axis = check_int(initial_per_axis, "initial_per_axis", 1, "first slices per axis")
-    n_samples = check_int(n_samples, "n_samples", 0, "random points for the first lower bound")
+    n_samples = check_int(n_samples, "n_samples", 1, "random points for the first lower bound")
     seed = check_int(seed, "seed", 0, "seed of those points")
     max_boxes = check_int(max_boxes, "max_boxes", 1, "budget of boxes per output")
     max_time = check_number(max_time, "max_time", "budget in seconds per output", strict=True, none=True)
     chunk = check_int(chunk, "chunk", 1, "boxes per task")
     depth = check_int(depth, "depth", 1, "levels of bisection per task")
-    if not isinstance(resume, bool):
-        raise ValueError(f"resume must be True or False, got {resume!r}")
+    keep_partition = check_bool(keep_partition, "keep_partition", "whether to keep the final sub-boxes")
+    progress = check_bool(progress, "progress", "whether to show a progress bar")
+    resume = check_bool(resume, "resume", "whether to save and resume the run's state")
     if checkpoint_s is not None and not resume:
         raise ValueError("checkpoint_s is how often a resumable run saves its state: it needs resume=True")
-    if checkpoint_s is None:
-        checkpoint_s = CHECKPOINT_S
-    if isinstance(checkpoint_s, bool) or not isinstance(checkpoint_s, (int, float)) or not checkpoint_s >= 0:
-        raise ValueError(f"checkpoint_s must be a number of seconds >= 0, got {checkpoint_s!r}")
+    checkpoint_s = check_number(CHECKPOINT_S if checkpoint_s is None else checkpoint_s, "checkpoint_s",
+                                "seconds between two saves of the state")
     with using(workers, client) as executor:
         return _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_samples, seed, batch,
                         initial_per_axis, max_boxes, max_time, keep_partition, chunk, depth, executor, progress,
@@ -816,9 +824,13 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
         raise ValueError("Phi returned NaN or inf on the box: certify on a box where it is defined")
     if method == "interval":
         name = "f_interval" if f_interval is not None else f"phi_interval of {f.name}"
-        _check_enclosure(f_enc, fun, X0, Y0, whole, lo, hi, name, seed)
+        small = _check_enclosure(f_enc, fun, X0, Y0, whole, lo, hi, name, seed)
     else:
         _check_lipschitz(fun, X0, Y0, lipschitz, lo, hi, seed)
+        if resume:
+            raise ValueError("resume=True needs an interval version of Phi (f_interval, or an FLSystem's phi_interval): "
+                             "with lipschitz only, Phi is seen at points, and a Phi changed between two runs could not "
+                             "be told from the saved one; certify without resume, or give f_interval")
     E0 = np.abs(Y0 - net(X0))
     # initial partition
     edges = [np.linspace(l, h, 1 if d else initial_per_axis + 1) for l, h, d in zip(lo, hi, degenerate)]
@@ -831,9 +843,9 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
     n_boxes, conv, times, eval_s = np.zeros(m, int), np.zeros(m, bool), np.zeros(m), np.zeros(m)
     parts, hists = [], []
     key = None
-    if resume:      # everything the path of the branch and bound depends on, Phi through its values and enclosure
+    if resume:      # everything the path of the branch and bound depends on, Phi through its values and enclosures
         digest = [hashlib.sha1(np.ascontiguousarray(a, float).tobytes()).hexdigest()
-                  for a in (X0, Y0, whole.lo, whole.hi, *net.W, *net.b)]
+                  for a in (X0, Y0, whole.lo, whole.hi, small.lo, small.hi, *net.W, *net.b)]
         key = task_key(_CHECKPOINT_FORMAT, digest, lo, hi, rtol, atol, batch, initial_per_axis, chunk, depth,
                        keep_partition, method, None if lipschitz is None else np.asarray(lipschitz, float))
     for i in range(m):
@@ -1015,7 +1027,7 @@ class _Checkpoint:
         self.key, self.every_s, self.last = key, every_s, time.perf_counter()
 
     def load(self) -> Optional[dict]:
-        return load_checkpoint(CHECKPOINTS, self.key)
+        return load_checkpoint(CHECKPOINTS, self.key, _STATE_FIELDS)
 
     def due(self) -> bool:
         return time.perf_counter() - self.last >= self.every_s
@@ -1027,7 +1039,8 @@ class _Checkpoint:
 
 #: The cache folder of the certifications' resume files (``cache_dir()/tasks/certify``).
 CHECKPOINTS = "certify"
-_CHECKPOINT_FORMAT = "certify-checkpoint-1"
+_CHECKPOINT_FORMAT = "certify-checkpoint-2"
+_STATE_FIELDS = ("LB", "best_x", "pruned_max", "n_eval", "hist", "kept", "elapsed", "eval_s", "olo", "ohi", "oub", "oax")
 
 
 def _checkpoint_of(key: str, every_s: float, first: _Leaves) -> _Checkpoint:

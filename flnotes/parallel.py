@@ -150,36 +150,47 @@ def _unship(blob: bytes) -> Callable:
     return fn
 
 
-_FORMAT = "flnotes.parallel result 1"
+_FORMAT = "flnotes.parallel result 2"
 
 
 def _save(path: Path, key: str, value: Any) -> None:
-    """Write one task's result with its key, atomically (a temporary file, then a rename)."""
+    """Write one task's result with its key and a SHA-256 of its bytes, atomically (a temporary file, then a rename)."""
+    blob = pickle.dumps(value)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp")
-    tmp.write_bytes(pickle.dumps({"format": _FORMAT, "key": key, "value": value}))
+    tmp.write_bytes(pickle.dumps({"format": _FORMAT, "key": key, "sha256": hashlib.sha256(blob).hexdigest(),
+                                  "value": blob}))
     tmp.replace(path)
 
 
 def _load(path: Path, key: str) -> Any:
     """The result stored in ``path`` for the task ``key``; ``ValueError`` naming the file if it is not that.
 
-    A file that cannot be read, that is not a result file of :meth:`Executor.map`, or that holds the result
-    of another task (another key: copied from another run) is refused, never used and never silently
+    A file that cannot be read, that is not a result file of :meth:`Executor.map` (or of this version of the
+    package), whose stored bytes do not match their SHA-256 (changed after they were written), or that holds the
+    result of another task (another key: copied from another run) is refused, never used and never silently
     recomputed: deleting it makes the next run compute that task again.
     """
     fix = f"delete {path} (or the whole folder {path.parent} to start fresh) and run again"
     try:
-        blob = pickle.loads(path.read_bytes())
+        env = pickle.loads(path.read_bytes())
     except Exception as exc:
         raise ValueError(f"the resume file {path} cannot be read ({type(exc).__name__}: {exc}): it is damaged; "
                          f"{fix}") from exc
-    if not (isinstance(blob, dict) and blob.get("format") == _FORMAT and "key" in blob and "value" in blob):
-        raise ValueError(f"the resume file {path} is not a task result written by flnotes.parallel "
-                         f"(it holds a {type(blob).__name__}); {fix}")
-    if blob["key"] != key:
-        raise ValueError(f"the resume file {path} holds the result of another task (key {blob['key']!r}, "
+    if not (isinstance(env, dict) and env.get("format") == _FORMAT and {"key", "sha256", "value"} <= set(env)
+            and isinstance(env["value"], bytes)):
+        raise ValueError(f"the resume file {path} is not a task result written by this version of flnotes.parallel "
+                         f"(it holds a {type(env).__name__}); {fix}")
+    if env["key"] != key:
+        raise ValueError(f"the resume file {path} holds the result of another task (key {env['key']!r}, "
                          f"not {key!r}): it was copied or renamed from another run; {fix}")
-    return blob["value"]
+    if hashlib.sha256(env["value"]).hexdigest() != env["sha256"]:
+        raise ValueError(f"the resume file {path} was changed after it was written (its SHA-256 does not match): it "
+                         f"is damaged; {fix}")
+    try:
+        return pickle.loads(env["value"])
+    except Exception as exc:
+        raise ValueError(f"the resume file {path} cannot be read ({type(exc).__name__}: {exc}): it is damaged; "
+                         f"{fix}") from exc
 
 
 def checkpoint_path(cache: str, key: str) -> Path:
@@ -192,11 +203,19 @@ def save_checkpoint(cache: str, key: str, state: Any) -> None:
     _save(checkpoint_path(cache, key), key, state)
 
 
-def load_checkpoint(cache: str, key: str) -> Any:
-    """The state stored by :func:`save_checkpoint` for ``key``; ``None`` when there is none. A damaged file, or one
-    that holds another job's state, is refused with a ``ValueError`` naming it (never used, never ignored)."""
+def load_checkpoint(cache: str, key: str, fields: Sequence[str] = ()) -> Any:
+    """The state stored by :func:`save_checkpoint` for ``key``; ``None`` when there is none. A damaged file, one
+    that holds another job's state, or one whose state is not a dict with ``fields``, is refused with a
+    ``ValueError`` naming it (never used, never ignored)."""
     path = checkpoint_path(cache, key)
-    return _load(path, key) if path.exists() else None
+    if not path.exists():
+        return None
+    state = _load(path, key)
+    missing = [f for f in fields if not isinstance(state, dict) or f not in state]
+    if missing:
+        raise ValueError(f"the resume file {path} does not hold a saved state (missing {', '.join(missing)}): it is "
+                         f"damaged; delete it and run again")
+    return state
 
 
 def _is_client(obj: Any) -> bool:

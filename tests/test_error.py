@@ -279,14 +279,20 @@ def test_bad_inputs_give_clear_errors():
     for kw, match in [(dict(batch=1.5), "batch must be an integer >= 1"), (dict(batch=None), "batch must be"),
                       (dict(batch=True), "batch must be"), (dict(initial_per_axis=1.5), "initial_per_axis must be"),
                       (dict(initial_per_axis=True), "initial_per_axis must be"), (dict(n_samples=1.5), "n_samples must"),
-                      (dict(n_samples=-1), "n_samples must be an integer >= 0"), (dict(max_boxes=None), "max_boxes"),
+                      (dict(n_samples=-1), "n_samples must be an integer >= 1"), (dict(max_boxes=None), "max_boxes"),
                       (dict(max_boxes=0), "max_boxes must be an integer >= 1"), (dict(max_boxes=1.5), "max_boxes"),
                       (dict(max_time=float("nan")), "max_time must be a finite number > 0"),
                       (dict(max_time=-1.0), "max_time must be"), (dict(max_time=0), "max_time must be"),
                       (dict(rtol="x"), "rtol must be a finite number >= 0"), (dict(rtol=-0.1), "rtol must be"),
                       (dict(atol=float("inf")), "atol must be a finite number"), (dict(rtol=0.0, atol=0.0),
                                                                                  "rtol or atol must be positive"),
-                      (dict(seed=-1), "seed must be an integer >= 0"), (dict(chunk=0), "chunk must be")]:
+                      (dict(seed=-1), "seed must be an integer >= 0"), (dict(chunk=0), "chunk must be"),
+                      (dict(n_samples=0), "n_samples must be an integer >= 1"),
+                      (dict(keep_partition="no"), "keep_partition must be True or False"),
+                      (dict(keep_partition=None), "keep_partition must be"), (dict(progress=7), "progress must be"),
+                      (dict(resume="yes"), "resume must be True or False"),
+                      (dict(seeds="abc"), "seeds must be numbers"),
+                      (dict(lipschitz=1.0), "lipschitz was given for the system 'MSD', which has phi_interval")]:
         with pytest.raises(ValueError, match=match):
             certify_error(s, net, **kw)
     with pytest.raises(NotCertifiable, match="flnotes.interval"):

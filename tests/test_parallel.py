@@ -175,9 +175,70 @@ def test_a_damaged_certification_resume_file_is_named(monkeypatch, tmp_path):
         certify_error(sysm, net, **kw, resume=True)
     with pytest.raises(ValueError, match="checkpoint_s .* needs resume=True"):
         certify_error(sysm, net, **kw, checkpoint_s=5.0)
-    for bad in (-1.0, "5", True):
-        with pytest.raises(ValueError, match="checkpoint_s must be a number of seconds"):
+    for bad in (-1.0, "5", True, float("inf")):
+        with pytest.raises(ValueError, match="checkpoint_s must be a finite number"):
             certify_error(sysm, net, **kw, resume=True, checkpoint_s=bad)
+
+
+def _resume_file(tmp_path):
+    files = list((tmp_path / "tasks" / "certify").glob("*.pkl"))
+    assert len(files) == 1
+    return files[0]
+
+
+def test_a_changed_certification_resume_file_is_refused(monkeypatch, tmp_path):
+    """A resume file whose state was changed after it was written (one stored number, a valid pickle) or that holds
+    no state is refused, naming the file; never used."""
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+    sysm, (net, _) = paper.system("Quad-1D"), paper.paper_net("Quad-1D")
+    kw = dict(rtol=0.05, batch=256, chunk=128, n_samples=500)
+    certify_error(sysm, net, **kw, resume=True)
+    path = _resume_file(tmp_path)
+    env = pickle.loads(path.read_bytes())
+    state = pickle.loads(env["value"])
+    state["LB"] = 5.0                                                   # a valid file, one number changed
+    path.write_bytes(pickle.dumps({**env, "value": pickle.dumps(state)}))
+    with pytest.raises(ValueError, match=f"resume file .*{path.name} was changed after it was written"):
+        certify_error(sysm, net, **kw, resume=True)
+    from flnotes.parallel import save_checkpoint
+
+    save_checkpoint("certify", path.stem, {"not": "a state"})              # written by the package, but no state
+    with pytest.raises(ValueError, match=f"resume file .*{path.name} does not hold a saved state"):
+        certify_error(sysm, net, **kw, resume=True)
+
+
+def test_a_certification_resume_file_is_not_used_for_another_phi(monkeypatch, tmp_path):
+    """Two Phi equal at every starting sample, one with a narrow bump between two of them: the second run does not
+    resume the first one's state (another key) and finds its own, much larger error."""
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+    from flnotes import interval as iv
+
+    lo, hi = np.array([-1.0]), np.array([1.0])
+    net = fl.ReLUNet([np.array([[1.0], [-1.0]]), np.zeros((1, 2))], [np.zeros(2), np.zeros(1)])   # Phi_NN = 0
+    kw = dict(rtol=1e-3, n_samples=50, seed=0)
+    x = np.sort(np.random.default_rng(0).uniform(lo, hi, (50, 1))[:, 0])     # the starting samples
+    p, s = float(0.5 * (x[20] + x[21])), 1e-4                          # exp(-((x - p) / s)^2) is 0.0 at each
+
+    def f1(X):
+        return 0.1 * np.sin(X)
+
+    def f1_iv(X):
+        return 0.1 * iv.sin(X)
+
+    def f2(X):
+        return 0.1 * np.sin(X) + np.exp(-(((X - p) / s) ** 2))
+
+    def f2_iv(X):
+        return 0.1 * iv.sin(X) + iv.exp(-iv.sqr((X - p) / s))
+
+    assert np.array_equal(f1(x[:, None]), f2(x[:, None]))               # premise: equal at the samples
+    first = certify_error(f1, net, lo, hi, f_interval=f1_iv, **kw, resume=True)
+    second = certify_error(f2, net, lo, hi, f_interval=f2_iv, **kw, resume=True)
+    fresh = certify_error(f2, net, lo, hi, f_interval=f2_iv, **kw)
+    assert _same(second, fresh) and second.upper[0] > first.upper[0] + 0.5
+    # with Lipschitz constants only, Phi is seen at points: resuming is refused
+    with pytest.raises(ValueError, match="resume=True needs an interval version of Phi"):
+        certify_error(f1, net, lo, hi, lipschitz=2.0, rtol=0.05, resume=True)
 
 
 def test_certification_progress_bar_changes_nothing(capsys):

@@ -25,6 +25,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .. import paper
+from .._checks import check_int, check_number
 from ..arm import arm_net, two_link_arm
 from ..config import MALLOC_SETTINGS, keep_freed_memory
 from ..error import MIN_CHUNK, certify_error, chunk_sizes
@@ -74,8 +75,11 @@ def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: flo
         Per ``W``: ``workers``, ``batch``, ``depth``, ``chunks_per_round``, ``tasks_per_round``, ``rounds`` (that pay
         the engine's overhead), ``wall_s``, ``speedup`` (against W = 1 with the given ``batch``), ``W_half``.
     """
-    if min(n_boxes, batch, chunk, depth) < 1 or min(t_box, t_serial_box, overhead, round_trip) < 0:
-        raise ValueError("n_boxes, batch, chunk, depth must be >= 1 and the times >= 0")
+    for v, name in ((n_boxes, "n_boxes"), (batch, "batch"), (chunk, "chunk"), (depth, "depth"),
+                    *((w, "every entry of workers") for w in workers)):
+        check_int(v, name, 1, "a count")
+    for v, name in ((t_box, "t_box"), (t_serial_box, "t_serial_box"), (overhead, "overhead"), (round_trip, "round_trip")):
+        check_number(v, name, "seconds")
     from ..error import MIN_CHUNK
 
     def o(W: int, tasks: int) -> float:
@@ -335,7 +339,11 @@ def run(fast: bool = False, scheduler: Optional[str] = None) -> dict:
         "on each worker, the engine's round-trip latency plus its per-task cost for each task beyond two (the largest "
         "measured); the rounds that grow from the first partition (4 slices per axis) pay the latency too. The model "
         "check rows put the measured job's own per-box times, rounds and each engine's costs in the model, next to the "
-        "speed-up measured above: how far the model is from a measurement. Fixed: batch 4096, k = 8 chunks, so no gain "
+        "speed-up measured above: how far the model is from a measurement (it leaves out the data a task sends and "
+        "receives, and counts the first rounds, evaluated in the caller's process, as shared by the workers). The "
+        "scaled rows reuse the shipped certification's box count, though their larger batch evaluates somewhat more "
+        "boxes, and the depth rows' gain is an upper estimate (pruning inside a task leaves its last levels smaller "
+        "and slower per box). Fixed: batch 4096, k = 8 chunks, so no gain "
         "beyond 8 workers; scaled: batch = W chunk / 2. W_half = t_box / (t_serial_box + overhead / chunk): beyond "
         "it the serial part and the scheduler's overhead dominate and more workers stop paying. Depth d: d levels of "
         f"bisection per task, the serial part and the overhead per box divided by d (depth {DEPTH} rows).",
