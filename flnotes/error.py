@@ -736,7 +736,7 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         task (the same sound test as the caller's), and bisects its open boxes of largest upper bound,
         at most half its chunk per level, ``d - 1`` more times. Every dependent round then carries up to
         ``d`` times the work for one round trip of the engine: on a Dask cluster, whose round trip costs
-        tens of milliseconds, ``depth=8`` is what makes 2 workers pay (``python -m flnotes.bench
+        tens of milliseconds, ``depth=16`` is what makes 2 workers pay (``python -m flnotes.bench
         parallel``); in one process it changes the time little. The bracket is as sound for every
         ``depth`` and, for a given ``depth`` and ``chunk``, bit-identical on every engine; different
         ``depth`` (or, with ``depth > 1``, ``chunk``) values give different, equally valid brackets

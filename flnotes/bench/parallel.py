@@ -34,7 +34,7 @@ from ..reference import load_reference
 
 WORKERS_MODEL = (1, 2, 8, 32, 128)
 #: Levels of bisection per task in the benchmark's deep schedule (``certify_error(depth=DEPTH)``), beside the default 1.
-DEPTH = 8
+DEPTH = 16
 
 
 def scaling_model(n_boxes: int, t_box: float, t_serial_box: float, overhead: float,
