@@ -1045,8 +1045,8 @@ _STATE_FIELDS = ("LB", "best_x", "pruned_max", "n_eval", "hist", "kept", "elapse
 
 def _checkpoint_of(key: str, every_s: float, first: _Leaves) -> _Checkpoint:
     """The resume file of a certification whose other inputs give ``key`` and whose first partition's bounds are
-    ``first`` (they enclose ``Phi - Phi_NN`` on every box of the first partition: an ``f_interval`` that differs
-    anywhere changes them)."""
+    ``first`` (bounds of ``|Phi - Phi_NN|`` on every box of the first partition: an ``f_interval`` whose enclosure
+    of one of those boxes differs changes them)."""
     digest = hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in (first.ub, first.axis, first.lo,
                                                                                 first.hi))).hexdigest()
     return _Checkpoint(f"{key}-{digest[:12]}", every_s)

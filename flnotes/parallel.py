@@ -53,8 +53,7 @@ import numpy as np
 from .config import MALLOC_SETTINGS, cache_dir, one_blas_thread
 
 __all__ = ["Executor", "TaskFailed", "using", "task_seeds", "task_key", "measure_overhead", "measure_round_trip",
-           "parse_workers",
-           "worker_env", "save_checkpoint", "load_checkpoint", "checkpoint_path"]
+           "parse_workers", "worker_env", "save_checkpoint", "load_checkpoint", "checkpoint_path"]
 
 ENGINES = ("serial", "joblib", "dask")
 
