@@ -24,6 +24,7 @@ two valid bounds (:func:`intersect`) is valid too.
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Optional, Sequence
 
@@ -207,6 +208,7 @@ class LPTightener:
         self._cost = np.zeros(self.n)
         self._all = np.arange(self.n, dtype=np.int32)
         self.n_lp = 0
+        self.lock = threading.Lock()  # one tighten() at a time: HiGHS models are not thread-safe
 
     # -- model changes -------------------------------------------------------------
     def restart(self) -> None:
@@ -273,8 +275,15 @@ class LPTightener:
         layer is reached (a stable neuron needs no binary; its bounds only feed the interval
         bounds of later layers): about half the LPs for the same binaries. With ``deadline`` (a
         ``time.perf_counter()`` value), :class:`DeadlineReached` is raised before an LP that would start after it.
-        The result depends on the arguments only: the model is restarted first (:meth:`restart`).
+        The result depends on the arguments only: the model is restarted first (:meth:`restart`). One call at a
+        time per tightener (a lock): the LP is shared by every caller of :func:`lp_bounds` with the same network,
+        and a controller answered at its cut-off can still be tightening in its thread while another solves.
         """
+        with self.lock:
+            return self._tighten(lo, hi, prior, output, skip_stable, deadline)
+
+    def _tighten(self, lo: Array, hi: Array, prior: Optional[NodeBounds], output: bool, skip_stable: bool,
+                 deadline: Optional[float]) -> NodeBounds:
         net = self.net
         self.restart()
         start = fbbt(net, lo, hi)
@@ -317,18 +326,20 @@ class LPTightener:
 
 
 _TIGHTENERS: dict = {}
+_TIGHTENERS_LOCK = threading.Lock()
 
 
 def _tightener(net: ReLUNet, out_bounds, tol: float) -> LPTightener:
     """One persistent LP per (network, output bounds), reused across calls (the model is only updated)."""
     key = (id(net), None if out_bounds is None else (tuple(np.asarray(out_bounds[0], float)),
                                                       tuple(np.asarray(out_bounds[1], float))), float(tol))
-    t = _TIGHTENERS.get(key)
-    if t is None or t.net is not net:
-        if len(_TIGHTENERS) > 16:
-            _TIGHTENERS.clear()
-        t = _TIGHTENERS[key] = LPTightener(net, out_bounds=out_bounds, tol=tol)
-    return t
+    with _TIGHTENERS_LOCK:
+        t = _TIGHTENERS.get(key)
+        if t is None or t.net is not net:
+            if len(_TIGHTENERS) > 16:
+                _TIGHTENERS.clear()
+            t = _TIGHTENERS[key] = LPTightener(net, out_bounds=out_bounds, tol=tol)
+        return t
 
 
 def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Array, Array]] = None,

@@ -237,3 +237,37 @@ def test_mpc_time_limit_during_lp_bounds_returns_an_admissible_answer():
     assert any(s.status == "time_limit" for s in mpc.history), "the premise: the limit stops some step"
     for s in mpc.history:
         assert (not s.info["plan_feasible"]) or mpc.plan_feasible(s.z_pred, s.v_pred)
+
+
+def test_lp_bounds_from_two_threads_at_once_are_those_of_one_thread(small_net):
+    """The LP of a network is shared by every caller (a controller answered at its cut-off can still be tightening
+    in its thread while another controller solves): two threads tightening the same network at once get the bounds
+    of one thread alone, and nothing crashes."""
+    import threading
+
+    s, net = small_net
+    rng = np.random.default_rng(3)
+    c = rng.uniform(s.lo * 0.5, s.hi * 0.5, (12, net.n_in))
+    lo, hi = c - 0.5, c + 0.5
+    alone = [lp_bounds(net, lo[t], hi[t]) for t in range(len(lo))]
+    seen, errors = {0: [], 1: []}, []
+
+    def run(w: int) -> None:
+        try:
+            for _ in range(5):
+                for t in range(len(lo)):
+                    seen[w].append((t, lp_bounds(net, lo[t], hi[t])))
+        except BaseException as exc:                       # re-raised below, in the test's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(w,)) for w in (0, 1)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors, errors
+    for w in (0, 1):
+        assert len(seen[w]) == 5 * len(lo)
+        for t, b in seen[w]:
+            for k in range(net.K - 1):
+                assert np.array_equal(b.L[k], alone[t].L[k]) and np.array_equal(b.U[k], alone[t].U[k])
