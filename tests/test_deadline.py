@@ -584,6 +584,86 @@ def test_yield_core_lowers_one_thread_only_and_says_when_it_cannot():
     assert yield_core(None) is False
 
 
+def _custom_slices() -> bool:
+    """Does this machine's kernel give a thread of the normal policy the slice it asks for (EEVDF, Linux 6.12+)?"""
+    import platform
+    import re
+
+    m = re.match(r"(\d+)\.(\d+)", os.uname().release) if hasattr(os, "uname") else None
+    return (sys.platform.startswith("linux") and platform.machine() in ("x86_64", "aarch64") and m is not None
+            and (int(m.group(1)), int(m.group(2))) >= (6, 12))
+
+
+def test_answer_slice_is_short_inside_and_set_back_after_even_on_an_error():
+    from flnotes import config
+
+    before = config.thread_slice()
+    with config.answer_slice() as got:
+        inside = config.thread_slice()
+    if _custom_slices():
+        assert got is True, "premise: Linux 6.12+ grants a custom slice"
+    if got:
+        assert inside == round(config.ANSWER_SLICE_S * 1e9)
+    else:
+        assert inside == before                                   # not granted: nothing changed
+    assert config.thread_slice() == before
+    with pytest.raises(RuntimeError, match="inside"):
+        with config.answer_slice(2e-4):
+            raise RuntimeError("inside")
+    assert config.thread_slice() == before
+    for bad in (0.0, 5e-5, 0.2, float("nan"), "1e-4", None):
+        with pytest.raises(ValueError, match="between 1e-4 and 0.1"):
+            with config.answer_slice(bad):
+                pass
+
+
+@pytest.mark.skipif(not _custom_slices(), reason="custom scheduler slices are Linux 6.12+ (EEVDF)")
+def test_answer_slice_gives_back_a_custom_slice_the_thread_had():
+    from flnotes import config
+
+    seen = {}
+
+    def run():  # in its own thread: the test's thread keeps its default slice
+        assert config._set_slice(config._get_attr(), 5_000_000)
+        seen["before"] = config.thread_slice()
+        with config.answer_slice() as got:
+            seen["inside"], seen["got"] = config.thread_slice(), got
+        seen["after"] = config.thread_slice()
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join()
+    assert seen == dict(before=5_000_000, inside=100_000, got=True, after=5_000_000)
+
+
+def test_a_time_limited_step_answers_with_a_short_slice_and_sets_it_back(quad, monkeypatch):
+    """Under a time limit the answering thread runs the step with the short slice of ``answer_slice`` where the
+    kernel grants it (``info["answer_slice"]``), and has its own slice again after the step; without a limit the
+    slice is left alone."""
+    from flnotes import config
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=5.0)
+    inside = []
+    real = mpc._solve_step
+
+    def recorded(*a, **k):
+        inside.append(config.thread_slice())
+        return real(*a, **k)
+
+    monkeypatch.setattr(mpc, "_solve_step", recorded)
+    before = config.thread_slice()
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert s.info["answer_slice"] is _custom_slices() or (s.info["answer_slice"] and not _custom_slices())
+    assert inside == [round(config.ANSWER_SLICE_S * 1e9) if s.info["answer_slice"] else before]
+    assert config.thread_slice() == before
+    no_limit = mpc.clone(time_limit=None)
+    monkeypatch.setattr(no_limit, "_solve_step", recorded)
+    t = no_limit(z, R)
+    assert "answer_slice" not in t.info and inside[-1] == before and config.thread_slice() == before
+
+
 def test_an_error_in_a_cut_off_solve_is_raised_at_the_next_step(quad, monkeypatch):
     """The solve a step answered at its cut-off fails after the answer: the error is raised by the next call, with a
     note saying where it came from (never dropped)."""

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import no_cyclic_gc, one_blas_thread, quick_thread_switch, yield_core
+from ..config import answer_slice, no_cyclic_gc, one_blas_thread, quick_thread_switch, yield_core
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -521,13 +521,17 @@ class MPC:
         thread (:func:`flnotes.config.one_blas_thread`) and, under a time limit, without Python's cyclic garbage
         collector (:func:`flnotes.config.no_cyclic_gc`: a collection runs after the answer, not inside it) and with
         a short interpreter-lock switch interval (:func:`flnotes.config.quick_thread_switch`: the answer at a
-        cut-off does not wait for the engine's thread).
+        cut-off does not wait for the engine's thread) and, on Linux 6.12 and later, a short scheduler slice for the
+        answering thread (:func:`flnotes.config.answer_slice`: waking at the cut-off, it takes a core at once instead
+        of waiting for the running thread's slice to end; ``info["answer_slice"]`` says whether it was granted).
         """
         if self.time_limit is None:
             with one_blas_thread():
                 return self._solve_step(z, z_ref)
-        with one_blas_thread(), no_cyclic_gc(), quick_thread_switch():
-            return self._solve_step(z, z_ref)
+        with one_blas_thread(), no_cyclic_gc(), quick_thread_switch(), answer_slice() as short:
+            step = self._solve_step(z, z_ref)
+        step.info["answer_slice"] = short
+        return step
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
