@@ -828,6 +828,7 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
         assert r["condition"] == "busy process on a core" and r["t_s_ms"] == 200.0
         assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
         assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
+        assert r["short_slice"] == (r["answers"] if _custom_slices() else r["short_slice"]) <= r["answers"]
     assert len(dl.late_answers_notes(rows)) == 3
 
 

@@ -444,7 +444,9 @@ def late_answers_notes(rows: Sequence[dict]) -> list[str]:
                    f"{r['answers']} answers after t_s = {r['t_s_ms']:g} ms ({r['late_cpu']} late by CPU); slowest "
                    f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
                    f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
-                   f"fallbacks, {r['safety_net']} safety-net hits; load {r['load_start']:.1f} -> {r['load_end']:.1f}")
+                   f"fallbacks, {r['safety_net']} safety-net hits; short scheduler slice granted at {r['short_slice']} of "
+                   f"{r['answers']} (fl.config.answer_slice, Linux 6.12+); load {r['load_start']:.1f} -> "
+                   f"{r['load_end']:.1f}")
     return out
 
 
@@ -534,7 +536,9 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
     answers whose step also used more than ``t_s`` of CPU time: late by the controller's own work; the others waited
     for the machine), the slowest answer and the most CPU time over ``t_s``, ``post_max_over_ts`` (the longest time
     after the engine, the fallback and the checks, over ``t_s``) at the fallback steps, limit hits, fallbacks,
-    safety-net hits (under a work budget), and the load average (1 min) at the start and the end of the system's run.
+    safety-net hits (under a work budget), ``short_slice`` (the steps whose answering thread was granted the short
+    scheduler slice of :func:`flnotes.config.answer_slice`), and the load average (1 min) at the start and the end of
+    the system's run.
     """
     import os
     from contextlib import nullcontext
@@ -562,6 +566,7 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              limit_hits=int(sum(s.status == "time_limit" for s, _, _ in recs)),
                              fallbacks=int(sum(s.fallback for s, _, _ in recs)),
                              safety_net=int(sum(bool(s.info.get("safety_net")) for s, _, _ in recs)),
+                             short_slice=int(sum(bool(s.info.get("answer_slice")) for s, _, _ in recs)),
                              work_limit=work_limit,
                              load_start=float(load0), load_end=float(load1)))
     return rows
