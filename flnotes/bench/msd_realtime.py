@@ -136,18 +136,21 @@ def configurations() -> list[tuple[str, dict]]:
 
 #: The SCIP settings for the mixed-integer QPs compared side by side (:func:`scip_settings_runs`): name -> the
 #: ``solver_options["scip"]`` of :class:`flnotes.MPC` (:class:`flnotes.solvers.ScipSolver`'s options). The first is
-#: the profile before (the Quad-1D's lean profile), spelled out so that it stays what it was whatever the default;
-#: "default" is the back-end's default profile, whatever it is.
+#: the lean profile before (one presolving round, restarts as SCIP's default), spelled out so that it stays what it
+#: was whatever the default; each other one spells out its presolving rounds and restarts too; the last is the
+#: back-end's default (:data:`flnotes.solvers.scip.LEAN_PRESOLVE_ROUNDS`, :data:`flnotes.solvers.scip.LEAN_RESTARTS`).
 SCIP_SETTINGS = {
-    "separable, presolve 1 (before)": dict(objective="separable", miqp_params="lean",
-                                           params={"presolving/maxrounds": 1}),
-    "epigraph, presolve 1": dict(objective="epigraph", params={"presolving/maxrounds": 1}),
-    "separable, presolve 0": dict(objective="separable", params={"presolving/maxrounds": 0}),
-    "epigraph, presolve 0": dict(objective="epigraph", params={"presolving/maxrounds": 0}),
-    "epigraph, presolve 0, no restarts": dict(objective="epigraph", params={"presolving/maxrounds": 0,
-                                                                           "presolving/maxrestarts": 0}),
-    "default": {},
+    "separable, presolve 1, restarts (before)": dict(objective="separable", miqp_params="lean",
+                                                     params={"presolving/maxrounds": 1, "presolving/maxrestarts": -1}),
+    "separable, no presolve, restarts": dict(objective="separable",
+                                             params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
+    "epigraph, no presolve, restarts": dict(objective="epigraph",
+                                            params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
+    "epigraph, no presolve, no restarts": dict(objective="epigraph",
+                                               params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0}),
+    "default (separable, no presolve, no restarts)": {},
 }
+
 
 #: Largest relative difference ``|J - J_before| / max(1, |J_before|)`` of two optima that counts as the same optimum
 #: in :func:`scip_settings_table` (the solves ask for a relative gap of 1e-6).
