@@ -86,6 +86,6 @@ def test_scip_settings_table_runs_every_setting_side_by_side_with_the_same_optim
     rows = B.scip_settings_table(runs, "test")
     assert len(rows) == 3 * len(B.SCIP_SETTINGS)
     timed = [r for r in rows if r["pass"] in ("1", "2")]
-    assert all(r["same optimum"] == "yes" for r in timed), [(r["setting"], r["max rel diff"]) for r in timed]
-    assert all(r["speed-up median"] == 1.0 for r in timed if r["setting"] == next(iter(B.SCIP_SETTINGS)))
+    assert all(r["same_optimum"] == "yes" for r in timed), [(r["setting"], r["max_rel_diff"]) for r in timed]
+    assert all(r["speedup_median"] == 1.0 for r in timed if r["setting"] == next(iter(B.SCIP_SETTINGS)))
     assert {r["setting"] for r in rows if r["pass"].startswith("run to run")} == set(B.SCIP_SETTINGS)

@@ -10,7 +10,9 @@ default without a time limit, the one-back-end rows with :data:`ROW_LIMIT` secon
 (``time.process_time``, this process) and wall time are recorded with its status. The cold reference
 (``backend="cvxpy-scip"``, the whole program written with :func:`flnotes.encode`, LP node bounds, solved cold by
 SCIP, :data:`REFERENCE_LIMIT` seconds per state) gives the gap of the optima at the :data:`REFERENCE_STATES` states of
-each set where the default took longest. Speed is measured here, never
+each set where the default took longest. The SCIP settings for the mixed-integer QPs (:data:`SCIP_SETTINGS`: the
+objective's formulation, presolving rounds, restarts) are then compared side by side on the cold states where the
+default took longest and on the loop (:func:`scip_settings_runs`, :func:`scip_settings_table`). Speed is measured here, never
 asserted in tests; the machine may be shared, so single timings are noisy (CPU time less so).
 """
 from __future__ import annotations
@@ -166,7 +168,8 @@ def scip_settings_runs(make, groups: Sequence[Sequence[tuple[Array, Array]]], se
     start of a group, warm-started within it), every state by every setting before the next state, in the order of
     ``settings`` at one state and in the reverse order at the next (and the other way round in the next pass), so
     that the machine's load and the caches hit all alike. Returns name -> one list of records per pass (per state:
-    ``status``, ``objective``, ``cpu`` and ``wall`` s of the whole step, ``scip``: the programs handed to SCIP).
+    ``status``, ``objective``, ``cpu`` and ``wall`` s of the whole step, ``scip``: the programs handed to SCIP,
+    ``n_bin``: the binaries of the step's last program).
     """
     settings = SCIP_SETTINGS if settings is None else settings
     names = list(settings)
@@ -215,26 +218,26 @@ def scip_settings_table(runs: dict, states: str) -> list[dict]:
                     if r["status"] == q["status"] == "optimal"]
             same = all(r["status"] == q["status"] for r, q in zip(recs, b)) and max(diff, default=0.0) <= SAME_OPTIMUM
             rows.append({"states": states, "setting": k, "pass": str(p + 1), "n": len(recs),
-                         "scip steps": int(sum(bool(r["scip"]) for r in recs)),
-                         "cpu median ms": 1e3 * float(np.median(cpu)) if cpu.size else np.nan,
-                         "cpu max ms": 1e3 * float(cpu.max()) if cpu.size else np.nan,
-                         "cpu total s": float(cpu.sum()),
-                         "speed-up median": float(np.median(sp_)) if sp_.size else np.nan,
-                         "speed-up min": float(sp_.min()) if sp_.size else np.nan,
-                         "speed-up max": float(sp_.max()) if sp_.size else np.nan,
-                         "same optimum": "yes" if same else "NO", "max rel diff": float(max(diff, default=0.0))})
+                         "scip_steps": int(sum(bool(r["scip"]) for r in recs)),
+                         "cpu_median_ms": 1e3 * float(np.median(cpu)) if cpu.size else np.nan,
+                         "cpu_max_ms": 1e3 * float(cpu.max()) if cpu.size else np.nan,
+                         "cpu_total_s": float(cpu.sum()),
+                         "speedup_median": float(np.median(sp_)) if sp_.size else np.nan,
+                         "speedup_min": float(sp_.min()) if sp_.size else np.nan,
+                         "speedup_max": float(sp_.max()) if sp_.size else np.nan,
+                         "same_optimum": "yes" if same else "NO", "max_rel_diff": float(max(diff, default=0.0))})
     for k in names:
         if len(runs[k]) >= 2:
             r12 = _ratios(runs[k][0], runs[k][1])
             cpu = [r["cpu"] for r in runs[k][1]]
             rows.append({"states": states, "setting": k, "pass": "run to run (1 / 2)", "n": len(cpu),
-                         "scip steps": int(sum(bool(r["scip"]) for r in runs[k][1])),
-                         "cpu median ms": np.nan, "cpu max ms": np.nan,
-                         "cpu total s": float(sum(r["cpu"] for r in runs[k][0]) / max(sum(cpu), 1e-9)),
-                         "speed-up median": float(np.median(r12)) if r12.size else np.nan,
-                         "speed-up min": float(r12.min()) if r12.size else np.nan,
-                         "speed-up max": float(r12.max()) if r12.size else np.nan,
-                         "same optimum": "", "max rel diff": np.nan})
+                         "scip_steps": int(sum(bool(r["scip"]) for r in runs[k][1])),
+                         "cpu_median_ms": np.nan, "cpu_max_ms": np.nan,
+                         "cpu_total_s": float(sum(r["cpu"] for r in runs[k][0]) / max(sum(cpu), 1e-9)),
+                         "speedup_median": float(np.median(r12)) if r12.size else np.nan,
+                         "speedup_min": float(r12.min()) if r12.size else np.nan,
+                         "speedup_max": float(r12.max()) if r12.size else np.nan,
+                         "same_optimum": "", "max_rel_diff": np.nan})
     return rows
 
 
@@ -320,10 +323,10 @@ def run(fast: bool) -> dict:
              "HiGHS solves no mixed-integer QP: no row of its own (the engine uses it for LP bounds and QPs).",
              "SCIP setting rows: the default MIQP with each SCIP setting of SCIP_SETTINGS (solver_options['scip']) on "
              "the same states, interleaved state by state (the order reversed at every other state and in the second "
-             "pass), two passes with fresh controllers; cpu: whole step; scip steps: steps that handed a program to "
-             "SCIP; speed-up: per state, cpu of the first setting (the profile before) / cpu of the row's, same pass, "
-             "over the scip steps (median, min, max); same optimum: every status the same and every objective within "
+             "pass), two passes with fresh controllers; cpu: whole step; scip_steps: steps that handed a program to "
+             "SCIP; speedup: per state, cpu of the first setting (the profile before) / cpu of the row's, same pass, "
+             "over the scip steps (median, min, max); same_optimum: every status the same and every objective within "
              f"{SAME_OPTIMUM:g} (relative) of the first setting's; run to run: per-state cpu of pass 1 / pass 2 of the "
-             "same setting, the spread a speed-up must exceed (its cpu total s column: the ratio of the totals)."]
+             "same setting, the spread a speed-up must exceed (its cpu_total_s column: the ratio of the totals)."]
     return dict(title="MSD real time: per-step time of the MIQP on hard states, per back-end", rows=rows, notes=notes,
                 figures=[])
