@@ -89,3 +89,6 @@ def test_scip_settings_table_runs_every_setting_side_by_side_with_the_same_optim
     assert all(r["same_optimum"] == "yes" for r in timed), [(r["setting"], r["max_rel_diff"]) for r in timed]
     assert all(r["speedup_median"] == 1.0 for r in timed if r["setting"] == next(iter(B.SCIP_SETTINGS)))
     assert {r["setting"] for r in rows if r["pass"].startswith("run to run")} == set(B.SCIP_SETTINGS)
+    for bad in (dict(passes=0), dict(passes=1.5), dict(settings={})):
+        with pytest.raises(ValueError, match="scip_settings_runs"):
+            B.scip_settings_runs(make, groups, **bad)

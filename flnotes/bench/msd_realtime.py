@@ -172,6 +172,9 @@ def scip_settings_runs(make, groups: Sequence[Sequence[tuple[Array, Array]]], se
     ``n_bin``: the binaries of the step's last program).
     """
     settings = SCIP_SETTINGS if settings is None else settings
+    if not settings or isinstance(passes, bool) or int(passes) != passes or passes < 1:
+        raise ValueError(f"scip_settings_runs needs at least one setting and passes >= 1 (an integer), got "
+                         f"{len(settings)} settings and passes={passes!r}")
     names = list(settings)
     out: dict = {k: [] for k in names}
     for p in range(int(passes)):
