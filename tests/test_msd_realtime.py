@@ -58,3 +58,37 @@ def test_hardest_picks_the_longest_steps_in_order():
     recs = [dict(cpu=c) for c in (0.1, 3.0, 0.2, 5.0, 3.0)]
     assert B.hardest(recs, 2) == [1, 3]
     assert B.hardest(recs, 10) == [0, 1, 2, 3, 4]
+
+
+def test_scip_settings_table_runs_every_setting_side_by_side_with_the_same_optimum():
+    """The side-by-side table of SCIP settings on a small program that goes to SCIP: every setting and pass gives a
+    row, the first setting is the reference of its pass (speed-up 1), every optimum is the same, and a run-to-run row
+    per setting compares its two passes (no timing is asserted)."""
+    import flnotes as fl
+    from _nets import test_net
+
+    net, _ = test_net("quad1d-6x6")
+    opts = fl.MPCOptions(backend="scip", screening=False, bounds="horizon", encode="all", lazy=False)
+    make = lambda o: fl.MPC(fl.quad1d(), net, 0.0324, horizon=4, ts=0.1, Q=[10.0, 1.0, 1.0], R=0.0175,  # noqa: E731
+                            options=opts, solver_options=o)
+    rng = np.random.default_rng(0)
+    states = []
+    for _ in range(3):
+        zr = np.zeros((5, 3))
+        z0 = rng.uniform([-1, -2, -2], [1, 2, 2])
+        zr[:, 0], zr[:, 1] = rng.uniform(-3, 3), rng.uniform(-2, 2)
+        states.append((z0, zr))
+    groups = [states[:2], states[2:]]
+    runs = B.scip_settings_runs(make, groups, passes=2)
+    assert list(runs) == list(B.SCIP_SETTINGS) and all(len(v) == 2 and len(v[0]) == 3 for v in runs.values())
+    assert all(r["scip"] >= 1 and r["n_bin"] > 0 for v in runs.values() for p in v for r in p), \
+        "the premise: every step hands a mixed-integer program to SCIP"
+    rows = B.scip_settings_table(runs, "test")
+    assert len(rows) == 3 * len(B.SCIP_SETTINGS)
+    timed = [r for r in rows if r["pass"] in ("1", "2")]
+    assert all(r["same_optimum"] == "yes" for r in timed), [(r["setting"], r["max_rel_diff"]) for r in timed]
+    assert all(r["speedup_median"] == 1.0 for r in timed if r["setting"] == next(iter(B.SCIP_SETTINGS)))
+    assert {r["setting"] for r in rows if r["pass"].startswith("run to run")} == set(B.SCIP_SETTINGS)
+    for bad in (dict(passes=0), dict(passes=1.5), dict(settings={})):
+        with pytest.raises(ValueError, match="scip_settings_runs"):
+            B.scip_settings_runs(make, groups, **bad)

@@ -320,6 +320,46 @@ def test_scip_objective_formulations_and_settings_find_the_brute_force_optimum(s
         make_solver(milp, "scip", objective="separable")
 
 
+def test_scip_default_miqp_profile_is_the_documented_one():
+    """The default SCIP model of a mixed-integer QP is what ScipSolver's docstring says: the separable objective, the
+    aggregation separator and the primal heuristics off, no presolving round (LEAN_PRESOLVE_ROUNDS = 0) and no
+    restart (LEAN_RESTARTS = 0); ``miqp_params="default"`` and an MILP keep SCIP's settings; the benchmark's profile
+    before spells out one round and SCIP's restarts, and its last setting is the default."""
+    from flnotes.bench.msd_realtime import SCIP_SETTINGS
+    from flnotes.solvers import scip as S
+
+    assert S.LEAN_PRESOLVE_ROUNDS == 0 and S.LEAN_RESTARTS == 0
+    p = random_program(0)
+    s = make_solver(p, "scip")
+    m = s._m
+    assert s._sq and s._t is None  # the separable formulation: one epigraph per eigenvalue
+    assert m.getParam("presolving/maxrounds") == 0 and m.getParam("presolving/maxrestarts") == 0
+    assert m.getParam("separating/aggregation/freq") == -1 and m.getParam("heuristics/undercover/freq") == -1
+    for other in (make_solver(p, "scip", miqp_params="default")._m, make_solver(random_program(0, quad=False), "scip")._m):
+        assert other.getParam("presolving/maxrounds") == -1 and other.getParam("presolving/maxrestarts") == -1
+        assert other.getParam("separating/aggregation/freq") != -1
+    before = make_solver(p, "scip", **SCIP_SETTINGS["separable, presolve 1, restarts (before)"])._m
+    assert before.getParam("presolving/maxrounds") == 1 and before.getParam("presolving/maxrestarts") == -1
+    assert list(SCIP_SETTINGS.values())[-1] == {} and list(SCIP_SETTINGS)[-1].startswith("default")
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_every_scip_setting_the_benchmark_compares_gives_the_same_optimum(seed):
+    """The SCIP settings of the benchmark's side-by-side table (``msd_realtime.SCIP_SETTINGS``: objective, presolving
+    rounds, restarts) are the same program: each gives the brute-force optimum, cold and warm-started, with an honest
+    bound."""
+    from flnotes.bench.msd_realtime import SCIP_SETTINGS
+
+    p = random_program(seed)
+    ref = brute_force(p)
+    for name, opts in SCIP_SETTINGS.items():
+        s = make_solver(p, "scip", **opts)
+        for ws in (None, s.solve().w):
+            r = s.solve(warm_start=ws)
+            assert r.status == "optimal" and rel(r.objective, ref) <= RTOL, (name, r.message)
+            assert r.bound <= ref + 1e-9 * max(1.0, abs(ref)) and p.violation(r.w) <= 1e-6
+
+
 def test_daqp_hands_its_scip_options_to_the_verification():
     """DAQP's ``scip_options`` reach the SCIP model that checks a claim (here every claim of infeasibility of a
     warm-started MIQP), and a bad value is an error that names the option."""

@@ -10,7 +10,9 @@ default without a time limit, the one-back-end rows with :data:`ROW_LIMIT` secon
 (``time.process_time``, this process) and wall time are recorded with its status. The cold reference
 (``backend="cvxpy-scip"``, the whole program written with :func:`flnotes.encode`, LP node bounds, solved cold by
 SCIP, :data:`REFERENCE_LIMIT` seconds per state) gives the gap of the optima at the :data:`REFERENCE_STATES` states of
-each set where the default took longest. Speed is measured here, never
+each set where the default took longest. The SCIP settings for the mixed-integer QPs (:data:`SCIP_SETTINGS`: the
+objective's formulation, presolving rounds, restarts) are then compared side by side on the cold states where the
+default took longest and on the loop (:func:`scip_settings_runs`, :func:`scip_settings_table`). Speed is measured here, never
 asserted in tests; the machine may be shared, so single timings are noisy (CPU time less so).
 """
 from __future__ import annotations
@@ -37,6 +39,10 @@ REFERENCE_STATES = 10
 #: Seconds per step given to the side-by-side rows (one back-end for every program): a row whose solver takes minutes on
 #: some program still ends; a step stopped there counts as ``time_limit`` (never as optimal). The default rows have none.
 ROW_LIMIT = 30.0
+
+#: Cold states of the side-by-side table of SCIP settings (:func:`scip_settings_runs`): those where the default took
+#: the most CPU time.
+SCIP_COLD_STATES = 8
 
 #: The kinds of :func:`cold_states`.
 COLD_KINDS = ("uniform", "face", "active", "reference")
@@ -108,7 +114,8 @@ def replay(ctrl: MPC, groups: Sequence[Sequence[tuple[Array, Array]]]) -> list[d
         for z, R in g:
             res, cpu, wall = timed(ctrl, z, R)
             out.append(dict(status=res.status, objective=float(res.objective) if res.v is not None else np.nan,
-                            cpu=cpu, wall=wall, backend=res.backend, n_bin=res.n_binaries, nodes=res.nodes))
+                            cpu=cpu, wall=wall, backend=res.backend, n_bin=res.n_binaries, nodes=res.nodes,
+                            scip=int(res.info.get("scip_programs", 0))))
     return out
 
 
@@ -126,6 +133,114 @@ def configurations() -> list[tuple[str, dict]]:
             ("DAQP only", one("daqp"))]
     have = available_backends()
     rows += [(f"{b.upper()} only", one(b)) for b in ("gurobi", "cplex") if b in have]
+    return rows
+
+
+#: The SCIP settings for the mixed-integer QPs compared side by side (:func:`scip_settings_runs`): name -> the
+#: ``solver_options["scip"]`` of :class:`flnotes.MPC` (:class:`flnotes.solvers.ScipSolver`'s options). The first is
+#: the lean profile before (one presolving round, restarts as SCIP's default), spelled out so that it stays what it
+#: was whatever the default; each other one spells out its presolving rounds and restarts too; the last is the
+#: back-end's default (:data:`flnotes.solvers.scip.LEAN_PRESOLVE_ROUNDS`, :data:`flnotes.solvers.scip.LEAN_RESTARTS`).
+SCIP_SETTINGS = {
+    "separable, presolve 1, restarts (before)": dict(objective="separable", miqp_params="lean",
+                                                     params={"presolving/maxrounds": 1, "presolving/maxrestarts": -1}),
+    "separable, no presolve, restarts": dict(objective="separable",
+                                             params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
+    "epigraph, no presolve, restarts": dict(objective="epigraph",
+                                            params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
+    "epigraph, no presolve, no restarts": dict(objective="epigraph",
+                                               params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0}),
+    "default (separable, no presolve, no restarts)": {},
+}
+
+
+#: Largest relative difference ``|J - J_before| / max(1, |J_before|)`` of two optima that counts as the same optimum
+#: in :func:`scip_settings_table` (the solves ask for a relative gap of 1e-6).
+SAME_OPTIMUM = 1e-6
+
+
+def scip_settings_runs(make, groups: Sequence[Sequence[tuple[Array, Array]]], settings: Optional[dict] = None,
+                       passes: int = 2) -> dict:
+    """Every SCIP setting of ``settings`` (default :data:`SCIP_SETTINGS`) on the same states, side by side.
+
+    ``make(scip_options)`` returns a fresh :class:`flnotes.MPC` with those SCIP options. In each of ``passes`` passes
+    every setting gets a new controller; the states of ``groups`` are solved in order (each controller reset at the
+    start of a group, warm-started within it), every state by every setting before the next state, in the order of
+    ``settings`` at one state and in the reverse order at the next (and the other way round in the next pass), so
+    that the machine's load and the caches hit all alike. Returns name -> one list of records per pass (per state:
+    ``status``, ``objective``, ``cpu`` and ``wall`` s of the whole step, ``scip``: the programs handed to SCIP,
+    ``n_bin``: the binaries of the step's last program).
+    """
+    settings = SCIP_SETTINGS if settings is None else settings
+    if not settings or isinstance(passes, bool) or int(passes) != passes or passes < 1:
+        raise ValueError(f"scip_settings_runs needs at least one setting and passes >= 1 (an integer), got "
+                         f"{len(settings)} settings and passes={passes!r}")
+    names = list(settings)
+    out: dict = {k: [] for k in names}
+    for p in range(int(passes)):
+        ctrls = {k: make(dict(v)) for k, v in settings.items()}
+        recs: dict = {k: [] for k in names}
+        i = 0
+        for g in groups:
+            for c in ctrls.values():
+                c.reset()
+            for z, R in g:
+                for k in (names if (i + p) % 2 == 0 else names[::-1]):
+                    res, cpu, wall = timed(ctrls[k], z, R)
+                    recs[k].append(dict(status=res.status, objective=float(res.objective) if res.v is not None
+                                        else np.nan, cpu=cpu, wall=wall, scip=int(res.info.get("scip_programs", 0)),
+                                        n_bin=int(res.n_binaries)))
+                i += 1
+        for k in names:
+            out[k].append(recs[k])
+    return out
+
+
+def _ratios(before: Sequence[dict], after: Sequence[dict], scip_only: bool = True) -> np.ndarray:
+    """Per state ``cpu before / cpu after`` (the speed-up), over the states where either handed a program to SCIP
+    (``scip_only``) or all."""
+    return np.array([b["cpu"] / max(a["cpu"], 1e-9) for b, a in zip(before, after)
+                     if not scip_only or b["scip"] or a["scip"]], float)
+
+
+def scip_settings_table(runs: dict, states: str) -> list[dict]:
+    """The rows of :func:`scip_settings_runs`: per setting and pass, CPU time per step (median, max, in all), the
+    steps that handed a program to SCIP, the per-state speed-up against the first setting of the same pass on those
+    steps (``cpu before / cpu``: median, min, max) and whether every optimum is the same (every status the same and
+    the objectives within :data:`SAME_OPTIMUM`, relative). Then, per setting, a ``run to run`` row: the per-state
+    ratio of its two passes (``cpu pass 1 / cpu pass 2``), the spread a speed-up must exceed to mean anything."""
+    names = list(runs)
+    base = runs[names[0]]
+    rows = []
+    for k in names:
+        for p, recs in enumerate(runs[k]):
+            b = base[p]
+            sp_ = _ratios(b, recs)
+            cpu = np.array([r["cpu"] for r in recs], float)
+            diff = [abs(r["objective"] - q["objective"]) / max(1.0, abs(q["objective"])) for r, q in zip(recs, b)
+                    if r["status"] == q["status"] == "optimal"]
+            same = all(r["status"] == q["status"] for r, q in zip(recs, b)) and max(diff, default=0.0) <= SAME_OPTIMUM
+            rows.append({"states": states, "setting": k, "pass": str(p + 1), "n": len(recs),
+                         "scip_steps": int(sum(bool(r["scip"]) for r in recs)),
+                         "cpu_median_ms": 1e3 * float(np.median(cpu)) if cpu.size else np.nan,
+                         "cpu_max_ms": 1e3 * float(cpu.max()) if cpu.size else np.nan,
+                         "cpu_total_s": float(cpu.sum()),
+                         "speedup_median": float(np.median(sp_)) if sp_.size else np.nan,
+                         "speedup_min": float(sp_.min()) if sp_.size else np.nan,
+                         "speedup_max": float(sp_.max()) if sp_.size else np.nan,
+                         "same_optimum": "yes" if same else "NO", "max_rel_diff": float(max(diff, default=0.0))})
+    for k in names:
+        if len(runs[k]) >= 2:
+            r12 = _ratios(runs[k][0], runs[k][1])
+            cpu = [r["cpu"] for r in runs[k][1]]
+            rows.append({"states": states, "setting": k, "pass": "run to run (1 / 2)", "n": len(cpu),
+                         "scip_steps": int(sum(bool(r["scip"]) for r in runs[k][1])),
+                         "cpu_median_ms": np.nan, "cpu_max_ms": np.nan,
+                         "cpu_total_s": float(sum(r["cpu"] for r in runs[k][0]) / max(sum(cpu), 1e-9)),
+                         "speedup_median": float(np.median(r12)) if r12.size else np.nan,
+                         "speedup_min": float(r12.min()) if r12.size else np.nan,
+                         "speedup_max": float(r12.max()) if r12.size else np.nan,
+                         "same_optimum": "", "max_rel_diff": np.nan})
     return rows
 
 
@@ -181,6 +296,23 @@ def run(fast: bool) -> dict:
             refs[k][i] = J
         n_proven[k] = (sum(J is not None for J in opt), len(pick))
     rows = [summarize(name, k, recs[name][k], refs[k], s["ts"]) for name, _ in configurations() for k in sets]
+    # SCIP's settings for the mixed-integer QPs side by side: the cold states where the default took longest (fast
+    # mode: the quickest one that reached SCIP) and the loop (full mode only)
+    cold_recs = recs["default (auto)"]["cold"]
+    if fast:
+        pool = [i for i, r in enumerate(cold_recs) if r["scip"]] or list(range(len(cold_recs)))
+        pick = [min(pool, key=lambda i: cold_recs[i]["cpu"])]
+    else:
+        pick = hardest(cold_recs, SCIP_COLD_STATES)
+    make = lambda o: controller(s, solver_options={"scip": o})  # noqa: E731
+    flat_cold = [x for grp in sets["cold"] for x in grp]
+    scip_sets = {f"cold, {len(pick)} hardest": [[flat_cold[i]] for i in pick]} if not fast else {
+        "cold, 1 state": [[flat_cold[i]] for i in pick]}
+    if not fast:
+        scip_sets["loop"] = loops
+    for k, g in scip_sets.items():
+        rows += [{"configuration": f"SCIP setting: {r.pop('setting')}", **r}
+                 for r in scip_settings_table(scip_settings_runs(make, g), k)]
     notes = [f"MSD, N_p = {s['horizon']}, t_s = {s['ts']} s, Q = diag(10, 1), R = 0.01, eps = {s['eps']:.4f}, the "
              f"shipped (20, 20, 20) network; loop: {n_sc} Monte Carlo scenarios x {t_final} s in closed loop with the "
              f"default MIQP ({len(recs['default (auto)']['loop'])} states), replayed in order (warm start); cold: "
@@ -191,6 +323,13 @@ def run(fast: bool) -> dict:
              f"reference (cvxpy-scip, LP node bounds, gap 1e-9, {limit:g} s per state), run at the {n_ref} states of "
              f"each set where the default took the {'least' if fast else 'most'} CPU time; it proved "
              + ", ".join(f"{p} of {n} {k} states" for k, (p, n) in n_proven.items()) + ".",
-             "HiGHS solves no mixed-integer QP: no row of its own (the engine uses it for LP bounds and QPs)."]
+             "HiGHS solves no mixed-integer QP: no row of its own (the engine uses it for LP bounds and QPs).",
+             "SCIP setting rows: the default MIQP with each SCIP setting of SCIP_SETTINGS (solver_options['scip']) on "
+             "the same states, interleaved state by state (the order reversed at every other state and in the second "
+             "pass), two passes with fresh controllers; cpu: whole step; scip_steps: steps that handed a program to "
+             "SCIP; speedup: per state, cpu of the first setting (the profile before) / cpu of the row's, same pass, "
+             "over the scip steps (median, min, max); same_optimum: every status the same and every objective within "
+             f"{SAME_OPTIMUM:g} (relative) of the first setting's; run to run: per-state cpu of pass 1 / pass 2 of the "
+             "same setting, the spread a speed-up must exceed (its cpu_total_s column: the ratio of the totals)."]
     return dict(title="MSD real time: per-step time of the MIQP on hard states, per back-end", rows=rows, notes=notes,
                 figures=[])

@@ -100,6 +100,7 @@ def _step_result(pred: Prediction, z0: Array, f: Array, c0: float, status: str, 
                      screened=screened, backend="qp-screening" if screened else st.get("backend", ""),
                      message=msg, warm_started=warm)
     res.info["lp_rounds"] = st.get("lp_rounds", 0)  # level-set rounds whose node bounds were LP-tightened
+    res.info["scip_programs"] = st.get("scip_programs", 0)  # programs of the rounds handed to SCIP
     res.info["incumbent"] = st.get("incumbent")  # where the first incumbent came from (None: none)
     res.info["region_improved"] = st.get("region", False)  # the region QP made it cheaper
     res.info["tightened"] = st.get("tightened", 0)  # times u_max^eps was tightened in the rows (solver tolerance)
@@ -440,6 +441,7 @@ class NetworkEngine:
                     retire(solver)  # a SCIP or HiGHS model is freed at the next step, not inside this one
                 st["nodes"] += int(res.nodes)
                 st["rounds"] += 1
+                st["scip_programs"] = st.get("scip_programs", 0) + (backend == "scip")
                 publish(inc_V, inc_J, lb, incumbent_from)
                 status = _status(res.status)
                 if status != "optimal":

@@ -36,11 +36,28 @@ POLISH_MIN_LEFT = 0.003
 #: SCIP's settings for a mixed-integer QP (:class:`ScipSolver`, option ``miqp_params``).
 MIQP_PARAMS = ("lean", "default")
 
-#: ``miqp_params="lean"``: presolving rounds (SCIP's default -1: until nothing changes). Measured on the SCIP
+#: ``miqp_params="lean"``: presolving rounds (SCIP's default -1: until nothing changes). Measured first on the SCIP
 #: programs of the book's Quad-1D loops at N_p = 15 and 20 and of 120 diverse states at N_p = 10 (chapter "Making it
-#: real-time"): one round took 16-32 % less time in all than unlimited rounds; none (0) was faster on two of
-#: the three sets but 14 % slower at N_p = 20.
-LEAN_PRESOLVE_ROUNDS = 1
+#: real-time"): one round took 16-32 % less time in all than unlimited rounds. Measured again side by side with
+#: :data:`LEAN_RESTARTS` (``python -m flnotes.bench msd_realtime``, :func:`flnotes.bench.msd_realtime.scip_settings_runs`:
+#: CPU time of whole MPC steps, one process, the settings interleaved state by state, two passes; per-state speed-up
+#: of none and no restarts against one round and restarts, the two passes' medians, min-max over both): the MSD's 8
+#: hardest of 40 cold states x1.22 and x1.23 (1.13-1.56), its Monte Carlo loop (3 scenarios x 3 s, the 12 steps that
+#: reached SCIP) x1.21 and x1.21 (1.03-1.43), the Quad-1D loop at N_p = 20 (the 6 of 60 steps that reached SCIP) x1.25 and x1.21
+#: (1.13-1.46), at N_p = 15 (1 of 60 steps) x1.15 and x1.06, the MSD with the (30, 30, 30) network of the size study
+#: (7 of 10 cold states) x1.09 and x1.10 (1.06-1.16), the Quad-1D with the (20, 20, 20) network at N_p = 20 (6 of 8
+#: cold states) x1.17 and x1.13 (0.94-1.30); the per-state ratio of one setting's two passes lay within
+#: 0.90-1.10 (a median's within 0.96-1.04). Same optima everywhere. (At N_p = 10 no program of the book's Quad-1D
+#: loop reaches SCIP.)
+LEAN_PRESOLVE_ROUNDS = 0
+
+#: ``miqp_params="lean"``: restarts of the root (SCIP's ``presolving/maxrestarts``, default -1: unlimited). With
+#: presolving off, a restart still presolves the program anew and solves the root again; on the programs of
+#: :data:`LEAN_PRESOLVE_ROUNDS` restarts cost time or nothing: no presolve with restarts against none without
+#: (speed-ups against the profile before), Quad-1D loop at N_p = 20 x1.07 and x1.04 against x1.25 and x1.21, MSD
+#: loop x1.12 and x1.13 against x1.21 and x1.21, MSD (30, 30, 30) x1.06 and x1.06 against x1.09 and x1.10, MSD cold
+#: x1.21 and x1.25 against x1.22 and x1.23 (the same within the spread).
+LEAN_RESTARTS = 0
 
 
 #: What SoPlex (SCIP's LP solver) writes straight to the C streams, whatever SCIP's verbosity (``hideOutput`` does not
@@ -188,18 +205,24 @@ class ScipSolver(Solver):
     ``H_S = Q diag(lam) Q'`` the eigendecomposition of ``H`` on the variables ``S`` it touches,
     ``0.5 w'Hw = sum_i 0.5 lam_i y_i^2`` with ``y = Q' w_S``; the model gets ``y`` (linear rows) and one
     epigraph ``0.5 lam_i y_i^2 <= s_i`` per positive ``lam_i`` and minimizes ``sum_i s_i + c'w + c0``, the
-    extended (disaggregated) formulation whose tangent cuts close the gap of a convex quadratic far faster
-    than those of one epigraph. ``"epigraph"``: ``min t + c'w + c0`` s.t. ``0.5 w'Hw <= t``. Both are the
-    same program. Option ``miqp_params`` (a program with ``H`` only): ``"lean"`` (default) turns SCIP's
-    aggregation separator (c-MIR, flow cover, knapsack cover cuts) and its primal heuristics off and stops
-    presolving after :data:`LEAN_PRESOLVE_ROUNDS` round, where the book's big-M programs spent much of their
-    time without gain (chapter "Making it real-time", measured by ``python -m flnotes.bench mpc``);
-    ``"default"`` keeps SCIP's settings. Option ``params`` sets any SCIP parameter after these. Either never changes the
-    optimum, only the time to prove it. The model is persistent: between solves it
-    is returned to the problem stage (``freeTransform``) and bounds, row
-    sides and coefficients are changed in place (``chgVarLb/Ub``,
-    ``chgLhs/chgRhs``, ``chgCoefLinear``); the linear objective is reset with
-    ``setObjective``. A warm start is added as a solution (``addSol``).
+    extended (disaggregated) formulation whose tangent cuts approximate each one-dimensional term on its own (on
+    the book's Quad-1D programs they closed the gap far faster than those of one epigraph; not on every program, see
+    below). ``"epigraph"``: ``min t + c'w + c0`` s.t. ``0.5 w'Hw <= t``. Both are the
+    same program. Measured side by side against the profile before (``python -m flnotes.bench msd_realtime``, see
+    :data:`LEAN_PRESOLVE_ROUNDS`), one epigraph with the lean settings was as fast or faster on the MSD (hardest cold
+    states x1.35 and x1.40 where ``"separable"`` gave x1.22 and x1.23, loop x1.24 and x1.23 against x1.21 and x1.21,
+    the (30, 30, 30) network x1.09 and x1.13 against x1.09 and x1.10) but slower on the book's Quad-1D loop at N_p =
+    20 (x0.86 and x0.83 against x1.25 and x1.21, per state down to x0.39), on programs of 56 to 105 binaries like the
+    MSD loop's 56 to 220: no rule by size separates them, and ``"separable"`` stays the default. Option
+    ``miqp_params`` (a program with ``H`` only): ``"lean"`` (default) turns SCIP's aggregation separator (c-MIR, flow
+    cover, knapsack cover cuts) and its primal heuristics off, presolves :data:`LEAN_PRESOLVE_ROUNDS` rounds (none)
+    and restarts the root :data:`LEAN_RESTARTS` times (never), where the book's big-M programs spent much of their
+    time without gain (chapter "Making it real-time", ``python -m flnotes.bench mpc`` and ``msd_realtime``);
+    ``"default"`` keeps SCIP's settings. Option ``params`` sets any SCIP parameter after these. Either never changes
+    the optimum, only the time to prove it. The model is persistent: between solves it is returned to the problem
+    stage (``freeTransform``) and bounds, row sides and coefficients are changed in place (``chgVarLb/Ub``,
+    ``chgLhs/chgRhs``, ``chgCoefLinear``); the linear objective is reset with ``setObjective``.
+    A warm start is added as a solution (``addSol``).
     """
 
     name = "scip"
@@ -222,6 +245,7 @@ class ScipSolver(Solver):
             m.setHeuristics(scip.SCIP_PARAMSETTING.OFF)
             m.setParam("separating/aggregation/freq", -1)
             m.setParam("presolving/maxrounds", LEAN_PRESOLVE_ROUNDS)
+            m.setParam("presolving/maxrestarts", LEAN_RESTARTS)
         for k, v in self.options.get("params", {}).items():
             m.setParam(k, v)
         self._inf = m.infinity()
