@@ -8,9 +8,12 @@ Tests still check the real properties, only on less data.
 from __future__ import annotations
 
 import gc
+import numbers
 import os
 import sys
+import threading
 from contextlib import contextmanager
+from functools import lru_cache
 from pathlib import Path
 from typing import Optional, TypeVar
 
@@ -140,6 +143,7 @@ ANSWER_SLICE_S = 1e-4
 _SCHED_ATTR_CALLS = {"x86_64": (314, 315), "aarch64": (274, 275)}
 
 
+@lru_cache(maxsize=None)
 def _sched_attr():
     """The ``struct sched_attr`` type and the two system calls, or ``None`` where this is not Linux on a known machine."""
     import ctypes
@@ -181,11 +185,46 @@ def _get_attr():
     return attr
 
 
-def _set_slice(attr, runtime_ns: int) -> bool:
+#: ``sched_flags`` bit of a thread that resets its policy in children (``SCHED_RESET_ON_FORK``), kept by the slice changes.
+_RESET_ON_FORK = 0x01
+
+
+def _set_slice(runtime_ns: int) -> bool:
+    """Set the calling thread's slice (``sched_runtime``; 0: the default), keeping its policy, nice value, priority
+    and reset-on-fork flag as they are now (read just before). Only for the normal policy; whether it was accepted."""
+    cur = _get_attr()
+    if cur is None or cur.sched_policy != 0:
+        return False
     ctypes, SchedAttr, syscall, (set_call, _) = _sched_attr()
-    new = SchedAttr(size=48, sched_policy=attr.sched_policy, sched_flags=0, sched_nice=attr.sched_nice,
-                    sched_priority=attr.sched_priority, sched_runtime=int(runtime_ns))
+    new = SchedAttr(size=48, sched_policy=cur.sched_policy, sched_flags=int(cur.sched_flags) & _RESET_ON_FORK,
+                    sched_nice=cur.sched_nice, sched_priority=cur.sched_priority, sched_runtime=int(runtime_ns))
     return syscall(set_call, 0, ctypes.byref(new), 0) == 0
+
+
+def set_back_slice(runtime_ns: Optional[int]) -> None:
+    """Give the calling thread the slice ``runtime_ns`` it had (as read by :func:`thread_slice`): its default slice
+    when that is what it had, else that custom slice. ``None`` (nothing was read): nothing is changed.
+
+    A thread created inside :func:`answer_slice` inherits the short slice (Linux copies it to new threads); the
+    engine's thread of a time-limited :class:`flnotes.MPC` step calls this first, with the slice its creator had
+    before the step (:func:`slice_before_answer`), so that it solves with the slice it had always had.
+    """
+    if runtime_ns is None:
+        return
+    _set_slice(0)  # the default slice ...
+    after = thread_slice()
+    if after is not None and after != int(runtime_ns):
+        _set_slice(int(runtime_ns))  # ... or the custom slice the thread had
+
+
+_ANSWER = threading.local()  # per thread: the slices before the answer_slice contexts it is in (innermost last)
+
+
+def slice_before_answer() -> Optional[int]:
+    """The calling thread's slice (ns) before the innermost :func:`answer_slice` context it is in that was granted,
+    ``None`` outside one (or where none was granted)."""
+    stack = getattr(_ANSWER, "before", None)
+    return stack[-1] if stack else None
 
 
 @contextmanager
@@ -196,36 +235,34 @@ def answer_slice(seconds: float = ANSWER_SLICE_S):
     cut-off, then answers. Waking then, the answering thread needs a core that its engine's thread or another
     process holds. With the default slice (0.75 to 3 ms, by the number of cores) the running thread keeps the core
     to the end of its slice: with a busy process on the other core of a 2-core machine, the answering thread of a
-    20 ms controller waited 4 to 5 ms for a core at nearly every cut-off. Linux's EEVDF scheduler (kernel 6.12 and
+    20 ms controller waited 3 to 6 ms for a core at nearly every cut-off. Linux's EEVDF scheduler (kernel 6.12 and
     later) lets a thread of the normal policy ask for a shorter slice (``sched_setattr``'s ``sched_runtime``,
     0.1 to 100 ms, no privilege needed); a thread with a shorter slice has an earlier deadline and takes the core
-    when it wakes. The slice is the only thing changed (policy, nice value and priority are kept) and is set back
-    when the context ends: the thread's default slice, or the custom slice it had before. Elsewhere (another
-    system, an older kernel that ignores the request, a thread of another policy, a refused call) nothing is
-    changed and the context yields ``False``.
+    when it wakes. The slice is the only thing changed (policy, nice value, priority and the reset-on-fork flag are
+    kept, as they are when it is set and when it is set back, so a nice value changed inside the context stays) and
+    is set back when the context ends: the thread's default slice, or the custom slice it had before. Threads
+    started inside the context inherit the short slice; :func:`set_back_slice` with :func:`slice_before_answer`
+    gives one back its creator's slice. Elsewhere (another system, an older kernel that ignores the request, a
+    thread of another policy, a refused call) nothing is changed and the context yields ``False``.
     """
-    if not (isinstance(seconds, (int, float)) and 1e-4 <= float(seconds) <= 0.1):
+    if not (isinstance(seconds, numbers.Real) and not isinstance(seconds, bool) and 1e-4 <= float(seconds) <= 0.1):
         raise ValueError(f"seconds must be a slice between 1e-4 and 0.1 s (Linux's range), got {seconds!r}")
     want = int(round(float(seconds) * 1e9))
-    before = _get_attr()
+    before = thread_slice()
     got = False
-    if before is not None and before.sched_policy == 0:  # SCHED_OTHER only: another policy is the user's choice
-        if _set_slice(before, want):
-            now = _get_attr()
-            got = now is not None and int(now.sched_runtime) == want
-            if not got:  # a kernel without custom slices: leave the thread as it was
-                _set_slice(before, 0)
-                after = _get_attr()
-                if after is not None and int(after.sched_runtime) != int(before.sched_runtime):
-                    _set_slice(before, int(before.sched_runtime))
+    if before is not None and _set_slice(want):
+        got = thread_slice() == want
+        if not got:  # a kernel without custom slices: leave the thread as it was
+            set_back_slice(before)
+    stack = _ANSWER.__dict__.setdefault("before", [])
+    if got:
+        stack.append(before)
     try:
         yield got
     finally:
         if got:
-            _set_slice(before, 0)  # the default slice ...
-            after = _get_attr()
-            if after is not None and int(after.sched_runtime) != int(before.sched_runtime):
-                _set_slice(before, int(before.sched_runtime))  # ... or the custom slice the thread had before
+            stack.pop()
+            set_back_slice(before)
 
 
 #: Nice value given at the cut-off to the engine's thread of a time-limited :class:`flnotes.MPC` step (Linux).

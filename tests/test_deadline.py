@@ -624,7 +624,7 @@ def test_answer_slice_gives_back_a_custom_slice_the_thread_had():
     seen = {}
 
     def run():  # in its own thread: the test's thread keeps its default slice
-        assert config._set_slice(config._get_attr(), 5_000_000)
+        assert config._set_slice(5_000_000)
         seen["before"] = config.thread_slice()
         with config.answer_slice() as got:
             seen["inside"], seen["got"] = config.thread_slice(), got
@@ -634,6 +634,30 @@ def test_answer_slice_gives_back_a_custom_slice_the_thread_had():
     t.start()
     t.join()
     assert seen == dict(before=5_000_000, inside=100_000, got=True, after=5_000_000)
+
+
+@pytest.mark.skipif(not _custom_slices(), reason="custom scheduler slices are Linux 6.12+ (EEVDF)")
+def test_answer_slice_keeps_the_reset_on_fork_flag_a_nice_value_set_inside_and_takes_numpy_reals():
+    from flnotes import config
+
+    seen = {}
+
+    def run():  # in its own thread: the flag and the nice value stay with it
+        tid = threading.get_native_id()
+        os.sched_setscheduler(0, os.SCHED_OTHER | os.SCHED_RESET_ON_FORK, os.sched_param(0))
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+        with config.answer_slice(np.float32(1e-3)) as got:
+            seen["got"], seen["inside"] = got, config.thread_slice()
+            os.setpriority(os.PRIO_PROCESS, tid, min(nice + 2, 19))  # raising the nice value needs no privilege
+        a = config._get_attr()
+        seen["flags"], seen["nice"], seen["after"] = int(a.sched_flags) & 1, a.sched_nice, config.thread_slice()
+        seen["want_nice"] = min(nice + 2, 19)
+
+    t = threading.Thread(target=run)
+    t.start()
+    t.join()
+    assert seen["got"] is True and abs(seen["inside"] - 1_000_000) <= 1
+    assert seen["flags"] == 1 and seen["nice"] == seen["want_nice"] and seen["after"] != seen["inside"]
 
 
 def test_a_time_limited_step_answers_with_a_short_slice_and_sets_it_back(quad, monkeypatch):
@@ -652,11 +676,20 @@ def test_a_time_limited_step_answers_with_a_short_slice_and_sets_it_back(quad, m
         return real(*a, **k)
 
     monkeypatch.setattr(mpc, "_solve_step", recorded)
+    engine = []
+    solve = mpc.solver.solve
+
+    def in_engine(*a, **k):
+        engine.append((threading.current_thread() is not threading.main_thread(), config.thread_slice()))
+        return solve(*a, **k)
+
+    monkeypatch.setattr(mpc.solver, "solve", in_engine)
     before = config.thread_slice()
     mpc.set_previous_plan(prev)
     s = mpc(z, R)
     assert s.info["answer_slice"] is _custom_slices() or (s.info["answer_slice"] and not _custom_slices())
     assert inside == [round(config.ANSWER_SLICE_S * 1e9) if s.info["answer_slice"] else before]
+    assert engine == [(True, before)], "the engine's thread solves with its creator's own slice, not the short one"
     assert config.thread_slice() == before
     no_limit = mpc.clone(time_limit=None)
     monkeypatch.setattr(no_limit, "_solve_step", recorded)

@@ -322,18 +322,18 @@ def test_scip_objective_formulations_and_settings_find_the_brute_force_optimum(s
 
 def test_scip_default_miqp_profile_is_the_documented_one():
     """The default SCIP model of a mixed-integer QP is what ScipSolver's docstring says: the separable objective, the
-    aggregation separator and the primal heuristics off, no presolving round (LEAN_PRESOLVE_ROUNDS = 0) and no
-    restart (LEAN_RESTARTS = 0); ``miqp_params="default"`` and an MILP keep SCIP's settings; the benchmark's profile
+    aggregation separator and the primal heuristics off, one presolving round (LEAN_PRESOLVE_ROUNDS = 1) and SCIP's
+    restarts (LEAN_RESTARTS = -1); ``miqp_params="default"`` and an MILP keep SCIP's settings; the benchmark's profile
     before spells out one round and SCIP's restarts, and its last setting is the default."""
     from flnotes.bench.msd_realtime import SCIP_SETTINGS
     from flnotes.solvers import scip as S
 
-    assert S.LEAN_PRESOLVE_ROUNDS == 0 and S.LEAN_RESTARTS == 0
+    assert S.LEAN_PRESOLVE_ROUNDS == 1 and S.LEAN_RESTARTS == -1
     p = random_program(0)
     s = make_solver(p, "scip")
     m = s._m
     assert s._sq and s._t is None  # the separable formulation: one epigraph per eigenvalue
-    assert m.getParam("presolving/maxrounds") == 0 and m.getParam("presolving/maxrestarts") == 0
+    assert m.getParam("presolving/maxrounds") == 1 and m.getParam("presolving/maxrestarts") == -1
     assert m.getParam("separating/aggregation/freq") == -1 and m.getParam("heuristics/undercover/freq") == -1
     for other in (make_solver(p, "scip", miqp_params="default")._m, make_solver(random_program(0, quad=False), "scip")._m):
         assert other.getParam("presolving/maxrounds") == -1 and other.getParam("presolving/maxrestarts") == -1

@@ -138,7 +138,7 @@ def configurations() -> list[tuple[str, dict]]:
 
 #: The SCIP settings for the mixed-integer QPs compared side by side (:func:`scip_settings_runs`): name -> the
 #: ``solver_options["scip"]`` of :class:`flnotes.MPC` (:class:`flnotes.solvers.ScipSolver`'s options). The first is
-#: the lean profile before (one presolving round, restarts as SCIP's default), spelled out so that it stays what it
+#: the lean profile (one presolving round, restarts as SCIP's default: the default), spelled out so that it stays what it
 #: was whatever the default; each other one spells out its presolving rounds and restarts too; the last is the
 #: back-end's default (:data:`flnotes.solvers.scip.LEAN_PRESOLVE_ROUNDS`, :data:`flnotes.solvers.scip.LEAN_RESTARTS`).
 SCIP_SETTINGS = {
@@ -150,7 +150,9 @@ SCIP_SETTINGS = {
                                             params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
     "epigraph, no presolve, no restarts": dict(objective="epigraph",
                                                params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0}),
-    "default (separable, no presolve, no restarts)": {},
+    "separable, no presolve, no restarts": dict(objective="separable",
+                                                params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0}),
+    "default (separable, presolve 1, restarts)": {},
 }
 
 

@@ -17,7 +17,8 @@ import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import answer_slice, no_cyclic_gc, one_blas_thread, quick_thread_switch, yield_core
+from ..config import (answer_slice, no_cyclic_gc, one_blas_thread, quick_thread_switch, set_back_slice,
+                      slice_before_answer, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -625,9 +626,11 @@ class MPC:
         of the time, or when its solver call returns) and the next step, or :meth:`reset`, waits for it first.
         """
         box: dict = {}
+        own_slice = slice_before_answer()  # the slice this thread had before the step's short one (None: not changed)
 
         def run() -> None:
             box["tid"] = threading.get_native_id()
+            set_back_slice(own_slice)  # the engine solves with its creator's own slice, not the answer's short one
             c_s = time.thread_time()
             # the engine's own limit never runs past the cut-off, counted from when this thread starts (on a busy
             # machine a new thread can wait for a core): after the cut-off its thread would compete with the

@@ -47,17 +47,20 @@ MIQP_PARAMS = ("lean", "default")
 #: (1.13-1.46), at N_p = 15 (1 of 60 steps) x1.15 and x1.06, the MSD with the (30, 30, 30) network of the size study
 #: (7 of 10 cold states) x1.09 and x1.10 (1.06-1.16), the Quad-1D with the (20, 20, 20) network at N_p = 20 (6 of 8
 #: cold states) x1.17 and x1.13 (0.94-1.30); the per-state ratio of one setting's two passes lay within
-#: 0.90-1.10 (a median's within 0.96-1.04). Same optima everywhere. (At N_p = 10 no program of the book's Quad-1D
-#: loop reaches SCIP.)
-LEAN_PRESOLVE_ROUNDS = 0
+#: 0.90-1.10 (a median's within 0.96-1.04). Same optima everywhere on those programs. (At N_p = 10 no program of the
+#: book's Quad-1D loop reaches SCIP.) Not the default: on badly scaled random mixed-integer QPs (entries of H about
+#: 1e5-1e6) no presolving round made SCIP end in "error in LP solver" or stop unproven at its limit where one round
+#: proved the optimum at the root; one round stays, until a profile is both faster and as robust.
+LEAN_PRESOLVE_ROUNDS = 1
 
 #: ``miqp_params="lean"``: restarts of the root (SCIP's ``presolving/maxrestarts``, default -1: unlimited). With
 #: presolving off, a restart still presolves the program anew and solves the root again; on the programs of
 #: :data:`LEAN_PRESOLVE_ROUNDS` restarts cost time or nothing: no presolve with restarts against none without
 #: (speed-ups against the profile before), Quad-1D loop at N_p = 20 x1.07 and x1.04 against x1.25 and x1.21, MSD
 #: loop x1.12 and x1.13 against x1.21 and x1.21, MSD (30, 30, 30) x1.06 and x1.06 against x1.09 and x1.10, MSD cold
-#: x1.21 and x1.25 against x1.22 and x1.23 (the same within the spread).
-LEAN_RESTARTS = 0
+#: x1.21 and x1.25 against x1.22 and x1.23 (the same within the spread). Measured only together with no presolving
+#: round (see :data:`LEAN_PRESOLVE_ROUNDS`, not the default): SCIP's default (-1) stays.
+LEAN_RESTARTS = -1
 
 
 #: What SoPlex (SCIP's LP solver) writes straight to the C streams, whatever SCIP's verbosity (``hideOutput`` does not
@@ -215,8 +218,8 @@ class ScipSolver(Solver):
     20 (x0.86 and x0.83 against x1.25 and x1.21, per state down to x0.39), on programs of 56 to 105 binaries like the
     MSD loop's 56 to 220: no rule by size separates them, and ``"separable"`` stays the default. Option
     ``miqp_params`` (a program with ``H`` only): ``"lean"`` (default) turns SCIP's aggregation separator (c-MIR, flow
-    cover, knapsack cover cuts) and its primal heuristics off, presolves :data:`LEAN_PRESOLVE_ROUNDS` rounds (none)
-    and restarts the root :data:`LEAN_RESTARTS` times (never), where the book's big-M programs spent much of their
+    cover, knapsack cover cuts) and its primal heuristics off, presolves :data:`LEAN_PRESOLVE_ROUNDS` round (one)
+    and restarts the root as SCIP does (:data:`LEAN_RESTARTS`), where the book's big-M programs spent much of their
     time without gain (chapter "Making it real-time", ``python -m flnotes.bench mpc`` and ``msd_realtime``);
     ``"default"`` keeps SCIP's settings. Option ``params`` sets any SCIP parameter after these. Either never changes
     the optimum, only the time to prove it. The model is persistent: between solves it is returned to the problem
