@@ -338,7 +338,7 @@ def test_scip_default_miqp_profile_is_the_documented_one():
     for other in (make_solver(p, "scip", miqp_params="default")._m, make_solver(random_program(0, quad=False), "scip")._m):
         assert other.getParam("presolving/maxrounds") == -1 and other.getParam("presolving/maxrestarts") == -1
         assert other.getParam("separating/aggregation/freq") != -1
-    before = make_solver(p, "scip", **SCIP_SETTINGS["separable, presolve 1, restarts (before)"])._m
+    before = make_solver(p, "scip", **SCIP_SETTINGS["separable, presolve 1, restarts (lean)"])._m
     assert before.getParam("presolving/maxrounds") == 1 and before.getParam("presolving/maxrestarts") == -1
     assert list(SCIP_SETTINGS.values())[-1] == {} and list(SCIP_SETTINGS)[-1].startswith("default")
 

@@ -56,7 +56,7 @@ LEAN_PRESOLVE_ROUNDS = 1
 #: ``miqp_params="lean"``: restarts of the root (SCIP's ``presolving/maxrestarts``, default -1: unlimited). With
 #: presolving off, a restart still presolves the program anew and solves the root again; on the programs of
 #: :data:`LEAN_PRESOLVE_ROUNDS` restarts cost time or nothing: no presolve with restarts against none without
-#: (speed-ups against the profile before), Quad-1D loop at N_p = 20 x1.07 and x1.04 against x1.25 and x1.21, MSD
+#: (speed-ups against the lean profile), Quad-1D loop at N_p = 20 x1.07 and x1.04 against x1.25 and x1.21, MSD
 #: loop x1.12 and x1.13 against x1.21 and x1.21, MSD (30, 30, 30) x1.06 and x1.06 against x1.09 and x1.10, MSD cold
 #: x1.21 and x1.25 against x1.22 and x1.23 (the same within the spread). Measured only together with no presolving
 #: round (see :data:`LEAN_PRESOLVE_ROUNDS`, not the default): SCIP's default (-1) stays.
@@ -211,16 +211,16 @@ class ScipSolver(Solver):
     extended (disaggregated) formulation whose tangent cuts approximate each one-dimensional term on its own (on
     the book's Quad-1D programs they closed the gap far faster than those of one epigraph; not on every program, see
     below). ``"epigraph"``: ``min t + c'w + c0`` s.t. ``0.5 w'Hw <= t``. Both are the
-    same program. Measured side by side against the profile before (``python -m flnotes.bench msd_realtime``, see
+    same program. Measured side by side against the lean profile (``python -m flnotes.bench msd_realtime``, see
     :data:`LEAN_PRESOLVE_ROUNDS`), one epigraph with the lean settings was as fast or faster on the MSD (hardest cold
     states x1.35 and x1.40 where ``"separable"`` gave x1.22 and x1.23, loop x1.24 and x1.23 against x1.21 and x1.21,
     the (30, 30, 30) network x1.09 and x1.13 against x1.09 and x1.10) but slower on the book's Quad-1D loop at N_p =
     20 (x0.86 and x0.83 against x1.25 and x1.21, per state down to x0.39), on programs of 56 to 105 binaries like the
     MSD loop's 56 to 220: no rule by size separates them, and ``"separable"`` stays the default. Option
     ``miqp_params`` (a program with ``H`` only): ``"lean"`` (default) turns SCIP's aggregation separator (c-MIR, flow
-    cover, knapsack cover cuts) and its primal heuristics off, presolves :data:`LEAN_PRESOLVE_ROUNDS` round (one)
-    and restarts the root as SCIP does (:data:`LEAN_RESTARTS`), where the book's big-M programs spent much of their
-    time without gain (chapter "Making it real-time", ``python -m flnotes.bench mpc`` and ``msd_realtime``);
+    cover, knapsack cover cuts) and its primal heuristics off, presolves :data:`LEAN_PRESOLVE_ROUNDS` round (one),
+    where the book's big-M programs spent much of their time without gain, and restarts the root as SCIP does
+    (:data:`LEAN_RESTARTS`) (chapter "Making it real-time", ``python -m flnotes.bench mpc`` and ``msd_realtime``);
     ``"default"`` keeps SCIP's settings. Option ``params`` sets any SCIP parameter after these. Either never changes
     the optimum, only the time to prove it. The model is persistent: between solves it is returned to the problem
     stage (``freeTransform``) and bounds, row sides and coefficients are changed in place (``chgVarLb/Ub``,
