@@ -7,7 +7,8 @@ from matrices built once (:class:`flnotes.mpc.prediction.Prediction`); see :func
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from dataclasses import dataclass
+from typing import Iterator, Optional, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -46,6 +47,62 @@ def _offsets(nb: NodeBounds, steps: Sequence[int], n_layers: int, eliminate_stab
     return off, at
 
 
+@dataclass(frozen=True)
+class EncodedLayer:
+    """One hidden layer of the network at an encoded step ``k`` of :func:`compact_program`, as rows over ``w``.
+
+    The layer's input is ``x = Y w + y0`` (``[z(k); v(k)]`` for the first layer, the previous layer's ``y``
+    after it) and its pre-activation ``a = Aa w + a0 = W x + b``. ``L, U`` are its node bounds at step ``k``,
+    ``var`` marks the neurons that keep a variable (``idx`` their indices), ``iy, ia`` are the columns of their
+    ``y`` and ``alpha``. ``out`` is the output's rows ``(W^K Y', W^K y0' + b^K)`` on the last hidden layer
+    (``Y', y0'`` its ``y``), ``None`` on the others.
+    """
+
+    k: int
+    layer: int
+    Y: Array
+    y0: Array
+    Aa: Array
+    a0: Array
+    L: Array
+    U: Array
+    var: Array
+    idx: Array
+    iy: Array
+    ia: Array
+    out: Optional[tuple] = None
+
+
+def encoded_layers(pred: Prediction, z0: Array, nb: NodeBounds, steps: Sequence[int], n: int,
+                   eliminate_stable: bool = True, order: str = "layers") -> Iterator[EncodedLayer]:
+    """The hidden layers of the encoded ``steps`` in the program's column layout (``n`` columns), step by step.
+
+    The one place that lays out the program's neurons: :func:`compact_program` writes its rows from these, and
+    a study of the program (cuts on its neurons, :mod:`flnotes.studies.cuts`) reads the same layout.
+    """
+    net, N, m = pred.net, pred.N, pred.m
+    nV = N * m
+    Zf = pred.Sx @ z0
+    col0, n_y = _offsets(nb, list(steps), net.K - 1, eliminate_stable, order)
+    for k in steps:
+        Y = np.zeros((net.n_in, n))
+        Y[:, :nV] = pred.T[k]
+        y0 = np.r_[Zf[k], np.zeros(m)]
+        for layer, (W, b) in enumerate(zip(net.W[:-1], net.b[:-1])):
+            Aa, a0 = W @ Y, W @ y0 + b
+            L, U = np.asarray(nb.L[layer], float)[k], np.asarray(nb.U[layer], float)[k]
+            var = _encoded(L, U, eliminate_stable)
+            idx = np.flatnonzero(var)
+            iy = nV + col0[(k, layer)] + np.arange(idx.size)
+            Yn, yn0 = np.zeros_like(Aa), np.zeros_like(a0)
+            sub = (L >= 0) & ~var                                # substituted active neurons: y = a
+            Yn[sub], yn0[sub] = Aa[sub], a0[sub]
+            Yn[idx, iy] = 1.0
+            out = (net.W[-1] @ Yn, net.W[-1] @ yn0 + net.b[-1]) if layer == net.K - 2 else None
+            yield EncodedLayer(k, layer, Y, y0, Aa, a0, L, U, var, idx, iy, iy + n_y, out)
+            Y, y0 = Yn, yn0
+
+
 def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBounds, steps: Sequence[int],
                     u_in: Array, *, eliminate_stable: bool = True, lo: Optional[Array] = None,
                     hi: Optional[Array] = None, order: str = "layers") -> MIQP:
@@ -80,7 +137,7 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
     nV = N * m
     Zf = pred.Sx @ z0
     steps = list(steps)
-    col0, n_y = _offsets(nb, steps, net.K - 1, eliminate_stable, order)
+    n_y = _offsets(nb, steps, net.K - 1, eliminate_stable, order)[1]
     n = nV + 2 * n_y
     lb = np.r_[np.tile(pred.v_lo, N), np.zeros(2 * n_y)]
     ub = np.r_[np.tile(pred.v_hi, N), np.full(n_y, np.inf), np.ones(n_y)]
@@ -95,45 +152,32 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
         rows.append(Tb)
         rl.append(lo.reshape(-1) - off)
         ru.append(hi.reshape(-1) - off)
-    for k in steps:
-        Y = np.zeros((net.n_in, n))
-        Y[:, :nV] = pred.T[k]
-        y0 = np.r_[Zf[k], np.zeros(m)]
-        for layer, (W, b) in enumerate(zip(net.W[:-1], net.b[:-1])):
-            Aa, a0 = W @ Y, W @ y0 + b
-            L, U = np.asarray(nb.L[layer], float)[k], np.asarray(nb.U[layer], float)[k]
-            var = _encoded(L, U, eliminate_stable)
-            idx = np.flatnonzero(var)
-            r = np.arange(idx.size)
-            iy = nV + col0[(k, layer)] + r
-            ia = iy + n_y
-            Yn, yn0 = np.zeros_like(Aa), np.zeros_like(a0)
-            sub = (L >= 0) & ~var                                # substituted active neurons: y = a
-            Yn[sub], yn0[sub] = Aa[sub], a0[sub]
-            Yn[idx, iy] = 1.0
-            Up, Lm = np.maximum(U[idx], 0.0), np.minimum(L[idx], 0.0)
-            R1 = Aa[idx].copy()
-            R1[r, iy] -= 1.0                                     # a - y <= 0
-            R2 = np.zeros((idx.size, n))
-            R2[r, iy], R2[r, ia] = 1.0, -Up                      # y - U alpha <= 0
-            R3 = -Aa[idx]
-            R3[r, iy] += 1.0
-            R3[r, ia] -= Lm                                      # y - a - L alpha <= -L
-            rows += [R1, R2, R3]
-            rl += [np.full(idx.size, -np.inf)] * 3
-            ru += [-a0[idx], np.zeros(idx.size), a0[idx] - Lm]
-            ub[iy] = Up
-            lb[ia], ub[ia] = np.where(L[idx] >= 0, 1.0, 0.0), np.where(U[idx] <= 0, 0.0, 1.0)
-            st = np.flatnonzero(~var)                            # L <= a <= U keeps the substitution exact
-            if st.size:
-                rows.append(Aa[st])
-                rl.append(L[st] - a0[st])
-                ru.append(U[st] - a0[st])
-            Y, y0 = Yn, yn0
-        rows.append(net.W[-1] @ Y)
-        o0 = net.W[-1] @ y0 + net.b[-1]
-        rl.append(-u_in - o0)
-        ru.append(u_in - o0)                                     # eq. (Phi_NN_ep)
+    for lay in encoded_layers(pred, z0, nb, steps, n, eliminate_stable, order):
+        Aa, a0, idx, iy, ia, L, U = lay.Aa, lay.a0, lay.idx, lay.iy, lay.ia, lay.L, lay.U
+        r = np.arange(idx.size)
+        Up, Lm = np.maximum(U[idx], 0.0), np.minimum(L[idx], 0.0)
+        R1 = Aa[idx].copy()
+        R1[r, iy] -= 1.0                                         # a - y <= 0
+        R2 = np.zeros((idx.size, n))
+        R2[r, iy], R2[r, ia] = 1.0, -Up                          # y - U alpha <= 0
+        R3 = -Aa[idx]
+        R3[r, iy] += 1.0
+        R3[r, ia] -= Lm                                          # y - a - L alpha <= -L
+        rows += [R1, R2, R3]
+        rl += [np.full(idx.size, -np.inf)] * 3
+        ru += [-a0[idx], np.zeros(idx.size), a0[idx] - Lm]
+        ub[iy] = Up
+        lb[ia], ub[ia] = np.where(L[idx] >= 0, 1.0, 0.0), np.where(U[idx] <= 0, 0.0, 1.0)
+        st = np.flatnonzero(~lay.var)                            # L <= a <= U keeps the substitution exact
+        if st.size:
+            rows.append(Aa[st])
+            rl.append(L[st] - a0[st])
+            ru.append(U[st] - a0[st])
+        if lay.out is not None:
+            Yo, o0 = lay.out
+            rows.append(Yo)
+            rl.append(-u_in - o0)
+            ru.append(u_in - o0)                                 # eq. (Phi_NN_ep)
     H = sp.block_diag([sp.csc_matrix(pred.H), sp.csc_matrix((n - nV, n - nV))], format="csc")
     return MIQP(H, np.r_[f, np.zeros(n - nV)], c0, sp.csr_matrix(np.vstack(rows)), np.concatenate(rl),
                 np.concatenate(ru), lb, ub, integ)

@@ -18,6 +18,9 @@ that imports :mod:`flnotes.paper`.
     chapter 8: five systems not in the book, their shipped networks, the default MPC on them;
 ``size``
     the benchmark report: the time per MPC step against the width and depth of the network (Quad-1D, MSD);
+``cuts``
+    the benchmark report: the MSD MIQP's root gap, and what the ideal cuts of a neuron and the projection cuts of a
+    step close;
 ``realtime``
     chapter 8: the MPC under a time limit in a periodic loop, and where the garbage collector runs;
 ``guarantees``
@@ -29,7 +32,7 @@ that imports :mod:`flnotes.paper`.
 ``shipped``
     ``make reference``: every shipped network and table, rewritten on local workers or a Dask cluster.
 """
-from . import cheap_networks, compare, guarantees, multi, realtime, size, unseen
+from . import cheap_networks, compare, cuts, guarantees, multi, realtime, size, unseen
 from .clfcbf import (braking_scan, cbf_failure_set_bounded, chapter_eps, clf_cbf_checks, cross_check_exact,
                      exponential_cbf_grid_check, highs_alone_check, largest_change_within_sample, paper_mean_ms,
                      sampled_clf_decrease, solve_time_table)
@@ -42,7 +45,7 @@ from .networks import (architecture_sweep, book_sweep, estimates_table, exact_pr
                        slope_in_v, table1_rows, width_experiment, write_sweep)
 
 __all__ = ["braking_scan", "repeat_numbers", "time_limit_numbers",
-           "cheap_networks", "compare", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
+           "cheap_networks", "compare", "cuts", "guarantees", "multi", "realtime", "size", "unseen", "architecture_sweep",
            "book_sweep", "estimates_table", "exact_preactivation_range", "slope_in_v",
            "fresh_vs_shipped", "table1_rows",
            "width_experiment", "write_sweep", "chapter_eps", "clf_cbf_checks", "cross_check_exact", "exponential_cbf_grid_check",
