@@ -89,28 +89,55 @@ def keep_freed_memory() -> bool:
 
 
 _POOLS = None
+_BLAS_LOCK = threading.Lock()
+_BLAS_USERS = 0
+_BLAS_LIMITER = None
 
 
+@contextmanager
 def one_blas_thread():
     """A context in which the BLAS libraries loaded by numpy and scipy use one thread (:mod:`threadpoolctl`).
 
     A controller step works on small matrices. With several BLAS threads on a busy machine each product
     waits for the other threads to be scheduled: with two threads, two processes on two cores made steps of
-    the book's MPC that take about 0.1 s take 1 to 3 s. :class:`flnotes.MPC` and
-    :class:`flnotes.ClfCbfController` run every step inside this context, so their time per step does not
-    depend on the machine's thread settings.
-    """
-    global _POOLS
-    if _POOLS is None:
-        from threadpoolctl import ThreadpoolController
+    the book's MPC that take about 0.1 s take 1 to 3 s. After a product OpenBLAS's other threads also spin for a
+    while, waiting for the next one: on a 20 ms controller whose engine's solve ran on after an answer at the
+    cut-off (with two BLAS threads, the step's context having ended), that spinning thread took 20 to 50 ms of the
+    next step's core, and its answer came at up to 3.7 times the limit. :class:`flnotes.MPC` and
+    :class:`flnotes.ClfCbfController` run every step inside this context; a time-limited MPC step that answers at
+    its cut-off keeps it until its engine's solve has ended (set back by the next step or ``reset()``).
 
-        _POOLS = ThreadpoolController()
-    return _POOLS.limit(limits=1, user_api="blas")
+    The setting is process-wide, so the context is shared: the limit is set when the first entry finds none and the
+    previous settings come back when the last one leaves. OpenBLAS ignores a thread count raised from a thread other
+    than the one that set it lower, so leave the context in the thread that entered it.
+    """
+    global _POOLS, _BLAS_USERS, _BLAS_LIMITER
+    with _BLAS_LOCK:
+        if _BLAS_USERS == 0:
+            if _POOLS is None:
+                from threadpoolctl import ThreadpoolController
+
+                _POOLS = ThreadpoolController()
+            _BLAS_LIMITER = _POOLS.limit(limits=1, user_api="blas")
+        _BLAS_USERS += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS -= 1
+            if _BLAS_USERS == 0:
+                limiter, _BLAS_LIMITER = _BLAS_LIMITER, None
+                limiter.restore_original_limits()
 
 
 #: Seconds after which a thread that waits for Python's interpreter lock asks the running thread for it, inside
 #: :func:`quick_thread_switch` (Python's default, :func:`sys.getswitchinterval`, is 5 ms).
 SWITCH_INTERVAL_S = 0.0002
+
+
+_SWITCH_LOCK = threading.Lock()
+_SWITCH_USERS = 0
+_SWITCH_WAS = None
 
 
 @contextmanager
@@ -121,18 +148,30 @@ def quick_thread_switch(interval: float = SWITCH_INTERVAL_S):
     :func:`sys.getswitchinterval` (5 ms by default), and takes it back after as long. When :class:`flnotes.MPC`
     answers at its cut-off while its engine's solve still runs Python code in its worker thread, every time the
     answering thread needs the lock it can wait that long (seen on a 20 ms controller: answers 5 to 9 ms after
-    the cut-off for well under 1 ms of work). A step under a time limit runs in this context; the interval is
-    restored when it ends. Only threads that compete for the lock switch more often: a step whose answering
-    thread waits (the engine alone runs Python code) is not slowed.
+    the cut-off for well under 1 ms of work, and, with the interval restored as the step returned while the solve
+    ran on, 3.7 ms between the step's last line and its caller). A step under a time limit runs in this context and,
+    when it answers at its cut-off, keeps it until its engine's solve has ended. Only threads that compete for the
+    lock switch more often: a step whose answering thread waits (the engine alone runs Python code) is not slowed.
+
+    The interval is process-wide, so the context is shared: each entry lowers the interval to at most ``interval``
+    and the interval the first entry found comes back when the last one leaves.
     """
+    global _SWITCH_USERS, _SWITCH_WAS
     if not interval > 0.0:
         raise ValueError(f"interval must be a positive number of seconds, got {interval!r}")
-    was = sys.getswitchinterval()
-    sys.setswitchinterval(min(was, float(interval)))
+    with _SWITCH_LOCK:
+        if _SWITCH_USERS == 0:
+            _SWITCH_WAS = sys.getswitchinterval()
+        _SWITCH_USERS += 1
+        sys.setswitchinterval(min(sys.getswitchinterval(), float(interval)))
     try:
         yield
     finally:
-        sys.setswitchinterval(was)
+        with _SWITCH_LOCK:
+            _SWITCH_USERS -= 1
+            if _SWITCH_USERS == 0:
+                sys.setswitchinterval(_SWITCH_WAS)
+                _SWITCH_WAS = None
 
 
 #: Slice (seconds) the thread that answers a time-limited :class:`flnotes.MPC` step asks of Linux's scheduler inside

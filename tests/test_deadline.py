@@ -1093,3 +1093,77 @@ def test_deadline_clauses_every_branch():
     out = dl.deadline_clauses(dn)
     assert out["loop_clause"].endswith("above the optimum (the farthest by 2.5e-03)")
     assert out["loops_clause"].endswith("above the optimum, the farthest by 4.0e-03")
+
+
+def _blas_threads(libs: set) -> set:
+    """The thread counts of the BLAS libraries ``libs`` (file paths) loaded in this process."""
+    from threadpoolctl import threadpool_info
+
+    return {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas" and p["filepath"] in libs}
+
+
+def _two_thread_blas() -> set:
+    """The BLAS libraries that run two threads (inside ``threadpool_limits(limits=2)``): the premise of a test."""
+    from threadpoolctl import threadpool_info
+
+    libs = {p["filepath"] for p in threadpool_info() if p["user_api"] == "blas" and p["num_threads"] == 2}
+    assert libs, "premise: a BLAS library runs two threads"
+    return libs
+
+
+def test_one_blas_thread_and_the_quick_switch_are_shared():
+    """Both settings are process-wide: two contexts that end out of order (a step, then what its engine's solve
+    kept) keep them until the last one ends, and the settings the first one found come back then."""
+    from threadpoolctl import threadpool_limits
+
+    from flnotes import config
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        libs = _two_thread_blas()
+        before = sys.getswitchinterval()
+        assert before > config.SWITCH_INTERVAL_S, "premise: Python's default interval is longer"
+        step, kept = config.one_blas_thread(), config.one_blas_thread()
+        fast_step, fast_kept = config.quick_thread_switch(), config.quick_thread_switch()
+        step.__enter__(), fast_step.__enter__()
+        kept.__enter__(), fast_kept.__enter__()
+        step.__exit__(None, None, None), fast_step.__exit__(None, None, None)  # the first one ends first
+        assert _blas_threads(libs) == {1} and sys.getswitchinterval() <= config.SWITCH_INTERVAL_S
+        kept.__exit__(None, None, None), fast_kept.__exit__(None, None, None)
+        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
+        with config.one_blas_thread(), config.quick_thread_switch():  # nested
+            with config.one_blas_thread(), config.quick_thread_switch(1e-3):
+                assert _blas_threads(libs) == {1} and sys.getswitchinterval() <= config.SWITCH_INTERVAL_S
+            assert _blas_threads(libs) == {1}
+        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
+
+
+def test_a_solve_running_on_after_the_cut_off_keeps_one_blas_thread_and_the_quick_switch(quad, monkeypatch):
+    """A step answered at its cut-off returns while its engine's solve runs on: until that solve ends BLAS keeps one
+    thread (a spinning second BLAS thread took the next answer's core: answers at up to 3.7 t_s) and the interval
+    stays short (the caller's code gets the interpreter lock from the solve's thread); reset() (or the next step)
+    waits for the solve and sets both back. The record's ``solve_time`` is the whole call and
+    ``process_cpu_time`` the CPU time of every thread of the process meanwhile."""
+    from threadpoolctl import threadpool_limits
+
+    from flnotes import config
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=2.0)
+    with threadpool_limits(limits=2, user_api="blas"):
+        libs = _two_thread_blas()
+        before = sys.getswitchinterval()
+        gate = Gate(monkeypatch, spin=0.05)
+        mpc.set_previous_plan(prev)
+        t0 = time.perf_counter()
+        s = mpc(z, R)
+        wall = time.perf_counter() - t0
+        assert gate.entered.is_set() and not gate.released.is_set() and s.info["cut_off"], "premise: held at the answer"
+        assert _blas_threads(libs) == {1} and sys.getswitchinterval() <= config.SWITCH_INTERVAL_S
+        assert s.solve_time <= wall and s.info["process_cpu_time"] + 2e-3 >= s.info["cpu_time"], s.info
+        gate.release()
+        mpc.reset()  # waits for the held solve, then sets the settings back in this thread
+        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
+        mpc.set_previous_plan(prev)
+        again = mpc(z, R)  # a step that ends with its solve sets them back at once
+        assert not again.info["cut_off"] and mpc._running is None
+        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before

@@ -11,6 +11,7 @@ import dataclasses
 
 import threading
 import time
+from contextlib import ExitStack
 from typing import Callable, Optional
 
 import numpy as np
@@ -171,8 +172,9 @@ class MPC:
         controller measured of them, decaying, at most :data:`RESERVE_MAX_SHARE` of the limit), and the fallback's
         repairs stop at :data:`FALLBACK_POST_SHARE` of the limit (at least :data:`FALLBACK_POST_MIN_S`) before
         it. The engine's own limit ends at the cut-off (see ``cut_off``). An answer can still come after the limit
-        when the machine does not give the controller the CPU (``info["cpu_time"]`` against ``solve_time`` tells
-        the two apart) or when one call that does not check the time (a forward pass, a QP, the exact first input
+        when the machine does not give the controller the CPU (``info["cpu_time"]`` against ``solve_time``, the
+        whole call, tells the two apart; ``info["process_cpu_time"]`` is the CPU of every thread of the process
+        meanwhile) or when one call that does not check the time (a forward pass, a QP, the exact first input
         of the fallback) outlasts what is left. On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
@@ -332,6 +334,7 @@ class MPC:
         self._late_s = 0.0  # the engine's largest lateness after its budget (its CPU share), decaying: see reserve
         self._answer_s = 0.0  # the longest wall time from a cut-off to its answer, decaying: see _engine_solve
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
+        self._held_settings: Optional[ExitStack] = None  # the BLAS and switch settings it keeps: see __call__
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
@@ -526,12 +529,33 @@ class MPC:
         answering thread (:func:`flnotes.config.answer_slice`: waking at the cut-off, it takes a core at once instead
         of waiting for the running thread's slice to end; ``info["answer_slice"]`` says whether it was granted).
         """
+        t0, p0 = time.perf_counter(), time.process_time()
         if self.time_limit is None:
             with one_blas_thread():
-                return self._solve_step(z, z_ref)
-        with one_blas_thread(), no_cyclic_gc(), quick_thread_switch(), answer_slice() as short:
-            step = self._solve_step(z, z_ref)
-        step.info["answer_slice"] = short
+                step = self._solve_step(z, z_ref)
+        else:
+            shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
+            shared.enter_context(one_blas_thread())
+            shared.enter_context(quick_thread_switch())
+            try:
+                with no_cyclic_gc(), answer_slice() as short:
+                    step = self._solve_step(z, z_ref)
+            finally:
+                if self._running is not None:
+                    # the engine's solve runs on after the answer: it keeps one BLAS thread (a second one spins after
+                    # each product and took the next answer's core: answers at up to 3.7 t_s) and the short switch
+                    # interval (the caller's code gets the interpreter lock from it) until it ends; they are set back
+                    # in this thread when the next step or reset() has waited for it (OpenBLAS ignores a thread count
+                    # raised from another thread)
+                    self._held_settings = shared.pop_all()
+                else:
+                    shared.close()
+            step.info["answer_slice"] = short
+        # the whole call, the contexts' ends included: what the caller waited, and the CPU time of every thread of
+        # the process meanwhile (against info["cpu_time"], the step's own threads: the rest is other work of the
+        # process, e.g. a library's thread)
+        step.solve_time = time.perf_counter() - t0
+        step.info["process_cpu_time"] = time.process_time() - p0
         return step
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
@@ -686,6 +710,9 @@ class MPC:
         if worker.ident is not None:  # started
             worker.join()
         self._running = None
+        held, self._held_settings = self._held_settings, None
+        if held is not None:  # the settings the solve kept (see __call__), set back in the caller's thread
+            held.close()
         self.solver.go()
         if "step" not in box and "error" not in box:  # never started (interrupted before)
             return None
