@@ -1167,3 +1167,27 @@ def test_a_solve_running_on_after_the_cut_off_keeps_one_blas_thread_and_the_quic
         again = mpc(z, R)  # a step that ends with its solve sets them back at once
         assert not again.info["cut_off"] and mpc._running is None
         assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
+
+
+def test_the_collector_stays_paused_until_the_time_limited_step_returns(quad, monkeypatch):
+    """Everything a time-limited step does after its solve (setting back the BLAS threads and the switch interval,
+    the record's times) runs with the cyclic collector paused, so that a collection of the caller's garbage cannot
+    start inside the call (one did, 80 ms on a 20 ms controller, when the settings were set back after it resumed)."""
+    import gc
+
+    from flnotes.mpc import controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=5.0)
+    seen = []
+    real = controller.MPC._timed
+
+    def spy(step, t0, p0):
+        seen.append(gc.isenabled())
+        real(step, t0, p0)
+
+    monkeypatch.setattr(controller.MPC, "_timed", staticmethod(spy))
+    assert gc.isenabled(), "premise: the collector runs outside the step"
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert seen == [False] and gc.isenabled() and s.solve_time > 0 and "process_cpu_time" in s.info

@@ -175,7 +175,13 @@ class MPC:
         when the machine does not give the controller the CPU (``info["cpu_time"]`` against ``solve_time``, the
         whole call, tells the two apart; ``info["process_cpu_time"]`` is the CPU of every thread of the process
         meanwhile) or when one call that does not check the time (a forward pass, a QP, the exact first input
-        of the fallback) outlasts what is left. On hit the status is ``"time_limit"`` and the plan
+        of the fallback) outlasts what is left. The caller's own process counts too: a thread of it that holds
+        Python's interpreter lock in a C call (the answer cannot run meanwhile), or OpenBLAS's threads still spinning
+        after the caller's own product with several BLAS threads (they take the answer's core for 100 ms and more),
+        delayed answers to up to 2.9 t_s where the controller alone was on time; run such code with one BLAS thread
+        (``with fl.config.one_blas_thread():`` around the loop, or ``OPENBLAS_NUM_THREADS=1``) and keep C calls that
+        hold the lock out of the control thread's process. ``info["process_cpu_time"]`` above ``info["cpu_time"]``
+        says that another thread of the process took the time. On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -534,29 +540,37 @@ class MPC:
             with one_blas_thread():
                 step = self._solve_step(z, z_ref)
         else:
-            shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
-            shared.enter_context(one_blas_thread())
-            shared.enter_context(quick_thread_switch())
-            try:
-                with no_cyclic_gc(), answer_slice() as short:
-                    step = self._solve_step(z, z_ref)
-            finally:
-                if self._running is not None:
-                    # the engine's solve runs on after the answer: it keeps one BLAS thread (a second one spins after
-                    # each product and took the next answer's core: answers at up to 3.7 t_s) and the short switch
-                    # interval (the caller's code gets the interpreter lock from it) until it ends; they are set back
-                    # in this thread when the next step or reset() has waited for it (OpenBLAS ignores a thread count
-                    # raised from another thread)
-                    self._held_settings = shared.pop_all()
-                else:
-                    shared.close()
-            step.info["answer_slice"] = short
-        # the whole call, the contexts' ends included: what the caller waited, and the CPU time of every thread of
-        # the process meanwhile (against info["cpu_time"], the step's own threads: the rest is other work of the
-        # process, e.g. a library's thread)
+            with no_cyclic_gc():  # the outermost context, left last: a collection can only start after the return
+                shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
+                shared.enter_context(one_blas_thread())
+                shared.enter_context(quick_thread_switch())
+                try:
+                    with answer_slice() as short:
+                        step = self._solve_step(z, z_ref)
+                finally:
+                    if self._running is not None:
+                        # the engine's solve runs on after the answer: it keeps one BLAS thread (a second one spins
+                        # after each product and took the next answer's core: answers at up to 3.7 t_s) and the short
+                        # switch interval (the caller's code gets the interpreter lock from it) until it ends; they are
+                        # set back in this thread when the next step or reset() has waited for it (OpenBLAS ignores a
+                        # thread count raised from another thread)
+                        self._held_settings = shared.pop_all()
+                    else:
+                        shared.close()
+                step.info["answer_slice"] = short
+                self._timed(step, t0, p0)
+            return step
+        self._timed(step, t0, p0)
+        return step
+
+    @staticmethod
+    def _timed(step: StepResult, t0: float, p0: float) -> None:
+        """The whole call in the record: ``solve_time`` (what the caller waited, the contexts' ends included) and
+        ``info["process_cpu_time"]``, the CPU time of every thread of the process meanwhile (against
+        ``info["cpu_time"]``, the step's own threads: the rest is other work of the process, e.g. a library's or the
+        caller's own threads)."""
         step.solve_time = time.perf_counter() - t0
         step.info["process_cpu_time"] = time.process_time() - p0
-        return step
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
