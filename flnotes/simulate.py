@@ -316,6 +316,8 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
                          or (not every_s and (k + 1) % max(1, K // 20) == 0)):
             print(f"\rstep {k + 1}/{K} ({100 * (k + 1) // K}%), {now - t_start:.1f} s", end="", flush=True)
             last_print, printed = now, True
+    if hasattr(ctrl, "finish"):  # a solve the last step answered at its cut-off ends here, not in the caller's code
+        ctrl.finish()
     if printed:
         print(flush=True)
     Z = np.array(zs)

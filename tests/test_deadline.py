@@ -1191,3 +1191,68 @@ def test_the_collector_stays_paused_until_the_time_limited_step_returns(quad, mo
     mpc.set_previous_plan(prev)
     s = mpc(z, R)
     assert seen == [False] and gc.isenabled() and s.solve_time > 0 and "process_cpu_time" in s.info
+
+
+def test_finish_and_a_dropped_controller_set_back_what_a_running_solve_kept(quad, monkeypatch):
+    """A step answered at its cut-off keeps one BLAS thread and the short switch interval while its solve runs on:
+    ``finish()`` waits for the solve and sets both back (plan and history kept); a controller dropped in that state
+    sets them back when it is collected, so that no process is left with one BLAS thread for good."""
+    import gc
+
+    from threadpoolctl import threadpool_limits
+
+    from flnotes import config
+
+    setup, z, R, prev, _ = engine_state(quad)
+    with threadpool_limits(limits=2, user_api="blas"):
+        libs = _two_thread_blas()
+        before = sys.getswitchinterval()
+        for how in ("finish", "drop"):
+            mpc = rt.make_mpc(setup, time_limit=2.0)
+            gate = Gate(monkeypatch)
+            mpc.set_previous_plan(prev)
+            s = mpc(z, R)
+            assert gate.entered.is_set() and s.info["cut_off"], "premise: the answer came while the solver was held"
+            assert _blas_threads(libs) == {1} and sys.getswitchinterval() <= config.SWITCH_INTERVAL_S
+            gate.release()
+            if how == "finish":
+                mpc.finish()
+                assert mpc._running is None and mpc.history == [s] and mpc._plan is not None
+                mpc.finish()  # nothing running: nothing to do
+            else:
+                worker = mpc._running[0]
+                worker.join()  # the solve's thread refers to the controller until it ends
+                del mpc, s
+                gc.collect()
+            assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before, how
+
+
+def test_simulate_ends_with_nothing_held(quad, monkeypatch):
+    """A closed loop whose last step is answered at its cut-off: ``simulate`` finishes the controller at the end
+    of the run, so the caller's code after it runs with the process's own BLAS threads and switch interval."""
+    from threadpoolctl import threadpool_limits
+
+    setup, z, R, _, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=2.0)
+    calls = []
+    real = mpc.finish
+    with threadpool_limits(limits=2, user_api="blas"):
+        libs = _two_thread_blas()
+        before = sys.getswitchinterval()
+        gate = Gate(monkeypatch)
+
+        def spy():  # the run is at its end: the held solve may end now
+            calls.append((mpc._running is not None, _blas_threads(libs)))
+            gate.release()
+            real()
+
+        monkeypatch.setattr(mpc, "finish", spy)
+        try:
+            log = fl.simulate(setup["system"], mpc, t_final=setup["ts"], ts=setup["ts"], z0=z,
+                              reference=lambda t: R[np.minimum(np.arange(np.size(t)), len(R) - 1)].reshape(
+                                  np.shape(t) + (-1,)), progress=False)
+        finally:
+            gate.release()
+        assert gate.entered.is_set() and log.steps[-1].info["cut_off"], "premise: the last step answered at its cut-off"
+        assert calls == [(True, {1})] and mpc._running is None
+        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before

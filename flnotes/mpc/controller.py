@@ -11,6 +11,7 @@ import dataclasses
 
 import threading
 import time
+import weakref
 from contextlib import ExitStack
 from typing import Callable, Optional
 
@@ -129,6 +130,25 @@ def _thread_cpu(worker: threading.Thread, box: dict) -> float:
         return float(box.get("cpu", float("nan")))
 
 
+class _HeldSettings:
+    """The process-wide settings (an :class:`~contextlib.ExitStack` of :func:`flnotes.config.one_blas_thread` and
+    :func:`flnotes.config.quick_thread_switch`) that a step answered at its cut-off keeps while its solve runs on;
+    apart from :class:`MPC` so that a finalizer can set them back without keeping the controller alive."""
+
+    def __init__(self) -> None:
+        self.stack: Optional[ExitStack] = None
+
+    def keep(self, stack: ExitStack) -> None:
+        if self.stack is not None:  # never two at once: the next step waits for the solve first
+            raise RuntimeError("a step kept the process settings while an earlier step's were still kept")
+        self.stack = stack
+
+    def release(self) -> None:
+        stack, self.stack = self.stack, None
+        if stack is not None:
+            stack.close()
+
+
 class MPC:
     """The MPC of eq. (MPC_form_miqp): the network constraint at every predicted step, solved exactly.
 
@@ -216,7 +236,10 @@ class MPC:
         does not make the answer late (:meth:`_engine_solve`). ``False`` waits for the engine (its answer is then
         late by the solver's overrun, and which plan a step returns depends on the states only, not on thread
         timing: the tests with a limit far below any solve use it). Given without a time limit, or with options
-        that do not run the engine, it is an error.
+        that do not run the engine, it is an error. A solve answered at its cut-off runs on after the step has
+        returned, with one BLAS thread and a short interpreter switch interval for the whole process (see
+        :meth:`__call__`), until the next step, :meth:`reset` or :meth:`finish` waits for it; :func:`flnotes.simulate`
+        calls :meth:`finish` at the end of a run.
     gap
         Relative optimality gap at which a solver stops.
     discretization
@@ -340,7 +363,10 @@ class MPC:
         self._late_s = 0.0  # the engine's largest lateness after its budget (its CPU share), decaying: see reserve
         self._answer_s = 0.0  # the longest wall time from a cut-off to its answer, decaying: see _engine_solve
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
-        self._held_settings: Optional[ExitStack] = None  # the BLAS and switch settings it keeps: see __call__
+        self._held = _HeldSettings()  # the BLAS and switch settings it keeps: see __call__
+        # a controller dropped while it holds them gives them back (its engine's solve has ended: the solve's thread
+        # refers to the controller until then)
+        weakref.finalize(self, self._held.release)
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
@@ -452,6 +478,15 @@ class MPC:
         if isinstance(self.solver, NetworkEngine):
             self.solver.reset()
 
+    def finish(self) -> None:
+        """Wait for a solve that the last step answered at its cut-off (it runs on in the engine's thread until its
+        own limit) and set back the process-wide settings it kept: one BLAS thread and the short interpreter switch
+        interval (see :meth:`__call__`). The next step and :meth:`reset` do this first; call it when you stop
+        stepping the controller, e.g. before other numerical work in the same process (:func:`flnotes.simulate`
+        calls it at the end of a run). The controller keeps its plan, history and measures. Call it from the thread
+        that steps the controller: OpenBLAS ignores a thread count set back from another thread."""
+        self._finish_running()
+
     def set_previous_plan(self, plan: Optional[tuple[Array, Array]]) -> None:
         """Set (or clear, with ``None``) the plan ``(z_pred, v_pred)`` that the next call shifts for its warm start."""
         if plan is None:
@@ -554,7 +589,7 @@ class MPC:
                         # switch interval (the caller's code gets the interpreter lock from it) until it ends; they are
                         # set back in this thread when the next step or reset() has waited for it (OpenBLAS ignores a
                         # thread count raised from another thread)
-                        self._held_settings = shared.pop_all()
+                        self._held.keep(shared.pop_all())
                     else:
                         shared.close()
                 step.info["answer_slice"] = short
@@ -724,9 +759,7 @@ class MPC:
         if worker.ident is not None:  # started
             worker.join()
         self._running = None
-        held, self._held_settings = self._held_settings, None
-        if held is not None:  # the settings the solve kept (see __call__), set back in the caller's thread
-            held.close()
+        self._held.release()  # the settings the solve kept (see __call__), set back in the caller's thread
         self.solver.go()
         if "step" not in box and "error" not in box:  # never started (interrupted before)
             return None
