@@ -90,6 +90,18 @@ def test_cut_rows_report_the_same_optimum_and_the_gap_closed():
     assert all(r["root bound"] <= r["J_opt"] + 1e-6 * max(1, abs(r["J_opt"])) for r in rows)
 
 
+def test_cut_numbers_quote_each_range_once_when_its_ends_agree():
+    row = lambda fam, t, closed: {"family": fam, "engine cpu s": t, "LP bounds cpu s": 1.0, "scip cpu s": 0.85,  # noqa: E731
+                                  "scip nodes": 3, "J_opt": 100.0, "root bound": 97.0, "gap closed %": closed,
+                                  "cut cpu s": 1.25}
+    rows = [row(f, t, c) for t, c in ((3.6, 4.0), (4.6, 61.0)) for f in cuts.FAMILIES]
+    num = cuts.cut_numbers(rows)
+    assert num["engine"] == "3.60 to 4.60" and num["scip"] == "0.85" and num["nodes"] == "3"
+    assert num["rel"] == "3.0%" and num["ideal"] == "4% to 61%" and num["proj_cut"] == "1.2"
+    with pytest.raises(ValueError, match="every family"):
+        cuts.cut_numbers([r for r in rows if r["family"] != "projection"])
+
+
 def test_bad_input_is_refused():
     s = C.setting("Quad-1D", time_limit=None)
     with pytest.raises(ValueError, match="time_limit"):

@@ -289,3 +289,31 @@ def cut_rows(ctrl: MPC, states: Sequence[tuple[str, Array, Array]], families: Se
                          "same optimum": bool(res.status == "optimal" and abs(res.objective - lp.J_opt)
                                               <= gap * max(1.0, abs(lp.J_opt)) + 1e-9)})
     return rows
+
+
+def _span(values: Sequence[float], fmt: str) -> str:
+    """``"a to b"`` of the least and largest value in the format ``fmt``, or one value when both read the same."""
+    lo, hi = format(min(values), fmt), format(max(values), fmt)
+    return lo if lo == hi else f"{lo} to {hi}"
+
+
+def cut_numbers(rows: Sequence[dict]) -> dict[str, str]:
+    """The ranges over the states that the report's prose quotes, as text (``"0.85"`` when every state reads the
+    same, ``"0.85 to 1.10"`` otherwise): the default engine's CPU seconds (``engine``), the level program's LP
+    bounds (``lp``), SCIP's seconds and nodes without cuts (``scip``, ``nodes``), the big-M root gap relative to
+    the optimum (``rel``), the share of it closed by each family (``ideal``, ``proj``), the projection cuts' cost
+    (``proj_cut``) and SCIP's seconds with them (``proj_scip``). ``rows`` are :func:`cut_rows`'s with every family.
+    """
+    fam = {f: [r for r in rows if r["family"] == f] for f in FAMILIES}
+    missing = [f for f, rs in fam.items() if not rs]
+    if missing:
+        raise ValueError(f"cut_numbers needs rows of every family {FAMILIES}; none for {missing}: run cut_rows with "
+                         "the default families")
+    big_m, col = fam["big-M"], lambda rs, key: [r[key] for r in rs]  # noqa: E731
+    return {"engine": _span(col(big_m, "engine cpu s"), ".2f"), "lp": _span(col(big_m, "LP bounds cpu s"), ".2f"),
+            "scip": _span(col(big_m, "scip cpu s"), ".2f"), "nodes": _span(col(big_m, "scip nodes"), "d"),
+            "rel": _span([(r["J_opt"] - r["root bound"]) / max(1.0, abs(r["J_opt"])) for r in big_m], ".1%"),
+            "ideal": _span([v / 100 for v in col(fam["ideal"], "gap closed %")], ".0%"),
+            "proj": _span([v / 100 for v in col(fam["projection"], "gap closed %")], ".0%"),
+            "proj_cut": _span(col(fam["projection"], "cut cpu s"), ".1f"),
+            "proj_scip": _span(col(fam["projection"], "scip cpu s"), ".2f")}
