@@ -330,21 +330,60 @@ def yield_core(native_id: Optional[int], nice: int = CUT_OFF_NICE) -> bool:
     return True
 
 
-@contextmanager
-def no_cyclic_gc():
+_GC_LOCK = threading.Lock()
+_GC_USERS = 0
+_GC_WAS = False
+
+
+class no_cyclic_gc:  # noqa: N801 - used as a function, like the other contexts of this module
     """A context in which Python's cyclic garbage collector does not run (reference counting still frees memory).
 
     A full collection walks every object the collector tracks: about 40 ms once numpy, scipy, the solvers and a
     controller are loaded (100,000 objects), 0.8 of a 50 ms sampling period, and it starts whenever enough objects
     have survived, inside whatever code is running. :class:`flnotes.MPC` runs a step under a time limit in this
-    context, so a collection never lands inside an answer; it runs after the step, between two answers. A loop
-    whose time between answers is shorter than a collection can call :func:`gc.freeze` once it is set up (the
-    objects alive then are no longer walked).
+    context, so a collection never lands inside the call: the collector is paused before the step allocates
+    anything and resumed as its last action, and a collection that fell due meanwhile starts at the caller's next
+    allocation of a tracked object, after the call has returned (a collection started by the first allocation after
+    the resume, still inside the call, once made answers 2 to 4 times late while their record said on time). A step
+    answered at its cut-off keeps the collector paused until its engine's solve has ended, so that the solve's
+    thread, running on, does not start a collection that holds the interpreter lock while the caller's code or the
+    next step needs it. A loop whose time between answers is shorter than a collection can call :func:`gc.freeze`
+    once it is set up (the objects alive then are no longer walked).
+
+    The setting is process-wide, so the context is shared: the first entry pauses the collector when it runs, and
+    the last one to leave resumes it (when the first found it running). Entering and leaving allocate no object
+    that the collector tracks.
     """
-    was = gc.isenabled()
+
+    __slots__ = ()
+
+    def __enter__(self) -> None:
+        pause_gc()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        resume_gc()
+
+
+def pause_gc() -> None:
+    """Pause the cyclic collector (shared, see :class:`no_cyclic_gc`), before allocating anything it tracks: a call
+    that starts with this cannot start a collection (the ``with`` statement allocates before it enters)."""
+    global _GC_USERS, _GC_WAS
+    enabled = gc.isenabled()
     gc.disable()
-    try:
-        yield
-    finally:
-        if was:
-            gc.enable()
+    _GC_LOCK.acquire()
+    if _GC_USERS == 0:
+        _GC_WAS = enabled
+    _GC_USERS += 1
+    _GC_LOCK.release()
+
+
+def resume_gc() -> None:
+    """End a :func:`pause_gc`: the last one to end resumes the collector (when the first found it running), as its
+    last action and allocating nothing, so that a collection that fell due starts at the caller's next allocation."""
+    global _GC_USERS
+    _GC_LOCK.acquire()
+    _GC_USERS -= 1
+    resume = _GC_USERS == 0 and _GC_WAS
+    _GC_LOCK.release()
+    if resume:
+        gc.enable()

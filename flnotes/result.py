@@ -66,7 +66,8 @@ class StepResult:
         under a time limit, ``cut_off`` (the step answered at its cut-off while the engine's solve ran on)); the
         MPC's ``cpu_time`` (seconds of CPU the step used until its answer: the calling thread's and, under a time
         limit, the engine thread's, ``engine_cpu_time``; against ``solve_time`` it tells the controller's own work
-        from time the machine gave to other processes) and ``process_cpu_time`` (the CPU time of every thread of the
+        from time the machine gave to other processes; as the sum of two threads that can run at once on two cores
+        it can exceed ``solve_time``) and ``process_cpu_time`` (the CPU time of every thread of the
         process during the call: above ``cpu_time``, other threads of the process took it, e.g. a library's).
     """
 

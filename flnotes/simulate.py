@@ -243,81 +243,83 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     v_prev = np.zeros(m)
     message = ""
     t_start = time.perf_counter()
-    for k in range(K):
-        t = k * ts
-        z = np.asarray(system.to_z(x), float)
-        if check_domain and not system.in_domain(z)[0]:
-            message = (f"stopped at t = {t:.3f} s: z = {np.array2string(z, precision=4)} left the domain box "
-                       f"lo = {np.array2string(system.lo[:system.n_z], precision=3)}, "
-                       f"hi = {np.array2string(system.hi[:system.n_z], precision=3)} where the network and eps are "
-                       f"valid (pass check_domain=False to run on without the guarantee)")
-            break
-        try:
-            res = ctrl.step(z, t, reference)
-        except SolverFailure as exc:  # the documented solver outcome: the documented fallback, flagged
-            v = as_vector(fallback(z), m, "fallback(z)") if fallback is not None else v_prev.copy()
-            rule = "fallback(z)" if fallback is not None else ("the previous v" if k else "v = 0 (first step)")
-            res = StepResult(v=v, status="error", solve_time=np.nan, fallback=True, message=f"{type(exc).__name__}: {exc}",
-                             info=dict(solver_status=exc.status, fallback_rule=f"simulate applied {rule}"))
-        if not isinstance(res, StepResult):
-            raise TypeError(f"controller.step(z, t, reference) must return a flnotes.StepResult, got "
-                            f"{type(res).__name__} at t = {t:.3f} s")
-        v = as_vector(res.v, m, f"the controller's v at t = {t:.3f} s")
-        try:
-            u_k = system.Phi(z, v)
-        except _PROGRAMMING_ERRORS:
-            raise
-        except Exception as exc:
-            if k == 0:  # at the start, which the caller chose: a bad Phi or a bad start, not a place the plant went
-                raise
-            message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
-            break
-        try:
-            if hold == "v":
-                rhs = lambda _t, xx: system.f(xx, system.Phi(np.asarray(system.to_z(xx), float), v))
-            else:
-                rhs = lambda _t, xx, uu=u_k: system.f(xx, uu)
-            grid = np.linspace(t, t + ts, n_fine + 1)
-            sol = solve_ivp(rhs, (t, t + ts), x, t_eval=grid, rtol=rtol, atol=atol, method="RK45")
-            if not sol.success:
-                raise RuntimeError(sol.message)
-        except _PROGRAMMING_ERRORS:
-            raise
-        except Exception as exc:  # Phi or f undefined where the plant went (e.g. a singularity): stop there
-            message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
-            break
-        X = sol.y.T
-        Zs = np.array([system.to_z(xx) for xx in X], float)
-        if system.extra is not None:  # Remark 1: leaving phi(z, v) <= 0 voids the linearization
-            phi_x = np.asarray(system.extra(Zs, np.repeat(v[None], len(Zs), axis=0)), float)
-            if np.any(phi_x > 0):
-                j = int(np.argmax(phi_x.max(axis=1) > 0))
-                message = (f"stopped at t = {grid[j]:.3f} s: Remark 1's operating constraint is violated "
-                           f"(max varphi(z, v) = {phi_x.max():.3g} > 0), the linearizing map is not valid there")
+    try:
+        for k in range(K):
+            t = k * ts
+            z = np.asarray(system.to_z(x), float)
+            if check_domain and not system.in_domain(z)[0]:
+                message = (f"stopped at t = {t:.3f} s: z = {np.array2string(z, precision=4)} left the domain box "
+                           f"lo = {np.array2string(system.lo[:system.n_z], precision=3)}, "
+                           f"hi = {np.array2string(system.hi[:system.n_z], precision=3)} where the network and eps are "
+                           f"valid (pass check_domain=False to run on without the guarantee)")
                 break
-        try:
-            U = (system.Phi(Zs[:-1], np.repeat(v[None], len(Zs) - 1, axis=0)) if hold == "v"
-                 else np.repeat(u_k[None], len(X) - 1, axis=0))
-        except _PROGRAMMING_ERRORS:
-            raise
-        except Exception as exc:
-            message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
-            break
-        t_fine.append(grid[:-1]), x_fine.append(X[:-1]), u_fine.append(U)
-        vs.append(v), us.append(u_k), times.append(res.solve_time), stats.append(res.status), fbs.append(res.fallback)
-        steps.append(res)
-        if net is not None:
-            unn.append(net(system.stack(z, v)))
-        x = X[-1].copy()
-        v_prev = v
-        ts_list.append(t + ts), xs.append(x.copy()), zs.append(np.asarray(system.to_z(x), float))
-        now = time.perf_counter()
-        if progress and ((every_s and now - last_print >= every_s)
-                         or (not every_s and (k + 1) % max(1, K // 20) == 0)):
-            print(f"\rstep {k + 1}/{K} ({100 * (k + 1) // K}%), {now - t_start:.1f} s", end="", flush=True)
-            last_print, printed = now, True
-    if hasattr(ctrl, "finish"):  # a solve the last step answered at its cut-off ends here, not in the caller's code
-        ctrl.finish()
+            try:
+                res = ctrl.step(z, t, reference)
+            except SolverFailure as exc:  # the documented solver outcome: the documented fallback, flagged
+                v = as_vector(fallback(z), m, "fallback(z)") if fallback is not None else v_prev.copy()
+                rule = "fallback(z)" if fallback is not None else ("the previous v" if k else "v = 0 (first step)")
+                res = StepResult(v=v, status="error", solve_time=np.nan, fallback=True, message=f"{type(exc).__name__}: {exc}",
+                                 info=dict(solver_status=exc.status, fallback_rule=f"simulate applied {rule}"))
+            if not isinstance(res, StepResult):
+                raise TypeError(f"controller.step(z, t, reference) must return a flnotes.StepResult, got "
+                                f"{type(res).__name__} at t = {t:.3f} s")
+            v = as_vector(res.v, m, f"the controller's v at t = {t:.3f} s")
+            try:
+                u_k = system.Phi(z, v)
+            except _PROGRAMMING_ERRORS:
+                raise
+            except Exception as exc:
+                if k == 0:  # at the start, which the caller chose: a bad Phi or a bad start, not a place the plant went
+                    raise
+                message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
+                break
+            try:
+                if hold == "v":
+                    rhs = lambda _t, xx: system.f(xx, system.Phi(np.asarray(system.to_z(xx), float), v))
+                else:
+                    rhs = lambda _t, xx, uu=u_k: system.f(xx, uu)
+                grid = np.linspace(t, t + ts, n_fine + 1)
+                sol = solve_ivp(rhs, (t, t + ts), x, t_eval=grid, rtol=rtol, atol=atol, method="RK45")
+                if not sol.success:
+                    raise RuntimeError(sol.message)
+            except _PROGRAMMING_ERRORS:
+                raise
+            except Exception as exc:  # Phi or f undefined where the plant went (e.g. a singularity): stop there
+                message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
+                break
+            X = sol.y.T
+            Zs = np.array([system.to_z(xx) for xx in X], float)
+            if system.extra is not None:  # Remark 1: leaving phi(z, v) <= 0 voids the linearization
+                phi_x = np.asarray(system.extra(Zs, np.repeat(v[None], len(Zs), axis=0)), float)
+                if np.any(phi_x > 0):
+                    j = int(np.argmax(phi_x.max(axis=1) > 0))
+                    message = (f"stopped at t = {grid[j]:.3f} s: Remark 1's operating constraint is violated "
+                               f"(max varphi(z, v) = {phi_x.max():.3g} > 0), the linearizing map is not valid there")
+                    break
+            try:
+                U = (system.Phi(Zs[:-1], np.repeat(v[None], len(Zs) - 1, axis=0)) if hold == "v"
+                     else np.repeat(u_k[None], len(X) - 1, axis=0))
+            except _PROGRAMMING_ERRORS:
+                raise
+            except Exception as exc:
+                message = f"stopped at t = {t:.3f} s: {type(exc).__name__}: {exc}"
+                break
+            t_fine.append(grid[:-1]), x_fine.append(X[:-1]), u_fine.append(U)
+            vs.append(v), us.append(u_k), times.append(res.solve_time), stats.append(res.status), fbs.append(res.fallback)
+            steps.append(res)
+            if net is not None:
+                unn.append(net(system.stack(z, v)))
+            x = X[-1].copy()
+            v_prev = v
+            ts_list.append(t + ts), xs.append(x.copy()), zs.append(np.asarray(system.to_z(x), float))
+            now = time.perf_counter()
+            if progress and ((every_s and now - last_print >= every_s)
+                             or (not every_s and (k + 1) % max(1, K // 20) == 0)):
+                print(f"\rstep {k + 1}/{K} ({100 * (k + 1) // K}%), {now - t_start:.1f} s", end="", flush=True)
+                last_print, printed = now, True
+    finally:  # also when the run stops by an exception (an interrupt, an error in the reference or the plant)
+        if hasattr(ctrl, "finish"):  # a solve the last step answered at its cut-off ends here, not in the caller's code
+            ctrl.finish()
     if printed:
         print(flush=True)
     Z = np.array(zs)

@@ -1194,9 +1194,11 @@ def test_the_collector_stays_paused_until_the_time_limited_step_returns(quad, mo
 
 
 def test_finish_and_a_dropped_controller_set_back_what_a_running_solve_kept(quad, monkeypatch):
-    """A step answered at its cut-off keeps one BLAS thread and the short switch interval while its solve runs on:
-    ``finish()`` waits for the solve and sets both back (plan and history kept); a controller dropped in that state
-    sets them back when it is collected, so that no process is left with one BLAS thread for good."""
+    """A step answered at its cut-off keeps one BLAS thread, the short switch interval and the paused collector while
+    its solve runs on: ``finish()`` waits for the solve and sets them back (plan and history kept); a controller
+    dropped while its solve still runs is freed at once in the thread that drops it (nothing refers to it from the
+    solve's thread, and no collection is needed), waits for the solve and sets them back there: from the solve's
+    thread OpenBLAS would ignore the thread count, and the process would keep one BLAS thread for good."""
     import gc
 
     from threadpoolctl import threadpool_limits
@@ -1207,6 +1209,7 @@ def test_finish_and_a_dropped_controller_set_back_what_a_running_solve_kept(quad
     with threadpool_limits(limits=2, user_api="blas"):
         libs = _two_thread_blas()
         before = sys.getswitchinterval()
+        assert gc.isenabled(), "premise: the collector runs outside the steps"
         for how in ("finish", "drop"):
             mpc = rt.make_mpc(setup, time_limit=2.0)
             gate = Gate(monkeypatch)
@@ -1214,28 +1217,95 @@ def test_finish_and_a_dropped_controller_set_back_what_a_running_solve_kept(quad
             s = mpc(z, R)
             assert gate.entered.is_set() and s.info["cut_off"], "premise: the answer came while the solver was held"
             assert _blas_threads(libs) == {1} and sys.getswitchinterval() <= config.SWITCH_INTERVAL_S
-            gate.release()
+            assert not gc.isenabled(), "the collector stays paused while the solve runs on"
             if how == "finish":
+                gate.release()
                 mpc.finish()
                 assert mpc._running is None and mpc.history == [s] and mpc._plan is not None
                 mpc.finish()  # nothing running: nothing to do
             else:
                 worker = mpc._running[0]
-                worker.join()  # the solve's thread refers to the controller until it ends
-                del mpc, s
-                gc.collect()
-            assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before, how
+                releaser = threading.Timer(0.3, gate.release)  # the solve ends while the drop waits for it
+                releaser.start()
+                del mpc, s  # no gc.collect(): freed by its last reference, here
+                assert not worker.is_alive(), "the drop waited for the solve"
+                releaser.join()
+            assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before and gc.isenabled(), how
 
 
-def test_simulate_ends_with_nothing_held(quad, monkeypatch):
-    """A closed loop whose last step is answered at its cut-off: ``simulate`` finishes the controller at the end
-    of the run, so the caller's code after it runs with the process's own BLAS threads and switch interval."""
+def test_no_collection_starts_inside_a_time_limited_call(quad):
+    """A collection that falls due while a time-limited step runs starts after the call has returned: the
+    collector is paused before the step allocates and resumed as its last action (one started by the first
+    allocation after an earlier resume, still inside the call, made answers 2 to 4 times late while their record
+    said on time). A threshold of one allocation makes a collection due at once."""
+    import gc
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=5.0)
+    inside, seen = [False], []
+    callback = lambda phase, info: seen.append(inside[0]) if phase == "start" else None  # noqa: E731
+    mpc.set_previous_plan(prev)
+    mpc(z, R)  # a first step: whatever it builds once is built
+    old = gc.get_threshold()
+    gc.callbacks.append(callback)
+    try:
+        gc.set_threshold(1)
+        for _ in range(3):
+            mpc.set_previous_plan(prev)
+            inside[0] = True
+            s = mpc(z, R)
+            inside[0] = False
+            assert not s.info["cut_off"], "premise: the solve ended in the step"
+            [object() for _ in range(3)]  # the caller's next allocations: the due collection starts here
+    finally:
+        gc.set_threshold(*old)
+        gc.callbacks.remove(callback)
+    assert seen and not any(seen), f"{sum(seen)} of {len(seen)} collections started inside the call"
+
+
+def test_the_collector_pause_is_shared():
+    """The collector is process-wide: two pauses that end out of order keep it paused until the last one ends, and
+    it runs again only when the first found it running."""
+    import gc
+
+    from flnotes import config
+
+    assert gc.isenabled(), "premise: the collector runs"
+    first, second = config.no_cyclic_gc(), config.no_cyclic_gc()
+    first.__enter__(), second.__enter__()
+    first.__exit__(None, None, None)
+    assert not gc.isenabled()
+    second.__exit__(None, None, None)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with config.no_cyclic_gc():
+            pass
+        assert not gc.isenabled(), "a collector the user had paused stays paused"
+    finally:
+        gc.enable()
+
+
+@pytest.mark.parametrize("end", ["run", "interrupt"])
+def test_simulate_ends_with_nothing_held(quad, monkeypatch, end):
+    """A closed loop whose last step is answered at its cut-off: ``simulate`` finishes the controller when the run
+    ends, also when an exception ends it (here an interrupt raised by the reference at the next step), so the
+    caller's code after it runs with the process's own BLAS threads, switch interval and collector."""
+    import gc
+
     from threadpoolctl import threadpool_limits
 
     setup, z, R, _, _ = engine_state(quad)
     mpc = rt.make_mpc(setup, time_limit=2.0)
-    calls = []
+    calls, refs = [], []
     real = mpc.finish
+
+    def reference(t):
+        refs.append(np.size(t))
+        if end == "interrupt" and len(refs) == 4:  # two calls check it, the first step makes the third
+            raise KeyboardInterrupt
+        return R[np.minimum(np.arange(np.size(t)), len(R) - 1)].reshape(np.shape(t) + (-1,))
+
     with threadpool_limits(limits=2, user_api="blas"):
         libs = _two_thread_blas()
         before = sys.getswitchinterval()
@@ -1247,12 +1317,13 @@ def test_simulate_ends_with_nothing_held(quad, monkeypatch):
             real()
 
         monkeypatch.setattr(mpc, "finish", spy)
+        t_final = setup["ts"] * (1 if end == "run" else 3)
         try:
-            log = fl.simulate(setup["system"], mpc, t_final=setup["ts"], ts=setup["ts"], z0=z,
-                              reference=lambda t: R[np.minimum(np.arange(np.size(t)), len(R) - 1)].reshape(
-                                  np.shape(t) + (-1,)), progress=False)
+            with pytest.raises(KeyboardInterrupt) if end == "interrupt" else contextlib.nullcontext():
+                fl.simulate(setup["system"], mpc, t_final=t_final, ts=setup["ts"], z0=z, reference=reference,
+                            progress=False)
         finally:
             gate.release()
-        assert gate.entered.is_set() and log.steps[-1].info["cut_off"], "premise: the last step answered at its cut-off"
+        assert gate.entered.is_set() and mpc.history[-1].info["cut_off"], "premise: the last step was cut off"
         assert calls == [(True, {1})] and mpc._running is None
-        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
+        assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before and gc.isenabled()

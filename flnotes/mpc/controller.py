@@ -19,8 +19,8 @@ import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, no_cyclic_gc, one_blas_thread, quick_thread_switch, set_back_slice,
-                      slice_before_answer, yield_core)
+from ..config import (answer_slice, no_cyclic_gc, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
+                      set_back_slice, slice_before_answer, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -131,22 +131,29 @@ def _thread_cpu(worker: threading.Thread, box: dict) -> float:
 
 
 class _HeldSettings:
-    """The process-wide settings (an :class:`~contextlib.ExitStack` of :func:`flnotes.config.one_blas_thread` and
-    :func:`flnotes.config.quick_thread_switch`) that a step answered at its cut-off keeps while its solve runs on;
-    apart from :class:`MPC` so that a finalizer can set them back without keeping the controller alive."""
+    """The process-wide settings (an :class:`~contextlib.ExitStack` of :func:`flnotes.config.no_cyclic_gc`,
+    :func:`flnotes.config.one_blas_thread` and :func:`flnotes.config.quick_thread_switch`) that a step answered at
+    its cut-off keeps while its solve runs on in ``worker``; apart from :class:`MPC` so that a finalizer can set them
+    back without keeping the controller alive. :meth:`release` waits for the solve first and must run in the thread
+    that stepped the controller (OpenBLAS ignores a thread count raised from another thread): the solve's thread
+    does not refer to the controller, so a dropped controller is freed in the thread that drops it."""
 
     def __init__(self) -> None:
         self.stack: Optional[ExitStack] = None
+        self.worker: Optional[threading.Thread] = None
 
-    def keep(self, stack: ExitStack) -> None:
+    def keep(self, stack: ExitStack, worker: threading.Thread) -> None:
         if self.stack is not None:  # never two at once: the next step waits for the solve first
             raise RuntimeError("a step kept the process settings while an earlier step's were still kept")
-        self.stack = stack
+        self.stack, self.worker = stack, worker
 
     def release(self) -> None:
-        stack, self.stack = self.stack, None
-        if stack is not None:
-            stack.close()
+        stack, worker, self.stack, self.worker = self.stack, self.worker, None, None
+        if stack is None:
+            return
+        if worker is not None and worker.ident is not None and worker is not threading.current_thread():
+            worker.join()  # the solve keeps them until it ends (it was asked to stop at its cut-off)
+        stack.close()
 
 
 class MPC:
@@ -237,9 +244,10 @@ class MPC:
         late by the solver's overrun, and which plan a step returns depends on the states only, not on thread
         timing: the tests with a limit far below any solve use it). Given without a time limit, or with options
         that do not run the engine, it is an error. A solve answered at its cut-off runs on after the step has
-        returned, with one BLAS thread and a short interpreter switch interval for the whole process (see
-        :meth:`__call__`), until the next step, :meth:`reset` or :meth:`finish` waits for it; :func:`flnotes.simulate`
-        calls :meth:`finish` at the end of a run.
+        returned, with one BLAS thread, a short interpreter switch interval and the cyclic collector paused for the
+        whole process (see :meth:`__call__`), until the next step, :meth:`reset` or :meth:`finish` waits for it;
+        :func:`flnotes.simulate` calls :meth:`finish` when a run ends, and a controller dropped meanwhile waits for
+        it as it is freed.
     gap
         Relative optimality gap at which a solver stops.
     discretization
@@ -363,9 +371,8 @@ class MPC:
         self._late_s = 0.0  # the engine's largest lateness after its budget (its CPU share), decaying: see reserve
         self._answer_s = 0.0  # the longest wall time from a cut-off to its answer, decaying: see _engine_solve
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
-        self._held = _HeldSettings()  # the BLAS and switch settings it keeps: see __call__
-        # a controller dropped while it holds them gives them back (its engine's solve has ended: the solve's thread
-        # refers to the controller until then)
+        self._held = _HeldSettings()  # the process settings it keeps: see __call__
+        # a controller dropped while it holds them gives them back, in the thread that drops it, once its solve ends
         weakref.finalize(self, self._held.release)
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
@@ -480,11 +487,13 @@ class MPC:
 
     def finish(self) -> None:
         """Wait for a solve that the last step answered at its cut-off (it runs on in the engine's thread until its
-        own limit) and set back the process-wide settings it kept: one BLAS thread and the short interpreter switch
-        interval (see :meth:`__call__`). The next step and :meth:`reset` do this first; call it when you stop
-        stepping the controller, e.g. before other numerical work in the same process (:func:`flnotes.simulate`
-        calls it at the end of a run). The controller keeps its plan, history and measures. Call it from the thread
-        that steps the controller: OpenBLAS ignores a thread count set back from another thread."""
+        own limit) and set back the process-wide settings it kept: one BLAS thread, the short interpreter switch
+        interval and the paused cyclic collector (see :meth:`__call__`). What they were before the step comes back,
+        so a switch interval or collector state that other code set meanwhile is replaced. The next step and
+        :meth:`reset` do this first; call it when you stop stepping the controller, e.g. before other numerical work
+        in the same process (:func:`flnotes.simulate` calls it when a run ends, also by an exception). The
+        controller keeps its plan, history and measures. Call it from the thread that steps the controller: OpenBLAS
+        ignores a thread count set back from another thread."""
         self._finish_running()
 
     def set_previous_plan(self, plan: Optional[tuple[Array, Array]]) -> None:
@@ -564,7 +573,8 @@ class MPC:
         and statistics. A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``). An
         infeasible program is reported (``status="infeasible"``), not raised. The step runs with one BLAS
         thread (:func:`flnotes.config.one_blas_thread`) and, under a time limit, without Python's cyclic garbage
-        collector (:func:`flnotes.config.no_cyclic_gc`: a collection runs after the answer, not inside it) and with
+        collector (:func:`flnotes.config.no_cyclic_gc`: a collection that falls due starts after the call has
+        returned, at the caller's next allocation of a tracked object) and with
         a short interpreter-lock switch interval (:func:`flnotes.config.quick_thread_switch`: the answer at a
         cut-off does not wait for the engine's thread) and, on Linux 6.12 and later, a short scheduler slice for the
         answering thread (:func:`flnotes.config.answer_slice`: waking at the cut-off, it takes a core at once instead
@@ -575,8 +585,10 @@ class MPC:
             with one_blas_thread():
                 step = self._solve_step(z, z_ref)
         else:
-            with no_cyclic_gc():  # the outermost context, left last: a collection can only start after the return
+            pause_gc()  # first, allocating nothing: no collection starts in the call (see no_cyclic_gc)
+            try:
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
+                shared.enter_context(no_cyclic_gc())
                 shared.enter_context(one_blas_thread())
                 shared.enter_context(quick_thread_switch())
                 try:
@@ -585,15 +597,18 @@ class MPC:
                 finally:
                     if self._running is not None:
                         # the engine's solve runs on after the answer: it keeps one BLAS thread (a second one spins
-                        # after each product and took the next answer's core: answers at up to 3.7 t_s) and the short
-                        # switch interval (the caller's code gets the interpreter lock from it) until it ends; they are
-                        # set back in this thread when the next step or reset() has waited for it (OpenBLAS ignores a
-                        # thread count raised from another thread)
-                        self._held.keep(shared.pop_all())
+                        # after each product and took the next answer's core: answers at up to 3.7 t_s), the short
+                        # switch interval (the caller's code gets the interpreter lock from it) and the paused
+                        # collector (a collection started in its thread holds the lock) until it ends; they are set
+                        # back in this thread when the next step, reset() or finish() has waited for it (OpenBLAS
+                        # ignores a thread count raised from another thread)
+                        self._held.keep(shared.pop_all(), self._running[0])
                     else:
                         shared.close()
                 step.info["answer_slice"] = short
                 self._timed(step, t0, p0)
+            finally:
+                resume_gc()  # last, allocating nothing: a collection that fell due starts after the return
             return step
         self._timed(step, t0, p0)
         return step
@@ -675,12 +690,21 @@ class MPC:
         return step
 
     def step(self, z: Array, t: float, reference: Optional[Callable[[Array], Array]] = None) -> StepResult:
-        """One sampling instant for :func:`flnotes.simulate`: ``z_ref(k) = reference(t + k t_s)``, k = 0..N_p."""
-        if reference is None:
-            R = np.zeros((self.N + 1, self.n_z))
-        else:
-            R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
-        return self(z, R)
+        """One sampling instant for :func:`flnotes.simulate`: ``z_ref(k) = reference(t + k t_s)``, k = 0..N_p.
+
+        Under a time limit the cyclic collector is paused from the first line, before the reference is evaluated,
+        to the last (see :meth:`__call__`): no collection starts inside the step."""
+        if self.time_limit is not None:
+            pause_gc()
+        try:
+            if reference is None:
+                R = np.zeros((self.N + 1, self.n_z))
+            else:
+                R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
+            return self(z, R)
+        finally:
+            if self.time_limit is not None:
+                resume_gc()
 
     def _engine_solve(self, z: Array, R: Array, inc: Optional[Array], budget: float, t0: float) -> StepResult:
         """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
@@ -701,6 +725,10 @@ class MPC:
         box: dict = {}
         own_slice = slice_before_answer()  # the slice this thread had before the step's short one (None: not changed)
 
+        # the solve's thread refers to these, not to the controller: a controller dropped while its solve runs on is
+        # then freed (and its finalizer run) in the caller's thread, which OpenBLAS needs (see _HeldSettings)
+        solve, gap, node_limit, safety = self.solver.solve, self.gap, self.node_limit, self._safety(t0)
+
         def run() -> None:
             box["tid"] = threading.get_native_id()
             set_back_slice(own_slice)  # the engine solves with its creator's own slice, not the answer's short one
@@ -710,8 +738,8 @@ class MPC:
             # answer for the interpreter lock and the cores
             limit = box["limit"] = None if budget is None else max(min(budget, cut - time.perf_counter()), 1e-9)
             try:
-                box["step"] = self.solver.solve(z, R, incumbent=inc, time_limit=limit, gap=self.gap,
-                                                node_limit=self.node_limit, safety_deadline=self._safety(t0))
+                box["step"] = solve(z, R, incumbent=inc, time_limit=limit, gap=gap, node_limit=node_limit,
+                                    safety_deadline=safety)
             except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
                 box["error"] = exc
             box["cpu"] = time.thread_time() - c_s

@@ -1,8 +1,8 @@
 """Chapter 8: the MPC under a time limit in a periodic loop, and where Python's cyclic garbage collector runs.
 
 Under ``time_limit`` :class:`flnotes.MPC` answers each step with the collector paused
-(:func:`flnotes.config.no_cyclic_gc`), so a collection never lands inside an answer. The collection is not gone: it
-runs after the answer, between two answers. In a periodic loop the next step starts at the next tick or when that
+(:func:`flnotes.config.no_cyclic_gc`), so a collection never starts inside a step. The collection is not gone: it
+runs after the step has returned, between two answers. In a periodic loop the next step starts at the next tick or when that
 pause ends, whichever is later, so a pause longer than the slack of a period still makes an answer late. This study
 runs the book's closed loop (true plant) under ``time_limit = t_s``, records every collection with
 :data:`gc.callbacks` (its generation, its duration, whether it started inside a step) and replays the periodic
@@ -105,9 +105,9 @@ def gc_loop_row(make_mpc: Callable[[], MPC], setup: dict, t_final: float, freeze
 
     Returns a row: steps, limit hits, answers late by their own step time (``late_step``: the time from the call to
     the return of :meth:`flnotes.MPC.step`), answers late in the periodic schedule (:func:`periodic_schedule` with
-    the collector's pauses between two steps: ``late_periodic``), the collections that ran while a step was being
-    answered (``gc_at_answer``: the collector is off during the solve and runs as soon as it is back on, before the
-    step returns) and between two steps (``gc_between``), of them full ones (generation 2: ``full``), the longest
+    the collector's pauses between two steps: ``late_periodic``), the collections that started inside a step
+    (``gc_at_answer``: none is expected, the collector is paused from before the step allocates anything to its last
+    action) and between two steps (``gc_between``), of them full ones (generation 2: ``full``), the longest
     collection (``gc_max_ms``), the objects a full collection walks at the end of the loop and its time then
     (``walked``, ``full_ms``), plans failing the forward-pass check, inputs neither admissible nor flagged, and
     whether the true ``|u| <= u_max`` held at the samples.
