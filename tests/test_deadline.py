@@ -167,6 +167,38 @@ def test_feasible_tail_is_exact_for_two_inputs(arm):
     assert checked >= 3, "premise: guesses that are not admissible"
 
 
+def test_feasible_tail_for_one_input_is_the_nearest_admissible_grid_point(quad):
+    """feasible_tail for m = 1 passes only the grid points that can keep the next state in its box (and terminal
+    set) through the network: its answer is still the nearest admissible point of the whole grid (ties to the lower
+    grid point), checked by brute force at states all over the box and at its faces, with and without the terminal
+    rows, where no point is admissible too (the guess comes back)."""
+    system, net, eps = quad["system"], quad["net"], quad["eps"]
+    n_z = system.n_z
+    F, g = np.vstack([np.eye(n_z), -np.eye(n_z)]), 0.5 * np.r_[system.hi[:n_z], -system.lo[:n_z]]
+    mpc = MPC(system, net, eps, horizon=3, ts=0.1, terminal=(F, g))
+    rng = np.random.default_rng(5)
+    grid = np.linspace(mpc.v_lo[0], mpc.v_hi[0], fb.FEASIBLE_TAIL_GRID)[:, None]
+    lo, hi = system.lo[:n_z], system.hi[:n_z]
+    states = np.vstack([rng.uniform(lo, hi, (40, n_z)), np.where(rng.random((40, n_z)) < 0.5, lo, hi)
+                        * rng.uniform(0.97, 1.0, (40, n_z))])
+    kinds = set()
+    for z in states:
+        for last in (False, True):
+            guess = rng.uniform(mpc.v_lo, mpc.v_hi)
+            v = fb.feasible_tail(mpc.pred, z, guess, last=last)
+            ok = fb._admissible(mpc.pred, z, grid, last)
+            if fb._admissible(mpc.pred, z, guess[None], last)[0]:
+                expect, kind = guess, "guess admissible"
+            elif not ok.any():
+                expect, kind = guess, "none admissible"
+            else:
+                d = np.abs(grid[:, 0] - guess[0])
+                expect, kind = grid[np.flatnonzero(ok)[np.argmin(d[ok])]], "moved"
+            kinds.add(kind)
+            assert np.array_equal(v, expect), (z, last, guess, v, expect)
+    assert kinds == {"guess admissible", "none admissible", "moved"}, f"premise: every case met, got {kinds}"
+
+
 def test_qp_repair_from_the_relaxation_is_the_full_rebuild(quad):
     """qp_repair started from the relaxation's optimum (the QP solved again only after a moved step) gives the plan
     of the rebuild that solves the QP at every step, on diverse states."""

@@ -79,6 +79,18 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
     return G[free], h[free]
 
 
+def _in_step_rows(pred: Prediction, z: Array, v: Array, last: bool) -> Array:
+    """Which of the one-input values ``v`` (n,) can meet :func:`_step_rows` (the next state in its box, and in the
+    terminal set when ``last``), with a margin for round-off: a value outside is never admissible
+    (:func:`_admissible` checks the same rows on the next state), so it need not be passed through the network."""
+    rows = _step_rows(pred, z, last)
+    if rows is None:
+        return np.zeros(v.shape, bool)
+    G, h = rows
+    slack = 1e-9 * (1.0 + np.abs(h) + np.abs(G[:, 0]) * np.max(np.abs(v)))
+    return np.all(np.outer(v, G[:, 0]) + h <= slack, axis=1)
+
+
 #: Grid points of a one-input search (:func:`feasible_tail`) checked first, the nearest to the guess; the rest only
 #: when none of them is admissible.
 _NEAR = 128
@@ -107,7 +119,11 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
         # the grid in order of distance from the guess (ties in grid order), the nearest _NEAR points first: the
         # first admissible point in that order is the nearest admissible one, as over the whole grid
         cand = np.linspace(pred.v_lo[0], pred.v_hi[0], n_grid)[:, None]
+        keep = _in_step_rows(pred, z, cand[:, 0], last)  # only these can keep the next state in its box
+        if not keep.any():
+            return v_guess
         order = np.argsort(np.abs(cand[:, 0] - v_guess[0]), kind="stable")
+        order = order[keep[order]]
         for part in (order[:_NEAR], order[_NEAR:]):
             ok = _admissible(pred, z, cand[part], last)
             if ok.any():
