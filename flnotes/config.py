@@ -330,7 +330,7 @@ def yield_core(native_id: Optional[int], nice: int = CUT_OFF_NICE) -> bool:
     return True
 
 
-_GC_LOCK = threading.Lock()
+_GC_LOCK = threading.RLock()
 _GC_USERS = 0
 _GC_WAS = False
 
@@ -345,14 +345,15 @@ class no_cyclic_gc:  # noqa: N801 - used as a function, like the other contexts 
     anything and resumed as its last action, and a collection that fell due meanwhile starts at the caller's next
     allocation of a tracked object, after the call has returned (a collection started by the first allocation after
     the resume, still inside the call, once made answers 2 to 4 times late while their record said on time). A step
-    answered at its cut-off keeps the collector paused until its engine's solve has ended, so that the solve's
-    thread, running on, does not start a collection that holds the interpreter lock while the caller's code or the
-    next step needs it. A loop whose time between answers is shorter than a collection can call :func:`gc.freeze`
-    once it is set up (the objects alive then are no longer walked).
+    answered at its cut-off keeps the collector paused until its engine's solve has ended (the solve's thread holds
+    a pause of its own and ends it as it ends), so that the solve's thread, running on, does not start a collection
+    that holds the interpreter lock while the caller's code or the next step needs it. A loop whose time between
+    answers is shorter than a collection can call :func:`gc.freeze` once it is set up (the objects alive then are no
+    longer walked).
 
     The setting is process-wide, so the context is shared: the first entry pauses the collector when it runs, and
     the last one to leave resumes it (when the first found it running). Entering and leaving allocate no object
-    that the collector tracks.
+    that the collector tracks (:func:`pause_gc`, :func:`resume_gc`).
     """
 
     __slots__ = ()
@@ -366,15 +367,17 @@ class no_cyclic_gc:  # noqa: N801 - used as a function, like the other contexts 
 
 def pause_gc() -> None:
     """Pause the cyclic collector (shared, see :class:`no_cyclic_gc`), before allocating anything it tracks: a call
-    that starts with this cannot start a collection (the ``with`` statement allocates before it enters)."""
+    that starts with this cannot start a collection (the ``with`` statement allocates before it enters). Every
+    :func:`pause_gc` needs its :func:`resume_gc` (in a ``finally``)."""
     global _GC_USERS, _GC_WAS
-    enabled = gc.isenabled()
-    gc.disable()
-    _GC_LOCK.acquire()
-    if _GC_USERS == 0:
-        _GC_WAS = enabled
-    _GC_USERS += 1
-    _GC_LOCK.release()
+    _GC_LOCK.acquire()  # the state is read and changed under the lock: two threads pausing and resuming at once
+    try:  # cannot make the last resume find the collector paused by the other
+        if _GC_USERS == 0:
+            _GC_WAS = gc.isenabled()
+        gc.disable()
+        _GC_USERS += 1
+    finally:
+        _GC_LOCK.release()
 
 
 def resume_gc() -> None:
@@ -382,8 +385,11 @@ def resume_gc() -> None:
     last action and allocating nothing, so that a collection that fell due starts at the caller's next allocation."""
     global _GC_USERS
     _GC_LOCK.acquire()
-    _GC_USERS -= 1
-    resume = _GC_USERS == 0 and _GC_WAS
-    _GC_LOCK.release()
-    if resume:
-        gc.enable()
+    try:
+        if _GC_USERS <= 0:
+            raise RuntimeError("resume_gc() without a pause_gc() before it")
+        _GC_USERS -= 1
+        if _GC_USERS == 0 and _GC_WAS:
+            gc.enable()
+    finally:
+        _GC_LOCK.release()

@@ -199,6 +199,28 @@ def test_feasible_tail_for_one_input_is_the_nearest_admissible_grid_point(quad):
     assert kinds == {"guess admissible", "none admissible", "moved"}, f"premise: every case met, got {kinds}"
 
 
+@pytest.mark.parametrize("scale", [1e-9, 1.0, 1e9])
+def test_feasible_tail_for_one_input_at_every_scale(scale):
+    """The same property at states of size 1e-9 to 1e9 (round-off of A_d z + B_d v is relative to its terms: the
+    grid's pre-filter once dropped admissible points on the face of a box of size 1e9) and with an input that does
+    not move the state (no box row involves v), against the whole grid."""
+    from flnotes.mpc.prediction import Prediction
+
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, -1.0]])], [np.zeros(2), np.zeros(1)])
+    grid = np.linspace(-1.0, 1.0, fb.FEASIBLE_TAIL_GRID)
+    rng = np.random.default_rng(2)
+    for B in (1.0, 0.0):
+        pred = Prediction(net, np.array([[1.0]]), np.array([[B]]), 2, np.eye(1), np.eye(1), np.eye(1),
+                          z_lo=np.array([-scale]), z_hi=np.array([scale]), v_lo=np.array([-1.0]),
+                          v_hi=np.array([1.0]), u_eps=np.array([0.5]))
+        for k in rng.integers(0, len(grid), 300):
+            z = np.array([scale - grid[k] * B])  # the next state meets the upper face at the grid point k
+            guess = np.array([1.0])
+            ok = fb._admissible(pred, z, grid[:, None], False)
+            expect = grid[np.flatnonzero(ok)[np.argmin(np.abs(grid[ok] - 1.0))]] if ok.any() else 1.0
+            assert fb.feasible_tail(pred, z, guess)[0] == expect, (scale, B, z)
+
+
 def test_qp_repair_from_the_relaxation_is_the_full_rebuild(quad):
     """qp_repair started from the relaxation's optimum (the QP solved again only after a moved step) gives the plan
     of the rebuild that solves the QP at every step, on diverse states."""
@@ -1359,3 +1381,92 @@ def test_simulate_ends_with_nothing_held(quad, monkeypatch, end):
         assert gate.entered.is_set() and mpc.history[-1].info["cut_off"], "premise: the last step was cut off"
         assert calls == [(True, {1})] and mpc._running is None
         assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before and gc.isenabled()
+
+
+def test_an_interrupt_in_a_steps_set_up_leaves_nothing_paused(quad, monkeypatch):
+    """An interrupt that lands while a time-limited step sets up its process settings (here in entering the BLAS
+    limit, where a random Ctrl-C landed most often) leaves the collector running and nothing kept; the next step
+    works. (It once left the collector paused for good, with the user's garbage never collected.)"""
+    import gc
+
+    from flnotes import config
+    from flnotes.mpc import controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=5.0)
+    real = controller.one_blas_thread
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(controller, "one_blas_thread", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        mpc(z, R)
+    assert gc.isenabled() and config._GC_USERS == 0 and mpc._held.stack is None
+    monkeypatch.setattr(controller, "one_blas_thread", real)
+    mpc.set_previous_plan(prev)
+    assert mpc(z, R).v is not None and gc.isenabled() and config._GC_USERS == 0
+
+
+def test_the_shared_pause_holds_across_threads_and_is_checked():
+    """Two threads pausing and resuming the collector at once: it is never running while either holds a pause,
+    and it runs again at the end (the state the first pause found was once read outside the lock, and the
+    collector stayed off for good); a resume without its pause is an error."""
+    import gc
+
+    from flnotes import config
+
+    assert gc.isenabled(), "premise: the collector runs"
+    seen_running = []
+
+    def work():
+        for _ in range(20000):
+            config.pause_gc()
+            try:
+                if gc.isenabled():
+                    seen_running.append(1)
+            finally:
+                config.resume_gc()
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible
+    try:
+        threads = [threading.Thread(target=work) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    assert not seen_running and gc.isenabled() and config._GC_USERS == 0
+    with pytest.raises(RuntimeError, match="without a pause_gc"):
+        config.resume_gc()
+
+
+def test_a_gone_controllers_settings_come_back_even_when_its_wait_is_interrupted():
+    """The finalizer of a dropped controller waits for its solve; an interrupt during that wait is raised only once
+    the settings are back (nobody can set them back later)."""
+    from contextlib import ExitStack
+
+    from flnotes.mpc.controller import _HeldSettings
+
+    closed = []
+
+    class Worker(threading.Thread):
+        calls = 0
+
+        def join(self, timeout=None):
+            Worker.calls += 1
+            if Worker.calls == 1:
+                raise KeyboardInterrupt
+            super().join(timeout)
+
+    worker = Worker(target=lambda: None)
+    worker.start()
+    held = _HeldSettings()
+    stack = ExitStack()
+    stack.callback(lambda: closed.append(True))
+    held.keep(stack, worker)
+    with pytest.raises(KeyboardInterrupt):
+        held.finalize()
+    assert closed == [True] and held.stack is None and Worker.calls == 2

@@ -19,7 +19,7 @@ import numpy as np
 
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, no_cyclic_gc, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
+from ..config import (answer_slice, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
                       set_back_slice, slice_before_answer, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
@@ -131,12 +131,12 @@ def _thread_cpu(worker: threading.Thread, box: dict) -> float:
 
 
 class _HeldSettings:
-    """The process-wide settings (an :class:`~contextlib.ExitStack` of :func:`flnotes.config.no_cyclic_gc`,
-    :func:`flnotes.config.one_blas_thread` and :func:`flnotes.config.quick_thread_switch`) that a step answered at
-    its cut-off keeps while its solve runs on in ``worker``; apart from :class:`MPC` so that a finalizer can set them
-    back without keeping the controller alive. :meth:`release` waits for the solve first and must run in the thread
-    that stepped the controller (OpenBLAS ignores a thread count raised from another thread): the solve's thread
-    does not refer to the controller, so a dropped controller is freed in the thread that drops it."""
+    """The process-wide settings (an :class:`~contextlib.ExitStack` of :func:`flnotes.config.one_blas_thread` and
+    :func:`flnotes.config.quick_thread_switch`) that a step answered at its cut-off keeps while its solve runs on in
+    ``worker``; apart from :class:`MPC` so that a finalizer can set them back without keeping the controller alive.
+    :meth:`release` waits for the solve first and must run in the thread that stepped the controller (OpenBLAS ignores
+    a thread count raised from another thread): the solve's thread does not refer to the controller, so a controller
+    dropped by its last reference is freed in the thread that drops it."""
 
     def __init__(self) -> None:
         self.stack: Optional[ExitStack] = None
@@ -148,12 +148,27 @@ class _HeldSettings:
         self.stack, self.worker = stack, worker
 
     def release(self) -> None:
-        stack, worker, self.stack, self.worker = self.stack, self.worker, None, None
-        if stack is None:
+        """Wait for the solve, then set the settings back; an interrupt while it waits leaves them kept (for the
+        next call)."""
+        if self.stack is None:
             return
+        worker = self.worker
         if worker is not None and worker.ident is not None and worker is not threading.current_thread():
             worker.join()  # the solve keeps them until it ends (it was asked to stop at its cut-off)
+        stack, self.stack, self.worker = self.stack, None, None
         stack.close()
+
+    def finalize(self) -> None:
+        """:meth:`release` for a controller that is gone, which nobody can release later: an interrupt while it
+        waits for the solve is raised only once the settings are back."""
+        interrupt = None
+        while self.stack is not None:
+            try:
+                self.release()
+            except KeyboardInterrupt as exc:
+                interrupt = exc
+        if interrupt is not None:
+            raise interrupt
 
 
 class MPC:
@@ -373,7 +388,7 @@ class MPC:
         self._running: Optional[tuple] = None  # a solve answered at its cut-off and still running: see _engine_solve
         self._held = _HeldSettings()  # the process settings it keeps: see __call__
         # a controller dropped while it holds them gives them back, in the thread that drops it, once its solve ends
-        weakref.finalize(self, self._held.release)
+        weakref.finalize(self, self._held.finalize)
         self.solver_options = _per_backend(o.backend, used, solver_options)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
@@ -493,7 +508,9 @@ class MPC:
         :meth:`reset` do this first; call it when you stop stepping the controller, e.g. before other numerical work
         in the same process (:func:`flnotes.simulate` calls it when a run ends, also by an exception). The
         controller keeps its plan, history and measures. Call it from the thread that steps the controller: OpenBLAS
-        ignores a thread count set back from another thread."""
+        ignores a thread count set back from another thread. A controller dropped meanwhile does it as it is freed,
+        in the thread that drops its last reference; one held in a reference cycle is freed only by a later
+        collection, possibly in another thread, so call this first."""
         self._finish_running()
 
     def set_previous_plan(self, plan: Optional[tuple[Array, Array]]) -> None:
@@ -588,20 +605,19 @@ class MPC:
             pause_gc()  # first, allocating nothing: no collection starts in the call (see no_cyclic_gc)
             try:
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
-                shared.enter_context(no_cyclic_gc())
-                shared.enter_context(one_blas_thread())
-                shared.enter_context(quick_thread_switch())
                 try:
+                    shared.enter_context(one_blas_thread())
+                    shared.enter_context(quick_thread_switch())
                     with answer_slice() as short:
                         step = self._solve_step(z, z_ref)
-                finally:
-                    if self._running is not None:
+                finally:  # also when an interrupt lands in the set-up above
+                    if self._running is not None and self._held.stack is None:
                         # the engine's solve runs on after the answer: it keeps one BLAS thread (a second one spins
-                        # after each product and took the next answer's core: answers at up to 3.7 t_s), the short
-                        # switch interval (the caller's code gets the interpreter lock from it) and the paused
-                        # collector (a collection started in its thread holds the lock) until it ends; they are set
-                        # back in this thread when the next step, reset() or finish() has waited for it (OpenBLAS
-                        # ignores a thread count raised from another thread)
+                        # after each product and took the next answer's core: answers at up to 3.7 t_s) and the
+                        # short switch interval (the caller's code gets the interpreter lock from it) until it ends;
+                        # they are set back in this thread when the next step, reset() or finish() has waited for it
+                        # (OpenBLAS ignores a thread count raised from another thread); the collector stays paused by
+                        # the solve's own pause (see _engine_solve)
                         self._held.keep(shared.pop_all(), self._running[0])
                     else:
                         shared.close()
@@ -736,13 +752,15 @@ class MPC:
             # the engine's own limit never runs past the cut-off, counted from when this thread starts (on a busy
             # machine a new thread can wait for a core): after the cut-off its thread would compete with the
             # answer for the interpreter lock and the cores
-            limit = box["limit"] = None if budget is None else max(min(budget, cut - time.perf_counter()), 1e-9)
             try:
+                limit = box["limit"] = None if budget is None else max(min(budget, cut - time.perf_counter()), 1e-9)
                 box["step"] = solve(z, R, incumbent=inc, time_limit=limit, gap=gap, node_limit=node_limit,
                                     safety_deadline=safety)
             except BaseException as exc:  # handed to the caller's thread, never dropped: see _finish_running
                 box["error"] = exc
-            box["cpu"] = time.thread_time() - c_s
+            finally:
+                box["cpu"] = time.thread_time() - c_s
+                resume_gc()  # the pause taken for this solve when its thread was started
 
         answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
                        RESERVE_MAX_SHARE * self.time_limit)
@@ -750,7 +768,14 @@ class MPC:
         self.solver.go(stop_at=cut)
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
-        worker.start()
+        # the solve's own pause of the collector, ended by its thread as it ends: a solve that runs on after the answer
+        # at the cut-off does not start a collection in its thread, which would hold the interpreter lock
+        pause_gc()
+        try:
+            worker.start()
+        except BaseException:
+            resume_gc()
+            raise
         worker.join(max(cut - time.perf_counter(), 0.0))
         if worker.is_alive():
             self.solver.stop()
@@ -786,8 +811,8 @@ class MPC:
         worker, box, budget = self._running
         if worker.ident is not None:  # started
             worker.join()
-        self._running = None
         self._held.release()  # the settings the solve kept (see __call__), set back in the caller's thread
+        self._running = None
         self.solver.go()
         if "step" not in box and "error" not in box:  # never started (interrupted before)
             return None

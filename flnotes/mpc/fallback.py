@@ -87,8 +87,13 @@ def _in_step_rows(pred: Prediction, z: Array, v: Array, last: bool) -> Array:
     if rows is None:
         return np.zeros(v.shape, bool)
     G, h = rows
-    slack = 1e-9 * (1.0 + np.abs(h) + np.abs(G[:, 0]) * np.max(np.abs(v)))
-    return np.all(np.outer(v, G[:, 0]) + h <= slack, axis=1)
+    if not len(h):  # no row involves v (B_d = 0): every value keeps the next state where it is
+        return np.ones(v.shape, bool)
+    # the round-off of A_d z + B_d v in _admissible is relative to the size of its terms, not to their difference
+    # from the box's face (a state of size 1e9 near its face): the margin is relative to the largest of them
+    scale = 1.0 + max(float(np.max(np.abs(pred.Ad @ z))), float(np.max(np.abs(np.r_[pred.z_lo, pred.z_hi]))),
+                      float(np.max(np.abs(h))), float(np.max(np.abs(G))) * float(np.max(np.abs(v))))
+    return np.all(np.outer(v, G[:, 0]) + h <= 1e-6 * scale, axis=1)
 
 
 #: Grid points of a one-input search (:func:`feasible_tail`) checked first, the nearest to the guess; the rest only
