@@ -1452,21 +1452,22 @@ def test_a_gone_controllers_settings_come_back_even_when_its_wait_is_interrupted
 
     closed = []
 
-    class Worker(threading.Thread):
+    class Done(threading.Event):
         calls = 0
 
-        def join(self, timeout=None):
-            Worker.calls += 1
-            if Worker.calls == 1:
+        def wait(self, timeout=None):
+            Done.calls += 1
+            if Done.calls == 1:
                 raise KeyboardInterrupt
-            super().join(timeout)
+            return super().wait(timeout)
 
-    worker = Worker(target=lambda: None)
+    done = Done()
+    worker = threading.Thread(target=done.set)
     worker.start()
     held = _HeldSettings()
     stack = ExitStack()
     stack.callback(lambda: closed.append(True))
-    held.keep(stack, worker)
+    held.keep(stack, worker, done)
     with pytest.raises(KeyboardInterrupt):
         held.finalize()
-    assert closed == [True] and held.stack is None and Worker.calls == 2
+    assert closed == [True] and held.stack is None and Done.calls == 2

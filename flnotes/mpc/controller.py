@@ -116,6 +116,20 @@ def _per_backend(backend: str, used: tuple, solver_options: Optional[dict]) -> d
     return per
 
 
+def _wait_for(worker: threading.Thread, done: threading.Event, timeout: Optional[float] = None) -> bool:
+    """Wait for the solve of ``worker`` to end (its ``done`` is set as its last action): ``True`` when it has.
+
+    Waits on the event, not with :meth:`threading.Thread.join`: an interrupt (Ctrl-C) during ``join`` on Python 3.11
+    can mark a thread that still runs as stopped (its later ``join`` then returns at once, and a process leaving
+    while the solver's C++ code runs was aborted). ``join`` only follows the event, for the few lines after it."""
+    if worker.ident is None:  # never started (interrupted before): nothing to wait for
+        return True
+    if not done.wait(timeout):
+        return False
+    worker.join()
+    return True
+
+
 def _thread_cpu(worker: threading.Thread, box: dict) -> float:
     """The CPU time the engine's thread of :meth:`MPC._engine_solve` has used so far, read from the answering thread.
 
@@ -141,11 +155,12 @@ class _HeldSettings:
     def __init__(self) -> None:
         self.stack: Optional[ExitStack] = None
         self.worker: Optional[threading.Thread] = None
+        self.done: Optional[threading.Event] = None
 
-    def keep(self, stack: ExitStack, worker: threading.Thread) -> None:
+    def keep(self, stack: ExitStack, worker: threading.Thread, done: threading.Event) -> None:
         if self.stack is not None:  # never two at once: the next step waits for the solve first
             raise RuntimeError("a step kept the process settings while an earlier step's were still kept")
-        self.stack, self.worker = stack, worker
+        self.stack, self.worker, self.done = stack, worker, done
 
     def release(self) -> None:
         """Wait for the solve, then set the settings back; an interrupt while it waits leaves them kept (for the
@@ -153,9 +168,9 @@ class _HeldSettings:
         if self.stack is None:
             return
         worker = self.worker
-        if worker is not None and worker.ident is not None and worker is not threading.current_thread():
-            worker.join()  # the solve keeps them until it ends (it was asked to stop at its cut-off)
-        stack, self.stack, self.worker = self.stack, None, None
+        if worker is not None and worker is not threading.current_thread():
+            _wait_for(worker, self.done)  # the solve keeps them until it ends (it was asked to stop at its cut-off)
+        stack, self.stack, self.worker, self.done = self.stack, None, None, None
         stack.close()
 
     def finalize(self) -> None:
@@ -618,7 +633,7 @@ class MPC:
                         # they are set back in this thread when the next step, reset() or finish() has waited for it
                         # (OpenBLAS ignores a thread count raised from another thread); the collector stays paused by
                         # the solve's own pause (see _engine_solve)
-                        self._held.keep(shared.pop_all(), self._running[0])
+                        self._held.keep(shared.pop_all(), self._running[0], self._running[1]["done"])
                     else:
                         shared.close()
                 step.info["answer_slice"] = short
@@ -746,13 +761,17 @@ class MPC:
         solve, gap, node_limit, safety = self.solver.solve, self.gap, self.node_limit, self._safety(t0)
 
         def run() -> None:
-            box["tid"] = threading.get_native_id()
-            set_back_slice(own_slice)  # the engine solves with its creator's own slice, not the answer's short one
+            # the solve's own pause of the collector, taken while this step's is held and ended as the solve ends: a
+            # solve that runs on after the answer at the cut-off starts no collection in its thread, which would
+            # hold the interpreter lock
+            pause_gc()
             c_s = time.thread_time()
-            # the engine's own limit never runs past the cut-off, counted from when this thread starts (on a busy
-            # machine a new thread can wait for a core): after the cut-off its thread would compete with the
-            # answer for the interpreter lock and the cores
             try:
+                box["tid"] = threading.get_native_id()
+                set_back_slice(own_slice)  # the engine solves with its creator's own slice, not the answer's short one
+                # the engine's own limit never runs past the cut-off, counted from when this thread starts (on a busy
+                # machine a new thread can wait for a core): after the cut-off its thread would compete with the
+                # answer for the interpreter lock and the cores
                 limit = box["limit"] = None if budget is None else max(min(budget, cut - time.perf_counter()), 1e-9)
                 box["step"] = solve(z, R, incumbent=inc, time_limit=limit, gap=gap, node_limit=node_limit,
                                     safety_deadline=safety)
@@ -760,24 +779,18 @@ class MPC:
                 box["error"] = exc
             finally:
                 box["cpu"] = time.thread_time() - c_s
-                resume_gc()  # the pause taken for this solve when its thread was started
+                resume_gc()  # the solve's own pause
+                box["done"].set()
 
         answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
                        RESERVE_MAX_SHARE * self.time_limit)
         cut = t0 + float(self.time_limit) - answer_s  # the cut-off (a perf_counter value)
         self.solver.go(stop_at=cut)
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
+        box["done"] = threading.Event()
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
-        # the solve's own pause of the collector, ended by its thread as it ends: a solve that runs on after the answer
-        # at the cut-off does not start a collection in its thread, which would hold the interpreter lock
-        pause_gc()
-        try:
-            worker.start()
-        except BaseException:
-            resume_gc()
-            raise
-        worker.join(max(cut - time.perf_counter(), 0.0))
-        if worker.is_alive():
+        worker.start()
+        if not _wait_for(worker, box["done"], max(cut - time.perf_counter(), 0.0)):
             self.solver.stop()
             yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
             box["cut_off"] = True
@@ -809,8 +822,7 @@ class MPC:
         if self._running is None:
             return None
         worker, box, budget = self._running
-        if worker.ident is not None:  # started
-            worker.join()
+        _wait_for(worker, box["done"])
         self._held.release()  # the settings the solve kept (see __call__), set back in the caller's thread
         self._running = None
         self.solver.go()
