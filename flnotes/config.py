@@ -105,7 +105,7 @@ def one_blas_thread():
     cut-off (with two BLAS threads, the step's context having ended), that spinning thread took 20 to 50 ms of the
     next step's core, and its answer came at up to 3.7 times the limit. :class:`flnotes.MPC` and
     :class:`flnotes.ClfCbfController` run every step inside this context; a time-limited MPC step that answers at
-    its cut-off keeps it until its engine's solve has ended (set back by the next step or ``reset()``).
+    its cut-off keeps it until its engine's solve has ended (set back by the next step, ``reset()`` or ``finish()``).
 
     The setting is process-wide, so the context is shared: the limit is set when the first entry finds none and the
     previous settings come back when the last one leaves. OpenBLAS ignores a thread count raised from a thread other
@@ -150,7 +150,8 @@ def quick_thread_switch(interval: float = SWITCH_INTERVAL_S):
     answering thread needs the lock it can wait that long (seen on a 20 ms controller: answers 5 to 9 ms after
     the cut-off for well under 1 ms of work, and, with the interval restored as the step returned while the solve
     ran on, 3.7 ms between the step's last line and its caller). A step under a time limit runs in this context and,
-    when it answers at its cut-off, keeps it until its engine's solve has ended. Only threads that compete for the
+    when it answers at its cut-off, keeps it until its engine's solve has ended (set back by the next step,
+    ``reset()`` or ``finish()``). Only threads that compete for the
     lock switch more often: a step whose answering thread waits (the engine alone runs Python code) is not slowed.
 
     The interval is process-wide, so the context is shared: each entry lowers the interval to at most ``interval``
