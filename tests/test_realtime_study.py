@@ -50,7 +50,7 @@ def test_gc_study_freezes_and_restores_the_collector():
 def test_gc_numbers_span_the_repeats_and_word_a_direction_only_without_overlap():
     def row(run, hits, late):
         return dict(run=run, steps=10, limit_hits=hits, late_step=late, late_periodic=late, step_max_ms=50.0 + late,
-                    gc_at_answer=0, gc_between=0, full=0, gc_max_ms=0.0, walked=100, full_ms=1.0)
+                    gc_in_step=0, gc_between=0, full=0, gc_max_ms=0.0, walked=100, full_ms=1.0)
     plain, frozen = "as set up", "gc.freeze() after set-up"
     rows = [row(plain, 0, 1), row(frozen, 13, 4), row(plain, 2, 0), row(frozen, 9, 1)]
     n = realtime.gc_numbers(rows)

@@ -106,7 +106,7 @@ def gc_loop_row(make_mpc: Callable[[], MPC], setup: dict, t_final: float, freeze
     Returns a row: steps, limit hits, answers late by their own step time (``late_step``: the time from the call to
     the return of :meth:`flnotes.MPC.step`), answers late in the periodic schedule (:func:`periodic_schedule` with
     the collector's pauses between two steps: ``late_periodic``), the collections that started inside a step
-    (``gc_at_answer``: none is expected, the collector is paused from before the step allocates anything to its last
+    (``gc_in_step``: none is expected, the collector is paused from before the step allocates anything to its last
     action) and between two steps (``gc_between``), of them full ones (generation 2: ``full``), the longest
     collection (``gc_max_ms``), the objects a full collection walks at the end of the loop and its time then
     (``walked``, ``full_ms``), plans failing the forward-pass check, inputs neither admissible nor flagged, and
@@ -151,7 +151,7 @@ def gc_loop_row(make_mpc: Callable[[], MPC], setup: dict, t_final: float, freeze
                 limit_hits=int(sum(s.status == "time_limit" for s in h)),
                 late_step=int(np.sum(answers - starts > t_s)), late_periodic=int(np.sum(late > 0)),
                 step_max_ms=1e3 * float(np.max(answers - starts)),
-                gc_at_answer=sum(c["in_step"] for c in w.collections), gc_between=len(between),
+                gc_in_step=sum(c["in_step"] for c in w.collections), gc_between=len(between),
                 full=sum(c["generation"] == 2 for c in w.collections),
                 gc_max_ms=1e3 * max((c["seconds"] for c in w.collections), default=0.0),
                 walked=int(walked), full_ms=1e3 * full_s,
@@ -198,7 +198,7 @@ def gc_numbers(rows) -> dict:
         raise ValueError("gc_numbers needs the rows of gc_study: pairs of a loop as set up and one after gc.freeze()")
     out = {"repeats": len(plain)}
     for name, rs in (("plain", plain), ("frozen", frozen)):
-        for key in ("steps", "limit_hits", "late_step", "late_periodic", "step_max_ms", "gc_at_answer", "gc_between",
+        for key in ("steps", "limit_hits", "late_step", "late_periodic", "step_max_ms", "gc_in_step", "gc_between",
                     "full", "gc_max_ms", "walked", "full_ms"):
             out[f"{name}_{key}"] = rs[0][key]
         for key in ("limit_hits", "late_step", "late_periodic", "step_max_ms"):
