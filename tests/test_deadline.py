@@ -221,6 +221,31 @@ def test_feasible_tail_for_one_input_at_every_scale(scale):
             assert fb.feasible_tail(pred, z, guess)[0] == expect, (scale, B, z)
 
 
+def test_the_one_input_step_interval_is_the_set_that_keeps_the_state_in_its_box(quad):
+    """_step_interval (one input: the v that keep A_d z + B_d v in the state box, and in the terminal set for the
+    last step), which safe_input prefers, equals the grid points that meet those rows by a direct check, at states
+    all over the box and beyond it (an empty interval there)."""
+    system, net, eps = quad["system"], quad["net"], quad["eps"]
+    n_z = system.n_z
+    F, g = np.vstack([np.eye(n_z), -np.eye(n_z)]), 0.5 * np.r_[system.hi[:n_z], -system.lo[:n_z]]
+    pred = MPC(system, net, eps, horizon=3, ts=0.1, terminal=(F, g)).pred
+    rng = np.random.default_rng(8)
+    grid = np.linspace(pred.v_lo[0], pred.v_hi[0], 4001)
+    lo, hi = system.lo[:n_z], system.hi[:n_z]
+    kinds = set()
+    for z in np.vstack([rng.uniform(lo, hi, (60, n_z)), rng.uniform(1.5 * lo, 1.5 * hi, (60, n_z))]):
+        for last in (False, True):
+            s_lo, s_hi = fb._step_interval(pred, z, last)
+            nxt = z @ pred.Ad.T + grid[:, None] @ pred.Bd.T
+            ok = np.all((nxt >= pred.z_lo - 1e-9) & (nxt <= pred.z_hi + 1e-9), axis=1)
+            if last:
+                ok &= np.all(nxt @ F.T <= g + 1e-9, axis=1)
+            inside = (grid >= s_lo - 1e-9) & (grid <= s_hi + 1e-9)
+            assert np.array_equal(ok, inside), (z, last, s_lo, s_hi)
+            kinds.add("empty" if not ok.any() else "all" if ok.all() else "part")
+    assert {"empty", "part"} <= kinds, f"premise: empty and partial intervals met, got {kinds}"
+
+
 def test_qp_repair_from_the_relaxation_is_the_full_rebuild(quad):
     """qp_repair started from the relaxation's optimum (the QP solved again only after a moved step) gives the plan
     of the rebuild that solves the QP at every step, on diverse states."""

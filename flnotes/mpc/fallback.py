@@ -79,6 +79,17 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
     return G[free], h[free]
 
 
+def _step_interval(pred: Prediction, z: Array, last: bool = False) -> tuple[float, float]:
+    """One input: the interval ``[lo, hi]`` of ``v`` that meets :func:`_step_rows` (the next state in its box, and in
+    the terminal set when ``last``); empty (``lo > hi``) when no ``v`` does."""
+    rows = _step_rows(pred, z, last)
+    if rows is None:
+        return np.inf, -np.inf
+    g, h = rows[0][:, 0], rows[1]
+    up, down = g > 0, g < 0  # g v + h <= 0: v <= -h/g where g > 0, v >= -h/g where g < 0
+    return (float(np.max(-h[down] / g[down], initial=-np.inf)), float(np.min(-h[up] / g[up], initial=np.inf)))
+
+
 def _in_step_rows(pred: Prediction, z: Array, v: Array, last: bool) -> Array:
     """Which of the one-input values ``v`` (n,) can meet :func:`_step_rows` (the next state in its box, and in the
     terminal set when ``last``), with a margin for round-off: a value outside is never admissible
@@ -271,11 +282,7 @@ def safe_input(pred: Prediction, z: Array, v_guess: Array) -> tuple[Array, bool]
     if pred.m == 1:
         lo, hi = float(pred.v_lo[0]), float(pred.v_hi[0])
         iv = exact_1d_feasible_set(pred.net, z, lo, hi, float(pred.u_eps[0]))
-        a, b, Bc = pred.z_lo - pred.Ad @ z, pred.z_hi - pred.Ad @ z, pred.Bd[:, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            l1 = np.where(Bc > 0, a / Bc, np.where(Bc < 0, b / Bc, -np.inf))
-            u1 = np.where(Bc > 0, b / Bc, np.where(Bc < 0, a / Bc, np.inf))
-        s_lo, s_hi = float(np.max(l1)), float(np.min(u1))
+        s_lo, s_hi = _step_interval(pred, z)  # the inputs that keep the next state in its box
         for keep_state in (True, False):
             cand = []
             for lo_i, hi_i in np.asarray(iv).reshape(-1, 2):
