@@ -207,6 +207,23 @@ def _sched_attr():
     return ctypes, SchedAttr, libc.syscall, calls
 
 
+def thread_run_delay() -> float:
+    """Seconds the calling thread has spent runnable but waiting for a CPU since it started (Linux:
+    ``/proc/thread-self/schedstat``, its second field); NaN where the platform does not say.
+
+    The difference of two readings tells, of the time a thread took to resume after a timed wait, how much it waited
+    for a core; the rest it was not runnable (its timer had not fired, or it waited for the interpreter lock)."""
+    try:
+        fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+        try:
+            data = os.read(fd, 256)
+        finally:
+            os.close(fd)
+        return int(data.split()[1]) * 1e-9
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
 def thread_slice() -> Optional[int]:
     """The calling thread's scheduler slice in nanoseconds (Linux's ``sched_getattr``: ``sched_runtime`` of a thread
     of the normal policy), or ``None`` where it cannot be read (another system, another policy, a refused call)."""

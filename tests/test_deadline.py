@@ -585,6 +585,41 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert mpc.solver.answer_now().v is None
 
 
+def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
+    """The engine's thread holds the interpreter lock in one C call (a long sum over a range) past the limit: the
+    answering thread cannot resume at its cut-off, and the record says so. ``wake_lag`` covers at least the time from
+    the limit to the end of that call, and ``wake_runqueue`` (Linux) is far below it: the thread was not waiting
+    for a core, so the late answer is not the controller's work. A step without such a call records both too."""
+    import time
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.2)
+    mpc.set_previous_plan(prev)
+    plain = mpc(z, R)
+    assert plain.info["wake_lag"] >= 0.0 and "wake_runqueue" in plain.info, plain.info
+    mpc.reset()
+    t = time.perf_counter()
+    sum(range(10 ** 6))
+    n = int(1e6 * 1.0 / max(time.perf_counter() - t, 1e-6))  # about 1 s in one call
+    solve, held = mpc.solver.solve, {}
+
+    def holding(*a, **k):
+        sum(range(n))  # one C call: the lock is not released until it returns
+        held["end"] = time.perf_counter()
+        return solve(*a, **k)
+
+    monkeypatch.setattr(mpc.solver, "solve", holding)
+    mpc.set_previous_plan(prev)
+    t0 = time.perf_counter()
+    s = mpc(z, R)
+    assert held["end"] > t0 + mpc.time_limit + 0.1, "premise: the held call ran on past the limit"
+    assert s.info["wake_lag"] >= held["end"] - (t0 + mpc.time_limit), (s.info, held["end"] - t0)
+    if np.isfinite(s.info["wake_runqueue"]):
+        assert s.info["wake_runqueue"] < 0.5 * s.info["wake_lag"], s.info
+    assert check_step(mpc, s) and s.input_admissible, s.message
+    mpc.finish()
+
+
 def test_the_cpu_time_of_a_cut_off_step_counts_the_engine_thread(quad, monkeypatch):
     """A step answered at its cut-off while its solver call runs on: ``info["cpu_time"]`` counts the CPU time the
     engine's thread used before the answer (here 0.2 s of work in the held call), not only the answering thread's."""
@@ -971,10 +1006,27 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
     assert [(r["run"], r["answers"]) for r in rows] == [("closed loop", 3), ("cold states", 1)]
     for r in rows:
         assert r["condition"] == "busy process on a core" and r["t_s_ms"] == 200.0
-        assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
+        assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"] and 0 <= r["late_resume"] <= r["late_wall"]
         assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
         assert r["short_slice"] == (r["answers"] if _custom_slices() else r["short_slice"]) <= r["answers"]
     assert len(dl.late_answers_notes(rows)) == 3
+
+
+def test_a_late_answer_counts_as_resumed_late_only_when_the_lag_covers_its_overrun():
+    """bench deadline's _resumed_late: an answer after t_s counts only when its thread's lag after the cut-off covers
+    the whole overrun and it was not waiting for a core (or the platform does not say); an answer on time never."""
+    from flnotes.bench import deadline as dl
+
+    def step(lag, queued):
+        return fl.StepResult(v=np.zeros(1), info=dict(wake_lag=lag, wake_runqueue=queued))
+
+    ts = 0.02
+    assert dl._resumed_late(step(0.015, 0.0), 0.03, ts)  # overrun 10 ms, lag 15 ms, no wait for a core
+    assert dl._resumed_late(step(0.015, float("nan")), 0.03, ts)  # the platform does not say
+    assert not dl._resumed_late(step(0.005, 0.0), 0.03, ts)  # the lag does not cover the overrun
+    assert not dl._resumed_late(step(0.015, 0.012), 0.03, ts)  # it waited for a core most of the lag
+    assert not dl._resumed_late(step(0.015, 0.0), 0.019, ts)  # on time
+    assert not dl._resumed_late(fl.StepResult(v=np.zeros(1)), 0.03, ts)  # no record of it (no cut-off)
 
 
 def test_budget_floor_runs_on_the_budget_alone_and_repeats_bit_for_bit():

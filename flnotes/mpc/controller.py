@@ -20,7 +20,7 @@ import numpy as np
 from .._checks import as_vector, horizon_reference, weight_matrix
 from ..bounds import fbbt
 from ..config import (answer_slice, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
-                      set_back_slice, slice_before_answer, yield_core)
+                      set_back_slice, slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -238,7 +238,11 @@ class MPC:
         delayed answers to up to 2.9 t_s where the controller alone was on time; run such code with one BLAS thread
         (``with fl.config.one_blas_thread():`` around the loop, or ``OPENBLAS_NUM_THREADS=1``) and keep C calls that
         hold the lock out of the control thread's process. ``info["process_cpu_time"]`` above ``info["cpu_time"]``
-        says that another thread of the process took the time. On hit the status is ``"time_limit"`` and the plan
+        says that another thread of the process took the time. With the cut-off, ``info["wake_lag"]`` is how long
+        after it was due (the cut-off, or the solve's end when earlier) the answering thread resumed and
+        ``info["wake_runqueue"]`` how much of that it waited for a core (Linux; NaN elsewhere): a lag without such a
+        wait is time the thread was not runnable, a timer that fired late on the machine or the interpreter lock held
+        by another thread in C, not the controller's work. On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -780,6 +784,7 @@ class MPC:
             finally:
                 box["cpu"] = time.thread_time() - c_s
                 resume_gc()  # the solve's own pause
+                box["t_done"] = time.perf_counter()
                 box["done"].set()
 
         answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
@@ -790,7 +795,14 @@ class MPC:
         box["done"] = threading.Event()
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
         worker.start()
-        if not _wait_for(worker, box["done"], max(cut - time.perf_counter(), 0.0)):
+        queued = thread_run_delay()
+        done = _wait_for(worker, box["done"], max(cut - time.perf_counter(), 0.0))
+        t_woke = time.perf_counter()
+        # how long after it was due (the cut-off, or the solve's end if earlier) this thread resumed, and of that
+        # how long it waited for a core: the rest it was not runnable (a timer that fired late, the interpreter lock)
+        wake = dict(wake_lag=max(t_woke - min(cut, box.get("t_done", cut)), 0.0),
+                    wake_runqueue=thread_run_delay() - queued)
+        if not done:
             self.solver.stop()
             yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
             box["cut_off"] = True
@@ -803,11 +815,13 @@ class MPC:
             step.info["cut_off_at"] = t_cut
             step.info["engine_yielded"] = yielded
             step.info["engine_cpu_time"] = engine_cpu
+            step.info.update(wake)
             step.solve_time = time.perf_counter() - t0
             return step
         step = self._finish_running()
         step.info["cut_off"] = False
         step.info["engine_cpu_time"] = box["cpu"]
+        step.info.update(wake)
         return step
 
     def _safety(self, t0: float) -> Optional[float]:
