@@ -90,8 +90,12 @@ def keep_freed_memory() -> bool:
 
 _POOLS = None
 _BLAS_LOCK = threading.Lock()
-_BLAS_USERS = 0
-_BLAS_LIMITER = None
+#: The entries of :func:`one_blas_thread` now inside it, one token each: adding or removing a token is one step,
+#: which an interrupt (Ctrl-C) cannot split, where a count read and written back could be left off by one.
+_BLAS_HOLDERS: set = set()
+#: The BLAS libraries' thread counts from before the first entry set them to one, kept until they are all set back:
+#: a setting back that an interrupt stopped half-way is completed, with these counts, by the next last exit.
+_BLAS_ORIGINAL: Optional[list] = None
 
 
 @contextmanager
@@ -108,26 +112,34 @@ def one_blas_thread():
     its cut-off keeps it until its engine's solve has ended (set back by the next step, ``reset()`` or ``finish()``).
 
     The setting is process-wide, so the context is shared: the limit is set when the first entry finds none and the
-    previous settings come back when the last one leaves. OpenBLAS ignores a thread count raised from a thread other
+    previous counts come back when the last one leaves. The counts are taken before the limit is set and kept until
+    they are back, so that an interrupt (Ctrl-C) at any point of an entry or an exit never leaves the limit of one in
+    place, nor takes it for the process's own setting. OpenBLAS ignores a thread count raised from a thread other
     than the one that set it lower, so leave the context in the thread that entered it.
     """
-    global _POOLS, _BLAS_USERS, _BLAS_LIMITER
-    with _BLAS_LOCK:
-        if _BLAS_USERS == 0:
-            if _POOLS is None:
-                from threadpoolctl import ThreadpoolController
-
-                _POOLS = ThreadpoolController()
-            _BLAS_LIMITER = _POOLS.limit(limits=1, user_api="blas")
-        _BLAS_USERS += 1
+    global _POOLS, _BLAS_ORIGINAL
+    token = object()
     try:
+        with _BLAS_LOCK:
+            _BLAS_HOLDERS.add(token)
+            if len(_BLAS_HOLDERS) == 1:
+                if _POOLS is None:
+                    from threadpoolctl import ThreadpoolController
+
+                    _POOLS = ThreadpoolController()
+                blas = [lib for lib in _POOLS.lib_controllers if lib.user_api == "blas"]
+                if _BLAS_ORIGINAL is None:  # else a setting back was stopped half-way: its counts are the originals
+                    _BLAS_ORIGINAL = [(lib, lib.num_threads) for lib in blas]
+                for lib in blas:
+                    lib.set_num_threads(1)
         yield
     finally:
         with _BLAS_LOCK:
-            _BLAS_USERS -= 1
-            if _BLAS_USERS == 0:
-                limiter, _BLAS_LIMITER = _BLAS_LIMITER, None
-                limiter.restore_original_limits()
+            _BLAS_HOLDERS.discard(token)
+            if not _BLAS_HOLDERS and _BLAS_ORIGINAL is not None:
+                for lib, n in _BLAS_ORIGINAL:
+                    lib.set_num_threads(n)
+                _BLAS_ORIGINAL = None
 
 
 #: Seconds after which a thread that waits for Python's interpreter lock asks the running thread for it, inside
@@ -136,7 +148,8 @@ SWITCH_INTERVAL_S = 0.0002
 
 
 _SWITCH_LOCK = threading.Lock()
-_SWITCH_USERS = 0
+#: The entries of :func:`quick_thread_switch` now inside it, one token each (see :data:`_BLAS_HOLDERS`).
+_SWITCH_HOLDERS: set = set()
 _SWITCH_WAS = None
 
 
@@ -155,22 +168,24 @@ def quick_thread_switch(interval: float = SWITCH_INTERVAL_S):
     lock switch more often: a step whose answering thread waits (the engine alone runs Python code) is not slowed.
 
     The interval is process-wide, so the context is shared: each entry lowers the interval to at most ``interval``
-    and the interval the first entry found comes back when the last one leaves.
+    and the interval the first entry found comes back when the last one leaves; an interrupt (Ctrl-C) at any point of
+    an entry or an exit leaves neither the short interval in place nor takes it for the process's own.
     """
-    global _SWITCH_USERS, _SWITCH_WAS
+    global _SWITCH_WAS
     if not interval > 0.0:
         raise ValueError(f"interval must be a positive number of seconds, got {interval!r}")
-    with _SWITCH_LOCK:
-        if _SWITCH_USERS == 0:
-            _SWITCH_WAS = sys.getswitchinterval()
-        _SWITCH_USERS += 1
-        sys.setswitchinterval(min(sys.getswitchinterval(), float(interval)))
+    token = object()
     try:
+        with _SWITCH_LOCK:
+            _SWITCH_HOLDERS.add(token)
+            if _SWITCH_WAS is None:  # else a setting back was stopped before it was recorded: the value is the same
+                _SWITCH_WAS = sys.getswitchinterval()
+            sys.setswitchinterval(min(sys.getswitchinterval(), float(interval)))
         yield
     finally:
         with _SWITCH_LOCK:
-            _SWITCH_USERS -= 1
-            if _SWITCH_USERS == 0:
+            _SWITCH_HOLDERS.discard(token)
+            if not _SWITCH_HOLDERS and _SWITCH_WAS is not None:
                 sys.setswitchinterval(_SWITCH_WAS)
                 _SWITCH_WAS = None
 
@@ -306,19 +321,21 @@ def answer_slice(seconds: float = ANSWER_SLICE_S):
         raise ValueError(f"seconds must be a slice between 1e-4 and 0.1 s (Linux's range), got {seconds!r}")
     want = int(round(float(seconds) * 1e9))
     before = thread_slice()
-    got = False
-    if before is not None and _set_slice(want):
-        got = thread_slice() == want
-        if not got:  # a kernel without custom slices: leave the thread as it was
-            set_back_slice(before)
+    got = pushed = False
     stack = _ANSWER.__dict__.setdefault("before", [])
-    if got:
-        stack.append(before)
-    try:
+    try:  # the slice is asked for inside: an interrupt (Ctrl-C) anywhere still sets it back
+        if before is not None and _set_slice(want):
+            got = thread_slice() == want
+            if not got:  # a kernel without custom slices: leave the thread as it was
+                set_back_slice(before)
+        if got:
+            stack.append(before)
+            pushed = True
         yield got
     finally:
-        if got:
+        if pushed:
             stack.pop()
+        if got or (before is not None and thread_slice() != before):
             set_back_slice(before)
 
 

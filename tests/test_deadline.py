@@ -1268,6 +1268,98 @@ def test_one_blas_thread_and_the_quick_switch_are_shared():
         assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
 
 
+@pytest.mark.parametrize("where", ["entry", "exit"])
+def test_an_interrupt_inside_one_blas_thread_never_leaves_the_limit(where, monkeypatch):
+    """A Ctrl-C that lands after the BLAS libraries' count was changed, on the way in (the limit set, the context
+    not yet entered) or on the way out (the setting back stopped half-way): the process's own count comes back, at
+    once or at the next context's end, and is never taken for one."""
+    from threadpoolctl import threadpool_limits
+
+    from flnotes import config
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        libs = _two_thread_blas()
+        with config.one_blas_thread():  # the libraries are found
+            pass
+        lib = next(c for c in config._POOLS.lib_controllers if c.user_api == "blas" and c.filepath in libs)
+        real, calls = lib.set_num_threads, []
+
+        def interrupted(n):
+            real(n)
+            calls.append(n)
+            if len(calls) == (1 if where == "entry" else 2):
+                raise KeyboardInterrupt
+
+        monkeypatch.setattr(lib, "set_num_threads", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            with config.one_blas_thread():
+                assert where == "exit", "the entry was interrupted: the body never runs"
+        assert calls[:2] == [1, 2] if where == "exit" else calls == [1, 2], calls
+        monkeypatch.setattr(lib, "set_num_threads", real)
+        assert not config._BLAS_HOLDERS
+        with config.one_blas_thread():
+            assert _blas_threads(libs) == {1}
+        assert _blas_threads(libs) == {2}, "the process's own count, never the limit taken for it"
+
+
+@pytest.mark.parametrize("where", ["entry", "exit"])
+def test_an_interrupt_inside_the_quick_switch_never_leaves_the_short_interval(where, monkeypatch):
+    """A Ctrl-C right after the interval was changed, on the way in or on the way out: Python's own interval is
+    back after the context (or the next one), never taken for the process's own."""
+    from flnotes import config
+
+    before = sys.getswitchinterval()
+    assert before > config.SWITCH_INTERVAL_S, "premise: Python's default interval is longer"
+    real, calls = sys.setswitchinterval, []
+
+    def interrupted(x):
+        real(x)
+        calls.append(x)
+        if len(calls) == (1 if where == "entry" else 2):
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(config.sys, "setswitchinterval", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with config.quick_thread_switch():
+            assert where == "exit", "the entry was interrupted: the body never runs"
+    monkeypatch.setattr(config.sys, "setswitchinterval", real)
+    assert sys.getswitchinterval() == before and not config._SWITCH_HOLDERS
+    with config.quick_thread_switch():
+        assert sys.getswitchinterval() <= config.SWITCH_INTERVAL_S
+    assert sys.getswitchinterval() == before
+
+
+def test_an_exit_interrupted_before_the_setting_back_completes_it_later(monkeypatch):
+    """The setting back of the last exit stopped before any library was set back: the limit stays until the next
+    context ends, which sets back the counts from before the first entry (not the limit it finds)."""
+    from threadpoolctl import threadpool_limits
+
+    from flnotes import config
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        libs = _two_thread_blas()
+        with config.one_blas_thread():
+            pass
+        lib = next(c for c in config._POOLS.lib_controllers if c.user_api == "blas" and c.filepath in libs)
+        real, calls = lib.set_num_threads, []
+
+        def interrupted(n):
+            calls.append(n)
+            if n != 1:
+                raise KeyboardInterrupt  # before the count is set back
+            real(n)
+
+        monkeypatch.setattr(lib, "set_num_threads", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            with config.one_blas_thread():
+                pass
+        monkeypatch.setattr(lib, "set_num_threads", real)
+        assert _blas_threads(libs) == {1} and config._BLAS_ORIGINAL is not None, "premise: the limit was left"
+        with config.one_blas_thread():
+            assert _blas_threads(libs) == {1}
+        assert _blas_threads(libs) == {2} and config._BLAS_ORIGINAL is None
+
+
 def test_a_solve_running_on_after_the_cut_off_keeps_one_blas_thread_and_the_quick_switch(quad, monkeypatch):
     """A step answered at its cut-off returns while its engine's solve runs on: until that solve ends BLAS keeps one
     thread (a spinning second BLAS thread took the next answer's core: answers at up to 3.7 t_s) and the interval
