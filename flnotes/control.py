@@ -60,7 +60,7 @@ from .pieces import solve_exact_2d
 from .simulate import StepResult
 from .systems import FLSystem
 from .solvers import BOUND_TOL, next_margin, project_to_box
-from .solvers.scip import _quiet_c_output
+from .solvers.scip import _quiet_c_output, take_solver_errors
 
 Array = np.ndarray
 
@@ -1049,7 +1049,7 @@ class _CvxpyBackend:
             self.aH.value, self.bH.value = d["aH"], d["bH"]
             self.cap_H.value = np.full(c.p, self.big if soft else 0.0)
         self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
-        failed = None
+        failed, said = None, []
         for _ in range(6):
             self.u_in.value = c.u_eps - self.margin
             try:
@@ -1058,10 +1058,13 @@ class _CvxpyBackend:
                     warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
                     self.problem.solve(solver=self.solver, **self._opts())
             except cp.error.SolverError as exc:
+                said += take_solver_errors()  # the solver's own error lines, kept from the C streams
                 if soft or self.exact is None:
-                    raise
+                    raise cp.error.SolverError(f"{exc}" + (f" ({self.solver} said: {' / '.join(said)})" if said
+                                                            else "")) from exc
                 failed = f"cvxpy/{self.solver} failed ({exc})"
                 break
+            said += take_solver_errors()  # e.g. SCIP's "EMAISM: numerical violation ..." on a solve that returned
             if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
                 break
             ex = float(np.max(np.abs(c.net(np.concatenate([z, np.asarray(self.v.value, float)]))) - c.u_eps))
@@ -1081,6 +1084,8 @@ class _CvxpyBackend:
                 sol.objective = float(self.problem.value)
                 sol.slack_u = np.array(self.s_u.value, float)
                 sol.slack_H = np.array(self.s_H.value, float) if c.p else np.zeros(0)
+        if said:  # what the solver wrote to the C streams about this solve belongs to its result
+            sol.detail += f" ({self.solver} said: {' / '.join(said)})"
         return sol if soft or self.exact is None else self._checked(z, d, sol)
 
     def _checked(self, z: Array, d: dict, sol: _Solution) -> _Solution:

@@ -498,6 +498,29 @@ def test_retired_models_live_until_released():
     assert ref() is None
 
 
+def test_the_c_output_filter_keeps_scip_error_lines_for_the_result(capfd):
+    """SCIP's own error lines (and cvxpy's line after a failed SCIP call) written to file descriptor 2 during a SCIP
+    call do not come out: they are kept, in order, for the caller's message (take_solver_errors, which forgets them),
+    also a line split over two writes; a line that only starts with a bracket comes out."""
+    from flnotes.solvers import scip
+
+    scip.take_solver_errors()
+    with scip._quiet_c_output():
+        os.write(2, b"[solve.c:4948] ERROR: ")  # SCIP writes its error's place, then its text
+        os.write(2, b"(node 7) unresolved numerical troubles in LP 21 -- aborting\n")
+        os.write(2, b"[scip_solve.c:2763] ERR")
+        os.write(2, b"OR: Error <-6> in function call\n")
+        os.write(2, b"EMAISM: numerical violation after disaggregating variable\n")
+        os.write(2, b"[a note] kept\n")
+    out = capfd.readouterr()
+    assert "ERROR" not in out.err and "EMAISM" not in out.err and "[a note] kept\n" in out.err
+    assert scip.take_solver_errors() == [
+        "[solve.c:4948] ERROR: (node 7) unresolved numerical troubles in LP 21 -- aborting",
+        "[scip_solve.c:2763] ERROR: Error <-6> in function call",
+        "EMAISM: numerical violation after disaggregating variable"]
+    assert scip.take_solver_errors() == []
+
+
 def test_the_c_output_filter_drops_only_the_notices(capfd):
     """While a SCIP call runs, file descriptors 1 and 2 pass through a filter: SoPlex's tolerance notice is dropped,
     everything else comes out (a line split over writes, a progress line without its end); nested calls keep the

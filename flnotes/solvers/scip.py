@@ -5,6 +5,7 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 from __future__ import annotations
 
 import os
+import re
 import sys
 import threading
 import time
@@ -70,26 +71,51 @@ LEAN_RESTARTS = -1
 #: dropped by :class:`_quiet_c_output`; everything else passes.
 C_NOTICES = (b"Cannot set feasibility tolerance to small value",)
 
+#: SCIP's own error lines, which its C code writes to file descriptor 2 whatever its verbosity (``[solve.c:4948]
+#: ERROR: ... unresolved numerical troubles in LP``, ``EMAISM: numerical violation ...``), and the line cvxpy writes
+#: after such a failed call. Inside :class:`_quiet_c_output` they are not written out but kept, for the caller to put
+#: in its result's message (:func:`take_solver_errors`): the failure is reported where it is handled.
+C_ERRORS = re.compile(rb"\s*(\[[\w./-]+:\d+\] ERROR: |EMAISM: |Error encountered when optimising )")
+_ERROR_HEADS = (b"[", b"EMAISM: ", b"Error encountered when optimising ")
+
 _FILTER_LOCK = threading.Lock()
-_filter: dict = dict(depth=0, fds=[])  # the SCIP calls running, and per filtered descriptor (fd, saved, read end, thread)
+# the SCIP calls running, per filtered descriptor (fd, saved, read end, thread), and the error lines kept
+_filter: dict = dict(depth=0, fds=[], errors=[])
+_ERRORS_LOCK = threading.Lock()
+
+
+def _may_become(head: bytes) -> bool:
+    """Whether a line's beginning ``head`` (no line end yet) may still become a notice or an error line."""
+    return any(n.startswith(head) or head.startswith(n) for n in C_NOTICES + _ERROR_HEADS)
 
 
 def _split_notices(buf: bytes, final: bool = False) -> tuple[bytes, bytes]:
-    """``buf`` less the lines that are notices of :data:`C_NOTICES`: ``(what to write now, what to hold)``. A last
-    piece without its line end is held only while it may still become a notice (``final``: nothing is held)."""
+    """``buf`` less the lines that are notices of :data:`C_NOTICES` or solver errors of :data:`C_ERRORS` (those are
+    kept, see :func:`take_solver_errors`): ``(what to write now, what to hold)``. A last piece without its line end
+    is held only while it may still become one of them (``final``: nothing is held)."""
     out, parts = [], buf.splitlines(keepends=True)
     hold = b""
     if parts and not parts[-1].endswith((b"\n", b"\r")):
         last = parts.pop()
-        head = last.lstrip()
-        if not final and any(n.startswith(head) or head.startswith(n) for n in C_NOTICES):
+        if not final and (_may_become(last.lstrip()) or C_ERRORS.match(last)):  # an error line may come in pieces
             hold = last
         else:
             parts.append(last)
     for part in parts:
-        if not part.lstrip().startswith(C_NOTICES):
+        if C_ERRORS.match(part):
+            with _ERRORS_LOCK:
+                _filter["errors"].append(part.strip().decode("utf-8", "replace"))
+        elif not part.lstrip().startswith(C_NOTICES):
             out.append(part)
     return b"".join(out), hold
+
+
+def take_solver_errors() -> list:
+    """The solver error lines (:data:`C_ERRORS`) the filter of :class:`_quiet_c_output` kept since the last call,
+    oldest first; they are forgotten here. Read them after the ``with`` block: its end waits for the filter."""
+    with _ERRORS_LOCK:
+        out, _filter["errors"] = _filter["errors"], []
+    return out
 
 
 def _forward(r: int, saved: int) -> None:
@@ -360,6 +386,9 @@ class ScipSolver(Solver):
         with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
             m.optimizeNogil()  # other threads run meanwhile (a caller may answer while this call runs on)
         st = m.getStatus()
+        said = take_solver_errors()
+        if said:  # SCIP's error lines, kept from the C streams: they belong to this result
+            st += f" (SCIP said: {' / '.join(said)})"
         nodes = m.getNNodes() if p.is_mip else 0
         w = None
         if m.getNSols() > 0:
