@@ -611,13 +611,17 @@ def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
     monkeypatch.setattr(mpc.solver, "solve", holding)
     mpc.set_previous_plan(prev)
     t0 = time.perf_counter()
-    s = mpc(z, R)
-    assert held["end"] > t0 + mpc.time_limit + 0.1, "premise: the held call ran on past the limit"
-    assert s.info["wake_lag"] >= held["end"] - (t0 + mpc.time_limit), (s.info, held["end"] - t0)
+    try:
+        s = mpc(z, R)
+    finally:
+        mpc.finish()  # the held solve ends, and the settings the step kept for it come back
+    # the engine's thread notes the end just after the call returns, when the answer may already have resumed
+    over = held["end"] - (t0 + mpc.time_limit)
+    assert over > 0.1, "premise: the held call ran on past the limit"
+    assert s.info["wake_lag"] >= 0.9 * over, (s.info, over)
     if np.isfinite(s.info["wake_runqueue"]):
         assert s.info["wake_runqueue"] < 0.5 * s.info["wake_lag"], s.info
     assert check_step(mpc, s) and s.input_admissible, s.message
-    mpc.finish()
 
 
 def test_the_cpu_time_of_a_cut_off_step_counts_the_engine_thread(quad, monkeypatch):
