@@ -613,7 +613,9 @@ class ClfCbfController:
         HiGHS returned a sub-optimal point as optimal at a few states, see
         :class:`flnotes.solvers.HighsSolver`).
     solver
-        For ``backend="cvxpy"``: the cvxpy solver name (default HIGHS for Lcost, SCIP for Qcost).
+        For ``backend="cvxpy"``: the cvxpy solver name (default HIGHS for Lcost, SCIP for Qcost). SCIP takes the
+        program's QP form through :class:`flnotes.solvers.cvxpy_bridge.ScipQP` (the solver layer's SCIP model, not
+        cvxpy's conic interface, which was slow and failed near the domain edge).
     v_lo, v_hi
         Box on ``v``; default: the system's domain box (where ``eps`` holds).
     penalty
@@ -1010,6 +1012,13 @@ class _CvxpyBackend:
         if not self.problem.is_dpp():
             raise RuntimeError("the CLF-CBF program is not DPP: cvxpy would recompile it each step")
         self.solver = solver or ("HIGHS" if c.cost == "linear" else "SCIP")
+        # SCIP takes the program's QP form through the solver layer (cvxpy's own SCIP interface hands the quadratic
+        # cost to SCIP as a second-order cone: slow and failing near the domain edge, see the bridge's docstring)
+        self._bridge = None
+        if str(self.solver).upper() == "SCIP":
+            from .solvers.cvxpy_bridge import ScipQP
+
+            self.solver, self._bridge = "SCIP", ScipQP()
         self.n_binaries = self.enc.n_binaries
         self.big = 1e4
         self.margin = 0.0
@@ -1026,11 +1035,8 @@ class _CvxpyBackend:
             if tl is not None:
                 o["time_limit"] = float(tl)
             return o
-        if self.solver == "SCIP":
-            sp = {"limits/gap": 1e-9, "limits/absgap": 1e-10, "numerics/feastol": 1e-9}
-            if tl is not None:
-                sp["limits/time"] = float(tl)
-            return dict(scip_params=sp)
+        if self.solver == "SCIP":  # through flnotes.solvers.cvxpy_bridge.ScipQP: feasibility tolerance 1e-9
+            return dict(gap=1e-9, time_limit=None if tl is None else float(tl))
         return {}
 
     def solve(self, z: Array, d: dict, soft: bool) -> _Solution:
@@ -1056,13 +1062,13 @@ class _CvxpyBackend:
                 with _quiet_c_output(), warnings.catch_warnings():  # SoPlex prints its notices to the C streams;
                     # cvxpy warns of an inaccurate solution: its status (optimal_inaccurate) is kept in the detail
                     warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
-                    self.problem.solve(solver=self.solver, **self._opts())
+                    self.problem.solve(solver=self._bridge or self.solver, **self._opts())
             except cp.error.SolverError as exc:
                 said += take_solver_errors()  # the solver's own error lines, kept from the C streams
                 if soft or self.exact is None:
                     raise cp.error.SolverError(f"{exc}" + (f" ({self.solver} said: {' / '.join(said)})" if said
                                                             else "")) from exc
-                failed = f"cvxpy/{self.solver} failed ({exc})"
+                failed = f"cvxpy/{self.solver} failed ({exc}{self._scip_status()})"
                 break
             said += take_solver_errors()  # e.g. SCIP's "EMAISM: numerical violation ..." on a solve that returned
             if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
@@ -1078,7 +1084,7 @@ class _CvxpyBackend:
             st = _CVXPY_STATUS.get(raw, f"error: {raw}")
             stats = self.problem.solver_stats
             sol = _Solution(status=st, solver_time=float(stats.solve_time or np.nan),
-                            detail=f"cvxpy/{self.solver}: {raw}")
+                            detail=f"cvxpy/{self.solver}: {raw}{self._scip_status()}")
             if self.v.value is not None and st in ("optimal", "time_limit"):
                 sol.v, sol.delta = np.array(self.v.value, float), float(self.delta.value)
                 sol.objective = float(self.problem.value)
@@ -1087,6 +1093,11 @@ class _CvxpyBackend:
         if said:  # what the solver wrote to the C streams about this solve belongs to its result
             sol.detail += f" ({self.solver} said: {' / '.join(said)})"
         return sol if soft or self.exact is None else self._checked(z, d, sol)
+
+    def _scip_status(self) -> str:
+        """SCIP's own status of the last solve through the bridge (with SCIP's error lines, if it wrote any)."""
+        r = None if self._bridge is None else self._bridge.result
+        return "" if r is None else f"; SCIP status {r.message}"
 
     def _checked(self, z: Array, d: dict, sol: _Solution) -> _Solution:
         """The program's answer checked against the exact method of one or two inputs (:func:`solve_exact_1d`,

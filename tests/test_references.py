@@ -163,3 +163,42 @@ def test_a_cvxpy_failure_is_replaced_by_the_exact_optimum_and_said(msd, monkeypa
     assert r.status == "optimal" and not r.fallback
     assert r.objective == rx.objective and np.array_equal(r.v, rx.v)
     assert "failed" in r.message and "exact 1-D method" in r.message, r.message
+
+
+def test_the_qcost_cvxpy_backend_solves_through_the_solver_layer(msd):
+    """Qcost through cvxpy: SCIP gets the program's QP form (flnotes.solvers.cvxpy_bridge.ScipQP), not cvxpy's cone
+    form; at a state within 2 % of the box's face where the cone form once took 65 s, the answer is SCIP's own
+    optimum (not replaced by the exact method) and equals the exact 1-D optimum to 1e-6; the message carries SCIP's
+    status."""
+    sysm, net = msd
+    P = fl.paper.MSD_SETTING
+    ctrl = ClfCbfController(sysm, net, fl.paper.TABLE1["MSD"]["eps"], QuadraticCLF(P["P"]),
+                            DistanceCBF(P["z_o"], P["r_o"]), lambda z: -P["K_nominal"] @ z, cost="quadratic",
+                            backend="cvxpy")
+    from flnotes.solvers.cvxpy_bridge import ScipQP
+
+    assert isinstance(ctrl._impl._bridge, ScipQP)
+    z = np.array([4.942480204479921, -1.3465765358892146])
+    r, rx = ctrl.step(z), ctrl.with_backend("exact").step(z)
+    assert rx.status == "optimal", "premise: a feasible state"
+    assert r.status == "optimal" and rel(r.objective, rx.objective) <= 1e-6, (r.message, r.objective, rx.objective)
+    assert "SCIP status" in r.message and "equal to the optimum of the exact 1-D method" in r.message, r.message
+    assert ctrl._impl._bridge.result.status == "optimal"
+
+
+def test_the_bridge_checks_its_options():
+    """ScipQP takes time_limit, gap, feastol and miqp_params only: anything else is an error that names them."""
+    import cvxpy as cp
+
+    from flnotes.solvers.cvxpy_bridge import ScipQP
+
+    x = cp.Variable(2)
+    b = cp.Variable(boolean=True)
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(x - np.array([0.3, -2.0])) + b), [x >= -b, x <= 1])
+    bridge = ScipQP()
+    prob.solve(solver=bridge, time_limit=10.0)
+    assert bridge.result.status == "optimal" and prob.status == "optimal"
+    assert np.allclose(x.value, [0.3, -1.0], atol=1e-7) and abs(b.value - 1) <= 1e-9  # 1 + 1 = 2 < 4 with b = 0
+    assert abs(prob.value - 2.0) <= 1e-7
+    with pytest.raises(ValueError, match="time_limit"):
+        prob.solve(solver=ScipQP(), limits_time=1.0)

@@ -542,3 +542,32 @@ def test_the_c_output_filter_drops_only_the_notices(capfd):
     assert "GMP" not in out.err and "1e-11" not in out.err
     assert "kept line\n" in out.err and "progress 50%\r" in out.err and out.out == "stdout line\n"
     assert out.err.endswith("Cannot set")
+
+
+def test_a_scip_failure_keeps_its_own_error_lines(capfd):
+    """When SCIP's solve raises (e.g. "SCIP: error in LP solver!"), the error lines it wrote meanwhile go into that
+    result's message, not into the next solve's."""
+    from flnotes.solvers import scip
+
+    s = make_solver(random_program(0, quad=True), "scip")
+
+    class Failing:  # the model, except that its solve writes SCIP's error line and raises as SCIP does
+        def __init__(self, m):
+            self._inner = m
+
+        def __getattr__(self, name):
+            return getattr(self._inner, name)
+
+        def optimizeNogil(self):
+            os.write(2, b"[solve.c:4948] ERROR: (node 3) unresolved numerical troubles in LP 9 -- aborting\n")
+            raise Exception("SCIP: error in LP solver!")
+
+    scip.take_solver_errors()
+    s._m = Failing(s._m)
+    r = s.solve()
+    assert r.status == "error" and "error in LP solver" in r.message and "node 3" in r.message, r.message
+    assert scip.take_solver_errors() == []
+    s._m = s._m._inner
+    r2 = s.solve()
+    assert r2.status == "optimal" and "ERROR" not in r2.message, r2.message
+    assert "ERROR" not in capfd.readouterr().err

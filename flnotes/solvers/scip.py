@@ -383,8 +383,14 @@ class ScipSolver(Solver):
                     m.setSolVal(sol, self._y[i], float(y[i]))
                     m.setSolVal(sol, self._sq[i], float(0.5 * self._lam[i] * y[i] ** 2) + 1e-9)
             m.addSol(sol, free=True)
-        with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
-            m.optimizeNogil()  # other threads run meanwhile (a caller may answer while this call runs on)
+        try:
+            with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
+                m.optimizeNogil()  # other threads run meanwhile (a caller may answer while this call runs on)
+        except Exception as exc:  # e.g. "SCIP: error in LP solver!": SCIP's own lines belong to this failure, not
+            said = take_solver_errors()  # to the next solve's result
+            if said:
+                raise type(exc)(f"{exc} (SCIP said: {' / '.join(said)})") from exc
+            raise
         st = m.getStatus()
         said = take_solver_errors()
         if said:  # SCIP's error lines, kept from the C streams: they belong to this result

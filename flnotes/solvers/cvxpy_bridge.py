@@ -1,0 +1,104 @@
+"""SCIP for cvxpy programs with a quadratic cost: cvxpy writes the program, :class:`ScipSolver` solves it.
+
+cvxpy's own SCIP interface is a conic one: it hands a quadratic cost to SCIP as a second-order cone (auxiliary
+variables and rows), which SCIP separates as a nonlinear constraint, with ``optimize`` holding the interpreter lock.
+On the CLF-CBF programs of one input with the quadratic cost (eq. QP_cost) that path was slow and fragile at the
+suite's feasibility tolerance (1e-9): near the MSD's domain edge a step raised "Solver 'SCIP' failed" after 31 to
+49 s, and one "optimal" step took 65 to 82 s (on 400 MSD states, half of them within 2 % of a face of the box, the
+slowest step took 64.8 s there and 0.38 s here, at the same optima). :class:`ScipQP` is a cvxpy custom QP solver
+instead: cvxpy canonicalizes the program as written (its QP form ``min 0.5 x'Px + q'x  s.t.  Ax = b, Fx <= g``,
+bounds and binaries) and the solver layer's :class:`ScipSolver` solves that :class:`MIQP` (the separable epigraph
+of the cost, feasibility tolerance 1e-9, the time limit passed to SCIP, SCIP running without the interpreter lock,
+the point polished and checked against the rows to :data:`FEAS_TOL`), with SCIP's own settings
+(``miqp_params="default"``). Not for every program: on the MPC reference's uncondensed programs (states as
+variables, eq. MPC_form_miqp) this epigraph needed 10 s and more where cvxpy's cone form needed 0.03 s, and the
+MPC reference keeps cvxpy's SCIP interface (:mod:`flnotes.mpc.reference`).
+
+Usage: ``bridge = ScipQP(); problem.solve(solver=bridge, time_limit=..., gap=...)``; the solver layer's
+:class:`MIQPResult` of the last solve is ``bridge.result`` (also when cvxpy raised ``SolverError`` for a result without
+a point: its status and SCIP's message are kept there).
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import scipy.sparse as sp
+
+import cvxpy.settings as s
+from cvxpy.reductions.solution import Solution, failure_solution
+from cvxpy.reductions.solvers.qp_solvers.qp_solver import QpSolver
+from cvxpy.utilities.citations import CITATION_DICT
+
+from .base import make_solver
+from .problem import MIQP, MIQPResult
+
+#: :class:`MIQPResult` status -> cvxpy status (a point under a limit is cvxpy's ``user_limit``, with the point).
+STATUS = {"optimal": s.OPTIMAL, "time_limit": s.USER_LIMIT, "infeasible": s.INFEASIBLE, "error": s.SOLVER_ERROR}
+
+#: The options :class:`ScipQP` takes in ``problem.solve(solver=ScipQP(), **options)``.
+OPTIONS = ("time_limit", "gap", "feastol", "miqp_params")
+
+
+class ScipQP(QpSolver):
+    """A cvxpy custom solver: the program's QP form solved by :class:`flnotes.solvers.ScipSolver` (see the module)."""
+
+    MIP_CAPABLE = True
+    BOUNDED_VARIABLES = True
+
+    def __init__(self) -> None:
+        super().__init__()
+        #: The :class:`MIQPResult` of the last solve (None before the first).
+        self.result: Optional[MIQPResult] = None
+
+    def name(self) -> str:
+        return "FLNOTES_SCIP"
+
+    def cite(self, data) -> str:
+        return CITATION_DICT["SCIP"]
+
+    def import_solver(self) -> None:
+        import pyscipopt  # noqa: F401
+
+    @staticmethod
+    def miqp(data: dict) -> MIQP:
+        """cvxpy's QP data as an :class:`MIQP`: one row block ``[A; F]`` with sides ``[b, b]`` and ``[-inf, g]``."""
+        n = int(data["n_var"])
+        P = sp.csc_matrix(data[s.P], dtype=float)
+        H = 0.5 * (P + P.T) if P.nnz else None
+        A, F = sp.csr_matrix(data[s.A], dtype=float), sp.csr_matrix(data[s.F], dtype=float)
+        b, g = np.asarray(data[s.B], float).ravel(), np.asarray(data[s.G], float).ravel()
+        lb = np.full(n, -np.inf) if data.get(s.LOWER_BOUNDS) is None else np.asarray(data[s.LOWER_BOUNDS], float)
+        ub = np.full(n, np.inf) if data.get(s.UPPER_BOUNDS) is None else np.asarray(data[s.UPPER_BOUNDS], float)
+        integ = np.zeros(n, int)
+        bools = np.asarray(data[s.BOOL_IDX], int)
+        integ[bools] = 1
+        integ[np.asarray(data[s.INT_IDX], int)] = 1
+        lb[bools], ub[bools] = np.maximum(lb[bools], 0.0), np.minimum(ub[bools], 1.0)
+        return MIQP(H, np.asarray(data[s.Q], float).ravel(), 0.0, sp.vstack([A, F], format="csr"),
+                    np.concatenate([b, np.full(g.size, -np.inf)]), np.concatenate([b, g]), lb, ub, integ)
+
+    def solve_via_data(self, data, warm_start: bool, verbose: bool, solver_opts, solver_cache=None):
+        bad = sorted(set(solver_opts) - set(OPTIONS))
+        if bad:
+            raise ValueError(f"ScipQP takes the options {OPTIONS}, got {bad}")
+        opts = {"feastol": float(solver_opts.get("feastol", 1e-9)),
+                "miqp_params": solver_opts.get("miqp_params", "default")}
+        prob = self.miqp(data)
+        if prob.H is None:
+            opts.pop("miqp_params")
+        self.result = None
+        self.result = make_solver(prob, "scip", **opts).solve(time_limit=solver_opts.get("time_limit"),
+                                                              gap=float(solver_opts.get("gap", 1e-9)))
+        return self.result
+
+    def invert(self, solution, inverse_data):
+        status = STATUS[solution.status]
+        attr = {s.SOLVE_TIME: solution.time, s.EXTRA_STATS: solution}
+        if solution.w is None:
+            return failure_solution(s.SOLVER_ERROR if status == s.USER_LIMIT else status, attr)
+        return Solution(status, solution.objective + inverse_data[s.OFFSET],
+                        {inverse_data[self.VAR_ID]: solution.w}, {}, attr)
+
+
+__all__ = ["ScipQP", "STATUS", "OPTIONS"]
