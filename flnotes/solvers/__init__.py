@@ -65,9 +65,10 @@ straight to the C streams whatever SCIP's verbosity (a tolerance notice, :data:`
 file descriptors 1 and 2 while any SCIP call runs; everything else written meanwhile passes.
 
 Layout: :mod:`.problem` (the program, its result, the tolerance policy),
-:mod:`.base` (the persistent-model interface and back-end selection), and one
+:mod:`.base` (the persistent-model interface and back-end selection), one
 module per back-end (:mod:`.highs`, :mod:`.scip`, :mod:`.daqp`, :mod:`.gurobi`,
-:mod:`.cplex`). This package sits at the bottom of :mod:`flnotes`: it imports
+:mod:`.cplex`), and :mod:`.cvxpy_bridge` (SCIP as a cvxpy custom solver for a
+program cvxpy writes; imported on demand, it needs cvxpy). This package sits at the bottom of :mod:`flnotes`: it imports
 numpy, scipy and the solver libraries only, never a controller; a back-end
 fix never touches MPC or CLF-CBF logic.
 """
