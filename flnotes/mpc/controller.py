@@ -225,7 +225,9 @@ class MPC:
     time_limit
         Seconds per control step, or ``None``. The whole step counts: the checks before the solve, the engine
         (screening QP, node bounds, every round; each solver call gets the time left) and the fallback after
-        it. :attr:`reserve` seconds are kept back from the engine for its overrun and the fallback (what this
+        it. The reference (``backend="cvxpy-scip"``) has no reserve and no cut-off: its rounds share the limit
+        (each SCIP call gets the time left), and SCIP itself keeps to it only as closely as it checks its clock.
+        :attr:`reserve` seconds are kept back from the engine for its overrun and the fallback (what this
         controller measured of them, decaying, at most :data:`RESERVE_MAX_SHARE` of the limit), and the fallback's
         repairs stop at :data:`FALLBACK_POST_SHARE` of the limit (at least :data:`FALLBACK_POST_MIN_S`) before
         it. The engine's own limit ends at the cut-off (see ``cut_off``). An answer can still come after the limit
@@ -712,16 +714,26 @@ class MPC:
         return step
 
     def _solve_reference(self, z: Array, R: Array) -> StepResult:
-        """The cold reference; when SCIP's tolerance lets the plan exceed ``u_max^eps``, the rows are tightened."""
+        """The cold reference; when SCIP's tolerance lets the plan exceed ``u_max^eps``, the rows are tightened.
+
+        ``time_limit`` bounds the whole step: each round gets what the earlier ones left (a round that starts with
+        nothing left is not run, and the step ends with status ``"time_limit"``)."""
         self.margin = 0.0  # per solve, as in the engine
-        for _ in range(6):
-            step = self.solver.solve(z, R, self.u_eps - self.margin, time_limit=self.time_limit, gap=self.gap)
+        t0 = time.perf_counter()
+        step = self.solver.solve(z, R, self.u_eps, time_limit=self.time_limit, gap=self.gap)
+        for k in range(2, 8):  # rounds 2 to 6
             if step.v is None or step.status != "optimal":
                 return step
             ex = float(np.max(np.abs(self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))) - self.u_eps))
-            if ex <= BOUND_TOL:
+            if ex <= BOUND_TOL or k == 7:
                 return step
             self.margin = next_margin(self.margin, ex, float(np.max(self.u_eps)))
+            left = None if self.time_limit is None else self.time_limit - (time.perf_counter() - t0)
+            if left is not None and left <= 0.0:
+                step.status = "time_limit"
+                step.message += f"; the time limit came before round {k} (the rows tightened by {self.margin:.1e})"
+                return step
+            step = self.solver.solve(z, R, self.u_eps - self.margin, time_limit=left, gap=self.gap)
         return step
 
     def step(self, z: Array, t: float, reference: Optional[Callable[[Array], Array]] = None) -> StepResult:
