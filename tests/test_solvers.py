@@ -571,3 +571,29 @@ def test_a_scip_failure_keeps_its_own_error_lines(capfd):
     r2 = s.solve()
     assert r2.status == "optimal" and "ERROR" not in r2.message, r2.message
     assert "ERROR" not in capfd.readouterr().err
+
+
+def test_scip_error_lines_on_a_solved_program_keep_its_status(capfd):
+    """SCIP wrote a line (e.g. "EMAISM: numerical violation after disaggregating variable") during a solve that
+    ended optimal: the result keeps SCIP's status and its checked point, with the line in its message (the line once
+    turned the status into "error" and dropped the point)."""
+    s = make_solver(random_program(0, quad=True), "scip")
+    ref = s.solve()
+    assert ref.status == "optimal", "premise: a solvable program"
+
+    class Chatty:  # the model, except that its solve writes SCIP's line before solving
+        def __init__(self, m):
+            self._inner = m
+
+        def __getattr__(self, name):
+            return getattr(self._inner, name)
+
+        def optimizeNogil(self):
+            os.write(2, b"EMAISM: numerical violation after disaggregating variable\n")
+            return self._inner.optimizeNogil()
+
+    s._m = Chatty(s._m)
+    r = s.solve()
+    assert r.status == "optimal" and r.w is not None, r.message
+    assert abs(r.objective - ref.objective) <= 1e-6 * max(1.0, abs(ref.objective))
+    assert "EMAISM" in r.message and "EMAISM" not in capfd.readouterr().err

@@ -391,10 +391,10 @@ class ScipSolver(Solver):
             if said:
                 raise type(exc)(f"{exc} (SCIP said: {' / '.join(said)})") from exc
             raise
-        st = m.getStatus()
-        said = take_solver_errors()
-        if said:  # SCIP's error lines, kept from the C streams: they belong to this result
-            st += f" (SCIP said: {' / '.join(said)})"
+        raw = m.getStatus()
+        st, said = raw, take_solver_errors()
+        if said:  # SCIP's error lines, kept from the C streams: they belong to this result (its status is SCIP's,
+            st += f" (SCIP said: {' / '.join(said)})"  # and its point is checked below like any other)
         nodes = m.getNNodes() if p.is_mip else 0
         w = None
         if m.getNSols() > 0:
@@ -406,7 +406,7 @@ class ScipSolver(Solver):
             bound = -np.inf
         if abs(bound) >= 1e19:
             bound = -np.inf
-        status = SCIP_STATUS.get(st, "error")
+        status = SCIP_STATUS.get(raw, "error")
         left = None if not time_limit else time_limit - (time.perf_counter() - t0)
         if w is not None and p.H is not None and status in ("optimal", "time_limit"):
             late = left is not None and left <= POLISH_MIN_LEFT
