@@ -613,9 +613,10 @@ class ClfCbfController:
         HiGHS returned a sub-optimal point as optimal at a few states, see
         :class:`flnotes.solvers.HighsSolver`).
     solver
-        For ``backend="cvxpy"``: the cvxpy solver name (default HIGHS for Lcost, SCIP for Qcost). SCIP takes the
-        program's QP form through :class:`flnotes.solvers.cvxpy_bridge.ScipQP` (the solver layer's SCIP model, not
-        cvxpy's conic interface, which was slow and failed near the domain edge).
+        For ``backend="cvxpy"``: the cvxpy solver name (default SCIP for both costs). SCIP takes the program's QP
+        form through :class:`flnotes.solvers.cvxpy_bridge.ScipQP` (the solver layer's SCIP model, not cvxpy's conic
+        interface, which was slow and failed near the domain edge); ``"HIGHS"`` was the Lcost default until it
+        labelled optimal points of cost -166.2 and -1029.7 on MSD states where the optimum is -667.5 and -1434.7.
     v_lo, v_hi
         Box on ``v``; default: the system's domain box (where ``eps`` holds).
     penalty
@@ -963,6 +964,11 @@ class _ExactPiecesBackend:
         return sol
 
 
+#: Largest violation of the program's rows (and the binaries' integrality) of a point that cvxpy's solver returned
+#: under a time limit (status ``user_limit`` or ``optimal_inaccurate``) for the ``"cvxpy"`` back-end to keep it: HiGHS
+#: stopped at 1 ms returned ``v = 0`` with every slack 0 where the CBF row needs -1.2 of slack.
+LIMIT_POINT_TOL = 1e-6
+
 #: Relative difference (``/ max(1, |J|)``) within which the ``"cvxpy"`` back-end's optimum counts as the exact
 #: method's (:meth:`_CvxpyBackend._checked`): the suite's tolerance for a reference.
 EXACT_CHECK_TOL = 1e-6
@@ -1011,7 +1017,7 @@ class _CvxpyBackend:
         self.problem = cp.Problem(cp.Minimize(J + obj), cons)
         if not self.problem.is_dpp():
             raise RuntimeError("the CLF-CBF program is not DPP: cvxpy would recompile it each step")
-        self.solver = solver or ("HIGHS" if c.cost == "linear" else "SCIP")
+        self.solver = solver or "SCIP"
         # SCIP takes the program's QP form through the solver layer (cvxpy's own SCIP interface hands the quadratic
         # cost to SCIP as a second-order cone: slow and failing near the domain edge, see the bridge's docstring)
         self._bridge = None
@@ -1029,7 +1035,7 @@ class _CvxpyBackend:
         tl = self.c.time_limit
         if self.solver == "HIGHS":
             # the settings measured best in flnotes.solvers.HighsSolver (presolve on, tolerances 1e-8; 1e-9 declared
-            # feasible programs infeasible); this teaching form has no cross-check: HiGHS's "optimal" is taken
+            # feasible programs infeasible); with one or two inputs its answer is checked by the exact method
             o = dict(mip_rel_gap=1e-9, mip_abs_gap=1e-10, mip_feasibility_tolerance=1e-8,
                      primal_feasibility_tolerance=1e-8)
             if tl is not None:
@@ -1068,7 +1074,10 @@ class _CvxpyBackend:
                 if soft or self.exact is None:
                     raise cp.error.SolverError(f"{exc}" + (f" ({self.solver} said: {' / '.join(said)})" if said
                                                             else "")) from exc
-                failed = f"cvxpy/{self.solver} failed ({exc}{self._scip_status()})"
+                r = None if self._bridge is None else self._bridge.result
+                failed = (f"cvxpy/{self.solver}: the time limit came before a point{self._scip_status()}"
+                          if r is not None and r.status == "time_limit" else
+                          f"cvxpy/{self.solver} failed ({exc}{self._scip_status()})")
                 break
             said += take_solver_errors()  # e.g. SCIP's "EMAISM: numerical violation ..." on a solve that returned
             if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
@@ -1085,7 +1094,10 @@ class _CvxpyBackend:
             stats = self.problem.solver_stats
             sol = _Solution(status=st, solver_time=float(stats.solve_time or np.nan),
                             detail=f"cvxpy/{self.solver}: {raw}{self._scip_status()}")
-            if self.v.value is not None and st in ("optimal", "time_limit"):
+            bad = self._violation() if self.v.value is not None and st == "time_limit" else 0.0
+            if bad > LIMIT_POINT_TOL:  # a point under a limit that is no point of the program is not applied
+                sol.detail += f"; its point under the limit violates the program by {bad:.1e}: dropped"
+            elif self.v.value is not None and st in ("optimal", "time_limit"):
                 sol.v, sol.delta = np.array(self.v.value, float), float(self.delta.value)
                 sol.objective = float(self.problem.value)
                 sol.slack_u = np.array(self.s_u.value, float)
@@ -1093,6 +1105,22 @@ class _CvxpyBackend:
         if said:  # what the solver wrote to the C streams about this solve belongs to its result
             sol.detail += f" ({self.solver} said: {' / '.join(said)})"
         return sol if soft or self.exact is None else self._checked(z, d, sol)
+
+    def _feasible(self, z: Array, d: dict, v: Array) -> bool:
+        """``v`` solves the unsoftened program exactly: in the box, the CBF rows ``a_H v + b_H >= 0`` and the
+        network bound by the forward pass (the CLF row always holds with its ``delta``)."""
+        v = np.asarray(v, float).reshape(-1)
+        rows = np.all(np.asarray(d["aH"]) @ v + np.asarray(d["bH"]) >= 0.0) if self.c.p else True
+        return bool(rows and np.all(v >= self.c.v_lo) and np.all(v <= self.c.v_hi) and self.c._admissible(z, v))
+
+    def _violation(self) -> float:
+        """How far the variables' values break the program: its rows (cvxpy's ``violation``) and the binaries'
+        integrality."""
+        worst = max((float(np.max(c.violation(), initial=0.0)) for c in self.problem.constraints), default=0.0)
+        for x in self.problem.variables():
+            if x.attributes.get("boolean") and x.value is not None:
+                worst = max(worst, float(np.max(np.abs(x.value - np.round(x.value)), initial=0.0)))
+        return worst
 
     def _scip_status(self) -> str:
         """SCIP's own status of the last solve through the bridge (with SCIP's error lines, if it wrote any)."""
@@ -1115,7 +1143,7 @@ class _CvxpyBackend:
             if sol.status == "infeasible":
                 sol.detail += f"; infeasible, confirmed by {kind}"
                 return sol
-            if sol.v is not None and self.c._admissible(z, sol.v):  # pragma: no cover - would be a bug of the method
+            if sol.v is not None and self._feasible(z, d, sol.v):  # pragma: no cover - would be a bug of the method
                 raise RuntimeError(f"{kind} found no admissible v at z = {z} but {sol.detail} returned an admissible "
                                    f"point {sol.v}: report this state")
             ex.detail = f"{sol.detail}, not confirmed: infeasible by {kind} ({ex.detail})"
@@ -1124,9 +1152,12 @@ class _CvxpyBackend:
         if sol.status == "optimal" and sol.v is not None and sol.objective <= J + EXACT_CHECK_TOL * max(1.0, abs(J)):
             sol.detail += f"; equal to the optimum of {kind} ({J:.10g})"
             return sol
-        claim = sol.detail if sol.v is None else f"{sol.detail} at cost {sol.objective:.10g}"
         ex.slack_u, ex.slack_H = np.zeros(self.c.system.m), np.zeros(self.c.p)
-        ex.detail = f"{claim}, not the optimum: the optimum of {kind} ({ex.detail}) is returned"
+        if sol.v is None:
+            ex.detail = f"{sol.detail}, no point: the optimum of {kind} ({ex.detail}) is returned"
+        else:
+            ex.detail = (f"{sol.detail} at cost {sol.objective:.10g}, not the optimum: the optimum of {kind} "
+                         f"({ex.detail}) is returned")
         return ex
 
 

@@ -121,7 +121,7 @@ def _msd_states(sysm, n, seed):
 
 @pytest.mark.parametrize("cost", ["linear", "quadratic"])
 def test_the_clf_cbf_cvxpy_backend_returns_the_exact_optimum(msd, cost, capfd):
-    """The cvxpy back-end (HiGHS for Lcost, SCIP for Qcost) on uniform states, states at the box's faces and states
+    """The cvxpy back-end (SCIP through the solver layer, both costs) on uniform states, states at the box's faces and states
     where the bound is active: the same status as the exact 1-D method and its optimum to 1e-6, every message
     naming the check; nothing on the C streams."""
     sysm, net = msd
@@ -236,3 +236,42 @@ def test_the_reference_rounds_share_its_time_limit(quad_small, monkeypatch):
     for t_call, left in given:
         assert left is not None and 0 < left <= 0.8 - (t_call - t_first) + 2e-3, given  # the time left, not 0.8
     assert "the time limit came before round" in step.message, step.message
+
+
+def _msd_ctrl(msd, cost, **kw):
+    sysm, net = msd
+    P = fl.paper.MSD_SETTING
+    return ClfCbfController(sysm, net, fl.paper.TABLE1["MSD"]["eps"], QuadraticCLF(P["P"]),
+                            DistanceCBF(P["z_o"], P["r_o"]), lambda z: -P["K_nominal"] @ z, cost=cost,
+                            backend="cvxpy", **kw)
+
+
+def test_the_lcost_cvxpy_backend_is_exact_on_its_own(msd):
+    """Lcost through cvxpy uses SCIP by default: at the MSD states where HiGHS (the former default) labelled points of
+    cost -166.2 and -1029.7 optimal, the program's own answer is the exact optimum (confirmed, not replaced)."""
+    ctrl = _msd_ctrl(msd, "linear")
+    exact = ctrl.with_backend("exact")
+    assert ctrl._impl.solver == "SCIP"
+    for z in ([-4.388405839673802, 2.909481120131087], [-3.7296355151117524, 3.916213231301512]):
+        r, rx = ctrl.step(np.array(z)), exact.step(np.array(z))
+        assert rx.status == "optimal", "premise: a feasible state"
+        assert r.status == "optimal" and rel(r.objective, rx.objective) <= 1e-6, (r.message, r.objective, rx.objective)
+        assert "equal to the optimum of the exact 1-D method" in r.message and "not the optimum" not in r.message
+
+
+@pytest.mark.parametrize("solver", ["SCIP", "HIGHS"])
+def test_a_point_under_a_tiny_time_limit_is_checked_against_the_program(msd, solver):
+    """At 1 ms a solver may stop with a point that is no point of the program (HiGHS returned v = 0 with every slack
+    0 where the CBF row needs slack): the step's status is still the exact method's (infeasible here, no crash), and
+    a softened answer that is applied satisfies the softened program's rows with the slacks it reports."""
+    ctrl = _msd_ctrl(msd, "linear", time_limit=0.001, solver=solver)
+    z = np.array([0.8080457023762336, 1.3995000000000002])
+    rx = ctrl.with_backend("exact").step(z)
+    assert rx.status == "infeasible", "premise: an infeasible state"
+    for _ in range(3):
+        r = ctrl.step(z)
+        assert r.status == "infeasible" and r.fallback, r.message
+        if r.info["fallback_rule"] == "softened program":
+            d = ctrl.program_data(z)
+            assert np.all(d["aH"] @ r.v + d["bH"] + r.info["slack_H"] >= -1e-6), (r.v, r.info["slack_H"])
+            assert np.all(np.abs(r.info["phi_nn"]) <= ctrl.u_eps + r.info["slack_u"] + 1e-6)
