@@ -544,26 +544,32 @@ def test_the_c_output_filter_drops_only_the_notices(capfd):
     assert out.err.endswith("Cannot set")
 
 
+class _WritingModel:
+    """A SCIP model whose solve first writes ``line`` to file descriptor 2 (as SCIP does), then raises ``fail`` or
+    solves."""
+
+    def __init__(self, m, line: bytes, fail: Exception = None):
+        self._inner, self._line, self._fail = m, line, fail
+
+    def __getattr__(self, name):
+        return getattr(self._inner, name)
+
+    def optimizeNogil(self):
+        os.write(2, self._line)
+        if self._fail is not None:
+            raise self._fail
+        return self._inner.optimizeNogil()
+
+
 def test_a_scip_failure_keeps_its_own_error_lines(capfd):
     """When SCIP's solve raises (e.g. "SCIP: error in LP solver!"), the error lines it wrote meanwhile go into that
     result's message, not into the next solve's."""
     from flnotes.solvers import scip
 
     s = make_solver(random_program(0, quad=True), "scip")
-
-    class Failing:  # the model, except that its solve writes SCIP's error line and raises as SCIP does
-        def __init__(self, m):
-            self._inner = m
-
-        def __getattr__(self, name):
-            return getattr(self._inner, name)
-
-        def optimizeNogil(self):
-            os.write(2, b"[solve.c:4948] ERROR: (node 3) unresolved numerical troubles in LP 9 -- aborting\n")
-            raise Exception("SCIP: error in LP solver!")
-
     scip.take_solver_errors()
-    s._m = Failing(s._m)
+    s._m = _WritingModel(s._m, b"[solve.c:4948] ERROR: (node 3) unresolved numerical troubles in LP 9 -- aborting\n",
+                         Exception("SCIP: error in LP solver!"))
     r = s.solve()
     assert r.status == "error" and "error in LP solver" in r.message and "node 3" in r.message, r.message
     assert scip.take_solver_errors() == []
@@ -580,19 +586,7 @@ def test_scip_error_lines_on_a_solved_program_keep_its_status(capfd):
     s = make_solver(random_program(0, quad=True), "scip")
     ref = s.solve()
     assert ref.status == "optimal", "premise: a solvable program"
-
-    class Chatty:  # the model, except that its solve writes SCIP's line before solving
-        def __init__(self, m):
-            self._inner = m
-
-        def __getattr__(self, name):
-            return getattr(self._inner, name)
-
-        def optimizeNogil(self):
-            os.write(2, b"EMAISM: numerical violation after disaggregating variable\n")
-            return self._inner.optimizeNogil()
-
-    s._m = Chatty(s._m)
+    s._m = _WritingModel(s._m, b"EMAISM: numerical violation after disaggregating variable\n")
     r = s.solve()
     assert r.status == "optimal" and r.w is not None, r.message
     assert abs(r.objective - ref.objective) <= 1e-6 * max(1.0, abs(ref.objective))
