@@ -688,6 +688,9 @@ class ClfCbfController:
         if np.any(self.v_lo >= self.v_hi):
             raise ValueError(f"need v_lo < v_hi, got {self.v_lo} and {self.v_hi}")
         self.penalty = (float(penalty[0]), float(penalty[1]))
+        if not all(np.isfinite(w) and w > 0 for w in self.penalty):
+            raise ValueError(f"penalty = (rho_u, rho_H) must be two positive finite weights (a zero or negative weight "
+                             f"makes a slack free in the softened program), got {penalty!r}")
         self.time_limit, self.gap = time_limit, float(gap)
         self.screening = bool(screening)
         self.name = name or ("Lcost" if cost == "linear" else "Qcost")
@@ -969,6 +972,12 @@ class _ExactPiecesBackend:
 #: stopped at 1 ms returned ``v = 0`` with every slack 0 where the CBF row needs -1.2 of slack.
 LIMIT_POINT_TOL = 1e-6
 
+#: How far inside every row a solver's point must lie for the ``"cvxpy"`` back-end to call the exact method wrong when
+#: that method finds the program infeasible: at states on the edge of feasibility SCIP returned points 2.4e-13 over
+#: the network bound (within the forward pass's round-off) where the exact method, with no tolerance, finds none;
+#: the step then takes the exact method's answer and says how close the solver's point came.
+EDGE_MARGIN = 1e-9
+
 #: Relative difference (``/ max(1, |J|)``) within which the ``"cvxpy"`` back-end's optimum counts as the exact
 #: method's (:meth:`_CvxpyBackend._checked`): the suite's tolerance for a reference.
 EXACT_CHECK_TOL = 1e-6
@@ -1082,7 +1091,8 @@ class _CvxpyBackend:
             said += take_solver_errors()  # e.g. SCIP's "EMAISM: numerical violation ..." on a solve that returned
             if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
                 break
-            ex = float(np.max(np.abs(c.net(np.concatenate([z, np.asarray(self.v.value, float)]))) - c.u_eps))
+            v_box = np.clip(np.asarray(self.v.value, float), c.v_lo, c.v_hi)  # the v applied (see below)
+            ex = float(np.max(np.abs(c.net(np.concatenate([z, v_box]))) - c.u_eps))
             if ex <= BOUND_TOL:
                 break
             self.margin = next_margin(self.margin, ex, float(np.max(c.u_eps)))  # see _MiqpBackend.solve
@@ -1098,20 +1108,30 @@ class _CvxpyBackend:
             if bad > LIMIT_POINT_TOL:  # a point under a limit that is no point of the program is not applied
                 sol.detail += f"; its point under the limit violates the program by {bad:.1e}: dropped"
             elif self.v.value is not None and st in ("optimal", "time_limit"):
-                sol.v, sol.delta = np.array(self.v.value, float), float(self.delta.value)
+                v = np.array(self.v.value, float)
+                # the solver keeps the box to its feasibility tolerance: a v that far outside is put on the face
+                # (the forward-pass checks that follow see the v that is applied)
+                out = float(np.max(np.maximum(v - c.v_hi, c.v_lo - v)))
+                sol.v = np.clip(v, c.v_lo, c.v_hi) if out <= LIMIT_POINT_TOL else v
+                sol.delta = float(self.delta.value)
                 sol.objective = float(self.problem.value)
-                sol.slack_u = np.array(self.s_u.value, float)
-                sol.slack_H = np.array(self.s_H.value, float) if c.p else np.zeros(0)
+                # the slacks this v needs (a solver may leave a slack above the need where its penalty is below its
+                # tolerance)
+                sol.slack_u = np.maximum(0.0, np.abs(c.net(np.concatenate([z, sol.v]))) - c.u_eps)
+                sol.slack_H = np.maximum(0.0, -(np.asarray(d["aH"]) @ sol.v + d["bH"])) if c.p else np.zeros(0)
         if said:  # what the solver wrote to the C streams about this solve belongs to its result
             sol.detail += f" ({self.solver} said: {' / '.join(said)})"
         return sol if soft or self.exact is None else self._checked(z, d, sol)
 
-    def _feasible(self, z: Array, d: dict, v: Array) -> bool:
-        """``v`` solves the unsoftened program exactly: in the box, the CBF rows ``a_H v + b_H >= 0`` and the
-        network bound by the forward pass (the CLF row always holds with its ``delta``)."""
+    def _feasible(self, z: Array, d: dict, v: Array, margin: float = 0.0) -> bool:
+        """``v`` solves the unsoftened program with ``margin`` to spare: in the box, the CBF rows
+        ``a_H v + b_H >= margin`` and ``|Phi_NN(z, v)| <= u_max^eps - margin`` by the forward pass (the CLF row always
+        holds with its ``delta``)."""
         v = np.asarray(v, float).reshape(-1)
-        rows = np.all(np.asarray(d["aH"]) @ v + np.asarray(d["bH"]) >= 0.0) if self.c.p else True
-        return bool(rows and np.all(v >= self.c.v_lo) and np.all(v <= self.c.v_hi) and self.c._admissible(z, v))
+        rows = np.all(np.asarray(d["aH"]) @ v + np.asarray(d["bH"]) >= margin) if self.c.p else True
+        phi = np.abs(self.c.net(np.concatenate([z, v])))
+        return bool(rows and np.all(v >= self.c.v_lo) and np.all(v <= self.c.v_hi)
+                    and np.all(phi <= self.c.u_eps - margin))
 
     def _violation(self) -> float:
         """How far the variables' values break the program: its rows (cvxpy's ``violation``) and the binaries'
@@ -1143,7 +1163,7 @@ class _CvxpyBackend:
             if sol.status == "infeasible":
                 sol.detail += f"; infeasible, confirmed by {kind}"
                 return sol
-            if sol.v is not None and self._feasible(z, d, sol.v):  # pragma: no cover - would be a bug of the method
+            if sol.v is not None and self._feasible(z, d, sol.v, margin=EDGE_MARGIN):  # pragma: no cover - a bug
                 raise RuntimeError(f"{kind} found no admissible v at z = {z} but {sol.detail} returned an admissible "
                                    f"point {sol.v}: report this state")
             ex.detail = f"{sol.detail}, not confirmed: infeasible by {kind} ({ex.detail})"

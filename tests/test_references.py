@@ -275,3 +275,58 @@ def test_a_point_under_a_tiny_time_limit_is_checked_against_the_program(msd, sol
             d = ctrl.program_data(z)
             assert np.all(d["aH"] @ r.v + d["bH"] + r.info["slack_H"] >= -1e-6), (r.v, r.info["slack_H"])
             assert np.all(np.abs(r.info["phi_nn"]) <= ctrl.u_eps + r.info["slack_u"] + 1e-6)
+
+
+def test_cvxpy_backend_edge_cases_found_by_attack(msd):
+    """States and settings where the cvxpy back-end once misbehaved: a state on the edge of feasibility (SCIP's point
+    2.4e-13 over the network bound, the exact method finds none: the exact method's status, no error); a v-box of
+    width 0.02 whose face holds the optimum (the applied v lies in the box, SCIP keeps it only to its tolerance); the
+    softened program with a penalty far below SCIP's tolerance (the reported slacks are those v needs); zero and
+    negative penalties are refused."""
+    exact_of = lambda c: c.with_backend("exact")  # noqa: E731
+    for cost, z in (("linear", [1.106423409007001, 0.8694218081841291]),
+                    ("quadratic", [1.3646646318637754, 0.9339312949416831])):
+        ctrl = _msd_ctrl(msd, cost)
+        r, rx = ctrl.step(np.array(z)), exact_of(ctrl).step(np.array(z))
+        assert r.status == rx.status == "infeasible", (r.status, r.message)
+    ctrl = _msd_ctrl(msd, "quadratic", v_lo=[-0.01], v_hi=[0.01])
+    on_face = 0
+    for z in ([3.8311843392541594, -4.858287071181678], [5.0, -5.0], [-1.1929976579951185, -1.9375792241126364]):
+        r = ctrl.step(np.array(z))
+        assert r.status == "optimal" and -0.01 <= r.v[0] <= 0.01, (r.v, r.message)
+        on_face += bool(r.v[0] == 0.01)
+    assert on_face >= 1, "premise: optima on the face of the v-box"
+    ctrl = _msd_ctrl(msd, "linear", penalty=(1e-9, 1e-9))
+    z = np.array([1.65, 1.2598076211353315])
+    r = ctrl.step(z)
+    assert r.fallback and r.info["fallback_rule"] == "softened program", "premise: the softened program"
+    d = ctrl.program_data(z)
+    need_u = np.maximum(0.0, np.abs(r.info["phi_nn"]) - ctrl.u_eps)
+    need_H = np.maximum(0.0, -(d["aH"] @ r.v + d["bH"]))
+    assert np.allclose(r.info["slack_u"], need_u, atol=1e-9) and np.allclose(r.info["slack_H"], need_H, atol=1e-9)
+    for bad in ((0.0, 1.0), (1.0, -1.0), (np.nan, 1.0)):
+        with pytest.raises(ValueError, match="penalty"):
+            _msd_ctrl(msd, "linear", penalty=bad)
+
+
+def test_the_bridge_reports_unbounded_programs_and_checks_its_numbers():
+    """ScipQP: an unbounded program is cvxpy's 'unbounded' (not a SolverError), an infeasible one is infeasible (or
+    SCIP's 'infeasible or unbounded'); a time_limit or feastol that means nothing is an error naming it."""
+    import cvxpy as cp
+
+    from flnotes.solvers.cvxpy_bridge import ScipQP
+
+    x, n = cp.Variable(), cp.Variable(integer=True)
+    unb = cp.Problem(cp.Minimize(x + n), [n >= 0, n <= 3])
+    unb.solve(solver=ScipQP())
+    assert unb.status == "unbounded" and unb.value == -np.inf
+    inf = cp.Problem(cp.Minimize(x), [x >= 1, x <= 0, 2 * n == 1])
+    inf.solve(solver=ScipQP())
+    assert inf.status in ("infeasible", "infeasible_or_unbounded")
+    ok = cp.Problem(cp.Minimize(cp.square(x - 0.3) + n), [n >= 0, n <= 3])
+    for opts, word in (({"time_limit": "abc"}, "time_limit"), ({"time_limit": np.inf}, "time_limit"),
+                       ({"feastol": 0.0}, "feastol"), ({"feastol": 1.0}, "feastol")):
+        with pytest.raises(ValueError, match=word):
+            ok.solve(solver=ScipQP(), **opts)
+    ok.solve(solver=ScipQP(), time_limit=5.0, feastol=1e-9)
+    assert ok.status == "optimal" and abs(x.value - 0.3) <= 1e-7 and abs(n.value) <= 1e-9

@@ -36,6 +36,12 @@ from .problem import MIQP, MIQPResult
 #: :class:`MIQPResult` status -> cvxpy status (a point under a limit is cvxpy's ``user_limit``, with the point).
 STATUS = {"optimal": s.OPTIMAL, "time_limit": s.USER_LIMIT, "infeasible": s.INFEASIBLE, "error": s.SOLVER_ERROR}
 
+#: SCIP's statuses of an unbounded program -> cvxpy's (the solver layer calls both errors: its programs are bounded).
+UNBOUNDED = {"unbounded": s.UNBOUNDED, "inforunbd": s.INFEASIBLE_OR_UNBOUNDED}
+
+#: The feasibility tolerances SCIP accepts here (SCIP refuses a value below 1e-17 or one that is not small).
+FEASTOL_RANGE = (1e-12, 1e-3)
+
 #: The options :class:`ScipQP` takes in ``problem.solve(solver=ScipQP(), **options)``.
 OPTIONS = ("time_limit", "gap", "feastol", "miqp_params")
 
@@ -82,11 +88,18 @@ class ScipQP(QpSolver):
         bad = sorted(set(solver_opts) - set(OPTIONS))
         if bad:
             raise ValueError(f"ScipQP takes the options {OPTIONS}, got {bad}")
-        opts = {"feastol": float(solver_opts.get("feastol", 1e-9)),
-                "miqp_params": solver_opts.get("miqp_params", "default")}
+        tl, feastol = solver_opts.get("time_limit"), solver_opts.get("feastol", 1e-9)
+        if tl is not None and (isinstance(tl, bool) or not isinstance(tl, (int, float, np.number))
+                               or not (np.isfinite(tl) and tl > 0)):
+            raise ValueError(f"time_limit must be a positive finite number of seconds or None, got {tl!r}")
+        if isinstance(feastol, bool) or not isinstance(feastol, (int, float, np.number)) \
+                or not (FEASTOL_RANGE[0] <= feastol <= FEASTOL_RANGE[1]):
+            raise ValueError(f"feastol (SCIP's numerics/feastol) must be a number in {list(FEASTOL_RANGE)}, "
+                             f"got {feastol!r}")
         prob = self.miqp(data)
-        if prob.H is None:
-            opts.pop("miqp_params")
+        opts = {"feastol": float(feastol)}
+        if "miqp_params" in solver_opts or prob.H is not None:  # ScipSolver refuses it for a program without H
+            opts["miqp_params"] = solver_opts.get("miqp_params", "default")
         self.result = None
         self.result = make_solver(prob, "scip", **opts).solve(time_limit=solver_opts.get("time_limit"),
                                                               gap=float(solver_opts.get("gap", 1e-9)))
@@ -94,11 +107,14 @@ class ScipQP(QpSolver):
 
     def invert(self, solution, inverse_data):
         status = STATUS[solution.status]
+        raw = solution.message.split(" ", 1)[0].rstrip(":")  # SCIP's own status word
+        if solution.status == "error" and raw in UNBOUNDED:
+            status = UNBOUNDED[raw]
         attr = {s.SOLVE_TIME: solution.time, s.EXTRA_STATS: solution}
-        if solution.w is None:
+        if solution.w is None or status in (s.INFEASIBLE, s.UNBOUNDED, s.INFEASIBLE_OR_UNBOUNDED):
             return failure_solution(s.SOLVER_ERROR if status == s.USER_LIMIT else status, attr)
         return Solution(status, solution.objective + inverse_data[s.OFFSET],
                         {inverse_data[self.VAR_ID]: solution.w}, {}, attr)
 
 
-__all__ = ["ScipQP", "STATUS", "OPTIONS"]
+__all__ = ["ScipQP", "STATUS", "UNBOUNDED", "FEASTOL_RANGE", "OPTIONS"]
