@@ -823,6 +823,8 @@ class ClfCbfController:
                 rule = "k(z) clipped to the v box"
                 sol = _Solution(status=sol.status, v=np.clip(d["k"], self.v_lo, self.v_hi), detail=sol.detail)
         v = np.asarray(sol.v, float).reshape(self.system.m)
+        if np.all(np.maximum(v - self.v_hi, self.v_lo - v) <= LIMIT_POINT_TOL):  # round-off or a solver's tolerance
+            v = np.clip(v, self.v_lo, self.v_hi)  # outside the box: the v applied is on its face
         info = dict(delta=sol.delta, phi_nn=self.net(np.concatenate([z, v])), V=d["V"], H=d["H"],
                     solver_time=sol.solver_time, slack_u=sol.slack_u, slack_H=sol.slack_H,
                     z_in_domain=bool(self.system.in_domain(z)[0]))
