@@ -60,7 +60,7 @@ from .pieces import solve_exact_2d
 from .simulate import StepResult
 from .systems import FLSystem
 from .solvers import BOUND_TOL, next_margin, project_to_box
-from .solvers.scip import _quiet_c_output, take_solver_errors
+from .solvers.scip import _quiet_c_output
 
 Array = np.ndarray
 
@@ -822,9 +822,7 @@ class ClfCbfController:
             if sol.v is None:
                 rule = "k(z) clipped to the v box"
                 sol = _Solution(status=sol.status, v=np.clip(d["k"], self.v_lo, self.v_hi), detail=sol.detail)
-        v = np.asarray(sol.v, float).reshape(self.system.m)
-        if np.all(np.maximum(v - self.v_hi, self.v_lo - v) <= LIMIT_POINT_TOL):  # round-off or a solver's tolerance
-            v = np.clip(v, self.v_lo, self.v_hi)  # outside the box: the v applied is on its face
+        v = _onto_box(np.asarray(sol.v, float).reshape(self.system.m), self.v_lo, self.v_hi)
         info = dict(delta=sol.delta, phi_nn=self.net(np.concatenate([z, v])), V=d["V"], H=d["H"],
                     solver_time=sol.solver_time, slack_u=sol.slack_u, slack_H=sol.slack_H,
                     z_in_domain=bool(self.system.in_domain(z)[0]))
@@ -974,6 +972,18 @@ class _ExactPiecesBackend:
 #: stopped at 1 ms returned ``v = 0`` with every slack 0 where the CBF row needs -1.2 of slack.
 LIMIT_POINT_TOL = 1e-6
 
+#: How far outside the ``v``-box a solver's point may lie and still be applied on its face (:func:`_onto_box`).
+V_BOX_TOL = 1e-6
+
+
+def _onto_box(v: Array, v_lo: Array, v_hi: Array) -> Array:
+    """``v`` on the face of the box ``[v_lo, v_hi]`` when round-off or a solver's feasibility tolerance left it at
+    most :data:`V_BOX_TOL` outside (e.g. 9e-10 from SCIP, 1.8e-15 from the exact region method); farther out it is
+    returned as it is (and the checks that follow see it)."""
+    out = np.maximum(v - v_hi, v_lo - v)
+    return np.clip(v, v_lo, v_hi) if np.all(out <= V_BOX_TOL) else v
+
+
 #: How far inside every row a solver's point must lie for the ``"cvxpy"`` back-end to call the exact method wrong when
 #: that method finds the program infeasible: at states on the edge of feasibility SCIP returned points 2.4e-13 over
 #: the network bound (within the forward pass's round-off) where the exact method, with no tolerance, finds none;
@@ -1072,7 +1082,7 @@ class _CvxpyBackend:
             self.aH.value, self.bH.value = d["aH"], d["bH"]
             self.cap_H.value = np.full(c.p, self.big if soft else 0.0)
         self.margin = 0.0  # per solve: a margin kept from another state would shrink this state's program
-        failed, said = None, []
+        failed = None
         for _ in range(6):
             self.u_in.value = c.u_eps - self.margin
             try:
@@ -1081,20 +1091,17 @@ class _CvxpyBackend:
                     warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
                     self.problem.solve(solver=self._bridge or self.solver, **self._opts())
             except cp.error.SolverError as exc:
-                said += take_solver_errors()  # the solver's own error lines, kept from the C streams
                 if soft or self.exact is None:
-                    raise cp.error.SolverError(f"{exc}" + (f" ({self.solver} said: {' / '.join(said)})" if said
-                                                            else "")) from exc
+                    raise cp.error.SolverError(f"{exc}{self._scip_status()}") from exc
                 r = None if self._bridge is None else self._bridge.result
                 failed = (f"cvxpy/{self.solver}: the time limit came before a point{self._scip_status()}"
                           if r is not None and r.status == "time_limit" else
                           f"cvxpy/{self.solver} failed ({exc}{self._scip_status()})")
                 break
-            said += take_solver_errors()  # e.g. SCIP's "EMAISM: numerical violation ..." on a solve that returned
             if soft or self.v.value is None or self.problem.status not in ("optimal", "optimal_inaccurate"):
                 break
-            v_box = np.clip(np.asarray(self.v.value, float), c.v_lo, c.v_hi)  # the v applied (see below)
-            ex = float(np.max(np.abs(c.net(np.concatenate([z, v_box]))) - c.u_eps))
+            v = _onto_box(np.asarray(self.v.value, float), c.v_lo, c.v_hi)  # the v applied (see below)
+            ex = float(np.max(np.abs(c.net(np.concatenate([z, v]))) - c.u_eps))
             if ex <= BOUND_TOL:
                 break
             self.margin = next_margin(self.margin, ex, float(np.max(c.u_eps)))  # see _MiqpBackend.solve
@@ -1110,19 +1117,13 @@ class _CvxpyBackend:
             if bad > LIMIT_POINT_TOL:  # a point under a limit that is no point of the program is not applied
                 sol.detail += f"; its point under the limit violates the program by {bad:.1e}: dropped"
             elif self.v.value is not None and st in ("optimal", "time_limit"):
-                v = np.array(self.v.value, float)
-                # the solver keeps the box to its feasibility tolerance: a v that far outside is put on the face
-                # (the forward-pass checks that follow see the v that is applied)
-                out = float(np.max(np.maximum(v - c.v_hi, c.v_lo - v)))
-                sol.v = np.clip(v, c.v_lo, c.v_hi) if out <= LIMIT_POINT_TOL else v
+                sol.v = _onto_box(np.array(self.v.value, float), c.v_lo, c.v_hi)  # the checks see the v applied
                 sol.delta = float(self.delta.value)
                 sol.objective = float(self.problem.value)
                 # the slacks this v needs (a solver may leave a slack above the need where its penalty is below its
                 # tolerance)
                 sol.slack_u = np.maximum(0.0, np.abs(c.net(np.concatenate([z, sol.v]))) - c.u_eps)
                 sol.slack_H = np.maximum(0.0, -(np.asarray(d["aH"]) @ sol.v + d["bH"])) if c.p else np.zeros(0)
-        if said:  # what the solver wrote to the C streams about this solve belongs to its result
-            sol.detail += f" ({self.solver} said: {' / '.join(said)})"
         return sol if soft or self.exact is None else self._checked(z, d, sol)
 
     def _feasible(self, z: Array, d: dict, v: Array, margin: float = 0.0) -> bool:

@@ -1272,6 +1272,18 @@ def test_one_blas_thread_and_the_quick_switch_are_shared():
         assert _blas_threads(libs) == {2} and sys.getswitchinterval() == before
 
 
+def _interrupting(real, calls: list, where: str):
+    """``real`` wrapped to note each value it sets in ``calls`` and raise KeyboardInterrupt (a Ctrl-C) right after
+    the setting on the way in (``where="entry"``, the first call) or on the way out (``"exit"``, the second)."""
+    def interrupted(x):
+        real(x)
+        calls.append(x)
+        if len(calls) == (1 if where == "entry" else 2):
+            raise KeyboardInterrupt
+
+    return interrupted
+
+
 @pytest.mark.parametrize("where", ["entry", "exit"])
 def test_an_interrupt_inside_one_blas_thread_never_leaves_the_limit(where, monkeypatch):
     """A Ctrl-C that lands after the BLAS libraries' count was changed, on the way in (the limit set, the context
@@ -1287,14 +1299,7 @@ def test_an_interrupt_inside_one_blas_thread_never_leaves_the_limit(where, monke
             pass
         lib = next(c for c in config._POOLS.lib_controllers if c.user_api == "blas" and c.filepath in libs)
         real, calls = lib.set_num_threads, []
-
-        def interrupted(n):
-            real(n)
-            calls.append(n)
-            if len(calls) == (1 if where == "entry" else 2):
-                raise KeyboardInterrupt
-
-        monkeypatch.setattr(lib, "set_num_threads", interrupted)
+        monkeypatch.setattr(lib, "set_num_threads", _interrupting(real, calls, where))
         with pytest.raises(KeyboardInterrupt):
             with config.one_blas_thread():
                 assert where == "exit", "the entry was interrupted: the body never runs"
@@ -1315,14 +1320,7 @@ def test_an_interrupt_inside_the_quick_switch_never_leaves_the_short_interval(wh
     before = sys.getswitchinterval()
     assert before > config.SWITCH_INTERVAL_S, "premise: Python's default interval is longer"
     real, calls = sys.setswitchinterval, []
-
-    def interrupted(x):
-        real(x)
-        calls.append(x)
-        if len(calls) == (1 if where == "entry" else 2):
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(config.sys, "setswitchinterval", interrupted)
+    monkeypatch.setattr(config.sys, "setswitchinterval", _interrupting(real, calls, where))
     with pytest.raises(KeyboardInterrupt):
         with config.quick_thread_switch():
             assert where == "exit", "the entry was interrupted: the body never runs"

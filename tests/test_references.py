@@ -283,11 +283,10 @@ def test_cvxpy_backend_edge_cases_found_by_attack(msd):
     width 0.02 whose face holds the optimum (the applied v lies in the box, SCIP keeps it only to its tolerance); the
     softened program with a penalty far below SCIP's tolerance (the reported slacks are those v needs); zero and
     negative penalties are refused."""
-    exact_of = lambda c: c.with_backend("exact")  # noqa: E731
     for cost, z in (("linear", [1.106423409007001, 0.8694218081841291]),
                     ("quadratic", [1.3646646318637754, 0.9339312949416831])):
         ctrl = _msd_ctrl(msd, cost)
-        r, rx = ctrl.step(np.array(z)), exact_of(ctrl).step(np.array(z))
+        r, rx = ctrl.step(np.array(z)), ctrl.with_backend("exact").step(np.array(z))
         assert r.status == rx.status == "infeasible", (r.status, r.message)
     ctrl = _msd_ctrl(msd, "quadratic", v_lo=[-0.01], v_hi=[0.01])
     on_face = 0

@@ -721,11 +721,11 @@ class MPC:
         self.margin = 0.0  # per solve, as in the engine
         t0 = time.perf_counter()
         step = self.solver.solve(z, R, self.u_eps, time_limit=self.time_limit, gap=self.gap)
-        for k in range(2, 8):  # rounds 2 to 6
+        for k in range(2, 7):  # rounds 2 to 6
             if step.v is None or step.status != "optimal":
                 return step
             ex = float(np.max(np.abs(self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))) - self.u_eps))
-            if ex <= BOUND_TOL or k == 7:
+            if ex <= BOUND_TOL:
                 return step
             self.margin = next_margin(self.margin, ex, float(np.max(self.u_eps)))
             left = None if self.time_limit is None else self.time_limit - (time.perf_counter() - t0)

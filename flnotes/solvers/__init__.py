@@ -68,9 +68,10 @@ Layout: :mod:`.problem` (the program, its result, the tolerance policy),
 :mod:`.base` (the persistent-model interface and back-end selection), one
 module per back-end (:mod:`.highs`, :mod:`.scip`, :mod:`.daqp`, :mod:`.gurobi`,
 :mod:`.cplex`), and :mod:`.cvxpy_bridge` (SCIP as a cvxpy custom solver for a
-program cvxpy writes; imported on demand, it needs cvxpy). This package sits at the bottom of :mod:`flnotes`: it imports
-numpy, scipy and the solver libraries only, never a controller; a back-end
-fix never touches MPC or CLF-CBF logic.
+program cvxpy writes; imported on demand, it needs cvxpy). This package sits at
+the bottom of :mod:`flnotes`: it imports numpy, scipy and the solver libraries
+only (cvxpy in the bridge), never a controller; a back-end fix never touches
+MPC or CLF-CBF logic.
 """
 from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver, release_retired, retire
 from .daqp import DAQP_STATUS, DaqpSolver

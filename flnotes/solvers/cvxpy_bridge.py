@@ -1,4 +1,4 @@
-"""SCIP for cvxpy programs with a quadratic cost: cvxpy writes the program, :class:`ScipSolver` solves it.
+"""SCIP for cvxpy's mixed-integer programs: cvxpy writes the program, :class:`ScipSolver` solves it.
 
 cvxpy's own SCIP interface is a conic one: it hands a quadratic cost to SCIP as a second-order cone (auxiliary
 variables and rows), which SCIP separates as a nonlinear constraint, with ``optimize`` holding the interpreter lock.
@@ -12,7 +12,8 @@ of the cost, feasibility tolerance 1e-9, the time limit passed to SCIP, SCIP run
 the point polished and checked against the rows to :data:`FEAS_TOL`), with SCIP's own settings
 (``miqp_params="default"``). Not for every program: on the MPC reference's uncondensed programs (states as
 variables, eq. MPC_form_miqp) this epigraph needed 10 s and more where cvxpy's cone form needed 0.03 s, and the
-MPC reference keeps cvxpy's SCIP interface (:mod:`flnotes.mpc.reference`).
+MPC reference keeps cvxpy's SCIP interface (:mod:`flnotes.mpc.reference`). A program without a quadratic cost (the
+CLF-CBF's Lcost, a MILP) goes the same way, with the solver layer's SCIP settings for a MILP.
 
 Usage: ``bridge = ScipQP(); problem.solve(solver=bridge, time_limit=..., gap=...)``; the solver layer's
 :class:`MIQPResult` of the last solve is ``bridge.result`` (also when cvxpy raised ``SolverError`` for a result without
