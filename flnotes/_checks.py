@@ -49,6 +49,26 @@ def check_box(lo: Any, hi: Any, n: int, lo_name: str = "lo", hi_name: str = "hi"
     return lo_a, hi_a
 
 
+def v_box_in_domain(v_lo: Any, v_hi: Any, lo: np.ndarray, hi: np.ndarray, what: str = "v_box",
+                    names: tuple[str, str] = ("v_lo", "v_hi")) -> tuple[np.ndarray, np.ndarray]:
+    """A box ``v_lo <= v <= v_hi`` (``v_lo < v_hi``) on the input ``v`` inside the network's domain ``[lo, hi]``
+    (the ``v`` part of the domain box, where ``eps`` is certified), as two float vectors.
+
+    Outside the domain the network extrapolates: ``|Phi - Phi_NN| <= eps`` is not certified there, so a controller
+    whose ``v`` may leave it loses the bound ``|u| <= u_max``. A box wider than the domain is refused, not clipped."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    m = lo.shape[0]
+    v_lo_a, v_hi_a = as_vector(v_lo, m, names[0]), as_vector(v_hi, m, names[1])
+    if np.any(v_lo_a >= v_hi_a):
+        raise ValueError(f"{what} is empty or a point: need {names[0]} < {names[1]}, got {v_lo_a} and {v_hi_a}")
+    tol = 1e-12 * np.maximum(1.0, np.abs(hi - lo))
+    if np.any(v_lo_a < lo - tol) or np.any(v_hi_a > hi + tol):
+        raise ValueError(f"{what} [{v_lo_a}, {v_hi_a}] leaves the network's domain for v, [{lo}, {hi}]: eps is "
+                         f"certified only there (outside it the network extrapolates and |u| <= u_max is not "
+                         f"guaranteed). Give a box inside it, or train and certify the network on a wider domain")
+    return v_lo_a, v_hi_a
+
+
 def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
     """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given."""
     lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)

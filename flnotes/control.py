@@ -52,7 +52,7 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import as_vector
+from ._checks import as_vector, v_box_in_domain
 from .bounds import NodeBounds, fbbt
 from .config import one_blas_thread
 from .network import ReLUNet
@@ -618,7 +618,8 @@ class ClfCbfController:
         interface, which was slow and failed near the domain edge); ``"HIGHS"`` was the Lcost default until it
         labelled optimal points of cost -166.2 and -1029.7 on MSD states where the optimum is -667.5 and -1434.7.
     v_lo, v_hi
-        Box on ``v``; default: the system's domain box (where ``eps`` holds).
+        Box on ``v``, inside the system's domain box (where ``eps`` holds; a wider box is refused); default that
+        domain box.
     penalty
         ``(rho_u, rho_H)``: weights of the slacks of the softened program used
         as the fallback (see the module docstring).
@@ -683,10 +684,9 @@ class ClfCbfController:
         if not (beta > 0 and kappa > 0):
             raise ValueError(f"beta and kappa must be positive, got beta={beta!r}, kappa={kappa!r}")
         self.beta, self.kappa = float(beta), float(kappa)
-        self.v_lo = as_vector(system.lo[n_z:] if v_lo is None else v_lo, m, "v_lo")
-        self.v_hi = as_vector(system.hi[n_z:] if v_hi is None else v_hi, m, "v_hi")
-        if np.any(self.v_lo >= self.v_hi):
-            raise ValueError(f"need v_lo < v_hi, got {self.v_lo} and {self.v_hi}")
+        self.v_lo, self.v_hi = v_box_in_domain(system.lo[n_z:] if v_lo is None else v_lo,
+                                               system.hi[n_z:] if v_hi is None else v_hi,
+                                               system.lo[n_z:], system.hi[n_z:], what="the v-box")
         self.penalty = (float(penalty[0]), float(penalty[1]))
         if not all(np.isfinite(w) and w > 0 for w in self.penalty):
             raise ValueError(f"penalty = (rho_u, rho_H) must be two positive finite weights (a zero or negative weight "

@@ -115,6 +115,32 @@ def test_clf_cbf_step_outside_the_domain_raises_like_mpc(msd):
     assert "trained domain" in str(e_mpc.value) and "trained domain" in str(e_ctrl.value)
 
 
+@pytest.mark.parametrize("lo, hi, match", [
+    (-1000.0, 1000.0, "leaves the network's domain"),
+    (-10.0, 10.0 + 1e-6, "leaves the network's domain"),
+    (-10.0 - 1e-6, 0.0, "leaves the network's domain"),
+    (1.0, 1.0, "empty or a point"),
+    (2.0, -2.0, "empty or a point"),
+])
+def test_a_v_box_outside_the_domain_or_empty_is_refused_by_both_controllers(msd, lo, hi, match):
+    """eps holds on the domain box only (the MSD's |v| <= 10): a v-box that leaves it would let the controller use the
+    network where it extrapolates, so both controllers refuse it; a box inside the domain, up to its faces, is kept."""
+    sysm, net = msd
+    S = fl.paper.MSD_SETTING
+    assert np.array_equal(sysm.lo[2:], [-10.0]) and np.array_equal(sysm.hi[2:], [10.0])  # the premise
+    kw = dict(cost="quadratic", backend="exact")
+    with pytest.raises(ValueError, match=match):
+        fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(S["P"]), None, lambda z: -S["K_nominal"] @ z,
+                            v_lo=[lo], v_hi=[hi], **kw)
+    with pytest.raises(ValueError, match=match):
+        fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, v_box=([lo], [hi]))
+    ctrl = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(S["P"]), None, lambda z: -S["K_nominal"] @ z,
+                               v_lo=[-10.0], v_hi=[2.0], **kw)
+    mpc = fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, v_box=([-10.0], [2.0]))
+    assert ctrl.v_hi[0] == 2.0 and mpc.v_hi[0] == 2.0
+    assert ctrl.step(np.array([1.0, 0.0])).v[0] <= 2.0 and mpc(np.array([1.0, 0.0]), np.zeros(2)).v[0] <= 2.0
+
+
 # --------------------------------------------------------------------------- item 3: MPC solver availability
 @pytest.mark.skipif(importlib.util.find_spec("gurobipy") is not None, reason="gurobipy is installed here")
 def test_mpc_with_a_missing_solver_fails_at_construction(msd):

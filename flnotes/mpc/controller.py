@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import as_vector, horizon_reference, weight_matrix
+from .._checks import as_vector, horizon_reference, v_box_in_domain, weight_matrix
 from ..bounds import fbbt
 from ..config import (answer_slice, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
                       set_back_slice, slice_before_answer, thread_run_delay, yield_core)
@@ -289,7 +289,8 @@ class MPC:
     discretization
         ``"rk4"`` (the paper) or ``"exact"``; they coincide for chains of at most four integrators.
     v_box
-        Range ``(v_lo, v_hi)`` of ``v`` in the program; default the network's domain box.
+        Range ``(v_lo, v_hi)`` of ``v`` in the program, inside the network's domain box (where ``eps`` holds; a wider
+        box is refused); default that domain box.
     solver_options
         Passed to :func:`flnotes.solvers.make_solver` (DAQP gets :data:`DAQP_OPTIONS` unless overridden). With
         ``backend="auto"`` (two solvers) give them per back-end: ``{"daqp": {...}, "scip": {...}}``.
@@ -390,7 +391,8 @@ class MPC:
         self.Ad, self.Bd = system.discretize(self.ts, discretization)
         self.z_lo, self.z_hi = system.lo[: self.n_z].copy(), system.hi[: self.n_z].copy()
         vb = (system.lo[self.n_z:], system.hi[self.n_z:]) if v_box is None else v_box
-        self.v_lo, self.v_hi = as_vector(vb[0], self.m, "v_box[0]"), as_vector(vb[1], self.m, "v_box[1]")
+        self.v_lo, self.v_hi = v_box_in_domain(vb[0], vb[1], system.lo[self.n_z:], system.hi[self.n_z:],
+                                               names=("v_box[0]", "v_box[1]"))
         self.terminal = terminal
         Fg = None
         if terminal is not None:
