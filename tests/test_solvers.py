@@ -591,3 +591,105 @@ def test_scip_error_lines_on_a_solved_program_keep_its_status(capfd):
     assert r.status == "optimal" and r.w is not None, r.message
     assert abs(r.objective - ref.objective) <= 1e-6 * max(1.0, abs(ref.objective))
     assert "EMAISM" in r.message and "EMAISM" not in capfd.readouterr().err
+
+
+# ------------------------------------------------------------------------- SCIP's error printer and the interpreter lock
+_PRINT_WITHOUT_THE_LOCK = r'''
+import ctypes, sys, threading
+import numpy as np
+import scipy.sparse as sp
+import flnotes as fl
+from flnotes.mpc import MPC
+from flnotes.solvers import MIQP, make_solver
+
+how = sys.argv[1]
+sysm = fl.quad1d()
+rng = np.random.default_rng(0)
+net = fl.ReLUNet([rng.normal(size=(6, sysm.n_in)), rng.normal(size=(1, 6))], [rng.normal(size=6) * 0.1, np.zeros(1)])
+if how == "reference":  # the MPC reference: cvxpy's SCIP interface
+    ref = MPC(sysm, net, 0.0, horizon=2, ts=0.1, Q=[1.0, 1.0, 1.0], R=0.1, backend="cvxpy-scip", bounds="box")
+    assert ref(np.zeros(3), np.zeros((3, 3))).status == "optimal"
+else:  # a caller's own PySCIPOpt model with its output relayed to Python, then a solve of the solver layer
+    import pyscipopt
+    pyscipopt.Model().redirectOutput()
+    prob = MIQP(sp.eye(2, format="csc"), np.array([-1.0, -0.3]), 0.0, sp.csr_matrix(np.ones((1, 2))),
+                np.array([-np.inf]), np.array([1.5]), np.zeros(2), np.ones(2), np.array([1, 0]))
+    assert make_solver(prob, "scip").solve().status == "optimal"
+# SCIP's error printer, called from C without the interpreter lock as a solve run by optimizeNogil calls it, while
+# another thread runs Python
+from pyscipopt import scip
+lib = ctypes.CDLL(scip.__file__)
+stop = []
+spin = threading.Thread(target=lambda: [None for _ in iter(lambda: bool(stop), True)])
+spin.start()
+lib.SCIPmessagePrintError(b"a SCIP error line printed without the lock\n")
+stop.append(1)
+spin.join()
+print("alive")
+'''
+
+
+@pytest.mark.parametrize("how", ["reference", "user-redirect"])
+def test_scip_error_lines_after_cvxpys_scip_interface_do_not_crash_the_process(how):
+    """PySCIPOpt's ``redirectOutput`` (called by cvxpy's SCIP interface on every solve) installs a process-wide error
+    printer that writes through Python without the interpreter lock: the next SCIP error line printed by a solve
+    run without the lock crashed the process (segmentation fault). The MPC reference no longer installs it, and every
+    solve of the solver layer sets SCIP's own printer back first; the line then reaches file descriptor 2."""
+    import subprocess
+    import sys
+
+    from flnotes.solvers.scip import default_error_printer
+
+    if not default_error_printer():
+        pytest.skip("this SCIP library does not export its error printer's reset to ctypes")
+    run = subprocess.run([sys.executable, "-c", _PRINT_WITHOUT_THE_LOCK, how], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0 and run.stdout.strip().endswith("alive"), (run.returncode, run.stderr[-2000:])
+    assert "a SCIP error line printed without the lock" in run.stderr
+
+
+def test_the_mpc_reference_lets_other_threads_run_while_scip_solves():
+    """The reference's SCIP call releases the interpreter lock (cvxpy's own interface held it for the whole solve):
+    a thread that notes the time in a loop keeps noting it while the reference's SCIP solves run, with no pause longer
+    than half of the solve (holding the lock, the pause is the whole solve)."""
+    import threading
+    import time
+
+    import flnotes as fl
+    from flnotes.mpc import MPC
+    from flnotes.solvers.cvxpy_bridge import _NoLockModel
+
+    solves, real = [], _NoLockModel.optimize
+
+    def spy(self):
+        stamps, done = [], threading.Event()
+
+        def note():
+            while not done.is_set():
+                stamps.append(time.perf_counter())
+
+        t = threading.Thread(target=note)
+        t.start()
+        t0 = time.perf_counter()
+        try:
+            real(self)
+        finally:
+            t1 = time.perf_counter()
+            done.set()
+            t.join()
+        inside = [t0, *[x for x in stamps if t0 < x < t1], t1]
+        solves.append((t1 - t0, max(np.diff(inside))))
+
+    sysm = fl.quad1d()
+    rng = np.random.default_rng(1)
+    net = fl.ReLUNet([rng.normal(size=(16, sysm.n_in)), rng.normal(size=(16, 16)), rng.normal(size=(1, 16))],
+                     [rng.normal(size=16) * 0.1, rng.normal(size=16) * 0.1, np.zeros(1)])
+    ref = MPC(sysm, net, 0.0, horizon=6, ts=0.1, Q=[1.0, 1.0, 1.0], R=0.1, backend="cvxpy-scip", bounds="box")
+    _NoLockModel.optimize = spy
+    try:
+        ref(np.array([1.0, 0.5, 0.0]), np.zeros((7, 3)))
+    finally:
+        _NoLockModel.optimize = real
+    long = [(d, gap) for d, gap in solves if d >= 0.05]
+    assert long, f"the premise: a SCIP solve of at least 50 ms to watch, got {solves}"
+    assert all(gap < 0.5 * d for d, gap in long), solves

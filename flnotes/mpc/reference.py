@@ -17,6 +17,7 @@ from ..bounds import NodeBounds
 from ..encoding import encode
 from ..result import StepResult
 from ..solvers import BOX_TOL
+from ..solvers.cvxpy_bridge import ScipConic
 from ..solvers.scip import _quiet_c_output
 from ..tightening import EmptyBoxError
 from .levers import node_bounds, repeat_bounds
@@ -98,7 +99,7 @@ class ReferenceProgram:
             with warnings.catch_warnings(), _quiet_c_output():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 warnings.simplefilter("ignore", UserWarning)
-                cv["prob"].solve(solver=cp.SCIP, scip_params=opts)
+                cv["prob"].solve(solver=ScipConic(), scip_params=opts)  # cvxpy's SCIP interface, lock released
             st = cv["prob"].status
         except cp.error.SolverError as exc:
             st = f"error: {exc}"

@@ -18,6 +18,11 @@ CLF-CBF's Lcost, a MILP) goes the same way, with the solver layer's SCIP setting
 Usage: ``bridge = ScipQP(); problem.solve(solver=bridge, time_limit=..., gap=...)``; the solver layer's
 :class:`MIQPResult` of the last solve is ``bridge.result`` (also when cvxpy raised ``SolverError`` for a result without
 a point: its status and SCIP's message are kept there).
+
+:class:`ScipConic` is cvxpy's conic SCIP interface itself (the cone form the MPC reference keeps), with two changes:
+SCIP runs without the interpreter lock (``optimizeNogil``: other threads of the process run meanwhile), and SCIP's
+output stays on the C streams instead of PySCIPOpt's ``redirectOutput``, whose process-wide error printer would then
+run without the lock and crash the process (see :func:`flnotes.solvers.scip.default_error_printer`).
 """
 from __future__ import annotations
 
@@ -28,6 +33,7 @@ import scipy.sparse as sp
 
 import cvxpy.settings as s
 from cvxpy.reductions.solution import Solution, failure_solution
+from cvxpy.reductions.solvers.conic_solvers.scip_conif import SCIP as _CvxpyScip
 from cvxpy.reductions.solvers.qp_solvers.qp_solver import QpSolver
 from cvxpy.utilities.citations import CITATION_DICT
 
@@ -118,4 +124,39 @@ class ScipQP(QpSolver):
                         {inverse_data[self.VAR_ID]: solution.w}, {}, attr)
 
 
-__all__ = ["ScipQP", "STATUS", "UNBOUNDED", "FEASTOL_RANGE", "OPTIONS"]
+class _NoLockModel:
+    """A PySCIPOpt model whose ``optimize`` is ``optimizeNogil``; everything else is the model's own."""
+
+    def __init__(self, model) -> None:
+        self._model = model
+
+    def optimize(self) -> None:
+        self._model.optimizeNogil()
+
+    def __getattr__(self, name: str):
+        return getattr(self._model, name)
+
+
+class ScipConic(_CvxpyScip):
+    """cvxpy's conic SCIP interface (``cp.SCIP``), SCIP run without the interpreter lock and without PySCIPOpt's
+    Python output relay (see the module). Options as ``cp.SCIP``'s (``scip_params=...``)."""
+
+    def name(self) -> str:
+        return "FLNOTES_SCIP_CONIC"
+
+    def solve_via_data(self, data, warm_start: bool, verbose: bool, solver_opts, solver_cache=None):
+        # cvxpy's own method without model.redirectOutput(): SCIP writes (only when verbose) to the C streams
+        from pyscipopt.scip import Model
+
+        from .scip import default_error_printer
+
+        default_error_printer()  # a Python printer installed by someone else would run without the lock below
+        model = Model()
+        A, b, c, dims = self._define_data(data)
+        variables = self._create_variables(model, data, c)
+        constraints = self._add_constraints(model, variables, A, b, dims)
+        self._set_params(model, verbose, solver_opts, data, dims)
+        return self._solve(_NoLockModel(model), variables, constraints, data, dims)
+
+
+__all__ = ["ScipQP", "ScipConic", "STATUS", "UNBOUNDED", "FEASTOL_RANGE", "OPTIONS"]

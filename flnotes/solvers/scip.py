@@ -110,6 +110,39 @@ def _split_notices(buf: bytes, final: bool = False) -> tuple[bytes, bytes]:
     return b"".join(out), hold
 
 
+_PRINTER: dict = {}
+
+
+def default_error_printer() -> bool:
+    """Give SCIP's process-wide error printer back to SCIP's own (C's ``fputs`` to ``stderr``); whether it could.
+
+    PySCIPOpt's ``Model.redirectOutput`` (which cvxpy's SCIP interface calls on every solve) installs, for the whole
+    process, an error printer that writes through Python's ``sys.stderr`` without taking the interpreter lock. A SCIP
+    error line (``[solve.c:...] ERROR: ...``) printed by a later solve run without the lock (``optimizeNogil``, as
+    :class:`ScipSolver` runs SCIP) then crashes the process (a segmentation fault, seen on the first such line). SCIP
+    exports the reset (``SCIPmessageSetErrorPrintingDefault``), which PySCIPOpt does not wrap: it is called through
+    :mod:`ctypes` on PySCIPOpt's extension module (its dynamic symbol search covers the SCIP library it loads).
+    ``False`` where that library does not export it to :mod:`ctypes` (e.g. on Windows): there, no code of this package
+    installs Python's printer (the MPC reference uses :class:`flnotes.solvers.cvxpy_bridge.ScipConic`), and a caller
+    that calls ``redirectOutput`` itself must not run this package's SCIP solves after it."""
+    if "reset" not in _PRINTER:
+        reset = None
+        try:
+            import ctypes
+
+            from pyscipopt import scip as _scip_module
+
+            reset = ctypes.CDLL(_scip_module.__file__).SCIPmessageSetErrorPrintingDefault
+            reset.restype, reset.argtypes = None, []
+        except (OSError, AttributeError, ImportError):
+            reset = None
+        _PRINTER["reset"] = reset
+    if _PRINTER["reset"] is None:
+        return False
+    _PRINTER["reset"]()
+    return True
+
+
 def take_solver_errors() -> list:
     """The solver error lines (:data:`C_ERRORS`) the filter of :class:`_quiet_c_output` kept since the last call,
     oldest first; they are forgotten here. Read them after the ``with`` block: its end waits for the filter."""
@@ -384,6 +417,7 @@ class ScipSolver(Solver):
                     m.setSolVal(sol, self._sq[i], float(0.5 * self._lam[i] * y[i] ** 2) + 1e-9)
             m.addSol(sol, free=True)
         try:
+            default_error_printer()  # SCIP's own error printer: a Python one would run without the lock here
             with _quiet_c_output():  # SoPlex prints tolerance notices straight to the C streams
                 m.optimizeNogil()  # other threads run meanwhile (a caller may answer while this call runs on)
         except Exception as exc:  # e.g. "SCIP: error in LP solver!": SCIP's own lines belong to this failure, not

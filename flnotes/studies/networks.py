@@ -296,6 +296,7 @@ def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
 
     from ..bounds import fbbt
     from ..encoding import encode
+    from ..solvers.cvxpy_bridge import ScipConic
 
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     if lo.shape != (net.n_in,) or hi.shape != (net.n_in,):
@@ -316,7 +317,7 @@ def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
         for sign, out in ((1.0, U), (-1.0, L)):
             c.value = sign * np.eye(n_k)[j]
             if solver == "SCIP":
-                prob.solve(solver="SCIP")
+                prob.solve(solver=ScipConic())  # cvxpy's SCIP interface without its output relay (see the class)
                 if prob.status != "optimal":
                     raise RuntimeError(f"neuron {j}: SCIP returned {prob.status!r}, not a proved optimum")
             else:
