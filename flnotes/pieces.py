@@ -41,7 +41,7 @@ from __future__ import annotations
 import heapq
 import itertools
 from dataclasses import dataclass
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -535,6 +535,29 @@ def _lower_bound(V: Array, d: dict, cost: str) -> float:
     return float(gap @ gap + max(0.0, s.min() + d["bV"]))
 
 
+def _into_bound(v: Array, F: Array, admissible: Callable[[Array], bool], steps: int = 60) -> Optional[Array]:
+    """``v``, a minimizer on the convex polygon ``F`` whose forward pass breaks the bound by round-off, moved toward
+    ``F``'s vertex mean to the first point (by bisection on the segment) that ``admissible`` accepts; ``None`` when
+    that mean is not admissible either (``F`` a sliver on the bound, at the edge of feasibility: no point of it
+    passes the forward-pass check, and the region counts as empty).
+
+    The vertices of ``F`` are intersections of lines computed in floating point: at one of them the forward pass
+    was measured 1.0e-12 over ``u_max^eps``, which the controller's check (to the forward pass's round-off) refused,
+    and the step ended in ``"error"``. The move is by as little as bisection finds, so the cost changes by round-off
+    too."""
+    c = F.mean(0)
+    if not admissible(c):
+        return None
+    lo, hi = 0.0, 1.0  # v + t (c - v): t = hi is admissible
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        if admissible(v + mid * (c - v)):
+            hi = mid
+        else:
+            lo = mid
+    return v + hi * (c - v)
+
+
 def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_lo: Array, v_hi: Array,
                    soft: bool = False, rho: tuple[float, float] = (1e6, 1e4),
                    stats: Optional[dict] = None) -> Optional[tuple[Array, float, float]]:
@@ -591,7 +614,10 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
 
     Returns
     -------
-    (v, delta, objective), or None when the program is infeasible.
+    (v, delta, objective), or None when the program is infeasible. Without ``soft``, ``v`` meets
+    ``|Phi_NN(z, v)| <= u_max^eps`` by the forward pass with no tolerance, as the single-input method's: a region's
+    minimizing vertex over the bound by round-off is moved into the region (:func:`_into_bound`), and a region with
+    no point that passes (a sliver on the bound) counts as empty.
     """
     z = _two_input_state(net, z, "solve_exact_2d")
     if cost not in ("linear", "quadratic"):
@@ -634,8 +660,19 @@ def solve_exact_2d(net: ReLUNet, z: Array, d: dict, cost: str, bound: Array, v_l
                 return
             v = _best_on_polygon(F, d, cost)
             f = _objective(v, d, cost)[0]
+            if f < best[1] and not admissible(v):  # a vertex whose forward pass is over the bound by round-off
+                v = _into_bound(v, F, admissible)
+                if v is None:  # no point of this region passes the forward-pass check
+                    return
+                f = _objective(v, d, cost)[0]
         if f < best[1]:
             best[0], best[1] = v, f
+
+    def admissible(v: Array) -> bool:
+        """``v`` in the box, on the CBF rows and ``|Phi_NN(z, v)| <= u_max^eps`` by the forward pass."""
+        rows = np.all(d["aH"] @ v + d["bH"] >= 0.0) if p else True
+        return bool(rows and np.all(v >= v_lo) and np.all(v <= v_hi)
+                    and np.all(np.abs(net(np.concatenate([z, v]))) <= bound))
 
     def lower(V: Array, olo: Array, ohi: Array) -> float:
         lb = _lower_bound(V, d, cost)

@@ -356,3 +356,43 @@ def test_softened_minimizer_on_a_region_equals_a_convex_solver(cost):
         assert f >= prob.value - 1e-6 * max(1.0, abs(prob.value))
         Ev = np.roll(V, -1, axis=0) - V
         assert np.all(Ev[:, 0] * (v[1] - V[:, 1]) - Ev[:, 1] * (v[0] - V[:, 0]) >= -1e-9)
+
+
+def _two_msd(cost: str):
+    """Two MSDs side by side (Phi = v) with a random 6-8-2 network (explicit seed, no training)."""
+    from flnotes.control import ClfCbfController, DistanceCBF, QuadraticCLF
+
+    S = fl.paper.MSD_SETTING
+    A, B = fl.brunovsky([2, 2])
+    r = np.random.default_rng(3)
+    W1, W2 = r.normal(size=(8, 6)) * 0.5, r.normal(size=(2, 8)) * 0.5
+    net = fl.ReLUNet([W1, W2], [r.normal(size=8) * 0.1, np.zeros(2)])
+    sysm = fl.FLSystem("2x MSD", A, B, phi=lambda z, v: v, lo=[-5] * 4 + [-10] * 2, hi=[5] * 4 + [10] * 2,
+                       u_max=[5, 5], f=lambda x, u: A @ x + B @ u, to_z=lambda x: x, to_x=lambda z: z)
+    return ClfCbfController(sysm, net, 0.1, QuadraticCLF(np.kron(np.eye(2), S["P"])),
+                            DistanceCBF([1.5, 1.0, 0.0, 0.0], 0.8),
+                            lambda z: -np.kron(np.eye(2), S["K_nominal"]) @ z, cost=cost, backend="exact")
+
+
+@pytest.mark.parametrize("z", [
+    [-0.7061141361019025, -2.537840786533119, -1.864114567505458, 4.303937982432174],
+    [-3.070141180333585, -2.1126553205244396, -2.5845339563115184, 0.9657158518722784],
+])
+def test_the_region_method_at_the_edge_of_feasibility_returns_a_point_that_passes_the_check_or_none(z):
+    """States on the edge of feasibility (found by bisection): the region method's optimum was a polygon vertex whose
+    forward pass exceeded u_max^eps by 1.0e-12, and the step ended in "error". Its answer now passes the forward-pass
+    check with no tolerance, or the region counts as empty (the feasible sliver has no point that passes): the status
+    is "optimal" or "infeasible", never "error", and an optimal v meets the bound exactly."""
+    from flnotes.pieces import solve_exact_2d
+
+    ctrl = _two_msd("linear")
+    z = np.asarray(z)
+    d = ctrl.program_data(z)
+    out = solve_exact_2d(ctrl.net, z, d, "linear", ctrl.u_eps, ctrl.v_lo, ctrl.v_hi)
+    if out is not None:
+        assert np.all(np.abs(ctrl.net(np.concatenate([z, out[0]]))) <= ctrl.u_eps)
+    res = ctrl.step(z)
+    assert res.status in ("optimal", "infeasible"), res.message
+    assert (res.status == "optimal") == (out is not None)
+    if res.status == "optimal":
+        assert res.input_admissible and np.all(np.abs(ctrl.net(np.concatenate([z, res.v]))) <= ctrl.u_eps)
