@@ -68,7 +68,11 @@ Layout: :mod:`.problem` (the program, its result, the tolerance policy),
 :mod:`.base` (the persistent-model interface and back-end selection), one
 module per back-end (:mod:`.highs`, :mod:`.scip`, :mod:`.daqp`, :mod:`.gurobi`,
 :mod:`.cplex`), and :mod:`.cvxpy_bridge` (SCIP as a cvxpy custom solver for a
-program cvxpy writes; imported on demand, it needs cvxpy). This package sits at
+program cvxpy writes: its QP form through :class:`ScipSolver`, or cvxpy's cone form
+run without the interpreter lock; imported on demand, it needs cvxpy). Every SCIP
+solve here first gives SCIP its own error printer back
+(:func:`.scip.default_error_printer`): the one PySCIPOpt's ``redirectOutput``
+installs for the whole process calls Python without the lock. This package sits at
 the bottom of :mod:`flnotes`: it imports numpy, scipy and the solver libraries
 only (cvxpy in the bridge), never a controller; a back-end fix never touches
 MPC or CLF-CBF logic.
