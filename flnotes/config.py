@@ -222,14 +222,16 @@ def _sched_attr():
     return ctypes, SchedAttr, libc.syscall, calls
 
 
-def thread_run_delay() -> float:
-    """Seconds the calling thread has spent runnable but waiting for a CPU since it started (Linux:
-    ``/proc/thread-self/schedstat``, its second field); NaN where the platform does not say.
+def thread_run_delay(tid: Optional[int] = None) -> float:
+    """Seconds a thread has spent runnable but waiting for a CPU since it started (Linux: its ``schedstat``, the
+    second field): the calling thread's, or that of the thread of this process with native id ``tid``
+    (:func:`threading.get_native_id`); NaN where the platform does not say or the thread has ended.
 
     The difference of two readings tells, of the time a thread took to resume after a timed wait, how much it waited
     for a core; the rest it was not runnable (its timer had not fired, or it waited for the interpreter lock)."""
+    path = "/proc/thread-self/schedstat" if tid is None else f"/proc/self/task/{int(tid)}/schedstat"
     try:
-        fd = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+        fd = os.open(path, os.O_RDONLY)
         try:
             data = os.read(fd, 256)
         finally:

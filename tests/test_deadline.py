@@ -624,6 +624,56 @@ def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
     assert check_step(mpc, s) and s.input_admissible, s.message
 
 
+def test_the_engine_threads_wait_for_a_core_is_recorded(quad, monkeypatch):
+    """The engine's thread holds the interpreter lock in one C call past the limit while it shares one core with a
+    busy process: the answering thread resumes late without waiting for a core itself, and ``engine_runqueue`` says
+    that the engine's thread waited for a core meanwhile (a loaded machine, not the controller's work). A step
+    without it records the figure too."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    if not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2 \
+            or not np.isfinite(fl.config.thread_run_delay()):
+        pytest.skip("needs Linux's per-thread scheduler statistics and two cores")
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.2)
+    mpc.set_previous_plan(prev)
+    plain = mpc(z, R)
+    assert plain.info["engine_runqueue"] >= 0.0, plain.info
+    mpc.reset()
+    core = min(os.sched_getaffinity(0))
+    t = time.perf_counter()
+    sum(range(10 ** 6))
+    n = int(1e6 * 0.6 / max(time.perf_counter() - t, 1e-6))  # about 0.6 s of CPU in one call
+    solve, held = mpc.solver.solve, {}
+
+    def holding(*a, **k):
+        os.sched_setaffinity(0, {core})  # this thread only: on the busy process's core
+        sum(range(n))  # one C call: the lock is not released until it returns
+        held["end"] = time.perf_counter()
+        return solve(*a, **k)
+
+    busy = subprocess.Popen([sys.executable, "-c", f"import os; os.sched_setaffinity(0, {{{core}}})\nwhile True: pass"])
+    try:
+        time.sleep(0.2)
+        monkeypatch.setattr(mpc.solver, "solve", holding)
+        mpc.set_previous_plan(prev)
+        t0 = time.perf_counter()
+        try:
+            s = mpc(z, R)
+        finally:
+            mpc.finish()
+    finally:
+        busy.kill()
+        busy.wait()
+    over = held["end"] - (t0 + mpc.time_limit)
+    assert over > 0.1, "premise: the held call ran on past the limit"
+    assert s.info["wake_lag"] >= 0.9 * over and s.info["wake_runqueue"] < 0.5 * s.info["wake_lag"], s.info
+    assert s.info["engine_runqueue"] >= 0.2, s.info  # it shared its core: about half of its 0.6 s call and more
+
+
 def test_the_cpu_time_of_a_cut_off_step_counts_the_engine_thread(quad, monkeypatch):
     """A step answered at its cut-off while its solver call runs on: ``info["cpu_time"]`` counts the CPU time the
     engine's thread used before the answer (here 0.2 s of work in the held call), not only the answering thread's."""
@@ -1010,7 +1060,8 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
     assert [(r["run"], r["answers"]) for r in rows] == [("closed loop", 3), ("cold states", 1)]
     for r in rows:
         assert r["condition"] == "busy process on a core" and r["t_s_ms"] == 200.0
-        assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"] and 0 <= r["late_resume"] <= r["late_wall"]
+        assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
+        assert 0 <= r["late_engine_queued"] <= r["late_resume"] <= r["late_wall"]
         assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
         assert r["short_slice"] == (r["answers"] if _custom_slices() else r["short_slice"]) <= r["answers"]
     assert len(dl.late_answers_notes(rows)) == 3
@@ -1031,6 +1082,22 @@ def test_a_late_answer_counts_as_resumed_late_only_when_the_lag_covers_its_overr
     assert not dl._resumed_late(step(0.015, 0.012), 0.03, ts)  # it waited for a core most of the lag
     assert not dl._resumed_late(step(0.015, 0.0), 0.019, ts)  # on time
     assert not dl._resumed_late(fl.StepResult(v=np.zeros(1)), 0.03, ts)  # no record of it (no cut-off)
+
+
+def test_a_resumed_late_answer_counts_as_engine_queued_only_when_the_engines_wait_covers_its_overrun():
+    """bench deadline's _engine_queued: a late resume whose engine thread waited for a core for at least the
+    overrun; not when the engine's wait is shorter or unknown, nor for an answer that did not resume late."""
+    from flnotes.bench import deadline as dl
+
+    def step(lag, queued, engine):
+        return fl.StepResult(v=np.zeros(1), info=dict(wake_lag=lag, wake_runqueue=queued, engine_runqueue=engine))
+
+    ts = 0.02
+    assert dl._engine_queued(step(0.015, 0.0, 0.012), 0.03, ts)  # overrun 10 ms, the engine waited 12 ms
+    assert not dl._engine_queued(step(0.015, 0.0, 0.004), 0.03, ts)  # it waited less than the overrun
+    assert not dl._engine_queued(step(0.015, 0.0, float("nan")), 0.03, ts)  # the platform does not say
+    assert not dl._engine_queued(step(0.015, 0.012, 0.05), 0.03, ts)  # the answer itself waited for a core
+    assert not dl._engine_queued(step(0.015, 0.0, 0.05), 0.019, ts)  # on time
 
 
 def test_budget_floor_runs_on_the_budget_alone_and_repeats_bit_for_bit():

@@ -435,7 +435,9 @@ def late_answers_notes(rows: Sequence[dict]) -> list[str]:
     out = ["Late answers per system (time_limit = t_s, default options; the book's two systems and the five not in "
            "it): answers after t_s on the wall clock, of them late by the step's own CPU time (> t_s) and those whose "
            "thread resumed late after the cut-off while not waiting for a core (info['wake_lag'] and "
-           "info['wake_runqueue']: without that lag they were on time), the slowest answer and the most CPU time over "
+           "info['wake_runqueue']: without that lag they were on time), of those the answers whose engine thread "
+           "waited for a core for at least the overrun (info['engine_runqueue']: the interpreter lock the answer "
+           "waited for was held by a thread that waited for a core), the slowest answer and the most CPU time over "
            "t_s, the longest time after the engine at a fallback step (fallback and checks, wall clock) over t_s, "
            "and the 1-minute load average at the start and the end of the system's runs. 'busy process on a core': "
            "a second process runs a plain CPU loop meanwhile (busy_core). "
@@ -444,7 +446,8 @@ def late_answers_notes(rows: Sequence[dict]) -> list[str]:
     for r in rows:
         out.append(f"{r['system']}, {r['run']}, {r['condition']}, work_limit={r['work_limit']}: {r['late_wall']} of "
                    f"{r['answers']} answers after t_s = {r['t_s_ms']:g} ms ({r['late_cpu']} late by CPU, "
-                   f"{r['late_resume']} resumed late after the cut-off); slowest "
+                   f"{r['late_resume']} resumed late after the cut-off, {r['late_engine_queued']} of them while the "
+                   f"engine's thread waited for a core); slowest "
                    f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
                    f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
                    f"fallbacks, {r['safety_net']} safety-net hits; short scheduler slice granted at {r['short_slice']} of "
@@ -538,6 +541,13 @@ def _resumed_late(step, wall: float, ts: float) -> bool:
     return bool(wall > ts and lag >= wall - ts and not queued >= 0.5 * lag)
 
 
+def _engine_queued(step, wall: float, ts: float) -> bool:
+    """Whether an answer that resumed late (:func:`_resumed_late`) had the engine's thread wait for a core for at
+    least its overrun during the step (``info["engine_runqueue"]``): the interpreter lock the answer waited for was
+    held by the engine's thread while that thread waited for a core (more runnable threads than cores)."""
+    return bool(_resumed_late(step, wall, ts) and step.info.get("engine_runqueue", float("nan")) >= wall - ts)
+
+
 def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_states: int = 30,
                  loaded: bool = False, work_limit=None) -> list[dict]:
     """Answers after ``t_s`` per system (the book's two and the five not in it), closed loop and cold states, with
@@ -547,7 +557,9 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
     kind of run: ``answers``, ``late_wall`` (answers after ``t_s`` on the wall clock), ``late_cpu`` (of those, the
     answers whose step also used more than ``t_s`` of CPU time: late by the controller's own work; the others waited
     for the machine), ``late_resume`` (the late answers whose thread resumed late after the cut-off without waiting
-    for a core, :func:`_resumed_late`: without that lag they were on time), the slowest answer and the most CPU
+    for a core, :func:`_resumed_late`: without that lag they were on time), ``late_engine_queued`` (of those, the
+    answers whose engine thread waited for a core for at least the overrun, :func:`_engine_queued`: the lock held by
+    a thread that waited for a core), the slowest answer and the most CPU
     time over ``t_s``, ``post_max_over_ts`` (the longest time after the engine, the fallback and the checks, over
     ``t_s``) at the fallback steps, limit hits, fallbacks,
     safety-net hits (under a work budget), ``short_slice`` (the steps whose answering thread was granted the short
@@ -576,6 +588,7 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              t_s_ms=1e3 * ts, answers=len(recs), late_wall=int(np.sum(wall > ts)),
                              late_cpu=int(np.sum((wall > ts) & (cpu > ts))),
                              late_resume=int(sum(_resumed_late(s, w, ts) for s, w, _ in recs)),
+                             late_engine_queued=int(sum(_engine_queued(s, w, ts) for s, w, _ in recs)),
                              wall_max_over_ts=float(wall.max() / ts), cpu_max_over_ts=float(cpu.max() / ts),
                              post_max_over_ts=float(max(post) / ts) if post else 0.0,
                              limit_hits=int(sum(s.status == "time_limit" for s, _, _ in recs)),

@@ -244,7 +244,10 @@ class MPC:
         after it was due (the cut-off, or the solve's end when earlier) the answering thread resumed and
         ``info["wake_runqueue"]`` how much of that it waited for a core (Linux; NaN elsewhere): a lag without such a
         wait is time the thread was not runnable, a timer that fired late on the machine or the interpreter lock held
-        by another thread in C, not the controller's work. On hit the status is ``"time_limit"`` and the plan
+        by another thread, not the controller's work. ``info["engine_runqueue"]`` is how long the engine's thread
+        waited for a core during the step: where it covers such a lag, the lock was held by the engine's thread while
+        that thread waited for a core (the machine had more runnable threads than cores), which no share of the limit
+        kept back can rule out. On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -797,6 +800,7 @@ class MPC:
                 box["error"] = exc
             finally:
                 box["cpu"] = time.thread_time() - c_s
+                box["run_delay"] = thread_run_delay()  # this new thread's wait for a core, all of it
                 resume_gc()  # the solve's own pause
                 box["t_done"] = time.perf_counter()
                 box["done"].set()
@@ -815,7 +819,10 @@ class MPC:
         # how long after it was due (the cut-off, or the solve's end if earlier) this thread resumed, and of that
         # how long it waited for a core: the rest it was not runnable (a timer that fired late, the interpreter lock)
         wake = dict(wake_lag=max(t_woke - min(cut, box.get("t_done", cut)), 0.0),
-                    wake_runqueue=thread_run_delay() - queued)
+                    wake_runqueue=thread_run_delay() - queued,
+                    # the engine's thread's wait for a core so far (its own figure once it has ended)
+                    engine_runqueue=box["run_delay"] if "run_delay" in box else
+                    thread_run_delay(box["tid"]) if "tid" in box else float("nan"))
         if not done:
             self.solver.stop()
             yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
