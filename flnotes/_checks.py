@@ -49,24 +49,33 @@ def check_box(lo: Any, hi: Any, n: int, lo_name: str = "lo", hi_name: str = "hi"
     return lo_a, hi_a
 
 
-def v_box_in_domain(v_lo: Any, v_hi: Any, lo: np.ndarray, hi: np.ndarray, what: str = "v_box",
-                    names: tuple[str, str] = ("v_lo", "v_hi")) -> tuple[np.ndarray, np.ndarray]:
-    """A box ``v_lo <= v <= v_hi`` (``v_lo < v_hi``) on the input ``v`` inside the network's domain ``[lo, hi]``
-    (the ``v`` part of the domain box, where ``eps`` is certified), as two float vectors.
+def as_pair(box: Any, name: str) -> tuple[Any, Any]:
+    """``box`` as its two parts ``(lo, hi)``; anything else (a third part, a single part, a string) is an error."""
+    if isinstance(box, (str, bytes)) or not hasattr(box, "__len__") or len(box) != 2:
+        raise ValueError(f"{name} must be a pair (lo, hi), got {box!r:.80}")
+    return box[0], box[1]
+
+
+def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what: str = "v_box",
+                  names: tuple[str, str] = ("v_lo", "v_hi")) -> tuple[np.ndarray, np.ndarray]:
+    """A box ``lo <= x <= hi`` (``lo < hi``) inside the network's domain ``[dom_lo, dom_hi]`` (the part of the domain
+    box for ``x``: the state ``z`` or the input ``v``, where ``eps`` is certified), as two new float vectors (the
+    caller's arrays are copied: changing them later changes nothing).
 
     Outside the domain the network extrapolates: ``|Phi - Phi_NN| <= eps`` is not certified there, so a controller
-    whose ``v`` may leave it loses the bound ``|u| <= u_max``. A box wider than the domain is refused, not clipped."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    m = lo.shape[0]
-    v_lo_a, v_hi_a = as_vector(v_lo, m, names[0]), as_vector(v_hi, m, names[1])
-    if np.any(v_lo_a >= v_hi_a):
-        raise ValueError(f"{what} is empty or a point: need {names[0]} < {names[1]}, got {v_lo_a} and {v_hi_a}")
-    tol = 1e-12 * np.maximum(1.0, np.abs(hi - lo))
-    if np.any(v_lo_a < lo - tol) or np.any(v_hi_a > hi + tol):
-        raise ValueError(f"{what} [{v_lo_a}, {v_hi_a}] leaves the network's domain for v, [{lo}, {hi}]: eps is "
+    whose ``v`` (or predicted ``z``) may leave it loses the bound ``|u| <= u_max``. A box wider than the domain is
+    refused, not clipped."""
+    dom_lo, dom_hi = np.asarray(dom_lo, float), np.asarray(dom_hi, float)
+    m = dom_lo.shape[0]
+    lo_a, hi_a = as_vector(lo, m, names[0]).copy(), as_vector(hi, m, names[1]).copy()
+    if np.any(lo_a >= hi_a):
+        raise ValueError(f"{what} is empty or a point: need {names[0]} < {names[1]}, got {lo_a} and {hi_a}")
+    tol = 1e-12 * np.maximum(1.0, np.abs(dom_hi - dom_lo))
+    if np.any(lo_a < dom_lo - tol) or np.any(hi_a > dom_hi + tol):
+        raise ValueError(f"{what} [{lo_a}, {hi_a}] leaves the network's domain [{dom_lo}, {dom_hi}]: eps is "
                          f"certified only there (outside it the network extrapolates and |u| <= u_max is not "
                          f"guaranteed). Give a box inside it, or train and certify the network on a wider domain")
-    return v_lo_a, v_hi_a
+    return lo_a, hi_a
 
 
 def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:

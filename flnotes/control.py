@@ -52,7 +52,7 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import as_vector, v_box_in_domain
+from ._checks import as_vector, box_in_domain
 from .bounds import NodeBounds, fbbt
 from .config import one_blas_thread
 from .network import ReLUNet
@@ -684,9 +684,9 @@ class ClfCbfController:
         if not (beta > 0 and kappa > 0):
             raise ValueError(f"beta and kappa must be positive, got beta={beta!r}, kappa={kappa!r}")
         self.beta, self.kappa = float(beta), float(kappa)
-        self.v_lo, self.v_hi = v_box_in_domain(system.lo[n_z:] if v_lo is None else v_lo,
-                                               system.hi[n_z:] if v_hi is None else v_hi,
-                                               system.lo[n_z:], system.hi[n_z:], what="the v-box")
+        self.v_lo, self.v_hi = box_in_domain(system.lo[n_z:] if v_lo is None else v_lo,
+                                             system.hi[n_z:] if v_hi is None else v_hi,
+                                             system.lo[n_z:], system.hi[n_z:], what="the v-box")
         self.penalty = (float(penalty[0]), float(penalty[1]))
         if not all(np.isfinite(w) and w > 0 for w in self.penalty):
             raise ValueError(f"penalty = (rho_u, rho_H) must be two positive finite weights (a zero or negative weight "

@@ -53,7 +53,7 @@ import scipy.sparse as sp
 from scipy.linalg import solve_discrete_are
 from scipy.optimize import Bounds, LinearConstraint, OptimizeWarning, linprog, milp
 
-from ._checks import as_batch, as_vector, weight_matrix
+from ._checks import as_batch, as_pair, as_vector, box_in_domain, weight_matrix
 from .bounds import fbbt
 from .encoding import bigm_form
 from .network import ReLUNet
@@ -504,7 +504,8 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     discretization
         ``"rk4"`` (the paper) or ``"exact"``, as in the MPC.
     z_box, v_box
-        ``(lo, hi)`` of the state box ``Z_z`` and of ``v``; default the network's domain box.
+        ``(lo, hi)`` of the state box ``Z_z`` and of ``v``, inside the network's domain box (where ``eps`` holds; a
+        wider box is refused); default that domain box.
     tol
         Relative tolerance of the bisection on the level ``psi``.
 
@@ -533,10 +534,10 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     u_eps = system.u_max - eps
     if np.any(eps < 0) or np.any(u_eps <= 0):
         raise ValueError(f"need 0 <= eps < u_max: eps = {eps}, u_max = {system.u_max}")
-    zb = (system.lo[:n], system.hi[:n]) if z_box is None else z_box
-    vb = (system.lo[n:], system.hi[n:]) if v_box is None else v_box
-    z_lo, z_hi = as_vector(zb[0], n, "z_box[0]"), as_vector(zb[1], n, "z_box[1]")
-    v_lo, v_hi = as_vector(vb[0], m, "v_box[0]"), as_vector(vb[1], m, "v_box[1]")
+    zb = (system.lo[:n], system.hi[:n]) if z_box is None else as_pair(z_box, "z_box")
+    vb = (system.lo[n:], system.hi[n:]) if v_box is None else as_pair(v_box, "v_box")
+    z_lo, z_hi = box_in_domain(zb[0], zb[1], system.lo[:n], system.hi[:n], "z_box", ("z_box[0]", "z_box[1]"))
+    v_lo, v_hi = box_in_domain(vb[0], vb[1], system.lo[n:], system.hi[n:], "v_box", ("v_box[0]", "v_box[1]"))
     if np.any(z_lo >= 0) or np.any(z_hi <= 0) or np.any(v_lo >= 0) or np.any(v_hi <= 0):
         raise ValueError("z_box and v_box must contain 0 in their interior (the terminal set is built around the origin)")
     Ad, Bd = system.discretize(ts, discretization)

@@ -141,6 +141,37 @@ def test_a_v_box_outside_the_domain_or_empty_is_refused_by_both_controllers(msd,
     assert ctrl.step(np.array([1.0, 0.0])).v[0] <= 2.0 and mpc(np.array([1.0, 0.0]), np.zeros(2)).v[0] <= 2.0
 
 
+def test_the_controllers_keep_their_own_copy_of_the_v_box(msd):
+    """A box checked at construction stays the box: changing the caller's arrays afterwards changes nothing (the MPC
+    kept them, and a later step applied v = -13.6 outside the domain |v| <= 10)."""
+    sysm, net = msd
+    S = fl.paper.MSD_SETTING
+    lo, hi = np.array([-5.0]), np.array([5.0])
+    mpc = fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, v_box=(lo, hi))
+    ctrl = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(S["P"]), None, lambda z: -S["K_nominal"] @ z,
+                               cost="quadratic", backend="exact", v_lo=lo, v_hi=hi)
+    lo[0], hi[0] = -50.0, 50.0
+    assert mpc.v_lo[0] == ctrl.v_lo[0] == -5.0 and mpc.v_hi[0] == ctrl.v_hi[0] == 5.0
+    res = mpc(np.array([4.0, 4.0]), np.zeros(2))
+    assert res.v is not None and -5.0 - 1e-9 <= res.v[0] <= 5.0 + 1e-9, res.v  # the box to the solvers' round-off
+
+
+@pytest.mark.parametrize("v_box", [(-5.0, 5.0, 7.0), (-5.0,), "ab", 3.0])
+def test_a_v_box_that_is_not_a_pair_is_refused(msd, v_box):
+    sysm, net = msd
+    with pytest.raises(ValueError, match="v_box must be a pair"):
+        fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, v_box=v_box)
+
+
+@pytest.mark.parametrize("kw", [dict(v_box=(-20.0, 20.0)), dict(z_box=([-20.0, -20.0], [20.0, 20.0])),
+                                dict(v_box=(-5.0, 5.0, 1.0))])
+def test_a_terminal_set_box_outside_the_domain_is_refused(msd, kw):
+    """The terminal set's boxes are the MPC's constraints near the origin: they must lie in the domain too."""
+    sysm, net = msd
+    with pytest.raises(ValueError, match="leaves the network's domain|must be a pair"):
+        fl.terminal_set(sysm, net, 0.5, 0.1, np.diag([10.0, 1.0]), np.array([[0.1]]), **kw)
+
+
 # --------------------------------------------------------------------------- item 3: MPC solver availability
 @pytest.mark.skipif(importlib.util.find_spec("gurobipy") is not None, reason="gurobipy is installed here")
 def test_mpc_with_a_missing_solver_fails_at_construction(msd):

@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import as_vector, horizon_reference, v_box_in_domain, weight_matrix
+from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
 from ..config import (answer_slice, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
                       set_back_slice, slice_before_answer, thread_run_delay, yield_core)
@@ -393,9 +393,9 @@ class MPC:
         self.discretization = discretization
         self.Ad, self.Bd = system.discretize(self.ts, discretization)
         self.z_lo, self.z_hi = system.lo[: self.n_z].copy(), system.hi[: self.n_z].copy()
-        vb = (system.lo[self.n_z:], system.hi[self.n_z:]) if v_box is None else v_box
-        self.v_lo, self.v_hi = v_box_in_domain(vb[0], vb[1], system.lo[self.n_z:], system.hi[self.n_z:],
-                                               names=("v_box[0]", "v_box[1]"))
+        vb = (system.lo[self.n_z:], system.hi[self.n_z:]) if v_box is None else as_pair(v_box, "v_box")
+        self.v_lo, self.v_hi = box_in_domain(vb[0], vb[1], system.lo[self.n_z:], system.hi[self.n_z:],
+                                             names=("v_box[0]", "v_box[1]"))
         self.terminal = terminal
         Fg = None
         if terminal is not None:

@@ -124,7 +124,12 @@ def default_error_printer() -> bool:
     :mod:`ctypes` on PySCIPOpt's extension module (its dynamic symbol search covers the SCIP library it loads).
     ``False`` where that library does not export it to :mod:`ctypes` (e.g. on Windows): there, no code of this package
     installs Python's printer (the MPC reference uses :class:`flnotes.solvers.cvxpy_bridge.ScipConic`), and a caller
-    that calls ``redirectOutput`` itself must not run this package's SCIP solves after it."""
+    that calls ``redirectOutput`` itself must not run this package's SCIP solves after it.
+
+    The reset is made as each solve starts: it does not cover a ``redirectOutput`` (or a ``cp.SCIP`` solve) in
+    another thread while a solve of this package runs (a time-limited MPC's engine thread, or the caller's own
+    threads). In a process that runs SCIP in threads, solve cvxpy programs with
+    :class:`flnotes.solvers.cvxpy_bridge.ScipConic` instead of ``cp.SCIP``."""
     if "reset" not in _PRINTER:
         reset = None
         try:
