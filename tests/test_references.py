@@ -236,6 +236,31 @@ def test_the_reference_rounds_share_its_time_limit(quad_small, monkeypatch):
     for t_call, left in given:
         assert left is not None and 0 < left <= 0.8 - (t_call - t_first) + 2e-3, given  # the time left, not 0.8
     assert "the time limit came before round" in step.message, step.message
+    assert step.status == "time_limit", (step.status, step.message)
+
+
+@pytest.mark.parametrize("scip_status, status", [("time_limit", "time_limit"), ("optimal", "error")])
+def test_a_reference_plan_that_fails_the_check_is_a_limit_hit_under_the_limit_else_an_error(quad_small, monkeypatch,
+                                                                                           scip_status, status):
+    """A plan of the reference that fails the forward-pass check is never applied. When SCIP returned it at the time
+    limit, the limit came before a plan that passes (status ``"time_limit"``, as the engine's); when SCIP called it
+    optimal, the step is an error. Both apply the fallback."""
+    sysm, net = quad_small
+    ref = MPC(sysm, net, EPS, backend="cvxpy-scip", bounds="box", time_limit=30.0, **COMMON)
+    real, real_check, returned = ref.solver.solve, ref.plan_feasible, {}
+
+    def solve(z, R, u_in, time_limit=None, gap=1e-6):
+        out = real(z, R, u_in, time_limit=time_limit, gap=gap)
+        assert out.v is not None, "premise: a plan"
+        out.status = scip_status
+        returned["v"] = out.v_pred
+        return out
+
+    monkeypatch.setattr(ref.solver, "solve", solve)
+    monkeypatch.setattr(ref, "plan_feasible", lambda Z, V: False if V is returned.get("v") else real_check(Z, V))
+    step = ref(np.array([0.5, 0.0, 0.0]), np.zeros((COMMON["horizon"] + 1, 3)))
+    assert step.status == status and step.fallback, (step.status, step.message)
+    assert "the returned plan fails the forward-pass check" in step.message
 
 
 def _msd_ctrl(msd, cost, **kw):

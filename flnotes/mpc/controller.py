@@ -691,8 +691,10 @@ class MPC:
                 if budget is not None:  # how late the engine answered after its budget (see reserve)
                     self._measure_late(step.solve_time - budget, time.thread_time() - c_s, step.solve_time)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
-            # never a plan that breaks the program labelled as a solution
-            step.status, step.v = "error", None
+            # never a plan that breaks the program labelled as a solution; under the limit it is the limit that came
+            # before a plan that passes (the engine's status there too), otherwise an error
+            step.status = "time_limit" if step.status == "time_limit" else "error"
+            step.v = None
             step.message += "; the returned plan fails the forward-pass check"
         t_post = time.perf_counter()
         if step.v is None:
