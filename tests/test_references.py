@@ -239,6 +239,20 @@ def test_the_reference_rounds_share_its_time_limit(quad_small, monkeypatch):
     assert step.status == "time_limit", (step.status, step.message)
 
 
+def test_the_reference_reports_its_own_solve_after_an_infeasible_one(quad_small):
+    """The reference keeps its program with ``bounds="box"``; when SCIP stops at the time limit without a point,
+    cvxpy raises and keeps the previous solve's statistics. The status is this solve's (``"time_limit"``), not the
+    previous solve's: it was "infeasible" after a proven infeasible state (a false proof)."""
+    sysm, net = quad_small
+    ref = MPC(sysm, net, EPS, backend="cvxpy-scip", bounds="box", **COMMON)
+    R = np.zeros((COMMON["horizon"] + 1, 3))
+    first = ref.solver.solve(np.array([1.369616873214543, -2.302132862361297, -4.590264760638053]), R, ref.u_eps)
+    assert first.status == "infeasible", "premise: a state proven infeasible"
+    second = ref.solver.solve(np.array([0.5, 0.0, 0.0]), R, ref.u_eps, time_limit=1e-6)
+    assert second.status == "time_limit", second.message
+    assert "timelimit" in second.message
+
+
 @pytest.mark.parametrize("scip_status, status", [("time_limit", "time_limit"), ("optimal", "error")])
 def test_a_reference_plan_that_fails_the_check_is_a_limit_hit_under_the_limit_else_an_error(quad_small, monkeypatch,
                                                                                            scip_status, status):

@@ -93,20 +93,22 @@ class ReferenceProgram:
         opts = {"limits/gap": gap, "numerics/feastol": SCIP_FEASTOL}
         if time_limit is not None:
             opts["limits/time"] = float(time_limit)
+        scip = ScipConic()  # cvxpy's SCIP interface, the interpreter lock released while SCIP runs
         try:
             # cvxpy warns on infinite bounds and on SCIP's "gaplimit" status; SoPlex prints its tolerance notices to the
             # C streams (filtered out as in the engine's SCIP back-end)
             with warnings.catch_warnings(), _quiet_c_output():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 warnings.simplefilter("ignore", UserWarning)
-                cv["prob"].solve(solver=ScipConic(), scip_params=opts)  # cvxpy's SCIP interface, lock released
-            st = cv["prob"].status
-        except cp.error.SolverError as exc:
-            st = f"error: {exc}"
-        extra = getattr(cv["prob"].solver_stats, "extra_stats", None)
+                cv["prob"].solve(solver=scip, scip_params=opts)
+            st, failed = cv["prob"].status, False
+        except cp.error.SolverError as exc:  # e.g. SCIP stopped at the time limit without a point
+            st, failed = f"error: {exc}", True
+        # cvxpy keeps the last solve's statistics when it raises: those are an earlier solve's (a kept problem)
+        extra = None if failed else getattr(cv["prob"].solver_stats, "extra_stats", None)
         extra = extra if isinstance(extra, dict) else {}
         model = extra.get("model")
-        scip_status = str(extra.get("scip_status", st))
+        scip_status = str(extra.get("scip_status", scip.status or st))
         nodes, bound = 0, np.nan
         if model is not None:
             nodes, bound = int(model.getNNodes()), float(model.getDualbound())

@@ -139,7 +139,13 @@ class _NoLockModel:
 
 class ScipConic(_CvxpyScip):
     """cvxpy's conic SCIP interface (``cp.SCIP``), SCIP run without the interpreter lock and without PySCIPOpt's
-    Python output relay (see the module). Options as ``cp.SCIP``'s (``scip_params=...``)."""
+    Python output relay (see the module). Options as ``cp.SCIP``'s (``scip_params=...``). ``status`` is SCIP's own
+    status of the last solve (also when cvxpy raised ``SolverError``, e.g. ``"timelimit"`` without a point)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        #: SCIP's status of the last solve (None before the first).
+        self.status: Optional[str] = None
 
     def name(self) -> str:
         return "FLNOTES_SCIP_CONIC"
@@ -156,7 +162,10 @@ class ScipConic(_CvxpyScip):
         variables = self._create_variables(model, data, c)
         constraints = self._add_constraints(model, variables, A, b, dims)
         self._set_params(model, verbose, solver_opts, data, dims)
-        return self._solve(_NoLockModel(model), variables, constraints, data, dims)
+        self.status = None
+        out = self._solve(_NoLockModel(model), variables, constraints, data, dims)
+        self.status = str(model.getStatus())
+        return out
 
 
 __all__ = ["ScipQP", "ScipConic", "STATUS", "UNBOUNDED", "FEASTOL_RANGE", "OPTIONS"]
