@@ -693,3 +693,29 @@ def test_the_mpc_reference_lets_other_threads_run_while_scip_solves():
     long = [(d, gap) for d, gap in solves if d >= 0.05]
     assert long, f"the premise: a SCIP solve of at least 50 ms to watch, got {solves}"
     assert all(gap < 0.5 * d for d, gap in long), solves
+
+
+@pytest.mark.filterwarnings("ignore:.*either infeasible or unbounded:UserWarning")  # cvxpy's, for both interfaces
+def test_scip_conic_answers_as_cvxpys_scip_interface():
+    """ScipConic is cvxpy's SCIP interface with the lock released and no output relay: on an LP, a MILP, a
+    mixed-integer SOCP, an infeasible and an unbounded program it returns cvxpy's SCIP statuses and optima, and keeps
+    SCIP's own status."""
+    from flnotes.solvers.cvxpy_bridge import ScipConic
+
+    x, n = cp.Variable(3), cp.Variable(2, integer=True)
+    programs = [
+        cp.Problem(cp.Minimize(np.array([1.0, 2.0, -1.0]) @ x), [x >= -1, x <= 2, cp.sum(x) <= 1.5]),
+        cp.Problem(cp.Maximize(3 * n[0] + 2 * n[1] + x[0]), [n >= 0, 2 * n[0] + n[1] <= 7.5, x[0] <= 0.5,
+                                                             n[0] + 3 * n[1] <= 9.2]),
+        cp.Problem(cp.Minimize(cp.norm(x - np.array([0.3, -1.2, 2.5])) + n[0]), [n[0] >= 0.5, x[2] <= n[0] + 0.7]),
+        cp.Problem(cp.Minimize(cp.sum(n)), [2 * n[0] == 1]),
+        cp.Problem(cp.Minimize(x[0]), [x[1] >= 0]),
+    ]
+    for prob in programs:
+        prob.solve(solver=cp.SCIP)
+        want_status, want = prob.status, prob.value
+        conic = ScipConic()
+        prob.solve(solver=conic)
+        assert prob.status == want_status and conic.status is not None, (prob, prob.status, want_status)
+        if want_status == "optimal":
+            assert abs(prob.value - want) <= 1e-6 * max(1.0, abs(want)), (prob.value, want)
