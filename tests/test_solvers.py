@@ -695,7 +695,7 @@ def test_the_mpc_reference_lets_other_threads_run_while_scip_solves():
     assert all(gap < 0.5 * d for d, gap in long), solves
 
 
-@pytest.mark.filterwarnings("ignore:.*either infeasible or unbounded:UserWarning")  # cvxpy's, for both interfaces
+@pytest.mark.filterwarnings("ignore:(?s).*either infeasible or unbounded:UserWarning")  # cvxpy's, for both interfaces
 def test_scip_conic_answers_as_cvxpys_scip_interface():
     """ScipConic is cvxpy's SCIP interface with the lock released and no output relay: on an LP, a MILP, a
     mixed-integer SOCP, an infeasible and an unbounded program it returns cvxpy's SCIP statuses and optima, and keeps
