@@ -17,7 +17,6 @@ from ..bounds import NodeBounds
 from ..encoding import encode
 from ..result import StepResult
 from ..solvers import BOX_TOL
-from ..solvers.cvxpy_bridge import ScipConic
 from ..solvers.scip import _quiet_c_output
 from ..tightening import EmptyBoxError
 from .levers import node_bounds, repeat_bounds
@@ -71,6 +70,8 @@ class ReferenceProgram:
               gap: float = 1e-6) -> StepResult:
         """One cold solve; ``u_in`` is the output bound written in the rows. ``v`` is ``None`` without a plan."""
         import cvxpy as cp
+
+        from ..solvers.cvxpy_bridge import ScipConic  # cvxpy on demand: importing flnotes does not load it
 
         p = self.pred
         t0 = time.perf_counter()
