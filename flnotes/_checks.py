@@ -50,9 +50,10 @@ def check_box(lo: Any, hi: Any, n: int, lo_name: str = "lo", hi_name: str = "hi"
 
 
 def as_pair(box: Any, name: str) -> tuple[Any, Any]:
-    """``box`` as its two parts ``(lo, hi)``; anything else (a third part, a single part, a string) is an error."""
-    if isinstance(box, (str, bytes)) or not hasattr(box, "__len__") or len(box) != 2:
-        raise ValueError(f"{name} must be a pair (lo, hi), got {box!r:.80}")
+    """``box`` as its two parts ``(lo, hi)``: a tuple, list or array of length 2. Anything else (a third part, a
+    single part, a string, a dict or a set) is an error."""
+    if not isinstance(box, (tuple, list, np.ndarray)) or len(box) != 2:
+        raise ValueError(f"{name} must be a pair (lo, hi) (a tuple, list or array of length 2), got {box!r:.80}")
     return box[0], box[1]
 
 
@@ -67,14 +68,23 @@ def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what
     refused, not clipped."""
     dom_lo, dom_hi = np.asarray(dom_lo, float), np.asarray(dom_hi, float)
     m = dom_lo.shape[0]
+    for x, nm in ((lo, names[0]), (hi, names[1])):
+        if np.asarray(x).dtype.kind not in "biuf":
+            raise ValueError(f"{nm} must be numbers, got {x!r:.80}")
     lo_a, hi_a = as_vector(lo, m, names[0]).copy(), as_vector(hi, m, names[1]).copy()
     if np.any(lo_a >= hi_a):
-        raise ValueError(f"{what} is empty or a point: need {names[0]} < {names[1]}, got {lo_a} and {hi_a}")
+        raise ValueError(f"{what} is empty or a point: need {names[0]} < {names[1]} (a box of positive width), got "
+                         f"{lo_a} and {hi_a}")
     tol = 1e-12 * np.maximum(1.0, np.abs(dom_hi - dom_lo))
-    if np.any(lo_a < dom_lo - tol) or np.any(hi_a > dom_hi + tol):
-        raise ValueError(f"{what} [{lo_a}, {hi_a}] leaves the network's domain [{dom_lo}, {dom_hi}]: eps is "
-                         f"certified only there (outside it the network extrapolates and |u| <= u_max is not "
-                         f"guaranteed). Give a box inside it, or train and certify the network on a wider domain")
+    for i in range(m):
+        for val, edge, side, out in ((lo_a[i], dom_lo[i], names[0], dom_lo[i] - tol[i] - lo_a[i]),
+                                     (hi_a[i], dom_hi[i], names[1], hi_a[i] - dom_hi[i] - tol[i])):
+            if out > 0:
+                raise ValueError(
+                    f"{what} leaves the network's domain [{dom_lo}, {dom_hi}]: {side}[{i}] = {float(val)!r} lies "
+                    f"{out + tol[i]:.3g} beyond the domain's face {float(edge)!r}. eps is certified only inside the domain "
+                    f"(outside it the network extrapolates and |u| <= u_max is not guaranteed): give a box inside "
+                    f"it, or train and certify the network on a wider domain")
     return lo_a, hi_a
 
 

@@ -141,6 +141,15 @@ def test_a_v_box_outside_the_domain_or_empty_is_refused_by_both_controllers(msd,
     assert ctrl.step(np.array([1.0, 0.0])).v[0] <= 2.0 and mpc(np.array([1.0, 0.0]), np.zeros(2)).v[0] <= 2.0
 
 
+def test_a_v_box_just_outside_the_domain_is_named_with_its_excess(msd):
+    """The message says which bound leaves the domain and by how much (the arrays alone print the same numbers)."""
+    sysm, net = msd
+    with pytest.raises(ValueError, match=r"v_box\[1\]\[0\] = 10.0000000001 lies 1e-10 beyond the domain's face 10.0"):
+        fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, v_box=([-10.0], [10.0 + 1e-10]))
+    with pytest.raises(ValueError, match="must be numbers"):
+        fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1, v_box=("-1", "1"))
+
+
 def test_the_controllers_keep_their_own_copy_of_the_v_box(msd):
     """A box checked at construction stays the box: changing the caller's arrays afterwards changes nothing (the MPC
     kept them, and a later step applied v = -13.6 outside the domain |v| <= 10)."""
@@ -156,7 +165,7 @@ def test_the_controllers_keep_their_own_copy_of_the_v_box(msd):
     assert res.v is not None and -5.0 - 1e-9 <= res.v[0] <= 5.0 + 1e-9, res.v  # the box to the solvers' round-off
 
 
-@pytest.mark.parametrize("v_box", [(-5.0, 5.0, 7.0), (-5.0,), "ab", 3.0])
+@pytest.mark.parametrize("v_box", [(-5.0, 5.0, 7.0), (-5.0,), "ab", 3.0, {0: -1.0, 1: 1.0}, {-1.0, 1.0}])
 def test_a_v_box_that_is_not_a_pair_is_refused(msd, v_box):
     sysm, net = msd
     with pytest.raises(ValueError, match="v_box must be a pair"):
