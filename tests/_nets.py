@@ -5,6 +5,9 @@ beside each ``.npz`` records the :func:`flnotes.fit_relu` settings that produced
 """
 from pathlib import Path
 
+import numpy as np
+
+import flnotes as fl
 from flnotes.reference import load_reference
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -17,3 +20,14 @@ def test_net(name: str):
 
 
 test_net.__test__ = False  # a helper, not a test
+
+
+def two_msd():
+    """Two MSDs side by side (``Phi = v``, two inputs) with a random 6-8-2 network of explicit weights (seed 3)."""
+    A, B = fl.brunovsky([2, 2])
+    rng = np.random.default_rng(3)
+    W1, W2 = rng.normal(size=(8, 6)) * 0.5, rng.normal(size=(2, 8)) * 0.5
+    net = fl.ReLUNet([W1, W2], [rng.normal(size=8) * 0.1, np.zeros(2)])
+    sysm = fl.FLSystem("2x MSD", A, B, phi=lambda z, v: v, lo=[-5] * 4 + [-10] * 2, hi=[5] * 4 + [10] * 2,
+                       u_max=[5, 5], f=lambda x, u: A @ x + B @ u, to_z=lambda x: x, to_x=lambda z: z)
+    return sysm, net

@@ -585,6 +585,19 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert mpc.solver.answer_now().v is None
 
 
+def _held_step(mpc, z, R, prev, holding, monkeypatch):
+    """One step of ``mpc`` from ``prev`` with its engine's solve replaced by ``holding``; the held solve is waited for
+    (and the settings the step kept for it come back). Returns the step and when it started."""
+    monkeypatch.setattr(mpc.solver, "solve", holding)
+    mpc.set_previous_plan(prev)
+    t0 = time.perf_counter()
+    try:
+        s = mpc(z, R)
+    finally:
+        mpc.finish()
+    return s, t0
+
+
 def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
     """The engine's thread holds the interpreter lock in one C call (a long sum over a range) past the limit: the
     answering thread cannot resume at its cut-off, and the record says so. ``wake_lag`` covers at least the time from
@@ -608,13 +621,7 @@ def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
         held["end"] = time.perf_counter()
         return solve(*a, **k)
 
-    monkeypatch.setattr(mpc.solver, "solve", holding)
-    mpc.set_previous_plan(prev)
-    t0 = time.perf_counter()
-    try:
-        s = mpc(z, R)
-    finally:
-        mpc.finish()  # the held solve ends, and the settings the step kept for it come back
+    s, t0 = _held_step(mpc, z, R, prev, holding, monkeypatch)
     # the engine's thread notes the end just after the call returns, when the answer may already have resumed
     over = held["end"] - (t0 + mpc.time_limit)
     assert over > 0.1, "premise: the held call ran on past the limit"
@@ -658,13 +665,7 @@ def test_the_engine_threads_wait_for_a_core_is_recorded(quad, monkeypatch):
     busy = subprocess.Popen([sys.executable, "-c", f"import os; os.sched_setaffinity(0, {{{core}}})\nwhile True: pass"])
     try:
         time.sleep(0.2)
-        monkeypatch.setattr(mpc.solver, "solve", holding)
-        mpc.set_previous_plan(prev)
-        t0 = time.perf_counter()
-        try:
-            s = mpc(z, R)
-        finally:
-            mpc.finish()
+        s, t0 = _held_step(mpc, z, R, prev, holding, monkeypatch)
     finally:
         busy.kill()
         busy.wait()

@@ -359,16 +359,13 @@ def test_softened_minimizer_on_a_region_equals_a_convex_solver(cost):
 
 
 def _two_msd(cost: str):
-    """Two MSDs side by side (Phi = v) with a random 6-8-2 network (explicit seed, no training)."""
+    """The CLF-CBF controller of two MSDs side by side (tests/_nets.two_msd), its CBF an obstacle."""
     from flnotes.control import ClfCbfController, DistanceCBF, QuadraticCLF
 
+    from _nets import two_msd
+
     S = fl.paper.MSD_SETTING
-    A, B = fl.brunovsky([2, 2])
-    r = np.random.default_rng(3)
-    W1, W2 = r.normal(size=(8, 6)) * 0.5, r.normal(size=(2, 8)) * 0.5
-    net = fl.ReLUNet([W1, W2], [r.normal(size=8) * 0.1, np.zeros(2)])
-    sysm = fl.FLSystem("2x MSD", A, B, phi=lambda z, v: v, lo=[-5] * 4 + [-10] * 2, hi=[5] * 4 + [10] * 2,
-                       u_max=[5, 5], f=lambda x, u: A @ x + B @ u, to_z=lambda x: x, to_x=lambda z: z)
+    sysm, net = two_msd()
     return ClfCbfController(sysm, net, 0.1, QuadraticCLF(np.kron(np.eye(2), S["P"])),
                             DistanceCBF([1.5, 1.0, 0.0, 0.0], 0.8),
                             lambda z: -np.kron(np.eye(2), S["K_nominal"]) @ z, cost=cost, backend="exact")
