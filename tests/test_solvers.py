@@ -684,14 +684,15 @@ def test_the_mpc_reference_lets_other_threads_run_while_scip_solves():
     rng = np.random.default_rng(1)
     net = fl.ReLUNet([rng.normal(size=(16, sysm.n_in)), rng.normal(size=(16, 16)), rng.normal(size=(1, 16))],
                      [rng.normal(size=16) * 0.1, rng.normal(size=16) * 0.1, np.zeros(1)])
-    ref = MPC(sysm, net, 0.0, horizon=6, ts=0.1, Q=[1.0, 1.0, 1.0], R=0.1, backend="cvxpy-scip", bounds="box")
+    # a SCIP solve of about 0.16 s here (horizon 8): long against the ticker's own gaps (about 1 ms) on faster CPUs too
+    ref = MPC(sysm, net, 0.0, horizon=8, ts=0.1, Q=[1.0, 1.0, 1.0], R=0.1, backend="cvxpy-scip", bounds="box")
     _NoLockModel.optimize = spy
     try:
-        ref(np.array([1.0, 0.5, 0.0]), np.zeros((7, 3)))
+        ref(np.array([1.0, 0.5, 0.0]), np.zeros((9, 3)))
     finally:
         _NoLockModel.optimize = real
-    long = [(d, gap) for d, gap in solves if d >= 0.05]
-    assert long, f"the premise: a SCIP solve of at least 50 ms to watch, got {solves}"
+    long = [(d, gap) for d, gap in solves if d >= 0.02]
+    assert long, f"the premise: a SCIP solve of at least 20 ms to watch, got {solves}"
     assert all(gap < 0.5 * d for d, gap in long), solves
 
 

@@ -4,6 +4,7 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 """
 from __future__ import annotations
 
+import functools
 import os
 import re
 import sys
@@ -110,7 +111,19 @@ def _split_notices(buf: bytes, final: bool = False) -> tuple[bytes, bytes]:
     return b"".join(out), hold
 
 
-_PRINTER: dict = {}
+@functools.lru_cache(maxsize=1)
+def _printer_reset():
+    """SCIP's ``SCIPmessageSetErrorPrintingDefault`` through :mod:`ctypes`, or ``None`` where it is not exported."""
+    try:
+        import ctypes
+
+        from pyscipopt import scip as _scip_module
+
+        reset = ctypes.CDLL(_scip_module.__file__).SCIPmessageSetErrorPrintingDefault
+    except (OSError, AttributeError, ImportError):
+        return None
+    reset.restype, reset.argtypes = None, []
+    return reset
 
 
 def default_error_printer() -> bool:
@@ -130,21 +143,10 @@ def default_error_printer() -> bool:
     another thread while a solve of this package runs (a time-limited MPC's engine thread, or the caller's own
     threads). In a process that runs SCIP in threads, solve cvxpy programs with
     :class:`flnotes.solvers.cvxpy_bridge.ScipConic` instead of ``cp.SCIP``."""
-    if "reset" not in _PRINTER:
-        reset = None
-        try:
-            import ctypes
-
-            from pyscipopt import scip as _scip_module
-
-            reset = ctypes.CDLL(_scip_module.__file__).SCIPmessageSetErrorPrintingDefault
-            reset.restype, reset.argtypes = None, []
-        except (OSError, AttributeError, ImportError):
-            reset = None
-        _PRINTER["reset"] = reset
-    if _PRINTER["reset"] is None:
+    reset = _printer_reset()
+    if reset is None:
         return False
-    _PRINTER["reset"]()
+    reset()
     return True
 
 
