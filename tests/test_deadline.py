@@ -585,6 +585,38 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert mpc.solver.answer_now().v is None
 
 
+def test_a_step_waits_for_the_previous_solve_until_its_own_cut_off_only(quad, monkeypatch):
+    """The solve a step answered at its cut-off runs on (held) through the next step: that step does not wait for it
+    past its own cut-off. It answers while the held solve still runs, without a solve (status time_limit, the fallback
+    flagged, ``previous_ran_on``), with an admissible input and a plan that passes the checks. Once the held solve
+    has ended, the next step waits for it and solves to the optimum of a controller without a limit."""
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.5)
+    gate = Gate(monkeypatch)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert gate.entered.is_set() and s.info["cut_off"] and mpc._running is not None, "premise: held at the answer"
+    assert not s.info["previous_ran_on"] and s.info["previous_wait"] >= 0.0
+    z1 = mpc.pred.Ad @ z + mpc.pred.Bd @ s.v
+    try:
+        s1 = mpc(z1, R)
+        assert not gate.released.is_set() and mpc._running is not None, "answered while the held solve ran on"
+    finally:
+        gate.release()
+    assert s1.info["previous_ran_on"] and s1.info["cut_off"], s1.info
+    assert s1.status == "time_limit" and s1.fallback and "ran on" in s1.message, s1.message
+    assert s1.info["previous_wait"] < mpc.time_limit  # it stopped waiting at its cut-off, before the limit
+    assert check_step(mpc, s1) and s1.input_admissible and s1.info["plan_feasible"], s1.message
+    assert s1.info["post_runqueue"] >= 0.0 or not np.isfinite(fl.config.thread_run_delay())
+    exact = rt.make_mpc(setup)
+    exact.set_previous_plan(mpc._plan)
+    best = exact(z1, R)
+    s2 = mpc(z1, R)  # the held solve has been released: this step waits for its end, then solves
+    assert mpc._running is None and not s2.info["previous_ran_on"], s2.info
+    assert s2.status == best.status == "optimal", (s2.message, best.message)
+    assert abs(s2.objective - best.objective) <= 1e-6 * max(1.0, abs(best.objective))
+
+
 def _held_step(mpc, z, R, prev, holding, monkeypatch):
     """One step of ``mpc`` from ``prev`` with its engine's solve replaced by ``holding``; the held solve is waited for
     (and the settings the step kept for it come back). Returns the step and when it started."""

@@ -450,7 +450,8 @@ def late_answers_notes(rows: Sequence[dict]) -> list[str]:
                    f"engine's thread waited for a core); slowest "
                    f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
                    f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
-                   f"fallbacks, {r['safety_net']} safety-net hits; short scheduler slice granted at {r['short_slice']} of "
+                   f"fallbacks ({r['previous_ran_on']} without a solve: the previous solve ran on past their "
+                   f"cut-off), {r['safety_net']} safety-net hits; short scheduler slice granted at {r['short_slice']} of "
                    f"{r['answers']} (fl.config.answer_slice, Linux 6.12+); load {r['load_start']:.1f} -> "
                    f"{r['load_end']:.1f}")
     return out
@@ -563,7 +564,8 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
     time over ``t_s``, ``post_max_over_ts`` (the longest time after the engine, the fallback and the checks, over
     ``t_s``) at the fallback steps, limit hits, fallbacks,
     safety-net hits (under a work budget), ``short_slice`` (the steps whose answering thread was granted the short
-    scheduler slice of :func:`flnotes.config.answer_slice`), and the load average (1 min) at the start and the end of
+    scheduler slice of :func:`flnotes.config.answer_slice`), ``previous_ran_on`` (the steps that answered without a
+    solve because the previous step's solve ran on past their cut-off), and the load average (1 min) at the start and the end of
     the system's run.
     """
     import os
@@ -595,6 +597,7 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              fallbacks=int(sum(s.fallback for s, _, _ in recs)),
                              safety_net=int(sum(bool(s.info.get("safety_net")) for s, _, _ in recs)),
                              short_slice=int(sum(bool(s.info.get("answer_slice")) for s, _, _ in recs)),
+                             previous_ran_on=int(sum(bool(s.info.get("previous_ran_on")) for s, _, _ in recs)),
                              work_limit=work_limit,
                              load_start=float(load0), load_end=float(load1)))
     return rows

@@ -288,7 +288,10 @@ class MPC:
         returned, with one BLAS thread, a short interpreter switch interval and the cyclic collector paused for the
         whole process (see :meth:`__call__`), until the next step, :meth:`reset` or :meth:`finish` waits for it;
         :func:`flnotes.simulate` calls :meth:`finish` when a run ends, and a controller dropped meanwhile waits for
-        it as it is freed.
+        it as it is freed. The next step waits for it until its own cut-off at most: a solve that runs on past it
+        (its solver call checks the time only now and then, and on a loaded machine its thread waits for a core)
+        leaves that step to answer on time without a solve, with :meth:`fallback_plan` (the shifted plan where it
+        passes; ``info["previous_ran_on"]`` True, ``info["previous_wait"]`` the seconds waited).
     gap
         Relative optimality gap at which a solver stops.
     discretization
@@ -668,16 +671,25 @@ class MPC:
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
-        self._finish_running()  # a solve the last step answered at its cut-off ends first, inside this step's budget
+        # a solve the last step answered at its cut-off ends first, inside this step's budget: waited for until this
+        # step's own cut-off at most (the engine's models are that solve's until it ends)
+        ended = self._previous_ended(t0)
+        waited = time.perf_counter() - t0
         self._fallback_s *= RESERVE_DECAY
         self._late_s *= RESERVE_DECAY
         self._answer_s *= RESERVE_DECAY
-        release_retired()  # the solver models the last step kept alive are freed here, inside this step's budget
+        if ended:
+            release_retired()  # the solver models the last step kept alive are freed here, inside this step's budget
         z = self._check_z(z)
         R = self._check_ref(z_ref)
         shifted = self.shifted_plan(z)
         o = self.options
-        if o.constraint != "network":
+        if not ended:  # the previous step's solve still runs: this step answers at its cut-off without a solve
+            step = StepResult(None, "time_limit", bound=-np.inf,
+                              message="time limit: cut off before the solve started, while the solve of the previous "
+                                      "step (answered at its cut-off) ran on")
+            step.info.update(cut_off=True, cut_off_at=time.perf_counter(), engine_cpu_time=0.0)
+        elif o.constraint != "network":
             step = self.solver.solve(z, R, previous=self._plan[0] if self._plan is not None else None)
         elif o.is_reference:
             step = self._solve_reference(z, R)
@@ -698,7 +710,7 @@ class MPC:
             step.status = "time_limit" if step.status == "time_limit" else "error"
             step.v = None
             step.message += "; the returned plan fails the forward-pass check"
-        t_post = time.perf_counter()
+        t_post, q_post = time.perf_counter(), thread_run_delay()
         if step.v is None:
             step = self._fallback(z, R, step, shifted, t0)
         elif step.status == "time_limit" and not np.isfinite(step.bound):
@@ -714,6 +726,10 @@ class MPC:
         step.info["plan_feasible"] = self.plan_feasible(step.z_pred, step.v_pred)
         step.solve_time = time.perf_counter() - t0
         step.info["post_time"] = step.solve_time - (t_post - t0)
+        # of it, the time this thread waited for a core (Linux; NaN elsewhere): the rest was its work or the lock
+        step.info["post_runqueue"] = thread_run_delay() - q_post
+        step.info["previous_wait"] = waited  # spent waiting for the previous step's solve (see _previous_ended)
+        step.info["previous_ran_on"] = not ended
         # the CPU time of the step's work until its answer: this thread's and, with the cut-off, the engine's thread's
         step.info["cpu_time"] = time.thread_time() - c0 + step.info.get("engine_cpu_time", 0.0)
         if "cut_off_at" in step.info:  # how long the answer took after the cut-off, on the wall clock
@@ -776,7 +792,8 @@ class MPC:
         answer does not wait for a solver that overruns its own limit; on Linux the engine's thread is then lowered to
         nice :data:`flnotes.config.CUT_OFF_NICE` (:func:`flnotes.config.yield_core`, ``info["engine_yielded"]``), so
         that where it shares a core with the answer the answer gets most of it. The solve ends on its own (at its next check
-        of the time, or when its solver call returns) and the next step, or :meth:`reset`, waits for it first.
+        of the time, or when its solver call returns) and the next step waits for it first, until that step's own
+        cut-off at most (:meth:`_previous_ended`); :meth:`reset` and :meth:`finish` wait until it ends.
         """
         box: dict = {}
         own_slice = slice_before_answer()  # the slice this thread had before the step's short one (None: not changed)
@@ -809,9 +826,7 @@ class MPC:
                 box["t_done"] = time.perf_counter()
                 box["done"].set()
 
-        answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
-                       RESERVE_MAX_SHARE * self.time_limit)
-        cut = t0 + float(self.time_limit) - answer_s  # the cut-off (a perf_counter value)
+        cut = self._cut_off(t0)
         self.solver.go(stop_at=cut)
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
         box["done"] = threading.Event()
@@ -854,6 +869,31 @@ class MPC:
         solver call stops as a safety net (:meth:`NetworkEngine.solve`), so that a call answered at the cut-off does
         not run on into the next step; ``None`` otherwise (without the cut-off the budget alone decides)."""
         return t0 + float(self.time_limit) if self.node_limit is not None and self.cut_off else None
+
+    def _cut_off(self, t0: float) -> float:
+        """The cut-off of a step that started at ``t0`` (a :func:`time.perf_counter` value): ``t0 + time_limit`` less
+        the time kept for the answer (see :meth:`_engine_solve`)."""
+        answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
+                       RESERVE_MAX_SHARE * self.time_limit)
+        return t0 + float(self.time_limit) - answer_s
+
+    def _previous_ended(self, t0: float) -> bool:
+        """Wait for a solve that the previous step answered at its cut-off, until this step's own cut-off at most.
+
+        ``True`` when no solve runs or it has ended (:meth:`_finish_running` has then taken its result). ``False``
+        when it still runs at this step's cut-off: it was asked to stop at the previous cut-off, but a solver call
+        ends only at its next check of the time, and on a loaded machine its thread waits for a core. The step then
+        answers without a solve (:meth:`_fallback`: the shifted plan when it passes the program's checks), on time,
+        and the next step waits for that solve again. Without a time limit or the cut-off no solve runs on.
+        """
+        if self._running is None:
+            return True
+        if self.time_limit is not None and self.cut_off:
+            worker, box, _ = self._running
+            if not _wait_for(worker, box["done"], max(self._cut_off(t0) - time.perf_counter(), 0.0)):
+                return False
+        self._finish_running()
+        return True
 
     def _finish_running(self) -> Optional[StepResult]:
         """Wait for the solve of :meth:`_engine_solve` to end; re-raise its error; measure how late it was after

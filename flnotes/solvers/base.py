@@ -289,8 +289,7 @@ def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, cl
     if time_limit is not None:
         retire(verifier)  # freed at the next release, not inside this time-limited call
     if out.status in ("optimal", "infeasible"):  # the message says first what was proven, and by which solver
-        out.message = (f"{out.status}, proven by {backend} ({out.message}), which solved the program again because "
-                       f"{claim} is no proof")
+        out.message = f"{out.status}, proven by {backend} ({out.message}); it re-solved the program to check {claim}"
     else:
         out.message = f"{claim}, not a proof; {backend} did not decide it: {out.message}"
     out.nodes += int(nodes)

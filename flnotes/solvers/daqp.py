@@ -306,9 +306,9 @@ class DaqpSolver(Solver):
                 return _result(p, "optimal", best, np.nan, nodes, t0, self.name, msg)
             return _result(p, "unproven" if best is not None else "error", best, -np.inf, nodes, t0, self.name, msg)
         if status == "infeasible":
-            if incumbent is not None:  # nothing better than the warm start under fval_bound
+            if incumbent is not None:  # nothing better than the warm start under fval_bound (no proof of it)
                 return _result(p, "infeasible", incumbent, np.nan, nodes, t0, self.name,
-                               msg + ": nothing better than the warm start")
+                               f"exitflag {flag}: nothing better than the warm start{retry_note}")
             return _result(p, "infeasible", None, np.inf, nodes, t0, self.name, msg)
         if status == "time_limit":
             return _result(p, "time_limit", incumbent, -np.inf, nodes, t0, self.name, msg)
