@@ -241,6 +241,19 @@ def thread_run_delay(tid: Optional[int] = None) -> float:
         return float("nan")
 
 
+def major_faults() -> float:
+    """The major page faults of this process so far (``getrusage``'s ``ru_majflt``: pages read back from disk, such as
+    a shared library's code that the operating system had dropped from memory); NaN where the platform does not say.
+
+    A thread that touches such a page waits for the disk without running or waiting for a core, so the difference of
+    two readings tells a delay of the machine from the controller's own work."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not on Unix
+        return float("nan")
+    return float(resource.getrusage(resource.RUSAGE_SELF).ru_majflt)
+
+
 def thread_slice() -> Optional[int]:
     """The calling thread's scheduler slice in nanoseconds (Linux's ``sched_getattr``: ``sched_runtime`` of a thread
     of the normal policy), or ``None`` where it cannot be read (another system, another policy, a refused call)."""

@@ -663,6 +663,66 @@ def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
     assert check_step(mpc, s) and s.input_admissible, s.message
 
 
+def test_a_wait_for_the_lock_after_the_answer_resumed_is_recorded(quad, monkeypatch):
+    """After the answering thread has resumed at its cut-off, the engine's thread (asked to stop) holds the interpreter
+    lock in one C call: the answer waits for it. ``after_wake`` covers that call and ``after_wake_blocked`` (neither
+    running nor waiting for a core) says that the time went to a wait, not to the answer's own work."""
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.2)
+    mpc.set_previous_plan(prev)
+    plain = mpc(z, R)
+    assert plain.info["after_wake"] >= 0.0 and "after_wake_blocked" in plain.info, plain.info
+    mpc.reset()
+    t = time.perf_counter()
+    sum(range(10 ** 6))
+    n = int(1e6 * 0.3 / max(time.perf_counter() - t, 1e-6))  # about 0.3 s in one call
+    solve, answer_now, held = mpc.solver.solve, mpc.solver.answer_now, {}
+
+    def holding(*a, **k):
+        while not mpc.solver._stop.is_set():  # the answer's cut-off: the step asks the engine to stop
+            time.sleep(1e-3)
+        held["start"] = time.perf_counter()
+        sum(range(n))  # one C call: the lock is not released until it returns
+        held["end"] = time.perf_counter()
+        return solve(*a, **k)
+
+    def late_answer():
+        time.sleep(0.02)  # the engine's thread takes the lock meanwhile
+        return answer_now()
+
+    monkeypatch.setattr(mpc.solver, "answer_now", late_answer)
+    s, t0 = _held_step(mpc, z, R, prev, holding, monkeypatch)
+    assert s.info["cut_off"] and held["start"] < t0 + s.solve_time, "premise: the C call started before the answer"
+    hold = held["end"] - held["start"]
+    assert s.info["after_wake"] >= 0.9 * hold and s.info["after_wake_blocked"] >= 0.6 * hold or \
+        not np.isfinite(fl.config.thread_run_delay()), (s.info, hold)
+    assert check_step(mpc, s) and s.input_admissible, s.message
+
+
+def test_the_major_page_faults_of_a_step_are_recorded(quad, monkeypatch):
+    """``info["major_faults"]`` counts the process's major page faults during the call (pages read back from disk: the
+    machine's time, not the controller's): the difference of two readings of :func:`flnotes.config.major_faults`,
+    taken around the step (here a counter that the engine's held solve advances by 3), with and without a limit."""
+    from flnotes.mpc import controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    for limit in (None, 0.5):
+        mpc = rt.make_mpc(setup, time_limit=limit)
+        faults = {"n": 100.0}
+        monkeypatch.setattr(controller, "major_faults", lambda: faults["n"])
+        solve = mpc.solver.solve
+
+        def faulting(*a, **k):
+            faults["n"] += 3.0
+            return solve(*a, **k)
+
+        s, _ = _held_step(mpc, z, R, prev, faulting, monkeypatch)
+        assert s.info["major_faults"] == 3.0, (limit, s.info["major_faults"])
+        monkeypatch.undo()
+        mpc.set_previous_plan(prev)
+        assert mpc(z, R).info["major_faults"] >= 0.0 or not np.isfinite(fl.config.major_faults())
+
+
 def test_the_engine_threads_wait_for_a_core_is_recorded(quad, monkeypatch):
     """The engine's thread holds the interpreter lock in one C call past the limit while it shares one core with a
     busy process: the answering thread resumes late without waiting for a core itself, and ``engine_runqueue`` says
@@ -1095,6 +1155,8 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
         assert r["condition"] == "busy process on a core" and r["t_s_ms"] == 200.0
         assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
         assert 0 <= r["late_engine_queued"] <= r["late_resume"] <= r["late_wall"]
+        assert 0 <= r["late_blocked"] <= r["late_wall"] and 0 <= r["late_faults"] <= r["late_wall"]
+        assert 0 <= r["previous_ran_on"] <= r["fallbacks"]
         assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
         assert r["short_slice"] == (r["answers"] if _custom_slices() else r["short_slice"]) <= r["answers"]
     assert len(dl.late_answers_notes(rows)) == 3
@@ -1507,9 +1569,9 @@ def test_the_collector_stays_paused_until_the_time_limited_step_returns(quad, mo
     seen = []
     real = controller.MPC._timed
 
-    def spy(step, t0, p0):
+    def spy(step, t0, p0, f0):
         seen.append(gc.isenabled())
-        real(step, t0, p0)
+        real(step, t0, p0, f0)
 
     monkeypatch.setattr(controller.MPC, "_timed", staticmethod(spy))
     assert gc.isenabled(), "premise: the collector runs outside the step"

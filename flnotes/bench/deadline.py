@@ -447,7 +447,8 @@ def late_answers_notes(rows: Sequence[dict]) -> list[str]:
         out.append(f"{r['system']}, {r['run']}, {r['condition']}, work_limit={r['work_limit']}: {r['late_wall']} of "
                    f"{r['answers']} answers after t_s = {r['t_s_ms']:g} ms ({r['late_cpu']} late by CPU, "
                    f"{r['late_resume']} resumed late after the cut-off, {r['late_engine_queued']} of them while the "
-                   f"engine's thread waited for a core); slowest "
+                   f"engine's thread waited for a core, {r['late_blocked']} blocked after resuming, {r['late_faults']} "
+                   f"with pages read back from disk); slowest "
                    f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
                    f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
                    f"fallbacks ({r['previous_ran_on']} without a solve: the previous solve ran on past their "
@@ -565,7 +566,10 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
     ``t_s``) at the fallback steps, limit hits, fallbacks,
     safety-net hits (under a work budget), ``short_slice`` (the steps whose answering thread was granted the short
     scheduler slice of :func:`flnotes.config.answer_slice`), ``previous_ran_on`` (the steps that answered without a
-    solve because the previous step's solve ran on past their cut-off), and the load average (1 min) at the start and the end of
+    solve because the previous step's solve ran on past their cut-off), ``late_blocked`` (the late answers whose
+    thread, after it resumed, waited for the interpreter lock or the system for at least the overrun:
+    ``info["after_wake_blocked"]``), ``late_faults`` (the late answers during which the process read pages back from
+    disk: ``info["major_faults"]``), and the load average (1 min) at the start and the end of
     the system's run.
     """
     import os
@@ -598,6 +602,9 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              safety_net=int(sum(bool(s.info.get("safety_net")) for s, _, _ in recs)),
                              short_slice=int(sum(bool(s.info.get("answer_slice")) for s, _, _ in recs)),
                              previous_ran_on=int(sum(bool(s.info.get("previous_ran_on")) for s, _, _ in recs)),
+                             late_blocked=int(sum(w > ts and s.info.get("after_wake_blocked", 0.0) >= w - ts
+                                                  for s, w, _ in recs)),
+                             late_faults=int(sum(w > ts and s.info.get("major_faults", 0.0) > 0 for s, w, _ in recs)),
                              work_limit=work_limit,
                              load_start=float(load0), load_end=float(load1)))
     return rows

@@ -19,7 +19,7 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
+from ..config import (answer_slice, major_faults, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
                       set_back_slice, slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
@@ -249,7 +249,12 @@ class MPC:
         by another thread, not the controller's work. ``info["engine_runqueue"]`` is how long the engine's thread
         waited for a core during the step: where it covers such a lag, the lock was held by the engine's thread while
         that thread waited for a core (the machine had more runnable threads than cores), which no share of the limit
-        kept back can rule out. On hit the status is ``"time_limit"`` and the plan
+        kept back can rule out. ``info["after_wake"]`` is the wall time from that resumption to the answer and
+        ``info["after_wake_blocked"]`` the part of it the thread neither ran nor waited for a core (the interpreter
+        lock held by another thread in a C call; NaN where the wait for a core is not known);
+        ``info["post_time"]`` is the time after the engine (the fallback and the checks) and
+        ``info["post_runqueue"]`` its wait for a core; ``info["previous_wait"]`` the time the step waited at its start
+        for a solve the previous step left running (see ``cut_off``). On hit the status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -630,11 +635,13 @@ class MPC:
         """
         t0, p0 = time.perf_counter(), time.process_time()
         if self.time_limit is None:
+            f0 = major_faults()
             with one_blas_thread():
                 step = self._solve_step(z, z_ref)
         else:
             pause_gc()  # first, allocating nothing: no collection starts in the call (see no_cyclic_gc)
             try:
+                f0 = major_faults()  # allocates a record: after the pause
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
                 try:
                     shared.enter_context(one_blas_thread())
@@ -653,21 +660,23 @@ class MPC:
                     else:
                         shared.close()
                 step.info["answer_slice"] = short
-                self._timed(step, t0, p0)
+                self._timed(step, t0, p0, f0)
             finally:
                 resume_gc()  # last, allocating nothing: a collection that fell due starts after the return
             return step
-        self._timed(step, t0, p0)
+        self._timed(step, t0, p0, f0)
         return step
 
     @staticmethod
-    def _timed(step: StepResult, t0: float, p0: float) -> None:
-        """The whole call in the record: ``solve_time`` (what the caller waited, the contexts' ends included) and
+    def _timed(step: StepResult, t0: float, p0: float, f0: float) -> None:
+        """The whole call in the record: ``solve_time`` (what the caller waited, the contexts' ends included),
         ``info["process_cpu_time"]``, the CPU time of every thread of the process meanwhile (against
         ``info["cpu_time"]``, the step's own threads: the rest is other work of the process, e.g. a library's or the
-        caller's own threads)."""
+        caller's own threads), and ``info["major_faults"]``, the process's major page faults meanwhile
+        (:func:`flnotes.config.major_faults`: waits for the disk, the machine's time)."""
         step.solve_time = time.perf_counter() - t0
         step.info["process_cpu_time"] = time.process_time() - p0
+        step.info["major_faults"] = major_faults() - f0
 
     def _solve_step(self, z: Array, z_ref) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -730,6 +739,13 @@ class MPC:
         step.info["post_runqueue"] = thread_run_delay() - q_post
         step.info["previous_wait"] = waited  # spent waiting for the previous step's solve (see _previous_ended)
         step.info["previous_ran_on"] = not ended
+        if "woke_at" in step.info:  # from when this thread resumed after the engine to the answer: wall, CPU, core
+            t_w, c_w, q_w = step.info.pop("woke_at")
+            after = t0 + step.solve_time - t_w
+            # the rest of that wall time this thread was neither running nor waiting for a core: it waited for the
+            # interpreter lock (held by another thread of the process in a C call) or for the operating system
+            step.info["after_wake"] = after
+            step.info["after_wake_blocked"] = after - (time.thread_time() - c_w) - (thread_run_delay() - q_w)
         # the CPU time of the step's work until its answer: this thread's and, with the cut-off, the engine's thread's
         step.info["cpu_time"] = time.thread_time() - c0 + step.info.get("engine_cpu_time", 0.0)
         if "cut_off_at" in step.info:  # how long the answer took after the cut-off, on the wall clock
@@ -834,14 +850,15 @@ class MPC:
         worker.start()
         queued = thread_run_delay()
         done = _wait_for(worker, box["done"], max(cut - time.perf_counter(), 0.0))
-        t_woke = time.perf_counter()
+        t_woke, c_woke, q_woke = time.perf_counter(), time.thread_time(), thread_run_delay()
         # how long after it was due (the cut-off, or the solve's end if earlier) this thread resumed, and of that
         # how long it waited for a core: the rest it was not runnable (a timer that fired late, the interpreter lock)
         wake = dict(wake_lag=max(t_woke - min(cut, box.get("t_done", cut)), 0.0),
                     wake_runqueue=thread_run_delay() - queued,
                     # the engine's thread's wait for a core so far (its own figure once it has ended)
                     engine_runqueue=box["run_delay"] if "run_delay" in box else
-                    thread_run_delay(box["tid"]) if "tid" in box else float("nan"))
+                    thread_run_delay(box["tid"]) if "tid" in box else float("nan"),
+                    woke_at=(t_woke, c_woke, q_woke))  # see _solve_step: what the answer spent after it resumed
         if not done:
             self.solver.stop()
             yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
