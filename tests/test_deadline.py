@@ -570,6 +570,11 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert scip.c_output_filtered(), "the held call's filter of the C output stays while the call runs on"
     assert s.status == "time_limit" and s.info["cut_off"], s.message
     assert check_step(mpc, s) and not s.fallback and s.input_admissible, s.message
+    # the record accounts for the whole wall time of the call, and the answer's time after it resumed is split into
+    # its CPU, its wait for a core and the rest (never below zero: the three readings of each end are in order)
+    parts = ("enter_time", "cut_off_s", "wake_lag", "after_wake", "exit_time")
+    assert abs(sum(s.info[k] for k in parts) - s.solve_time) <= 1e-3, ({k: s.info[k] for k in parts}, s.solve_time)
+    assert all(s.info[k] >= 0.0 for k in parts) and s.info["after_wake_blocked"] >= -1e-4, s.info
     assert s.objective >= exact.objective - 1e-6 * max(1.0, abs(exact.objective))  # never below the optimum
     assert s.bound <= exact.objective + 1e-6 * max(1.0, abs(exact.objective))
     assert mpc._running is not None, "the held solve is still running"

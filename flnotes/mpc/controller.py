@@ -251,10 +251,14 @@ class MPC:
         that thread waited for a core (the machine had more runnable threads than cores), which no share of the limit
         kept back can rule out. ``info["after_wake"]`` is the wall time from that resumption to the answer and
         ``info["after_wake_blocked"]`` the part of it the thread neither ran nor waited for a core (the interpreter
-        lock held by another thread in a C call; NaN where the wait for a core is not known);
+        lock held by another thread in a C call, or by the engine's thread, lowered at the cut-off, while it waits
+        for a core; NaN where the wait for a core is not known);
         ``info["post_time"]`` is the time after the engine (the fallback and the checks) and
         ``info["post_runqueue"]`` its wait for a core; ``info["previous_wait"]`` the time the step waited at its start
-        for a solve the previous step left running (see ``cut_off``). On hit the status is ``"time_limit"`` and the plan
+        for a solve the previous step left running (see ``cut_off``). The wall time of a step answered at its cut-off
+        is the sum of ``enter_time`` (the call's set-up), ``cut_off_s`` (when the cut-off came), ``wake_lag``,
+        ``after_wake`` and ``exit_time`` (the settings set back or kept after the step's own work). On hit the
+        status is ``"time_limit"`` and the plan
         is, in this order: the best plan found that passes :meth:`plan_feasible` (the engine's incumbent or the
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
@@ -637,7 +641,7 @@ class MPC:
         if self.time_limit is None:
             f0 = major_faults()
             with one_blas_thread():
-                step = self._solve_step(z, z_ref)
+                step = self._solve_step(z, z_ref, t0)
         else:
             pause_gc()  # first, allocating nothing: no collection starts in the call (see no_cyclic_gc)
             try:
@@ -647,7 +651,7 @@ class MPC:
                     shared.enter_context(one_blas_thread())
                     shared.enter_context(quick_thread_switch())
                     with answer_slice() as short:
-                        step = self._solve_step(z, z_ref)
+                        step = self._solve_step(z, z_ref, t0)
                 finally:  # also when an interrupt lands in the set-up above
                     if self._running is not None and self._held.stack is None:
                         # the engine's solve runs on after the answer: it keeps one BLAS thread (a second one spins
@@ -672,13 +676,18 @@ class MPC:
         """The whole call in the record: ``solve_time`` (what the caller waited, the contexts' ends included),
         ``info["process_cpu_time"]``, the CPU time of every thread of the process meanwhile (against
         ``info["cpu_time"]``, the step's own threads: the rest is other work of the process, e.g. a library's or the
-        caller's own threads), and ``info["major_faults"]``, the process's major page faults meanwhile
+        caller's own threads), ``info["exit_time"]`` (the part of ``solve_time`` after the step's own work: the
+        settings set back or kept), and ``info["major_faults"]``, the process's major page faults meanwhile
         (:func:`flnotes.config.major_faults`: waits for the disk, the machine's time)."""
-        step.solve_time = time.perf_counter() - t0
+        end = time.perf_counter() - t0
+        # after the step's own record (its solve_time): setting back or keeping the process-wide settings, whose
+        # system calls let another thread of the process take the interpreter lock
+        step.info["exit_time"] = end - step.solve_time
+        step.solve_time = end
         step.info["process_cpu_time"] = time.process_time() - p0
         step.info["major_faults"] = major_faults() - f0
 
-    def _solve_step(self, z: Array, z_ref) -> StepResult:
+    def _solve_step(self, z: Array, z_ref, t_call: float) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
         # a solve the last step answered at its cut-off ends first, inside this step's budget: waited for until this
         # step's own cut-off at most (the engine's models are that solve's until it ends)
@@ -733,11 +742,17 @@ class MPC:
             step.info["safety_net"] = (bool(step.info.get("safety_net")) or bool(step.info.get("cut_off"))
                                        or "deadline" in step.message)
         step.info["plan_feasible"] = self.plan_feasible(step.z_pred, step.v_pred)
+        # the step's end, read once for every figure below: the wait for a core first (reading it is a system call,
+        # after which the thread may wait for the interpreter lock: counted in the wall time, never in the core's or
+        # the CPU's), then the CPU, then the wall clock
+        q_end = thread_run_delay()
+        c_end = time.thread_time()
         step.solve_time = time.perf_counter() - t0
         step.info["post_time"] = step.solve_time - (t_post - t0)
         # of it, the time this thread waited for a core (Linux; NaN elsewhere): the rest was its work or the lock
-        step.info["post_runqueue"] = thread_run_delay() - q_post
+        step.info["post_runqueue"] = q_end - q_post
         step.info["previous_wait"] = waited  # spent waiting for the previous step's solve (see _previous_ended)
+        step.info["enter_time"] = t0 - t_call  # the call's set-up before this step's own work (the settings)
         step.info["previous_ran_on"] = not ended
         if "woke_at" in step.info:  # from when this thread resumed after the engine to the answer: wall, CPU, core
             t_w, c_w, q_w = step.info.pop("woke_at")
@@ -745,9 +760,9 @@ class MPC:
             # the rest of that wall time this thread was neither running nor waiting for a core: it waited for the
             # interpreter lock (held by another thread of the process in a C call) or for the operating system
             step.info["after_wake"] = after
-            step.info["after_wake_blocked"] = after - (time.thread_time() - c_w) - (thread_run_delay() - q_w)
+            step.info["after_wake_blocked"] = after - (c_end - c_w) - (q_end - q_w)
         # the CPU time of the step's work until its answer: this thread's and, with the cut-off, the engine's thread's
-        step.info["cpu_time"] = time.thread_time() - c0 + step.info.get("engine_cpu_time", 0.0)
+        step.info["cpu_time"] = c_end - c0 + step.info.get("engine_cpu_time", 0.0)
         if "cut_off_at" in step.info:  # how long the answer took after the cut-off, on the wall clock
             self._answer_s = max(self._answer_s, t0 + step.solve_time - step.info.pop("cut_off_at"))
         self._plan = (step.z_pred, step.v_pred)
@@ -854,11 +869,12 @@ class MPC:
         # how long after it was due (the cut-off, or the solve's end if earlier) this thread resumed, and of that
         # how long it waited for a core: the rest it was not runnable (a timer that fired late, the interpreter lock)
         wake = dict(wake_lag=max(t_woke - min(cut, box.get("t_done", cut)), 0.0),
-                    wake_runqueue=thread_run_delay() - queued,
+                    wake_runqueue=q_woke - queued,
                     # the engine's thread's wait for a core so far (its own figure once it has ended)
                     engine_runqueue=box["run_delay"] if "run_delay" in box else
                     thread_run_delay(box["tid"]) if "tid" in box else float("nan"),
-                    woke_at=(t_woke, c_woke, q_woke))  # see _solve_step: what the answer spent after it resumed
+                    woke_at=(t_woke, c_woke, q_woke),  # see _solve_step: what the answer spent after it resumed
+                    cut_off_s=cut - t0)  # when the cut-off came, in seconds after the step's own start
         if not done:
             self.solver.stop()
             yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
@@ -900,8 +916,12 @@ class MPC:
         ``True`` when no solve runs or it has ended (:meth:`_finish_running` has then taken its result). ``False``
         when it still runs at this step's cut-off: it was asked to stop at the previous cut-off, but a solver call
         ends only at its next check of the time, and on a loaded machine its thread waits for a core. The step then
-        answers without a solve (:meth:`_fallback`: the shifted plan when it passes the program's checks), on time,
-        and the next step waits for that solve again. Without a time limit or the cut-off no solve runs on.
+        answers without a solve (:meth:`_fallback`: the shifted plan when it passes the program's checks) and the
+        next step waits for that solve again. Without a time limit or the cut-off no solve runs on. The wait ends
+        when this thread gets the interpreter lock back: held by that solve's thread, lowered at its cut-off
+        (:func:`flnotes.config.yield_core`) while another process takes the other core, it can end well after the
+        cut-off (``info["previous_wait"]`` says so; with a second CPU-bound process, up to 2 t_s was seen at
+        t_s = 20 ms).
         """
         if self._running is None:
             return True
