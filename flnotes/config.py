@@ -7,9 +7,11 @@ Tests still check the real properties, only on less data.
 """
 from __future__ import annotations
 
+import _signal  # signal's C module: see release_interrupt
 import gc
 import numbers
 import os
+import signal
 import sys
 import threading
 from contextlib import contextmanager
@@ -378,6 +380,48 @@ def yield_core(native_id: Optional[int], nice: int = CUT_OFF_NICE) -> bool:
     except OSError:                       # the thread has ended (ESRCH), or the system refused (EACCES, EPERM)
         return False
     return True
+
+
+_DEFERRED: list = []  # the interrupts held back by hold_interrupt, to deliver in release_interrupt
+_SIGINT = int(signal.SIGINT)
+
+
+def _hold(signum, frame) -> None:
+    _DEFERRED.append((signum, frame))
+
+
+def hold_interrupt() -> Optional[object]:
+    """Hold back Ctrl-C (SIGINT) in the main thread until :func:`release_interrupt`: the handler it replaces, or
+    ``None`` when nothing was changed (another thread, a handler that is not Python's, or already held).
+
+    A time-limited :class:`flnotes.MPC` step changes process-wide settings (the cyclic collector paused, one BLAS
+    thread, a short switch interval) and sets them back as it ends; a ``KeyboardInterrupt`` raised between two of
+    those lines left the collector paused for good. The step lasts about ``t_s``, so Ctrl-C is held back for that
+    long and then raised as usual, once every setting is back."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    try:
+        old = signal.getsignal(signal.SIGINT)
+        if not callable(old) or old is _hold:  # SIG_DFL or SIG_IGN (not Python's), or held by an outer call
+            return None
+        signal.signal(signal.SIGINT, _hold)
+    except (ValueError, OSError):  # pragma: no cover - no signals here (an embedded interpreter)
+        return None
+    return old
+
+
+def release_interrupt(old: Optional[object]) -> None:
+    """End :func:`hold_interrupt` (``old`` its answer): the handler comes back, and a Ctrl-C held back meanwhile is
+    delivered to it now (Python's default raises ``KeyboardInterrupt``)."""
+    if old is None:
+        return
+    # the C function under signal.signal: the wrapper converts handlers to enums through a caught exception, an
+    # allocation that could start a collection at the end of a step that has just resumed the collector
+    _signal.signal(_SIGINT, old)
+    if _DEFERRED:
+        signum, frame = _DEFERRED[0]
+        _DEFERRED.clear()
+        old(signum, frame)
 
 
 _GC_LOCK = threading.RLock()

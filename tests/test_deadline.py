@@ -622,6 +622,54 @@ def test_a_step_waits_for_the_previous_solve_until_its_own_cut_off_only(quad, mo
     assert abs(s2.objective - best.objective) <= 1e-6 * max(1.0, abs(best.objective))
 
 
+@pytest.mark.skipif(not hasattr(__import__("signal"), "raise_signal"), reason="needs signal.raise_signal")
+def test_ctrl_c_inside_a_time_limited_step_is_raised_once_every_setting_is_back(quad, monkeypatch):
+    """Ctrl-C (SIGINT) that arrives while a time-limited step sets the process-wide settings back (here as the
+    collector is resumed, and as finish() sets back the switch interval a held solve kept) is held back until they
+    are back, then raised as KeyboardInterrupt: the collector runs again and the switch interval is what it was."""
+    import gc
+    import signal
+
+    from flnotes import config
+    from flnotes.mpc import controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=5.0, cut_off=False)
+    real_resume = controller.resume_gc
+
+    def resume_with_ctrl_c():
+        signal.raise_signal(signal.SIGINT)  # delivered by the handler at the next line of Python, unless held back
+        real_resume()
+
+    monkeypatch.setattr(controller, "resume_gc", resume_with_ctrl_c)
+    assert gc.isenabled(), "premise: the collector runs outside the step"
+    mpc.set_previous_plan(prev)
+    with pytest.raises(KeyboardInterrupt):
+        mpc(z, R)
+    assert gc.isenabled() and config._GC_USERS == 0 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    monkeypatch.undo()
+
+    before = sys.getswitchinterval()
+    mpc = rt.make_mpc(setup, time_limit=5.0)
+    gate = Gate(monkeypatch)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    assert s.info["cut_off"] and mpc._held.stack is not None, "premise: the settings are kept for the held solve"
+    gate.release()
+    real_set = sys.setswitchinterval
+
+    def set_with_ctrl_c(value):
+        signal.raise_signal(signal.SIGINT)
+        real_set(value)
+
+    monkeypatch.setattr(sys, "setswitchinterval", set_with_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        mpc.finish()
+    monkeypatch.undo()
+    assert sys.getswitchinterval() == before and mpc._held.stack is None and gc.isenabled()
+    assert config._GC_USERS == 0 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def _held_step(mpc, z, R, prev, holding, monkeypatch):
     """One step of ``mpc`` from ``prev`` with its engine's solve replaced by ``holding``; the held solve is waited for
     (and the settings the step kept for it come back). Returns the step and when it started."""

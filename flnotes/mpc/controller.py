@@ -19,8 +19,8 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, major_faults, one_blas_thread, pause_gc, quick_thread_switch, resume_gc,
-                      set_back_slice, slice_before_answer, thread_run_delay, yield_core)
+from ..config import (answer_slice, hold_interrupt, major_faults, one_blas_thread, pause_gc, quick_thread_switch,
+                      release_interrupt, resume_gc, set_back_slice, slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -170,8 +170,12 @@ class _HeldSettings:
         worker = self.worker
         if worker is not None and worker is not threading.current_thread():
             _wait_for(worker, self.done)  # the solve keeps them until it ends (it was asked to stop at its cut-off)
-        stack, self.stack, self.worker, self.done = self.stack, None, None, None
-        stack.close()
+        held = hold_interrupt()  # Ctrl-C waits for the settings to come back (config.hold_interrupt)
+        try:
+            stack, self.stack, self.worker, self.done = self.stack, None, None, None
+            stack.close()
+        finally:
+            release_interrupt(held)
 
     def finalize(self) -> None:
         """:meth:`release` for a controller that is gone, which nobody can release later: an interrupt while it
@@ -636,6 +640,8 @@ class MPC:
         cut-off does not wait for the engine's thread) and, on Linux 6.12 and later, a short scheduler slice for the
         answering thread (:func:`flnotes.config.answer_slice`: waking at the cut-off, it takes a core at once instead
         of waiting for the running thread's slice to end; ``info["answer_slice"]`` says whether it was granted).
+        Under a time limit, Ctrl-C in the main thread is held back until these settings are back, then raised
+        (:func:`flnotes.config.hold_interrupt`).
         """
         t0, p0 = time.perf_counter(), time.process_time()
         if self.time_limit is None:
@@ -644,7 +650,9 @@ class MPC:
                 step = self._solve_step(z, z_ref, t0)
         else:
             pause_gc()  # first, allocating nothing: no collection starts in the call (see no_cyclic_gc)
+            held = None
             try:
+                held = hold_interrupt()  # Ctrl-C waits for the settings to come back (config.hold_interrupt)
                 f0 = major_faults()  # allocates a record: after the pause
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
                 try:
@@ -667,6 +675,7 @@ class MPC:
                 self._timed(step, t0, p0, f0)
             finally:
                 resume_gc()  # last, allocating nothing: a collection that fell due starts after the return
+                release_interrupt(held)  # a Ctrl-C held back is raised here, every setting back
             return step
         self._timed(step, t0, p0, f0)
         return step
@@ -797,9 +806,12 @@ class MPC:
 
         Under a time limit the cyclic collector is paused from the first line, before the reference is evaluated,
         to the last (see :meth:`__call__`): no collection starts inside the step."""
+        held = None
         if self.time_limit is not None:
             pause_gc()
         try:
+            if self.time_limit is not None:
+                held = hold_interrupt()  # see __call__
             if reference is None:
                 R = np.zeros((self.N + 1, self.n_z))
             else:
@@ -808,6 +820,7 @@ class MPC:
         finally:
             if self.time_limit is not None:
                 resume_gc()
+                release_interrupt(held)
 
     def _engine_solve(self, z: Array, R: Array, inc: Optional[Array], budget: float, t0: float) -> StepResult:
         """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
