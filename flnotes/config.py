@@ -400,11 +400,13 @@ def hold_interrupt() -> Optional[object]:
     long and then raised as usual, once every setting is back."""
     if threading.current_thread() is not threading.main_thread():
         return None
+    # signal's C functions, which allocate nothing (the wrappers convert handlers through a caught exception): a step
+    # calls this first, before it pauses the collector
     try:
-        old = signal.getsignal(signal.SIGINT)
+        old = _signal.getsignal(_SIGINT)
         if not callable(old) or old is _hold:  # SIG_DFL or SIG_IGN (not Python's), or held by an outer call
             return None
-        signal.signal(signal.SIGINT, _hold)
+        _signal.signal(_SIGINT, _hold)  # a Ctrl-C that came just before is handled by _hold too (held back)
     except (ValueError, OSError):  # pragma: no cover - no signals here (an embedded interpreter)
         return None
     return old
@@ -464,8 +466,11 @@ def pause_gc() -> None:
     that starts with this cannot start a collection (the ``with`` statement allocates before it enters). Every
     :func:`pause_gc` needs its :func:`resume_gc` (in a ``finally``)."""
     global _GC_USERS, _GC_WAS
-    _GC_LOCK.acquire()  # the state is read and changed under the lock: two threads pausing and resuming at once
-    try:  # cannot make the last resume find the collector paused by the other
+    # the state is read and changed under the lock (two threads pausing and resuming at once cannot make the last
+    # resume find the collector paused by the other); no ``with``: it allocates (the bound ``__exit__``) before the
+    # collector is paused. A step holds Ctrl-C back first (hold_interrupt), so no interrupt lands in between.
+    _GC_LOCK.acquire()
+    try:
         if _GC_USERS == 0:
             _GC_WAS = gc.isenabled()
         gc.disable()
@@ -478,12 +483,9 @@ def resume_gc() -> None:
     """End a :func:`pause_gc`: the last one to end resumes the collector (when the first found it running), as its
     last action and allocating nothing, so that a collection that fell due starts at the caller's next allocation."""
     global _GC_USERS
-    _GC_LOCK.acquire()
-    try:
+    with _GC_LOCK:
         if _GC_USERS <= 0:
             raise RuntimeError("resume_gc() without a pause_gc() before it")
         _GC_USERS -= 1
         if _GC_USERS == 0 and _GC_WAS:
             gc.enable()
-    finally:
-        _GC_LOCK.release()

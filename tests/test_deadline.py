@@ -558,12 +558,24 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     """A solver call held past the limit: the step answers anyway, with the engine's incumbent (checked by the
     forward pass, honest gap, status time_limit, flagged cut_off), while the call is still held; reset waits for the
     held solve to end, and the controller then solves to the same optimum as one without a limit."""
+    from flnotes.mpc import controller
+
     setup, z, R, prev, exact = engine_state(quad)
     mpc = rt.make_mpc(setup, time_limit=5.0)
     assert mpc.cut_off, "the cut-off is on by default under a time limit"
     gate = Gate(monkeypatch, mute=True)
     mpc.set_previous_plan(prev)
+    real_faults = controller.major_faults
+    first = []
+
+    def slow_set_up():  # the call's set-up, before the step's own work, takes 50 ms (enter_time)
+        if not first:
+            first.append(time.sleep(0.05))
+        return real_faults()
+
+    monkeypatch.setattr(controller, "major_faults", slow_set_up)
     s = mpc(z, R)
+    assert s.info["enter_time"] >= 0.05, s.info
     assert gate.entered.is_set() and not gate.released.is_set(), "premise: the answer came while the solver was held"
     from flnotes.solvers import scip
 
@@ -611,6 +623,9 @@ def test_a_step_waits_for_the_previous_solve_until_its_own_cut_off_only(quad, mo
     assert s1.info["previous_ran_on"] and s1.info["cut_off"], s1.info
     assert s1.status == "time_limit" and s1.fallback and "ran on" in s1.message, s1.message
     assert s1.info["previous_wait"] < mpc.time_limit  # it stopped waiting at its cut-off, before the limit
+    parts = ("enter_time", "cut_off_s", "wake_lag", "after_wake", "exit_time")  # the whole call, as at a cut-off
+    assert abs(sum(s1.info[k] for k in parts) - s1.solve_time) <= 1e-3, ({k: s1.info[k] for k in parts}, s1.solve_time)
+    assert all(s1.info[k] >= 0.0 for k in parts) and 0.0 <= s1.info["after_wake_blocked"] + 1e-4, s1.info
     assert check_step(mpc, s1) and s1.input_admissible and s1.info["plan_feasible"], s1.message
     assert s1.info["post_runqueue"] >= 0.0 or not np.isfinite(fl.config.thread_run_delay())
     exact = rt.make_mpc(setup)
@@ -647,6 +662,20 @@ def test_ctrl_c_inside_a_time_limited_step_is_raised_once_every_setting_is_back(
     with pytest.raises(KeyboardInterrupt):
         mpc(z, R)
     assert gc.isenabled() and config._GC_USERS == 0 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    monkeypatch.undo()
+    real_pause = controller.pause_gc
+
+    def pause_with_ctrl_c():  # just after the collector is paused, in mpc(...) and in mpc.step inside a loop
+        real_pause()
+        signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(controller, "pause_gc", pause_with_ctrl_c)
+    for call in (lambda: mpc(z, R), lambda: mpc.step(z, 0.0)):
+        with pytest.raises(KeyboardInterrupt):
+            call()
+        mpc.finish()
+        assert gc.isenabled() and config._GC_USERS == 0 and config._GC_LOCK.acquire(blocking=False)
+        config._GC_LOCK.release()
     monkeypatch.undo()
 
     before = sys.getswitchinterval()

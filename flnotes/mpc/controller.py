@@ -649,10 +649,15 @@ class MPC:
             with one_blas_thread():
                 step = self._solve_step(z, z_ref, t0)
         else:
-            pause_gc()  # first, allocating nothing: no collection starts in the call (see no_cyclic_gc)
-            held = None
+            # Ctrl-C waits for the settings to come back (config.hold_interrupt); first, allocating nothing, like the
+            # pause of the collector: no collection starts in the call (see no_cyclic_gc)
+            held = hold_interrupt()
             try:
-                held = hold_interrupt()  # Ctrl-C waits for the settings to come back (config.hold_interrupt)
+                pause_gc()
+            except BaseException:
+                release_interrupt(held)
+                raise
+            try:
                 f0 = major_faults()  # allocates a record: after the pause
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
                 try:
@@ -691,7 +696,7 @@ class MPC:
         end = time.perf_counter() - t0
         # after the step's own record (its solve_time): setting back or keeping the process-wide settings, whose
         # system calls let another thread of the process take the interpreter lock
-        step.info["exit_time"] = end - step.solve_time
+        step.info["exit_time"] = end - step.info.get("enter_time", 0.0) - step.solve_time
         step.solve_time = end
         step.info["process_cpu_time"] = time.process_time() - p0
         step.info["major_faults"] = major_faults() - f0
@@ -700,7 +705,8 @@ class MPC:
         t0, c0 = time.perf_counter(), time.thread_time()
         # a solve the last step answered at its cut-off ends first, inside this step's budget: waited for until this
         # step's own cut-off at most (the engine's models are that solve's until it ends)
-        ended = self._previous_ended(t0)
+        gave_up = self._previous_ended(t0)
+        ended = gave_up is None
         waited = time.perf_counter() - t0
         self._fallback_s *= RESERVE_DECAY
         self._late_s *= RESERVE_DECAY
@@ -715,7 +721,7 @@ class MPC:
             step = StepResult(None, "time_limit", bound=-np.inf,
                               message="time limit: cut off before the solve started, while the solve of the previous "
                                       "step (answered at its cut-off) ran on")
-            step.info.update(cut_off=True, cut_off_at=time.perf_counter(), engine_cpu_time=0.0)
+            step.info.update(cut_off=True, cut_off_at=time.perf_counter(), engine_cpu_time=0.0, **gave_up)
         elif o.constraint != "network":
             step = self.solver.solve(z, R, previous=self._plan[0] if self._plan is not None else None)
         elif o.is_reference:
@@ -808,10 +814,13 @@ class MPC:
         to the last (see :meth:`__call__`): no collection starts inside the step."""
         held = None
         if self.time_limit is not None:
-            pause_gc()
+            held = hold_interrupt()  # first, then the pause (see __call__)
+            try:
+                pause_gc()
+            except BaseException:
+                release_interrupt(held)
+                raise
         try:
-            if self.time_limit is not None:
-                held = hold_interrupt()  # see __call__
             if reference is None:
                 R = np.zeros((self.N + 1, self.n_z))
             else:
@@ -923,12 +932,14 @@ class MPC:
                        RESERVE_MAX_SHARE * self.time_limit)
         return t0 + float(self.time_limit) - answer_s
 
-    def _previous_ended(self, t0: float) -> bool:
+    def _previous_ended(self, t0: float) -> Optional[dict]:
         """Wait for a solve that the previous step answered at its cut-off, until this step's own cut-off at most.
 
-        ``True`` when no solve runs or it has ended (:meth:`_finish_running` has then taken its result). ``False``
-        when it still runs at this step's cut-off: it was asked to stop at the previous cut-off, but a solver call
-        ends only at its next check of the time, and on a loaded machine its thread waits for a core. The step then
+        ``None`` when no solve runs or it has ended (:meth:`_finish_running` has then taken its result). When it
+        still runs at this step's cut-off, the record of the wait (``cut_off_s``, ``wake_lag``, ``wake_runqueue`` and
+        the readings from which the step's end computes ``after_wake``, as in :meth:`_engine_solve`). Such a solve
+        was asked to stop at the previous cut-off, but a solver call ends only at its next check of the time, and on
+        a loaded machine its thread waits for a core. The step then
         answers without a solve (:meth:`_fallback`: the shifted plan when it passes the program's checks) and the
         next step waits for that solve again. Without a time limit or the cut-off no solve runs on. The wait ends
         when this thread gets the interpreter lock back: held by that solve's thread, lowered at its cut-off
@@ -937,13 +948,16 @@ class MPC:
         t_s = 20 ms).
         """
         if self._running is None:
-            return True
+            return None
         if self.time_limit is not None and self.cut_off:
             worker, box, _ = self._running
-            if not _wait_for(worker, box["done"], max(self._cut_off(t0) - time.perf_counter(), 0.0)):
-                return False
+            cut, queued = self._cut_off(t0), thread_run_delay()
+            if not _wait_for(worker, box["done"], max(cut - time.perf_counter(), 0.0)):
+                t_woke, c_woke, q_woke = time.perf_counter(), time.thread_time(), thread_run_delay()
+                return dict(cut_off_s=cut - t0, wake_lag=max(t_woke - cut, 0.0), wake_runqueue=q_woke - queued,
+                            woke_at=(t_woke, c_woke, q_woke))
         self._finish_running()
-        return True
+        return None
 
     def _finish_running(self) -> Optional[StepResult]:
         """Wait for the solve of :meth:`_engine_solve` to end; re-raise its error; measure how late it was after
