@@ -466,11 +466,8 @@ def pause_gc() -> None:
     that starts with this cannot start a collection (the ``with`` statement allocates before it enters). Every
     :func:`pause_gc` needs its :func:`resume_gc` (in a ``finally``)."""
     global _GC_USERS, _GC_WAS
-    # the state is read and changed under the lock (two threads pausing and resuming at once cannot make the last
-    # resume find the collector paused by the other); no ``with``: it allocates (the bound ``__exit__``) before the
-    # collector is paused. A step holds Ctrl-C back first (hold_interrupt), so no interrupt lands in between.
-    _GC_LOCK.acquire()
-    try:
+    _GC_LOCK.acquire()  # the state is read and changed under the lock: two threads pausing and resuming at once
+    try:  # cannot make the last resume find the collector paused by the other
         if _GC_USERS == 0:
             _GC_WAS = gc.isenabled()
         gc.disable()
@@ -483,9 +480,34 @@ def resume_gc() -> None:
     """End a :func:`pause_gc`: the last one to end resumes the collector (when the first found it running), as its
     last action and allocating nothing, so that a collection that fell due starts at the caller's next allocation."""
     global _GC_USERS
-    with _GC_LOCK:
+    _GC_LOCK.acquire()
+    try:
         if _GC_USERS <= 0:
             raise RuntimeError("resume_gc() without a pause_gc() before it")
         _GC_USERS -= 1
         if _GC_USERS == 0 and _GC_WAS:
             gc.enable()
+    finally:
+        _GC_LOCK.release()
+
+
+def pause_for_step() -> Optional[object]:
+    """What a time-limited :class:`flnotes.MPC` step does first, allocating nothing: Ctrl-C held back
+    (:func:`hold_interrupt`), then the collector paused (:func:`pause_gc`), in that order, so that no interrupt can
+    land between the pause and the ``try`` that ends it. Returns what :func:`resume_after_step` needs."""
+    held = hold_interrupt()
+    try:
+        pause_gc()
+    except BaseException:
+        release_interrupt(held)
+        raise
+    return held
+
+
+def resume_after_step(held: Optional[object]) -> None:
+    """End :func:`pause_for_step` (``held`` its answer) as the step's last action: the collector resumed, then a
+    Ctrl-C held back meanwhile raised."""
+    try:
+        resume_gc()
+    finally:
+        release_interrupt(held)

@@ -646,30 +646,29 @@ def test_ctrl_c_inside_a_time_limited_step_is_raised_once_every_setting_is_back(
     import signal
 
     from flnotes import config
-    from flnotes.mpc import controller
 
     setup, z, R, prev, _ = engine_state(quad)
     mpc = rt.make_mpc(setup, time_limit=5.0, cut_off=False)
-    real_resume = controller.resume_gc
+    real_resume = config.resume_gc
 
     def resume_with_ctrl_c():
         signal.raise_signal(signal.SIGINT)  # delivered by the handler at the next line of Python, unless held back
         real_resume()
 
-    monkeypatch.setattr(controller, "resume_gc", resume_with_ctrl_c)
+    monkeypatch.setattr(config, "resume_gc", resume_with_ctrl_c)  # as the step's end calls it
     assert gc.isenabled(), "premise: the collector runs outside the step"
     mpc.set_previous_plan(prev)
     with pytest.raises(KeyboardInterrupt):
         mpc(z, R)
     assert gc.isenabled() and config._GC_USERS == 0 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
     monkeypatch.undo()
-    real_pause = controller.pause_gc
+    real_pause = config.pause_gc
 
     def pause_with_ctrl_c():  # just after the collector is paused, in mpc(...) and in mpc.step inside a loop
         real_pause()
         signal.raise_signal(signal.SIGINT)
 
-    monkeypatch.setattr(controller, "pause_gc", pause_with_ctrl_c)
+    monkeypatch.setattr(config, "pause_gc", pause_with_ctrl_c)  # as the step's start calls it
     for call in (lambda: mpc(z, R), lambda: mpc.step(z, 0.0)):
         with pytest.raises(KeyboardInterrupt):
             call()
@@ -699,6 +698,14 @@ def test_ctrl_c_inside_a_time_limited_step_is_raised_once_every_setting_is_back(
     assert config._GC_USERS == 0 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def _one_c_call(seconds: float) -> int:
+    """``n`` such that ``sum(range(n))``, one C call that holds the interpreter lock until it returns, takes about
+    ``seconds`` on this machine (timed on a call of 10^6)."""
+    t = time.perf_counter()
+    sum(range(10 ** 6))
+    return int(1e6 * seconds / max(time.perf_counter() - t, 1e-6))
+
+
 def _held_step(mpc, z, R, prev, holding, monkeypatch):
     """One step of ``mpc`` from ``prev`` with its engine's solve replaced by ``holding``; the held solve is waited for
     (and the settings the step kept for it come back). Returns the step and when it started."""
@@ -725,9 +732,7 @@ def test_a_late_resume_of_the_answering_thread_is_recorded(quad, monkeypatch):
     plain = mpc(z, R)
     assert plain.info["wake_lag"] >= 0.0 and "wake_runqueue" in plain.info, plain.info
     mpc.reset()
-    t = time.perf_counter()
-    sum(range(10 ** 6))
-    n = int(1e6 * 1.0 / max(time.perf_counter() - t, 1e-6))  # about 1 s in one call
+    n = _one_c_call(1.0)  # about 1 s in one call
     solve, held = mpc.solver.solve, {}
 
     def holding(*a, **k):
@@ -755,9 +760,7 @@ def test_a_wait_for_the_lock_after_the_answer_resumed_is_recorded(quad, monkeypa
     plain = mpc(z, R)
     assert plain.info["after_wake"] >= 0.0 and "after_wake_blocked" in plain.info, plain.info
     mpc.reset()
-    t = time.perf_counter()
-    sum(range(10 ** 6))
-    n = int(1e6 * 0.3 / max(time.perf_counter() - t, 1e-6))  # about 0.3 s in one call
+    n = _one_c_call(0.3)  # about 0.3 s in one call
     solve, answer_now, held = mpc.solver.solve, mpc.solver.answer_now, {}
 
     def holding(*a, **k):
@@ -825,9 +828,7 @@ def test_the_engine_threads_wait_for_a_core_is_recorded(quad, monkeypatch):
     assert plain.info["engine_runqueue"] >= 0.0, plain.info
     mpc.reset()
     core = min(os.sched_getaffinity(0))
-    t = time.perf_counter()
-    sum(range(10 ** 6))
-    n = int(1e6 * 0.6 / max(time.perf_counter() - t, 1e-6))  # about 0.6 s of CPU in one call
+    n = _one_c_call(0.6)  # about 0.6 s of CPU in one call
     solve, held = mpc.solver.solve, {}
 
     def holding(*a, **k):

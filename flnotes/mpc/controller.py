@@ -19,8 +19,9 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, hold_interrupt, major_faults, one_blas_thread, pause_gc, quick_thread_switch,
-                      release_interrupt, resume_gc, set_back_slice, slice_before_answer, thread_run_delay, yield_core)
+from ..config import (answer_slice, hold_interrupt, major_faults, one_blas_thread, pause_for_step, pause_gc,
+                      quick_thread_switch, release_interrupt, resume_after_step, resume_gc, set_back_slice,
+                      slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
@@ -649,14 +650,9 @@ class MPC:
             with one_blas_thread():
                 step = self._solve_step(z, z_ref, t0)
         else:
-            # Ctrl-C waits for the settings to come back (config.hold_interrupt); first, allocating nothing, like the
-            # pause of the collector: no collection starts in the call (see no_cyclic_gc)
-            held = hold_interrupt()
-            try:
-                pause_gc()
-            except BaseException:
-                release_interrupt(held)
-                raise
+            # first, allocating nothing: Ctrl-C held back until the settings are back, and no collection starts in
+            # the call (see config.no_cyclic_gc)
+            held = pause_for_step()
             try:
                 f0 = major_faults()  # allocates a record: after the pause
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
@@ -679,8 +675,8 @@ class MPC:
                 step.info["answer_slice"] = short
                 self._timed(step, t0, p0, f0)
             finally:
-                resume_gc()  # last, allocating nothing: a collection that fell due starts after the return
-                release_interrupt(held)  # a Ctrl-C held back is raised here, every setting back
+                # last: a collection that fell due starts after the return, and a Ctrl-C held back is raised here
+                resume_after_step(held)
             return step
         self._timed(step, t0, p0, f0)
         return step
@@ -812,14 +808,7 @@ class MPC:
 
         Under a time limit the cyclic collector is paused from the first line, before the reference is evaluated,
         to the last (see :meth:`__call__`): no collection starts inside the step."""
-        held = None
-        if self.time_limit is not None:
-            held = hold_interrupt()  # first, then the pause (see __call__)
-            try:
-                pause_gc()
-            except BaseException:
-                release_interrupt(held)
-                raise
+        held = pause_for_step() if self.time_limit is not None else None  # first (see __call__)
         try:
             if reference is None:
                 R = np.zeros((self.N + 1, self.n_z))
@@ -828,8 +817,7 @@ class MPC:
             return self(z, R)
         finally:
             if self.time_limit is not None:
-                resume_gc()
-                release_interrupt(held)
+                resume_after_step(held)
 
     def _engine_solve(self, z: Array, R: Array, inc: Optional[Array], budget: float, t0: float) -> StepResult:
         """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
