@@ -256,6 +256,34 @@ def major_faults() -> float:
     return float(resource.getrusage(resource.RUSAGE_SELF).ru_majflt)
 
 
+def machine_steal() -> float:
+    """The time, in seconds, during which the host of this virtual machine ran something else while the machine's
+    CPUs had work for it (the ``steal`` column of Linux's ``/proc/stat``, summed over the machine's CPUs; its
+    resolution is one clock tick, 1/``SC_CLK_TCK``: 10 ms on most systems); NaN where the system does not say
+    (not Linux, or a kernel without the column). On a machine that is not virtual it stays 0.
+
+    While the host takes a CPU, the thread that ran on it neither runs (its CPU time stands still) nor waits for a
+    core in its own system's eyes: the difference of two readings tells such a delay of the machine from the
+    controller's own work (``info["steal_time"]`` of :class:`flnotes.MPC`)."""
+    try:
+        with open(_PROC_STAT, "rb") as f:
+            return _steal_seconds(f.readline())
+    except OSError:
+        return float("nan")
+
+
+_PROC_STAT = "/proc/stat"
+_TICKS_PER_SECOND = float(os.sysconf("SC_CLK_TCK")) if hasattr(os, "sysconf") else float("nan")
+
+
+def _steal_seconds(line: bytes) -> float:
+    """The steal time of the ``cpu`` line of ``/proc/stat`` (the 8th number after the label), in seconds."""
+    fields = line.split()
+    if len(fields) < 9 or fields[0] != b"cpu":
+        return float("nan")
+    return int(fields[8]) / _TICKS_PER_SECOND
+
+
 def thread_slice() -> Optional[int]:
     """The calling thread's scheduler slice in nanoseconds (Linux's ``sched_getattr``: ``sched_runtime`` of a thread
     of the normal policy), or ``None`` where it cannot be read (another system, another policy, a refused call)."""

@@ -808,6 +808,52 @@ def test_the_major_page_faults_of_a_step_are_recorded(quad, monkeypatch):
         assert mpc(z, R).info["major_faults"] >= 0.0 or not np.isfinite(fl.config.major_faults())
 
 
+
+def test_the_hosts_steal_time_of_a_step_is_recorded(quad, monkeypatch):
+    """``info["steal_time"]`` is the time the host of a virtual machine took the machine's CPUs during the call (the
+    machine's time, not the controller's): the difference of two readings of :func:`flnotes.config.machine_steal`
+    around the step (here a counter that the engine's held solve advances by 30 ms), with and without a limit."""
+    from flnotes.mpc import controller
+
+    setup, z, R, prev, _ = engine_state(quad)
+    for limit in (None, 0.5):
+        mpc = rt.make_mpc(setup, time_limit=limit)
+        stolen = {"s": 7.0}
+        monkeypatch.setattr(controller, "machine_steal", lambda: stolen["s"])
+        solve = mpc.solver.solve
+
+        def stealing(*a, **k):
+            stolen["s"] += 0.03
+            return solve(*a, **k)
+
+        s, _ = _held_step(mpc, z, R, prev, stealing, monkeypatch)
+        assert abs(s.info["steal_time"] - 0.03) < 1e-12, (limit, s.info["steal_time"])
+        monkeypatch.undo()
+        mpc.set_previous_plan(prev)
+        assert mpc(z, R).info["steal_time"] >= 0.0 or not np.isfinite(fl.config.machine_steal())
+
+
+def test_machine_steal_reads_the_steal_column_in_seconds(tmp_path, monkeypatch):
+    """:func:`flnotes.config.machine_steal` is the 8th number of ``/proc/stat``'s ``cpu`` line over the clock ticks
+    per second; NaN for a file without that column, another first line, or no file (not Linux)."""
+    from flnotes import config
+
+    hz = config._TICKS_PER_SECOND
+    stat = tmp_path / "stat"
+    monkeypatch.setattr(config, "_PROC_STAT", str(stat))
+    stat.write_bytes(b"cpu  5193880 49023 256132 2427607 5082 0 2580 6687 0 0\ncpu0 1 2 3 4 5 6 7 8 9 10\n")
+    assert config.machine_steal() == 6687 / hz
+    stat.write_bytes(b"cpu  5193880 49023 256132 2427607 5082 0 2580\n")  # an old kernel: no steal column
+    assert np.isnan(config.machine_steal())
+    stat.write_bytes(b"intr 1 2 3 4 5 6 7 8 9\n")
+    assert np.isnan(config.machine_steal())
+    stat.unlink()
+    assert np.isnan(config.machine_steal())
+    monkeypatch.undo()
+    if sys.platform.startswith("linux"):  # the real file: a count that never decreases
+        first = config.machine_steal()
+        assert np.isfinite(first) and 0.0 <= first <= config.machine_steal()
+
 def test_the_engine_threads_wait_for_a_core_is_recorded(quad, monkeypatch):
     """The engine's thread holds the interpreter lock in one C call past the limit while it shares one core with a
     busy process: the answering thread resumes late without waiting for a core itself, and ``engine_runqueue`` says
@@ -1239,6 +1285,7 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
         assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["answers"]
         assert 0 <= r["late_engine_queued"] <= r["late_resume"] <= r["late_wall"]
         assert 0 <= r["late_blocked"] <= r["late_wall"] and 0 <= r["late_faults"] <= r["late_wall"]
+        assert 0 <= r["late_steal"] <= r["late_wall"]
         assert 0 <= r["previous_ran_on"] <= r["fallbacks"]
         assert np.isfinite(r["load_start"]) and np.isfinite(r["load_end"]) and r["work_limit"] is None
         assert r["short_slice"] == (r["answers"] if _custom_slices() else r["short_slice"]) <= r["answers"]
@@ -1652,9 +1699,9 @@ def test_the_collector_stays_paused_until_the_time_limited_step_returns(quad, mo
     seen = []
     real = controller.MPC._timed
 
-    def spy(step, t0, p0, f0):
+    def spy(step, *readings):
         seen.append(gc.isenabled())
-        real(step, t0, p0, f0)
+        real(step, *readings)
 
     monkeypatch.setattr(controller.MPC, "_timed", staticmethod(spy))
     assert gc.isenabled(), "premise: the collector runs outside the step"

@@ -448,7 +448,7 @@ def late_answers_notes(rows: Sequence[dict]) -> list[str]:
                    f"{r['answers']} answers after t_s = {r['t_s_ms']:g} ms ({r['late_cpu']} late by CPU, "
                    f"{r['late_resume']} resumed late after the cut-off, {r['late_engine_queued']} of them while the "
                    f"engine's thread waited for a core, {r['late_blocked']} blocked after resuming, {r['late_faults']} "
-                   f"with pages read back from disk); slowest "
+                   f"with pages read back from disk, {r['late_steal']} while the host took the machine's CPUs); slowest "
                    f"{r['wall_max_over_ts']:.2f} t_s wall, most CPU {r['cpu_max_over_ts']:.2f} t_s; after the engine at "
                    f"a fallback at most {r['post_max_over_ts']:.2f} t_s; {r['limit_hits']} limit hits, {r['fallbacks']} "
                    f"fallbacks ({r['previous_ran_on']} without a solve: the previous solve ran on past their "
@@ -569,7 +569,8 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
     solve because the previous step's solve ran on past their cut-off), ``late_blocked`` (the late answers whose
     thread, after it resumed, waited for the interpreter lock or the system for at least the overrun:
     ``info["after_wake_blocked"]``), ``late_faults`` (the late answers during which the process read pages back from
-    disk: ``info["major_faults"]``), and the load average (1 min) at the start and the end of
+    disk: ``info["major_faults"]``), ``late_steal`` (the late answers during which the host of a virtual machine took
+    its CPUs: ``info["steal_time"]``), and the load average (1 min) at the start and the end of
     the system's run.
     """
     import os
@@ -605,6 +606,7 @@ def late_answers(names: Optional[Sequence[str]] = None, steps: int = 100, n_stat
                              late_blocked=int(sum(w > ts and s.info.get("after_wake_blocked", 0.0) >= w - ts
                                                   for s, w, _ in recs)),
                              late_faults=int(sum(w > ts and s.info.get("major_faults", 0.0) > 0 for s, w, _ in recs)),
+                             late_steal=int(sum(w > ts and s.info.get("steal_time", 0.0) > 0 for s, w, _ in recs)),
                              work_limit=work_limit,
                              load_start=float(load0), load_end=float(load1)))
     return rows

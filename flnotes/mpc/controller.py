@@ -19,7 +19,7 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, hold_interrupt, major_faults, one_blas_thread, pause_for_step, pause_gc,
+from ..config import (answer_slice, hold_interrupt, machine_steal, major_faults, one_blas_thread, pause_for_step, pause_gc,
                       quick_thread_switch, release_interrupt, resume_after_step, resume_gc, set_back_slice,
                       slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
@@ -257,7 +257,10 @@ class MPC:
         kept back can rule out. ``info["after_wake"]`` is the wall time from that resumption to the answer and
         ``info["after_wake_blocked"]`` the part of it the thread neither ran nor waited for a core (the interpreter
         lock held by another thread in a C call, or by the engine's thread, lowered at the cut-off, while it waits
-        for a core; NaN where the wait for a core is not known);
+        for a core, or the host of a virtual machine running something else on the thread's CPU; NaN where the wait
+        for a core is not known); ``info["steal_time"]`` is the time the host took the machine's CPUs during the call
+        (:func:`flnotes.config.machine_steal`, summed over the CPUs, in ticks of 10 ms on most systems: where it
+        covers a lag, the machine, not the controller, took the time);
         ``info["post_time"]`` is the time after the engine (the fallback and the checks) and
         ``info["post_runqueue"]`` its wait for a core; ``info["previous_wait"]`` the time the step waited at its start
         for a solve the previous step left running (see ``cut_off``). The wall time of a step answered at its cut-off
@@ -646,7 +649,7 @@ class MPC:
         """
         t0, p0 = time.perf_counter(), time.process_time()
         if self.time_limit is None:
-            f0 = major_faults()
+            f0, s0 = major_faults(), machine_steal()
             with one_blas_thread():
                 step = self._solve_step(z, z_ref, t0)
         else:
@@ -654,7 +657,7 @@ class MPC:
             # the call (see config.no_cyclic_gc)
             held = pause_for_step()
             try:
-                f0 = major_faults()  # allocates a record: after the pause
+                f0, s0 = major_faults(), machine_steal()  # they allocate: after the pause
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
                 try:
                     shared.enter_context(one_blas_thread())
@@ -673,22 +676,25 @@ class MPC:
                     else:
                         shared.close()
                 step.info["answer_slice"] = short
-                self._timed(step, t0, p0, f0)
+                self._timed(step, t0, p0, f0, s0)
             finally:
                 # last: a collection that fell due starts after the return, and a Ctrl-C held back is raised here
                 resume_after_step(held)
             return step
-        self._timed(step, t0, p0, f0)
+        self._timed(step, t0, p0, f0, s0)
         return step
 
     @staticmethod
-    def _timed(step: StepResult, t0: float, p0: float, f0: float) -> None:
+    def _timed(step: StepResult, t0: float, p0: float, f0: float, s0: float) -> None:
         """The whole call in the record: ``solve_time`` (what the caller waited, the contexts' ends included),
         ``info["process_cpu_time"]``, the CPU time of every thread of the process meanwhile (against
         ``info["cpu_time"]``, the step's own threads: the rest is other work of the process, e.g. a library's or the
         caller's own threads), ``info["exit_time"]`` (the part of ``solve_time`` after the step's own work: the
-        settings set back or kept), and ``info["major_faults"]``, the process's major page faults meanwhile
-        (:func:`flnotes.config.major_faults`: waits for the disk, the machine's time)."""
+        settings set back or kept), ``info["major_faults"]``, the process's major page faults meanwhile
+        (:func:`flnotes.config.major_faults`: waits for the disk, the machine's time), and ``info["steal_time"]``,
+        the seconds the host of a virtual machine took the machine's CPUs meanwhile (:func:`flnotes.config.machine_steal`,
+        summed over the CPUs, in clock ticks of 10 ms on most systems: the machine's time; NaN where the system does
+        not say)."""
         end = time.perf_counter() - t0
         # after the step's own record (its solve_time): setting back or keeping the process-wide settings, whose
         # system calls let another thread of the process take the interpreter lock
@@ -696,6 +702,7 @@ class MPC:
         step.solve_time = end
         step.info["process_cpu_time"] = time.process_time() - p0
         step.info["major_faults"] = major_faults() - f0
+        step.info["steal_time"] = machine_steal() - s0
 
     def _solve_step(self, z: Array, z_ref, t_call: float) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
@@ -769,7 +776,8 @@ class MPC:
             t_w, c_w, q_w = step.info.pop("woke_at")
             after = t0 + step.solve_time - t_w
             # the rest of that wall time this thread was neither running nor waiting for a core: it waited for the
-            # interpreter lock (held by another thread of the process in a C call) or for the operating system
+            # interpreter lock (held by another thread of the process in a C call), for the operating system, or for
+            # the host of a virtual machine (see steal_time)
             step.info["after_wake"] = after
             step.info["after_wake_blocked"] = after - (c_end - c_w) - (q_end - q_w)
         # the CPU time of the step's work until its answer: this thread's and, with the cut-off, the engine's thread's
