@@ -1466,6 +1466,84 @@ def test_region_qp_and_the_repair_stop_when_asked(quad):
     assert not np.array_equal(V_full.reshape(-1), np.asarray(V_q).reshape(-1)), "without stop the plan is repaired"
 
 
+
+def test_a_solve_stopped_with_hold_waits_for_the_answer_before_its_result(quad):
+    """``NetworkEngine.stop(hold=True)``: the solve stops at its next check and then waits for ``answered()`` before
+    it builds its result (it competes no longer with the caller's answer); ``stop()`` alone lets it return at once,
+    and ``go()`` clears both. The held solve's result is the one of a stop: status time_limit, the incumbent as
+    published, nothing beyond it."""
+    import threading
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup)
+    engine = mpc.solver
+    for hold in (True, False):
+        engine.go()
+        engine.stop(hold=hold)
+        out = {}
+        worker = threading.Thread(target=lambda: out.setdefault("step", engine.solve(z, R, time_limit=5.0)))
+        worker.start()
+        worker.join(0.5 if hold else 30.0)
+        assert worker.is_alive() == hold, (hold, out)
+        if hold:
+            assert engine.progress is not None, "premise: it ran up to its first check and published"
+            engine.answered()
+            worker.join(30.0)
+            assert not worker.is_alive()
+        s = out["step"]
+        assert s.status == "time_limit" and s.message.startswith("time limit"), s.message
+        assert s.v is None or mpc.plan_feasible(s.z_pred, s.v_pred)
+    engine.go()
+    assert engine._answered.is_set() and not engine._stop.is_set()
+    assert engine.solve(z, R).status == "optimal", "after go() the same engine solves to the end"
+
+
+def test_the_engine_builds_its_result_after_the_answer_at_its_cut_off(quad, monkeypatch):
+    """At its cut-off a step stops its engine with ``hold=True`` and releases it once the answer is out: the solve's
+    result is built after the step has returned (the answer is made slow here, 0.2 s, so that a solve that did not
+    wait would build its result during it), and the next step and ``finish()`` still wait for it and end."""
+    import threading
+
+    from flnotes.mpc import engine as eng
+
+    setup, z, R, prev, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.3)
+    stopped, built = {}, []
+    real_stop, real_answer, real_result = mpc.solver.stop, mpc.solver.answer_now, eng._step_result
+    real_solve = mpc.solver.solve
+
+    def stop(*a, **k):
+        real_stop(*a, **k)
+        stopped["hold"] = k.get("hold", a[0] if a else False)
+        stopped["event"].set()
+
+    def solve_after_stop(*a, **k):  # the engine's solve starts only once the step has asked it to stop
+        stopped["event"].wait(30.0)
+        return real_solve(*a, **k)
+
+    def slow_answer():
+        time.sleep(0.2)  # releases the interpreter lock: a solve that does not wait would build its result now
+        return real_answer()
+
+    def result(*a, **k):  # the engine's own result (answer_now builds the answer with it too, in the step's thread)
+        if threading.current_thread().name == "flnotes-mpc-solve":
+            built.append(time.perf_counter())
+        return real_result(*a, **k)
+
+    stopped["event"] = threading.Event()
+    monkeypatch.setattr(mpc.solver, "stop", stop)
+    monkeypatch.setattr(mpc.solver, "answer_now", slow_answer)
+    monkeypatch.setattr(eng, "_step_result", result)
+    monkeypatch.setattr(mpc.solver, "solve", solve_after_stop)
+    mpc.set_previous_plan(prev)
+    s = mpc(z, R)
+    answered = time.perf_counter()
+    assert s.info["cut_off"] and stopped["hold"] is True, (s.info, stopped)
+    assert s.v is not None and mpc.plan_feasible(s.z_pred, s.v_pred), s.message
+    mpc.finish()
+    assert len(built) == 1 and built[0] >= answered - 1e-3, (built, answered)
+    assert mpc._running is None and mpc.solver._answered.is_set()
+
 def test_a_proven_infeasible_program_skips_the_repairs(quad, monkeypatch):
     """When the step has proven the program infeasible, no repair can pass the check: the fallback goes straight to
     an admissible first input (the repair of a whole plan is not tried), so that this path costs little time. The

@@ -678,6 +678,8 @@ class MPC:
                 step.info["answer_slice"] = short
                 self._timed(step, t0, p0, f0, s0)
             finally:
+                if self._running is not None:  # the answer is out: a solve stopped at the cut-off goes on to its end
+                    self.solver.answered()
                 # last: a collection that fell due starts after the return, and a Ctrl-C held back is raised here
                 resume_after_step(held)
             return step
@@ -835,7 +837,9 @@ class MPC:
         the longest time an answer took after its cut-off (wall clock: on a loaded machine the answer waits for a
         core) and :data:`CUT_OFF_MIN_S`, at most :data:`RESERVE_MAX_SHARE` of the limit (the rest of the reserve is
         for the engine's overrun after its budget); these measures decay by :data:`RESERVE_DECAY` per step.
-        A solve that has not returned then is asked to stop (:meth:`NetworkEngine.stop`) and the step answers with
+        A solve that has not returned then is asked to stop and to wait, once stopped, until the answer is out before
+        it builds its result (:meth:`NetworkEngine.stop` with ``hold=True``, :meth:`NetworkEngine.answered` at the
+        end of :meth:`__call__`: what is left of it then competes less with the answer), and the step answers with
         what it has published (:meth:`NetworkEngine.answer_now`: its best plan that passed the forward-pass check
         and its lower bound, ``info["cut_off"]`` True). The solver calls release the GIL (DAQP, HiGHS, SCIP), so the
         answer does not wait for a solver that overruns its own limit; on Linux the engine's thread is then lowered to
@@ -894,7 +898,7 @@ class MPC:
                     woke_at=(t_woke, c_woke, q_woke),  # see _solve_step: what the answer spent after it resumed
                     cut_off_s=cut - t0)  # when the cut-off came, in seconds after the step's own start
         if not done:
-            self.solver.stop()
+            self.solver.stop(hold=True)  # its result waits for this answer (answered(), at the end of __call__)
             yielded = yield_core(box.get("tid"))  # a solver call still running in C shares the core less with the answer
             box["cut_off"] = True
             t_cut = time.perf_counter()
@@ -961,6 +965,7 @@ class MPC:
         if self._running is None:
             return None
         worker, box, budget = self._running
+        self.solver.answered()  # never wait for a solve that waits for the answer (see NetworkEngine.stop)
         _wait_for(worker, box["done"])
         self._held.release()  # the settings the solve kept (see __call__), set back in the caller's thread
         self._running = None

@@ -165,12 +165,25 @@ class NetworkEngine:
         self.cache = BoundCache() if opts.bound_cache else None  # LP bounds kept for later boxes
         self.progress: Optional[Progress] = None
         self._stop = threading.Event()
+        self._answered = threading.Event()  # cleared by stop(hold=True) until answered(): see stop
+        self._answered.set()
         self.stop_at: Optional[float] = None
 
-    def stop(self) -> None:
+    def stop(self, hold: bool = False) -> None:
         """Ask the running :meth:`solve` to return at its next check of the time (a solver call already started
-        runs to its own time limit first); cleared by :meth:`go`."""
+        runs to its own time limit first); cleared by :meth:`go`.
+
+        ``hold=True`` (a caller that answers meanwhile from :meth:`answer_now`, as :class:`flnotes.MPC` does at its
+        cut-off): once the solve has stopped, it waits for :meth:`answered` before it builds its result, so that what
+        is left of it does not compete with the caller's answer for the interpreter lock and the core. The caller
+        must then call :meth:`answered` (or :meth:`go`), whatever happens, before it waits for the solve to end."""
+        if hold:
+            self._answered.clear()
         self._stop.set()
+
+    def answered(self) -> None:
+        """The caller has answered: a solve held by :meth:`stop` (``hold=True``) goes on to its end."""
+        self._answered.set()
 
     def go(self, stop_at: Optional[float] = None) -> None:
         """Clear :meth:`stop` and :attr:`progress` for the next solve (an answer read before it publishes anything
@@ -178,6 +191,7 @@ class NetworkEngine:
         caller's cut-off) also stops the incumbent search's repair and region moves at that time, without waiting
         for the caller's :meth:`stop` (on a busy machine the caller's thread can wake late)."""
         self._stop.clear()
+        self._answered.set()
         self.stop_at = stop_at
         self.progress = None
 
@@ -280,6 +294,8 @@ class NetworkEngine:
         work = node_limit is not None
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
+            if self._stop.is_set():  # stopped by a caller that answers meanwhile: the result after its answer
+                self._answered.wait()
             if work and status == "time_limit" and msg.startswith("time limit"):  # say which limit stopped it
                 msg = ("wall-clock safety net" if self._stop.is_set() or st.get("safety") else
                        f"work limit ({node_limit} nodes)") + msg[len("time limit"):]
@@ -316,6 +332,9 @@ class NetworkEngine:
                 z0, f, c0, V_c, inc_V, inc_J, incumbent_from, None if time_limit is None else t0 + time_limit, st)
         st["incumbent"] = incumbent_from
         publish(inc_V, inc_J, J_c, incumbent_from)
+        if self._stop.is_set():  # the caller has answered from what is published: the node bounds would be wasted
+            return done("time_limit", inc_V, J_c, "time limit: " + (
+                f"the incumbent ({incumbent_from}) is returned" if inc_V is not None else "no feasible plan"))
         try:
             lo_h, hi_h = pred.boxes(z0)
         except EmptyBoxError as exc:
