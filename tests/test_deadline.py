@@ -574,8 +574,11 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
         return real_faults()
 
     monkeypatch.setattr(controller, "major_faults", slow_set_up)
+    window = mpc.time_limit - mpc._cut_off(0.0)  # the time kept for the answer (nothing measured yet: no decay)
     s = mpc(z, R)
     assert s.info["enter_time"] >= 0.05, s.info
+    # the cut-off counts from the call's start: the set-up is part of the caller's wait, not added after the limit
+    assert abs(s.info["enter_time"] + s.info["cut_off_s"] - (mpc.time_limit - window)) <= 1e-9, (s.info, window)
     assert gate.entered.is_set() and not gate.released.is_set(), "premise: the answer came while the solver was held"
     from flnotes.solvers import scip
 
@@ -1497,6 +1500,44 @@ def test_a_solve_stopped_with_hold_waits_for_the_answer_before_its_result(quad):
     assert engine._answered.is_set() and not engine._stop.is_set()
     assert engine.solve(z, R).status == "optimal", "after go() the same engine solves to the end"
 
+
+
+def test_a_hold_never_stops_a_solve_for_good(quad, monkeypatch):
+    """``stop(hold=True)`` never hangs: a solve in the thread that asked for the hold is not held (nothing could
+    release it: the engine's own ``solve`` and ``warm_up``, and controllers without the cut-off, whose solve runs in
+    the caller's thread), a held solve that is never released ends after ``HOLD_MAX_S``, and a controller's step
+    clears a stop asked before it (``go()``): it solves to the optimum, not to a time limit."""
+    import threading
+
+    from flnotes.mpc import engine as eng
+
+    setup, z, R, prev, exact = engine_state(quad)
+    mpc = rt.make_mpc(setup)
+    engine = mpc.solver
+    engine.go()
+    engine.stop(hold=True)
+    s = engine.solve(z, R, time_limit=5.0)  # this thread asked for the hold: not held
+    assert s.status == "time_limit", s.message
+    engine.warm_up()
+    monkeypatch.setattr(eng, "HOLD_MAX_S", 0.3)
+    engine.go()
+    engine.stop(hold=True)
+    out = {}
+    worker = threading.Thread(target=lambda: out.setdefault("step", engine.solve(z, R, time_limit=5.0)))
+    t_start = time.perf_counter()
+    worker.start()
+    worker.join(0.1)
+    assert worker.is_alive(), "premise: the solve in another thread is held"
+    worker.join(30.0)
+    assert not worker.is_alive() and time.perf_counter() - t_start >= 0.3 and out["step"].status == "time_limit"
+    for limit, cut_off in ((None, None), (5.0, False), (5.0, True)):
+        mpc = rt.make_mpc(setup, time_limit=limit, cut_off=cut_off)
+        mpc.solver.stop(hold=True)  # asked before the step, from the caller's thread
+        mpc.set_previous_plan(prev)
+        step = mpc(z, R)
+        mpc.finish()
+        assert step.status == "optimal", (limit, cut_off, step.message)
+        assert abs(step.objective - exact.objective) <= 1e-6 * max(1.0, abs(exact.objective))
 
 def test_the_engine_builds_its_result_after_the_answer_at_its_cut_off(quad, monkeypatch):
     """At its cut-off a step stops its engine with ``hold=True`` and releases it once the answer is out: the solve's

@@ -645,7 +645,11 @@ class MPC:
         answering thread (:func:`flnotes.config.answer_slice`: waking at the cut-off, it takes a core at once instead
         of waiting for the running thread's slice to end; ``info["answer_slice"]`` says whether it was granted).
         Under a time limit, Ctrl-C in the main thread is held back until these settings are back, then raised
-        (:func:`flnotes.config.hold_interrupt`).
+        (:func:`flnotes.config.hold_interrupt`). Other signals are not held back: an exception raised by a Python
+        handler of another signal inside a time-limited step (e.g. a timeout on ``SIGALRM``) can land inside one of
+        the threading primitives the step shares with its solve's thread, which CPython does not make safe against
+        such exceptions, and leave that thread, and then :meth:`finish`, waiting for good. Raise such exceptions
+        outside the steps, or use Ctrl-C (``SIGINT``).
         """
         t0, p0 = time.perf_counter(), time.process_time()
         if self.time_limit is None:
@@ -710,7 +714,7 @@ class MPC:
         t0, c0 = time.perf_counter(), time.thread_time()
         # a solve the last step answered at its cut-off ends first, inside this step's budget: waited for until this
         # step's own cut-off at most (the engine's models are that solve's until it ends)
-        gave_up = self._previous_ended(t0)
+        gave_up = self._previous_ended(t_call, t0)
         ended = gave_up is None
         waited = time.perf_counter() - t0
         self._fallback_s *= RESERVE_DECAY
@@ -733,13 +737,15 @@ class MPC:
             step = self._solve_reference(z, R)
         else:
             inc = shifted[1] if shifted is not None and self.plan_feasible(*shifted) else None
-            budget = self._engine_time(t0)
+            # the step's time counts from the call's start (t_call): the set-up before this line is the caller's wait
+            budget = self._engine_time(t_call)
             if self.cut_off:
-                step = self._engine_solve(z, R, inc, budget, t0)
+                step = self._engine_solve(z, R, inc, budget, t0, t_call)
             else:
                 c_s = time.thread_time()
+                self.solver.go()  # a stop() asked before this solve (e.g. by the caller) does not carry over into it
                 step = self.solver.solve(z, R, incumbent=inc, time_limit=budget, gap=self.gap,
-                                         node_limit=self.node_limit, safety_deadline=self._safety(t0))
+                                         node_limit=self.node_limit, safety_deadline=self._safety(t_call))
                 if budget is not None:  # how late the engine answered after its budget (see reserve)
                     self._measure_late(step.solve_time - budget, time.thread_time() - c_s, step.solve_time)
         if step.v is not None and o.is_reference and not self.plan_feasible(step.z_pred, step.v_pred):
@@ -750,7 +756,7 @@ class MPC:
             step.message += "; the returned plan fails the forward-pass check"
         t_post, q_post = time.perf_counter(), thread_run_delay()
         if step.v is None:
-            step = self._fallback(z, R, step, shifted, t0)
+            step = self._fallback(z, R, step, shifted, t_call)
         elif step.status == "time_limit" and not np.isfinite(step.bound):
             self._record_gap(z, R, step, -np.inf)  # the engine had no bound (no QP solved): the QP's
         step.u_nn_pred = self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))
@@ -829,11 +835,13 @@ class MPC:
             if self.time_limit is not None:
                 resume_after_step(held)
 
-    def _engine_solve(self, z: Array, R: Array, inc: Optional[Array], budget: float, t0: float) -> StepResult:
+    def _engine_solve(self, z: Array, R: Array, inc: Optional[Array], budget: float, t0: float,
+                      start: float) -> StepResult:
         """The engine's solve under the time limit, answered at the cut-off if it has not returned by then.
 
         The solve runs in a worker thread with ``budget`` seconds; this thread waits for it until the cut-off,
-        ``t0 + time_limit`` less the largest of half of :attr:`reserve`, the longest fallback run so far (CPU time),
+        ``start + time_limit`` (``start``: the call's start; ``t0``: the step's own, after the call's set-up) less the
+        largest of half of :attr:`reserve`, the longest fallback run so far (CPU time),
         the longest time an answer took after its cut-off (wall clock: on a loaded machine the answer waits for a
         core) and :data:`CUT_OFF_MIN_S`, at most :data:`RESERVE_MAX_SHARE` of the limit (the rest of the reserve is
         for the engine's overrun after its budget); these measures decay by :data:`RESERVE_DECAY` per step.
@@ -853,7 +861,7 @@ class MPC:
 
         # the solve's thread refers to these, not to the controller: a controller dropped while its solve runs on is
         # then freed (and its finalizer run) in the caller's thread, which OpenBLAS needs (see _HeldSettings)
-        solve, gap, node_limit, safety = self.solver.solve, self.gap, self.node_limit, self._safety(t0)
+        solve, gap, node_limit, safety = self.solver.solve, self.gap, self.node_limit, self._safety(start)
 
         def run() -> None:
             # the solve's own pause of the collector, taken while this step's is held and ended as the solve ends: a
@@ -879,7 +887,7 @@ class MPC:
                 box["t_done"] = time.perf_counter()
                 box["done"].set()
 
-        cut = self._cut_off(t0)
+        cut = self._cut_off(start)
         self.solver.go(stop_at=cut)
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
         box["done"] = threading.Event()
@@ -919,20 +927,20 @@ class MPC:
         step.info.update(wake)
         return step
 
-    def _safety(self, t0: float) -> Optional[float]:
+    def _safety(self, start: float) -> Optional[float]:
         """Under a work budget with the cut-off: the step's time limit (a :func:`time.perf_counter` value), at which a
         solver call stops as a safety net (:meth:`NetworkEngine.solve`), so that a call answered at the cut-off does
         not run on into the next step; ``None`` otherwise (without the cut-off the budget alone decides)."""
-        return t0 + float(self.time_limit) if self.node_limit is not None and self.cut_off else None
+        return start + float(self.time_limit) if self.node_limit is not None and self.cut_off else None
 
-    def _cut_off(self, t0: float) -> float:
-        """The cut-off of a step that started at ``t0`` (a :func:`time.perf_counter` value): ``t0 + time_limit`` less
+    def _cut_off(self, start: float) -> float:
+        """The cut-off of a call that started at ``start`` (a :func:`time.perf_counter` value): ``start + time_limit`` less
         the time kept for the answer (see :meth:`_engine_solve`)."""
         answer_s = min(max(0.5 * self.reserve, self._fallback_s, self._answer_s, CUT_OFF_MIN_S),
                        RESERVE_MAX_SHARE * self.time_limit)
-        return t0 + float(self.time_limit) - answer_s
+        return start + float(self.time_limit) - answer_s
 
-    def _previous_ended(self, t0: float) -> Optional[dict]:
+    def _previous_ended(self, start: float, t0: float) -> Optional[dict]:
         """Wait for a solve that the previous step answered at its cut-off, until this step's own cut-off at most.
 
         ``None`` when no solve runs or it has ended (:meth:`_finish_running` has then taken its result). When it
@@ -951,7 +959,7 @@ class MPC:
             return None
         if self.time_limit is not None and self.cut_off:
             worker, box, _ = self._running
-            cut, queued = self._cut_off(t0), thread_run_delay()
+            cut, queued = self._cut_off(start), thread_run_delay()
             if not _wait_for(worker, box["done"], max(cut - time.perf_counter(), 0.0)):
                 t_woke, c_woke, q_woke = time.perf_counter(), time.thread_time(), thread_run_delay()
                 return dict(cut_off_s=cut - t0, wake_lag=max(t_woke - cut, 0.0), wake_runqueue=q_woke - queued,
@@ -989,11 +997,11 @@ class MPC:
             self._late_s = max(self._late_s, late * min(1.0, max(cpu, 0.0) / max(wall, 1e-12)))
 
     # ------------------------------------------------------------------ the fallback
-    def _engine_time(self, t0: float) -> Optional[float]:
+    def _engine_time(self, start: float) -> Optional[float]:
         """The seconds left for the engine: the time limit less what this step has spent and :attr:`reserve`."""
         if self.time_limit is None or self.node_limit is not None:  # a work budget: no clock inside the engine
             return None
-        left = self.time_limit - (time.perf_counter() - t0) - self.reserve
+        left = self.time_limit - (time.perf_counter() - start) - self.reserve
         return max(left, 1e-9)  # positive: the engine then returns at its first check of the time
 
     def _fallback(self, z: Array, R: Array, step: StepResult, shifted, t0: Optional[float] = None) -> StepResult:

@@ -55,6 +55,11 @@ FIRST_LEVEL_NO_INCUMBENT = 1.0
 #: incumbent (a solver started then answered after the limit by its start-up and its overrun).
 SOLVE_MIN_LEFT = 0.002
 
+#: The longest a solve stopped with ``hold=True`` waits for :meth:`NetworkEngine.answered` before it builds its result
+#: (seconds): far longer than an answer at a cut-off takes, so that the hold is released by the answer, and finite,
+#: so that a caller that never calls ``answered()`` delays the solve's end instead of stopping it for good.
+HOLD_MAX_S = 2.0
+
 #: Seconds that must be left to polish a round's optimum under a tightened bound (:meth:`NetworkEngine._polish`: a
 #: HiGHS model built and solved, 4 to 6 ms on the systems of the benchmark).
 TIGHTENED_QP_MIN_LEFT = 0.008
@@ -167,6 +172,7 @@ class NetworkEngine:
         self._stop = threading.Event()
         self._answered = threading.Event()  # cleared by stop(hold=True) until answered(): see stop
         self._answered.set()
+        self._holder: Optional[int] = None  # the thread that asked for the hold (it is never held itself)
         self.stop_at: Optional[float] = None
 
     def stop(self, hold: bool = False) -> None:
@@ -175,9 +181,12 @@ class NetworkEngine:
 
         ``hold=True`` (a caller that answers meanwhile from :meth:`answer_now`, as :class:`flnotes.MPC` does at its
         cut-off): once the solve has stopped, it waits for :meth:`answered` before it builds its result, so that what
-        is left of it does not compete with the caller's answer for the interpreter lock and the core. The caller
-        must then call :meth:`answered` (or :meth:`go`), whatever happens, before it waits for the solve to end."""
+        is left of it does not compete with the caller's answer for the interpreter lock and the core. Only a solve
+        in another thread than the caller's waits (a solve in the caller's own thread could never be released), and
+        at most :data:`HOLD_MAX_S` seconds: a caller that never calls :meth:`answered` delays the solve's end, never
+        stops it for good. Call :meth:`answered` (or :meth:`go`) once the answer is out."""
         if hold:
+            self._holder = threading.get_ident()
             self._answered.clear()
         self._stop.set()
 
@@ -294,8 +303,8 @@ class NetworkEngine:
         work = node_limit is not None
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
-            if self._stop.is_set():  # stopped by a caller that answers meanwhile: the result after its answer
-                self._answered.wait()
+            if self._stop.is_set() and threading.get_ident() != self._holder:  # stopped by a caller that answers
+                self._answered.wait(HOLD_MAX_S)  # meanwhile in another thread: the result after its answer
             if work and status == "time_limit" and msg.startswith("time limit"):  # say which limit stopped it
                 msg = ("wall-clock safety net" if self._stop.is_set() or st.get("safety") else
                        f"work limit ({node_limit} nodes)") + msg[len("time limit"):]
