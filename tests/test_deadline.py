@@ -787,53 +787,32 @@ def test_a_wait_for_the_lock_after_the_answer_resumed_is_recorded(quad, monkeypa
     assert check_step(mpc, s) and s.input_admissible, s.message
 
 
-def test_the_major_page_faults_of_a_step_are_recorded(quad, monkeypatch):
-    """``info["major_faults"]`` counts the process's major page faults during the call (pages read back from disk: the
-    machine's time, not the controller's): the difference of two readings of :func:`flnotes.config.major_faults`,
-    taken around the step (here a counter that the engine's held solve advances by 3), with and without a limit."""
+@pytest.mark.parametrize("reading, key, start, step", [("major_faults", "major_faults", 100.0, 3.0),
+                                                          ("machine_steal", "steal_time", 7.0, 0.03)])
+def test_the_machines_time_during_a_step_is_recorded(quad, monkeypatch, reading, key, start, step):
+    """The machine's time during the call, not the controller's, is recorded as the difference of two readings taken
+    around the step (here a counter that the engine's held solve advances by ``step``), with and without a limit:
+    ``info["major_faults"]``, the process's major page faults (pages read back from disk,
+    :func:`flnotes.config.major_faults`), and ``info["steal_time"]``, the seconds the host of a virtual machine took
+    its CPUs (:func:`flnotes.config.machine_steal`)."""
     from flnotes.mpc import controller
 
     setup, z, R, prev, _ = engine_state(quad)
     for limit in (None, 0.5):
         mpc = rt.make_mpc(setup, time_limit=limit)
-        faults = {"n": 100.0}
-        monkeypatch.setattr(controller, "major_faults", lambda: faults["n"])
+        counter = {"n": start}
+        monkeypatch.setattr(controller, reading, lambda: counter["n"])
         solve = mpc.solver.solve
 
-        def faulting(*a, **k):
-            faults["n"] += 3.0
+        def advancing(*a, **k):
+            counter["n"] += step
             return solve(*a, **k)
 
-        s, _ = _held_step(mpc, z, R, prev, faulting, monkeypatch)
-        assert s.info["major_faults"] == 3.0, (limit, s.info["major_faults"])
+        s, _ = _held_step(mpc, z, R, prev, advancing, monkeypatch)
+        assert abs(s.info[key] - step) < 1e-12, (limit, s.info[key])
         monkeypatch.undo()
         mpc.set_previous_plan(prev)
-        assert mpc(z, R).info["major_faults"] >= 0.0 or not np.isfinite(fl.config.major_faults())
-
-
-
-def test_the_hosts_steal_time_of_a_step_is_recorded(quad, monkeypatch):
-    """``info["steal_time"]`` is the time the host of a virtual machine took the machine's CPUs during the call (the
-    machine's time, not the controller's): the difference of two readings of :func:`flnotes.config.machine_steal`
-    around the step (here a counter that the engine's held solve advances by 30 ms), with and without a limit."""
-    from flnotes.mpc import controller
-
-    setup, z, R, prev, _ = engine_state(quad)
-    for limit in (None, 0.5):
-        mpc = rt.make_mpc(setup, time_limit=limit)
-        stolen = {"s": 7.0}
-        monkeypatch.setattr(controller, "machine_steal", lambda: stolen["s"])
-        solve = mpc.solver.solve
-
-        def stealing(*a, **k):
-            stolen["s"] += 0.03
-            return solve(*a, **k)
-
-        s, _ = _held_step(mpc, z, R, prev, stealing, monkeypatch)
-        assert abs(s.info["steal_time"] - 0.03) < 1e-12, (limit, s.info["steal_time"])
-        monkeypatch.undo()
-        mpc.set_previous_plan(prev)
-        assert mpc(z, R).info["steal_time"] >= 0.0 or not np.isfinite(fl.config.machine_steal())
+        assert mpc(z, R).info[key] >= 0.0 or not np.isfinite(getattr(fl.config, reading)())
 
 
 def test_machine_steal_reads_the_steal_column_in_seconds(tmp_path, monkeypatch):

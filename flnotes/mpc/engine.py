@@ -341,9 +341,13 @@ class NetworkEngine:
                 z0, f, c0, V_c, inc_V, inc_J, incumbent_from, None if time_limit is None else t0 + time_limit, st)
         st["incumbent"] = incumbent_from
         publish(inc_V, inc_J, J_c, incumbent_from)
-        if self._stop.is_set():  # the caller has answered from what is published: the node bounds would be wasted
-            return done("time_limit", inc_V, J_c, "time limit: " + (
+
+        def stopped(bound: float) -> StepResult:  # out of time (or stopped) between rounds: the incumbent so far
+            return done("time_limit", inc_V, bound, "time limit: " + (
                 f"the incumbent ({incumbent_from}) is returned" if inc_V is not None else "no feasible plan"))
+
+        if self._stop.is_set():  # the caller has answered from what is published: the node bounds would be wasted
+            return stopped(J_c)
         try:
             lo_h, hi_h = pred.boxes(z0)
         except EmptyBoxError as exc:
@@ -386,8 +390,7 @@ class NetworkEngine:
                 n_round += 1
                 publish(inc_V, inc_J, lb, incumbent_from)
                 if out_of_time():
-                    return done("time_limit", inc_V, lb, "time limit: " + (
-                        f"the incumbent ({incumbent_from}) is returned" if inc_V is not None else "no feasible plan"))
+                    return stopped(lb)
             lo, hi, J_up, full, override = lo_h, hi_h, np.inf, True, None
             lp_done = None  # lp="auto" on a large round: the steps whose bounds are LP-tightened
             if level:
