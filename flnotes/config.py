@@ -7,7 +7,7 @@ Tests still check the real properties, only on less data.
 """
 from __future__ import annotations
 
-import _signal  # signal's C module: see release_interrupt
+import _signal  # signal's C module: see release_signals
 import gc
 import numbers
 import os
@@ -410,48 +410,96 @@ def yield_core(native_id: Optional[int], nice: int = CUT_OFF_NICE) -> bool:
     return True
 
 
-_DEFERRED: list = []  # the interrupts held back by hold_interrupt, to deliver in release_interrupt
-_SIGINT = int(signal.SIGINT)
+#: The signals :func:`hold_signals` holds back when Python handles them: every one a handler can be set for.
+_HELD_SIGNALS: tuple = tuple(int(s) for s in sorted(signal.valid_signals())
+                             if s not in {getattr(signal, n, None) for n in ("SIGKILL", "SIGSTOP")})
+_OLD: list = [None] * len(_HELD_SIGNALS)  # the handlers hold_signals replaced, by position in _HELD_SIGNALS
+_DEFERRED: list = []  # the signals that arrived while held, in order, to deliver in release_signals
+_HOLDING = threading.Lock()  # held from hold_signals to release_signals: a nested hold changes nothing
+_HELD = object()  # hold_signals' answer when it replaced a handler
 
 
 def _hold(signum, frame) -> None:
-    _DEFERRED.append((signum, frame))
+    _DEFERRED.append(signum)
 
 
-def hold_interrupt() -> Optional[object]:
-    """Hold back Ctrl-C (SIGINT) in the main thread until :func:`release_interrupt`: the handler it replaces, or
-    ``None`` when nothing was changed (another thread, a handler that is not Python's, or already held).
+def _restore() -> None:
+    """Put back every handler :func:`hold_signals` replaced (signal's C function: it allocates nothing)."""
+    for i in range(len(_HELD_SIGNALS)):
+        old = _OLD[i]
+        if old is not None:
+            _signal.signal(_HELD_SIGNALS[i], old)
+            _OLD[i] = None
+
+
+def hold_signals() -> Optional[object]:
+    """Hold back every signal that Python handles (Ctrl-C's SIGINT, a timeout's SIGALRM, a SIGTERM handler, ...) in
+    the main thread until :func:`release_signals`; its answer is what :func:`release_signals` needs (``None``: nothing
+    was changed: another thread, no handler of Python's, or already held by an outer call).
 
     A time-limited :class:`flnotes.MPC` step changes process-wide settings (the cyclic collector paused, one BLAS
-    thread, a short switch interval) and sets them back as it ends; a ``KeyboardInterrupt`` raised between two of
-    those lines left the collector paused for good. The step lasts about ``t_s``, so Ctrl-C is held back for that
-    long and then raised as usual, once every setting is back."""
-    if threading.current_thread() is not threading.main_thread():
+    thread, a short switch interval) and shares threading primitives with its solve's thread. An exception raised by a
+    signal's handler between two lines of it could leave the collector paused for good, or land inside one of those
+    primitives (CPython does not make them safe against such exceptions: an alarm's exception inside the start of the
+    solve's thread, or inside a wait for it, once left the solve's thread and then ``finish()`` waiting for good).
+    The step lasts about ``t_s``, so the signals are held back for that long and then delivered as usual, once every
+    setting is back. Handlers set in C (or ``SIG_DFL``, ``SIG_IGN``) are left alone."""
+    if threading.current_thread() is not threading.main_thread() or not _HOLDING.acquire(blocking=False):
         return None
-    # signal's C functions, which allocate nothing (the wrappers convert handlers through a caught exception): a step
-    # calls this first, before it pauses the collector
+    # signal's C functions, which allocate nothing (the wrappers convert handlers through a caught exception), over
+    # a list made in advance: a step calls this first, before it pauses the collector
     try:
-        old = _signal.getsignal(_SIGINT)
-        if not callable(old) or old is _hold:  # SIG_DFL or SIG_IGN (not Python's), or held by an outer call
-            return None
-        _signal.signal(_SIGINT, _hold)  # a Ctrl-C that came just before is handled by _hold too (held back)
-    except (ValueError, OSError):  # pragma: no cover - no signals here (an embedded interpreter)
+        changed = False
+        for i in range(len(_HELD_SIGNALS)):
+            s = _HELD_SIGNALS[i]
+            old = _signal.getsignal(s)
+            if callable(old):  # not SIG_DFL, SIG_IGN or a C handler (None)
+                _OLD[i] = old
+                _signal.signal(s, _hold)  # one that came just before is handled by _hold too (held back)
+                changed = True
+    except BaseException:  # a handler not yet replaced raised (a signal that came as the hold began): nothing held,
+        _restore()  # and a signal already held back meanwhile is delivered after it
+        _HOLDING.release()
+        pending = list(dict.fromkeys(_DEFERRED))
+        _DEFERRED.clear()
+        try:
+            raise
+        finally:
+            if pending:
+                _deliver(pending, 0)
+    if not changed:
+        _HOLDING.release()
         return None
-    return old
+    return _HELD
 
 
-def release_interrupt(old: Optional[object]) -> None:
-    """End :func:`hold_interrupt` (``old`` its answer): the handler comes back, and a Ctrl-C held back meanwhile is
-    delivered to it now (Python's default raises ``KeyboardInterrupt``)."""
-    if old is None:
+def release_signals(held: Optional[object]) -> None:
+    """End :func:`hold_signals` (``held`` its answer): the handlers come back, and each signal held back meanwhile is
+    delivered to its handler now, once (as the system merges a signal that comes again before it is handled), in the
+    order they came (Python's default handler of Ctrl-C raises ``KeyboardInterrupt``); every one is delivered even
+    when an earlier handler raises."""
+    if held is None:
         return
     # the C function under signal.signal: the wrapper converts handlers to enums through a caught exception, an
     # allocation that could start a collection at the end of a step that has just resumed the collector
-    _signal.signal(_SIGINT, old)
+    try:
+        _restore()
+    finally:
+        _HOLDING.release()
     if _DEFERRED:
-        signum, frame = _DEFERRED[0]
+        pending = list(dict.fromkeys(_DEFERRED))
         _DEFERRED.clear()
-        old(signum, frame)
+        _deliver(pending, 0)
+
+
+def _deliver(pending: list, k: int) -> None:
+    """Raise ``pending[k:]`` in order (each runs its handler in this thread at once); an exception of one handler does
+    not keep the later signals from theirs (it becomes their exception's context)."""
+    try:
+        _signal.raise_signal(pending[k])
+    finally:
+        if k + 1 < len(pending):
+            _deliver(pending, k + 1)
 
 
 _GC_LOCK = threading.RLock()
@@ -520,22 +568,22 @@ def resume_gc() -> None:
 
 
 def pause_for_step() -> Optional[object]:
-    """What a time-limited :class:`flnotes.MPC` step does first, allocating nothing: Ctrl-C held back
-    (:func:`hold_interrupt`), then the collector paused (:func:`pause_gc`), in that order, so that no interrupt can
-    land between the pause and the ``try`` that ends it. Returns what :func:`resume_after_step` needs."""
-    held = hold_interrupt()
+    """What a time-limited :class:`flnotes.MPC` step does first, allocating nothing: the signals Python handles held
+    back (:func:`hold_signals`), then the collector paused (:func:`pause_gc`), in that order, so that no handler's
+    exception can land between the pause and the ``try`` that ends it. Returns what :func:`resume_after_step` needs."""
+    held = hold_signals()
     try:
         pause_gc()
     except BaseException:
-        release_interrupt(held)
+        release_signals(held)
         raise
     return held
 
 
 def resume_after_step(held: Optional[object]) -> None:
-    """End :func:`pause_for_step` (``held`` its answer) as the step's last action: the collector resumed, then a
-    Ctrl-C held back meanwhile raised."""
+    """End :func:`pause_for_step` (``held`` its answer) as the step's last action: the collector resumed, then the
+    signals held back meanwhile delivered (a Ctrl-C raised)."""
     try:
         resume_gc()
     finally:
-        release_interrupt(held)
+        release_signals(held)

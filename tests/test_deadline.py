@@ -701,6 +701,161 @@ def test_ctrl_c_inside_a_time_limited_step_is_raised_once_every_setting_is_back(
     assert config._GC_USERS == 0 and signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+class _Handlers:
+    """Python handlers of SIGALRM (raises ``TimeoutError``, as a timeout does) and SIGUSR1 (counts), each recording
+    what ``probe()`` says when it runs; the handlers before are put back by :meth:`restore`."""
+
+    def __init__(self, probe=lambda: None):
+        import signal
+
+        self.calls, self.probe = [], probe
+        self.before = {s: signal.getsignal(s) for s in (signal.SIGALRM, signal.SIGUSR1)}
+
+        def alarm(signum, frame):
+            self.calls.append(("alarm", self.probe()))
+            raise TimeoutError("the caller's timeout")
+
+        def usr1(signum, frame):
+            self.calls.append(("usr1", self.probe()))
+
+        self.alarm, self.usr1 = alarm, usr1
+        signal.signal(signal.SIGALRM, alarm)
+        signal.signal(signal.SIGUSR1, usr1)
+
+    def restore(self):
+        import signal
+
+        for s, h in self.before.items():
+            signal.signal(s, h)
+
+
+needs_signals = pytest.mark.skipif(not all(hasattr(__import__("signal"), n) for n in ("SIGALRM", "SIGUSR1",
+                                                                                      "raise_signal")),
+                                   reason="needs SIGALRM, SIGUSR1 and signal.raise_signal")
+
+
+@needs_signals
+def test_a_handlers_exception_inside_a_time_limited_step_is_raised_once_the_step_has_answered(quad, monkeypatch):
+    """Other signals than Ctrl-C that Python handles (a timeout's SIGALRM whose handler raises, a SIGUSR1 that counts)
+    arriving while a time-limited step waits for its solve's thread are held back too: the step answers at its
+    cut-off and records its answer, then the handlers run (SIGUSR1 once, although it came twice) and the timeout's
+    exception is raised by the call. Nothing is left waiting: finish() ends the solve and the next step solves to the
+    optimum. (Unheld, the handler ran inside the step, which never answered; inside a threading primitive such an
+    exception once left the solve's thread, then finish(), waiting for good.)"""
+    import signal
+
+    from flnotes import config
+
+    setup, z, R, prev, exact = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.5)
+    gate = Gate(monkeypatch, mute=True)
+    h = _Handlers(probe=lambda: len(mpc.history))
+
+    def fire():  # from another thread while the step waits for its solve: Python runs the handlers in the main thread
+        assert gate.entered.wait(30.0), "the solve never reached its solver call"
+        for s in (signal.SIGUSR1, signal.SIGUSR1, signal.SIGALRM):
+            signal.raise_signal(s)
+
+    shooter = threading.Thread(target=fire)
+    try:
+        mpc.set_previous_plan(prev)
+        shooter.start()
+        with pytest.raises(TimeoutError, match="caller's timeout"):
+            mpc(z, R)
+        shooter.join()
+        assert len(mpc.history) == 1 and mpc.history[0].info["cut_off"], "the step answered at its cut-off"
+        check_step(mpc, mpc.history[0])
+        assert sorted(h.calls) == [("alarm", 1), ("usr1", 1)], "each handler once, after the step had answered"
+        assert signal.getsignal(signal.SIGALRM) is h.alarm and signal.getsignal(signal.SIGUSR1) is h.usr1
+        gate.release()
+        ender = threading.Thread(target=mpc.finish, daemon=True)
+        ender.start()
+        ender.join(60.0)
+        assert not ender.is_alive(), "finish() waits for good"
+        assert gc_running() and config._GC_USERS == 0
+        s = mpc(z, R)
+        assert s.status == "optimal" and abs(s.objective - exact.objective) <= 1e-6 * max(1.0, abs(exact.objective))
+        mpc.finish()
+    finally:
+        gate.release()
+        h.restore()
+
+
+def gc_running() -> bool:
+    import gc
+
+    return gc.isenabled()
+
+
+@needs_signals
+def test_signals_held_back_are_all_delivered_in_order_even_when_a_handler_raises():
+    """hold_signals/release_signals directly: while held, nothing runs; at the release every signal that came is
+    delivered once, in the order they came, and a handler that raises does not keep a later signal from its handler.
+    A nested hold and a hold from another thread change nothing."""
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers(probe=lambda: config._HOLDING.locked())
+    try:
+        held = config.hold_signals()
+        assert held is not None and signal.getsignal(signal.SIGALRM) is not h.alarm, "premise: held"
+        assert config.hold_signals() is None, "a nested hold changes nothing"
+        other = []
+        t = threading.Thread(target=lambda: other.append(config.hold_signals()))
+        t.start()
+        t.join()
+        assert other == [None], "only the main thread holds"
+        for s in (signal.SIGALRM, signal.SIGUSR1, signal.SIGALRM):
+            signal.raise_signal(s)
+        assert h.calls == [], "nothing runs while held"
+        with pytest.raises(TimeoutError):
+            config.release_signals(held)
+        assert h.calls == [("alarm", False), ("usr1", False)], "in the order they came, each once, after the hold"
+        assert signal.getsignal(signal.SIGALRM) is h.alarm and signal.getsignal(signal.SIGUSR1) is h.usr1
+        assert not config._DEFERRED and not config._HOLDING.locked()
+    finally:
+        h.restore()
+
+
+@needs_signals
+def test_a_signal_that_comes_as_the_hold_begins_leaves_nothing_held(monkeypatch):
+    """A handler not yet replaced that raises while hold_signals goes through the handlers (here SIGALRM's, raised
+    when SIGUSR1's is already held): the exception comes out of hold_signals, every handler is back, the signal held
+    meanwhile is delivered, and the next hold works."""
+    import _signal
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers()
+    real = _signal.getsignal
+    fired = []
+
+    def getsignal(s):
+        if s == int(signal.SIGALRM) and not fired:  # SIGUSR1 (10) is already held when SIGALRM (14) is read
+            fired.append(s)
+            signal.raise_signal(signal.SIGUSR1)  # held back
+            _signal.raise_signal(signal.SIGALRM)  # its own handler, not yet replaced: raises here
+        return real(s)
+
+    try:
+        assert int(signal.SIGUSR1) < int(signal.SIGALRM), "premise: the hold reads SIGUSR1 first"
+        monkeypatch.setattr(_signal, "getsignal", getsignal)
+        with pytest.raises(TimeoutError):
+            config.hold_signals()
+        monkeypatch.undo()
+        assert [c[0] for c in h.calls] == ["alarm", "usr1"], "the signal held meanwhile is delivered after"
+        assert signal.getsignal(signal.SIGALRM) is h.alarm and signal.getsignal(signal.SIGUSR1) is h.usr1
+        assert not config._HOLDING.locked() and not config._DEFERRED
+        held = config.hold_signals()
+        assert held is not None
+        config.release_signals(held)
+    finally:
+        monkeypatch.undo()
+        h.restore()
+
+
 def _one_c_call(seconds: float) -> int:
     """``n`` such that ``sum(range(n))``, one C call that holds the interpreter lock until it returns, takes about
     ``seconds`` on this machine (timed on a call of 10^6)."""

@@ -19,8 +19,8 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..config import (answer_slice, hold_interrupt, machine_steal, major_faults, one_blas_thread, pause_for_step, pause_gc,
-                      quick_thread_switch, release_interrupt, resume_after_step, resume_gc, set_back_slice,
+from ..config import (answer_slice, hold_signals, machine_steal, major_faults, one_blas_thread, pause_for_step, pause_gc,
+                      quick_thread_switch, release_signals, resume_after_step, resume_gc, set_back_slice,
                       slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
@@ -171,12 +171,12 @@ class _HeldSettings:
         worker = self.worker
         if worker is not None and worker is not threading.current_thread():
             _wait_for(worker, self.done)  # the solve keeps them until it ends (it was asked to stop at its cut-off)
-        held = hold_interrupt()  # Ctrl-C waits for the settings to come back (config.hold_interrupt)
+        held = hold_signals()  # Ctrl-C (any handled signal) waits for the settings to come back (config.hold_signals)
         try:
             stack, self.stack, self.worker, self.done = self.stack, None, None, None
             stack.close()
         finally:
-            release_interrupt(held)
+            release_signals(held)
 
     def finalize(self) -> None:
         """:meth:`release` for a controller that is gone, which nobody can release later: an interrupt while it
@@ -644,12 +644,12 @@ class MPC:
         cut-off does not wait for the engine's thread) and, on Linux 6.12 and later, a short scheduler slice for the
         answering thread (:func:`flnotes.config.answer_slice`: waking at the cut-off, it takes a core at once instead
         of waiting for the running thread's slice to end; ``info["answer_slice"]`` says whether it was granted).
-        Under a time limit, Ctrl-C in the main thread is held back until these settings are back, then raised
-        (:func:`flnotes.config.hold_interrupt`). Other signals are not held back: an exception raised by a Python
-        handler of another signal inside a time-limited step (e.g. a timeout on ``SIGALRM``) can land inside one of
-        the threading primitives the step shares with its solve's thread, which CPython does not make safe against
-        such exceptions, and leave that thread, and then :meth:`finish`, waiting for good. Raise such exceptions
-        outside the steps, or use Ctrl-C (``SIGINT``).
+        Under a time limit, every signal that Python handles in the main thread (Ctrl-C's ``SIGINT``, a timeout's
+        ``SIGALRM``, ...) is held back until these settings are back, then delivered to its handler
+        (:func:`flnotes.config.hold_signals`): an exception raised by a handler (``KeyboardInterrupt``, a timeout's
+        own) is raised by the call as it returns, never inside the threading primitives the step shares with its
+        solve's thread, which CPython does not make safe against such exceptions. A step thus delays a handler by at
+        most its own length (about ``time_limit``).
         """
         t0, p0 = time.perf_counter(), time.process_time()
         if self.time_limit is None:
@@ -657,8 +657,8 @@ class MPC:
             with one_blas_thread():
                 step = self._solve_step(z, z_ref, t0)
         else:
-            # first, allocating nothing: Ctrl-C held back until the settings are back, and no collection starts in
-            # the call (see config.no_cyclic_gc)
+            # first, allocating nothing: the signals Python handles held back until the settings are back, and no
+            # collection starts in the call (see config.no_cyclic_gc)
             held = pause_for_step()
             try:
                 f0, s0 = major_faults(), machine_steal()  # they allocate: after the pause
@@ -684,7 +684,7 @@ class MPC:
             finally:
                 if self._running is not None:  # the answer is out: a solve stopped at the cut-off goes on to its end
                     self.solver.answered()
-                # last: a collection that fell due starts after the return, and a Ctrl-C held back is raised here
+                # last: a collection that fell due starts after the return, and the signals held back are delivered
                 resume_after_step(held)
             return step
         self._timed(step, t0, p0, f0, s0)
