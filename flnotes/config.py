@@ -413,23 +413,68 @@ def yield_core(native_id: Optional[int], nice: int = CUT_OFF_NICE) -> bool:
 #: The signals :func:`hold_signals` holds back when Python handles them: every one a handler can be set for.
 _HELD_SIGNALS: tuple = tuple(int(s) for s in sorted(signal.valid_signals())
                              if s not in {getattr(signal, n, None) for n in ("SIGKILL", "SIGSTOP")})
-_OLD: list = [None] * len(_HELD_SIGNALS)  # the handlers hold_signals replaced, by position in _HELD_SIGNALS
-_DEFERRED: list = []  # the signals that arrived while held, in order, to deliver in release_signals
-_HOLDING = threading.Lock()  # held from hold_signals to release_signals: a nested hold changes nothing
-_HELD = object()  # hold_signals' answer when it replaced a handler
+_INDEX: dict = {s: i for i, s in enumerate(_HELD_SIGNALS)}
+#: The handlers :func:`hold_signals` replaced by :func:`_hold`, by position in ``_HELD_SIGNALS`` (``None``: not
+#: replaced). An entry stays until its handler is back, also when a release is cut short (see :func:`_hold`).
+_OLD: list = [None] * len(_HELD_SIGNALS)
+#: The signals that came while held, ``(signum, frame, handler)`` in the order they came, one per signal.
+_DEFERRED: list = []
+_HOLDING = False  # between hold_signals and release_signals (main thread only)
+_HELD = object()  # hold_signals' answer when it holds
 
 
 def _hold(signum, frame) -> None:
-    _DEFERRED.append(signum)
+    """The handler of every held signal: while held, note the signal (once) for :func:`release_signals`; otherwise
+    (a handler left in place by a release that a handler's exception cut short) put the signal's own handler back and
+    deliver to it now, after the signals noted before it."""
+    i = _INDEX[signum]
+    handler = _OLD[i]
+    if handler is None:  # pragma: no cover - _hold is only ever installed with the handler it replaced saved
+        return
+    for e in _DEFERRED:
+        if e[0] == signum:  # already noted: merged, as the system merges a signal that comes again before it is handled
+            break
+    else:
+        _DEFERRED.append((signum, frame, handler))
+    if not _HOLDING:
+        _OLD[i] = None
+        if _signal.getsignal(signum) is _hold:
+            _signal.signal(signum, handler)
+        _flush()
 
 
 def _restore() -> None:
-    """Put back every handler :func:`hold_signals` replaced (signal's C function: it allocates nothing)."""
-    for i in range(len(_HELD_SIGNALS)):
-        old = _OLD[i]
-        if old is not None:
-            _signal.signal(_HELD_SIGNALS[i], old)
-            _OLD[i] = None
+    """Put back every handler :func:`hold_signals` replaced, unless it has been changed meanwhile (a handler set
+    inside the step is kept). Signal's C functions: they allocate nothing. A handler put back runs at once when its
+    signal comes; when it raises, the rest are put back all the same, then its exception is raised."""
+    err, i, n = None, 0, len(_HELD_SIGNALS)
+    while i < n:
+        try:
+            while i < n:  # each entry may be redone (after an exception): it is put back or cleared, never twice
+                old = _OLD[i]
+                if old is not None:
+                    if _signal.getsignal(_HELD_SIGNALS[i]) is _hold:
+                        _signal.signal(_HELD_SIGNALS[i], old)
+                    _OLD[i] = None
+                i += 1
+        except BaseException as exc:
+            if err is None:
+                err = exc
+    if err is not None:
+        raise err
+
+
+def _flush() -> None:
+    """Deliver the signals noted while held, in the order they came, each to the handler in place when it came, called
+    directly (not raised again through the system, where the main thread may block it or a wakeup file descriptor
+    would see it twice); an exception of one handler does not keep the later ones from theirs (it becomes their
+    exception's context)."""
+    if _DEFERRED:
+        signum, frame, handler = _DEFERRED.pop(0)
+        try:
+            handler(signum, frame)
+        finally:
+            _flush()
 
 
 def hold_signals() -> Optional[object]:
@@ -442,33 +487,45 @@ def hold_signals() -> Optional[object]:
     signal's handler between two lines of it could leave the collector paused for good, or land inside one of those
     primitives (CPython does not make them safe against such exceptions: an alarm's exception inside the start of the
     solve's thread, or inside a wait for it, once left the solve's thread and then ``finish()`` waiting for good).
-    The step lasts about ``t_s``, so the signals are held back for that long and then delivered as usual, once every
-    setting is back. Handlers set in C (or ``SIG_DFL``, ``SIG_IGN``) are left alone."""
-    if threading.current_thread() is not threading.main_thread() or not _HOLDING.acquire(blocking=False):
+    The step lasts about ``t_s``, so the signals are held back for that long and then delivered to their handlers, once
+    every setting is back (:func:`release_signals`). Handlers set in C (or ``SIG_DFL``, ``SIG_IGN``) are left alone.
+
+    A signal that comes while the handlers are replaced, before the step, runs its handler there (an exception of it
+    comes out of this call, with nothing held). Replacing and putting back a handler goes through
+    :func:`signal.signal`, with two effects on the system's side that Python cannot read back: a
+    :func:`signal.siginterrupt` setting of a held signal is reset to interrupting system calls, and a handler chained
+    in C over Python's (``faulthandler.register(signum, chain=True)`` on a signal that also has a Python handler) is
+    replaced by Python's own: register such handlers on signals without a Python handler."""
+    global _HOLDING
+    if _HOLDING or threading.current_thread() is not threading.main_thread():
         return None
-    # signal's C functions, which allocate nothing (the wrappers convert handlers through a caught exception), over
-    # a list made in advance: a step calls this first, before it pauses the collector
+    # signal's C functions over lists made in advance, which allocate nothing: a step calls this first, before it
+    # pauses the collector; _HOLDING is set first, so that a held signal that comes meanwhile is noted, not delivered
+    _HOLDING = True
     try:
         changed = False
         for i in range(len(_HELD_SIGNALS)):
             s = _HELD_SIGNALS[i]
             old = _signal.getsignal(s)
-            if callable(old):  # not SIG_DFL, SIG_IGN or a C handler (None)
+            if old is _hold:  # left in place by a release cut short: its handler is still saved
+                changed = True
+            elif callable(old):  # not SIG_DFL, SIG_IGN or a C handler (None)
                 _OLD[i] = old
-                _signal.signal(s, _hold)  # one that came just before is handled by _hold too (held back)
+                _signal.signal(s, _hold)  # runs a signal that came just before first (with its own handler)
                 changed = True
     except BaseException:  # a handler not yet replaced raised (a signal that came as the hold began): nothing held,
-        _restore()  # and a signal already held back meanwhile is delivered after it
-        _HOLDING.release()
-        pending = list(dict.fromkeys(_DEFERRED))
-        _DEFERRED.clear()
+        _HOLDING = False  # and a signal noted meanwhile is delivered after it
         try:
-            raise
+            _flush()
         finally:
-            if pending:
-                _deliver(pending, 0)
+            try:
+                _restore()
+            except BaseException:  # a handler's exception at its start or between its rounds: once more
+                _restore()
+                raise
+        raise
     if not changed:
-        _HOLDING.release()
+        _HOLDING = False
         return None
     return _HELD
 
@@ -476,30 +533,26 @@ def hold_signals() -> Optional[object]:
 def release_signals(held: Optional[object]) -> None:
     """End :func:`hold_signals` (``held`` its answer): the handlers come back, and each signal held back meanwhile is
     delivered to its handler now, once (as the system merges a signal that comes again before it is handled), in the
-    order they came (Python's default handler of Ctrl-C raises ``KeyboardInterrupt``); every one is delivered even
-    when an earlier handler raises."""
+    order they came, by a direct call (Python's default handler of Ctrl-C raises ``KeyboardInterrupt``); every one is
+    delivered even when an earlier handler raises. A handler set while held (by code inside the step) is not held
+    back, and is kept.
+
+    The held signals are delivered before the handlers are put back, so that a signal that comes meanwhile is
+    delivered after them. When a handler's exception cuts the putting back short (a signal that came just then), a
+    handler not yet put back is put back at its signal's next arrival (and delivered to) or at the next hold's end.
+    """
+    global _HOLDING
     if held is None:
         return
-    # the C function under signal.signal: the wrapper converts handlers to enums through a caught exception, an
-    # allocation that could start a collection at the end of a step that has just resumed the collector
-    try:
-        _restore()
+    _HOLDING = False
+    try:  # the held signals first, while every handler is still the hold's: one that comes meanwhile is delivered
+        _flush()  # after them (see _hold), whatever its handler does
     finally:
-        _HOLDING.release()
-    if _DEFERRED:
-        pending = list(dict.fromkeys(_DEFERRED))
-        _DEFERRED.clear()
-        _deliver(pending, 0)
-
-
-def _deliver(pending: list, k: int) -> None:
-    """Raise ``pending[k:]`` in order (each runs its handler in this thread at once); an exception of one handler does
-    not keep the later signals from theirs (it becomes their exception's context)."""
-    try:
-        _signal.raise_signal(pending[k])
-    finally:
-        if k + 1 < len(pending):
-            _deliver(pending, k + 1)
+        try:
+            _restore()
+        except BaseException:  # a handler's exception at its start or between its rounds: once more
+            _restore()
+            raise
 
 
 _GC_LOCK = threading.RLock()

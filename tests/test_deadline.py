@@ -702,31 +702,50 @@ def test_ctrl_c_inside_a_time_limited_step_is_raised_once_every_setting_is_back(
 
 
 class _Handlers:
-    """Python handlers of SIGALRM (raises ``TimeoutError``, as a timeout does) and SIGUSR1 (counts), each recording
-    what ``probe()`` says when it runs; the handlers before are put back by :meth:`restore`."""
+    """Python handlers that record each call with what ``probe()`` says then: SIGALRM's raises ``TimeoutError`` (as a
+    timeout does), SIGINT's ``KeyboardInterrupt`` (as Python's default does), SIGUSR1's and SIGUSR2's only count.
+    :meth:`restore` puts the handlers before back."""
 
     def __init__(self, probe=lambda: None):
         import signal
 
         self.calls, self.probe = [], probe
-        self.before = {s: signal.getsignal(s) for s in (signal.SIGALRM, signal.SIGUSR1)}
+        self.before = {s: signal.getsignal(s) for s in (signal.SIGALRM, signal.SIGUSR1, signal.SIGUSR2,
+                                                        signal.SIGINT)}
 
         def alarm(signum, frame):
             self.calls.append(("alarm", self.probe()))
             raise TimeoutError("the caller's timeout")
 
+        def ctrl_c(signum, frame):
+            self.calls.append(("sigint", self.probe()))
+            raise KeyboardInterrupt
+
         def usr1(signum, frame):
             self.calls.append(("usr1", self.probe()))
 
-        self.alarm, self.usr1 = alarm, usr1
-        signal.signal(signal.SIGALRM, alarm)
-        signal.signal(signal.SIGUSR1, usr1)
+        def usr2(signum, frame):
+            self.calls.append(("usr2", self.probe()))
+
+        self.alarm, self.ctrl_c, self.usr1, self.usr2 = alarm, ctrl_c, usr1, usr2
+        self.mine = {signal.SIGALRM: alarm, signal.SIGINT: ctrl_c, signal.SIGUSR1: usr1, signal.SIGUSR2: usr2}
+        for sig, h in self.mine.items():
+            signal.signal(sig, h)
+
+    def all_back(self) -> bool:
+        """Every handler is this object's own again, nothing is held or noted."""
+        import signal
+
+        from flnotes import config
+
+        return (all(signal.getsignal(sig) is h for sig, h in self.mine.items()) and not config._HOLDING
+                and not config._DEFERRED and all(o is None for o in config._OLD))
 
     def restore(self):
         import signal
 
-        for s, h in self.before.items():
-            signal.signal(s, h)
+        for sig, h in self.before.items():
+            signal.signal(sig, h)
 
 
 needs_signals = pytest.mark.skipif(not all(hasattr(__import__("signal"), n) for n in ("SIGALRM", "SIGUSR1",
@@ -791,12 +810,13 @@ def gc_running() -> bool:
 def test_signals_held_back_are_all_delivered_in_order_even_when_a_handler_raises():
     """hold_signals/release_signals directly: while held, nothing runs; at the release every signal that came is
     delivered once, in the order they came, and a handler that raises does not keep a later signal from its handler.
-    A nested hold and a hold from another thread change nothing."""
+    A nested hold and a hold from another thread change nothing; a handler set while held is kept, and a signal held
+    before it is delivered to the handler in place when it came."""
     import signal
 
     from flnotes import config
 
-    h = _Handlers(probe=lambda: config._HOLDING.locked())
+    h = _Handlers(probe=lambda: config._HOLDING)
     try:
         held = config.hold_signals()
         assert held is not None and signal.getsignal(signal.SIGALRM) is not h.alarm, "premise: held"
@@ -806,14 +826,17 @@ def test_signals_held_back_are_all_delivered_in_order_even_when_a_handler_raises
         t.start()
         t.join()
         assert other == [None], "only the main thread holds"
-        for s in (signal.SIGALRM, signal.SIGUSR1, signal.SIGALRM):
-            signal.raise_signal(s)
+        for sig in (signal.SIGALRM, signal.SIGUSR1, signal.SIGALRM, signal.SIGUSR2):
+            signal.raise_signal(sig)
         assert h.calls == [], "nothing runs while held"
+        signal.signal(signal.SIGUSR2, h.usr1)  # code inside the step sets a handler of its own
         with pytest.raises(TimeoutError):
             config.release_signals(held)
-        assert h.calls == [("alarm", False), ("usr1", False)], "in the order they came, each once, after the hold"
-        assert signal.getsignal(signal.SIGALRM) is h.alarm and signal.getsignal(signal.SIGUSR1) is h.usr1
-        assert not config._DEFERRED and not config._HOLDING.locked()
+        assert h.calls == [("alarm", False), ("usr1", False), ("usr2", False)], \
+            "in the order they came, each once, to the handler in place when it came, after the hold"
+        assert signal.getsignal(signal.SIGUSR2) is h.usr1, "the handler set while held is kept"
+        signal.signal(signal.SIGUSR2, h.usr2)
+        assert h.all_back()
     finally:
         h.restore()
 
@@ -822,7 +845,7 @@ def test_signals_held_back_are_all_delivered_in_order_even_when_a_handler_raises
 def test_a_signal_that_comes_as_the_hold_begins_leaves_nothing_held(monkeypatch):
     """A handler not yet replaced that raises while hold_signals goes through the handlers (here SIGALRM's, raised
     when SIGUSR1's is already held): the exception comes out of hold_signals, every handler is back, the signal held
-    meanwhile is delivered, and the next hold works."""
+    meanwhile is delivered after it, and the next hold works."""
     import _signal
     import signal
 
@@ -846,13 +869,126 @@ def test_a_signal_that_comes_as_the_hold_begins_leaves_nothing_held(monkeypatch)
             config.hold_signals()
         monkeypatch.undo()
         assert [c[0] for c in h.calls] == ["alarm", "usr1"], "the signal held meanwhile is delivered after"
-        assert signal.getsignal(signal.SIGALRM) is h.alarm and signal.getsignal(signal.SIGUSR1) is h.usr1
-        assert not config._HOLDING.locked() and not config._DEFERRED
+        assert h.all_back()
         held = config.hold_signals()
         assert held is not None
         config.release_signals(held)
+        assert h.all_back()
     finally:
         monkeypatch.undo()
+        h.restore()
+
+
+@needs_signals
+@pytest.mark.parametrize("when", ["delivering", "restoring"])
+def test_a_release_cut_short_by_a_handler_loses_no_signal_and_no_handler(when, monkeypatch):
+    """Ctrl-C that comes while release_signals ends the hold ("delivering": inside the handler of a signal held before,
+    SIGUSR1; "restoring": just after SIGINT's own handler is back, SIGALRM's not yet) raises KeyboardInterrupt out of
+    the release, after the signal held before it; none is left noted, and every handler is back, also those after
+    SIGINT's."""
+    import _signal
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers(probe=lambda: config._HOLDING)
+    real_signal = _signal.signal
+    fired = []
+
+    def usr1_then_ctrl_c(signum, frame):
+        h.usr1(signum, frame)
+        if when == "delivering" and not fired:
+            fired.append(signum)
+            signal.raise_signal(signal.SIGINT)
+
+    def signal_then_ctrl_c(s, handler):  # Ctrl-C just after SIGINT's own handler is back
+        out = real_signal(s, handler)
+        if s == int(signal.SIGINT) and handler is h.ctrl_c and not fired:
+            fired.append(s)
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    h.mine[signal.SIGUSR1] = usr1_then_ctrl_c
+    signal.signal(signal.SIGUSR1, usr1_then_ctrl_c)
+    try:
+        held = config.hold_signals()
+        signal.raise_signal(signal.SIGUSR1)  # held
+        if when == "restoring":
+            monkeypatch.setattr(_signal, "signal", signal_then_ctrl_c)
+        with pytest.raises(KeyboardInterrupt):
+            config.release_signals(held)
+        monkeypatch.undo()
+        assert h.calls == [("usr1", False), ("sigint", False)], "the signal held first is delivered first"
+        assert h.all_back(), "every handler is back, also those after the one whose handler raised"
+        held = config.hold_signals()
+        assert held is not None
+        config.release_signals(held)
+        assert h.all_back()
+    finally:
+        monkeypatch.undo()
+        h.restore()
+
+
+@needs_signals
+def test_a_handler_left_by_a_release_cut_short_is_put_back_at_its_next_signal_or_by_the_next_hold(monkeypatch):
+    """A release cut short before any handler is back (an exception escaping it at its start: two signals at once can
+    do that): SIGALRM's next arrival puts its handler back and delivers to it at once; the next step (hold and
+    release) never takes a handler the hold left in place for the caller's, and its end puts the others back."""
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers(probe=lambda: config._HOLDING)
+
+    def cut_short():
+        raise KeyboardInterrupt
+
+    try:
+        held = config.hold_signals()
+        monkeypatch.setattr(config, "_restore", cut_short)
+        with pytest.raises(KeyboardInterrupt):
+            config.release_signals(held)
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGALRM) is not h.alarm, "premise: no handler was put back"
+        with pytest.raises(TimeoutError):
+            signal.raise_signal(signal.SIGALRM)
+        assert h.calls == [("alarm", False)] and signal.getsignal(signal.SIGALRM) is h.alarm
+        assert signal.getsignal(signal.SIGUSR1) is not h.usr1, "premise: the others are still left"
+        held = config.hold_signals()
+        signal.raise_signal(signal.SIGUSR1)
+        assert len(h.calls) == 1, "held by the next hold"
+        config.release_signals(held)
+        assert h.calls[-1] == ("usr1", False) and h.all_back()
+    finally:
+        monkeypatch.undo()
+        h.restore()
+
+
+@needs_signals
+@pytest.mark.skipif(not hasattr(__import__("signal"), "pthread_kill"), reason="needs signal.pthread_sigmask, pthread_kill")
+def test_a_held_signal_reaches_its_handler_also_when_the_main_thread_blocks_it():
+    """A signal held while the main thread blocks it (it came to another thread) is delivered by a direct call to its
+    handler, not raised again in the main thread, where it would stay pending."""
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers(probe=lambda: config._HOLDING)
+    go = threading.Event()
+    t = threading.Thread(target=go.wait)  # started before the block: it lets the signal in
+    t.start()
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR1})
+    try:
+        held = config.hold_signals()
+        signal.pthread_kill(t.ident, signal.SIGUSR1)
+        go.set()
+        t.join()
+        time.sleep(0.01)  # a line of Python after the signal: the main thread notes it (held)
+        config.release_signals(held)
+        assert h.calls == [("usr1", False)] and signal.SIGUSR1 not in signal.sigpending()
+        assert h.all_back()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
         h.restore()
 
 
