@@ -420,27 +420,38 @@ _OLD: list = [None] * len(_HELD_SIGNALS)
 #: The signals that came while held, ``(signum, frame, handler)`` in the order they came, one per signal.
 _DEFERRED: list = []
 _HOLDING = False  # between hold_signals and release_signals (main thread only)
+_FLUSHING = False  # while _flush delivers: a held signal that comes then is noted and delivered by the same loop
 _HELD = object()  # hold_signals' answer when it holds
 
 
 def _hold(signum, frame) -> None:
-    """The handler of every held signal: while held, note the signal (once) for :func:`release_signals`; otherwise
-    (a handler left in place by a release that a handler's exception cut short) put the signal's own handler back and
-    deliver to it now, after the signals noted before it."""
+    """The handler of every held signal: while held (or while the held signals are delivered), note the signal (once)
+    for :func:`release_signals`; otherwise (a handler left in place by a release that a handler's exception cut
+    short) put the signal's own handler back and deliver to it now, after the signals noted before it."""
     i = _INDEX[signum]
     handler = _OLD[i]
-    if handler is None:  # pragma: no cover - _hold is only ever installed with the handler it replaced saved
-        return
+    if handler is None:  # pragma: no cover - _hold is installed only with the handler it replaced saved, and that
+        return  # entry is cleared only once the handler is back
     for e in _DEFERRED:
         if e[0] == signum:  # already noted: merged, as the system merges a signal that comes again before it is handled
             break
     else:
         _DEFERRED.append((signum, frame, handler))
-    if not _HOLDING:
-        _OLD[i] = None
-        if _signal.getsignal(signum) is _hold:
-            _signal.signal(signum, handler)
+    if not (_HOLDING or _FLUSHING):
+        _put_back(i)
         _flush()
+
+
+def _put_back(i: int) -> None:
+    """Put back the handler saved at position ``i`` if the hold's is still in place (a handler set meanwhile is kept),
+    then forget it. :func:`signal.signal` first runs the handlers of signals that came: when one of them sets a handler
+    for this signal, that one is kept (from the handler ``signal.signal`` answers it replaced)."""
+    s, old = _HELD_SIGNALS[i], _OLD[i]
+    if old is not None and _signal.getsignal(s) is _hold:
+        replaced = _signal.signal(s, old)
+        if replaced is not _hold:  # set by a handler that ran inside the call: keep it
+            _signal.signal(s, replaced)
+    _OLD[i] = None  # only once the handler is back: an exception before leaves the entry for a later try
 
 
 def _restore() -> None:
@@ -451,11 +462,8 @@ def _restore() -> None:
     while i < n:
         try:
             while i < n:  # each entry may be redone (after an exception): it is put back or cleared, never twice
-                old = _OLD[i]
-                if old is not None:
-                    if _signal.getsignal(_HELD_SIGNALS[i]) is _hold:
-                        _signal.signal(_HELD_SIGNALS[i], old)
-                    _OLD[i] = None
+                if _OLD[i] is not None:
+                    _put_back(i)
                 i += 1
         except BaseException as exc:
             if err is None:
@@ -468,13 +476,25 @@ def _flush() -> None:
     """Deliver the signals noted while held, in the order they came, each to the handler in place when it came, called
     directly (not raised again through the system, where the main thread may block it or a wakeup file descriptor
     would see it twice); an exception of one handler does not keep the later ones from theirs (it becomes their
-    exception's context)."""
+    exception's context). A held signal that comes meanwhile is noted and delivered by the same loop."""
+    global _FLUSHING
+    if not _DEFERRED:
+        return
+    was, _FLUSHING = _FLUSHING, True  # (a handler delivered here may run a step: its own release flushes inside)
+    try:
+        _deliver()
+    finally:
+        _FLUSHING = was
+
+
+def _deliver() -> None:
     if _DEFERRED:
-        signum, frame, handler = _DEFERRED.pop(0)
+        signum, frame, handler = _DEFERRED[0]
+        del _DEFERRED[0]  # no call between taking the entry and the handler's: nothing can run in between
         try:
             handler(signum, frame)
         finally:
-            _flush()
+            _deliver()
 
 
 def hold_signals() -> Optional[object]:
@@ -511,7 +531,14 @@ def hold_signals() -> Optional[object]:
                 changed = True
             elif callable(old):  # not SIG_DFL, SIG_IGN or a C handler (None)
                 _OLD[i] = old
-                _signal.signal(s, _hold)  # runs a signal that came just before first (with its own handler)
+                replaced = _signal.signal(s, _hold)  # runs a signal that came just before first (its own handler)
+                if replaced is not old and replaced is not _hold:  # that handler set another one: hold that one,
+                    if callable(replaced):  # or leave it (SIG_DFL, SIG_IGN)
+                        _OLD[i] = replaced
+                    else:
+                        _signal.signal(s, replaced)
+                        _OLD[i] = None
+                        continue
                 changed = True
     except BaseException:  # a handler not yet replaced raised (a signal that came as the hold began): nothing held,
         _HOLDING = False  # and a signal noted meanwhile is delivered after it

@@ -766,7 +766,7 @@ def test_a_handlers_exception_inside_a_time_limited_step_is_raised_once_the_step
     from flnotes import config
 
     setup, z, R, prev, exact = engine_state(quad)
-    mpc = rt.make_mpc(setup, time_limit=0.5)
+    mpc = rt.make_mpc(setup, time_limit=5.0)  # far above the solve on any machine: the next step is optimal
     gate = Gate(monkeypatch, mute=True)
     h = _Handlers(probe=lambda: len(mpc.history))
 
@@ -959,6 +959,98 @@ def test_a_handler_left_by_a_release_cut_short_is_put_back_at_its_next_signal_or
         assert len(h.calls) == 1, "held by the next hold"
         config.release_signals(held)
         assert h.calls[-1] == ("usr1", False) and h.all_back()
+    finally:
+        monkeypatch.undo()
+        h.restore()
+
+
+@needs_signals
+def test_a_handler_put_back_late_survives_another_handlers_exception_as_it_is_put_back(monkeypatch):
+    """A handler the hold left in place (a release cut short) is put back at its signal's next arrival; when another
+    signal's handler raises just then (inside that signal.signal call, before it changes anything), the saved handler
+    is kept for a later try: the next arrival still reaches the caller's handler and puts it back."""
+    import _signal
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers(probe=lambda: config._HOLDING)
+    real_signal = _signal.signal
+    fired = []
+
+    def cut_short():
+        raise KeyboardInterrupt
+
+    def alarm_first(s, handler):  # SIGALRM's own handler (put back already) raises as SIGUSR1's is put back
+        if s == int(signal.SIGUSR1) and handler is h.usr1 and not fired:
+            fired.append(s)
+            _signal.raise_signal(signal.SIGALRM)
+        return real_signal(s, handler)
+
+    try:
+        held = config.hold_signals()
+        monkeypatch.setattr(config, "_restore", cut_short)
+        with pytest.raises(KeyboardInterrupt):
+            config.release_signals(held)
+        monkeypatch.undo()
+        with pytest.raises(TimeoutError):
+            signal.raise_signal(signal.SIGALRM)  # puts SIGALRM's back
+        monkeypatch.setattr(_signal, "signal", alarm_first)
+        with pytest.raises(TimeoutError):
+            signal.raise_signal(signal.SIGUSR1)  # noted, and put back -- cut short by the alarm
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGUSR1) is not h.usr1, "premise: SIGUSR1's handler was not put back"
+        signal.raise_signal(signal.SIGUSR1)
+        assert [c[0] for c in h.calls].count("usr1") >= 1 and signal.getsignal(signal.SIGUSR1) is h.usr1
+        held = config.hold_signals()
+        config.release_signals(held)
+        assert h.all_back()
+    finally:
+        monkeypatch.undo()
+        h.restore()
+
+
+@needs_signals
+@pytest.mark.parametrize("where", ["hold", "release"])
+def test_a_handler_that_a_signal_sets_as_the_hold_begins_or_ends_is_kept(where, monkeypatch):
+    """A two-stage handler (the first SIGUSR1 sets a second handler) whose signal comes inside the signal.signal call
+    that replaces or puts back its handler: the handler it set is the one held, and the one in place after the call."""
+    import _signal
+    import signal
+
+    from flnotes import config
+
+    h = _Handlers(probe=lambda: config._HOLDING)
+    real_signal = _signal.signal
+    fired, stages = [], []
+
+    def second(signum, frame):
+        stages.append("second")
+
+    def first(signum, frame):
+        stages.append("first")
+        real_signal(signum, second)
+
+    def signal_with_usr1(s, handler):  # SIGUSR1 comes just as its handler is replaced (hold) or put back (release)
+        if s == int(signal.SIGUSR1) and (handler is config._hold) == (where == "hold") and not fired:
+            fired.append(s)
+            if where == "release":
+                real_signal(s, first)  # its own handler again, as SIGUSR1 comes (the hold's end)
+            _signal.raise_signal(signal.SIGUSR1)
+        return real_signal(s, handler)
+
+    signal.signal(signal.SIGUSR1, first)
+    try:
+        if where == "hold":
+            monkeypatch.setattr(_signal, "signal", signal_with_usr1)
+        held = config.hold_signals()
+        monkeypatch.undo()
+        if where == "release":
+            monkeypatch.setattr(_signal, "signal", signal_with_usr1)
+        config.release_signals(held)
+        monkeypatch.undo()
+        assert stages == ["first"] and signal.getsignal(signal.SIGUSR1) is second, "the handler it set is kept"
+        assert not config._HOLDING and not config._DEFERRED and all(o is None for o in config._OLD)
     finally:
         monkeypatch.undo()
         h.restore()
