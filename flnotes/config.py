@@ -417,7 +417,7 @@ _INDEX: dict = {s: i for i, s in enumerate(_HELD_SIGNALS)}
 #: The handlers :func:`hold_signals` replaced by :func:`_hold`, by position in ``_HELD_SIGNALS`` (``None``: not
 #: replaced). An entry stays until its handler is back, also when a release is cut short (see :func:`_hold`).
 _OLD: list = [None] * len(_HELD_SIGNALS)
-#: The signals that came while held, ``(signum, frame, handler)`` in the order they came, one per signal.
+#: The signals that came while held, ``(signum, frame, handler)`` in the order they came, one per arrival.
 _DEFERRED: list = []
 _HOLDING = False  # between hold_signals and release_signals (main thread only)
 _FLUSHING = False  # while _flush delivers: a held signal that comes then is noted and delivered by the same loop
@@ -425,21 +425,19 @@ _HELD = object()  # hold_signals' answer when it holds
 
 
 def _hold(signum, frame) -> None:
-    """The handler of every held signal: while held (or while the held signals are delivered), note the signal (once)
-    for :func:`release_signals`; otherwise (a handler left in place by a release that a handler's exception cut
+    """The handler of every held signal: while held (or while the held signals are delivered), note the signal for
+    :func:`release_signals`; otherwise (a handler left in place by a release that a handler's exception cut
     short) put the signal's own handler back and deliver to it now, after the signals noted before it."""
     i = _INDEX[signum]
     handler = _OLD[i]
     if handler is None:  # pragma: no cover - _hold is installed only with the handler it replaced saved, and that
         return  # entry is cleared only once the handler is back
-    for e in _DEFERRED:
-        if e[0] == signum:  # already noted: merged, as the system merges a signal that comes again before it is handled
-            break
-    else:
-        _DEFERRED.append((signum, frame, handler))
+    _DEFERRED.append((signum, frame, handler))  # every arrival Python handles, as its handler would have run for each
     if not (_HOLDING or _FLUSHING):
-        _put_back(i)
-        _flush()
+        try:
+            _put_back(i)
+        finally:  # also when another signal's handler raises as it is put back: this one is noted, deliver it
+            _flush()
 
 
 def _put_back(i: int) -> None:
@@ -475,26 +473,30 @@ def _restore() -> None:
 def _flush() -> None:
     """Deliver the signals noted while held, in the order they came, each to the handler in place when it came, called
     directly (not raised again through the system, where the main thread may block it or a wakeup file descriptor
-    would see it twice); an exception of one handler does not keep the later ones from theirs (it becomes their
-    exception's context). A held signal that comes meanwhile is noted and delivered by the same loop."""
+    would see it twice). Every one is delivered, also when a handler raises: the first handler's exception is raised
+    once the list is empty. A held signal that comes meanwhile is noted and delivered by the same loop (see
+    :func:`_hold`), so that none is left noted when the loop ends."""
     global _FLUSHING
-    if not _DEFERRED:
-        return
     was, _FLUSHING = _FLUSHING, True  # (a handler delivered here may run a step: its own release flushes inside)
+    err = None
     try:
-        _deliver()
-    finally:
+        while _DEFERRED:  # again when another handler's exception escaped the inner loop between two deliveries
+            try:
+                while _DEFERRED:
+                    try:
+                        signum, frame, handler = _DEFERRED[0]
+                        del _DEFERRED[0]  # no call between taking the entry and the handler's: nothing runs between
+                        handler(signum, frame)
+                    except BaseException as exc:
+                        if err is None:
+                            err = exc
+            except BaseException as exc:
+                if err is None:
+                    err = exc
+    finally:  # reached from the loop's last test of the list with nothing run in between
         _FLUSHING = was
-
-
-def _deliver() -> None:
-    if _DEFERRED:
-        signum, frame, handler = _DEFERRED[0]
-        del _DEFERRED[0]  # no call between taking the entry and the handler's: nothing can run in between
-        try:
-            handler(signum, frame)
-        finally:
-            _deliver()
+    if err is not None:
+        raise err
 
 
 def hold_signals() -> Optional[object]:
@@ -519,6 +521,8 @@ def hold_signals() -> Optional[object]:
     global _HOLDING
     if _HOLDING or threading.current_thread() is not threading.main_thread():
         return None
+    if _DEFERRED:  # left noted by an earlier delivery that two signals at once cut short: delivered before the hold
+        _flush()
     # signal's C functions over lists made in advance, which allocate nothing: a step calls this first, before it
     # pauses the collector; _HOLDING is set first, so that a held signal that comes meanwhile is noted, not delivered
     _HOLDING = True
@@ -559,9 +563,10 @@ def hold_signals() -> Optional[object]:
 
 def release_signals(held: Optional[object]) -> None:
     """End :func:`hold_signals` (``held`` its answer): the handlers come back, and each signal held back meanwhile is
-    delivered to its handler now, once (as the system merges a signal that comes again before it is handled), in the
-    order they came, by a direct call (Python's default handler of Ctrl-C raises ``KeyboardInterrupt``); every one is
-    delivered even when an earlier handler raises. A handler set while held (by code inside the step) is not held
+    delivered to its handler now, as often as Python handled it while held (the system itself merges arrivals that
+    come before Python handles the first), in the order they came, by a direct call (Python's default handler of
+    Ctrl-C raises ``KeyboardInterrupt``); every one is delivered even when an earlier handler raises, and the first
+    handler's exception is raised after the last. A handler set while held (by code inside the step) is not held
     back, and is kept.
 
     The held signals are delivered before the handlers are put back, so that a signal that comes meanwhile is

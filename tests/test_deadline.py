@@ -757,10 +757,10 @@ needs_signals = pytest.mark.skipif(not all(hasattr(__import__("signal"), n) for 
 def test_a_handlers_exception_inside_a_time_limited_step_is_raised_once_the_step_has_answered(quad, monkeypatch):
     """Other signals than Ctrl-C that Python handles (a timeout's SIGALRM whose handler raises, a SIGUSR1 that counts)
     arriving while a time-limited step waits for its solve's thread are held back too: the step answers at its
-    cut-off and records its answer, then the handlers run (SIGUSR1 once, although it came twice) and the timeout's
-    exception is raised by the call. Nothing is left waiting: finish() ends the solve and the next step solves to the
-    optimum. (Unheld, the handler ran inside the step, which never answered; inside a threading primitive such an
-    exception once left the solve's thread, then finish(), waiting for good.)"""
+    cut-off and records its answer, then the handlers run and the timeout's exception is raised by the call. Nothing
+    is left waiting: finish() ends the solve and the next step solves to the optimum. (Unheld, the handler ran inside
+    the step, which never answered; inside a threading primitive such an exception once left the solve's thread, then
+    finish(), waiting for good.)"""
     import signal
 
     from flnotes import config
@@ -772,7 +772,7 @@ def test_a_handlers_exception_inside_a_time_limited_step_is_raised_once_the_step
 
     def fire():  # from another thread while the step waits for its solve: Python runs the handlers in the main thread
         assert gate.entered.wait(30.0), "the solve never reached its solver call"
-        for s in (signal.SIGUSR1, signal.SIGUSR1, signal.SIGALRM):
+        for s in (signal.SIGUSR1, signal.SIGALRM):
             signal.raise_signal(s)
 
     shooter = threading.Thread(target=fire)
@@ -809,7 +809,8 @@ def gc_running() -> bool:
 @needs_signals
 def test_signals_held_back_are_all_delivered_in_order_even_when_a_handler_raises():
     """hold_signals/release_signals directly: while held, nothing runs; at the release every signal that came is
-    delivered once, in the order they came, and a handler that raises does not keep a later signal from its handler.
+    delivered (each arrival), in the order they came, and a handler that raises does not keep a later signal from its
+    handler.
     A nested hold and a hold from another thread change nothing; a handler set while held is kept, and a signal held
     before it is delivered to the handler in place when it came."""
     import signal
@@ -832,8 +833,8 @@ def test_signals_held_back_are_all_delivered_in_order_even_when_a_handler_raises
         signal.signal(signal.SIGUSR2, h.usr1)  # code inside the step sets a handler of its own
         with pytest.raises(TimeoutError):
             config.release_signals(held)
-        assert h.calls == [("alarm", False), ("usr1", False), ("usr2", False)], \
-            "in the order they came, each once, to the handler in place when it came, after the hold"
+        assert h.calls == [("alarm", False), ("usr1", False), ("alarm", False), ("usr2", False)], \
+            "in the order they came, each arrival, to the handler in place when it came, after the hold"
         assert signal.getsignal(signal.SIGUSR2) is h.usr1, "the handler set while held is kept"
         signal.signal(signal.SIGUSR2, h.usr2)
         assert h.all_back()
