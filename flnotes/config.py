@@ -513,11 +513,12 @@ def hold_signals() -> Optional[object]:
     every setting is back (:func:`release_signals`). Handlers set in C (or ``SIG_DFL``, ``SIG_IGN``) are left alone.
 
     A signal that comes while the handlers are replaced, before the step, runs its handler there (an exception of it
-    comes out of this call, with nothing held). Replacing and putting back a handler goes through
-    :func:`signal.signal`, with two effects on the system's side that Python cannot read back: a
-    :func:`signal.siginterrupt` setting of a held signal is reset to interrupting system calls, and a handler chained
-    in C over Python's (``faulthandler.register(signum, chain=True)`` on a signal that also has a Python handler) is
-    replaced by Python's own: register such handlers on signals without a Python handler."""
+    comes out of this call, with nothing held), and so does one that an earlier hold left noted
+    (:func:`release_signals`). Replacing and putting back a handler goes through :func:`signal.signal`, with two
+    effects on the system's side that Python cannot read back: a :func:`signal.siginterrupt` setting of a held signal
+    is reset to interrupting system calls, and a handler chained in C over Python's
+    (``faulthandler.register(signum, chain=True)`` on a signal that also has a Python handler) is replaced by Python's
+    own: register such handlers on signals without a Python handler."""
     global _HOLDING
     if _HOLDING or threading.current_thread() is not threading.main_thread():
         return None
@@ -572,6 +573,9 @@ def release_signals(held: Optional[object]) -> None:
     The held signals are delivered before the handlers are put back, so that a signal that comes meanwhile is
     delivered after them. When a handler's exception cuts the putting back short (a signal that came just then), a
     handler not yet put back is put back at its signal's next arrival (and delivered to) or at the next hold's end.
+    When several signals whose handlers raise are pending at once (CPython runs one at each point where it checks for
+    signals, so each such point can raise), the delivery can be cut short too: what is left noted is delivered at the
+    start of the next hold (:func:`hold_signals`), or with the next arrival of a signal still held.
     """
     global _HOLDING
     if held is None:
