@@ -546,15 +546,12 @@ def hold_signals() -> Optional[object]:
                         continue
                 changed = True
     except BaseException:  # a handler not yet replaced raised (a signal that came as the hold began): nothing held,
-        _HOLDING = False  # and a signal noted meanwhile is delivered after it
+        _HOLDING = False  # first (no call before it), then the end of a hold: a signal noted meanwhile is delivered
         try:
-            _flush()
-        finally:
-            try:
-                _restore()
-            except BaseException:  # a handler's exception at its start or between its rounds: once more
-                _restore()
-                raise
+            release_signals(_HELD)
+        except BaseException:  # another handler's exception at its very start: the handlers are put back all the same
+            _restore()
+            raise
         raise
     if not changed:
         _HOLDING = False

@@ -741,6 +741,16 @@ class _Handlers:
         return (all(signal.getsignal(sig) is h for sig, h in self.mine.items()) and not config._HOLDING
                 and not config._DEFERRED and all(o is None for o in config._OLD))
 
+    def next_hold_leaves_all_back(self) -> bool:
+        """A later step's hold and release (no signal meanwhile) work and leave every handler back."""
+        from flnotes import config
+
+        held = config.hold_signals()
+        if held is None:
+            return False
+        config.release_signals(held)
+        return self.all_back()
+
     def restore(self):
         import signal
 
@@ -871,10 +881,7 @@ def test_a_signal_that_comes_as_the_hold_begins_leaves_nothing_held(monkeypatch)
         monkeypatch.undo()
         assert [c[0] for c in h.calls] == ["alarm", "usr1"], "the signal held meanwhile is delivered after"
         assert h.all_back()
-        held = config.hold_signals()
-        assert held is not None
-        config.release_signals(held)
-        assert h.all_back()
+        assert h.next_hold_leaves_all_back()
     finally:
         monkeypatch.undo()
         h.restore()
@@ -921,10 +928,7 @@ def test_a_release_cut_short_by_a_handler_loses_no_signal_and_no_handler(when, m
         monkeypatch.undo()
         assert h.calls == [("usr1", False), ("sigint", False)], "the signal held first is delivered first"
         assert h.all_back(), "every handler is back, also those after the one whose handler raised"
-        held = config.hold_signals()
-        assert held is not None
-        config.release_signals(held)
-        assert h.all_back()
+        assert h.next_hold_leaves_all_back()
     finally:
         monkeypatch.undo()
         h.restore()
@@ -1002,10 +1006,8 @@ def test_a_handler_put_back_late_survives_another_handlers_exception_as_it_is_pu
         monkeypatch.undo()
         assert signal.getsignal(signal.SIGUSR1) is not h.usr1, "premise: SIGUSR1's handler was not put back"
         signal.raise_signal(signal.SIGUSR1)
-        assert [c[0] for c in h.calls].count("usr1") >= 1 and signal.getsignal(signal.SIGUSR1) is h.usr1
-        held = config.hold_signals()
-        config.release_signals(held)
-        assert h.all_back()
+        assert [c[0] for c in h.calls].count("usr1") == 2, "both arrivals reached the caller's handler"
+        assert signal.getsignal(signal.SIGUSR1) is h.usr1 and h.next_hold_leaves_all_back()
     finally:
         monkeypatch.undo()
         h.restore()
