@@ -122,14 +122,16 @@ def replay(ctrl: MPC, groups: Sequence[Sequence[tuple[Array, Array]]]) -> list[d
 def configurations() -> list[tuple[str, dict]]:
     """The rows: the default; the default without constraint generation (every needed step encoded at once: measured
     on hard MSD states, fewer rounds on cold states, more work along the loop, where the warm start and the steps active
-    at the previous solve seed the rounds); then one back-end for every program (SCIP, DAQP, and Gurobi/CPLEX when
-    importable), these with :data:`ROW_LIMIT` seconds per step.
+    at the previous solve seed the rounds); the default without the network's affine enclosure in its relaxation
+    (``enclosure=False``: the QP without the network, as before the enclosure); then one back-end for every program
+    (SCIP, DAQP, and Gurobi/CPLEX when importable), these with :data:`ROW_LIMIT` seconds per step.
 
     HiGHS solves MILPs and convex QPs, not the mixed-integer QP of eq. (MPC_form_miqp): it has no row of its own
     (the engine uses it for its LP bounds and QPs in every row).
     """
     one = lambda b: dict(backend=b, time_limit=ROW_LIMIT, cut_off=False)  # noqa: E731
-    rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)), ("SCIP only", one("scip")),
+    rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)),
+            ("default without the affine enclosure", dict(enclosure=False)), ("SCIP only", one("scip")),
             ("DAQP only", one("daqp"))]
     have = available_backends()
     rows += [(f"{b.upper()} only", one(b)) for b in ("gurobi", "cplex") if b in have]
@@ -336,3 +338,26 @@ def run(fast: bool) -> dict:
              "same setting, the spread a speed-up must exceed (its cpu_total_s column: the ratio of the totals)."]
     return dict(title="MSD real time: per-step time of the MIQP on hard states, per back-end", rows=rows, notes=notes,
                 figures=[])
+
+
+def enclosure_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict]:
+    """The default engine with and without the network's affine enclosure (``enclosure=False``) at each cold state
+    ``(kind, z, z_ref)``: the relaxation's optimum ``J_c`` without and with the slab, the MIQP's optimum, the
+    binaries of the last program and the CPU time (s) of each; ``same optimum``: both optimal and within 1e-6."""
+    with_enc, without = controller(s), controller(s, enclosure=False)
+    rows = []
+    for kind, z, R in states:
+        f, c0 = without.pred.linear(z, R)
+        J_box = without.pred.relaxation(f, z)[1] + c0
+        J_slab = with_enc.pred.relaxation(f, z)[1] + c0
+        without.reset()
+        a, cpu_a, _ = timed(without, z, R)
+        with_enc.reset()
+        b, cpu_b, _ = timed(with_enc, z, R)
+        same = a.status == b.status == "optimal" and abs(a.objective - b.objective) <= SAME_OPTIMUM * max(
+            1.0, abs(a.objective))
+        rows.append({"state": kind, "J_c (boxes)": J_box, "J_c (slab)": J_slab,
+                     "J_opt": a.objective if a.status == "optimal" else np.nan,
+                     "binaries without": a.n_binaries, "binaries with": b.n_binaries,
+                     "cpu s without": cpu_a, "cpu s with": cpu_b, "same optimum": same})
+    return rows

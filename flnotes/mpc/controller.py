@@ -19,6 +19,7 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
+from ..enclosure import AffineEnclosure, affine_enclosure, fingerprint
 from ..config import (answer_slice, hold_signals, machine_steal, major_faults, one_blas_thread, pause_for_step, pause_gc,
                       quick_thread_switch, release_signals, resume_after_step, resume_gc, set_back_slice,
                       slice_before_answer, thread_run_delay, yield_core)
@@ -319,6 +320,13 @@ class MPC:
     solver_options
         Passed to :func:`flnotes.solvers.make_solver` (DAQP gets :data:`DAQP_OPTIONS` unless overridden). With
         ``backend="auto"`` (two solvers) give them per back-end: ``{"daqp": {...}, "scip": {...}}``.
+    enclosure
+        With the network engine (``constraint="network"``, a persistent back-end) only: the
+        :class:`flnotes.AffineEnclosure` whose slab the engine's first QP (screening, the level set's center) adds at
+        every step (:meth:`flnotes.mpc.prediction.Prediction.relaxation`; exact: the slab holds every admissible
+        input). ``"auto"`` (default) computes it on the network's domain box with :func:`flnotes.affine_enclosure`
+        (MILPs, seconds on a (20, 20, 20) network, once per network and process); an enclosure given must be of
+        this network (same parameters) and contain the program's box; ``False``: the QP without it.
 
     Attributes
     ----------
@@ -345,10 +353,10 @@ class MPC:
                  Q=None, R=None, P=None, *, terminal=None, options: Optional[MPCOptions] = None,
                  time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
                  v_box: Optional[tuple] = None, solver_options: Optional[dict] = None,
-                 cut_off: Optional[bool] = None, work_limit=None, **levers):
+                 cut_off: Optional[bool] = None, work_limit=None, enclosure="auto", **levers):
         self._init_args = dict(system=system, net=net, eps=eps, horizon=horizon, ts=ts, Q=Q, R=R, P=P,
                                terminal=terminal, options=options, time_limit=time_limit, gap=gap, cut_off=cut_off,
-                               work_limit=work_limit,
+                               work_limit=work_limit, enclosure=enclosure,
                                discretization=discretization, v_box=v_box, solver_options=solver_options, **levers)
         if options is not None and levers:
             raise ValueError(f"give either options=MPCOptions(...) or the keywords {sorted(levers)}, not both")
@@ -438,8 +446,10 @@ class MPC:
         # a controller dropped while it holds them gives them back, in the thread that drops it, once its solve ends
         weakref.finalize(self, self._held.finalize)
         self.solver_options = _per_backend(o.backend, used, solver_options)
+        #: The network's :class:`flnotes.AffineEnclosure` the engine's relaxation uses (``None``: none).
+        self.enclosure = self._enclosure(enclosure, engine, net, system)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
-                               v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg)
+                               v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg, enclosure=self.enclosure)
         self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
         if o.constraint != "network":
             self.solver = LinearModel(self.pred, o, system)
@@ -454,6 +464,23 @@ class MPC:
         self.history: list[StepResult] = []
         self._plan: Optional[tuple[Array, Array]] = None
         self._qp_plan: Optional[Array] = None
+
+    @staticmethod
+    def _enclosure(enclosure, engine: bool, net: ReLUNet, system: FLSystem) -> Optional[AffineEnclosure]:
+        """The ``enclosure`` argument validated and resolved (``None``: no slab)."""
+        if isinstance(enclosure, str) and enclosure == "auto":
+            return affine_enclosure(net, system.lo, system.hi) if engine else None
+        if not engine:
+            raise ValueError(f"enclosure={enclosure!r} tightens the network engine's relaxation; these options do not "
+                             "run it (constraint='network' with a persistent back-end): leave enclosure unset")
+        if enclosure is False:
+            return None
+        if not isinstance(enclosure, AffineEnclosure):
+            raise TypeError(f"enclosure must be 'auto', False or a flnotes.AffineEnclosure, got {enclosure!r}")
+        if enclosure.net_id != fingerprint(net):
+            raise ValueError("the enclosure was computed for another network (its parameters differ): compute it with "
+                             "fl.affine_enclosure(net, system.lo, system.hi), or pass enclosure='auto'")
+        return enclosure
 
     @staticmethod
     def _work_budget(work_limit, time_limit: Optional[float], engine: bool, o: MPCOptions) -> Optional[int]:
@@ -1039,7 +1066,7 @@ class MPC:
         """``bound`` and ``gap`` of a plan that satisfies the program: the larger of ``bound`` (a valid lower bound,
         or ``-inf``) and the optimum of the QP without the network, a lower bound of eq. (MPC_form_miqp)."""
         f, c0 = self.pred.linear(z, R)
-        _, fq, _ = self.pred.qp(f, z)
+        _, fq, _ = self.pred.relaxation(f, z)
         bound = max(fq + c0, bound if np.isfinite(bound) else -np.inf)
         if np.isfinite(bound):
             step.bound = min(bound, step.objective)

@@ -4,8 +4,9 @@
 node bounds (box, reachable boxes, LP, level set), constraint generation, warm start, the solver-margin
 policy. Every lever is exact: the plan returned as ``"optimal"`` is a global optimum of the program.
 
-The level set (``bounds="levelset"``). With ``(V_c, J_c)`` the optimum of the convex QP without the
-network (over a set containing every feasible plan), every feasible ``V`` has
+The level set (``bounds="levelset"``). With ``(V_c, J_c)`` the optimum of the relaxation (the convex QP
+without the network, plus the slab of the network's affine enclosure when the model has one:
+:meth:`flnotes.mpc.prediction.Prediction.relaxation`; a set containing every feasible plan), every feasible ``V`` has
 ``J(V) >= J_c + 0.5 ||V - V_c||_H^2`` (:func:`flnotes.ellipsoid_box`). A plan cheaper than a level ``J_up``
 thus lies in an ellipsoid whose projection on each ``(z(k), v(k))`` is a small box; FBBT on these boxes
 leaves few unstable neurons, and steps whose output provably meets the bound are not encoded. The program
@@ -325,11 +326,13 @@ class NetworkEngine:
         # the QP without the network: screening, the first level-set center, the first active steps
         V_c, J_c = None, -np.inf
         if o.screening or o.bounds == "levelset" or o.lazy or o.repair:
-            V_q, fq, flag = pred.qp(f, z0)
+            V_q, fq, flag = pred.relaxation(f, z0)
             if V_q is None:
                 if flag == -1:
                     return done("infeasible", None, np.inf, "the QP without the network constraint is infeasible "
-                                "(the state box or terminal set cannot be kept)")
+                                "(the state box or terminal set cannot be kept)" if pred.enclosure is None else
+                                "the relaxation is infeasible: no plan keeps the state box and terminal set with every "
+                                "step in the network's affine enclosure's slab (which holds every admissible input)")
             else:
                 V_c, J_c = V_q, fq + c0
                 if o.screening and pred.feasible(z0, V_q):

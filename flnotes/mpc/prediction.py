@@ -12,6 +12,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..enclosure import AffineEnclosure, outer_rows
 from ..network import ReLUNet
 from ..solvers import BOUND_TOL, FEAS_TOL
 from ..systems import condense
@@ -44,6 +45,9 @@ class Prediction:
         ``u_max^eps = u_max - eps`` (m,), eq. (Phi_NN_ep).
     terminal
         Optional ``(F, g)``: the terminal constraint ``F z(N_p) <= g``.
+    enclosure
+        Optional :class:`flnotes.AffineEnclosure` of the network over a box that contains ``[z_lo, z_hi] x
+        [v_lo, v_hi]``: :meth:`relaxation` then adds its slab at every step.
 
     Attributes
     ----------
@@ -55,7 +59,7 @@ class Prediction:
 
     def __init__(self, net: ReLUNet, Ad: Array, Bd: Array, horizon: int, Q: Array, R: Array, P: Array, *,
                  z_lo: Array, z_hi: Array, v_lo: Array, v_hi: Array, u_eps: Array,
-                 terminal: Optional[tuple[Array, Array]] = None):
+                 terminal: Optional[tuple[Array, Array]] = None, enclosure: Optional[AffineEnclosure] = None):
         self.net, self.N = net, int(horizon)
         self.Ad, self.Bd = np.asarray(Ad, float), np.asarray(Bd, float)
         self.nz, self.m = self.Bd.shape
@@ -85,6 +89,10 @@ class Prediction:
             rows.append(F @ self.Su[N])
         #: The state rows in ``V``: ``z(1..N_p)`` in the box, then ``F z(N_p) <= g``; see :meth:`state_bounds`.
         self.A_state = np.vstack(rows)
+        if enclosure is not None and not enclosure.covers(np.r_[z_lo, v_lo], np.r_[z_hi, v_hi]):
+            raise ValueError("the enclosure's box must contain the program's box [z_lo, z_hi] x [v_lo, v_hi] (it says "
+                             "nothing outside its box): compute it on the network's domain box")
+        self.enclosure = enclosure
 
     # ------------------------------------------------------------------ the model and the cost
     def predict(self, z0: Array, V: Array) -> Array:
@@ -158,6 +166,20 @@ class Prediction:
         """
         V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi)
         return V, fval, flag
+
+    def relaxation(self, f: Array, z0: Array) -> tuple[Optional[Array], float, int]:
+        """The convex relaxation of eq. (MPC_form_miqp) that the engine solves first: :meth:`qp` with, when the model
+        has an :attr:`enclosure`, the slab that contains ``|Phi_NN(z(k), v(k))| <= u_max^eps`` at every step
+        (:func:`flnotes.enclosure.outer_rows`; step 0's only when ``z0`` lies in the enclosure's box). Every plan of
+        the program (to the forward-pass check's :data:`flnotes.solvers.BOUND_TOL`) satisfies its rows, so its optimum
+        is a lower bound of the program's, and the tighter the slab the closer. Returns what :meth:`qp` returns."""
+        enc = self.enclosure
+        if enc is None:
+            return self.qp(f, z0)
+        z0 = np.asarray(z0, float)
+        inside = bool(np.all(enc.lo[: self.nz] <= z0) and np.all(z0 <= enc.hi[: self.nz]))
+        G, g_lo, g_hi = outer_rows(enc, self.T, self.Sx @ z0, self.u_eps + BOUND_TOL, self.nz, inside)
+        return self.qp(f, z0, G, g_lo, g_hi)
 
     def qp_multipliers(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
                        g_hi: Optional[Array] = None) -> tuple[Optional[Array], float, int, Optional[Array]]:

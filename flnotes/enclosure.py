@@ -1,0 +1,238 @@
+"""An affine enclosure of a ReLU network over a box: ``a_j' x + r_lo_j <= Phi_NN,j(x) <= a_j' x + r_hi_j``.
+
+Its use is the convex outer set of the input constraint (eq. Phi_NN_ep): every ``x`` of the box with
+``|Phi_NN,j(x)| <= u_j`` lies in the slab
+
+    -u_j - r_hi_j  <=  a_j' x  <=  u_j - r_lo_j,
+
+two linear rows per output. The QP without the network that the MPC solves first (screening, the level set's
+center) is a relaxation of eq. (MPC_form_miqp); with these rows at every predicted step it is a tighter one, and
+its optimum is closer to the MIQP's. Where ``Phi`` is nearly affine in ``(z, v)`` (the MSD's
+``Phi = v + s(z_2) + z_1``) the slab is narrow.
+
+How it is computed (:func:`affine_enclosure`): ``a_j`` is the least-squares affine fit of output ``j`` on a fixed
+sample of the box (any ``a_j`` gives a valid enclosure; a good fit a narrow one); ``r_hi_j`` and ``r_lo_j`` are
+the maximum and minimum of ``Phi_NN,j(x) - a_j' x`` over the box, each a MILP of eq. (MIP_general) on the LP node
+bounds of the box, solved by HiGHS (the package's back-end, whose optima are cross-checked) to a relative gap of
+:data:`GAP` within :data:`NODE_LIMIT` nodes. The enclosure takes the proved bound (not the incumbent) widened by
+:data:`PAD` (relative), so that it holds for every point of the box, and keeps the MILP's maximizer and
+minimizer (``x_hi``, ``x_lo``) as witnesses of how tight it is. A fixed sample of the box is checked against it
+before it is returned (a solver whose bound were wrong raises there, never gives a slab that cuts off a plan).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import scipy.sparse as sp
+
+from ._checks import check_boxes
+from .config import cache_dir
+from .encoding import bigm_form
+from .network import ReLUNet
+from .solvers import MIQP, make_solver
+from .tightening import lp_bounds
+
+Array = np.ndarray
+
+#: Relative gap of the enclosure's MILPs. The enclosure takes the proved bound, which holds whatever the gap; a
+#: larger gap only leaves it up to this times ``max(1, |r|)`` looser than the tightest one.
+GAP = 1e-4
+
+#: Widening of each proved bound, times ``max(1, |r|)``, on top of the solver's: covers its feasibility tolerance
+#: (1e-6 on rows whose coefficients are the weights), so that the enclosure holds for the forward pass in floating
+#: point.
+PAD = 1e-5
+
+#: Branch-and-bound nodes each MILP may take (a work budget, the same on every machine): stopped there, the bound
+#: proved so far is kept (valid, only looser). The MSD's (20, 20, 20) network needs about 500.
+NODE_LIMIT = 20_000
+
+#: Points of the fixed sample that fits ``a`` and checks the enclosure.
+N_SAMPLE = 4096
+
+_CACHE: dict = {}
+
+
+def fingerprint(net: ReLUNet) -> str:
+    """A digest of the network's weights and biases (two networks with the same parameters share it)."""
+    h = hashlib.sha256()
+    for W, b in zip(net.W, net.b):
+        h.update(np.ascontiguousarray(W, float).tobytes())
+        h.update(np.ascontiguousarray(b, float).tobytes())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class AffineEnclosure:
+    """``a_j' x + r_lo_j <= Phi_NN,j(x) <= a_j' x + r_hi_j`` for every ``x`` in the box ``[lo, hi]``.
+
+    Attributes
+    ----------
+    a
+        (n_out, n_in): the affine part of each output.
+    r_lo, r_hi
+        (n_out,): proved bounds of ``Phi_NN,j(x) - a_j' x`` over the box (widened by :data:`PAD`).
+    lo, hi
+        (n_in,): the box.
+    x_lo, x_hi
+        (n_out, n_in): the MILPs' minimizers and maximizers, points of the box where the residual comes within
+        the solver's gap of ``r_lo`` and ``r_hi``.
+    net_id
+        :func:`fingerprint` of the network it encloses.
+    """
+
+    a: Array
+    r_lo: Array
+    r_hi: Array
+    lo: Array
+    hi: Array
+    x_lo: Array
+    x_hi: Array
+    net_id: str
+
+    def residual(self, net: ReLUNet, X: Array) -> Array:
+        """``Phi_NN(x) - a x`` at the points ``X`` (N, n_in) -> (N, n_out)."""
+        X = np.atleast_2d(np.asarray(X, float))
+        return net(X) - X @ self.a.T
+
+    def contains(self, net: ReLUNet, X: Array, tol: float = 0.0) -> bool:
+        """Do the points ``X`` (of the box) satisfy the enclosure (to ``tol``)?"""
+        r = self.residual(net, X)
+        return bool(np.all(r >= self.r_lo - tol) and np.all(r <= self.r_hi + tol))
+
+    def slab(self, u: Array) -> tuple[Array, Array]:
+        """Bounds ``(s_lo, s_hi)`` (n_out,) of ``a x`` over the points of the box with ``|Phi_NN(x)| <= u``:
+        ``s_lo = -u - r_hi``, ``s_hi = u - r_lo``."""
+        u = np.asarray(u, float).reshape(-1)
+        if u.shape != self.r_lo.shape:
+            raise ValueError(f"u must have shape {self.r_lo.shape} (one bound per output), got {u.shape}")
+        return -u - self.r_hi, u - self.r_lo
+
+    def covers(self, lo: Array, hi: Array) -> bool:
+        """Does the enclosure's box contain the box ``[lo, hi]``?"""
+        return bool(np.all(self.lo <= np.asarray(lo, float)) and np.all(np.asarray(hi, float) <= self.hi))
+
+
+def _fit(net: ReLUNet, lo: Array, hi: Array, X: Array) -> Array:
+    """Least-squares affine fit of every output on the sample ``X``: the slopes (n_out, n_in)."""
+    A = np.c_[(X - 0.5 * (lo + hi)) / np.maximum(hi - lo, 1e-300), np.ones(len(X))]
+    coef = np.linalg.lstsq(A, net(X), rcond=None)[0]  # (n_in + 1, n_out), on scaled inputs
+    return (coef[:-1] / np.maximum(hi - lo, 1e-300)[:, None]).T
+
+
+def _extreme(net: ReLUNet, form, lo: Array, hi: Array, a_j: Array, j: int, sense: float) -> tuple[float, Array]:
+    """``sense * max sense (Phi_NN,j(x) - a_j' x)`` over the box: the MILP's proved bound and its best point."""
+    n = form.n
+    c = np.zeros(n)
+    c[form.out[j]] = -sense
+    c[form.x] = sense * a_j  # minimize -sense * (y_j - a_j' x)
+    lb, ub = form.lb.copy(), form.ub.copy()
+    lb[form.x], ub[form.x] = lo, hi
+    A = sp.vstack([form.A_eq, form.A_ub]).tocsr()
+    rl = np.r_[form.b_eq, np.full(form.A_ub.shape[0], -np.inf)]
+    ru = np.r_[form.b_eq, form.b_ub]
+    prob = MIQP(None, c, 0.0, A, rl, ru, lb, ub, form.integrality)
+    res = make_solver(prob, "highs").solve(gap=GAP, node_limit=NODE_LIMIT)
+    if res.status not in ("optimal", "time_limit") or res.w is None or not np.isfinite(res.bound):
+        raise RuntimeError(f"the enclosure's MILP (output {j}, {'max' if sense > 0 else 'min'}) was not solved: "
+                           f"{res.status} {res.message}")
+    return -sense * float(res.bound), np.clip(res.w[form.x], lo, hi)
+
+
+def affine_enclosure(net: ReLUNet, lo: Array, hi: Array, seed: int = 0,
+                     cache: bool = True) -> AffineEnclosure:
+    """The affine enclosure of ``net`` over the box ``[lo, hi]`` (see the module's docstring).
+
+    Parameters
+    ----------
+    net
+        ``Phi_NN``.
+    lo, hi
+        The box, (n_in,) each, of positive width.
+    seed
+        Of the sample that fits ``a`` and checks the result.
+    cache
+        Keep the result for this network's parameters, box and seed (the MILPs take seconds on a (20, 20, 20)
+        network), in this process and in :func:`flnotes.config.cache_dir`: a later call returns it (one read from
+        the folder is checked on the sample first, and computed again when it fails).
+
+    Raises
+    ------
+    RuntimeError
+        When a MILP is not solved, or when a point of the check sample lies outside the proved bounds (a solver's
+        bound that does not hold: nothing is returned then).
+    """
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
+    if batch:
+        raise ValueError(f"lo and hi must be one box of shape ({net.n_in},), got {np.shape(lo)}")
+    lo, hi = lo2[0], hi2[0]
+    if not np.all(hi > lo):
+        raise ValueError(f"the box must have positive width on every input: lo = {lo}, hi = {hi}")
+    key = (fingerprint(net), lo.tobytes(), hi.tobytes(), int(seed))
+    if cache and key in _CACHE:
+        return _CACHE[key]
+    X = np.random.default_rng(seed).uniform(lo, hi, size=(N_SAMPLE, net.n_in))
+    path = cache_dir() / ("enclosure-" + hashlib.sha256(repr(key).encode()).hexdigest()[:24] + ".json")
+    if cache and path.exists():
+        d = json.loads(path.read_text())
+        enc = AffineEnclosure(*(np.asarray(d[k], float) for k in ("a", "r_lo", "r_hi", "lo", "hi", "x_lo", "x_hi")),
+                              key[0])
+        if enc.net_id == d["net_id"] and np.array_equal(enc.lo, lo) and np.array_equal(enc.hi, hi) and \
+                enc.contains(net, np.vstack([X, enc.x_lo, enc.x_hi])):
+            _CACHE[key] = enc
+            return enc
+    enc = _compute(net, lo, hi, X, key[0])
+    if cache:
+        _CACHE[key] = enc
+        tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.json")
+        tmp.write_text(json.dumps(dict(net_id=enc.net_id, **{k: getattr(enc, k).tolist() for k in (
+            "a", "r_lo", "r_hi", "lo", "hi", "x_lo", "x_hi")})))
+        os.replace(tmp, path)
+    return enc
+
+
+def _compute(net: ReLUNet, lo: Array, hi: Array, X: Array, net_id: str) -> AffineEnclosure:
+    """The MILPs of :func:`affine_enclosure` and the check of the result on the sample ``X``."""
+    a = _fit(net, lo, hi, X)
+    form = bigm_form(net, lp_bounds(net, lo, hi))
+    r_lo, r_hi = np.zeros(net.n_out), np.zeros(net.n_out)
+    x_lo, x_hi = np.zeros((net.n_out, net.n_in)), np.zeros((net.n_out, net.n_in))
+    for j in range(net.n_out):
+        r_hi[j], x_hi[j] = _extreme(net, form, lo, hi, a[j], j, 1.0)
+        r_lo[j], x_lo[j] = _extreme(net, form, lo, hi, a[j], j, -1.0)
+    r_hi += PAD * np.maximum(1.0, np.abs(r_hi))
+    r_lo -= PAD * np.maximum(1.0, np.abs(r_lo))
+    enc = AffineEnclosure(a, r_lo, r_hi, lo.copy(), hi.copy(), x_lo, x_hi, net_id)
+    pts = np.vstack([X, x_lo, x_hi, lo, hi])
+    if not enc.contains(net, pts):
+        r = enc.residual(net, pts)
+        raise RuntimeError(f"the enclosure's proved bounds [{r_lo}, {r_hi}] do not hold at every sampled point "
+                           f"(residuals from {r.min(axis=0)} to {r.max(axis=0)}): a solver's bound is wrong; "
+                           "nothing is returned")
+    return enc
+
+
+def outer_rows(enc: Optional[AffineEnclosure], T: Array, Zf: Array, u: Array, nz: int,
+               z0_inside: bool = True) -> Optional[tuple[Array, Array, Array]]:
+    """The slab of every predicted step as rows over the plan: ``(G, g_lo, g_hi)`` with ``g_lo <= G V <= g_hi``.
+
+    ``T`` (N_p, n_in, N_p m) maps the plan to the network inputs ``[z(k); v(k)] = T[k] V + [Zf[k]; 0]``, ``Zf``
+    (N_p + 1, n_z) the free response; ``u`` the output bound. Step 0's rows are left out when ``z(0)`` lies
+    outside the enclosure's box (``z0_inside`` False): the enclosure says nothing there. ``None`` without an
+    enclosure.
+    """
+    if enc is None:
+        return None
+    s_lo, s_hi = enc.slab(u)
+    N = T.shape[0]
+    ks = [k for k in range(N) if k > 0 or z0_inside]
+    G = np.vstack([enc.a @ T[k] for k in ks])                                  # (len(ks) n_out, N_p m)
+    off = np.concatenate([enc.a[:, :nz] @ Zf[k] for k in ks])
+    return G, np.tile(s_lo, len(ks)) - off, np.tile(s_hi, len(ks)) - off

@@ -1,0 +1,158 @@
+"""The network's affine enclosure and the slab it adds to the MPC's relaxation.
+
+Properties: the enclosure holds at every sampled point of its box, and its MILPs' witnesses come within the solver's
+gap of its bounds (it is tight); every admissible point lies in the slab; a solver's bound that does not hold is
+refused; the relaxation with the slab is a lower bound of the MIQP, never below the one without it; the engine gives
+the same optimum with and without it; bad input raises.
+"""
+import numpy as np
+import pytest
+
+import flnotes as fl
+import flnotes.enclosure as E
+from flnotes.bench import msd_realtime as B
+from flnotes.mpc import MPC
+
+from _nets import test_net, two_msd
+
+
+@pytest.fixture(scope="module")
+def msd():
+    s = B.setting()
+    return s, fl.affine_enclosure(s["net"], s["system"].lo, s["system"].hi)
+
+
+def _points(lo, hi, n=100_000, seed=11):
+    return np.random.default_rng(seed).uniform(lo, hi, size=(n, len(lo)))
+
+
+def _witnesses_attain(enc, net):
+    """The MILPs' points reach the bounds up to the widening and the gap."""
+    tol = (E.PAD + 2 * E.GAP) * np.maximum(1.0, np.abs(enc.r_hi - enc.r_lo))
+    r_hi = np.diag(enc.residual(net, enc.x_hi))
+    r_lo = np.diag(enc.residual(net, enc.x_lo))
+    return np.all(r_hi >= enc.r_hi - tol) and np.all(r_lo <= enc.r_lo + tol)
+
+
+def test_the_msd_enclosure_holds_everywhere_and_is_tight(msd):
+    s, enc = msd
+    net, sysm = s["net"], s["system"]
+    X = _points(sysm.lo, sysm.hi)
+    assert enc.contains(net, X)
+    r = enc.residual(net, X)
+    assert np.all(r.min(axis=0) >= enc.r_lo) and np.all(r.max(axis=0) <= enc.r_hi)
+    assert _witnesses_attain(enc, net)
+    assert np.all(enc.contains(net, enc.x_lo)) and np.all(enc.contains(net, enc.x_hi))
+    # the premise of the lever on the MSD: Phi = v + s(z_2) + z_1 is nearly affine, so the slab is narrow
+    assert np.all(enc.r_hi - enc.r_lo < 2.0 * np.asarray(sysm.u_max))
+
+
+def test_two_outputs_and_a_small_network():
+    sysm, net = two_msd()
+    enc = fl.affine_enclosure(net, sysm.lo, sysm.hi)
+    assert enc.a.shape == (2, 6) and enc.r_lo.shape == enc.r_hi.shape == (2,)
+    assert enc.contains(net, _points(sysm.lo, sysm.hi, 50_000)) and _witnesses_attain(enc, net)
+    small, _ = test_net("quad1d-8x8")
+    q = fl.quad1d()
+    enc = fl.affine_enclosure(small, q.lo, q.hi)
+    assert enc.contains(small, _points(q.lo, q.hi, 50_000)) and _witnesses_attain(enc, small)
+
+
+def test_every_admissible_point_lies_in_the_slab(msd):
+    s, enc = msd
+    net, sysm = s["net"], s["system"]
+    X = _points(sysm.lo, sysm.hi, seed=12)
+    u = np.asarray(sysm.u_max) - s["eps"]
+    ok = np.all(np.abs(net(X)) <= u, axis=1)
+    assert ok.sum() > 1000
+    s_lo, s_hi = enc.slab(u)
+    ax = X[ok] @ enc.a.T
+    assert np.all(ax >= s_lo) and np.all(ax <= s_hi)
+    with pytest.raises(ValueError, match="one bound per output"):
+        enc.slab([1.0, 2.0])
+
+
+def test_a_bound_that_does_not_hold_is_refused(monkeypatch):
+    sysm, net = two_msd()
+
+    def too_tight(net, form, lo, hi, a_j, j, sense):  # a solver's bound inside the range of the residual
+        return 0.0, 0.5 * (lo + hi)
+
+    monkeypatch.setattr(E, "_extreme", too_tight)
+    with pytest.raises(RuntimeError, match="do not hold"):
+        fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=5, cache=False)
+
+
+def test_the_cache_returns_the_same_enclosure_and_checks_what_it_reads(monkeypatch, tmp_path):
+    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+    monkeypatch.setattr(E, "_CACHE", {})
+    sysm, net = two_msd()
+    enc = fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7)
+    assert fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7) is enc
+    files = list(tmp_path.glob("enclosure-*.json"))
+    assert len(files) == 1
+    monkeypatch.setattr(E, "_CACHE", {})  # another process: read from the folder, the same numbers
+    again = fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7)
+    assert again is not enc and all(np.array_equal(getattr(again, k), getattr(enc, k))
+                                    for k in ("a", "r_lo", "r_hi", "x_lo", "x_hi"))
+    text = files[0].read_text().replace(str(enc.r_hi[0]), "0.0", 1)  # a file whose bound does not hold
+    files[0].write_text(text)
+    monkeypatch.setattr(E, "_CACHE", {})
+    fresh = fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7)
+    assert np.array_equal(fresh.r_hi, enc.r_hi)  # computed again, not read
+
+
+@pytest.mark.parametrize("lo, hi, match", [
+    ([-1, -1], [1, 1], "shape"),
+    ([-1, -1, -1, -1, -1, -1], [1, 1, 1, 1, 1, -1], "positive width"),
+    (np.zeros((2, 6)), np.ones((2, 6)), "one box"),
+])
+def test_bad_boxes_raise(lo, hi, match):
+    _, net = two_msd()
+    with pytest.raises(ValueError, match=match):
+        fl.affine_enclosure(net, lo, hi)
+
+
+def _controller(s, **kw):
+    return MPC(s["system"], s["net"], s["eps"], horizon=s["horizon"], ts=s["ts"], Q=s["Q"], R=s["R"], **kw)
+
+
+def test_the_slab_tightens_the_relaxation_and_keeps_the_optimum(msd):
+    s, enc = msd
+    with_slab, without = _controller(s), _controller(s, enclosure=False)
+    assert with_slab.enclosure is enc and without.enclosure is None
+    n = 4 if fl.FAST else 12
+    tighter = 0
+    for kind, z, R in B.cold_states(s, n):
+        f, c0 = without.pred.linear(z, R)
+        _, J_q, flag_q = without.pred.relaxation(f, z)
+        _, J_s, flag_s = with_slab.pred.relaxation(f, z)
+        a, b = with_slab(z, R), without(z, R)
+        assert a.status == b.status, (kind, a.message, b.message)
+        if b.status != "optimal":
+            continue
+        assert abs(a.objective - b.objective) <= 1e-6 * max(1.0, abs(b.objective)), (kind, a.objective, b.objective)
+        tol = 1e-9 * max(1.0, abs(b.objective))
+        assert J_q + c0 <= J_s + c0 + tol <= b.objective + 2 * tol, (kind, J_q + c0, J_s + c0, b.objective)
+        tighter += J_s > J_q + 1e-6 * max(1.0, abs(J_q))
+    assert tighter >= 1  # on states where the bound is active the slab moves the relaxation's optimum
+
+
+def test_the_enclosure_argument_is_checked(msd):
+    s, enc = msd
+    other, _ = test_net("quad1d-8x8")
+    q = fl.quad1d()
+    with pytest.raises(ValueError, match="another network"):
+        _controller(s, enclosure=fl.affine_enclosure(other, q.lo, q.hi))
+    with pytest.raises(TypeError, match="enclosure must be"):
+        _controller(s, enclosure="slab")
+    with pytest.raises(ValueError, match="do not run it"):
+        _controller(s, enclosure=enc, constraint="measured")
+    with pytest.raises(ValueError, match="do not run it"):
+        _controller(s, enclosure=False, backend="cvxpy-scip")
+    assert _controller(s, constraint="measured").enclosure is None
+    sysm = s["system"]
+    narrow = fl.affine_enclosure(s["net"], sysm.lo * 0.5, sysm.hi * 0.5)
+    with pytest.raises(ValueError, match="must contain the program's box"):
+        _controller(s, enclosure=narrow)
+    assert _controller(s, enclosure=enc).enclosure is enc
