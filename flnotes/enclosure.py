@@ -7,8 +7,8 @@ Its use is the convex outer set of the input constraint (eq. Phi_NN_ep): every `
 
 two linear rows per output. The QP without the network that the MPC solves first (screening, the level set's
 center) is a relaxation of eq. (MPC_form_miqp); with these rows at every predicted step it is a tighter one, and
-its optimum is closer to the MIQP's. Where ``Phi`` is nearly affine in ``(z, v)`` (the MSD's
-``Phi = v + s(z_2) + z_1``) the slab is narrow.
+its optimum is closer to the MIQP's. The level-set boxes are cut to the slab too (:func:`contract`). Where ``Phi``
+is nearly affine in ``(z, v)`` (the MSD's ``Phi = v + s(z_2) + z_1``) the slab is narrow.
 
 How it is computed (:func:`affine_enclosure`): ``a_j`` is the least-squares affine fit of output ``j`` on a fixed
 sample of the box (any ``a_j`` gives a valid enclosure; a good fit a narrow one); ``r_hi_j`` and ``r_lo_j`` are
@@ -236,3 +236,27 @@ def outer_rows(enc: Optional[AffineEnclosure], T: Array, Zf: Array, u: Array, nz
     G = np.vstack([enc.a @ T[k] for k in ks])                                  # (len(ks) n_out, N_p m)
     off = np.concatenate([enc.a[:, :nz] @ Zf[k] for k in ks])
     return G, np.tile(s_lo, len(ks)) - off, np.tile(s_hi, len(ks)) - off
+
+
+def contract(enc: AffineEnclosure, lo: Array, hi: Array, u: Array, rounds: int = 2) -> tuple[Array, Array]:
+    """Boxes ``lo, hi`` (T, n_in) cut to the slab ``s_lo <= a x <= s_hi`` (:meth:`AffineEnclosure.slab` of ``u``).
+
+    Interval propagation on each output's row: input ``i`` is bounded by what the row leaves it when every other
+    input takes its most favourable end, ``rounds`` times over the inputs. Every point of a box that lies in the slab
+    stays, so a box that held every admissible point still does (exact); a box left without any has ``lo > hi``
+    somewhere. Only boxes inside the enclosure's box may be cut (the slab says nothing outside).
+    """
+    lo, hi = np.array(lo, float), np.array(hi, float)
+    s_lo, s_hi = enc.slab(u)
+    for _ in range(int(rounds)):
+        for j, a in enumerate(enc.a):
+            pos, neg = np.maximum(a, 0.0), np.minimum(a, 0.0)
+            for i in np.flatnonzero(np.abs(a) > 1e-12 * np.abs(a).max()):
+                mn = lo @ pos + hi @ neg - (a[i] * (lo[:, i] if a[i] > 0 else hi[:, i]))  # min of the rest
+                mx = hi @ pos + lo @ neg - (a[i] * (hi[:, i] if a[i] > 0 else lo[:, i]))  # max of the rest
+                top, bottom = (s_hi[j] - mn) / a[i], (s_lo[j] - mx) / a[i]
+                if a[i] < 0:
+                    top, bottom = bottom, top
+                hi[:, i] = np.minimum(hi[:, i], top)
+                lo[:, i] = np.maximum(lo[:, i], bottom)
+    return lo, hi

@@ -156,3 +156,29 @@ def test_the_enclosure_argument_is_checked(msd):
     with pytest.raises(ValueError, match="must contain the program's box"):
         _controller(s, enclosure=narrow)
     assert _controller(s, enclosure=enc).enclosure is enc
+
+
+def test_contracted_boxes_keep_every_admissible_point_and_empty_the_others(msd):
+    s, enc = msd
+    net, sysm = s["net"], s["system"]
+    u = np.asarray(sysm.u_max) - s["eps"]
+    rng = np.random.default_rng(4)
+    c = rng.uniform(sysm.lo, sysm.hi, size=(30, 3))
+    w = rng.uniform(0.2, 3.0, size=(30, 3))
+    lo, hi = np.maximum(c - w, sysm.lo), np.minimum(c + w, sysm.hi)
+    lo2, hi2 = E.contract(enc, lo, hi, u)
+    assert np.all(lo2 >= lo) and np.all(hi2 <= hi)
+    cut = 0
+    for b in range(len(lo)):
+        X = rng.uniform(lo[b], hi[b], size=(20_000, 3))
+        ok = np.all(np.abs(net(X)) <= u, axis=1)
+        inside = np.all((X >= lo2[b]) & (X <= hi2[b]), axis=1)
+        assert np.all(inside[ok]), b  # every admissible point stays
+        cut += np.any(lo2[b] > lo[b] + 1e-9) or np.any(hi2[b] < hi[b] - 1e-9)
+    assert cut >= 5  # the premise: the slab cuts boxes of this size
+    # a box where every point has a x above the slab: emptied
+    far = enc.hi.copy()
+    far_lo = far - 0.2
+    assert enc.slab(u)[1][0] < far_lo @ np.maximum(enc.a[0], 0) + far @ np.minimum(enc.a[0], 0)  # the premise
+    l3, h3 = E.contract(enc, far_lo[None], far[None], u)
+    assert np.any(l3 > h3)

@@ -323,10 +323,11 @@ class MPC:
     enclosure
         With the network engine (``constraint="network"``, a persistent back-end) only: the
         :class:`flnotes.AffineEnclosure` whose slab the engine's first QP (screening, the level set's center) adds at
-        every step (:meth:`flnotes.mpc.prediction.Prediction.relaxation`; exact: the slab holds every admissible
-        input). ``"auto"`` (default) computes it on the network's domain box with :func:`flnotes.affine_enclosure`
-        (MILPs, seconds on a (20, 20, 20) network, once per network and process); an enclosure given must be of
-        this network (same parameters) and contain the program's box; ``False``: the QP without it.
+        every step (:meth:`flnotes.mpc.prediction.Prediction.relaxation`) and cuts the level-set boxes to
+        (:func:`flnotes.enclosure.contract`); exact: the slab holds every admissible input. ``"auto"`` (default)
+        computes it on the network's domain box with :func:`flnotes.affine_enclosure` (MILPs, seconds on a (20, 20, 20)
+        network, once per network, then read from the cache); an enclosure given must be of this network (same
+        parameters) and contain the program's box; ``False``: neither the slab nor the cut.
 
     Attributes
     ----------

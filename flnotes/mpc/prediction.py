@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..enclosure import AffineEnclosure, outer_rows
+from ..enclosure import AffineEnclosure, contract, outer_rows
 from ..network import ReLUNet
 from ..solvers import BOUND_TOL, FEAS_TOL
 from ..systems import condense
@@ -177,8 +177,7 @@ class Prediction:
         if enc is None:
             return self.qp(f, z0)
         z0 = np.asarray(z0, float)
-        inside = bool(np.all(enc.lo[: self.nz] <= z0) and np.all(z0 <= enc.hi[: self.nz]))
-        G, g_lo, g_hi = outer_rows(enc, self.T, self.Sx @ z0, self.u_eps + BOUND_TOL, self.nz, inside)
+        G, g_lo, g_hi = outer_rows(enc, self.T, self.Sx @ z0, self.u_eps + BOUND_TOL, self.nz, self._inside(z0))
         return self.qp(f, z0, G, g_lo, g_hi)
 
     def qp_multipliers(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
@@ -208,7 +207,9 @@ class Prediction:
         return horizon_boxes(self.Ad, self.Bd, z0, self.z_lo, self.z_hi, self.v_lo, self.v_hi, self.N)
 
     def level_boxes(self, z0: Array, V_c: Array, delta: float, lo: Array, hi: Array) -> tuple[Array, Array]:
-        """``lo, hi`` cut by the ellipsoid ``0.5 ||V - V_c||_H^2 <= delta`` projected on each ``[z(k); v(k)]``."""
+        """``lo, hi`` cut by the ellipsoid ``0.5 ||V - V_c||_H^2 <= delta`` projected on each ``[z(k); v(k)]``, then,
+        with an :attr:`enclosure`, by its slab (:func:`flnotes.enclosure.contract`; step 0 only when ``z0`` lies in
+        the enclosure's box). Each box still holds every admissible point of its step within the ellipsoid."""
         off = np.zeros(self.nz + self.m)
         lo2, hi2 = lo.copy(), hi.copy()
         Zf = self.Sx @ z0
@@ -216,4 +217,13 @@ class Prediction:
             off[: self.nz] = Zf[k]
             a, b = ellipsoid_box(self.T[k], self.H_inv, V_c, off, delta)
             lo2[k], hi2[k] = np.maximum(lo2[k], a - 1e-9), np.minimum(hi2[k], b + 1e-9)
+        enc = self.enclosure
+        if enc is not None:
+            k0 = 0 if self._inside(z0) else 1
+            lo2[k0:], hi2[k0:] = contract(enc, lo2[k0:], hi2[k0:], self.u_eps + BOUND_TOL)
         return lo2, hi2
+
+    def _inside(self, z0: Array) -> bool:
+        """Does ``z0`` lie in the enclosure's box (where its slab holds at step 0)?"""
+        enc = self.enclosure
+        return bool(np.all(enc.lo[: self.nz] <= z0) and np.all(z0 <= enc.hi[: self.nz]))
