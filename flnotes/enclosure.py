@@ -22,8 +22,6 @@ before it is returned (a solver whose bound were wrong raises there, never gives
 from __future__ import annotations
 
 import hashlib
-import json
-import os
 from dataclasses import dataclass
 from typing import Optional
 
@@ -31,7 +29,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._checks import check_boxes
-from .config import cache_dir
 from .encoding import bigm_form
 from .network import ReLUNet
 from .solvers import MIQP, make_solver
@@ -59,9 +56,11 @@ _CACHE: dict = {}
 
 
 def fingerprint(net: ReLUNet) -> str:
-    """A digest of the network's weights and biases (two networks with the same parameters share it)."""
+    """A digest of the network's layer shapes, weights and biases (two networks share it only when they are the same
+    function written the same way)."""
     h = hashlib.sha256()
-    for W, b in zip(net.W, net.b):
+    for W, b in zip(net.W, net.b):  # the shapes too: the same numbers in other layers are another network
+        h.update(repr((W.shape, b.shape)).encode())
         h.update(np.ascontiguousarray(W, float).tobytes())
         h.update(np.ascontiguousarray(b, float).tobytes())
     return h.hexdigest()
@@ -157,9 +156,8 @@ def affine_enclosure(net: ReLUNet, lo: Array, hi: Array, seed: int = 0,
     seed
         Of the sample that fits ``a`` and checks the result.
     cache
-        Keep the result for this network's parameters, box and seed (the MILPs take seconds on a (20, 20, 20)
-        network), in this process and in :func:`flnotes.config.cache_dir`: a later call returns it (one read from
-        the folder is checked on the sample first, and computed again when it fails).
+        Keep the result in this process for this network (its :func:`fingerprint`), box and seed (the MILPs take
+        seconds on a (20, 20, 20) network): a later call returns it.
 
     Raises
     ------
@@ -179,27 +177,20 @@ def affine_enclosure(net: ReLUNet, lo: Array, hi: Array, seed: int = 0,
     if cache and key in _CACHE:
         return _CACHE[key]
     X = np.random.default_rng(seed).uniform(lo, hi, size=(N_SAMPLE, net.n_in))
-    path = cache_dir() / ("enclosure-" + hashlib.sha256(repr(key).encode()).hexdigest()[:24] + ".json")
-    if cache and path.exists():
-        d = json.loads(path.read_text())
-        enc = AffineEnclosure(*(np.asarray(d[k], float) for k in ("a", "r_lo", "r_hi", "lo", "hi", "x_lo", "x_hi")),
-                              key[0])
-        if enc.net_id == d["net_id"] and np.array_equal(enc.lo, lo) and np.array_equal(enc.hi, hi) and \
-                enc.contains(net, np.vstack([X, enc.x_lo, enc.x_hi])):
-            _CACHE[key] = enc
-            return enc
     enc = _compute(net, lo, hi, X, key[0])
     if cache:
         _CACHE[key] = enc
-        tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.json")
-        tmp.write_text(json.dumps(dict(net_id=enc.net_id, **{k: getattr(enc, k).tolist() for k in (
-            "a", "r_lo", "r_hi", "lo", "hi", "x_lo", "x_hi")})))
-        os.replace(tmp, path)
     return enc
 
 
 def _compute(net: ReLUNet, lo: Array, hi: Array, X: Array, net_id: str) -> AffineEnclosure:
     """The MILPs of :func:`affine_enclosure` and the check of the result on the sample ``X``."""
+    if net.K == 1:  # no hidden layer: Phi_NN(x) = W x + b is its own enclosure, exact
+        W, b = net.W[0], net.b[0]
+        pad = PAD * np.maximum(1.0, np.abs(b))
+        x0 = np.repeat(lo[None], net.n_out, axis=0)
+        return _checked(net, AffineEnclosure(W.copy(), b - pad, b + pad, lo.copy(), hi.copy(), x0, x0.copy(), net_id),
+                        X)
     a = _fit(net, lo, hi, X)
     form = bigm_form(net, lp_bounds(net, lo, hi))
     r_lo, r_hi = np.zeros(net.n_out), np.zeros(net.n_out)
@@ -209,11 +200,15 @@ def _compute(net: ReLUNet, lo: Array, hi: Array, X: Array, net_id: str) -> Affin
         r_lo[j], x_lo[j] = _extreme(net, form, lo, hi, a[j], j, -1.0)
     r_hi += PAD * np.maximum(1.0, np.abs(r_hi))
     r_lo -= PAD * np.maximum(1.0, np.abs(r_lo))
-    enc = AffineEnclosure(a, r_lo, r_hi, lo.copy(), hi.copy(), x_lo, x_hi, net_id)
-    pts = np.vstack([X, x_lo, x_hi, lo, hi])
+    return _checked(net, AffineEnclosure(a, r_lo, r_hi, lo.copy(), hi.copy(), x_lo, x_hi, net_id), X)
+
+
+def _checked(net: ReLUNet, enc: AffineEnclosure, X: Array) -> AffineEnclosure:
+    """``enc``, once it holds at the sample ``X``, the witnesses and the box's two corners (else RuntimeError)."""
+    pts = np.vstack([X, enc.x_lo, enc.x_hi, enc.lo, enc.hi])
     if not enc.contains(net, pts):
         r = enc.residual(net, pts)
-        raise RuntimeError(f"the enclosure's proved bounds [{r_lo}, {r_hi}] do not hold at every sampled point "
+        raise RuntimeError(f"the enclosure's proved bounds [{enc.r_lo}, {enc.r_hi}] do not hold at every sampled point "
                            f"(residuals from {r.min(axis=0)} to {r.max(axis=0)}): a solver's bound is wrong; "
                            "nothing is returned")
     return enc

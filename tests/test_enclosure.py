@@ -83,23 +83,30 @@ def test_a_bound_that_does_not_hold_is_refused(monkeypatch):
         fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=5, cache=False)
 
 
-def test_the_cache_returns_the_same_enclosure_and_checks_what_it_reads(monkeypatch, tmp_path):
-    monkeypatch.setenv("FLNOTES_CACHE", str(tmp_path))
+def test_the_cache_tells_networks_apart_by_their_layers_too(monkeypatch):
     monkeypatch.setattr(E, "_CACHE", {})
-    sysm, net = two_msd()
-    enc = fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7)
-    assert fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7) is enc
-    files = list(tmp_path.glob("enclosure-*.json"))
-    assert len(files) == 1
-    monkeypatch.setattr(E, "_CACHE", {})  # another process: read from the folder, the same numbers
-    again = fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7)
-    assert again is not enc and all(np.array_equal(getattr(again, k), getattr(enc, k))
-                                    for k in ("a", "r_lo", "r_hi", "x_lo", "x_hi"))
-    text = files[0].read_text().replace(str(enc.r_hi[0]), "0.0", 1)  # a file whose bound does not hold
-    files[0].write_text(text)
-    monkeypatch.setattr(E, "_CACHE", {})
-    fresh = fl.affine_enclosure(net, sysm.lo, sysm.hi, seed=7)
-    assert np.array_equal(fresh.r_hi, enc.r_hi)  # computed again, not read
+    rng = np.random.default_rng(8)
+    p = rng.normal(size=9)  # the same nine numbers as one layer of 2 neurons, or as three layers of 1
+    A = fl.ReLUNet([p[0:4].reshape(2, 2), p[6:8].reshape(1, 2)], [p[4:6], p[8:9]])
+    B = fl.ReLUNet([p[0:2].reshape(1, 2), p[3:4].reshape(1, 1), p[5:6].reshape(1, 1), p[7:8].reshape(1, 1)],
+                   [p[2:3], p[4:5], p[6:7], p[8:9]])
+    flat = lambda n: b"".join(a.tobytes() for W, c in zip(n.W, n.b) for a in (W, c))  # noqa: E731
+    assert flat(A) == flat(B)  # the premise: the same parameters in the same order
+    lo, hi = [-2.0, -2.0], [2.0, 2.0]
+    eA = fl.affine_enclosure(A, lo, hi)
+    eB = fl.affine_enclosure(B, lo, hi)
+    assert eA.net_id != eB.net_id and eA is not eB
+    assert fl.affine_enclosure(A, lo, hi) is eA  # the same network: kept
+    X = _points(np.array(lo), np.array(hi), 20_000)
+    assert eA.contains(A, X) and eB.contains(B, X)
+
+
+def test_a_network_without_hidden_layer_is_its_own_enclosure():
+    W, b = np.array([[1.0, -2.0, 0.5]]), np.array([0.3])
+    net = fl.ReLUNet([W], [b])
+    enc = fl.affine_enclosure(net, [-1, -1, -1], [1, 1, 1])
+    assert np.array_equal(enc.a, W) and np.all(enc.r_lo <= b) and np.all(b <= enc.r_hi)
+    assert np.all(enc.r_hi - enc.r_lo <= 1e-4)
 
 
 @pytest.mark.parametrize("lo, hi, match", [
