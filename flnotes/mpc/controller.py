@@ -326,7 +326,7 @@ class MPC:
         every step (:meth:`flnotes.mpc.prediction.Prediction.relaxation`) and cuts the level-set boxes to
         (:func:`flnotes.enclosure.contract`); exact: the slab holds every admissible input. ``"auto"`` (default)
         computes it on the network's domain box with :func:`flnotes.affine_enclosure` (MILPs, seconds on a (20, 20, 20)
-        network, once per network, then read from the cache); an enclosure given must be of this network (same
+        network, once per network in a process); an enclosure given must be of this network (same
         parameters) and contain the program's box; ``False``: neither the slab nor the cut.
 
     Attributes
