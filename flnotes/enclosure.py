@@ -83,6 +83,10 @@ class AffineEnclosure:
         the solver's gap of ``r_lo`` and ``r_hi``.
     net_id
         :func:`fingerprint` of the network it encloses.
+
+    The arrays are read-only copies (the enclosure a cache hands out is the one it checked), of checked shapes,
+    finite, with ``r_lo <= r_hi`` and ``lo < hi``. Whether the bounds hold is checked against a network by
+    :func:`check_enclosure`.
     """
 
     a: Array
@@ -93,6 +97,26 @@ class AffineEnclosure:
     x_lo: Array
     x_hi: Array
     net_id: str
+
+    def __post_init__(self) -> None:
+        for k in ("a", "r_lo", "r_hi", "lo", "hi", "x_lo", "x_hi"):
+            v = np.array(getattr(self, k), dtype=float)  # a copy
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"AffineEnclosure.{k} must be finite, got {v}")
+            v.setflags(write=False)
+            object.__setattr__(self, k, v)
+        n_out, n_in = self.a.shape if self.a.ndim == 2 else (-1, -1)
+        want = dict(a=(n_out, n_in), r_lo=(n_out,), r_hi=(n_out,), lo=(n_in,), hi=(n_in,), x_lo=(n_out, n_in),
+                    x_hi=(n_out, n_in))
+        bad = [f"{k} {getattr(self, k).shape}" for k, sh in want.items() if n_out < 1 or getattr(self, k).shape != sh]
+        if bad:
+            raise ValueError(f"AffineEnclosure: a must be (n_out, n_in), r_lo and r_hi (n_out,), lo and hi (n_in,), "
+                             f"x_lo and x_hi (n_out, n_in); got {', '.join(bad)} (a {self.a.shape})")
+        if np.any(self.r_lo > self.r_hi) or np.any(self.lo >= self.hi):
+            raise ValueError(f"AffineEnclosure: need r_lo <= r_hi and lo < hi, got r_lo = {self.r_lo}, "
+                             f"r_hi = {self.r_hi}, lo = {self.lo}, hi = {self.hi}")
+        if not isinstance(self.net_id, str):
+            raise TypeError(f"AffineEnclosure.net_id must be a str (fingerprint(net)), got {self.net_id!r}")
 
     def residual(self, net: ReLUNet, X: Array) -> Array:
         """``Phi_NN(x) - a x`` at the points ``X`` (N, n_in) -> (N, n_out)."""
@@ -167,6 +191,10 @@ def affine_enclosure(net: ReLUNet, lo: Array, hi: Array, seed: int = 0,
     """
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise TypeError(f"seed must be a non-negative integer, got {seed!r}")
+    if not isinstance(cache, bool):
+        raise TypeError(f"cache must be True or False, got {cache!r}")
     lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
     if batch:
         raise ValueError(f"lo and hi must be one box of shape ({net.n_in},), got {np.shape(lo)}")
@@ -212,6 +240,24 @@ def _checked(net: ReLUNet, enc: AffineEnclosure, X: Array) -> AffineEnclosure:
                            f"(residuals from {r.min(axis=0)} to {r.max(axis=0)}): a solver's bound is wrong; "
                            "nothing is returned")
     return enc
+
+
+def check_enclosure(net: ReLUNet, enc: AffineEnclosure, seed: int = 0) -> None:
+    """Raise ValueError unless ``enc`` is of ``net`` (same :func:`fingerprint`) and holds at a fixed sample of its box
+    (:data:`N_SAMPLE` points), its witnesses and its corners: the check an enclosure given by a caller gets (a sample
+    cannot prove the bounds, but it finds any that were shifted, swapped or computed for another box)."""
+    if not isinstance(enc, AffineEnclosure):
+        raise TypeError(f"expected a flnotes.AffineEnclosure, got {type(enc).__name__}")
+    if enc.net_id != fingerprint(net):
+        raise ValueError("the enclosure was computed for another network (its parameters differ): compute it with "
+                         "fl.affine_enclosure(net, lo, hi)")
+    if enc.a.shape != (net.n_out, net.n_in):
+        raise ValueError(f"the enclosure's a has shape {enc.a.shape}, the network needs ({net.n_out}, {net.n_in})")
+    X = np.random.default_rng(seed).uniform(enc.lo, enc.hi, size=(N_SAMPLE, net.n_in))
+    try:
+        _checked(net, enc, X)
+    except RuntimeError as exc:
+        raise ValueError(f"the enclosure does not hold for this network: {exc}") from None
 
 
 def outer_rows(enc: Optional[AffineEnclosure], T: Array, Zf: Array, u: Array, nz: int,

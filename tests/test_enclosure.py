@@ -189,3 +189,30 @@ def test_contracted_boxes_keep_every_admissible_point_and_empty_the_others(msd):
     assert enc.slab(u)[1][0] < far_lo @ np.maximum(enc.a[0], 0) + far @ np.minimum(enc.a[0], 0)  # the premise
     l3, h3 = E.contract(enc, far_lo[None], far[None], u)
     assert np.any(l3 > h3)
+
+
+def test_an_enclosure_cannot_be_changed_and_a_wrong_one_is_refused(msd):
+    s, enc = msd
+    with pytest.raises(ValueError, match="read-only"):
+        enc.r_hi[:] -= 1.0  # the cached object stays the checked one
+    fields = {k: getattr(enc, k) for k in ("a", "r_lo", "r_hi", "lo", "hi", "x_lo", "x_hi", "net_id")}
+    with pytest.raises(ValueError, match="r_lo <= r_hi"):
+        fl.AffineEnclosure(**{**fields, "r_lo": enc.r_hi, "r_hi": enc.r_lo})
+    with pytest.raises(ValueError, match="finite"):
+        fl.AffineEnclosure(**{**fields, "r_hi": [np.nan]})
+    with pytest.raises(ValueError, match="n_out, n_in"):
+        fl.AffineEnclosure(**{**fields, "a": enc.a[0]})
+    shifted = fl.AffineEnclosure(**{**fields, "r_lo": enc.r_lo + 0.8, "r_hi": enc.r_hi + 0.8})
+    with pytest.raises(ValueError, match="does not hold"):
+        _controller(s, enclosure=shifted)
+    flat = fl.AffineEnclosure(**{**fields, "a": np.zeros_like(enc.a)})
+    with pytest.raises(ValueError, match="does not hold"):
+        _controller(s, enclosure=flat)
+
+
+@pytest.mark.parametrize("kw, match", [(dict(seed=1.7), "seed"), (dict(seed=True), "seed"), (dict(seed=-1), "seed"),
+                                       (dict(cache="no"), "cache")])
+def test_bad_seed_or_cache_raise(kw, match):
+    sysm, net = two_msd()
+    with pytest.raises(TypeError, match=match):
+        fl.affine_enclosure(net, sysm.lo, sysm.hi, **kw)

@@ -19,7 +19,7 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
-from ..enclosure import AffineEnclosure, affine_enclosure, fingerprint
+from ..enclosure import AffineEnclosure, affine_enclosure, check_enclosure
 from ..config import (answer_slice, hold_signals, machine_steal, major_faults, one_blas_thread, pause_for_step, pause_gc,
                       quick_thread_switch, release_signals, resume_after_step, resume_gc, set_back_slice,
                       slice_before_answer, thread_run_delay, yield_core)
@@ -327,7 +327,8 @@ class MPC:
         (:func:`flnotes.enclosure.contract`); exact: the slab holds every admissible input. ``"auto"`` (default)
         computes it on the network's domain box with :func:`flnotes.affine_enclosure` (MILPs, seconds on a (20, 20, 20)
         network, once per network in a process); an enclosure given must be of this network (same
-        parameters) and contain the program's box; ``False``: neither the slab nor the cut.
+        parameters), hold on a sample of its box (:func:`flnotes.enclosure.check_enclosure`) and contain the
+        program's box; ``False``: neither the slab nor the cut.
 
     Attributes
     ----------
@@ -478,9 +479,7 @@ class MPC:
             return None
         if not isinstance(enclosure, AffineEnclosure):
             raise TypeError(f"enclosure must be 'auto', False or a flnotes.AffineEnclosure, got {enclosure!r}")
-        if enclosure.net_id != fingerprint(net):
-            raise ValueError("the enclosure was computed for another network (its parameters differ): compute it with "
-                             "fl.affine_enclosure(net, system.lo, system.hi), or pass enclosure='auto'")
+        check_enclosure(net, enclosure)  # of this network, and it holds on a sample of its box
         return enclosure
 
     @staticmethod
