@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 import scipy.sparse as sp
@@ -260,17 +259,14 @@ def check_enclosure(net: ReLUNet, enc: AffineEnclosure, seed: int = 0) -> None:
         raise ValueError(f"the enclosure does not hold for this network: {exc}") from None
 
 
-def outer_rows(enc: Optional[AffineEnclosure], T: Array, Zf: Array, u: Array, nz: int,
-               z0_inside: bool = True) -> Optional[tuple[Array, Array, Array]]:
+def outer_rows(enc: AffineEnclosure, T: Array, Zf: Array, u: Array, nz: int,
+               z0_inside: bool = True) -> tuple[Array, Array, Array]:
     """The slab of every predicted step as rows over the plan: ``(G, g_lo, g_hi)`` with ``g_lo <= G V <= g_hi``.
 
     ``T`` (N_p, n_in, N_p m) maps the plan to the network inputs ``[z(k); v(k)] = T[k] V + [Zf[k]; 0]``, ``Zf``
     (N_p + 1, n_z) the free response; ``u`` the output bound. Step 0's rows are left out when ``z(0)`` lies
-    outside the enclosure's box (``z0_inside`` False): the enclosure says nothing there. ``None`` without an
-    enclosure.
+    outside the enclosure's box (``z0_inside`` False): the enclosure says nothing there.
     """
-    if enc is None:
-        return None
     s_lo, s_hi = enc.slab(u)
     N = T.shape[0]
     ks = [k for k in range(N) if k > 0 or z0_inside]

@@ -47,7 +47,8 @@ class Prediction:
         Optional ``(F, g)``: the terminal constraint ``F z(N_p) <= g``.
     enclosure
         Optional :class:`flnotes.AffineEnclosure` of the network over a box that contains ``[z_lo, z_hi] x
-        [v_lo, v_hi]``: :meth:`relaxation` then adds its slab at every step.
+        [v_lo, v_hi]``: :meth:`relaxation` then adds its slab at every step, and :meth:`level_boxes` cuts the
+        boxes to it.
 
     Attributes
     ----------
