@@ -367,12 +367,10 @@ def test_time_limit_numbers_says_whether_warm_start_fell_back_less():
             "that value did not show in this build, counts that depend on the machine's speed")
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="known open bug: on this program (one integrator, N_p = 5, a random (5, 4) network, 34 "
-                   "binaries) DAQP's branch and bound, as the engine runs it, returns a plan 6e-4 (relative) above "
-                   "the optimum as 'optimal', and the engine trusts its certificate; SCIP and the cold reference find "
-                   "the optimum. Remove this mark once the engine returns the optimum here.")
-def test_a_program_where_daqps_claim_of_optimality_is_wrong():
+@pytest.mark.parametrize("options", [dict(), dict(backend="daqp"), dict(enclosure=False)])
+def test_a_program_where_daqp_once_claimed_a_suboptimal_plan_optimal(options):
+    """One integrator, N_p = 5, a random (5, 4) network, 34 binaries: with a primal tolerance of 1e-7 DAQP's branch and
+    bound returned a plan 6e-4 (relative) above the optimum as optimal; the engine must return the optimum."""
     d = np.load(Path(__file__).resolve().parent / "data" / "daqp_suboptimal_program.npz")
     A, B = fl.brunovsky([1])
     sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=d["lo"], hi=d["hi"],
@@ -383,7 +381,7 @@ def test_a_program_where_daqps_claim_of_optimality_is_wrong():
     ref = fl.MPC(sysm, net, 0.0, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)
     r_ref = ref(d["z"], d["z_ref"])
     assert r_ref.status == "optimal" and ref.plan_feasible(r_ref.z_pred, r_ref.v_pred)  # the premise
-    mpc = fl.MPC(sysm, net, 0.0, **kw)
+    mpc = fl.MPC(sysm, net, 0.0, **kw, **options)
     r = mpc(d["z"], d["z_ref"])
     assert r.status == "optimal"
     assert abs(r.objective - r_ref.objective) <= 1e-6 * max(1.0, abs(r_ref.objective)), (r.objective,

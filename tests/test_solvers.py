@@ -720,3 +720,26 @@ def test_scip_conic_answers_as_cvxpys_scip_interface():
         assert prob.status == want_status and conic.status is not None, (prob, prob.status, want_status)
         if want_status == "optimal":
             assert abs(prob.value - want) <= 1e-6 * max(1.0, abs(want)), (prob.value, want)
+
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_daqps_objective_bound_is_in_the_units_of_its_least_distance_form(seed):
+    """DAQP stops a QP as infeasible when its dual objective exceeds ``fval_bound``, an objective of its
+    least-distance form ``J + 0.5 c'H^-1 c``: the back-end converts the warm start's value with
+    ``flnotes.solvers.daqp._ldp_offset``. Just above the optimum in those units DAQP solves, just below it stops."""
+    daqp = pytest.importorskip("daqp")
+    from flnotes.solvers.daqp import _ldp_offset
+
+    rng = np.random.default_rng(seed)
+    n = 6
+    F = rng.normal(size=(n, n))
+    H = F.T @ F + np.diag(np.r_[np.full(n - 2, 1.0), 1e-4, 1e-6])  # a nearly singular one too, as the big-M programs
+    c = 10.0 * rng.normal(size=n)
+    bu, bl = np.ones(n), -np.ones(n)
+    sense = np.zeros(n, dtype=np.int32)
+    x, J, flag, _ = daqp.solve(H, c, np.zeros((0, n)), bu, bl, sense)
+    assert flag == 1 and np.any(np.abs(np.abs(x) - 1.0) <= 1e-9), "the premise: a bound is active at the optimum"
+    level = J + _ldp_offset(H, c)
+    for factor, expected in ((1.0 + 1e-6, 1), (1.0 - 1e-6, -1)):
+        assert daqp.solve(H, c, np.zeros((0, n)), bu, bl, sense, fval_bound=level * factor)[2] == expected, factor

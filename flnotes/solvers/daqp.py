@@ -5,8 +5,10 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 from __future__ import annotations
 
 import time
+from typing import Optional
 
 import numpy as np
+import scipy.linalg
 
 from .base import Solver, _confirm, _require, make_solver
 from .problem import _INF, FEAS_TOL, MIQP, Array, MIQPResult, _result
@@ -51,7 +53,8 @@ class DaqpSolver(Solver):
     ``eps_prox=1e-4``, then the program goes to SCIP.
 
     Warm start. A feasible warm start ``w_ws`` gives the incumbent bound
-    ``fval_bound = J(w_ws)`` (``+ B`` with ``reg_mode="upper"``): DAQP then only explores nodes that can beat
+    ``fval_bound = J(w_ws)`` (``+ B`` with ``reg_mode="upper"``), given in the units DAQP compares it in (the
+    objective of its least-distance form, ``J + 0.5 c'H^-1 c``): DAQP then only explores nodes that can beat
     it. If none does (exit flag -1 under the bound), ``w_ws`` is optimal
     provided DAQP's branch and bound is right, which on the degenerate big-M
     rows it has not always been: an exit flag -1 on a mixed-integer program
@@ -106,8 +109,10 @@ class DaqpSolver(Solver):
         self._Ad = p.A.toarray()
         self._model = None
         # the big-M rows are degenerate: DAQP's default cycling guard (10 iterations without progress)
-        # stops too early on them
-        self._settings = dict(eps_prox=self._eps_prox, primal_tol=float(self.options.get("primal_tol", 1e-7)),
+        # stops too early on them. The primal tolerance is DAQP's default: with 1e-7 its branch and bound returned a
+        # sub-optimal point as optimal (tests/test_mpc.py keeps the program); a point that violates the program by
+        # more than FEAS_TOL is refused below and the program goes to SCIP.
+        self._settings = dict(eps_prox=self._eps_prox, primal_tol=float(self.options.get("primal_tol", 1e-6)),
                               cycle_tol=1000, progress_tol=1e-10)
         self._settings.update(self.options.get("params", {}))
 
@@ -258,11 +263,13 @@ class DaqpSolver(Solver):
             q = dr * (w - lbv) * (w - ubv) if secant else dr * w ** 2
             return p.objective(w) + 0.5 * float(np.sum(q[pert]))
 
-        if incumbent is not None and np.isfinite(B):
+        offset = None if settings.get("eps_prox") else _ldp_offset(Hr, c_r)
+        if incumbent is not None and np.isfinite(B) and offset is not None:
             # Any w better than the incumbent has J_s(w) < J(incumbent) (secant) or J_r(w) < J(incumbent) + B:
-            # nodes above that are pruned.
+            # nodes above that are pruned. DAQP compares fval_bound with the objective of its least-distance form,
+            # J + 0.5 c' H^-1 c (``offset``), not with J.
             J_full = p.objective(incumbent)
-            settings["fval_bound"] = J_full + B - const - 1e-9 * max(1.0, abs(J_full))
+            settings["fval_bound"] = J_full + B - const + offset - 1e-9 * max(1.0, abs(J_full))
         if free.size == 0:
             w = xf.copy()
             ok = p.violation(w) <= 1e-6
@@ -326,6 +333,20 @@ DAQP_STATUS = {1: "optimal", 2: "unproven", -1: "infeasible", -2: "error", -3: "
 _DAQP_FLAGS = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling", -3: "unbounded",
                -4: "iteration limit", -5: "nonconvex", -6: "overdetermined initial active set",
                -7: "time limit reached", -8: "unsupported problem"}
+
+
+def _ldp_offset(H: Optional[Array], c: Array) -> Optional[float]:
+    """``0.5 c' H^-1 c``: DAQP solves ``min 0.5 w'Hw + c'w`` as the least-distance program ``min 0.5 ||u||^2`` with
+    ``u = R w + R^-T c`` (``H = R'R``), whose objective is ``J + 0.5 c'H^-1 c``; its ``fval_bound`` is a bound on that
+    objective. ``None`` where ``H`` is missing or not positive definite (no bound is then given)."""
+    if H is None or H.shape[0] == 0:
+        return None
+    try:
+        R = np.linalg.cholesky(H)
+    except np.linalg.LinAlgError:
+        return None
+    y = scipy.linalg.solve_triangular(R, c, lower=True)
+    return 0.5 * float(y @ y)
 
 
 def _is_pd(H: Array) -> bool:
