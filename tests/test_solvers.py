@@ -743,3 +743,34 @@ def test_daqps_objective_bound_is_in_the_units_of_its_least_distance_form(seed):
     level = J + _ldp_offset(H, c)
     for factor, expected in ((1.0 + 1e-6, 1), (1.0 - 1e-6, -1)):
         assert daqp.solve(H, c, np.zeros((0, n)), bu, bl, sense, fval_bound=level * factor)[2] == expected, factor
+
+
+def _stored_program(name: str) -> MIQP:
+    d = np.load(os.path.join(os.path.dirname(__file__), "data", name))
+    H = sp.csr_matrix((d["H_data"], d["H_indices"], d["H_indptr"]), shape=tuple(d["H_shape"]))
+    A = sp.csr_matrix((d["A_data"], d["A_indices"], d["A_indptr"]), shape=tuple(d["A_shape"]))
+    return MIQP(H, d["c"], float(d["c0"]), A, d["rl"], d["ru"], d["lb"], d["ub"], d["integrality"])
+
+
+@pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
+def test_daqp_hands_a_long_search_over_to_scip():
+    """A program of a random (6, 4) network over 5 steps (43 binaries) where DAQP's depth-first search runs for
+    seconds (SCIP: a tenth of a second). Without a time limit DAQP gets ``handover`` seconds, then SCIP solves the
+    program: the answer is SCIP's proven optimum and says so. With a time limit there is no hand-over."""
+    from flnotes.solvers.daqp import HANDOVER_S
+
+    p = _stored_program("daqp_slow_program.npz")
+    ref = make_solver(p, "scip").solve(gap=1e-9)
+    assert ref.status == "optimal"
+    r = make_solver(p, "daqp", handover=0.05).solve()
+    assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
+    assert "proven by scip" in r.message and "hand-over time of 0.05 s" in r.message, r.message
+    r = make_solver(p, "daqp", handover=0.05).solve(time_limit=0.2)  # the caller's limit: DAQP gets all of it
+    assert "hand-over" not in r.message, r.message
+    assert HANDOVER_S > 0
+    for bad in (0, -1.0, True, "1", np.inf, np.nan):
+        with pytest.raises(ValueError, match="handover"):
+            make_solver(p, "daqp", handover=bad)
+    for bad in (-1, 1.5, True, "3"):
+        with pytest.raises(ValueError, match="verify_nodes"):
+            make_solver(p, "daqp", verify_nodes=bad)

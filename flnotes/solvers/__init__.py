@@ -37,7 +37,8 @@ What "optimal" means
 --------------------
 A result has status ``"optimal"`` only when the optimum is proven: by a solver
 status that is a proof (HiGHS ``kOptimal``, SCIP ``optimal``/``gaplimit``,
-DAQP exit flag 1; every other status of each back-end is mapped explicitly, see
+DAQP exit flag 1 after a search of at most :data:`VERIFY_NODES`
+nodes on a mixed-integer program; every other status of each back-end is mapped explicitly, see
 :data:`HIGHS_STATUS`, :data:`SCIP_STATUS`, :data:`DAQP_STATUS`) *and* a returned
 point that satisfies the program's rows, bounds and integrality to
 :data:`FEAS_TOL`. A claim that is not a proof is verified by an independent
@@ -45,7 +46,8 @@ solver instead of being trusted: DAQP's exit flags other than 1 (its flag 4,
 returned after proximal-point iterations on the singular ``H`` of the big-M
 programs, is not documented as optimal and was measured sub-optimal up to 12x)
 and its "infeasible" on a mixed-integer program (its depth-first branch and
-bound has declared feasible big-M programs infeasible) are re-solved by SCIP
+bound has declared feasible big-M programs infeasible), and its optimum after
+a longer search (it has returned sub-optimal points as optimal there) are re-solved by SCIP
 (HiGHS for a continuous program), warm-started with DAQP's point; HiGHS's
 "infeasible" on a mixed-integer program is confirmed by SCIP. The result's
 ``message`` says when this happened.
@@ -78,11 +80,11 @@ only (cvxpy in the bridge), never a controller; a back-end fix never touches
 MPC or CLF-CBF logic.
 """
 from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver, release_retired, retire
-from .daqp import DAQP_STATUS, DaqpSolver
+from .daqp import DAQP_STATUS, HANDOVER_S, VERIFY_NODES, DaqpSolver
 from .highs import HIGHS_STATUS, HighsSolver
 from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, MIQPResult, next_margin, project_to_box
 from .scip import C_NOTICES, SCIP_STATUS, ScipSolver
 
 __all__ = ["SOLVER_BACKENDS", "Solver", "available_backends", "make_solver", "release_retired", "retire",
-           "DAQP_STATUS", "DaqpSolver", "HIGHS_STATUS", "HighsSolver", "BOUND_TOL", "BOX_TOL", "FEAS_TOL", "MIQP",
-           "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "C_NOTICES"]
+           "DAQP_STATUS", "DaqpSolver", "HANDOVER_S", "VERIFY_NODES", "HIGHS_STATUS", "HighsSolver", "BOUND_TOL",
+           "BOX_TOL", "FEAS_TOL", "MIQP", "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "C_NOTICES"]
