@@ -414,3 +414,11 @@ def test_daqp_alone_is_wrong_on_a_stored_program_so_its_long_searches_are_verifi
         assert r.status == "optimal"
         J[trust] = r.objective
     assert J[None] > J["default"] * (1 + 1e-3), J
+
+
+@pytest.mark.parametrize("daqp", [dict(handover=0.0), dict(verify_nodes=-1), dict(reg_mode="lower")])
+def test_bad_daqp_options_are_refused_when_the_controller_is_built(daqp):
+    """Not at the first program DAQP gets (which may come many steps later)."""
+    sysm, net, _, _ = _stored_integrator_case("daqp_long_search_program.npz")
+    with pytest.raises(ValueError, match=next(iter(daqp))):
+        fl.MPC(sysm, net, 0.0, horizon=5, ts=0.2, Q=[1.0], R=0.1, solver_options={"daqp": daqp, "scip": {}})

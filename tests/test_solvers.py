@@ -768,9 +768,9 @@ def test_daqp_hands_a_long_search_over_to_scip():
     r = make_solver(p, "daqp", handover=0.05).solve(time_limit=0.2)  # the caller's limit: DAQP gets all of it
     assert "hand-over" not in r.message, r.message
     assert HANDOVER_S > 0
-    for bad in (0, -1.0, True, "1", np.inf, np.nan):
+    for bad in (0, -1.0, True, "1", np.inf, np.nan, np.complex128(1.0), np.timedelta64(1, "s")):
         with pytest.raises(ValueError, match="handover"):
             make_solver(p, "daqp", handover=bad)
-    for bad in (-1, 1.5, True, "3"):
+    for bad in (-1, 1.5, True, "3", 3.0):
         with pytest.raises(ValueError, match="verify_nodes"):
             make_solver(p, "daqp", verify_nodes=bad)

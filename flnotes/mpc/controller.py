@@ -27,6 +27,7 @@ from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
 from ..solvers.base import _require
+from ..solvers.daqp import check_options as check_daqp_options
 from ..systems import FLSystem
 from . import fallback
 from .engine import NetworkEngine
@@ -115,6 +116,7 @@ def _per_backend(backend: str, used: tuple, solver_options: Optional[dict]) -> d
         per = {b: dict(given) for b in used}
     if "daqp" in per:
         per["daqp"] = dict(DAQP_OPTIONS, **per["daqp"])
+        check_daqp_options(per["daqp"])  # now, not at the first program DAQP gets
     return per
 
 

@@ -4,6 +4,7 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 """
 from __future__ import annotations
 
+import numbers
 import time
 from typing import Optional
 
@@ -97,20 +98,7 @@ class DaqpSolver(Solver):
             raise ValueError(f"the 'daqp' back-end supports binary integers only (bounds within [0, 1]); "
                              f"variable {bad[0]} has bounds [{p.lb[bad[0]]}, {p.ub[bad[0]]}]: use backend='scip' or 'highs'")
         self._daqp = daqp
-        for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("relaxation", "milp", "miqp")),
-                           ("reg_retry", (True, False))):
-            if k in self.options and self.options[k] not in allowed:
-                raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {self.options[k]!r}")
-        handover = self.options.get("handover", HANDOVER_S)
-        if handover is not None and (isinstance(handover, bool) or not isinstance(handover, (int, float, np.number))
-                                     or not 0.0 < handover < np.inf):
-            raise ValueError(f"the DAQP option handover must be a positive number of seconds or None, got {handover!r}")
-        trust = self.options.get("verify_nodes", VERIFY_NODES)
-        if trust is not None and (isinstance(trust, bool) or not isinstance(trust, (int, np.integer)) or trust < 0):
-            raise ValueError(f"the DAQP option verify_nodes must be a non-negative integer or None, got {trust!r}")
-        if not isinstance(self.options.get("scip_options", {}), dict):
-            raise ValueError(f"the DAQP option scip_options must be a dict of SCIP options (see ScipSolver), got "
-                             f"{self.options['scip_options']!r}")
+        check_options(self.options)
         reg = self.options.get("reg", 1e-6)
         H = np.zeros((p.n, p.n)) if p.H is None else p.H.toarray()
         self._eps_prox = 0.0
@@ -186,7 +174,9 @@ class DaqpSolver(Solver):
                 retry.message += " (after a retry with eps_prox=1e-4)"
                 res = retry
         verifier = "scip" if p.is_mip else "highs"
-        if limit is not time_limit and res.status == "time_limit":  # no time limit: SCIP takes over the program
+        if limit is not time_limit and (res.status == "time_limit" or (
+                res.status in ("unproven", "error") and time.perf_counter() - t0 >= handover)):
+            # no time limit: SCIP takes over the program (DAQP may also stop at its limit with an undocumented flag)
             return _confirm(self, p, verifier, res.w, None, gap, t0,
                             f"daqp: no answer after the hand-over time of {handover:g} s", res.nodes)
         trust = self.options.get("verify_nodes", VERIFY_NODES)
@@ -378,6 +368,25 @@ DAQP_STATUS = {1: "optimal", 2: "unproven", -1: "infeasible", -2: "error", -3: "
 _DAQP_FLAGS = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling", -3: "unbounded",
                -4: "iteration limit", -5: "nonconvex", -6: "overdetermined initial active set",
                -7: "time limit reached", -8: "unsupported problem"}
+
+
+def check_options(options: dict) -> None:
+    """Raise a ValueError naming the first DAQP back-end option (:class:`DaqpSolver`) whose value means nothing."""
+    for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("relaxation", "milp", "miqp")),
+                       ("reg_retry", (True, False))):
+        if k in options and options[k] not in allowed:
+            raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {options[k]!r}")
+    if not isinstance(options.get("scip_options", {}), dict):
+        raise ValueError(f"the DAQP option scip_options must be a dict of SCIP options (see ScipSolver), got "
+                         f"{options['scip_options']!r}")
+    handover = options.get("handover", HANDOVER_S)
+    if handover is not None and (isinstance(handover, (bool, np.timedelta64)) or not isinstance(handover, numbers.Real)
+                                 or not 0.0 < float(handover) < np.inf):
+        raise ValueError(f"the DAQP option handover must be a positive number of seconds or None, got {handover!r}")
+    trust = options.get("verify_nodes", VERIFY_NODES)
+    if trust is not None and (isinstance(trust, (bool, np.timedelta64)) or not isinstance(trust, numbers.Integral)
+                              or trust < 0):
+        raise ValueError(f"the DAQP option verify_nodes must be a non-negative integer or None, got {trust!r}")
 
 
 def _ldp_offset(H: Optional[Array], c: Array) -> Optional[float]:
