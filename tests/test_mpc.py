@@ -422,3 +422,39 @@ def test_bad_daqp_options_are_refused_when_the_controller_is_built(daqp):
     sysm, net, _, _ = _stored_integrator_case("daqp_long_search_program.npz")
     with pytest.raises(ValueError, match=next(iter(daqp))):
         fl.MPC(sysm, net, 0.0, horizon=5, ts=0.2, Q=[1.0], R=0.1, solver_options={"daqp": daqp, "scip": {}})
+
+
+@pytest.mark.parametrize("options", [dict(), dict(backend="scip"), dict(enclosure=False)])
+def test_an_infeasible_program_ends_its_level_rounds_once_they_cut_nothing(options):
+    """A stored infeasible program (one integrator, N_p = 5, a random (5, 4) network, a state a closed loop reached):
+    the level set's boxes grow each round until they hold the whole program's boxes, as the network's affine enclosure
+    cuts them, and that round is the whole program. Compared with the boxes before that cut, the rounds never ended
+    (21 rounds, to a level 1e12 times the relaxation's cost). The verdict is the cold reference's."""
+    sysm, net, z, z_ref = _stored_integrator_case("infeasible_level_rounds_program.npz")
+    kw = dict(horizon=5, ts=0.2, Q=[1.0], R=0.1)
+    r_ref = fl.MPC(sysm, net, 0.0, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)(z, z_ref)
+    assert r_ref.status == "infeasible"  # the premise
+    r = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
+    assert r.status == "infeasible", r.message
+    assert r.rounds <= 4, (r.rounds, r.message)
+
+
+def test_auto_sends_a_program_without_an_incumbent_to_scip_above_its_threshold():
+    """``backend="auto"``: DAQP up to ``AUTO_DAQP_BINARIES`` binaries when the round has an incumbent (a warm start
+    to prune on), up to ``AUTO_DAQP_COLD_BINARIES`` without one; an explicit back-end is kept either way. On the
+    stored infeasible program (40 binaries, no plan to warm-start from) the default hands every round to SCIP, and
+    DAQP alone reaches the same verdict (its claim verified)."""
+    from flnotes.mpc.levers import AUTO_DAQP_BINARIES, AUTO_DAQP_COLD_BINARIES, pick_backend
+
+    assert AUTO_DAQP_COLD_BINARIES < 40 <= AUTO_DAQP_BINARIES  # the premise of the stored program
+    assert pick_backend("auto", 40, incumbent=True) == "daqp"
+    assert pick_backend("auto", 40, incumbent=False) == "scip"
+    assert pick_backend("auto", AUTO_DAQP_COLD_BINARIES, incumbent=False) == "daqp"
+    assert pick_backend("daqp", 40, incumbent=False) == "daqp"
+    assert pick_backend("auto", AUTO_DAQP_BINARIES + 1, incumbent=True) == "scip"
+    sysm, net, z, z_ref = _stored_integrator_case("infeasible_level_rounds_program.npz")
+    kw = dict(horizon=5, ts=0.2, Q=[1.0], R=0.1)
+    r = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)
+    assert (r.status, r.backend, r.n_binaries) == ("infeasible", "scip", 40), r.message
+    r_daqp = fl.MPC(sysm, net, 0.0, backend="daqp", **kw)(z, z_ref)
+    assert (r_daqp.status, r_daqp.backend) == ("infeasible", "daqp"), r_daqp.message

@@ -304,6 +304,7 @@ def test_auto_backend_gives_the_reference_optimum(monkeypatch, threshold, expect
     import flnotes.mpc.levers as levers
 
     monkeypatch.setattr(levers, "AUTO_DAQP_BINARIES", threshold)
+    monkeypatch.setattr(levers, "AUTO_DAQP_COLD_BINARIES", threshold)
     sysm, net, eps, kw = _small_quad(horizon=10)
     auto = MPC(sysm, net, eps, **kw)
     assert auto.options.backend == "auto"

@@ -23,15 +23,15 @@ from .bound_cache import CACHE_BOXES, BoundCache
 from .controller import (CUT_OFF_MIN_S, FALLBACK_POST_MIN_S, FALLBACK_POST_SHARE, MPC, NODES_PER_SECOND,
                          RESERVE_DECAY, RESERVE_MAX_SHARE, RESERVE_SHARE, WORK_LIMITS, sine_reference)
 from .engine import NetworkEngine
-from .levers import AUTO_DAQP_BINARIES, LP_AUTO_BINARIES
+from .levers import AUTO_DAQP_BINARIES, AUTO_DAQP_COLD_BINARIES, LP_AUTO_BINARIES
 from .options import BOUNDS, CONSTRAINTS, MPC_BACKENDS, MPCOptions
 from .prediction import DAQP_OPTIONS, Prediction
 from .region import REGION_MOVES, region_qp, region_rows
 
 __all__ = ["MPC", "MPCOptions", "MPC_BACKENDS", "BOUNDS", "CONSTRAINTS", "Prediction", "NetworkEngine",
-           "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "REGION_MOVES", "region_qp",
-           "region_rows", "RESERVE_SHARE", "RESERVE_MAX_SHARE", "RESERVE_DECAY", "FALLBACK_POST_SHARE",
-           "FALLBACK_POST_MIN_S", "CUT_OFF_MIN_S",
+           "DAQP_OPTIONS", "sine_reference", "LP_AUTO_BINARIES", "AUTO_DAQP_BINARIES", "AUTO_DAQP_COLD_BINARIES",
+           "REGION_MOVES", "region_qp", "region_rows", "RESERVE_SHARE", "RESERVE_MAX_SHARE", "RESERVE_DECAY",
+           "FALLBACK_POST_SHARE", "FALLBACK_POST_MIN_S", "CUT_OFF_MIN_S",
            "NODES_PER_SECOND", "WORK_LIMITS",
            "BoundCache", "CACHE_BOXES", "one_switch_plans",
            "bang_bang_incumbent", "nearest_admissible"]

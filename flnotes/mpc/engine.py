@@ -18,7 +18,8 @@ one-switch plan at the input bounds: ``bang_bang``, :mod:`flnotes.mpc.bang_bang`
 network's linear region around it and its neighbours (``repair``; :mod:`flnotes.mpc.region`). ``J_up`` starts at
 the incumbent's cost (``first_level="incumbent"``: one round holds the optimum; without an incumbent at
 ``J_c + max(1, |J_c|)``), or at ``J_c`` plus a small margin (``first_level="relaxation"``); the margin is
-multiplied by 4 per round that finds nothing below it.
+multiplied by 4 per round that finds nothing below it. A round whose boxes hold the whole program's (the boxes
+the enclosure's slab alone leaves) is the whole program: its verdict is final.
 """
 from __future__ import annotations
 
@@ -386,6 +387,7 @@ class NetworkEngine:
         # time limit: a lower bound of eq. (MPC_form_miqp) for the gap (J_c; each round that ends without a plan
         # cheaper than its level J_up proves that nothing cheaper exists)
         lb, J_up, n_round = J_c, -np.inf, 0
+        lo_f = hi_f = None
         while True:
             if time_limit is not None or work:
                 if n_round and self.margin == 0.0:
@@ -405,7 +407,11 @@ class NetworkEngine:
                     lo, hi = pred.level_boxes(z0, V_c, max(J_up - J_c, 0.0), lo_h, hi_h)
                     empty = bool(np.any(lo > hi + 1e-12))
                     hi = np.maximum(hi, lo)
-                    full = bool(np.all(lo <= lo_h) and np.all(hi >= hi_h))  # the level set cut nothing
+                    if lo_f is None:  # the boxes without the ellipsoid (the enclosure's slab cuts them too)
+                        lo_f, hi_f = pred.level_boxes(z0, V_c, np.inf, lo_h, hi_h)
+                    full = bool(np.all(lo <= lo_f) and np.all(hi >= hi_f))  # the level set cut nothing
+                    if full:  # the round is the whole program: no level below the incumbent's cost is proven
+                        J_up = inc_J
                     try:
                         if not empty and o.lp == "auto":  # FBBT first; LP only when it leaves a large program
                             override = node_bounds(pred, o, self.box, lo, hi, use_lp=False)
@@ -424,6 +430,9 @@ class NetworkEngine:
                         st["safety"] = work
                         return done("time_limit", inc_V, lb, "time limit during the LP bounds of a level-set round")
                     if empty:  # nothing cheaper than J_up
+                        if full and inc_V is None:  # the boxes of the whole program hold no admissible plan
+                            return done("infeasible", None, np.inf, "no admissible plan in the whole program's "
+                                        "boxes (their node bounds or their relaxation)")
                         if J_up >= inc_J:
                             return done("optimal", inc_V, inc_J,
                                         f"the incumbent is optimal ({incumbent_from}; level set empty)")
@@ -457,7 +466,7 @@ class NetworkEngine:
                                        hi=hi if restrict else None, order=self.order)
                 st["n_bin"], st["steps"] = int(prob.n_integer), tuple(enc)
                 st["backend"] = backend = ("scip" if work and o.backend == "auto" and prob.n_integer else
-                                           pick_backend(o.backend, int(prob.n_integer)))  # DAQP: no node limit
+                                           pick_backend(o.backend, int(prob.n_integer), inc_V is not None))  # DAQP: no node limit
                 if backend == "scip" and out_of_time(VERIFY_MIN_LEFT):  # a SCIP model takes 10 ms and more to build
                     return done("time_limit", inc_V, lb, "time limit: too little time left to build a SCIP model")
                 solver = make_solver(prob, backend, **self.solver_options.get(backend, {}))
@@ -536,7 +545,7 @@ class NetworkEngine:
                     publish(inc_V, inc_J, lb, incumbent_from)
             elif status == "infeasible":
                 if full and inc_V is None:
-                    return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend})")
+                    return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend}: {res.message})")
             elif status == "time_limit":
                 # the solver's bound holds for the program it solved: a relaxation of eq. (MPC_form_miqp) restricted
                 # to the plans cheaper than J_up (constraint generation encodes fewer steps), unless the rows were

@@ -84,12 +84,19 @@ LP_AUTO_BINARIES = 48
 AUTO_DAQP_BINARIES = 50
 
 
-def pick_backend(backend: str, n_binaries: int) -> str:
+#: ``backend="auto"`` on a round without an incumbent (no warm start: DAQP's depth-first search cannot prune on a
+#: known plan's cost, and its "infeasible", the usual verdict there, is verified by SCIP or HiGHS anyway): a program
+#: with more binaries than this goes to SCIP.
+AUTO_DAQP_COLD_BINARIES = 20
+
+
+def pick_backend(backend: str, n_binaries: int, incumbent: bool = True) -> str:
     """The solver of one assembled program: ``backend``, or for ``"auto"`` DAQP up to :data:`AUTO_DAQP_BINARIES`
-    binaries and SCIP above."""
+    binaries (:data:`AUTO_DAQP_COLD_BINARIES` without an ``incumbent``) and SCIP above."""
     if backend != "auto":
         return backend
-    return "daqp" if n_binaries <= AUTO_DAQP_BINARIES else "scip"
+    limit = AUTO_DAQP_BINARIES if incumbent else min(AUTO_DAQP_BINARIES, AUTO_DAQP_COLD_BINARIES)
+    return "daqp" if n_binaries <= limit else "scip"
 
 
 def unstable_count(nb: NodeBounds, steps: Sequence[int]) -> int:

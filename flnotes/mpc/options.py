@@ -12,7 +12,8 @@ from dataclasses import dataclass, fields
 from typing import Iterator, Optional, Sequence, Union
 
 #: Accepted MPC back-ends: ``"auto"`` (DAQP for a program with at most
-#: :data:`flnotes.mpc.levers.AUTO_DAQP_BINARIES` binaries, SCIP above), the persistent solvers of
+#: :data:`flnotes.mpc.levers.AUTO_DAQP_BINARIES` binaries, :data:`flnotes.mpc.levers.AUTO_DAQP_COLD_BINARIES`
+#: when the round has no incumbent to warm-start from, SCIP above), the persistent solvers of
 #: :mod:`flnotes.solvers` that solve a mixed-integer QP, and ``"cvxpy-scip"``, the reference (the program written
 #: with :func:`flnotes.encode`, solved cold by SCIP).
 MPC_BACKENDS = ("auto", "daqp", "scip", "gurobi", "cplex", "cvxpy-scip")
@@ -49,7 +50,9 @@ class MPCOptions:
         One of :data:`MPC_BACKENDS` for ``"network"``. ``"auto"`` (default): each program assembled in a solve
         goes to DAQP when it has at most :data:`flnotes.mpc.levers.AUTO_DAQP_BINARIES` binaries (its branch and
         bound was measured fastest on small programs) and to SCIP above (faster on large ones, measured in the
-        chapter "Making it real-time"); ``"daqp"`` or ``"scip"`` use one solver for every program. The linear
+        chapter "Making it real-time"); a round without an incumbent (nothing to warm-start DAQP from, most often
+        an infeasible program) goes to DAQP only up to :data:`flnotes.mpc.levers.AUTO_DAQP_COLD_BINARIES`
+        binaries. ``"daqp"`` or ``"scip"`` use one solver for every program. The linear
         models are QPs solved by DAQP (``"daqp"`` only).
     bounds
         Node bounds: ``"box"`` (FBBT on the domain box, the paper's setting), ``"horizon"`` (FBBT on the

@@ -210,11 +210,12 @@ class Prediction:
     def level_boxes(self, z0: Array, V_c: Array, delta: float, lo: Array, hi: Array) -> tuple[Array, Array]:
         """``lo, hi`` cut by the ellipsoid ``0.5 ||V - V_c||_H^2 <= delta`` projected on each ``[z(k); v(k)]``, then,
         with an :attr:`enclosure`, by its slab (:func:`flnotes.enclosure.contract`; step 0 only when ``z0`` lies in
-        the enclosure's box). Each box still holds every admissible point of its step within the ellipsoid."""
+        the enclosure's box). Each box still holds every admissible point of its step within the ellipsoid;
+        ``delta = inf``: the slab's cut alone (the boxes a level set must contain to cut nothing)."""
         off = np.zeros(self.nz + self.m)
         lo2, hi2 = lo.copy(), hi.copy()
         Zf = self.Sx @ z0
-        for k in range(self.N):
+        for k in range(self.N if np.isfinite(delta) else 0):
             off[: self.nz] = Zf[k]
             a, b = ellipsoid_box(self.T[k], self.H_inv, V_c, off, delta)
             lo2[k], hi2[k] = np.maximum(lo2[k], a - 1e-9), np.minimum(hi2[k], b + 1e-9)

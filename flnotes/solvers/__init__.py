@@ -59,6 +59,12 @@ solvers' rows, and the network bound checked with the forward pass to
 tighten ``u_max^eps`` in the rows they hand to a solver until the returned
 point passes that check (:func:`next_margin`).
 
+Optimal up to these tolerances: where a step's admissible inputs shrink to a point (the network's output touches
+``u_max^eps`` at a ridge and stays above it around), which plans pass depends on each solver's feasibility tolerance,
+and two exact back-ends (or the engine and the cold reference) can return optima that differ by more than the gap,
+each plan passing the forward-pass check. Such slivers are not excluded: they were found on random networks (one
+integrator, ``N_p = 5``, ``u_max`` at a quantile of ``|Phi_NN|``), where the optima differed by about 1 %.
+
 Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
 bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's
 ``limits/totalnodes``, HiGHS's ``mip_max_nodes``; DAQP 0.11's branch and bound has a time limit and a per-node

@@ -175,7 +175,7 @@ class DaqpSolver(Solver):
                 res = retry
         verifier = "scip" if p.is_mip else "highs"
         if limit is not time_limit and (res.status == "time_limit" or (
-                res.status in ("unproven", "error") and time.perf_counter() - t0 >= handover)):
+                res.status == "unproven" and time.perf_counter() - t0 >= handover)):
             # no time limit: SCIP takes over the program (DAQP may also stop at its limit with an undocumented flag)
             return _confirm(self, p, verifier, res.w, None, gap, t0,
                             f"daqp: no answer after the hand-over time of {handover:g} s", res.nodes)
@@ -284,8 +284,8 @@ class DaqpSolver(Solver):
             q = dr * (w - lbv) * (w - ubv) if secant else dr * w ** 2
             return p.objective(w) + 0.5 * float(np.sum(q[pert]))
 
-        offset = None if settings.get("eps_prox") else _ldp_offset(Hr, c_r)
-        if incumbent is not None and np.isfinite(B) and offset is not None:
+        offset = None if (incumbent is None or settings.get("eps_prox")) else _ldp_offset(Hr, c_r)
+        if offset is not None and np.isfinite(B):
             # Any w better than the incumbent has J_s(w) < J(incumbent) (secant) or J_r(w) < J(incumbent) + B:
             # nodes above that are pruned. DAQP compares fval_bound with the objective of its least-distance form,
             # J + 0.5 c' H^-1 c (``offset``), not with J.
