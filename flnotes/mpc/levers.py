@@ -86,7 +86,11 @@ AUTO_DAQP_BINARIES = 50
 
 #: ``backend="auto"`` on a round without an incumbent (no warm start: DAQP's depth-first search cannot prune on a
 #: known plan's cost, and its "infeasible", the usual verdict there, is verified by SCIP or HiGHS anyway): a program
-#: with more binaries than this goes to SCIP.
+#: with more binaries than this goes to SCIP. Measured on 42 such programs captured from closed loops of one integrator
+#: with random networks (N_p = 5; all infeasible), each solved by both: from 20 to 34 binaries SCIP took a median
+#: 10 ms against DAQP's 15 ms, from 35 on 26 ms against 106 ms; on a stored one of 40 binaries the step took 1.6 s
+#: with DAQP and 0.1 s with SCIP. On 60 cold states of the book's Quad-1D (N_p = 10) the rule changed the total time
+#: by less than 1 % (such programs there are small or caught earlier, by the relaxation or the node bounds).
 AUTO_DAQP_COLD_BINARIES = 20
 
 
