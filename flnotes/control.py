@@ -60,6 +60,7 @@ from .pieces import solve_exact_2d
 from .simulate import StepResult
 from .systems import FLSystem
 from .solvers import BOUND_TOL, next_margin, project_to_box
+from .solvers.base import check_options
 from .solvers.scip import _quiet_c_output
 
 Array = np.ndarray
@@ -708,11 +709,20 @@ class ClfCbfController:
         if backend == "highs" and cost == "quadratic":
             raise ValueError("HiGHS has no mixed-integer QP solver: for cost='quadratic' (Qcost) use "
                              "backend='scip', 'exact' (single input) or 'cvxpy'")
+        if backend == "exact" and m > 2:
+            raise ValueError(f"backend='exact' lists the linear pieces of Phi_NN(z, .) over v in a line (m = 1) or "
+                             f"a plane (m = 2); this system has m = {m} inputs: use backend='scip', 'highs' or "
+                             f"'cvxpy'")
+        if solver_options and backend in ("exact", "cvxpy"):
+            raise ValueError(f"solver_options set a persistent back-end ('highs', 'scip', 'gurobi', 'daqp'); "
+                             f"backend {backend!r} does not read them: choose one of those or leave solver_options "
+                             f"unset")
+        if backend not in ("exact", "cvxpy"):
+            try:  # now, not at the first program
+                check_options(backend, self.solver_options)
+            except ValueError as exc:
+                raise ValueError(f"solver_options: {exc}") from None
         if backend == "exact":
-            if m > 2:
-                raise ValueError(f"backend='exact' lists the linear pieces of Phi_NN(z, .) over v in a line (m = 1) or "
-                                 f"a plane (m = 2); this system has m = {m} inputs: use backend='scip', 'highs' or "
-                                 f"'cvxpy'")
             self._impl = _ExactBackend(self) if m == 1 else _ExactPiecesBackend(self)
         elif backend == "cvxpy":
             self._impl = _CvxpyBackend(self, solver)

@@ -409,3 +409,14 @@ def test_braking_scan_finds_the_crossover_of_full_braking_near_the_segment_end()
     assert bs["min_h"][0] > 0 and bs["min_h_fine"][0] > 0 > bs["min_h_fine"][1]
     assert bs["i_cross"] == 1 and bs["z_safe"] == 0.68 and bs["z_lost"] == 0.7
     assert bs["best_const"] == pytest.approx(bs["brake_at_lost"], abs=1e-9) and bs["best_const"] < 0
+
+
+@pytest.mark.parametrize("backend, options, match", [
+    ("exact", {"params": {}}, "does not read them"), ("cvxpy", {"threads": 1}, "does not read them"),
+    ("scip", {"objectiv": "epigraph"}, "no option 'objectiv'"), ("highs", {"params": {"bogus_option": 1}}, "bogus"),
+    ("daqp", {"reg": -1}, "reg")])
+def test_clf_cbf_solver_options_are_checked_when_the_controller_is_built(msd, backend, options, match):
+    sysm, net = msd
+    V, H, k = parts()
+    with pytest.raises(ValueError, match=match):
+        ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend=backend, solver_options=options)

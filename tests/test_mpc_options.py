@@ -336,6 +336,32 @@ def test_auto_backend_takes_options_per_backend():
     assert mpc.solver_options["scip"] == dict(miqp_params="default")
 
 
+@pytest.mark.parametrize("kw, match", [
+    (dict(backend="scip", solver_options={"feastol": "abc"}), "feastol"),
+    (dict(backend="scip", solver_options={"param": {"limits/nodes": 1}}), "no option 'param'"),
+    (dict(backend="scip", solver_options={"params": {"not/a/param": 1}}), "not/a/param"),
+    (dict(solver_options={"scip": {"objective": "foo"}}), "objective"),  # auto: before any SCIP program comes
+    (dict(backend="daqp", solver_options={"verify_node": 0}), "verify_node"),
+    (dict(backend="daqp", solver_options={"params": {"bogus": 1}}), "bogus"),
+    (dict(backend="daqp", solver_options={"scip_options": {"objective": "foo"}}), "scip_options"),
+    (dict(solver_options=[1, 2]), "solver_options must be a dict"),
+    (dict(backend="cvxpy-scip", solver_options={"scip": {}}), "leave solver_options unset"),
+    (dict(constraint="none", solver_options={"daqp": {}}), "leave solver_options unset"),
+])
+def test_solver_options_are_checked_when_the_controller_is_built(kw, match):
+    """Never silently ignored, never first at a step (the bad option may reach its back-end many steps later)."""
+    sysm, net, eps, common = _small_quad(horizon=4)
+    with pytest.raises(ValueError, match=match):
+        MPC(sysm, net, eps, **common, **kw)
+
+
+@pytest.mark.parametrize("field, value", [("horizon", True), ("horizon", "4"), ("ts", "0.1"), ("ts", True)])
+def test_horizon_and_sampling_time_of_the_wrong_type_are_named(field, value):
+    sysm, net, eps, common = _small_quad(horizon=4)
+    with pytest.raises(ValueError, match=field if field == "ts" else "horizon"):
+        MPC(sysm, net, eps, **dict(common, **{field: value}))
+
+
 def test_time_limit_returns_an_admissible_plan_with_an_honest_gap(recorded):
     """With (almost) no time, the controller returns the warm start if it is feasible, never a plan that breaks
     the program, and its gap is measured against a true lower bound (the QP without the network)."""

@@ -774,3 +774,34 @@ def test_daqp_hands_a_long_search_over_to_scip():
     for bad in (-1, 1.5, True, "3", 3.0):
         with pytest.raises(ValueError, match="verify_nodes"):
             make_solver(p, "daqp", verify_nodes=bad)
+
+
+@pytest.mark.parametrize("backend", ["highs", "scip", "daqp"])
+def test_every_back_end_refuses_an_option_it_does_not_read(backend):
+    """A misspelt option is an error naming it, never silently ignored; so is a native parameter the solver's
+    library refuses (checked when the solver is built, on the library itself)."""
+    p = random_program(0, quad=backend != "highs")
+    with pytest.raises(ValueError, match="no option 'verify_node'"):
+        make_solver(p, backend, verify_node=0)
+    with pytest.raises(ValueError, match="threads"):
+        make_solver(p, backend, threads=0)
+    bogus = {"highs": "not_a_highs_option", "scip": "not/a/scip/param", "daqp": "not_a_daqp_setting"}[backend]
+    with pytest.raises(ValueError, match=bogus):
+        make_solver(p, backend, params={bogus: 1})
+    good = {"highs": {"qp_iteration_limit": 20}, "scip": {"presolving/maxrounds": 1},
+            "daqp": {"cycle_tol": 1000}}[backend]
+    assert make_solver(p, backend, params=good).solve().status == "optimal"
+
+
+@pytest.mark.parametrize("backend, options", [
+    ("scip", dict(feastol="abc")), ("scip", dict(objective="foo")), ("scip", dict(miqp_params=None)),
+    ("scip", dict(params={"presolving/maxrounds": "abc"})), ("highs", dict(cross_check="yes")),
+    ("highs", dict(params={"qp_iteration_limit": "abc"})),
+    ("daqp", dict(reg=-1.0)), ("daqp", dict(reg="abc")), ("daqp", dict(primal_tol=0.0)), ("daqp", dict(eps_prox="a")),
+    ("daqp", dict(fallback="foo")), ("daqp", dict(verify_infeasible="yes")), ("daqp", dict(params={"cycle_tol": "x"})),
+    ("daqp", dict(scip_options={"objective": "foo"})), ("daqp", dict(scip_options={"bogus": 1}))])
+def test_a_back_end_option_whose_value_means_nothing_is_refused(backend, options):
+    p = random_program(1, quad=backend != "highs")
+    key = next(iter(options))
+    with pytest.raises(ValueError, match=key):
+        make_solver(p, backend, **options)

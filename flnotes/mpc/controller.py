@@ -8,7 +8,7 @@ levers), :class:`flnotes.mpc.reference.ReferenceProgram` (the cold SCIP referenc
 from __future__ import annotations
 
 import dataclasses
-
+import numbers
 import threading
 import time
 import weakref
@@ -26,8 +26,7 @@ from ..config import (answer_slice, hold_signals, machine_steal, major_faults, o
 from ..network import ReLUNet
 from ..result import StepResult
 from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
-from ..solvers.base import _require
-from ..solvers.daqp import check_options as check_daqp_options
+from ..solvers.base import _require, check_options
 from ..systems import FLSystem
 from . import fallback
 from .engine import NetworkEngine
@@ -104,6 +103,9 @@ def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, pha
 def _per_backend(backend: str, used: tuple, solver_options: Optional[dict]) -> dict:
     """``solver_options`` as ``{back-end: options}`` for the solvers the engine may call (DAQP gets
     :data:`DAQP_OPTIONS` under the given ones)."""
+    if solver_options is not None and not isinstance(solver_options, dict):
+        raise ValueError(f"solver_options must be a dict of back-end options (with backend='auto' one dict per "
+                         f"back-end, e.g. {{'daqp': {{...}}, 'scip': {{...}}}}), got {solver_options!r}")
     given = dict(solver_options or {})
     if backend == "auto" and given:
         bad = sorted(k for k, v in given.items() if k not in used or not isinstance(v, dict))
@@ -116,7 +118,11 @@ def _per_backend(backend: str, used: tuple, solver_options: Optional[dict]) -> d
         per = {b: dict(given) for b in used}
     if "daqp" in per:
         per["daqp"] = dict(DAQP_OPTIONS, **per["daqp"])
-        check_daqp_options(per["daqp"])  # now, not at the first program DAQP gets
+    for b, opts in per.items():  # now, not at the first program that reaches the back-end
+        try:
+            check_options(b, opts)
+        except ValueError as exc:
+            raise ValueError(f"solver_options for {b}: {exc}") from None
     return per
 
 
@@ -376,7 +382,8 @@ class MPC:
         if net.n_in != system.n_in or net.n_out != system.m:
             raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but the system needs (z, v) in R^{system.n_in} "
                              f"-> u in R^{system.m}")
-        if int(horizon) != horizon or horizon < 1:
+        if isinstance(horizon, (bool, np.bool_)) or not isinstance(horizon, numbers.Real) or int(horizon) != horizon \
+                or horizon < 1:
             raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
         if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(time_limit, (int, float, np.number))
                                        or not (np.isfinite(time_limit) and time_limit > 0)):
@@ -384,7 +391,7 @@ class MPC:
         if (isinstance(gap, bool) or not isinstance(gap, (int, float, np.number))
                 or not (np.isfinite(gap) and 0 <= gap < 1)):
             raise ValueError(f"gap must be a relative optimality gap in [0, 1) (e.g. 1e-6), got {gap!r}")
-        if not (np.isfinite(ts) and ts > 0):
+        if isinstance(ts, (bool, np.bool_)) or not isinstance(ts, numbers.Real) or not (np.isfinite(ts) and ts > 0):
             raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
         engine = o.constraint == "network" and not o.is_reference
         if cut_off is not None:
@@ -449,6 +456,9 @@ class MPC:
         self._held = _HeldSettings()  # the process settings it keeps: see __call__
         # a controller dropped while it holds them gives them back, in the thread that drops it, once its solve ends
         weakref.finalize(self, self._held.finalize)
+        if solver_options and not engine:
+            raise ValueError(f"solver_options set the persistent back-ends of the network engine; these options "
+                             f"(constraint={o.constraint!r}, backend={o.backend!r}) do not run it: leave solver_options unset")
         self.solver_options = _per_backend(o.backend, used, solver_options)
         #: The network's :class:`flnotes.AffineEnclosure` the engine's relaxation uses (``None``: none).
         self.enclosure = self._enclosure(enclosure, engine, net, system)

@@ -545,7 +545,8 @@ class NetworkEngine:
                     publish(inc_V, inc_J, lb, incumbent_from)
             elif status == "infeasible":
                 if full and inc_V is None:
-                    return done("infeasible", None, np.inf, f"the program is infeasible ({res.backend}: {res.message})")
+                    said = res.message if "proven by" in res.message else f"{res.backend}: {res.message}"
+                    return done("infeasible", None, np.inf, f"the program is infeasible ({said})")
             elif status == "time_limit":
                 # the solver's bound holds for the program it solved: a relaxation of eq. (MPC_form_miqp) restricted
                 # to the plans cheaper than J_up (constraint generation encodes fewer steps), unless the rows were

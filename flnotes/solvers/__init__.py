@@ -59,11 +59,14 @@ solvers' rows, and the network bound checked with the forward pass to
 tighten ``u_max^eps`` in the rows they hand to a solver until the returned
 point passes that check (:func:`next_margin`).
 
-Optimal up to these tolerances: where a step's admissible inputs shrink to a point (the network's output touches
-``u_max^eps`` at a ridge and stays above it around), which plans pass depends on each solver's feasibility tolerance,
-and two exact back-ends (or the engine and the cold reference) can return optima that differ by more than the gap,
-each plan passing the forward-pass check. Such slivers are not excluded: they were found on random networks (one
-integrator, ``N_p = 5``, ``u_max`` at a quantile of ``|Phi_NN|``), where the optima differed by about 1 %.
+Optimal up to these tolerances. Two degenerate cases defeat them: where a step's admissible inputs shrink to a
+point (the network's output touches ``u_max^eps`` at a ridge and stays above it around), and where the output equals
+``u_max^eps`` exactly on a whole flat piece (a region where it is constant, as when ``u_max`` is set to a quantile of
+sampled outputs that many samples share). Which plans pass then depends on each solver's feasibility tolerance, and
+any margin of the tolerance policy removes the whole piece: two exact back-ends (or the engine and the cold
+reference) can return optima that differ by more than the gap, or one can find the program infeasible, each plan
+passing the forward-pass check. Both were found on random networks with ``u_max`` at a quantile of ``|Phi_NN|``
+(one or two integrators, ``N_p = 3`` to ``5``), with optima apart by 1.5e-5 to 1 %.
 
 Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
 bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's

@@ -7,6 +7,7 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 from __future__ import annotations
 
 import importlib
+import numbers
 import time
 from typing import Optional
 
@@ -63,10 +64,13 @@ class Solver:
     #: machine's speed or load): SCIP (``limits/totalnodes``) and HiGHS (``mip_max_nodes``) do; DAQP's branch and
     #: bound (0.11) has a time limit and a per-node iteration limit but no node limit.
     supports_node_limit = False
+    #: The options the back-end reads (:meth:`check_options`): any other is an error, never silently ignored.
+    OPTIONS: tuple = ("threads", "params")
 
     def __init__(self, problem: MIQP, **options):
         if not isinstance(problem, MIQP):
             raise ValueError(f"problem must be an flnotes.solvers.MIQP, got {type(problem).__name__}")
+        self.check_options(options)
         self.problem = problem.copy()
         self.options = dict(options)
         p = self.problem
@@ -78,6 +82,30 @@ class Solver:
         self._Arow, self._Acol = coo.row.astype(np.int64), coo.col.astype(np.int64)
         self._pattern = sp.csr_matrix((np.ones(p.A.nnz), (self._Arow, self._Acol)), shape=p.A.shape)
         self._build()
+
+    @classmethod
+    def check_options(cls, options: dict) -> None:
+        """Raise a ValueError naming the first option the back-end does not read (a misspelt one included) or whose
+        value means nothing: ``threads`` a positive integer, ``params`` a dict of the solver's own parameters (each
+        back-end checks their names and values against its library), and the back-end's own options."""
+        if not isinstance(options, dict):
+            raise ValueError(f"the {cls.name} back-end's options must be a dict, got {options!r}")
+        unknown = sorted(set(options) - set(cls.OPTIONS), key=str)
+        if unknown:
+            hint = " (the solver's own parameters go in params={...})" if "params" in cls.OPTIONS else ""
+            raise ValueError(f"the {cls.name} back-end has no option {unknown[0]!r}; its options are "
+                             f"{sorted(cls.OPTIONS)}{hint}")
+        threads = options.get("threads", 1)
+        if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or threads < 1:
+            raise ValueError(f"the {cls.name} option threads must be a positive integer, got {threads!r}")
+        if not isinstance(options.get("params", {}), dict):
+            raise ValueError(f"the {cls.name} option params must be a dict of the solver's own parameters, got "
+                             f"{options['params']!r}")
+        cls._check_values(options)
+
+    @classmethod
+    def _check_values(cls, options: dict) -> None:
+        """The back-end's own options and its ``params`` (none here)."""
 
     # -- public API ----------------------------------------------------------
     def update(self, *, c=None, c0=None, rl=None, ru=None, lb=None, ub=None, A=None) -> None:
@@ -230,10 +258,23 @@ def make_solver(problem: MIQP, backend: str = "auto", **options) -> Solver:
     if backend not in SOLVER_BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose 'auto' or one of {SOLVER_BACKENDS}")
     _require(backend)
+    return _solver_class(backend)(problem, **options)
+
+
+def _solver_class(backend: str) -> type:
+    """The :class:`Solver` subclass of one of :data:`SOLVER_BACKENDS`."""
     module = importlib.import_module(f"{__package__}.{backend}")  # one module per back-end
-    cls = getattr(module, {"highs": "HighsSolver", "scip": "ScipSolver", "daqp": "DaqpSolver",
-                           "gurobi": "GurobiSolver", "cplex": "CplexSolver"}[backend])
-    return cls(problem, **options)
+    return getattr(module, {"highs": "HighsSolver", "scip": "ScipSolver", "daqp": "DaqpSolver",
+                            "gurobi": "GurobiSolver", "cplex": "CplexSolver"}[backend])
+
+
+def check_options(backend: str, options: dict) -> None:
+    """Raise a ValueError naming the first of ``options`` that back-end ``backend`` does not read, or whose value
+    means nothing (:meth:`Solver.check_options`): a controller checks its solver options when it is built, not at
+    the first program that reaches the back-end."""
+    if backend not in SOLVER_BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {SOLVER_BACKENDS}")
+    _solver_class(backend).check_options(options)
 
 
 #: Solver models whose release is deferred (:func:`retire`): freeing a SCIP model took 1 to 6 ms on the Quad-1D's

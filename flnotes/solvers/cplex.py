@@ -14,6 +14,7 @@ class CplexSolver(Solver):
     """IBM CPLEX through its Python API (the Community Edition limits the program size)."""
 
     name = "cplex"
+    OPTIONS = ("threads",)
 
     def _build(self) -> None:
         cplex = _require("cplex")

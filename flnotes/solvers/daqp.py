@@ -89,6 +89,12 @@ class DaqpSolver(Solver):
     """
 
     name = "daqp"
+    OPTIONS = ("threads", "params", "reg", "reg_mode", "reg_retry", "eps_prox", "primal_tol", "handover",
+               "verify_nodes", "verify_infeasible", "verify_feasibility", "fallback", "scip_options")
+
+    @classmethod
+    def _check_values(cls, options: dict) -> None:
+        _check_values(options)
 
     def _build(self) -> None:
         daqp = _require("daqp")
@@ -98,7 +104,6 @@ class DaqpSolver(Solver):
             raise ValueError(f"the 'daqp' back-end supports binary integers only (bounds within [0, 1]); "
                              f"variable {bad[0]} has bounds [{p.lb[bad[0]]}, {p.ub[bad[0]]}]: use backend='scip' or 'highs'")
         self._daqp = daqp
-        check_options(self.options)
         reg = self.options.get("reg", 1e-6)
         H = np.zeros((p.n, p.n)) if p.H is None else p.H.toarray()
         self._eps_prox = 0.0
@@ -370,15 +375,47 @@ _DAQP_FLAGS = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling",
                -7: "time limit reached", -8: "unsupported problem"}
 
 
-def check_options(options: dict) -> None:
+#: The settings of ``daqp.solve`` that option ``params`` may set (the rest of its arguments are the program's data).
+DAQP_SETTINGS = ("primal_tol", "dual_tol", "zero_tol", "pivot_tol", "progress_tol", "cycle_tol", "iter_limit",
+                 "fval_bound", "eps_prox", "eta_prox", "rho_soft", "rel_subopt", "abs_subopt", "sing_tol",
+                 "refactor_tol", "time_limit")
+
+
+def _real(x) -> bool:
+    """A real number (not a bool, not complex, not a time delta)."""
+    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_, np.timedelta64))
+
+
+def _check_values(options: dict) -> None:
     """Raise a ValueError naming the first DAQP back-end option (:class:`DaqpSolver`) whose value means nothing."""
     for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("relaxation", "milp", "miqp")),
-                       ("reg_retry", (True, False))):
-        if k in options and options[k] not in allowed:
+                       ("reg_retry", (True, False)), ("verify_infeasible", (True, False)),
+                       ("fallback", ("scip", "gurobi", "cplex", "daqp", None, False))):
+        if k in options and not any(options[k] is a or (isinstance(a, str) and options[k] == a) for a in allowed):
             raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {options[k]!r}")
+    reg = options.get("reg", 1e-6)
+    if reg is not None and not (_real(reg) and 0.0 <= float(reg) < np.inf):
+        raise ValueError(f"the DAQP option reg must be a non-negative number (0 or None: proximal iterations), "
+                         f"got {reg!r}")
+    for k, lo in (("eps_prox", 0.0), ("primal_tol", None)):
+        x = options.get(k, 1e-6)
+        if not (_real(x) and np.isfinite(float(x)) and (float(x) >= 0.0 if lo == 0.0 else float(x) > 0.0)):
+            raise ValueError(f"the DAQP option {k} must be a {'non-negative' if lo == 0.0 else 'positive'} number, "
+                             f"got {x!r}")
+    for k, x in options.get("params", {}).items():
+        if k not in DAQP_SETTINGS:
+            raise ValueError(f"DAQP has no setting {k!r} (option params); its settings are {list(DAQP_SETTINGS)}")
+        if not (_real(x) and not np.isnan(float(x))):
+            raise ValueError(f"the DAQP setting {k} (option params) must be a number, got {x!r}")
     if not isinstance(options.get("scip_options", {}), dict):
         raise ValueError(f"the DAQP option scip_options must be a dict of SCIP options (see ScipSolver), got "
                          f"{options['scip_options']!r}")
+    if options.get("scip_options"):
+        from .scip import ScipSolver  # the options of every SCIP model built for a verification or a take-over
+        try:
+            ScipSolver.check_options(options["scip_options"])
+        except ValueError as exc:
+            raise ValueError(f"the DAQP option scip_options: {exc}") from None
     handover = options.get("handover", HANDOVER_S)
     if handover is not None and (isinstance(handover, (bool, np.timedelta64)) or not isinstance(handover, numbers.Real)
                                  or not 0.0 < float(handover) < np.inf):

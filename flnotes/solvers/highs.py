@@ -31,6 +31,10 @@ def qp_iteration_limit(n: int, m: int) -> int:
     return 1000 + QP_ITERATIONS_PER_SIZE * (int(n) + int(m))
 
 
+#: HiGHS options and values :meth:`HighsSolver.check_options` has set on a model without error.
+_CHECKED_PARAMS: set = set()
+
+
 class HighsSolver(Solver):
     """HiGHS (Huangfu & Hall 2018) through highspy, one persistent ``Highs`` object.
 
@@ -68,6 +72,22 @@ class HighsSolver(Solver):
     name = "highs"
     supports_miqp = False
     supports_node_limit = True
+    OPTIONS = ("threads", "params", "cross_check")
+
+    @classmethod
+    def _check_values(cls, options: dict) -> None:
+        if options.get("cross_check", True) not in (True, False):
+            raise ValueError(f"the HiGHS option cross_check must be True or False, got {options['cross_check']!r}")
+        new = [(k, v) for k, v in options.get("params", {}).items() if (k, repr(v)) not in _CHECKED_PARAMS]
+        if new:  # HiGHS answers a refused option with a status, not an exception: each is tried once on a model
+            hp = _require("highs")
+            h = hp.Highs()
+            h.setOptionValue("output_flag", False)
+            for k, v in new:
+                if not isinstance(k, str) or h.setOptionValue(k, v) != hp.HighsStatus.kOk:
+                    raise ValueError(f"the HiGHS option {k!r} = {v!r} (option params) is refused by HiGHS (an "
+                                     f"unknown option or a value of the wrong type or range)")
+                _CHECKED_PARAMS.add((k, repr(v)))
 
     def _build(self) -> None:
         hp = _require("highs")

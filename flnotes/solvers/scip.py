@@ -5,6 +5,7 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 from __future__ import annotations
 
 import functools
+import numbers
 import os
 import re
 import sys
@@ -267,6 +268,10 @@ def _hinf(a: Array) -> Array:
 # ---------------------------------------------------------------------------
 # SCIP
 # ---------------------------------------------------------------------------
+#: SCIP parameters and values :meth:`ScipSolver.check_options` has set on a model without error.
+_CHECKED_PARAMS: set = set()
+
+
 class ScipSolver(Solver):
     """SCIP (Bestuzheva et al. 2021) through PySCIPOpt: the reference solver for mixed-integer QPs.
 
@@ -296,6 +301,28 @@ class ScipSolver(Solver):
 
     name = "scip"
     supports_node_limit = True
+    OPTIONS = ("threads", "params", "feastol", "objective", "miqp_params")
+
+    @classmethod
+    def _check_values(cls, options: dict) -> None:
+        for key, allowed in (("objective", OBJECTIVES), ("miqp_params", MIQP_PARAMS)):
+            if key in options and not (isinstance(options[key], str) and options[key] in allowed):
+                raise ValueError(f"the SCIP option {key} must be one of {allowed}, got {options[key]!r}")
+        tol = options.get("feastol", 1e-9)
+        if isinstance(tol, (bool, np.bool_)) or not isinstance(tol, numbers.Real) or not 0.0 < float(tol) < 1.0:
+            raise ValueError(f"the SCIP option feastol must be a feasibility tolerance in (0, 1), got {tol!r}")
+        params = options.get("params", {})
+        new = [(k, v) for k, v in params.items() if (k, repr(v)) not in _CHECKED_PARAMS]
+        if new:  # each on a model of its own (a few ms, once per parameter and value)
+            m = _require("scip").Model()
+            m.hideOutput()
+            for k, v in new:
+                try:
+                    m.setParam(k, v)
+                except (KeyError, ValueError, TypeError, LookupError) as exc:
+                    raise ValueError(f"the SCIP parameter {k!r} = {v!r} (option params) is refused by SCIP: "
+                                     f"{exc}") from None
+                _CHECKED_PARAMS.add((k, repr(v)))
 
     def _build(self) -> None:
         scip = _require("scip")
