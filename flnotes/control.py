@@ -700,12 +700,15 @@ class ClfCbfController:
         if backend == "auto":
             backend = "exact" if m <= 2 else "scip"
         self.backend = backend
+        if solver_options is not None and not isinstance(solver_options, dict):
+            raise ValueError(f"solver_options must be a dict of the back-end's options, got {solver_options!r}")
         self.solver_options = dict(solver_options or {})
-        if backend == "highs" and not self.solver_options:
+        if backend == "highs" and isinstance(self.solver_options.get("params", {}), dict):
             # measured on the MSD programs: these two HiGHS features cost more than they save on
-            # programs with about ten free binaries
-            self.solver_options = dict(params=dict(mip_detect_symmetry=False,
-                                                   mip_heuristic_run_feasibility_jump=False))
+            # programs with about ten free binaries (a given params entry wins)
+            self.solver_options["params"] = dict(dict(mip_detect_symmetry=False,
+                                                      mip_heuristic_run_feasibility_jump=False),
+                                                 **self.solver_options.get("params", {}))
         if backend == "highs" and cost == "quadratic":
             raise ValueError("HiGHS has no mixed-integer QP solver: for cost='quadratic' (Qcost) use "
                              "backend='scip', 'exact' (single input) or 'cvxpy'")

@@ -420,3 +420,17 @@ def test_clf_cbf_solver_options_are_checked_when_the_controller_is_built(msd, ba
     V, H, k = parts()
     with pytest.raises(ValueError, match=match):
         ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend=backend, solver_options=options)
+
+
+def test_clf_cbf_highs_keeps_its_measured_params_under_given_options(msd):
+    """Options given for HiGHS are merged with the two measured HiGHS settings (a given entry wins), not put in
+    their place."""
+    sysm, net = msd
+    V, H, k = parts()
+    c = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend="highs", solver_options={"threads": 1})
+    assert c.solver_options["params"] == dict(mip_detect_symmetry=False, mip_heuristic_run_feasibility_jump=False)
+    c = ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend="highs",
+                         solver_options={"params": {"mip_detect_symmetry": True}})
+    assert c.solver_options["params"]["mip_detect_symmetry"] is True
+    with pytest.raises(ValueError, match="solver_options must be a dict"):
+        ClfCbfController(sysm, net, EPS, V, H, k, cost="linear", backend="highs", solver_options=[("threads", 1)])

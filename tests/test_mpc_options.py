@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import flnotes as fl
-from flnotes.mpc import MPC, MPCOptions, sine_reference
+from flnotes.mpc import DAQP_OPTIONS, MPC, MPCOptions, sine_reference
 from flnotes.studies import recorded_problems
 
 from _nets import test_net
@@ -334,6 +334,8 @@ def test_auto_backend_takes_options_per_backend():
     mpc = MPC(sysm, net, eps, solver_options={"daqp": dict(reg=1e-5), "scip": dict(miqp_params="default")}, **kw)
     assert mpc.solver_options["daqp"]["reg"] == 1e-5 and "params" in mpc.solver_options["daqp"]
     assert mpc.solver_options["scip"] == dict(miqp_params="default")
+    mpc = MPC(sysm, net, eps, solver_options={"daqp": dict(params={"iter_limit": 5000})}, **kw)
+    assert mpc.solver_options["daqp"]["params"] == dict(DAQP_OPTIONS["params"], iter_limit=5000)  # merged, not replaced
 
 
 @pytest.mark.parametrize("kw, match", [

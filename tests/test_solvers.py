@@ -799,9 +799,31 @@ def test_every_back_end_refuses_an_option_it_does_not_read(backend):
     ("highs", dict(params={"qp_iteration_limit": "abc"})),
     ("daqp", dict(reg=-1.0)), ("daqp", dict(reg="abc")), ("daqp", dict(primal_tol=0.0)), ("daqp", dict(eps_prox="a")),
     ("daqp", dict(fallback="foo")), ("daqp", dict(verify_infeasible="yes")), ("daqp", dict(params={"cycle_tol": "x"})),
-    ("daqp", dict(scip_options={"objective": "foo"})), ("daqp", dict(scip_options={"bogus": 1}))])
+    ("daqp", dict(scip_options={"objective": "foo"})), ("daqp", dict(scip_options={"bogus": 1})),
+    # SCIP's own ranges and types, checked by SCIP when the solver is built (not at its first solve)
+    ("scip", dict(feastol=0.5)), ("scip", dict(threads=1000)), ("scip", dict(threads=10**30)),
+    ("scip", dict(params={"presolving/maxrounds": 3.7})), ("scip", dict(params={"lp/presolving": 2})),
+    ("scip", dict(params={"limits/nodes": float("inf")})),
+    # what the back-end sets itself at each solve is not a parameter to give (it would be overwritten)
+    ("scip", dict(params={"limits/gap": 0.1})), ("scip", dict(params={"numerics/feastol": 1e-5})),
+    ("highs", dict(params={"time_limit": 1.0})), ("highs", dict(params={"mip_rel_gap": float("nan")})),
+    ("highs", dict(threads=2)), ("highs", dict(cross_check=1)),
+    ("daqp", dict(params={"rel_subopt": -1.0})), ("daqp", dict(params={"iter_limit": float("inf")})),
+    ("daqp", dict(params={"iter_limit": 2.5})), ("daqp", dict(params={"time_limit": 1.0})),
+    ("daqp", dict(eps_prox=0.5)), ("daqp", dict(threads=1000))])
 def test_a_back_end_option_whose_value_means_nothing_is_refused(backend, options):
+    """Refused when the solver is built, with the option named (what the library would refuse only at a solve, or
+    silently round, overwrite or ignore)."""
     p = random_program(1, quad=backend != "highs")
     key = next(iter(options))
     with pytest.raises(ValueError, match=key):
         make_solver(p, backend, **options)
+
+
+def test_a_fallback_that_is_not_installed_is_refused_when_the_solver_is_built():
+    p = random_program(2)
+    for fb in ("gurobi", "cplex"):
+        if fb not in available_backends():
+            with pytest.raises(ValueError, match="fallback"):
+                make_solver(p, "daqp", fallback=fb)
+    assert make_solver(p, "daqp", fallback=None).solve().status == "optimal"

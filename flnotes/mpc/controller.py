@@ -116,8 +116,11 @@ def _per_backend(backend: str, used: tuple, solver_options: Optional[dict]) -> d
         per = {b: dict(given.get(b, {})) for b in used}
     else:
         per = {b: dict(given) for b in used}
-    if "daqp" in per:
-        per["daqp"] = dict(DAQP_OPTIONS, **per["daqp"])
+    if "daqp" in per:  # DAQP_OPTIONS under the given ones (their params merged: a given setting wins)
+        given_daqp = per["daqp"]
+        per["daqp"] = dict(DAQP_OPTIONS, **given_daqp)
+        if isinstance(given_daqp.get("params"), dict):
+            per["daqp"]["params"] = dict(DAQP_OPTIONS["params"], **given_daqp["params"])
     for b, opts in per.items():  # now, not at the first program that reaches the back-end
         try:
             check_options(b, opts)

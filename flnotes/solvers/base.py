@@ -314,7 +314,7 @@ def _confirm(solver: "Solver", p: MIQP, backend: str, w, time_limit, gap, t0, cl
         return _result(p, "time_limit" if w is not None else "error", w, -np.inf, nodes, t0, solver.name,
                        f"{claim}, not a proof, and {backend!r} is not installed to verify it")
     ws = w if (w is not None and p.violation(w) <= FEAS_TOL) else None
-    opts = {k: v for k, v in solver.options.items() if k == "threads"}
+    opts = {k: v for k, v in solver.options.items() if k == "threads" and backend != "highs"}  # HiGHS: one thread
     if backend == "scip":  # the caller's options for SCIP (DAQP's ``scip_options``); the MIQP-only ones not on an MILP
         opts.update({k: v for k, v in solver.options.get("scip_options", {}).items()
                      if p.H is not None or k not in ("objective", "miqp_params")})

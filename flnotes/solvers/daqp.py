@@ -11,7 +11,8 @@ from typing import Optional
 import numpy as np
 import scipy.linalg
 
-from .base import Solver, _confirm, _require, make_solver
+from .base import Solver, _confirm, _require, available_backends, make_solver
+from .scip import ScipSolver
 from .problem import _INF, FEAS_TOL, MIQP, Array, MIQPResult, _result
 
 
@@ -381,6 +382,10 @@ DAQP_SETTINGS = ("primal_tol", "dual_tol", "zero_tol", "pivot_tol", "progress_to
                  "refactor_tol", "time_limit")
 
 
+#: The settings of ``daqp.solve`` that count (iterations), not measure.
+_COUNT_SETTINGS = ("cycle_tol", "iter_limit")
+
+
 def _real(x) -> bool:
     """A real number (not a bool, not complex, not a time delta)."""
     return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_, np.timedelta64))
@@ -402,16 +407,36 @@ def _check_values(options: dict) -> None:
         if not (_real(x) and np.isfinite(float(x)) and (float(x) >= 0.0 if lo == 0.0 else float(x) > 0.0)):
             raise ValueError(f"the DAQP option {k} must be a {'non-negative' if lo == 0.0 else 'positive'} number, "
                              f"got {x!r}")
+    if "eps_prox" in options and options.get("reg", 1e-6):
+        raise ValueError(f"the DAQP option eps_prox applies without the regularization (reg=None or 0), but reg = "
+                         f"{options.get('reg', 1e-6)!r}: drop eps_prox or set reg=None")
     for k, x in options.get("params", {}).items():
         if k not in DAQP_SETTINGS:
             raise ValueError(f"DAQP has no setting {k!r} (option params); its settings are {list(DAQP_SETTINGS)}")
-        if not (_real(x) and not np.isnan(float(x))):
-            raise ValueError(f"the DAQP setting {k} (option params) must be a number, got {x!r}")
+        if k in ("time_limit", "fval_bound"):
+            raise ValueError(f"the DAQP setting {k} (option params) is set by the back-end "
+                             f"({'solve(time_limit=...)' if k == 'time_limit' else 'from the warm start'})")
+        if k in _COUNT_SETTINGS:
+            ok = isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_)) and 0 < x < 2**31
+        else:
+            ok = _real(x) and np.isfinite(float(x)) and float(x) >= 0.0
+        if not ok:
+            raise ValueError(f"the DAQP setting {k} (option params) must be "
+                             f"{'a positive integer' if k in _COUNT_SETTINGS else 'a non-negative finite number'}, "
+                             f"got {x!r}")
+    fb = options.get("fallback", "scip")
+    if fb in ("gurobi", "cplex"):
+        if fb not in available_backends():
+            raise ValueError(f"the DAQP option fallback={fb!r} needs {fb}, which is not installed: use 'scip'")
+    if "threads" in options:  # DAQP runs on one thread; the option is for the SCIP models that verify it
+        try:
+            ScipSolver.check_options({"threads": options["threads"]})
+        except ValueError as exc:
+            raise ValueError(f"the DAQP option threads (for its SCIP verifications): {exc}") from None
     if not isinstance(options.get("scip_options", {}), dict):
         raise ValueError(f"the DAQP option scip_options must be a dict of SCIP options (see ScipSolver), got "
                          f"{options['scip_options']!r}")
-    if options.get("scip_options"):
-        from .scip import ScipSolver  # the options of every SCIP model built for a verification or a take-over
+    if options.get("scip_options"):  # the options of every SCIP model built for a verification or a take-over
         try:
             ScipSolver.check_options(options["scip_options"])
         except ValueError as exc:

@@ -4,6 +4,7 @@ Part of :mod:`flnotes.solvers` (see its docstring for what "optimal" means and t
 """
 from __future__ import annotations
 
+import numbers
 import time
 
 import numpy as np
@@ -33,6 +34,12 @@ def qp_iteration_limit(n: int, m: int) -> int:
 
 #: HiGHS options and values :meth:`HighsSolver.check_options` has set on a model without error.
 _CHECKED_PARAMS: set = set()
+
+#: HiGHS options that :class:`HighsSolver` sets itself (at each solve, or from an option): refused in ``params``.
+RESERVED_PARAMS = {"time_limit": "solve(time_limit=...)", "mip_rel_gap": "solve(gap=...)",
+                   "mip_abs_gap": "solve(gap=...)", "mip_max_nodes": "solve(node_limit=...)",
+                   "threads": "the option threads (1: HiGHS keeps one thread pool per process)",
+                   "output_flag": "the back-end (it is silent)"}
 
 
 class HighsSolver(Solver):
@@ -76,9 +83,19 @@ class HighsSolver(Solver):
 
     @classmethod
     def _check_values(cls, options: dict) -> None:
-        if options.get("cross_check", True) not in (True, False):
+        if not isinstance(options.get("cross_check", True), (bool, np.bool_)):
             raise ValueError(f"the HiGHS option cross_check must be True or False, got {options['cross_check']!r}")
-        new = [(k, v) for k, v in options.get("params", {}).items() if (k, repr(v)) not in _CHECKED_PARAMS]
+        if options.get("threads", 1) != 1:
+            raise ValueError(f"the HiGHS option threads must be 1, got {options['threads']!r}: HiGHS keeps one thread "
+                             f"pool per process, and a model with another count then fails ('Not Set')")
+        params = options.get("params", {})
+        for k, v in params.items():
+            if k in RESERVED_PARAMS:
+                raise ValueError(f"the HiGHS option {k!r} (option params) is set by {RESERVED_PARAMS[k]}: give it "
+                                 f"there, not in params")
+            if isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and np.isnan(float(v)):
+                raise ValueError(f"the HiGHS option {k!r} (option params) must be a number, got {v!r}")
+        new = [(k, v) for k, v in params.items() if (k, repr(v)) not in _CHECKED_PARAMS]
         if new:  # HiGHS answers a refused option with a status, not an exception: each is tried once on a model
             hp = _require("highs")
             h = hp.Highs()

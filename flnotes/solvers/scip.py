@@ -271,6 +271,14 @@ def _hinf(a: Array) -> Array:
 #: SCIP parameters and values :meth:`ScipSolver.check_options` has set on a model without error.
 _CHECKED_PARAMS: set = set()
 
+#: SCIP parameters that :class:`ScipSolver` sets itself (at each solve, or from an option): refused in ``params``.
+RESERVED_PARAMS = {"limits/time": "solve(time_limit=...)", "limits/gap": "solve(gap=...)",
+                   "limits/absgap": "solve(gap=...)", "limits/totalnodes": "solve(node_limit=...)",
+                   "numerics/feastol": "the option feastol", "parallel/maxnthreads": "the option threads"}
+
+_KIND_NAMES = {(bool, np.bool_): "True or False", str: "a string", numbers.Integral: "an integer",
+               numbers.Real: "a finite number"}
+
 
 class ScipSolver(Solver):
     """SCIP (Bestuzheva et al. 2021) through PySCIPOpt: the reference solver for mixed-integer QPs.
@@ -308,20 +316,33 @@ class ScipSolver(Solver):
         for key, allowed in (("objective", OBJECTIVES), ("miqp_params", MIQP_PARAMS)):
             if key in options and not (isinstance(options[key], str) and options[key] in allowed):
                 raise ValueError(f"the SCIP option {key} must be one of {allowed}, got {options[key]!r}")
-        tol = options.get("feastol", 1e-9)
-        if isinstance(tol, (bool, np.bool_)) or not isinstance(tol, numbers.Real) or not 0.0 < float(tol) < 1.0:
-            raise ValueError(f"the SCIP option feastol must be a feasibility tolerance in (0, 1), got {tol!r}")
         params = options.get("params", {})
-        new = [(k, v) for k, v in params.items() if (k, repr(v)) not in _CHECKED_PARAMS]
+        for k in params:
+            if k in RESERVED_PARAMS:
+                raise ValueError(f"the SCIP parameter {k!r} (option params) is set by {RESERVED_PARAMS[k]}: "
+                                 f"give it there, not in params")
+        # the options with a SCIP parameter behind them are checked by SCIP too (its ranges, e.g. feastol <= 1e-1)
+        native = [("option feastol", "numerics/feastol", options["feastol"])] if "feastol" in options else []
+        native += [("option threads", "parallel/maxnthreads", options["threads"])] if "threads" in options else []
+        native += [(f"parameter {k!r} (option params)", k, v) for k, v in params.items()]
+        new = [(what, k, v) for what, k, v in native if (k, repr(v)) not in _CHECKED_PARAMS]
         if new:  # each on a model of its own (a few ms, once per parameter and value)
             m = _require("scip").Model()
             m.hideOutput()
-            for k, v in new:
+            for what, k, v in new:
+                try:
+                    cur = m.getParam(k)
+                except (KeyError, LookupError):
+                    raise ValueError(f"the SCIP {what}: SCIP has no parameter {k!r}") from None
+                kind = ((bool, np.bool_) if isinstance(cur, bool) else str if isinstance(cur, str) else
+                        numbers.Integral if isinstance(cur, int) else numbers.Real)
+                if not isinstance(v, kind) or (kind is not bool and isinstance(v, (bool, np.bool_))) or (
+                        kind is numbers.Real and not np.isfinite(float(v))):
+                    raise ValueError(f"the SCIP {what} must be {_KIND_NAMES[kind]} ({k} is), got {v!r}")
                 try:
                     m.setParam(k, v)
-                except (KeyError, ValueError, TypeError, LookupError) as exc:
-                    raise ValueError(f"the SCIP parameter {k!r} = {v!r} (option params) is refused by SCIP: "
-                                     f"{exc}") from None
+                except (ValueError, TypeError, OverflowError, LookupError) as exc:
+                    raise ValueError(f"the SCIP {what} = {v!r} is refused by SCIP ({k}): {exc}") from None
                 _CHECKED_PARAMS.add((k, repr(v)))
 
     def _build(self) -> None:
