@@ -810,7 +810,13 @@ def test_every_back_end_refuses_an_option_it_does_not_read(backend):
     ("highs", dict(threads=2)), ("highs", dict(cross_check=1)),
     ("daqp", dict(params={"rel_subopt": -1.0})), ("daqp", dict(params={"iter_limit": float("inf")})),
     ("daqp", dict(params={"iter_limit": 2.5})), ("daqp", dict(params={"time_limit": 1.0})),
-    ("daqp", dict(eps_prox=0.5)), ("daqp", dict(threads=1000))])
+    ("daqp", dict(eps_prox=0.5)), ("daqp", dict(threads=1000)),
+    ("scip", dict(feastol=10**400)), ("scip", dict(params={1: 2})), ("scip", dict(params={"limits/nodes": 10})),
+    ("scip", dict(params={"timing/clocktype": 1})), ("highs", dict(params={"objective_bound": -10.0})),
+    ("highs", dict(params={"mip_feasibility_tolerance": float("inf")})),
+    ("daqp", dict(params={"rel_subopt": 0.02})), ("daqp", dict(params={"primal_tol": 1e-3})),
+    ("daqp", dict(params={"eps_prox": 1e-3})), ("daqp", dict(params={"zero_tol": 1e5})),
+    ("daqp", dict(scip_options={"threads": 4}))])
 def test_a_back_end_option_whose_value_means_nothing_is_refused(backend, options):
     """Refused when the solver is built, with the option named (what the library would refuse only at a solve, or
     silently round, overwrite or ignore)."""
@@ -827,3 +833,21 @@ def test_a_fallback_that_is_not_installed_is_refused_when_the_solver_is_built():
             with pytest.raises(ValueError, match="fallback"):
                 make_solver(p, "daqp", fallback=fb)
     assert make_solver(p, "daqp", fallback=None).solve().status == "optimal"
+
+
+@pytest.mark.parametrize("backend, options", [
+    ("scip", dict(params={"conflict/enable": True})), ("scip", dict(params={"conflict/enable": np.bool_(False)})),
+    ("scip", dict(params={"presolving/maxrounds": np.int64(1)}, feastol=np.float64(1e-8), threads=np.int64(1))),
+    ("scip", dict(params={"lp/initalgorithm": "d"})),
+    ("highs", dict(params={"mip_feasibility_tolerance": np.float32(1e-7), "presolve": "off"})),
+    ("highs", dict(cross_check=np.bool_(False))),
+    ("daqp", dict(reg_retry=np.bool_(True), verify_infeasible=np.bool_(True), params={"presolve": 0})),
+    ("daqp", dict(reg=None, eps_prox=1e-6)), ("daqp", dict(params={"cycle_tol": np.int64(1000)}))])
+def test_valid_back_end_options_of_every_kind_are_accepted_and_solve(backend, options):
+    """Numpy scalars, booleans, strings and integers where the library takes them: accepted, and the program solves
+    to the optimum of the default options."""
+    p = random_program(3, quad=backend != "highs")
+    r = make_solver(p, backend, **options).solve()
+    r0 = make_solver(p, backend).solve()
+    assert r.status == r0.status == "optimal", (r.message, r0.message)
+    assert abs(r.objective - r0.objective) <= 1e-6 * max(1.0, abs(r0.objective))

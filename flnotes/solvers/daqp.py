@@ -376,10 +376,21 @@ _DAQP_FLAGS = {1: "optimal", 2: "soft optimal", -1: "infeasible", -2: "cycling",
                -7: "time limit reached", -8: "unsupported problem"}
 
 
-#: The settings of ``daqp.solve`` that option ``params`` may set (the rest of its arguments are the program's data).
-DAQP_SETTINGS = ("primal_tol", "dual_tol", "zero_tol", "pivot_tol", "progress_tol", "cycle_tol", "iter_limit",
-                 "fval_bound", "eps_prox", "eta_prox", "rho_soft", "rel_subopt", "abs_subopt", "sing_tol",
-                 "refactor_tol", "time_limit")
+#: The settings of ``daqp.solve`` (0.11) that option ``params`` may set (the rest of its arguments are the program's
+#: data, and :data:`_RESERVED_SETTINGS` are refused).
+DAQP_SETTINGS = ("dual_tol", "zero_tol", "pivot_tol", "progress_tol", "cycle_tol", "iter_limit", "eta_prox",
+                 "rho_soft", "w_soft", "sing_tol", "refactor_tol", "eq_reduction", "presolve")
+
+#: Settings of ``daqp.solve`` refused in ``params``, and why.
+_RESERVED_SETTINGS = {"primal_tol": "give the option primal_tol", "eps_prox": "give the option eps_prox (with reg=None)",
+                      "time_limit": "set by solve(time_limit=...) and the option handover",
+                      "fval_bound": "set by the back-end from the warm start",
+                      "rel_subopt": "DAQP's 'optimal' would then be sub-optimal (give gap= to solve())",
+                      "abs_subopt": "DAQP's 'optimal' would then be sub-optimal (give gap= to solve())"}
+
+#: DAQP settings that are tolerances (each in (0, 1)), counts (positive integers) and switches (integers).
+_TOLERANCES = ("dual_tol", "zero_tol", "pivot_tol", "progress_tol", "sing_tol", "refactor_tol")
+_SWITCH_SETTINGS = ("eq_reduction", "presolve")
 
 
 #: The settings of ``daqp.solve`` that count (iterations), not measure.
@@ -396,8 +407,11 @@ def _check_values(options: dict) -> None:
     for k, allowed in (("reg_mode", ("secant", "upper")), ("verify_feasibility", ("relaxation", "milp", "miqp")),
                        ("reg_retry", (True, False)), ("verify_infeasible", (True, False)),
                        ("fallback", ("scip", "gurobi", "cplex", "daqp", None, False))):
-        if k in options and not any(options[k] is a or (isinstance(a, str) and options[k] == a) for a in allowed):
-            raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {options[k]!r}")
+        x = options.get(k, allowed[0])
+        is_bool = isinstance(x, (bool, np.bool_))
+        if not any((a is None and x is None) or (isinstance(a, bool) and is_bool and bool(x) == a)
+                   or (isinstance(a, str) and isinstance(x, str) and x == a) for a in allowed):
+            raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {x!r}")
     reg = options.get("reg", 1e-6)
     if reg is not None and not (_real(reg) and 0.0 <= float(reg) < np.inf):
         raise ValueError(f"the DAQP option reg must be a non-negative number (0 or None: proximal iterations), "
@@ -411,19 +425,23 @@ def _check_values(options: dict) -> None:
         raise ValueError(f"the DAQP option eps_prox applies without the regularization (reg=None or 0), but reg = "
                          f"{options.get('reg', 1e-6)!r}: drop eps_prox or set reg=None")
     for k, x in options.get("params", {}).items():
+        if k in _RESERVED_SETTINGS:
+            raise ValueError(f"the DAQP setting {k!r} is refused in params: {_RESERVED_SETTINGS[k]}")
         if k not in DAQP_SETTINGS:
-            raise ValueError(f"DAQP has no setting {k!r} (option params); its settings are {list(DAQP_SETTINGS)}")
-        if k in ("time_limit", "fval_bound"):
-            raise ValueError(f"the DAQP setting {k} (option params) is set by the back-end "
-                             f"({'solve(time_limit=...)' if k == 'time_limit' else 'from the warm start'})")
+            raise ValueError(f"DAQP has no setting {k!r} (option params); the settings it takes are "
+                             f"{list(DAQP_SETTINGS)}")
         if k in _COUNT_SETTINGS:
-            ok = isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_)) and 0 < x < 2**31
+            ok, what = isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_)) and 0 < x < 2**31, \
+                "a positive integer"
+        elif k in _SWITCH_SETTINGS:
+            ok, what = isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_)) and -2**31 < x < 2**31, \
+                "an integer"
+        elif k in _TOLERANCES:
+            ok, what = _real(x) and 0.0 < float(x) < 1.0, "a tolerance in (0, 1)"
         else:
-            ok = _real(x) and np.isfinite(float(x)) and float(x) >= 0.0
+            ok, what = _real(x) and np.isfinite(float(x)) and float(x) >= 0.0, "a non-negative finite number"
         if not ok:
-            raise ValueError(f"the DAQP setting {k} (option params) must be "
-                             f"{'a positive integer' if k in _COUNT_SETTINGS else 'a non-negative finite number'}, "
-                             f"got {x!r}")
+            raise ValueError(f"the DAQP setting {k} (option params) must be {what}, got {x!r}")
     fb = options.get("fallback", "scip")
     if fb in ("gurobi", "cplex"):
         if fb not in available_backends():
@@ -437,6 +455,9 @@ def _check_values(options: dict) -> None:
         raise ValueError(f"the DAQP option scip_options must be a dict of SCIP options (see ScipSolver), got "
                          f"{options['scip_options']!r}")
     if options.get("scip_options"):  # the options of every SCIP model built for a verification or a take-over
+        if "threads" in options["scip_options"]:
+            raise ValueError("the DAQP option scip_options must not set threads: give the DAQP option threads (the "
+                             "SCIP models that verify DAQP use it)")
         try:
             ScipSolver.check_options(options["scip_options"])
         except ValueError as exc:

@@ -35,11 +35,19 @@ def qp_iteration_limit(n: int, m: int) -> int:
 #: HiGHS options and values :meth:`HighsSolver.check_options` has set on a model without error.
 _CHECKED_PARAMS: set = set()
 
-#: HiGHS options that :class:`HighsSolver` sets itself (at each solve, or from an option): refused in ``params``.
-RESERVED_PARAMS = {"time_limit": "solve(time_limit=...)", "mip_rel_gap": "solve(gap=...)",
-                   "mip_abs_gap": "solve(gap=...)", "mip_max_nodes": "solve(node_limit=...)",
-                   "threads": "the option threads (1: HiGHS keeps one thread pool per process)",
-                   "output_flag": "the back-end (it is silent)"}
+#: HiGHS options refused in ``params``: those :class:`HighsSolver` sets itself, and those that stop the search early
+#: or change the program (with why).
+RESERVED_PARAMS = {"time_limit": "set by solve(time_limit=...)", "mip_rel_gap": "set by solve(gap=...)",
+                   "mip_abs_gap": "set by solve(gap=...)", "mip_max_nodes": "set by solve(node_limit=...)",
+                   "threads": "set by the option threads (1: HiGHS keeps one thread pool per process)",
+                   "output_flag": "set by the back-end (it is silent)",
+                   "log_to_console": "set by the back-end (it is silent)", "log_file": "set by the back-end",
+                   "objective_bound": "a bound on the objective makes the program another one",
+                   "objective_target": "it stops the search at a target, not at the optimum",
+                   "mip_max_leaves": "it stops the search (give node_limit= to solve())",
+                   "mip_max_improving_sols": "it stops the search (give node_limit= to solve())",
+                   "mip_max_stall_nodes": "it stops the search (give node_limit= to solve())",
+                   "simplex_iteration_limit": "it stops the search (give time_limit= or node_limit= to solve())"}
 
 
 class HighsSolver(Solver):
@@ -91,17 +99,17 @@ class HighsSolver(Solver):
         params = options.get("params", {})
         for k, v in params.items():
             if k in RESERVED_PARAMS:
-                raise ValueError(f"the HiGHS option {k!r} (option params) is set by {RESERVED_PARAMS[k]}: give it "
-                                 f"there, not in params")
-            if isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and np.isnan(float(v)):
-                raise ValueError(f"the HiGHS option {k!r} (option params) must be a number, got {v!r}")
+                raise ValueError(f"the HiGHS option {k!r} is refused in params: {RESERVED_PARAMS[k]}")
+            if isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and not np.isfinite(float(v)):
+                raise ValueError(f"the HiGHS option {k!r} (option params) must be a finite number, got {v!r}")
         new = [(k, v) for k, v in params.items() if (k, repr(v)) not in _CHECKED_PARAMS]
         if new:  # HiGHS answers a refused option with a status, not an exception: each is tried once on a model
             hp = _require("highs")
             h = hp.Highs()
             h.setOptionValue("output_flag", False)
             for k, v in new:
-                if not isinstance(k, str) or h.setOptionValue(k, v) != hp.HighsStatus.kOk:
+                if not isinstance(k, str) or h.setOptionValue(k, v.item() if isinstance(v, np.generic) else v) \
+                        != hp.HighsStatus.kOk:
                     raise ValueError(f"the HiGHS option {k!r} = {v!r} (option params) is refused by HiGHS (an "
                                      f"unknown option or a value of the wrong type or range)")
                 _CHECKED_PARAMS.add((k, repr(v)))
@@ -126,7 +134,7 @@ class HighsSolver(Solver):
         if self._qp and "qp_iteration_limit" not in params:
             h.setOptionValue("qp_iteration_limit", qp_iteration_limit(p.n, p.m))
         for k, v in params.items():
-            h.setOptionValue(k, v)
+            h.setOptionValue(k, v.item() if isinstance(v, np.generic) else v)
         lp = hp.HighsLp()
         lp.num_col_, lp.num_row_ = p.n, p.m
         lp.col_cost_ = p.c

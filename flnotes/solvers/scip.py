@@ -276,6 +276,12 @@ RESERVED_PARAMS = {"limits/time": "solve(time_limit=...)", "limits/gap": "solve(
                    "limits/absgap": "solve(gap=...)", "limits/totalnodes": "solve(node_limit=...)",
                    "numerics/feastol": "the option feastol", "parallel/maxnthreads": "the option threads"}
 
+#: Groups of SCIP parameters refused in ``params``, and why.
+RESERVED_GROUPS = {"limits": "stops the search early: a stop is a status the back-end maps (give time_limit= or "
+                             "node_limit= to solve())",
+                   "timing": "changes how the time limit is measured (the back-end's is the wall clock)",
+                   "visual": "writes files", "display": "prints (the back-end is silent)"}
+
 _KIND_NAMES = {(bool, np.bool_): "True or False", str: "a string", numbers.Integral: "an integer",
                numbers.Real: "a finite number"}
 
@@ -318,9 +324,13 @@ class ScipSolver(Solver):
                 raise ValueError(f"the SCIP option {key} must be one of {allowed}, got {options[key]!r}")
         params = options.get("params", {})
         for k in params:
+            if not isinstance(k, str):
+                raise ValueError(f"the SCIP option params takes SCIP's parameter names (strings), got {k!r}")
             if k in RESERVED_PARAMS:
                 raise ValueError(f"the SCIP parameter {k!r} (option params) is set by {RESERVED_PARAMS[k]}: "
                                  f"give it there, not in params")
+            if k.split("/")[0] in RESERVED_GROUPS:
+                raise ValueError(f"the SCIP parameter {k!r} (option params) {RESERVED_GROUPS[k.split('/')[0]]}")
         # the options with a SCIP parameter behind them are checked by SCIP too (its ranges, e.g. feastol <= 1e-1)
         native = [("option feastol", "numerics/feastol", options["feastol"])] if "feastol" in options else []
         native += [("option threads", "parallel/maxnthreads", options["threads"])] if "threads" in options else []
@@ -336,9 +346,16 @@ class ScipSolver(Solver):
                     raise ValueError(f"the SCIP {what}: SCIP has no parameter {k!r}") from None
                 kind = ((bool, np.bool_) if isinstance(cur, bool) else str if isinstance(cur, str) else
                         numbers.Integral if isinstance(cur, int) else numbers.Real)
-                if not isinstance(v, kind) or (kind is not bool and isinstance(v, (bool, np.bool_))) or (
-                        kind is numbers.Real and not np.isfinite(float(v))):
+                is_bool = isinstance(v, (bool, np.bool_))
+                ok = is_bool if isinstance(cur, bool) else (isinstance(v, kind) and not is_bool)
+                if ok and kind is numbers.Real:
+                    try:
+                        ok = bool(np.isfinite(float(v)))
+                    except OverflowError:
+                        ok = False
+                if not ok:
                     raise ValueError(f"the SCIP {what} must be {_KIND_NAMES[kind]} ({k} is), got {v!r}")
+                v = v.item() if isinstance(v, np.generic) else v
                 try:
                     m.setParam(k, v)
                 except (ValueError, TypeError, OverflowError, LookupError) as exc:
@@ -364,7 +381,7 @@ class ScipSolver(Solver):
             m.setParam("presolving/maxrounds", LEAN_PRESOLVE_ROUNDS)
             m.setParam("presolving/maxrestarts", LEAN_RESTARTS)
         for k, v in self.options.get("params", {}).items():
-            m.setParam(k, v)
+            m.setParam(k, v.item() if isinstance(v, np.generic) else v)
         self._inf = m.infinity()
         self._x = [m.addVar(name=f"w{i}", vtype="I" if p.integrality[i] else "C", lb=self._s(p.lb[i]),
                             ub=self._s(p.ub[i])) for i in range(p.n)]
