@@ -816,7 +816,10 @@ def test_every_back_end_refuses_an_option_it_does_not_read(backend):
     ("highs", dict(params={"mip_feasibility_tolerance": float("inf")})),
     ("daqp", dict(params={"rel_subopt": 0.02})), ("daqp", dict(params={"primal_tol": 1e-3})),
     ("daqp", dict(params={"eps_prox": 1e-3})), ("daqp", dict(params={"zero_tol": 1e5})),
-    ("daqp", dict(scip_options={"threads": 4}))])
+    ("daqp", dict(scip_options={"threads": 4})),
+    # integers too large for a float
+    ("highs", dict(params={"primal_feasibility_tolerance": 10**400})), ("daqp", dict(reg=10**400)),
+    ("daqp", dict(params={"zero_tol": 10**400})), ("daqp", dict(params={"eta_prox": 10**400}))])
 def test_a_back_end_option_whose_value_means_nothing_is_refused(backend, options):
     """Refused when the solver is built, with the option named (what the library would refuse only at a solve, or
     silently round, overwrite or ignore)."""

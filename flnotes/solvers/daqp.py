@@ -388,18 +388,21 @@ _RESERVED_SETTINGS = {"primal_tol": "give the option primal_tol", "eps_prox": "g
                       "rel_subopt": "DAQP's 'optimal' would then be sub-optimal (give gap= to solve())",
                       "abs_subopt": "DAQP's 'optimal' would then be sub-optimal (give gap= to solve())"}
 
-#: DAQP settings that are tolerances (each in (0, 1)), counts (positive integers) and switches (integers).
+#: DAQP settings that are tolerances (each in (0, 1)), counts (positive integers) and switches (integers); the
+#: rest of :data:`DAQP_SETTINGS` are non-negative finite numbers.
 _TOLERANCES = ("dual_tol", "zero_tol", "pivot_tol", "progress_tol", "sing_tol", "refactor_tol")
+_COUNT_SETTINGS = ("cycle_tol", "iter_limit")
 _SWITCH_SETTINGS = ("eq_reduction", "presolve")
 
 
-#: The settings of ``daqp.solve`` that count (iterations), not measure.
-_COUNT_SETTINGS = ("cycle_tol", "iter_limit")
-
-
 def _real(x) -> bool:
-    """A real number (not a bool, not complex, not a time delta)."""
-    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_, np.timedelta64))
+    """A finite real number (not a bool, not complex, not a time delta, not an integer too large for a float)."""
+    if not isinstance(x, numbers.Real) or isinstance(x, (bool, np.bool_, np.timedelta64)):
+        return False
+    try:
+        return bool(np.isfinite(float(x)))
+    except OverflowError:
+        return False
 
 
 def _check_values(options: dict) -> None:
@@ -413,14 +416,14 @@ def _check_values(options: dict) -> None:
                    or (isinstance(a, str) and isinstance(x, str) and x == a) for a in allowed):
             raise ValueError(f"the DAQP option {k} must be one of {allowed}, got {x!r}")
     reg = options.get("reg", 1e-6)
-    if reg is not None and not (_real(reg) and 0.0 <= float(reg) < np.inf):
+    if reg is not None and not (_real(reg) and float(reg) >= 0.0):
         raise ValueError(f"the DAQP option reg must be a non-negative number (0 or None: proximal iterations), "
                          f"got {reg!r}")
-    for k, lo in (("eps_prox", 0.0), ("primal_tol", None)):
-        x = options.get(k, 1e-6)
-        if not (_real(x) and np.isfinite(float(x)) and (float(x) >= 0.0 if lo == 0.0 else float(x) > 0.0)):
-            raise ValueError(f"the DAQP option {k} must be a {'non-negative' if lo == 0.0 else 'positive'} number, "
-                             f"got {x!r}")
+    eps_prox, primal_tol = options.get("eps_prox", 1e-6), options.get("primal_tol", 1e-6)
+    if not (_real(eps_prox) and float(eps_prox) >= 0.0):
+        raise ValueError(f"the DAQP option eps_prox must be a non-negative number, got {eps_prox!r}")
+    if not (_real(primal_tol) and float(primal_tol) > 0.0):
+        raise ValueError(f"the DAQP option primal_tol must be a positive number, got {primal_tol!r}")
     if "eps_prox" in options and options.get("reg", 1e-6):
         raise ValueError(f"the DAQP option eps_prox applies without the regularization (reg=None or 0), but reg = "
                          f"{options.get('reg', 1e-6)!r}: drop eps_prox or set reg=None")
@@ -439,13 +442,12 @@ def _check_values(options: dict) -> None:
         elif k in _TOLERANCES:
             ok, what = _real(x) and 0.0 < float(x) < 1.0, "a tolerance in (0, 1)"
         else:
-            ok, what = _real(x) and np.isfinite(float(x)) and float(x) >= 0.0, "a non-negative finite number"
+            ok, what = _real(x) and float(x) >= 0.0, "a non-negative finite number"
         if not ok:
             raise ValueError(f"the DAQP setting {k} (option params) must be {what}, got {x!r}")
     fb = options.get("fallback", "scip")
-    if fb in ("gurobi", "cplex"):
-        if fb not in available_backends():
-            raise ValueError(f"the DAQP option fallback={fb!r} needs {fb}, which is not installed: use 'scip'")
+    if fb in ("gurobi", "cplex") and fb not in available_backends():
+        raise ValueError(f"the DAQP option fallback={fb!r} needs {fb}, which is not installed: use 'scip'")
     if "threads" in options:  # DAQP runs on one thread; the option is for the SCIP models that verify it
         try:
             ScipSolver.check_options({"threads": options["threads"]})

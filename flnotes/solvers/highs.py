@@ -50,6 +50,14 @@ RESERVED_PARAMS = {"time_limit": "set by solve(time_limit=...)", "mip_rel_gap": 
                    "simplex_iteration_limit": "it stops the search (give time_limit= or node_limit= to solve())"}
 
 
+def _finite(x: numbers.Real) -> bool:
+    """``x`` is finite as a float (an integer too large for one is not)."""
+    try:
+        return bool(np.isfinite(float(x)))
+    except OverflowError:
+        return False
+
+
 class HighsSolver(Solver):
     """HiGHS (Huangfu & Hall 2018) through highspy, one persistent ``Highs`` object.
 
@@ -100,7 +108,7 @@ class HighsSolver(Solver):
         for k, v in params.items():
             if k in RESERVED_PARAMS:
                 raise ValueError(f"the HiGHS option {k!r} is refused in params: {RESERVED_PARAMS[k]}")
-            if isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and not np.isfinite(float(v)):
+            if isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and not _finite(v):
                 raise ValueError(f"the HiGHS option {k!r} (option params) must be a finite number, got {v!r}")
         new = [(k, v) for k, v in params.items() if (k, repr(v)) not in _CHECKED_PARAMS]
         if new:  # HiGHS answers a refused option with a status, not an exception: each is tried once on a model
