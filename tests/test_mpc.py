@@ -368,14 +368,174 @@ def test_time_limit_numbers_says_whether_warm_start_fell_back_less():
 
 
 def _stored_integrator_case(name: str):
-    """A one-integrator system with a stored random network, state and reference (tests/data/NAME)."""
+    """A chain of integrators (one unless the file stores ``orders``) with a stored random network, state and
+    reference (tests/data/NAME)."""
     d = np.load(Path(__file__).resolve().parent / "data" / name)
-    A, B = fl.brunovsky([1])
+    A, B = fl.brunovsky([int(r) for r in d["orders"]] if "orders" in d else [1])
     sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=d["lo"], hi=d["hi"],
                        u_max=d["u_max"], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
                        to_x=lambda z: np.asarray(z, float).copy())
     net = fl.ReLUNet([d["W0"], d["W1"], d["W2"]], [d["b0"], d["b1"], d["b2"]])
     return sysm, net, d["z"], d["z_ref"]
+
+
+@pytest.mark.parametrize("options", [dict(), dict(backend="daqp"), dict(backend="scip"), dict(enclosure=False),
+                                     dict(lp=False), dict(first_level="relaxation")])
+def test_an_optimum_on_a_flat_piece_of_the_network_at_exactly_u_max(options):
+    """A double integrator (N_p = 3) whose random network is flat (constant output) on a piece that lies at exactly
+    ``u_max`` (``u_max`` a quantile of sampled outputs that many samples share). The optimum ends on that piece's
+    face; a solver's point 3e-9 past the face lies in the neighbouring region, whose output exceeds ``u_max``. The
+    engine once tightened ``u_max`` by 7e-9 there, which removed the whole piece, and called a plan 1.5e-5 above the
+    optimum optimal. Now the point is made exact on the region its binaries name (no margin), and every variant
+    returns the cold reference's optimum."""
+    sysm, net, z, z_ref = _stored_integrator_case("flat_piece_at_u_max_program.npz")
+    kw = dict(horizon=3, ts=0.2, Q=[1.0, 1.0], R=0.1)
+    r_ref = fl.MPC(sysm, net, 0.0, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)(z, z_ref)
+    assert r_ref.status == "optimal"
+    # the premise: the optimum's first two inputs sit on a flat piece at exactly u_max (output unchanged when v(k)
+    # moves into the piece)
+    X = np.c_[r_ref.z_pred[:2], r_ref.v_pred[:2]]
+    assert np.all(np.abs(np.abs(net(X)) - sysm.u_max) <= 1e-12)
+    X_in = X.copy()
+    X_in[:, -1] -= 1e-3
+    assert np.max(np.abs(net(X_in) - net(X))) <= 1e-12
+    mpc = fl.MPC(sysm, net, 0.0, **kw, **options)
+    r = mpc(z, z_ref)
+    assert r.status == "optimal" and mpc.plan_feasible(r.z_pred, r.v_pred), r.message
+    assert abs(r.objective - r_ref.objective) <= 1e-6 * abs(r_ref.objective), (r.objective, r_ref.objective, r.message)
+
+
+@pytest.mark.parametrize("options", [dict(), dict(backend="scip"), dict(backend="daqp")])
+def test_a_verdict_under_tightened_rows_is_not_called_proven_beyond_the_untightened_bound(monkeypatch, options):
+    """A network whose admissible inputs are a ridge: ``Phi_NN(z, v) = |v - 0.7| + 1`` with ``u_max = 1`` admits
+    ``v = 0.7`` only. Every solver here returns its plan 1e-7 past the ridge (a solver's tolerance), and the region
+    QP that would make it exact is switched off, so the engine tightens ``u_max^eps``, and the tightened program has
+    no plan. That proves nothing about the program (``v = 0.7`` is admissible): the step is an ``"error"`` that says
+    so, where it used to be ``"infeasible"``."""
+    import flnotes.mpc.engine as engine
+
+    A, B = fl.brunovsky([1])
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
+                     [np.array([-0.7, 0.7]), np.array([1.0])])
+    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
+                       u_max=[1.0], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
+                       to_x=lambda z: np.asarray(z, float).copy())
+    kw = dict(horizon=3, ts=0.5, Q=[1.0], R=0.01, repair=False)
+    z, z_ref = np.array([0.0]), np.array([-3.0])
+    exact = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
+    assert exact.status == "optimal" and np.allclose(exact.v_pred, 0.7), exact.message  # the premise
+    make = engine.make_solver
+
+    class PastTheRidge:
+        def __init__(self, solver):
+            self.solver = solver
+
+        def solve(self, *args, **kwargs):
+            res = self.solver.solve(*args, **kwargs)
+            if res.w is not None:
+                res.w = res.w.copy()
+                res.w[:3] += 1e-7
+            return res
+
+    monkeypatch.setattr(engine, "make_solver", lambda prob, backend, **o: PastTheRidge(make(prob, backend, **o)))
+    monkeypatch.setattr(engine, "region_qp", lambda *args, **kwargs: None)
+    r = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
+    assert r.status == "error" and r.info["tightened"] >= 1, r.message
+    assert r.message.startswith("not proven: no plan with u_max^eps tightened by"), r.message
+
+
+@pytest.mark.parametrize("options", [dict(), dict(backend="daqp")])
+def test_a_daqp_point_over_the_bound_is_solved_again_by_scip_before_any_row_is_tightened(monkeypatch, options):
+    """The ridge network above, with only DAQP's plans 1e-7 past the ridge (DAQP's primal tolerance is 1e-6) and
+    the region QP switched off: SCIP (tolerance 1e-9) solves the untightened round again and its plan is the
+    optimum, where tightening the rows used to make the program look infeasible."""
+    import flnotes.mpc.engine as engine
+
+    A, B = fl.brunovsky([1])
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
+                     [np.array([-0.7, 0.7]), np.array([1.0])])
+    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
+                       u_max=[1.0], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
+                       to_x=lambda z: np.asarray(z, float).copy())
+    kw = dict(horizon=3, ts=0.5, Q=[1.0], R=0.01, repair=False)
+    z, z_ref = np.array([0.0]), np.array([-3.0])
+    exact = fl.MPC(sysm, net, 0.0, backend="scip", **kw)(z, z_ref)
+    assert exact.status == "optimal" and np.allclose(exact.v_pred, 0.7), exact.message  # the premise
+    make = engine.make_solver
+    backends = []
+
+    class PastTheRidge:
+        def __init__(self, solver, backend):
+            self.solver, self.backend = solver, backend
+
+        def solve(self, *args, **kwargs):
+            res = self.solver.solve(*args, **kwargs)
+            backends.append(self.backend)
+            if res.w is not None and self.backend == "daqp":
+                res.w = res.w.copy()
+                res.w[:3] += 1e-7
+            return res
+
+    monkeypatch.setattr(engine, "make_solver", lambda prob, backend, **o: PastTheRidge(make(prob, backend, **o), backend))
+    monkeypatch.setattr(engine, "region_qp", lambda *args, **kwargs: None)
+    r = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
+    assert backends[:2] == ["daqp", "scip"], backends
+    assert r.status == "optimal" and r.info["tightened"] == 0 and r.backend == "scip", r.message
+    assert "scip solved the round again: the daqp optimum" in r.message
+    assert abs(r.objective - exact.objective) <= 1e-9 * abs(exact.objective)
+
+
+@pytest.mark.parametrize("name, horizon", [("flat_piece_reference_program.npz", 5), ("ridge_reference_program.npz", 4)])
+def test_the_reference_makes_a_plan_past_a_flat_piece_or_a_ridge_exact(name, horizon):
+    """The cold reference (``backend="cvxpy-scip"``) on two random programs where SCIP's plan exceeds ``u_max^eps``
+    by its tolerance: a double integrator (N_p = 5) whose optimum ends on a flat piece of the network at exactly
+    ``u_max``, and a two-input system (N_p = 4) whose optimum lies on a ridge (one output at ``u_max`` to round-off at
+    every step). Tightening the rows removed the piece or the ridge: the reference called a plan 0.76 % above the
+    optimum optimal, and the ridge program infeasible. Now SCIP's plan is made exact on its linear region, and the
+    reference and the engine agree."""
+    sysm, net, z, z_ref = _stored_integrator_case(name)
+    kw = dict(horizon=horizon, ts=0.2, Q=[1.0] * len(z), R=0.1)
+    ref = fl.MPC(sysm, net, 0.0, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)
+    r_ref = ref(z, z_ref)
+    mpc = fl.MPC(sysm, net, 0.0, **kw)
+    r = mpc(z, z_ref)
+    assert r.status == r_ref.status == "optimal", (r.message, r_ref.message)
+    assert ref.plan_feasible(r_ref.z_pred, r_ref.v_pred) and mpc.plan_feasible(r.z_pred, r.v_pred)
+    assert abs(r.objective - r_ref.objective) <= 1e-6 * abs(r_ref.objective), (r.objective, r_ref.objective)
+    assert "made exact on its linear region" in r_ref.message  # the premise: SCIP's own plan was over the bound
+
+
+def test_a_reference_verdict_under_tightened_rows_is_not_called_proven_beyond_the_untightened_bound(monkeypatch):
+    """The ridge network of the engine's test above, with the reference's plans moved 1e-7 past the ridge and its
+    region QP switched off: the rows are tightened and the tightened program has no plan, which proves nothing (the
+    step is an ``"error"`` that says so; it used to be ``"infeasible"``)."""
+    from flnotes.mpc.reference import ReferenceProgram
+
+    A, B = fl.brunovsky([1])
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
+                     [np.array([-0.7, 0.7]), np.array([1.0])])
+    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
+                       u_max=[1.0], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
+                       to_x=lambda z: np.asarray(z, float).copy())
+    kw = dict(horizon=3, ts=0.5, Q=[1.0], R=0.01, backend="cvxpy-scip", bounds="box")
+    z, z_ref = np.array([0.0]), np.array([-3.0])
+    exact = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)
+    assert exact.status == "optimal" and np.allclose(exact.v_pred, 0.7), exact.message  # the premise
+    solve = ReferenceProgram.solve
+
+    def past_the_ridge(self, z0, R, u_in, **kwargs):
+        step = solve(self, z0, R, u_in, **kwargs)
+        if step.v_pred is not None:
+            step.v_pred = step.v_pred + 1e-7
+            step.z_pred, step.v = self.pred.predict(z0, step.v_pred), step.v_pred[0].copy()
+        return step
+
+    monkeypatch.setattr(ReferenceProgram, "solve", past_the_ridge)
+    monkeypatch.setattr(ReferenceProgram, "_region_exact", lambda self, z0, f, c0, V, *args: V)
+    mpc = fl.MPC(sysm, net, 0.0, **kw)
+    r = mpc(z, z_ref)
+    assert r.status == "error" and mpc.margin > 0.0, r.message
+    assert r.message.startswith("not proven: no plan with u_max^eps tightened by"), r.message
 
 
 #: Programs where DAQP's branch and bound returned a sub-optimal plan as optimal: one integrator, N_p = 5, random

@@ -91,3 +91,71 @@ def test_a_solver_point_over_the_bound_is_made_exact_on_its_region():
         r = ref(s.z_pred[0], s.info["z_ref"])
         assert r.status == "optimal"
         assert abs(s.objective - r.objective) <= 1e-6 * max(1.0, abs(r.objective)), (s.objective, r.objective)
+
+
+def _flat_net_mpc(u_max: float = 1.0):
+    """One integrator whose network is ``Phi_NN(z, v) = relu(v) - relu(v - 1)``: flat at exactly ``u_max = 1`` for
+    ``v >= 1`` (both neurons active, output ``v - (v - 1)``), and a reference that pulls ``v`` up."""
+    A, B = fl.brunovsky([1])
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, 1.0]]), np.array([[1.0, -1.0]])], [np.array([0.0, -1.0]), np.zeros(1)])
+    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
+                       u_max=[u_max], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
+                       to_x=lambda z: np.asarray(z, float).copy())
+    return sysm, net, fl.MPC(sysm, net, 0.0, horizon=3, ts=0.5, Q=[1.0], R=0.01)
+
+
+def test_a_flat_piece_at_exactly_u_max_keeps_its_region():
+    """Where the output is constant on the region (its rows are zero), the row needs no margin: a margin would
+    empty a region whose output is exactly ``u_max^eps``. Rows with a slope keep ``REGION_MARGIN``."""
+    _, net, mpc = _flat_net_mpc()
+    pred = mpc.pred
+    z, z_ref = np.array([0.0]), np.array([4.0])
+    f, _ = pred.linear(z, z_ref)
+    V = np.full(pred.N, 1.5)  # every step on the flat piece
+    assert np.all(net(np.c_[pred.predict(z, V.reshape(-1, 1))[: pred.N], V]) == 1.0)  # the premise
+    G, h, pat = rg.region_rows(pred, z, V)
+    n_sign = sum(p.size for p in pat)
+    assert np.all(G[n_sign:] == 0.0) and np.all(h[n_sign: n_sign + pred.N] == 0.0)  # |1| <= 1 exactly, no margin
+    W = rg.region_qp(pred, z, f, V)
+    assert W is not None and pred.feasible(z, W) and np.all(W >= 1.0)
+    # a region with a slope (0 < v < 1: the output is v) keeps the margin
+    G, h, pat = rg.region_rows(pred, z, np.full(pred.N, 0.5))
+    n_sign = sum(p.size for p in pat)
+    assert np.all(np.abs(G[n_sign: n_sign + pred.N]).sum(axis=1) > 0)
+    assert np.allclose(h[n_sign: n_sign + pred.N], pred.u_eps[0] - rg.REGION_MARGIN, rtol=0, atol=1e-15)
+    # the controller's first input lies on the flat piece, pulled up by the reference
+    r = mpc(z, z_ref)
+    assert r.status == "optimal" and mpc.plan_feasible(r.z_pred, r.v_pred), r.message
+    assert r.v_pred[0, 0] >= 1.0
+
+
+def test_the_pattern_a_program_point_names_inverts_the_warm_start(quad15):
+    """``program_pattern`` reads the activation pattern from a program's binaries: for the ``w`` that
+    ``plan_vector`` builds from a plan it is the plan's forward-pass pattern, and a flipped binary flips it."""
+    from flnotes.mpc.levers import node_bounds
+    from flnotes.mpc.program import compact_program, plan_vector, program_pattern
+
+    setup, pred = quad15
+    mpc = rt.make_mpc(setup)
+    checked = 0
+    for c, f, c0, V in _repaired(setup, pred, 20, seed=11)[:4]:
+        lo, hi = pred.boxes(c["z"])
+        nb = node_bounds(pred, mpc.options, mpc.solver.box, lo, hi)
+        steps = list(range(pred.N))
+        for eliminate in (True, False):
+            prob = compact_program(pred, c["z"], f, c0, nb, steps, pred.u_eps, eliminate_stable=eliminate)
+            w = plan_vector(pred, c["z"], V, nb, steps, prob, eliminate)
+            pat = program_pattern(pred, c["z"], w, nb, steps, prob, eliminate)
+            _, pre = pred.net.forward(np.c_[pred.predict(c["z"], V.reshape(pred.N, -1))[: pred.N], V.reshape(pred.N, -1)])
+            assert all(np.array_equal(p, a > 0) for p, a in zip(pat, pre))
+            ib = np.flatnonzero(prob.integrality == 1)
+            free = ib[prob.lb[ib] < prob.ub[ib]]
+            if free.size:
+                w2 = w.copy()
+                w2[free[0]] = 1.0 - w2[free[0]]
+                pat2 = program_pattern(pred, c["z"], w2, nb, steps, prob, eliminate)
+                assert sum(int((p != q).sum()) for p, q in zip(pat, pat2)) == 1
+                checked += 1
+        with pytest.raises(ValueError, match="variables"):
+            program_pattern(pred, c["z"], w[:-1], nb, steps, prob, True)
+    assert checked >= 4, "premise: programs with a free binary"

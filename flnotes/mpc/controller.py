@@ -846,12 +846,15 @@ class MPC:
         self.margin = 0.0  # per solve, as in the engine
         t0 = time.perf_counter()
         step = self.solver.solve(z, R, self.u_eps, time_limit=self.time_limit, gap=self.gap)
+        lb_free = -np.inf  # the untightened program's lower bound (SCIP's, at its tolerance)
         for k in range(2, 7):  # rounds 2 to 6
             if step.v is None or step.status != "optimal":
-                return step
+                return self._backed(step, lb_free)
             ex = float(np.max(np.abs(self.net(np.hstack([step.z_pred[: self.N], step.v_pred]))) - self.u_eps))
             if ex <= BOUND_TOL:
-                return step
+                return self._backed(step, lb_free)
+            if self.margin == 0.0:
+                lb_free = min(float(step.bound), float(step.objective)) if np.isfinite(step.bound) else float(step.objective)
             self.margin = next_margin(self.margin, ex, float(np.max(self.u_eps)))
             left = None if self.time_limit is None else self.time_limit - (time.perf_counter() - t0)
             if left is not None and left <= 0.0:
@@ -859,7 +862,26 @@ class MPC:
                 step.message += f"; the time limit came before round {k} (the rows tightened by {self.margin:.1e})"
                 return step
             step = self.solver.solve(z, R, self.u_eps - self.margin, time_limit=left, gap=self.gap)
-        return step
+        return self._backed(step, lb_free)
+
+    def _backed(self, step: StepResult, lb_free: float) -> StepResult:
+        """``step`` of the reference, unless it is a verdict of rows tightened by ``self.margin`` that the untightened
+        program's lower bound ``lb_free`` does not back: an optimum more than ``gap`` above it, or no plan at all
+        (the tightened rows remove plans that meet ``u_max^eps``, e.g. on a ridge of the network). That step becomes
+        an ``"error"`` that says so; its plan is dropped."""
+        if self.margin == 0.0 or step.status not in ("optimal", "infeasible"):
+            return step
+        if step.status == "optimal" and step.objective <= lb_free + self.gap * max(1.0, abs(step.objective)):
+            step.bound = min(float(step.bound), lb_free) if np.isfinite(step.bound) else lb_free
+            step.gap = abs(step.objective - step.bound) / max(1.0, abs(step.objective))
+            return step
+        what = "no plan" if step.status == "infeasible" else f"an optimum of cost {step.objective:.9g}"
+        return StepResult(None, "error", backend=step.backend, n_binaries=step.n_binaries, rounds=step.rounds,
+                          nodes=step.nodes, encoded_steps=step.encoded_steps, solve_time=step.solve_time,
+                          message=f"not proven: {what} with u_max^eps tightened by {self.margin:.1e} (SCIP's "
+                          f"tolerance let its plan through), while the untightened program's lower bound is "
+                          f"{lb_free:.9g}: its optimum lies within the solver's tolerance of the network bound (e.g. "
+                          f"on a ridge of the network); {step.message}")
 
     def step(self, z: Array, t: float, reference: Optional[Callable[[Array], Array]] = None) -> StepResult:
         """One sampling instant for :func:`flnotes.simulate`: ``z_ref(k) = reference(t + k t_s)``, k = 0..N_p.

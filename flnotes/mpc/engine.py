@@ -39,11 +39,11 @@ from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .bang_bang import bang_bang_incumbent
 from .bound_cache import BoundCache
 from .fallback import qp_repair
-from .region import REGION_MOVES, region_qp
+from .region import REGION_MARGIN, REGION_MOVES, region_qp
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
-from .program import compact_program, plan_vector
+from .program import compact_program, plan_vector, program_pattern
 
 Array = np.ndarray
 
@@ -388,6 +388,19 @@ class NetworkEngine:
         # cheaper than its level J_up proves that nothing cheaper exists)
         lb, J_up, n_round = J_c, -np.inf, 0
         lo_f = hi_f = None
+        # once the rows are tightened (self.margin > 0) a verdict holds for the tightened program only; lb_free is
+        # the lower bound the untightened solve gave (on the plans cheaper than its round's level)
+        lb_free = -np.inf
+
+        def unproven(J: float) -> bool:  # a verdict of the tightened program that the untightened bound cannot back
+            return self.margin > 0.0 and not J <= lb_free + gap * max(1.0, abs(J))
+
+        def not_proven(V: Optional[Array], J: float, what: str) -> StepResult:
+            return done("error", None, -np.inf,
+                        f"not proven: {what} with u_max^eps tightened by {self.margin:.1e} (a solver's tolerance let "
+                        f"its point through), while the untightened program's lower bound is {lb_free:.9g}: its "
+                        "optimum lies within the solvers' tolerance of the network bound (e.g. on a ridge of the "
+                        "network)")
         while True:
             if time_limit is not None or work:
                 if n_round and self.margin == 0.0:
@@ -490,10 +503,37 @@ class NetworkEngine:
                 if status != "optimal":
                     break
                 viol = set(pred.violated(z0, res.w[: N * m]).tolist())
-                exact = self._region_exact(z0, f, c0, res, gap) if viol & set(enc) and self.margin == 0.0 else None
+                where = (nb, enc, prob, o.eliminate_stable, self.order)
+                exact = (self._region_exact(z0, f, c0, res, gap, where)
+                         if viol & set(enc) and self.margin == 0.0 else None)
                 if exact is not None:  # the same plan's linear region holds a point within the gap that meets the bound
                     res = exact
                     viol = set(pred.violated(z0, res.w[: N * m]).tolist())
+                elif viol & set(enc) and self.margin == 0.0 and backend != "scip":
+                    # DAQP's point meets the rows to its tolerance (1e-6), which bounds the program's optimum from
+                    # below only loosely: SCIP (1e-9) solves the same program before any row is tightened
+                    if out_of_time(VERIFY_MIN_LEFT):
+                        return done("time_limit", inc_V, lb, "time limit: too little time left to solve again with "
+                                    f"scip a round whose {backend} optimum exceeds u_max^eps")
+                    was = res.message
+                    solver = make_solver(prob, "scip", **self.solver_options.get("scip", {}))
+                    res = solver.solve(warm_start=w0, time_limit=remaining() if not work else safety, gap=gap,
+                                       node_limit=nodes_left())
+                    if time_limit is not None or work:
+                        retire(solver)
+                    res.message = (f"{res.message}; scip solved the round again: the {backend} optimum ({was}) "
+                                   "exceeded u_max^eps")
+                    backend = st["backend"] = "scip"
+                    st["nodes"] += int(res.nodes)
+                    st["scip_programs"] += 1
+                    status = _status(res.status)
+                    if status != "optimal":
+                        break
+                    viol = set(pred.violated(z0, res.w[: N * m]).tolist())
+                    exact = self._region_exact(z0, f, c0, res, gap, where) if viol & set(enc) else None
+                    if exact is not None:
+                        res = exact
+                        viol = set(pred.violated(z0, res.w[: N * m]).tolist())
                 if viol & set(enc):
                     # an encoded step exceeds u_max^eps beyond round-off (the solver's tolerance let it through):
                     # tighten the bound in the rows and solve again
@@ -502,6 +542,9 @@ class NetworkEngine:
                         return done("error", None, -np.inf, f"the optimum exceeds u_max^eps by {ex:.1e} after "
                                     f"tightening the rows by {self.margin:.1e}")
                     st["tightened"] += 1
+                    if self.margin == 0.0:
+                        b1 = float(res.bound) if res.bound is not None and np.isfinite(res.bound) else float(res.objective)
+                        lb_free = min(b1, float(res.objective), J_up)
                     self.margin = next_margin(self.margin, ex, float(np.max(pred.u_eps)))
                     prob = compact_program(pred, z0, f, c0, nb, enc, pred.u_eps - self.margin,
                                            eliminate_stable=o.eliminate_stable, lo=lo if restrict else None,
@@ -538,13 +581,19 @@ class NetworkEngine:
                     return done("error", None, -np.inf, "the program's optimum fails the forward-pass check")
                 self.active_prev = tuple(enc)
                 if full or J <= J_up + 1e-9 * max(1.0, abs(J_up)):
+                    if unproven(J):
+                        return not_proven(V, J, f"an optimum of cost {J:.9g}")
                     bound = res.bound if np.isfinite(res.bound) else J
+                    if self.margin > 0.0:
+                        bound = min(bound, lb_free)
                     return done("optimal", V, bound, f"{res.backend}: {res.message}")
                 if J < inc_J:
                     inc_V, inc_J, incumbent_from = V, J, "an earlier round"
                     publish(inc_V, inc_J, lb, incumbent_from)
             elif status == "infeasible":
                 if full and inc_V is None:
+                    if self.margin > 0.0:
+                        return not_proven(None, np.inf, "no plan")
                     said = res.message if "proven by" in res.message else f"{res.backend}: {res.message}"
                     return done("infeasible", None, np.inf, f"the program is infeasible ({said})")
             elif status == "time_limit":
@@ -560,6 +609,8 @@ class NetworkEngine:
             else:
                 return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
             if J_up >= inc_J or full:  # nothing below J_up in the restricted program
+                if inc_V is not None and unproven(inc_J):
+                    return not_proven(inc_V, inc_J, f"nothing cheaper than the incumbent's {inc_J:.9g}")
                 return done("optimal", inc_V, inc_J,
                             f"the incumbent is optimal ({incumbent_from}; nothing cheaper)")
             delta *= 4.0
@@ -618,7 +669,7 @@ class NetworkEngine:
             U[layer][steps] = np.minimum(U[layer][steps], t.U[layer][steps])
         return NodeBounds(L, U, nb.out_L, nb.out_U, method=nb.method)
 
-    def _region_exact(self, z0: Array, f: Array, c0: float, res, gap: float):
+    def _region_exact(self, z0: Array, f: Array, c0: float, res, gap: float, where: tuple):
         """A solver's optimum that exceeds ``u_max^eps`` by its tolerance, made exact on its own linear region.
 
         The solver solved the program with its tolerance, which only enlarges the feasible set, so its objective
@@ -628,15 +679,27 @@ class NetworkEngine:
         within ``gap`` of ``J1`` it is optimal to ``gap``, and no row has to be tightened (the tolerance policy of
         :mod:`flnotes.solvers` then solves the program with ``u_max^eps`` less a margin, whose optimum is the
         optimum of that tightened program: on the Quad-1D at N_p = 15 a margin of 1.3e-7 moved one optimum by
-        3.7e-6). Returns the result with that plan, or ``None``.
+        3.7e-6). The region is first the plan's own (forward pass), then the one the solver's binaries name
+        (:func:`flnotes.mpc.program.program_pattern`; ``where = (nb, steps, prob, eliminate_stable, order)`` as the
+        program was built): a point past a face of that region by the solver's tolerance lies in a neighbour
+        whose QP may be empty, e.g. beside a flat piece of the network at exactly ``u_max^eps``, which a
+        tightened bound would remove whole. Both again without :data:`flnotes.mpc.region.REGION_MARGIN`, for a
+        region whose admissible part is a face (a ridge of the network at ``u_max^eps``): the forward-pass
+        check then decides whether the QP's point meets the bound. Returns the result with that plan, or ``None``.
         """
         pred = self.pred
         Nm = pred.N * pred.m
-        V = region_qp(pred, z0, f, res.w[:Nm])
-        if V is None or not pred.feasible(z0, V):
-            return None
-        J1, J2 = float(res.objective), pred.cost(V, f, c0)
-        if not J2 <= J1 + gap * max(1.0, abs(J1)):
+        J1 = float(res.objective)
+        V, J2 = None, np.inf
+        solver_pattern = program_pattern(pred, z0, res.w, *where)
+        for pattern, margin in ((None, REGION_MARGIN), (solver_pattern, REGION_MARGIN), (None, 0.0),
+                                (solver_pattern, 0.0)):
+            W = region_qp(pred, z0, f, res.w[:Nm], pattern=pattern, margin=margin)
+            if W is not None and pred.feasible(z0, W):
+                V, J2 = W, pred.cost(W, f, c0)
+                if J2 <= J1 + gap * max(1.0, abs(J1)):
+                    break
+        if V is None or not J2 <= J1 + gap * max(1.0, abs(J1)):
             return None
         out = copy.copy(res)
         out.w = np.r_[V, res.w[Nm:]]  # only the plan is read from here on

@@ -212,6 +212,39 @@ def plan_vector(pred: Prediction, z0: Array, V: Array, nb: NodeBounds, steps: Se
     return w
 
 
+def program_pattern(pred: Prediction, z0: Array, w: Array, nb: NodeBounds, steps: Sequence[int], prob: MIQP,
+                    eliminate_stable: bool = True, order: str = "layers") -> list[Array]:
+    """The activation pattern a program's point ``w`` stands for: the inverse of :func:`plan_vector`.
+
+    At the encoded ``steps`` a neuron with a binary is active where its ``alpha`` rounds to 1 and a stable one
+    where ``L >= 0``; at the other steps the pattern is the forward pass's at the plan ``V = w[:N_p m]``. A
+    solver's point may lie past a face of the region its binaries name by the solver's tolerance, so the two
+    patterns can differ at the encoded steps. Returns one (N_p, n_l) boolean array per hidden layer, as
+    :func:`flnotes.mpc.region.region_rows` takes it.
+    """
+    N, m = pred.N, pred.m
+    w = np.asarray(w, float)
+    V = w[: N * m].reshape(N, m)
+    _, pre = pred.net.forward(np.hstack([pred.predict(z0, V)[:N], V]))
+    pattern = [a > 0.0 for a in pre]
+    steps = list(steps)
+    if not steps:
+        return pattern
+    col0, n_y = _offsets(nb, steps, pred.net.K - 1, eliminate_stable, order)
+    if N * m + 2 * n_y != prob.n or w.shape != (prob.n,):
+        raise ValueError(f"the program has {prob.n} variables, w {w.shape} and the layout of these steps and bounds "
+                         f"{N * m + 2 * n_y}: pass the steps, bounds, eliminate_stable and order the program was built with")
+    for k in steps:
+        for layer in range(pred.net.K - 1):
+            L, U = np.asarray(nb.L[layer])[k], np.asarray(nb.U[layer])[k]
+            var = _encoded(L, U, eliminate_stable)
+            ia = N * m + n_y + col0[(k, layer)]
+            on = L >= 0.0
+            on[var] = w[ia:ia + int(var.sum())] > 0.5
+            pattern[layer][k] = on
+    return pattern
+
+
 def objective(prob: MIQP, w: Array) -> float:
     """``0.5 w'Hw + c'w + c0`` of a program."""
     w = np.asarray(w, float)

@@ -31,14 +31,17 @@ REGION_MOVES = 10
 REGION_MARGIN = 1e-10
 
 
-def region_rows(pred: Prediction, z0: Array, V: Array, pattern: Optional[list] = None
-                ) -> tuple[Array, Array, list]:
+def region_rows(pred: Prediction, z0: Array, V: Array, pattern: Optional[list] = None,
+                margin: float = REGION_MARGIN) -> tuple[Array, Array, list]:
     """Rows ``G V' <= h``: an activation pattern at every predicted step, and the output bound there.
 
     With ``[z(k); v(k)] = T_k V' + c_k`` (:attr:`Prediction.T`) and ``D^l`` the diagonal 0/1 pattern of layer
     ``l``, the pre-activation ``a^l = W^l y^{l-1} + b^l`` is affine in ``V'`` on the region, with
     ``y^l = D^l a^l``; an active neuron gets ``-a^l <= 0``, an inactive one ``a^l <= 0`` (eq. MIP_general with
-    the binary fixed), and the output ``W^L y^{L-1} + b^L`` gets ``|.| <= u_max^eps - REGION_MARGIN``.
+    the binary fixed), and the output ``W^L y^{L-1} + b^L`` gets ``|.| <= u_max^eps - REGION_MARGIN`` (``|.| <=
+    u_max^eps`` where the output is constant on the region: a flat piece at exactly ``u_max^eps`` stays in).
+    ``margin`` replaces ``REGION_MARGIN`` (0: a region whose admissible part is a face, e.g. a ridge of the network
+    at ``u_max^eps``, keeps that face, and only the forward-pass check tells whether the QP's point meets the bound).
     ``pattern`` (one (N_p, n_l) boolean array per hidden layer) defaults to the pattern of ``V``
     (``a^l > 0`` at ``V``). Returns ``G`` (rows, N_p m), ``h`` and the pattern; the first rows are the sign rows,
     layer by layer, step by step, in the order of ``pattern``'s entries.
@@ -58,7 +61,10 @@ def region_rows(pred: Prediction, z0: Array, V: Array, pattern: Optional[list] =
         h.append((-s * c).reshape(-1))
         A, c = A * on[..., None], c * on
     A, c = np.einsum("ij,kjl->kil", net.W[-1], A), c @ net.W[-1].T + net.b[-1]
-    u = np.broadcast_to(pred.u_eps - REGION_MARGIN, c.shape)
+    # an output constant on the region (a flat piece: every row coefficient zero) is met exactly wherever the
+    # region is: it needs no margin, and one would remove a piece that lies at exactly u_max^eps
+    flat = ~np.any(A != 0.0, axis=2)
+    u = np.where(flat, pred.u_eps, pred.u_eps - margin)
     G += [A.reshape(-1, N * m), -A.reshape(-1, N * m)]
     h += [(u - c).reshape(-1), (u + c).reshape(-1)]
     return np.vstack(G), np.concatenate(h), pat
@@ -71,7 +77,8 @@ def _region_solve(pred: Prediction, z0: Array, f: Array, G: Array, h: Array):
 
 
 def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 0,
-              stop: Optional[threading.Event] = None) -> Optional[Array]:
+              stop: Optional[threading.Event] = None, pattern: Optional[list] = None,
+              margin: float = REGION_MARGIN) -> Optional[Array]:
     """The optimum of ``J`` over the linear region of the plan ``V`` (:func:`region_rows`), or ``None``.
 
     ``f`` is the cost's linear part (:meth:`Prediction.linear`). Solved by DAQP (an active-set method, exact on
@@ -80,10 +87,12 @@ def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 
     (whose neuron there is at ``a = 0``, so ``V*`` lies in both regions) is re-optimized with those neurons'
     pattern flipped; it stops when no such row is left, the cost stops decreasing, or after ``max_moves``
     moves, or once ``stop`` is set (a controller answering at its cut-off). ``None`` when the first QP
-    gives no optimum (an empty region: ``V`` violates its own output rows, or a box). Check the result with
+    gives no optimum (an empty region: ``V`` violates its own output rows, or a box). ``pattern`` (as in
+    :func:`region_rows`) gives the first region instead of ``V``'s own, e.g. a solver's binaries where ``V`` lies
+    past the region's face by the solver's tolerance; ``margin`` is :func:`region_rows`'. Check the result with
     :meth:`Prediction.feasible`.
     """
-    G, h, pat = region_rows(pred, z0, V)
+    G, h, pat = region_rows(pred, z0, V, pattern, margin)
     x, lam = _region_solve(pred, z0, f, G, h)
     if x is None:
         return None
@@ -98,7 +107,7 @@ def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 
             break
         parts = np.split(flip, np.cumsum(sizes)[:-1])
         pat = [p ^ q.reshape(p.shape) for p, q in zip(pat, parts)]
-        G, h, pat = region_rows(pred, z0, best, pat)
+        G, h, pat = region_rows(pred, z0, best, pat, margin)
         x, lam = _region_solve(pred, z0, f, G, h)
         if x is None or not cost(x) < J - 1e-12 * max(1.0, abs(J)):
             break

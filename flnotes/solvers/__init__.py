@@ -59,14 +59,19 @@ solvers' rows, and the network bound checked with the forward pass to
 tighten ``u_max^eps`` in the rows they hand to a solver until the returned
 point passes that check (:func:`next_margin`).
 
-Optimal up to these tolerances. Two degenerate cases defeat them: where a step's admissible inputs shrink to a
-point (the network's output touches ``u_max^eps`` at a ridge and stays above it around), and where the output equals
-``u_max^eps`` exactly on a whole flat piece (a region where it is constant, as when ``u_max`` is set to a quantile of
-sampled outputs that many samples share). Which plans pass then depends on each solver's feasibility tolerance, and
-any margin of the tolerance policy removes the whole piece: two exact back-ends (or the engine and the cold
-reference) can return optima that differ by more than the gap, or one can find the program infeasible, each plan
-passing the forward-pass check. Both were found on random networks with ``u_max`` at a quantile of ``|Phi_NN|``
-(one or two integrators, ``N_p = 3`` to ``5``), with optima apart by 1.5e-5 to 1 %.
+Optimal up to these tolerances. Two degenerate cases are where tolerances decide: a step whose admissible inputs
+shrink to a face (the network's output touches ``u_max^eps`` at a ridge and stays above it around), and an output
+equal to ``u_max^eps`` exactly on a whole flat piece (a region where it is constant, as when ``u_max`` is set to a
+quantile of sampled outputs that many samples share). A solver's point a tolerance past such a face lies where the
+output exceeds ``u_max^eps``, and any margin removes the whole piece or ridge: on random networks the MPC once
+returned a plan 1.5e-5 above the optimum as optimal, and its cold reference a plan 0.76 % above, or "infeasible"
+for a program with an optimum. So before any margin the MPC (:class:`flnotes.mpc.engine.NetworkEngine`) and its
+reference make such a point exact on a linear region of the network (the point's own, then the one the solver's
+binaries name, each with the region's margin and then without it, the forward-pass check deciding; a constant
+output row never gets a margin), and the MPC has SCIP (1e-9) solve a round again whose DAQP point (1e-6) is
+over the bound. A verdict of tightened rows (an optimum, "nothing cheaper", no plan) counts as a proof only where
+the untightened program's lower bound backs it to the gap; otherwise the step is an ``"error"`` whose message
+starts "not proven".
 
 Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
 bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's
