@@ -678,7 +678,9 @@ class MPC:
 
         Returns the :class:`flnotes.StepResult` (appended to :attr:`history`): ``v`` to apply, the plan, status
         and statistics. A step without a proven plan applies :meth:`fallback_plan` (``fallback=True``). An
-        infeasible program is reported (``status="infeasible"``), not raised. The step runs with one BLAS
+        infeasible program is reported (``status="infeasible"``), not raised; so is a program whose optimum the
+        solvers' tolerances cannot settle (``status="error"``, a message that starts "not proven": the optimum lies
+        on a ridge of the network at ``u_max^eps``, see :mod:`flnotes.solvers`). The step runs with one BLAS
         thread (:func:`flnotes.config.one_blas_thread`) and, under a time limit, without Python's cyclic garbage
         collector (:func:`flnotes.config.no_cyclic_gc`: a collection that falls due starts after the call has
         returned, at the caller's next allocation of a tracked object) and with
