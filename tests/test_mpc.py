@@ -505,6 +505,24 @@ def test_the_reference_makes_a_plan_past_a_flat_piece_or_a_ridge_exact(name, hor
     assert "made exact on its linear region" in r_ref.message  # the premise: SCIP's own plan was over the bound
 
 
+def test_a_reference_verdict_under_tightened_rows_within_the_solvers_tolerance_is_proven():
+    """A double integrator (N_p = 1, a random (4, 3) network) where SCIP's plan in the reference's cone form lies
+    2.7e-8 over ``u_max^eps`` (its cost 2e-9 below the optimum) on a region with a slope: the region QP moves the
+    cost by more than the asked gap of 1e-9, so the rows are tightened. The tightened optimum is within
+    ``TIGHTENED_GAP`` of the untightened bound, which backs it: "optimal", the engine's optimum, and the bound the
+    step reports is the untightened one."""
+    from flnotes.solvers import TIGHTENED_GAP
+
+    sysm, net, z, z_ref = _stored_integrator_case("tightened_reference_program.npz")
+    kw = dict(horizon=1, ts=0.2, Q=[1.0, 1.0], R=0.1, P=[1.0, 1.0])
+    ref = fl.MPC(sysm, net, 0.0, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)
+    r_ref = ref(z, z_ref)
+    r = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)
+    assert r_ref.status == r.status == "optimal" and ref.margin > 0.0, r_ref.message
+    assert abs(r.objective - r_ref.objective) <= 1e-6 * abs(r.objective)
+    assert r_ref.bound <= r_ref.objective <= r_ref.bound + TIGHTENED_GAP * abs(r_ref.objective)
+
+
 def test_a_reference_verdict_under_tightened_rows_is_not_called_proven_beyond_the_untightened_bound(monkeypatch):
     """The ridge network of the engine's test above, with the reference's plans moved 1e-7 past the ridge and its
     region QP switched off: the rows are tightened and the tightened program has no plan, which proves nothing (the

@@ -25,7 +25,7 @@ from ..config import (answer_slice, hold_signals, machine_steal, major_faults, o
                       slice_before_answer, thread_run_delay, yield_core)
 from ..network import ReLUNet
 from ..result import StepResult
-from ..solvers import BOUND_TOL, next_margin, project_to_box, release_retired
+from ..solvers import BOUND_TOL, TIGHTENED_GAP, next_margin, project_to_box, release_retired
 from ..solvers.base import _require, check_options
 from ..systems import FLSystem
 from . import fallback
@@ -868,12 +868,13 @@ class MPC:
 
     def _backed(self, step: StepResult, lb_free: float) -> StepResult:
         """``step`` of the reference, unless it is a verdict of rows tightened by ``self.margin`` that the untightened
-        program's lower bound ``lb_free`` does not back: an optimum more than ``gap`` above it, or no plan at all
+        program's lower bound ``lb_free`` does not back: an optimum more than ``gap`` (at least
+        :data:`flnotes.solvers.TIGHTENED_GAP`) above it, or no plan at all
         (the tightened rows remove plans that meet ``u_max^eps``, e.g. on a ridge of the network). That step becomes
         an ``"error"`` that says so; its plan is dropped."""
         if self.margin == 0.0 or step.status not in ("optimal", "infeasible"):
             return step
-        if step.status == "optimal" and step.objective <= lb_free + self.gap * max(1.0, abs(step.objective)):
+        if step.status == "optimal" and step.objective <= lb_free + max(self.gap, TIGHTENED_GAP) * max(1.0, abs(step.objective)):
             step.bound = min(float(step.bound), lb_free) if np.isfinite(step.bound) else lb_free
             step.gap = abs(step.objective - step.bound) / max(1.0, abs(step.objective))
             return step

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
-from ..solvers import MIQP, available_backends, make_solver, next_margin, release_retired, retire
+from ..solvers import MIQP, TIGHTENED_GAP, available_backends, make_solver, next_margin, release_retired, retire
 from ..solvers.base import VERIFY_MIN_LEFT
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .bang_bang import bang_bang_incumbent
@@ -393,7 +393,7 @@ class NetworkEngine:
         lb_free = -np.inf
 
         def unproven(J: float) -> bool:  # a verdict of the tightened program that the untightened bound cannot back
-            return self.margin > 0.0 and not J <= lb_free + gap * max(1.0, abs(J))
+            return self.margin > 0.0 and not J <= lb_free + max(gap, TIGHTENED_GAP) * max(1.0, abs(J))
 
         def not_proven(V: Optional[Array], J: float, what: str) -> StepResult:
             return done("error", None, -np.inf,

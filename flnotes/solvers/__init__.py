@@ -70,8 +70,8 @@ reference make such a point exact on a linear region of the network (the point's
 binaries name, each with the region's margin and then without it, the forward-pass check deciding; a constant
 output row never gets a margin), and the MPC has SCIP (1e-9) solve a round again whose DAQP point (1e-6) is
 over the bound. A verdict of tightened rows (an optimum, "nothing cheaper", no plan) counts as a proof only where
-the untightened program's lower bound backs it to the gap; otherwise the step is an ``"error"`` whose message
-starts "not proven".
+the untightened program's lower bound backs it to the gap (at least :data:`TIGHTENED_GAP`); otherwise the step is an
+``"error"`` whose message starts "not proven".
 
 Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
 bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's
@@ -96,9 +96,10 @@ MPC or CLF-CBF logic.
 from .base import SOLVER_BACKENDS, Solver, available_backends, make_solver, release_retired, retire
 from .daqp import DAQP_STATUS, HANDOVER_S, VERIFY_NODES, DaqpSolver
 from .highs import HIGHS_STATUS, HighsSolver
-from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, MIQPResult, next_margin, project_to_box
+from .problem import BOUND_TOL, BOX_TOL, FEAS_TOL, MIQP, TIGHTENED_GAP, MIQPResult, next_margin, project_to_box
 from .scip import C_NOTICES, SCIP_STATUS, ScipSolver
 
 __all__ = ["SOLVER_BACKENDS", "Solver", "available_backends", "make_solver", "release_retired", "retire",
            "DAQP_STATUS", "DaqpSolver", "HANDOVER_S", "VERIFY_NODES", "HIGHS_STATUS", "HighsSolver", "BOUND_TOL",
-           "BOX_TOL", "FEAS_TOL", "MIQP", "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS", "ScipSolver", "C_NOTICES"]
+           "BOX_TOL", "FEAS_TOL", "MIQP", "TIGHTENED_GAP", "MIQPResult", "next_margin", "project_to_box", "SCIP_STATUS",
+           "ScipSolver", "C_NOTICES"]
