@@ -371,12 +371,40 @@ def _stored_integrator_case(name: str):
     """A chain of integrators (one unless the file stores ``orders``) with a stored random network, state and
     reference (tests/data/NAME)."""
     d = np.load(Path(__file__).resolve().parent / "data" / name)
-    A, B = fl.brunovsky([int(r) for r in d["orders"]] if "orders" in d else [1])
-    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=d["lo"], hi=d["hi"],
-                       u_max=d["u_max"], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
-                       to_x=lambda z: np.asarray(z, float).copy())
+    sysm = _integrator_system([int(r) for r in d["orders"]] if "orders" in d else [1], d["lo"], d["hi"], d["u_max"])
     net = fl.ReLUNet([d["W0"], d["W1"], d["W2"]], [d["b0"], d["b1"], d["b2"]])
     return sysm, net, d["z"], d["z_ref"]
+
+
+def _integrator_system(orders, lo, hi, u_max):
+    """Chains of integrators (``fl.brunovsky(orders)``) whose Phi is v, on the box ``[lo, hi]`` of ``[z; v]``."""
+    A, B = fl.brunovsky(list(orders))
+    return fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=lo, hi=hi, u_max=u_max,
+                       f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
+                       to_x=lambda z: np.asarray(z, float).copy())
+
+
+def _ridge_case():
+    """One integrator whose network ``Phi_NN(z, v) = |v - 0.7| + 1`` with ``u_max = 1`` admits ``v = 0.7`` only."""
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
+                     [np.array([-0.7, 0.7]), np.array([1.0])])
+    return _integrator_system([1], [-5.0, -2.0], [5.0, 2.0], [1.0]), net
+
+
+class _PastTheRidge:
+    """A solver whose plans come back 1e-7 past the ridge of :func:`_ridge_case` (a solver's tolerance), for the
+    back-end ``only`` (every back-end when ``None``); ``calls`` records the back-ends that solved."""
+
+    def __init__(self, solver, backend: str, calls: list, only=None):
+        self.solver, self.backend, self.calls, self.only = solver, backend, calls, only
+
+    def solve(self, *args, **kwargs):
+        res = self.solver.solve(*args, **kwargs)
+        self.calls.append(self.backend)
+        if res.w is not None and self.only in (None, self.backend):
+            res.w = res.w.copy()
+            res.w[:3] += 1e-7
+        return res
 
 
 @pytest.mark.parametrize("options", [dict(), dict(backend="daqp"), dict(backend="scip"), dict(enclosure=False),
@@ -414,31 +442,15 @@ def test_a_verdict_under_tightened_rows_is_not_called_proven_beyond_the_untighte
     so, where it used to be ``"infeasible"``."""
     import flnotes.mpc.engine as engine
 
-    A, B = fl.brunovsky([1])
-    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
-                     [np.array([-0.7, 0.7]), np.array([1.0])])
-    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
-                       u_max=[1.0], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
-                       to_x=lambda z: np.asarray(z, float).copy())
+    sysm, net = _ridge_case()
     kw = dict(horizon=3, ts=0.5, Q=[1.0], R=0.01, repair=False)
     z, z_ref = np.array([0.0]), np.array([-3.0])
     exact = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
     assert exact.status == "optimal" and np.allclose(exact.v_pred, 0.7), exact.message  # the premise
-    make = engine.make_solver
-
-    class PastTheRidge:
-        def __init__(self, solver):
-            self.solver = solver
-
-        def solve(self, *args, **kwargs):
-            res = self.solver.solve(*args, **kwargs)
-            if res.w is not None:
-                res.w = res.w.copy()
-                res.w[:3] += 1e-7
-            return res
-
-    monkeypatch.setattr(engine, "make_solver", lambda prob, backend, **o: PastTheRidge(make(prob, backend, **o)))
-    monkeypatch.setattr(engine, "region_qp", lambda *args, **kwargs: None)
+    make, calls = engine.make_solver, []
+    monkeypatch.setattr(engine, "make_solver", lambda prob, backend, **o: _PastTheRidge(make(prob, backend, **o), backend,
+                                                                                         calls))
+    monkeypatch.setattr(engine, "region_exact", lambda *args, **kwargs: None)
     r = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
     assert r.status == "error" and r.info["tightened"] >= 1, r.message
     assert r.message.startswith("not proven: no plan with u_max^eps tightened by"), r.message
@@ -451,33 +463,15 @@ def test_a_daqp_point_over_the_bound_is_solved_again_by_scip_before_any_row_is_t
     optimum, where tightening the rows used to make the program look infeasible."""
     import flnotes.mpc.engine as engine
 
-    A, B = fl.brunovsky([1])
-    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
-                     [np.array([-0.7, 0.7]), np.array([1.0])])
-    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
-                       u_max=[1.0], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
-                       to_x=lambda z: np.asarray(z, float).copy())
+    sysm, net = _ridge_case()
     kw = dict(horizon=3, ts=0.5, Q=[1.0], R=0.01, repair=False)
     z, z_ref = np.array([0.0]), np.array([-3.0])
     exact = fl.MPC(sysm, net, 0.0, backend="scip", **kw)(z, z_ref)
     assert exact.status == "optimal" and np.allclose(exact.v_pred, 0.7), exact.message  # the premise
-    make = engine.make_solver
-    backends = []
-
-    class PastTheRidge:
-        def __init__(self, solver, backend):
-            self.solver, self.backend = solver, backend
-
-        def solve(self, *args, **kwargs):
-            res = self.solver.solve(*args, **kwargs)
-            backends.append(self.backend)
-            if res.w is not None and self.backend == "daqp":
-                res.w = res.w.copy()
-                res.w[:3] += 1e-7
-            return res
-
-    monkeypatch.setattr(engine, "make_solver", lambda prob, backend, **o: PastTheRidge(make(prob, backend, **o), backend))
-    monkeypatch.setattr(engine, "region_qp", lambda *args, **kwargs: None)
+    make, backends = engine.make_solver, []
+    monkeypatch.setattr(engine, "make_solver", lambda prob, backend, **o: _PastTheRidge(make(prob, backend, **o), backend,
+                                                                                         backends, only="daqp"))
+    monkeypatch.setattr(engine, "region_exact", lambda *args, **kwargs: None)
     r = fl.MPC(sysm, net, 0.0, **kw, **options)(z, z_ref)
     assert backends[:2] == ["daqp", "scip"], backends
     assert r.status == "optimal" and r.info["tightened"] == 0 and r.backend == "scip", r.message
@@ -527,14 +521,10 @@ def test_a_reference_verdict_under_tightened_rows_is_not_called_proven_beyond_th
     """The ridge network of the engine's test above, with the reference's plans moved 1e-7 past the ridge and its
     region QP switched off: the rows are tightened and the tightened program has no plan, which proves nothing (the
     step is an ``"error"`` that says so; it used to be ``"infeasible"``)."""
+    from flnotes.mpc import reference
     from flnotes.mpc.reference import ReferenceProgram
 
-    A, B = fl.brunovsky([1])
-    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
-                     [np.array([-0.7, 0.7]), np.array([1.0])])
-    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
-                       u_max=[1.0], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
-                       to_x=lambda z: np.asarray(z, float).copy())
+    sysm, net = _ridge_case()
     kw = dict(horizon=3, ts=0.5, Q=[1.0], R=0.01, backend="cvxpy-scip", bounds="box")
     z, z_ref = np.array([0.0]), np.array([-3.0])
     exact = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)
@@ -549,7 +539,7 @@ def test_a_reference_verdict_under_tightened_rows_is_not_called_proven_beyond_th
         return step
 
     monkeypatch.setattr(ReferenceProgram, "solve", past_the_ridge)
-    monkeypatch.setattr(ReferenceProgram, "_region_exact", lambda self, z0, f, c0, V, *args: V)
+    monkeypatch.setattr(reference, "region_exact", lambda *args, **kwargs: None)
     mpc = fl.MPC(sysm, net, 0.0, **kw)
     r = mpc(z, z_ref)
     assert r.status == "error" and mpc.margin > 0.0, r.message

@@ -39,7 +39,7 @@ from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .bang_bang import bang_bang_incumbent
 from .bound_cache import BoundCache
 from .fallback import qp_repair
-from .region import REGION_MARGIN, REGION_MOVES, region_qp
+from .region import REGION_MOVES, region_exact, region_qp
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
 from .prediction import Prediction
@@ -679,28 +679,17 @@ class NetworkEngine:
         within ``gap`` of ``J1`` it is optimal to ``gap``, and no row has to be tightened (the tolerance policy of
         :mod:`flnotes.solvers` then solves the program with ``u_max^eps`` less a margin, whose optimum is the
         optimum of that tightened program: on the Quad-1D at N_p = 15 a margin of 1.3e-7 moved one optimum by
-        3.7e-6). The region is first the plan's own (forward pass), then the one the solver's binaries name
-        (:func:`flnotes.mpc.program.program_pattern`; ``where = (nb, steps, prob, eliminate_stable, order)`` as the
-        program was built): a point past a face of that region by the solver's tolerance lies in a neighbour
-        whose QP may be empty, e.g. beside a flat piece of the network at exactly ``u_max^eps``, which a
-        tightened bound would remove whole. Both again without :data:`flnotes.mpc.region.REGION_MARGIN`, for a
-        region whose admissible part is a face (a ridge of the network at ``u_max^eps``): the forward-pass
-        check then decides whether the QP's point meets the bound. Returns the result with that plan, or ``None``.
+        3.7e-6). The regions tried are those of :func:`flnotes.mpc.region.region_exact`, the solver's binaries read
+        by :func:`flnotes.mpc.program.program_pattern` (``where = (nb, steps, prob, eliminate_stable, order)`` as
+        the program was built). Returns the result with that plan, or ``None``.
         """
         pred = self.pred
         Nm = pred.N * pred.m
         J1 = float(res.objective)
-        V, J2 = None, np.inf
-        solver_pattern = program_pattern(pred, z0, res.w, *where)
-        for pattern, margin in ((None, REGION_MARGIN), (solver_pattern, REGION_MARGIN), (None, 0.0),
-                                (solver_pattern, 0.0)):
-            W = region_qp(pred, z0, f, res.w[:Nm], pattern=pattern, margin=margin)
-            if W is not None and pred.feasible(z0, W):
-                V, J2 = W, pred.cost(W, f, c0)
-                if J2 <= J1 + gap * max(1.0, abs(J1)):
-                    break
-        if V is None or not J2 <= J1 + gap * max(1.0, abs(J1)):
+        V = region_exact(pred, z0, f, c0, res.w[:Nm], program_pattern(pred, z0, res.w, *where), J1, gap)
+        if V is None:
             return None
+        J2 = pred.cost(V, f, c0)
         out = copy.copy(res)
         out.w = np.r_[V, res.w[Nm:]]  # only the plan is read from here on
         out.objective, out.bound = J2, min(J1, float(res.bound)) if np.isfinite(res.bound) else J1

@@ -22,7 +22,7 @@ from ..tightening import EmptyBoxError
 from .levers import node_bounds, repeat_bounds
 from .options import MPCOptions
 from .prediction import Prediction
-from .region import REGION_MARGIN, region_qp
+from .region import region_exact
 
 Array = np.ndarray
 
@@ -139,36 +139,18 @@ class ReferenceProgram:
             f, c0 = p.linear(z0, z_ref)
             res.objective = p.cost(V, f, c0)
             if status == "optimal" and p.violated(z0, V).size:
-                V = self._region_exact(z0, f, c0, V, cv, res.objective, gap, res)
+                # SCIP's plan over u_max^eps by its tolerance, made exact on a linear region before the controller
+                # tightens the rows (which would remove a flat piece or a ridge of the network at u_max^eps whole)
+                hidden = [(yb.value, yu.value) for yb, yu in zip(cv["ybar"], cv["yund"])]
+                scip_pattern = (None if any(a is None or b is None for a, b in hidden) else
+                                [np.asarray(a, float).T > np.asarray(b, float).T for a, b in hidden])
+                W = region_exact(p, z0, f, c0, V, scip_pattern, res.objective, gap)
+                if W is not None:
+                    V = W.reshape(p.N, p.m)
+                    res.message += "; made exact on its linear region (QP)"
             res.v, res.v_pred, res.z_pred = V[0].copy(), V, p.predict(z0, V)
             res.objective = p.cost(V, f, c0)
             b = min(bound, res.objective) if np.isfinite(bound) else np.nan
             res.bound, res.gap = b, (abs(res.objective - b) / max(1.0, abs(res.objective)) if np.isfinite(b) else np.nan)
         res.solve_time = time.perf_counter() - t0
         return res
-
-    def _region_exact(self, z0: Array, f: Array, c0: float, V: Array, cv: dict, J1: float, gap: float,
-                      res: StepResult) -> Array:
-        """SCIP's plan ``V``, over ``|Phi_NN| <= u_max^eps`` by its tolerance, made exact on a linear region.
-
-        The QP of the region of ``V`` (:func:`flnotes.mpc.region.region_qp`), then of the region SCIP's hidden
-        values name (``ybar > yund``): where the plan lies past that region's face by the tolerance, e.g. beside a
-        flat piece of the network at exactly ``u_max^eps``; each with the region's margin, then without it (a ridge
-        of the network at ``u_max^eps``). The first plan that passes the forward-pass check and costs at most
-        ``J1`` (the cost of SCIP's plan, a lower bound on the program's optimum up to SCIP's gap and tolerance)
-        plus ``gap`` replaces ``V`` (``res.message`` says so); else ``V`` is returned and the
-        controller tightens the rows. The tightened rows would remove such a piece or ridge whole."""
-        p = self.pred
-        scip_pattern = [np.asarray(yb.value, float).T > np.asarray(yu.value, float).T
-                        for yb, yu in zip(cv["ybar"], cv["yund"])] if all(
-            yb.value is not None and yu.value is not None for yb, yu in zip(cv["ybar"], cv["yund"])) else None
-        patterns = [None] + ([scip_pattern] if scip_pattern is not None else [])
-        for pattern, margin in [(q, mg) for mg in (REGION_MARGIN, 0.0) for q in patterns]:
-            W = region_qp(p, z0, f, V.reshape(-1), pattern=pattern, margin=margin)
-            if W is None or not p.feasible(z0, W):
-                continue
-            if p.cost(W, f, c0) <= J1 + gap * max(1.0, abs(J1)):
-                res.message += "; made exact on its linear region (QP)"
-                return W.reshape(p.N, p.m)
-        return V
-

@@ -113,3 +113,26 @@ def region_qp(pred: Prediction, z0: Array, f: Array, V: Array, max_moves: int = 
             break
         best, J = x, cost(x)
     return best
+
+
+def region_exact(pred: Prediction, z0: Array, f: Array, c0: float, V: Array, solver_pattern: Optional[list],
+                 J1: float, gap: float) -> Optional[Array]:
+    """A solver's plan ``V`` that exceeds ``u_max^eps`` by its tolerance, made exact on a linear region.
+
+    The QP of :func:`region_qp` on the region of ``V`` (forward pass), then on ``solver_pattern`` (the region the
+    solver's binaries name: a plan past that region's face by the tolerance lies in a neighbour whose QP may be
+    empty, e.g. beside a flat piece of the network at exactly ``u_max^eps``), each with :data:`REGION_MARGIN` and
+    then without it (a region whose admissible part is a face, a ridge of the network at ``u_max^eps``). Returns
+    the first plan that passes :meth:`Prediction.feasible` (the forward-pass check decides) and costs at most
+    ``J1`` (the solver's objective, a lower bound on the program's optimum up to its gap and tolerance) plus
+    ``gap``, or ``None``; a tightened bound would remove such a piece or ridge whole.
+    """
+    V = np.asarray(V, float).reshape(-1)
+    patterns = [None] + ([solver_pattern] if solver_pattern is not None else [])
+    for margin in (REGION_MARGIN, 0.0):
+        for pattern in patterns:
+            W = region_qp(pred, z0, f, V, pattern=pattern, margin=margin)
+            if W is not None and pred.feasible(z0, W) and pred.cost(W, f, c0) <= J1 + gap * max(1.0, abs(J1)):
+                return W
+    return None
+
