@@ -395,7 +395,7 @@ class NetworkEngine:
         def unproven(J: float) -> bool:  # a verdict of the tightened program that the untightened bound cannot back
             return self.margin > 0.0 and not J <= lb_free + max(gap, TIGHTENED_GAP) * max(1.0, abs(J))
 
-        def not_proven(V: Optional[Array], J: float, what: str) -> StepResult:
+        def not_proven(what: str) -> StepResult:  # the step's plan is dropped (the controller's fallback applies)
             return done("error", None, -np.inf,
                         f"not proven: {what} with u_max^eps tightened by {self.margin:.1e} (a solver's tolerance let "
                         f"its point through), while the untightened program's lower bound is {lb_free:.9g}: its "
@@ -582,7 +582,7 @@ class NetworkEngine:
                 self.active_prev = tuple(enc)
                 if full or J <= J_up + 1e-9 * max(1.0, abs(J_up)):
                     if unproven(J):
-                        return not_proven(V, J, f"an optimum of cost {J:.9g}")
+                        return not_proven(f"an optimum of cost {J:.9g}")
                     bound = res.bound if np.isfinite(res.bound) else J
                     if self.margin > 0.0:
                         bound = min(bound, lb_free)
@@ -593,7 +593,7 @@ class NetworkEngine:
             elif status == "infeasible":
                 if full and inc_V is None:
                     if self.margin > 0.0:
-                        return not_proven(None, np.inf, "no plan")
+                        return not_proven("no plan")
                     said = res.message if "proven by" in res.message else f"{res.backend}: {res.message}"
                     return done("infeasible", None, np.inf, f"the program is infeasible ({said})")
             elif status == "time_limit":
@@ -610,7 +610,7 @@ class NetworkEngine:
                 return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
             if J_up >= inc_J or full:  # nothing below J_up in the restricted program
                 if inc_V is not None and unproven(inc_J):
-                    return not_proven(inc_V, inc_J, f"nothing cheaper than the incumbent's {inc_J:.9g}")
+                    return not_proven(f"nothing cheaper than the incumbent's {inc_J:.9g}")
                 return done("optimal", inc_V, inc_J,
                             f"the incumbent is optimal ({incumbent_from}; nothing cheaper)")
             delta *= 4.0
