@@ -15,7 +15,7 @@ from flnotes.bench import exactness as ex
 from flnotes.control import ClfCbfController, DistanceCBF, QuadraticCLF
 from flnotes.mpc import MPC
 
-from _nets import test_net
+from _nets import integrator_system, stored_integrator_case, test_net
 
 S = fl.paper.QUAD_SETTING
 EPS = 0.03  # above the small network's largest error on its training grid (0.028)
@@ -96,6 +96,41 @@ def test_compare_to_reference_on_an_unseen_system():
 
 
 # ----------------------------------------------------------------------------- CLF-CBF
+def _hand_case():
+    """One integrator with the hand-made network ``1 + |v - 0.3| - 3 relu(v - 1)`` (3 neurons) and ``u_max = 1``."""
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0], [0.0, 1.0]]), np.array([[1.0, 1.0, -3.0]])],
+                     [np.array([-0.3, 0.3, -1.0]), np.array([1.0])])
+    sysm = integrator_system([1], [-2.0, -2.0], [2.0, 2.0], [1.0])
+    return sysm, net, np.array([0.0]), np.array([0.5]), dict(horizon=2, ts=0.2, Q=[1.0], R=0.1, P=[10.0])
+
+
+def _cone_case(name: str):
+    """``(system, network, z, z_ref, MPC keywords)`` of the program ``name`` ("hand" or "random")."""
+    if name == "hand":
+        return _hand_case()
+    sysm, net, z, z_ref = stored_integrator_case("cone_stall_program.npz")
+    return sysm, net, z, z_ref, dict(horizon=1, ts=0.2, Q=[1.0], R=0.1, P=[1.0])
+
+
+@pytest.mark.parametrize("case, bounds, gap", [("random", "box", 1e-6), ("random", "box", 1e-9),
+                                               ("random", "lp", 1e-9), ("hand", "box", 1e-9), ("hand", "lp", 1e-9)])
+def test_the_reference_closes_its_gap_on_small_programs_with_a_quadratic_cost(case, bounds, gap):
+    """Two small programs on which SCIP, given the cost's cones as cvxpy writes them (``sum x_i^2 <= t^2``),
+    branched on continuous variables without closing the gap: a random 2-4-4-1 network, one step, 8 binaries
+    (``bounds="box"``: no answer in 100 s), and a hand-made 3-neuron network, two steps ("error in LP solver").
+    With each cone written as a norm the reference is optimal, and equal to the engine's SCIP back-end. The time
+    limit turns a stall into a failure of this test rather than a hang."""
+    sysm, net, z, z_ref, kw = _cone_case(case)
+    eng = MPC(sysm, net, 0.0, backend="scip", **kw)(z, z_ref)
+    mpc = MPC(sysm, net, 0.0, backend="cvxpy-scip", bounds=bounds, gap=gap, time_limit=60.0, **kw)
+    ref = mpc(z, z_ref)
+    assert eng.status == "optimal"
+    assert ref.status == "optimal", ref.message
+    assert mpc.plan_feasible(ref.z_pred, ref.v_pred)
+    assert rel(ref.objective, eng.objective) <= 1e-6, (ref.objective, eng.objective)
+    assert ref.bound <= eng.objective + 1e-9 * max(1.0, abs(eng.objective))
+
+
 @pytest.fixture(scope="module")
 def msd():
     net, _ = fl.paper_net("MSD")

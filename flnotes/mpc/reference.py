@@ -96,7 +96,7 @@ class ReferenceProgram:
         opts = {"limits/gap": gap, "numerics/feastol": SCIP_FEASTOL}
         if time_limit is not None:
             opts["limits/time"] = float(time_limit)
-        scip = ScipConic()  # cvxpy's SCIP interface, the interpreter lock released while SCIP runs
+        scip = ScipConic()  # cvxpy's SCIP interface, the lock released while SCIP runs, the cost's cones as norms
         try:
             # cvxpy warns on infinite bounds and on SCIP's "gaplimit" status; SoPlex prints its tolerance notices to the
             # C streams (filtered out as in the engine's SCIP back-end)

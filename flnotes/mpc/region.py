@@ -16,6 +16,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..solvers import TIGHTENED_GAP
 from .prediction import Prediction
 
 Array = np.ndarray
@@ -125,14 +126,19 @@ def region_exact(pred: Prediction, z0: Array, f: Array, c0: float, V: Array, sol
     then without it (a region whose admissible part is a face, a ridge of the network at ``u_max^eps``). Returns
     the first plan that passes :meth:`Prediction.feasible` (the forward-pass check decides) and costs at most
     ``J1`` (the solver's objective, a lower bound on the program's optimum up to its gap and tolerance) plus
-    ``gap``, or ``None``; a tightened bound would remove such a piece or ridge whole.
+    ``max(gap, TIGHTENED_GAP)`` (relative), or ``None``; a tightened bound would remove such a piece or ridge whole.
+    The floor :data:`flnotes.solvers.TIGHTENED_GAP` is the one a verdict of tightened rows is held to: ``J1`` comes
+    from a point over the bound by the solver's tolerance, and below the floor the two cannot be told apart (on a
+    two-input ridge, both outputs at ``u_max`` at every step, the region's plan cost 2e-9 (relative) more than ``J1``;
+    held to a gap of 1e-9 the rows were tightened, which removed the ridge: "not proven").
     """
+    tol = max(gap, TIGHTENED_GAP)
     V = np.asarray(V, float).reshape(-1)
     patterns = [None] + ([solver_pattern] if solver_pattern is not None else [])
     for margin in (REGION_MARGIN, 0.0):
         for pattern in patterns:
             W = region_qp(pred, z0, f, V, pattern=pattern, margin=margin)
-            if W is not None and pred.feasible(z0, W) and pred.cost(W, f, c0) <= J1 + gap * max(1.0, abs(J1)):
+            if W is not None and pred.feasible(z0, W) and pred.cost(W, f, c0) <= J1 + tol * max(1.0, abs(J1)):
                 return W
     return None
 
