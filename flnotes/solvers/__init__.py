@@ -67,11 +67,11 @@ output exceeds ``u_max^eps``, and any margin removes the whole piece or ridge: o
 returned a plan 1.5e-5 above the optimum as optimal, and its cold reference a plan 0.76 % above, or "infeasible"
 for a program with an optimum. So before any margin the MPC (:class:`flnotes.mpc.engine.NetworkEngine`) and its
 reference make such a point exact on a linear region of the network (the point's own, then the one the solver's
-binaries name, each with the region's margin and then without it, the forward-pass check deciding; a constant
-output row never gets a margin), and the MPC has SCIP (1e-9) solve a round again whose DAQP point (1e-6) is
-over the bound. A verdict of tightened rows (an optimum, "nothing cheaper", no plan) counts as a proof only where
-the untightened program's lower bound backs it to the gap (at least :data:`TIGHTENED_GAP`); otherwise the step is an
-``"error"`` whose message starts "not proven".
+binaries name, each with the region's margin and then without it, the forward-pass check deciding, the cost within
+the gap, at least :data:`TIGHTENED_GAP`, of the solver's; a constant output row never gets a margin), and the MPC has
+SCIP (1e-9) solve a round again whose DAQP point (1e-6) is over the bound. A verdict of tightened rows (an optimum,
+"nothing cheaper", no plan) counts as a proof only where the untightened program's lower bound backs it to the gap
+(at least :data:`TIGHTENED_GAP`); otherwise the step is an ``"error"`` whose message starts "not proven".
 
 Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
 bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's
