@@ -723,6 +723,37 @@ def test_scip_conic_answers_as_cvxpys_scip_interface():
 
 
 
+def test_scip_conic_says_unbounded_where_scip_with_cones_cannot():
+    """SCIP does not detect an unbounded program whose rows include cones: cvxpy's own interface called
+    ``min t + x_0 + x_1  s.t.  ||x|| <= t`` optimal at -1.1e17 and, with integer ``x``, searched without end.
+    ScipConic first asks Clarabel whether the continuous relaxation is unbounded: the continuous program is
+    "unbounded", the mixed-integer one an error whose status says so. Bounded programs with cones keep Clarabel's
+    optima: on the cone's surface, at its apex (where the norm has no gradient), with a constant ``t``."""
+    from flnotes.solvers.cvxpy_bridge import ScipConic
+
+    x, t, k = cp.Variable(2), cp.Variable(), cp.Variable(2, integer=True)
+    unbounded = cp.Problem(cp.Minimize(t + x[0] + x[1]), [cp.SOC(t, x)])
+    conic = ScipConic()
+    unbounded.solve(solver=conic)
+    assert unbounded.status == "unbounded" and unbounded.value == -np.inf and conic.status == "unbounded"
+    conic = ScipConic()
+    with pytest.raises(cp.error.SolverError):
+        cp.Problem(cp.Minimize(t + k[0] + k[1]), [cp.SOC(t, k)]).solve(solver=conic)
+    assert conic.status.startswith("unbounded relaxation") and "bound the variables" in conic.status
+    bounded = [cp.Problem(cp.Minimize(t + x[0] + x[1]), [cp.SOC(t, x), x >= -3]),
+               cp.Problem(cp.Minimize(cp.norm(x) + t), [t >= 0.5]),
+               cp.Problem(cp.Minimize(cp.norm(x - 3)), [cp.SOC(cp.Constant(2.0), x)]),
+               cp.Problem(cp.Minimize(t + k[0] + k[1]), [cp.SOC(t, k), k >= -3])]
+    wants = []
+    for prob in bounded[:-1]:
+        prob.solve(solver="CLARABEL")
+        wants.append(prob.value)
+    wants.append(3.0 * np.sqrt(2.0) - 6.0)  # the integer program: k = (-3, -3), t = ||k||
+    for prob, want in zip(bounded, wants):
+        prob.solve(solver=ScipConic())
+        assert prob.status == "optimal" and abs(prob.value - want) <= 1e-6 * max(1.0, abs(want)), (prob.value, want)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_daqps_objective_bound_is_in_the_units_of_its_least_distance_form(seed):
     """DAQP stops a QP as infeasible when its dual objective exceeds ``fval_bound``, an objective of its

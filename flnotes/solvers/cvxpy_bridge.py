@@ -19,15 +19,18 @@ Usage: ``bridge = ScipQP(); problem.solve(solver=bridge, time_limit=..., gap=...
 :class:`MIQPResult` of the last solve is ``bridge.result`` (also when cvxpy raised ``SolverError`` for a result without
 a point: its status and SCIP's message are kept there).
 
-:class:`ScipConic` is cvxpy's conic SCIP interface itself (the cone form the MPC reference keeps), with three changes:
-SCIP runs without the interpreter lock (``optimizeNogil``: other threads of the process run meanwhile); SCIP's output
-stays on the C streams instead of PySCIPOpt's ``redirectOutput``, whose process-wide error printer would then run
-without the lock and crash the process (see :func:`flnotes.solvers.scip.default_error_printer`); and each second-order
+:class:`ScipConic` is cvxpy's conic SCIP interface itself (the cone form the MPC reference keeps), with three changes
+and a check: SCIP runs without the interpreter lock (``optimizeNogil``: other threads of the process run meanwhile);
+SCIP's output stays on the C streams instead of PySCIPOpt's ``redirectOutput``, whose process-wide error printer would
+then run without the lock and crash the process (see :func:`flnotes.solvers.scip.default_error_printer`); and each second-order
 cone is written as a norm, ``sqrt(sum x_i^2) <= t``, the form SCIP's cone handler recognises (cvxpy writes
 ``sum x_i^2 <= t^2``, which SCIP took for a nonconvex row and branched on; see :meth:`ScipConic.add_model_soc_constr`).
+A program with cones whose continuous relaxation Clarabel certifies unbounded is not handed to SCIP, which does not
+detect it with cones: a continuous one is cvxpy's ``unbounded``, a mixed-integer one an error (``status`` says why).
 """
 from __future__ import annotations
 
+import time
 from typing import Optional
 
 import numpy as np
@@ -160,15 +163,53 @@ class ScipConic(_CvxpyScip):
         from .scip import default_error_printer
 
         default_error_printer()  # a Python printer installed by someone else would run without the lock below
-        model = Model()
+        t0 = time.perf_counter()
         A, b, c, dims = self._define_data(data)
+        self.status = None
+        if dims[s.SOC_DIM] and self._relaxation_unbounded(A, b, c, dims, data):
+            # SCIP does not detect an unbounded program with cones (without, its LPs do): it called a finite point
+            # optimal, or searched on
+            mip = bool(data[s.BOOL_IDX] or data[s.INT_IDX])
+            self.status = ("unbounded relaxation: the continuous relaxation of this mixed-integer program is "
+                           "unbounded, which SCIP does not detect with cones; bound the variables" if mip else "unbounded")
+            return {"status": s.SOLVER_ERROR if mip else s.UNBOUNDED, s.SOLVE_TIME: time.perf_counter() - t0,
+                    s.NUM_ITERS: 0, "scip_status": self.status}
+        model = Model()
         variables = self._create_variables(model, data, c)
         constraints = self._add_constraints(model, variables, A, b, dims)
         self._set_params(model, verbose, solver_opts, data, dims)
-        self.status = None
         out = self._solve(_NoLockModel(model), variables, constraints, data, dims)
         self.status = str(model.getStatus())
         return out
+
+    @staticmethod
+    def _relaxation_unbounded(A, b, c, dims: dict, data: dict) -> bool:
+        """Whether Clarabel certifies that the continuous relaxation is unbounded (``DualInfeasible``: no dual point,
+        a direction along which the rows hold and the cost decreases). SCIP, with cones as nonlinear rows, does not
+        detect it: on such programs it called a finite point optimal (e.g. ``min t + x_0 + x_1  s.t.  ||x|| <= t``:
+        -4e19 here, -1.1e17 with cvxpy's own interface) or, with integers, searched without end. The rows are SCIP's
+        (``A x = b``, ``A x <= b``, ``b - A x`` in the cones), the variables' bounds and the binaries' ``[0, 1]``
+        added to the inequalities."""
+        import clarabel
+
+        n = len(c)
+        A = sp.csr_matrix(A)
+        n_eq, n_leq = int(dims[s.EQ_DIM]), int(dims[s.LEQ_DIM])
+        lb = np.full(n, -np.inf) if data.get(s.LOWER_BOUNDS) is None else np.asarray(data[s.LOWER_BOUNDS], float)
+        ub = np.full(n, np.inf) if data.get(s.UPPER_BOUNDS) is None else np.asarray(data[s.UPPER_BOUNDS], float)
+        for j in data[s.BOOL_IDX]:
+            lb[j], ub[j] = max(lb[j], 0.0), min(ub[j], 1.0)
+        lo, hi = np.flatnonzero(np.isfinite(lb)), np.flatnonzero(np.isfinite(ub))
+        eye = sp.eye(n, format="csr")
+        M = sp.vstack([A[:n_eq + n_leq], -eye[lo], eye[hi], A[n_eq + n_leq:]], format="csc")
+        q = np.r_[b[:n_eq + n_leq], -lb[lo], ub[hi], b[n_eq + n_leq:]]
+        cones = ([clarabel.ZeroConeT(n_eq)] if n_eq else []) + \
+            ([clarabel.NonnegativeConeT(n_leq + lo.size + hi.size)] if n_leq + lo.size + hi.size else []) + \
+            [clarabel.SecondOrderConeT(int(d)) for d in dims[s.SOC_DIM]]
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        sol = clarabel.DefaultSolver(sp.csc_matrix((n, n)), np.asarray(c, float), M, q, cones, settings).solve()
+        return sol.status == clarabel.SolverStatus.DualInfeasible
 
     def add_model_soc_constr(self, model, variables: list, rows, A, b) -> tuple:
         """The cone ``||x||_2 <= t`` (rows ``t = b_0 - A_0 w``, ``x_i = b_i - A_i w``) written as SCIP's norm,
