@@ -677,9 +677,9 @@ class NetworkEngine:
         (:func:`flnotes.mpc.region.region_qp`: the same activation pattern, the output bound met to
         :data:`flnotes.mpc.region.REGION_MARGIN`) gives a plan that satisfies the program; when its cost is
         within ``max(gap, TIGHTENED_GAP)`` of ``J1`` it is optimal to that, and no row has to be tightened (the
-        tolerance policy of :mod:`flnotes.solvers` then solves the program with ``u_max^eps`` less a margin, whose optimum is the
-        optimum of that tightened program: on the Quad-1D at N_p = 15 a margin of 1.3e-7 moved one optimum by
-        3.7e-6). The regions tried are those of :func:`flnotes.mpc.region.region_exact`, the solver's binaries read
+        tolerance policy of :mod:`flnotes.solvers` then solves the program with ``u_max^eps`` less a margin, whose
+        optimum is the optimum of that tightened program: on the Quad-1D at N_p = 15 a margin of 1.3e-7 moved one
+        optimum by 3.7e-6). The regions tried are those of :func:`flnotes.mpc.region.region_exact`, the solver's binaries read
         by :func:`flnotes.mpc.program.program_pattern` (``where = (nb, steps, prob, eliminate_stable, order)`` as
         the program was built). Returns the result with that plan, or ``None``.
         """

@@ -141,4 +141,3 @@ def region_exact(pred: Prediction, z0: Array, f: Array, c0: float, V: Array, sol
             if W is not None and pred.feasible(z0, W) and pred.cost(W, f, c0) <= J1 + tol * max(1.0, abs(J1)):
                 return W
     return None
-

@@ -146,7 +146,9 @@ class ScipConic(_CvxpyScip):
     """cvxpy's conic SCIP interface (``cp.SCIP``), SCIP run without the interpreter lock and without PySCIPOpt's
     Python output relay (see the module), each cone written as a norm (:meth:`add_model_soc_constr`). Options as
     ``cp.SCIP``'s (``scip_params=...``). ``status`` is SCIP's own status of the last solve (also when cvxpy raised
-    ``SolverError``, e.g. ``"timelimit"`` without a point)."""
+    ``SolverError``, e.g. ``"timelimit"`` without a point), or, for a program with cones whose continuous relaxation
+    is unbounded (not handed to SCIP), ``"unbounded"`` (continuous) or a message starting ``"unbounded relaxation"``
+    (mixed-integer: cvxpy raises ``SolverError``)."""
 
     def __init__(self) -> None:
         super().__init__()
