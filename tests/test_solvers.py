@@ -728,7 +728,9 @@ def test_scip_conic_says_unbounded_where_scip_with_cones_cannot():
     ``min t + x_0 + x_1  s.t.  ||x|| <= t`` optimal at -1.1e17 and, with integer ``x``, searched without end.
     ScipConic first asks Clarabel whether the continuous relaxation is unbounded: the continuous program is
     "unbounded", the mixed-integer one an error whose status says so. Bounded programs with cones keep Clarabel's
-    optima: on the cone's surface, at its apex (where the norm has no gradient), with a constant ``t``."""
+    optima: on the cone's surface, at its apex (where the norm has no gradient), with a constant ``t``, badly
+    scaled (where Clarabel's certificate fails its check); an infeasible program with such a direction is
+    "infeasible"."""
     from flnotes.solvers.cvxpy_bridge import ScipConic
 
     x, t, k = cp.Variable(2), cp.Variable(), cp.Variable(2, integer=True)
@@ -749,9 +751,20 @@ def test_scip_conic_says_unbounded_where_scip_with_cones_cannot():
         prob.solve(solver="CLARABEL")
         wants.append(prob.value)
     wants.append(3.0 * np.sqrt(2.0) - 6.0)  # the integer program: k = (-3, -3), t = ||k||
+    # badly scaled and bounded (a compact set): Clarabel gave a certificate of unboundedness that fails its check
+    y = cp.Variable()
+    bounded.append(cp.Problem(cp.Minimize(1e6 * x[0] + y), [cp.sum_squares(cp.hstack([x[0], y])) <= t, t == 1e6,
+                                                             x[0] + y == 1e-6]))
+    x0 = (1e-6 - np.sqrt(2e6 - 1e-12)) / 2
+    wants.append(1e6 * x0 + (1e-6 - x0))
     for prob, want in zip(bounded, wants):
         prob.solve(solver=ScipConic())
         assert prob.status == "optimal" and abs(prob.value - want) <= 1e-6 * max(1.0, abs(want)), (prob.value, want)
+    # infeasible (the cone needs t >= 1) with a direction along which the rows hold and the cost decreases
+    conic = ScipConic()
+    infeasible = cp.Problem(cp.Minimize(-x[0]), [cp.SOC(t, cp.hstack([x[1], 1.0])), t <= 0.5, x[0] >= 0])
+    infeasible.solve(solver=conic)
+    assert infeasible.status == "infeasible" and conic.status == "infeasible"
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -25,8 +25,9 @@ SCIP's output stays on the C streams instead of PySCIPOpt's ``redirectOutput``, 
 then run without the lock and crash the process (see :func:`flnotes.solvers.scip.default_error_printer`); and each second-order
 cone is written as a norm, ``sqrt(sum x_i^2) <= t``, the form SCIP's cone handler recognises (cvxpy writes
 ``sum x_i^2 <= t^2``, which SCIP took for a nonconvex row and branched on; see :meth:`ScipConic.add_model_soc_constr`).
-A program with cones whose continuous relaxation Clarabel certifies unbounded is not handed to SCIP, which does not
-detect it with cones: a continuous one is cvxpy's ``unbounded``, a mixed-integer one an error (``status`` says why).
+A program with cones whose continuous relaxation Clarabel certifies unbounded (the certificate checked) is not handed
+to SCIP, which does not detect it with cones: a continuous one is cvxpy's ``unbounded`` (``infeasible`` or
+``infeasible_or_unbounded`` as a second solve decides feasibility), a mixed-integer one an error (``status`` says why).
 """
 from __future__ import annotations
 
@@ -147,8 +148,8 @@ class ScipConic(_CvxpyScip):
     Python output relay (see the module), each cone written as a norm (:meth:`add_model_soc_constr`). Options as
     ``cp.SCIP``'s (``scip_params=...``). ``status`` is SCIP's own status of the last solve (also when cvxpy raised
     ``SolverError``, e.g. ``"timelimit"`` without a point), or, for a program with cones whose continuous relaxation
-    is unbounded (not handed to SCIP), ``"unbounded"`` (continuous) or a message starting ``"unbounded relaxation"``
-    (mixed-integer: cvxpy raises ``SolverError``)."""
+    is unbounded (not handed to SCIP), ``"unbounded"``, ``"infeasible"`` or ``"infeasible_or_unbounded"``
+    (continuous) or a message starting ``"unbounded relaxation"`` (mixed-integer: cvxpy raises ``SolverError``)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -168,14 +169,21 @@ class ScipConic(_CvxpyScip):
         t0 = time.perf_counter()
         A, b, c, dims = self._define_data(data)
         self.status = None
-        if dims[s.SOC_DIM] and self._relaxation_unbounded(A, b, c, dims, data):
+        verdict = self._relaxation_verdict(A, b, c, dims, data) if dims[s.SOC_DIM] else None
+        if verdict is not None:
             # SCIP does not detect an unbounded program with cones (without, its LPs do): it called a finite point
             # optimal, or searched on
             mip = bool(data[s.BOOL_IDX] or data[s.INT_IDX])
-            self.status = ("unbounded relaxation: the continuous relaxation of this mixed-integer program is "
-                           "unbounded, which SCIP does not detect with cones; bound the variables" if mip else "unbounded")
-            return {"status": s.SOLVER_ERROR if mip else s.UNBOUNDED, s.SOLVE_TIME: time.perf_counter() - t0,
-                    s.NUM_ITERS: 0, "scip_status": self.status}
+            if mip and verdict != "infeasible":
+                self.status = ("unbounded relaxation: the continuous relaxation of this mixed-integer program is "
+                               f"{verdict.replace('_', ' ')}, which SCIP does not detect with cones; bound the variables")
+                status = s.SOLVER_ERROR
+            else:
+                self.status = verdict
+                status = {"unbounded": s.UNBOUNDED, "infeasible": s.INFEASIBLE,
+                          "infeasible_or_unbounded": s.INFEASIBLE_OR_UNBOUNDED}[verdict]
+            return {"status": status, s.SOLVE_TIME: time.perf_counter() - t0, s.NUM_ITERS: 0,
+                    "scip_status": self.status}
         model = Model()
         variables = self._create_variables(model, data, c)
         constraints = self._add_constraints(model, variables, A, b, dims)
@@ -185,13 +193,18 @@ class ScipConic(_CvxpyScip):
         return out
 
     @staticmethod
-    def _relaxation_unbounded(A, b, c, dims: dict, data: dict) -> bool:
-        """Whether Clarabel certifies that the continuous relaxation is unbounded (``DualInfeasible``: no dual point,
-        a direction along which the rows hold and the cost decreases). SCIP, with cones as nonlinear rows, does not
-        detect it: on such programs it called a finite point optimal (e.g. ``min t + x_0 + x_1  s.t.  ||x|| <= t``:
-        -4e19 here, -1.1e17 with cvxpy's own interface) or, with integers, searched without end. The rows are SCIP's
-        (``A x = b``, ``A x <= b``, ``b - A x`` in the cones), the variables' bounds and the binaries' ``[0, 1]``
-        added to the inequalities."""
+    def _relaxation_verdict(A, b, c, dims: dict, data: dict) -> Optional[str]:
+        """``"unbounded"``, ``"infeasible"`` or ``"infeasible_or_unbounded"`` for a continuous relaxation that Clarabel
+        certifies has no dual point (``DualInfeasible``), the certificate checked; ``None`` otherwise (SCIP decides).
+
+        SCIP, with cones as nonlinear rows, does not detect an unbounded program: it called a finite point optimal
+        (e.g. ``min t + x_0 + x_1  s.t.  ||x|| <= t``: -4e19 here, -1.1e17 with cvxpy's own interface) or, with
+        integers, searched without end. The certificate is a direction ``d`` along which the rows hold and the cost
+        decreases: it is checked (``c'd < 0`` and ``-M d`` in the cones, to 1e-7 of the data's scale), since on badly
+        scaled data Clarabel gave one for a bounded program. Such a direction says "unbounded" only for a feasible
+        program: a second solve with a zero cost decides feasibility. The rows are SCIP's (``A x = b``,
+        ``A x <= b``, ``b - A x`` in the cones), the variables' bounds and the binaries' ``[0, 1]`` added to the
+        inequalities."""
         import clarabel
 
         n = len(c)
@@ -205,13 +218,32 @@ class ScipConic(_CvxpyScip):
         eye = sp.eye(n, format="csr")
         M = sp.vstack([A[:n_eq + n_leq], -eye[lo], eye[hi], A[n_eq + n_leq:]], format="csc")
         q = np.r_[b[:n_eq + n_leq], -lb[lo], ub[hi], b[n_eq + n_leq:]]
-        cones = ([clarabel.ZeroConeT(n_eq)] if n_eq else []) + \
-            ([clarabel.NonnegativeConeT(n_leq + lo.size + hi.size)] if n_leq + lo.size + hi.size else []) + \
-            [clarabel.SecondOrderConeT(int(d)) for d in dims[s.SOC_DIM]]
+        n_nn = n_leq + lo.size + hi.size
+        socs = [int(d) for d in dims[s.SOC_DIM]]
+        cones = ([clarabel.ZeroConeT(n_eq)] if n_eq else []) + ([clarabel.NonnegativeConeT(n_nn)] if n_nn else []) + \
+            [clarabel.SecondOrderConeT(d) for d in socs]
         settings = clarabel.DefaultSettings()
         settings.verbose = False
-        sol = clarabel.DefaultSolver(sp.csc_matrix((n, n)), np.asarray(c, float), M, q, cones, settings).solve()
-        return sol.status == clarabel.SolverStatus.DualInfeasible
+        c = np.asarray(c, float)
+        solve = lambda cost: clarabel.DefaultSolver(sp.csc_matrix((n, n)), cost, M, q, cones, settings).solve()  # noqa: E731
+        sol = solve(c)
+        if sol.status != clarabel.SolverStatus.DualInfeasible:
+            return None
+        d = np.asarray(sol.x, float)
+        r = -(M @ d)  # must lie in the cones
+        scale = max(1.0, float(abs(M).max()) if M.nnz else 1.0) * max(float(np.abs(d).max()), 1e-300)
+        tol = 1e-7 * scale
+        viol = [np.abs(r[:n_eq]).max(initial=0.0), (-r[n_eq:n_eq + n_nn]).max(initial=0.0)]
+        k = n_eq + n_nn
+        for dk in socs:
+            viol.append(np.linalg.norm(r[k + 1:k + dk]) - r[k])
+            k += dk
+        if not (max(viol) <= tol and c @ d < -1e-7 * max(1e-300, float(np.abs(c).max())) * float(np.abs(d).max())):
+            return None
+        feas = solve(np.zeros(n)).status
+        if feas == clarabel.SolverStatus.Solved:
+            return "unbounded"
+        return "infeasible" if feas == clarabel.SolverStatus.PrimalInfeasible else "infeasible_or_unbounded"
 
     def add_model_soc_constr(self, model, variables: list, rows, A, b) -> tuple:
         """The cone ``||x||_2 <= t`` (rows ``t = b_0 - A_0 w``, ``x_i = b_i - A_i w``) written as SCIP's norm,
