@@ -39,6 +39,10 @@ Array = np.ndarray
 __all__ = ["EmptyBoxError", "lp_bounds", "horizon_boxes", "intersect", "propagate", "LPTightener", "ellipsoid_box"]
 
 
+#: HiGHS's ``simplex_strategy`` of the LPs of :class:`LPTightener`: 4, the primal simplex (see its ``__init__``).
+SIMPLEX_STRATEGY = 4
+
+
 class DeadlineReached(RuntimeError):
     """LP tightening stopped at the caller's deadline (a controller's time limit); no bounds are returned."""
 
@@ -202,6 +206,11 @@ class LPTightener:
         h.setOptionValue("output_flag", False)
         h.setOptionValue("threads", 1)
         h.setOptionValue("presolve", "off")  # tiny LPs re-solved warm: presolve only costs time
+        # Primal simplex: consecutive LPs differ in their cost (the next neuron), so the last optimal basis stays
+        # primal feasible and the primal simplex goes on from it; the dual simplex (HiGHS's default) starts over
+        # from a basis that is no longer dual feasible. Same optima to the LP's tolerances (covered by ``tol``);
+        # measured on the LPs of hard cold MSD states: 1.3 times fewer seconds, 1.13 times per step.
+        h.setOptionValue("simplex_strategy", SIMPLEX_STRATEGY)
         h.passModel(lp)
         self.h, self._lp = h, lp  # the model as built, passed again by restart()
         self._lb, self._ub = lb.copy(), ub.copy()
