@@ -21,7 +21,6 @@ before it is returned (a solver whose bound were wrong raises there, never gives
 """
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +28,7 @@ import scipy.sparse as sp
 
 from ._checks import check_boxes
 from .encoding import bigm_form
-from .network import ReLUNet
+from .network import ReLUNet, fingerprint  # noqa: F401 - fingerprint: kept importable from here
 from .solvers import MIQP, make_solver
 from .tightening import lp_bounds
 
@@ -52,17 +51,6 @@ NODE_LIMIT = 20_000
 N_SAMPLE = 4096
 
 _CACHE: dict = {}
-
-
-def fingerprint(net: ReLUNet) -> str:
-    """A digest of the network's layer shapes, weights and biases (two networks share it only when they are the same
-    function written the same way)."""
-    h = hashlib.sha256()
-    for W, b in zip(net.W, net.b):  # the shapes too: the same numbers in other layers are another network
-        h.update(repr((W.shape, b.shape)).encode())
-        h.update(np.ascontiguousarray(W, float).tobytes())
-        h.update(np.ascontiguousarray(b, float).tobytes())
-    return h.hexdigest()
 
 
 @dataclass(frozen=True, eq=False)

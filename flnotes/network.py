@@ -8,6 +8,7 @@ of eq. (recur). Nothing downstream depends on how it was trained.
 """
 from __future__ import annotations
 
+import hashlib
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -294,6 +295,17 @@ class ReLUNet:
 
     def __repr__(self) -> str:
         return f"ReLUNet(n_in={self.n_in}, widths={self.widths}, n_out={self.n_out})"
+
+
+def fingerprint(net: ReLUNet) -> str:
+    """A digest of the network's layer shapes, weights and biases (two networks share it only when they are the same
+    function written the same way)."""
+    h = hashlib.sha256()
+    for W, b in zip(net.W, net.b):  # the shapes too: the same numbers in other layers are another network
+        h.update(repr((W.shape, b.shape)).encode())
+        h.update(np.ascontiguousarray(W, float).tobytes())
+        h.update(np.ascontiguousarray(b, float).tobytes())
+    return h.hexdigest()
 
 
 def onnx_example(name: str = "MSD-sklearn") -> tuple[Path, dict]:

@@ -11,7 +11,10 @@ with interval arithmetic. Two levers give tighter, still valid, bounds:
   of its pre-activation over that LP, each new bound written into the LP's
   big-M coefficients before the next neuron is processed. The LP contains
   every feasible point of the mixed-integer program, so ``[L, U]`` contains
-  every feasible pre-activation. With ``out_bounds`` (``|y^K| <= u_max^eps`` of
+  every feasible pre-activation. Each bound is the safe bound of the LP's
+  duals (Neumaier & Shcherbina 2004), not the solver's optimum, so it holds
+  whatever the solver's accuracy; an infeasible LP is believed only with a
+  checked Farkas certificate. With ``out_bounds`` (``|y^K| <= u_max^eps`` of
   eq. (Phi_NN_ep)) the LP only contains inputs the controller can accept,
   which is where the bounds get much tighter.
 * :func:`horizon_boxes`: with ``z(0)`` measured, the predicted states of the
@@ -32,7 +35,7 @@ import numpy as np
 
 from ._checks import as_vector, check_box, check_boxes
 from .bounds import NodeBounds, fbbt, interval_affine
-from .network import ReLUNet
+from .network import ReLUNet, fingerprint
 
 Array = np.ndarray
 
@@ -214,6 +217,12 @@ class LPTightener:
         h.passModel(lp)
         self.h, self._lp = h, lp  # the model as built, passed again by restart()
         self._lb, self._ub = lb.copy(), ub.copy()
+        # the model's data, kept beside HiGHS's copy for the safe bounds (see _safe_min)
+        self._A0 = Ac.toarray()
+        self._rl0 = np.where(np.isfinite(rlo), np.asarray(rlo, float), -np.inf)
+        self._ru0 = np.where(np.isfinite(rhi), np.asarray(rhi, float), np.inf)
+        self._A, self._rl, self._ru = self._A0.copy(), self._rl0.copy(), self._ru0.copy()
+        self._absA = np.abs(self._A)
         self._cost = np.zeros(self.n)
         self._all = np.arange(self.n, dtype=np.int32)
         self.n_lp = 0
@@ -224,6 +233,8 @@ class LPTightener:
         """Back to the model as built (its matrix layout, no basis): what follows depends on nothing done before."""
         self.h.passModel(self._lp)
         self._lb[:], self._ub[:] = self._lp.col_lower_, self._lp.col_upper_
+        self._A[:], self._rl[:], self._ru[:] = self._A0, self._rl0, self._ru0
+        np.abs(self._A, out=self._absA)
 
     def set_box(self, lo: Array, hi: Array) -> None:
         """Bounds of the input ``x``."""
@@ -242,6 +253,12 @@ class LPTightener:
         h.changeColBounds(ia, lo_a, hi_a)
         iy = int(self.y[k][j])
         h.changeColBounds(iy, 0.0, Up)
+        rU, rL = int(self.row_U[k][j]), int(self.row_L[k][j])
+        self._A[rU, ia], self._A[rL, ia] = -Up, -Lm
+        self._absA[rU, ia], self._absA[rL, ia] = Up, -Lm
+        self._rl[rL], self._ru[rL] = -np.inf, float(self.b_row_L[k][j] - Lm)
+        self._lb[ia], self._ub[ia] = lo_a, hi_a
+        self._lb[iy], self._ub[iy] = 0.0, Up
 
     def set_layer(self, k: int, L: Array, U: Array) -> None:
         for j in range(len(L)):
@@ -249,7 +266,14 @@ class LPTightener:
 
     # -- LPs -----------------------------------------------------------------------
     def _optimize(self, cols: Array, coef: Array, sense: float) -> Optional[float]:
-        """min (sense = 1) or max (sense = -1) of ``coef' w[cols]``; None if the LP is infeasible."""
+        """A valid lower bound of min (sense = 1), or upper bound of max (sense = -1), of ``coef' w[cols]`` over the
+        LP; None when the LP is proven infeasible.
+
+        The bound is not HiGHS's optimum but the safe bound of its duals (:meth:`_safe_min`): it holds whatever the
+        LP solver's accuracy (on badly scaled networks HiGHS called non-optimal points optimal, by up to 1e-3
+        relative). An infeasibility is believed only with a Farkas certificate (HiGHS's dual ray, checked the same
+        way); otherwise, and on any other status, the bound is infinite: the caller keeps the one it has.
+        """
         hp, h = self._hp, self.h
         cost = np.zeros(self.n)
         cost[cols] = sense * coef
@@ -258,11 +282,42 @@ class LPTightener:
         self.n_lp += 1
         st = h.getModelStatus()
         if st == hp.HighsModelStatus.kOptimal:
-            return sense * h.getInfo().objective_function_value
-        if st in (hp.HighsModelStatus.kInfeasible,):
-            return None
-        # numerical trouble: fall back to the valid bound we already have
+            lam = np.asarray(h.getSolution().row_dual, float)
+            safe = self._safe_min(cost, lam)  # HiGHS's sign of the duals; the other sign when that one falls short
+            obj = h.getInfo().objective_function_value
+            if not safe >= obj - 1e-9 * (1.0 + abs(obj)):
+                safe = max(safe, self._safe_min(cost, -lam))
+            return sense * safe
+        if st == hp.HighsModelStatus.kInfeasible:
+            _, has_ray, ray = h.getDualRay()
+            if has_ray:
+                ray = np.asarray(ray, float)
+                zero = np.zeros(self.n)
+                if max(self._safe_min(zero, ray), self._safe_min(zero, -ray)) > 0.0:
+                    return None
+        # numerical trouble, or an infeasibility without a checked certificate: no bound
         return -np.inf if sense > 0 else np.inf
+
+    def _safe_min(self, cost: Array, lam: Array) -> float:
+        """A lower bound of ``min cost' w`` over ``rl <= A w <= ru, lb <= w <= ub`` from any row multipliers ``lam``
+        (Neumaier & Shcherbina 2004): ``cost' w = lam' A w + d' w`` with ``d = cost - A' lam``, and each term is
+        bounded below over the rows' and the variables' bounds, less a margin for the round-off of this sum. A
+        positive value with ``cost = 0`` proves the rows infeasible (Farkas)."""
+        rl, ru, lb, ub = self._rl, self._ru, self._lb, self._ub
+        pos = lam > 0
+        lam = np.where(pos, lam, np.minimum(lam, 0.0))
+        lam[(pos & (rl == -np.inf)) | (~pos & (ru == np.inf))] = 0.0  # a side without a bound takes no multiplier
+        side_r = np.where(pos, rl, ru)
+        r = lam * np.where(lam != 0.0, side_r, 0.0)
+        d = cost - self._A.T @ lam
+        side_c = np.where(d > 0, lb, ub)
+        c = d * np.where(d != 0.0, side_c, 0.0)
+        if not (np.all(np.isfinite(r)) and np.all(np.isfinite(c))):
+            return -np.inf
+        # round-off of d (|A|'|lam| + |cost|, times the unit round-off and the rows' count) and of the sums
+        big = np.maximum(np.abs(np.where(np.isfinite(lb), lb, 0.0)), np.abs(np.where(np.isfinite(ub), ub, 0.0)))
+        err = 1e-12 * (np.abs(r).sum() + np.abs(c).sum() + (self._absA.T @ np.abs(lam) + np.abs(cost)) @ big)
+        return float(r.sum() + c.sum() - err)
 
     def preactivation_range(self, k: int, j: int) -> tuple[Optional[float], Optional[float]]:
         """LP minimum and maximum of ``W^k_j y^{k-1} + b^k_j`` (None: the LP is infeasible)."""
@@ -339,12 +394,13 @@ _TIGHTENERS_LOCK = threading.Lock()
 
 
 def _tightener(net: ReLUNet, out_bounds, tol: float) -> LPTightener:
-    """One persistent LP per (network, output bounds), reused across calls (the model is only updated)."""
-    key = (id(net), None if out_bounds is None else (tuple(np.asarray(out_bounds[0], float)),
-                                                      tuple(np.asarray(out_bounds[1], float))), float(tol))
+    """One persistent LP per (network, output bounds), reused across calls (the model is only updated). The network
+    is known by its parameters (:func:`flnotes.network.fingerprint`): one changed in place gets a new LP."""
+    key = (fingerprint(net), None if out_bounds is None else (tuple(np.asarray(out_bounds[0], float)),
+                                                               tuple(np.asarray(out_bounds[1], float))), float(tol))
     with _TIGHTENERS_LOCK:
         t = _TIGHTENERS.get(key)
-        if t is None or t.net is not net:
+        if t is None:
             if len(_TIGHTENERS) > 16:
                 _TIGHTENERS.clear()
             t = _TIGHTENERS[key] = LPTightener(net, out_bounds=out_bounds, tol=tol)
@@ -372,8 +428,8 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
         Valid bounds to start from (intersected with FBBT), e.g. bounds of
         the whole domain computed once offline.
     tol
-        Relative safety margin added to every LP optimum (the LP solver's
-        tolerances must not make a bound invalid).
+        Relative margin added to every bound (on top of the safe bound of the
+        LP's duals, which already holds whatever the solver's accuracy).
     skip_stable
         Solve LPs only for neurons still unstable when reached (faster, same
         binaries; stable neurons keep their interval bounds).
@@ -394,6 +450,8 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
         When ``deadline`` passes before the last LP.
     """
     lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
+    if net.K == 1:
+        return _affine_bounds(net, lo2, hi2, out_bounds, batch)
     tightener = _tightener(net, out_bounds, tol)
     res = []
     for t in range(len(lo2)):
@@ -410,6 +468,19 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     return NodeBounds([np.stack([r.L[k] for r in res]) for k in range(net.K - 1)],
                       [np.stack([r.U[k] for r in res]) for k in range(net.K - 1)],
                       np.stack([r.out_L for r in res]), np.stack([r.out_U for r in res]), method=method)
+
+
+def _affine_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds, batch: bool) -> NodeBounds:
+    """:func:`lp_bounds` of a network without a hidden layer: no node bounds, the output's exact interval over each
+    box (cut to ``out_bounds``); :class:`EmptyBoxError` when an output's interval misses ``out_bounds``."""
+    oL, oU = interval_affine(net.W[0], net.b[0], lo, hi)  # rows: the boxes
+    if out_bounds is not None:
+        olo, ohi = np.asarray(out_bounds[0], float), np.asarray(out_bounds[1], float)
+        if np.any(oL > ohi) or np.any(oU < olo):
+            raise EmptyBoxError("no input in the box gives an output within out_bounds (the network is affine)")
+        oL, oU = np.maximum(oL, olo), np.minimum(oU, ohi)
+    method = "lp+out" if out_bounds is not None else "lp"
+    return NodeBounds([], [], oL if batch else oL[0], oU if batch else oU[0], method=method)
 
 
 # ---------------------------------------------------------------------------

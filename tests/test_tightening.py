@@ -1,6 +1,9 @@
 """Tightened node bounds stay valid: they contain every sampled feasible pre-activation."""
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -271,3 +274,40 @@ def test_lp_bounds_from_two_threads_at_once_are_those_of_one_thread(small_net):
         for t, b in seen[w]:
             for k in range(net.K - 1):
                 assert np.array_equal(b.L[k], alone[t].L[k]) and np.array_equal(b.U[k], alone[t].U[k])
+
+
+_BADLY_SCALED = json.loads((Path(__file__).parent / "data" / "badly_scaled_lp_cases.json").read_text())
+
+
+@pytest.mark.parametrize("case", _BADLY_SCALED, ids=[c["name"] for c in _BADLY_SCALED])
+def test_lp_bounds_hold_on_badly_scaled_networks_whatever_the_lp_solver_says(case):
+    """Networks whose weights span 1e-9 to 1e6 (found by an independent attack): HiGHS called non-optimal points
+    optimal (a bound 1e-3 too tight at a box corner, 18.7 on 2.5e7) and one feasible LP infeasible. The bounds are
+    now the dual's safe bounds, so each stored witness ``x`` (in the box, meeting ``out_bounds``) lies within them."""
+    net = fl.ReLUNet([np.array(w, float) for w in case["W"]], [np.array(v, float) for v in case["b"]])
+    lo, hi, x = (np.array(case[k], float) for k in ("lo", "hi", "x"))
+    ob = None if case["out_bounds"] is None else tuple(np.array(v, float) for v in case["out_bounds"])
+    y, pre = net.forward(x[None])
+    assert np.all(lo <= x) and np.all(x <= hi)  # the premise: a point of the box ...
+    assert ob is None or np.all((ob[0] <= y[0]) & (y[0] <= ob[1]))  # ... that meets the output bound
+    nb = lp_bounds(net, lo, hi, out_bounds=ob, skip_stable=case["skip_stable"])  # no EmptyBoxError
+    for a, L, U in list(zip(pre, nb.L, nb.U)) + [(y, nb.out_L, nb.out_U)]:
+        tol = 1e-9 * (1.0 + np.abs(a[0]))
+        assert np.all(a[0] >= L - tol) and np.all(a[0] <= U + tol)
+
+
+def test_lp_bounds_of_a_network_without_a_hidden_layer_are_its_exact_output_range():
+    net = fl.ReLUNet([np.array([[1.0, -2.0]])], [np.array([0.5])])
+    nb = lp_bounds(net, np.zeros(2), np.ones(2))
+    assert nb.L == [] and np.allclose([nb.out_L[0], nb.out_U[0]], [-1.5, 1.5])
+    nb = lp_bounds(net, np.zeros(2), np.ones(2), out_bounds=(np.array([-1.0]), np.array([1.0])))
+    assert np.allclose([nb.out_L[0], nb.out_U[0]], [-1.0, 1.0])
+    with pytest.raises(EmptyBoxError):
+        lp_bounds(net, np.zeros(2), np.ones(2), out_bounds=(np.array([2.0]), np.array([3.0])))
+
+
+def test_lp_bounds_follow_a_network_changed_in_place():
+    net = fl.ReLUNet([np.array([[1.0]]), np.array([[1.0]]), np.array([[1.0]])], [np.zeros(1)] * 3)
+    assert lp_bounds(net, np.zeros(1), np.ones(1)).U[1][0] == pytest.approx(1.0, rel=1e-6)
+    net.W[0][0, 0] = 5.0  # the same object, other parameters: the LP built for the old ones must not be reused
+    assert lp_bounds(net, np.zeros(1), np.ones(1)).U[1][0] == pytest.approx(5.0, rel=1e-6)
