@@ -37,6 +37,7 @@ from .error import (ErrorEstimate, ErrorBracket, NotCertifiable, pso_max_error, 
 from .solvers import SOLVER_BACKENDS, MIQP, MIQPResult, Solver, available_backends, make_solver
 from .tightening import EmptyBoxError, lp_bounds, horizon_boxes, intersect, propagate, LPTightener, ellipsoid_box
 from .enclosure import AffineEnclosure, affine_enclosure
+from .atlas import BoundAtlas, bound_atlas, check_atlas, load_atlas
 from .control import (Certificate, QuadraticCLF, DistanceCBF, as_certificate, PiecewiseAffine1D, network_pieces_1d,
                       exact_1d_feasible_set, solve_exact_1d, ClfCbfController, CLF_CBF_BACKENDS, AffineCBF,
                       ExponentialCBF, cbf_condition_fails)
@@ -62,7 +63,7 @@ __all__ = [
     'de_max_error', 'certify_error', 'error_function', 'worst_violation', 'local_max_error', 'enclosure_widths',
     'SOLVER_BACKENDS', 'MIQP', 'MIQPResult', 'Solver', 'available_backends',
     'make_solver', 'EmptyBoxError', 'lp_bounds', 'horizon_boxes', 'intersect', 'propagate', 'LPTightener',
-    'ellipsoid_box', 'AffineEnclosure', 'affine_enclosure',
+    'ellipsoid_box', 'AffineEnclosure', 'affine_enclosure', 'BoundAtlas', 'bound_atlas', 'check_atlas', 'load_atlas',
     'Certificate', 'QuadraticCLF', 'DistanceCBF', 'as_certificate', 'PiecewiseAffine1D',
     'network_pieces_1d', 'exact_1d_feasible_set', 'solve_exact_1d', 'ClfCbfController', 'CLF_CBF_BACKENDS', 'AffineCBF',
     'ExponentialCBF', 'cbf_condition_fails', 'MPC', 'MPCOptions', 'MPC_BACKENDS', 'sine_reference',

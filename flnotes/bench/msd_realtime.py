@@ -123,7 +123,8 @@ def configurations() -> list[tuple[str, dict]]:
     """The rows: the default; the default without constraint generation (every needed step encoded at once: measured
     on hard MSD states, fewer rounds on cold states, more work along the loop, where the warm start and the steps active
     at the previous solve seed the rounds); the default without the network's affine enclosure in its relaxation
-    (``enclosure=False``: the QP without the network, as before the enclosure); then one back-end for every program
+    (``enclosure=False``: the QP without the network, as before the enclosure); the default without the shipped bound
+    atlas (``atlas=False``: LP node bounds solved at each step, :mod:`flnotes.atlas`); then one back-end for every program
     (SCIP, DAQP, and Gurobi/CPLEX when importable), these with :data:`ROW_LIMIT` seconds per step.
 
     HiGHS solves MILPs and convex QPs, not the mixed-integer QP of eq. (MPC_form_miqp): it has no row of its own
@@ -131,7 +132,8 @@ def configurations() -> list[tuple[str, dict]]:
     """
     one = lambda b: dict(backend=b, time_limit=ROW_LIMIT, cut_off=False)  # noqa: E731
     rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)),
-            ("default without the affine enclosure", dict(enclosure=False)), ("SCIP only", one("scip")),
+            ("default without the affine enclosure", dict(enclosure=False)),
+            ("default without the bound atlas", dict(atlas=False)), ("SCIP only", one("scip")),
             ("DAQP only", one("daqp"))]
     have = available_backends()
     rows += [(f"{b.upper()} only", one(b)) for b in ("gurobi", "cplex") if b in have]
@@ -360,4 +362,25 @@ def enclosure_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[
                      "J_opt": a.objective if a.status == "optimal" else np.nan,
                      "binaries without": a.n_binaries, "binaries with": b.n_binaries,
                      "cpu s without": cpu_a, "cpu s with": cpu_b, "same optimum": same})
+    return rows
+
+
+def atlas_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict]:
+    """The default engine with and without the bound atlas (``atlas=False``: the LP node bounds solved at each step)
+    at each cold state ``(kind, z, z_ref)``, in alternating order: the binaries of the last program and the CPU time
+    (s) of each; ``same optimum``: both of the same status and, when optimal, within 1e-6."""
+    with_atlas, without = controller(s), controller(s, atlas=False)
+    if with_atlas.atlas is None:
+        raise ValueError("no shipped atlas serves this setting's network (flnotes.atlas.SHIPPED)")
+    rows = []
+    for i, (kind, z, R) in enumerate(states):
+        out = {}
+        for name, ctrl in (("without", without), ("with", with_atlas))[:: 1 if i % 2 == 0 else -1]:
+            ctrl.reset()
+            out[name] = timed(ctrl, z, R)[:2]
+        (a, cpu_a), (b, cpu_b) = out["without"], out["with"]
+        same = a.status == b.status and (a.status != "optimal" or abs(a.objective - b.objective) <= SAME_OPTIMUM * max(
+            1.0, abs(a.objective)))
+        rows.append({"state": kind, "status": a.status, "binaries without": a.n_binaries,
+                     "binaries with": b.n_binaries, "cpu s without": cpu_a, "cpu s with": cpu_b, "same optimum": same})
     return rows

@@ -19,6 +19,7 @@ import numpy as np
 
 from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
+from ..atlas import BoundAtlas, check_atlas, shipped_atlas
 from ..enclosure import AffineEnclosure, affine_enclosure, check_enclosure
 from ..config import (answer_slice, hold_signals, machine_steal, major_faults, one_blas_thread, pause_for_step, pause_gc,
                       quick_thread_switch, release_signals, resume_after_step, resume_gc, set_back_slice,
@@ -340,6 +341,15 @@ class MPC:
         network, once per network in a process); an enclosure given must be of this network (same
         parameters), hold on a sample of its box (:func:`flnotes.enclosure.check_enclosure`) and contain the
         program's box; ``False``: neither the slab nor the cut.
+    atlas
+        Where the engine computes LP node bounds (``bounds="lp"``, or ``"levelset"`` with ``lp`` ``True`` or
+        ``"auto"``) only: a :class:`flnotes.BoundAtlas` of the network (LP bounds on a grid of cells, computed once
+        by :func:`flnotes.bound_atlas`) whose covers replace the LPs of every box inside its domain; exact: the
+        covers hold at every admissible point. It must be of this network (checked on a sample,
+        :func:`flnotes.check_atlas`), hold for a bound ``u`` at least this controller's ``u_max^eps``, and its
+        domain must contain the program's box. ``"auto"`` (default): the atlas shipped for the network when there
+        is one that serves this controller (:func:`flnotes.atlas.shipped_atlas`: today the MSD's network of the
+        book), else none; ``False``: none.
 
     Attributes
     ----------
@@ -366,10 +376,10 @@ class MPC:
                  Q=None, R=None, P=None, *, terminal=None, options: Optional[MPCOptions] = None,
                  time_limit: Optional[float] = None, gap: float = 1e-6, discretization: str = "rk4",
                  v_box: Optional[tuple] = None, solver_options: Optional[dict] = None,
-                 cut_off: Optional[bool] = None, work_limit=None, enclosure="auto", **levers):
+                 cut_off: Optional[bool] = None, work_limit=None, enclosure="auto", atlas="auto", **levers):
         self._init_args = dict(system=system, net=net, eps=eps, horizon=horizon, ts=ts, Q=Q, R=R, P=P,
                                terminal=terminal, options=options, time_limit=time_limit, gap=gap, cut_off=cut_off,
-                               work_limit=work_limit, enclosure=enclosure,
+                               work_limit=work_limit, enclosure=enclosure, atlas=atlas,
                                discretization=discretization, v_box=v_box, solver_options=solver_options, **levers)
         if options is not None and levers:
             raise ValueError(f"give either options=MPCOptions(...) or the keywords {sorted(levers)}, not both")
@@ -465,6 +475,9 @@ class MPC:
         self.solver_options = _per_backend(o.backend, used, solver_options)
         #: The network's :class:`flnotes.AffineEnclosure` the engine's relaxation uses (``None``: none).
         self.enclosure = self._enclosure(enclosure, engine, net, system)
+        lp_runs = engine and (o.bounds == "lp" or (o.bounds == "levelset" and o.lp is not False))
+        #: The network's :class:`flnotes.BoundAtlas` whose covers replace the engine's LP bounds (``None``: none).
+        self.atlas = self._atlas(atlas, lp_runs, net)
         self.pred = Prediction(net, self.Ad, self.Bd, self.N, self.Q, self.R, self.P, z_lo=self.z_lo, z_hi=self.z_hi,
                                v_lo=self.v_lo, v_hi=self.v_hi, u_eps=self.u_eps, terminal=Fg, enclosure=self.enclosure)
         self.box_bounds = fbbt(net, np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi])
@@ -473,7 +486,7 @@ class MPC:
         elif o.is_reference:
             self.solver = ReferenceProgram(self.pred, o, self.box_bounds)
         else:
-            self.solver = NetworkEngine(self.pred, o, self.box_bounds, self.solver_options)
+            self.solver = NetworkEngine(self.pred, o, self.box_bounds, self.solver_options, atlas=self.atlas)
             if time_limit is not None:  # the one-off costs of a first solve are paid here, not in the first step
                 self.solver.warm_up()
         #: How much ``u_max^eps`` was tightened in the reference's rows at the last solve (the engine has its own).
@@ -481,6 +494,28 @@ class MPC:
         self.history: list[StepResult] = []
         self._plan: Optional[tuple[Array, Array]] = None
         self._qp_plan: Optional[Array] = None
+
+    def _atlas(self, atlas, lp_runs: bool, net: ReLUNet) -> Optional[BoundAtlas]:
+        """The ``atlas`` argument validated and resolved (``None``: LP bounds as without it)."""
+        lo, hi = np.r_[self.z_lo, self.v_lo], np.r_[self.z_hi, self.v_hi]
+        if isinstance(atlas, str) and atlas == "auto":
+            return shipped_atlas(net, lo, hi, self.u_eps) if lp_runs else None
+        if atlas is False:
+            return None
+        if not lp_runs:
+            raise ValueError(f"atlas={atlas!r} replaces the engine's LP node bounds, and these options compute none "
+                             "(they need the network engine with bounds='lp', or 'levelset' with lp=True or 'auto'): "
+                             "leave atlas unset")
+        if not isinstance(atlas, BoundAtlas):
+            raise TypeError(f"atlas must be 'auto', False or a flnotes.BoundAtlas, got {atlas!r}")
+        check_atlas(net, atlas)  # of this network, and it holds on a sample of its domain
+        if not atlas.covers(lo, hi)[0]:
+            raise ValueError(f"the atlas's domain [{atlas.lo}, {atlas.hi}] must contain the program's box [{lo}, {hi}]: "
+                             "compute it on the network's domain box")
+        if np.any(self.u_eps > atlas.u):
+            raise ValueError(f"the atlas holds for |Phi_NN| <= {atlas.u}, below this controller's u_max^eps = "
+                             f"{self.u_eps}: compute it with u >= u_max^eps")
+        return atlas
 
     @staticmethod
     def _enclosure(enclosure, engine: bool, net: ReLUNet, system: FLSystem) -> Optional[AffineEnclosure]:

@@ -31,6 +31,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..atlas import BoundAtlas
 from ..bounds import NodeBounds, fbbt
 from ..result import StepResult
 from ..solvers import MIQP, TIGHTENED_GAP, available_backends, make_solver, next_margin, release_retired, retire
@@ -149,6 +150,9 @@ class NetworkEngine:
         FBBT node bounds on the domain box (``bounds="box"``).
     solver_options
         Per back-end, passed to :func:`flnotes.solvers.make_solver`: ``{"daqp": {...}, "scip": {...}}``.
+    atlas
+        A :class:`flnotes.BoundAtlas` of the network whose covers replace the LP bounds of the boxes in its domain
+        (:func:`flnotes.mpc.levers.node_bounds`), or ``None``.
 
     Attributes
     ----------
@@ -163,8 +167,9 @@ class NetworkEngine:
         (``None`` before the first solve). :meth:`answer_now` reads it from another thread.
     """
 
-    def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None):
-        self.pred, self.opts, self.box = pred, opts, box
+    def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None,
+                 atlas: Optional[BoundAtlas] = None):
+        self.pred, self.opts, self.box, self.atlas = pred, opts, box, atlas
         self.solver_options = {k: dict(v) for k, v in (solver_options or {}).items()}
         self.margin = 0.0
         self.active_prev: tuple = ()
@@ -453,7 +458,7 @@ class NetworkEngine:
                         continue
             try:
                 nb = override if override is not None else node_bounds(pred, o, self.box, lo, hi, deadline=deadline,
-                                                                        cache=self.cache)
+                                                                        cache=self.cache, atlas=self.atlas)
             except DeadlineReached:
                 st["safety"] = work
                 return done("time_limit", inc_V, lb, "time limit during the LP bounds of a round")
@@ -659,7 +664,7 @@ class NetworkEngine:
         generation adds to an LP-tightened round). When the LP finds a step's box without an admissible
         input, ``nb`` is kept: its FBBT bounds are valid, and the branch and bound proves the same."""
         t = node_bounds(self.pred, self.opts, self.box, lo, hi, steps=steps, use_lp=True, deadline=deadline,
-                        cache=self.cache)
+                        cache=self.cache, atlas=self.atlas)
         if t is None:
             return nb
         L = [a.copy() for a in nb.L]
@@ -734,7 +739,7 @@ class NetworkEngine:
         """
         pred, o = self.pred, self.opts
         nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True, deadline=deadline,
-                            cache=self.cache)
+                            cache=self.cache, atlas=self.atlas)
         if nb_lp is None:
             return True, lo, hi, None
         steps = needed_steps(nb_lp, pred.u_eps, o.encode)

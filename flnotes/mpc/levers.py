@@ -13,6 +13,7 @@ import numpy as np
 
 from ..bounds import NodeBounds, fbbt
 from ..tightening import EmptyBoxError, lp_bounds
+from ..atlas import BoundAtlas
 from .bound_cache import BoundCache
 from .options import MPCOptions
 from .prediction import Prediction
@@ -28,7 +29,8 @@ def repeat_bounds(b: NodeBounds, N: int) -> NodeBounds:
 
 def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, hi: Array,
                 steps: Optional[Sequence[int]] = None, use_lp: Optional[bool] = None,
-                deadline: Optional[float] = None, cache: Optional[BoundCache] = None) -> Optional[NodeBounds]:
+                deadline: Optional[float] = None, cache: Optional[BoundCache] = None,
+                atlas: Optional[BoundAtlas] = None) -> Optional[NodeBounds]:
     """Per-step node bounds for the boxes ``lo, hi`` (N_p, n_z + m) under ``opts.bounds``.
 
     ``"box"``: ``box`` (FBBT on the domain box) at every step. Otherwise FBBT on the boxes; with ``use_lp``
@@ -39,7 +41,10 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
     ``None`` when some step's box holds no input meeting the output bound (the program is infeasible there).
     ``deadline`` (a ``time.perf_counter()`` value) stops the LPs: :class:`flnotes.tightening.DeadlineReached`.
     With a ``cache`` (``opts.bound_cache``) the LPs start from the bounds kept for boxes containing a step's box, and
-    their results are kept (:class:`flnotes.mpc.bound_cache.BoundCache`).
+    their results are kept (:class:`flnotes.mpc.bound_cache.BoundCache`). With an ``atlas``
+    (:class:`flnotes.BoundAtlas`, ``fl.MPC(..., atlas=...)``) the steps whose box lies in its domain take its cover
+    intersected with FBBT instead of LPs (valid there, so exact); a step where that intersection is empty (only by
+    round-off, or a box without admissible input) is LP-tightened as without it, and so are the steps outside.
     """
     N = pred.N
     if opts.bounds == "box":
@@ -51,6 +56,8 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
         c = pred.u_eps
         todo = range(N) if steps is None else sorted(steps)
         todo = [k for k in todo if np.any(nb.out_L[k] < -c) or np.any(nb.out_U[k] > c)]
+        if todo and atlas is not None:
+            todo = _atlas_steps(atlas, nb, lo, hi, todo)
         if todo:
             prior = NodeBounds([L[todo] for L in nb.L], [U[todo] for U in nb.U], nb.out_L[todo], nb.out_U[todo])
             if cache is not None:
@@ -66,6 +73,24 @@ def node_bounds(pred: Prediction, opts: MPCOptions, box: NodeBounds, lo: Array, 
                 nb.L[layer][todo], nb.U[layer][todo] = t.L[layer], t.U[layer]
             nb.method = "lp"
     return nb
+
+
+def _atlas_steps(atlas: BoundAtlas, nb: NodeBounds, lo: Array, hi: Array, todo: list) -> list:
+    """Write the atlas's cover (intersected with ``nb``) into ``nb`` at the steps of ``todo`` it serves; returns the
+    steps left for the LPs (outside its domain, or an empty intersection)."""
+    inside = [k for k, ok in zip(todo, atlas.covers(lo[todo], hi[todo])) if ok]
+    if not inside:
+        return todo
+    cL, cU = atlas.cover(lo[inside], hi[inside])
+    L = [np.maximum(nb.L[layer][inside], cL[layer]) for layer in range(len(nb.L))]
+    U = [np.minimum(nb.U[layer][inside], cU[layer]) for layer in range(len(nb.U))]
+    ok = np.all([np.all(a <= b, axis=1) for a, b in zip(L, U)], axis=0)
+    served = [k for k, good in zip(inside, ok) if good]
+    for layer in range(len(nb.L)):
+        nb.L[layer][served], nb.U[layer][served] = L[layer][ok], U[layer][ok]
+    if served:
+        nb.method = "atlas"
+    return [k for k in todo if k not in served]
 
 
 #: ``lp="auto"``: a level-set round is LP-tightened when FBBT leaves more unstable neurons than this in the steps

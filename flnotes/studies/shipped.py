@@ -4,7 +4,8 @@
 this order, the book's networks (:func:`flnotes.paper.write_references`), chapter 5's sweep
 (:func:`flnotes.studies.write_sweep`), the two-link arm's network (:func:`flnotes.arm.make_arm_reference`),
 the networks of the systems not in the book (:func:`flnotes.studies.unseen.write_unseen_references`) and
-the networks of the time-versus-size study (:func:`flnotes.studies.size.write_size_references`, into ``size/``).
+the networks of the time-versus-size study (:func:`flnotes.studies.size.write_size_references`, into ``size/``)
+and the bound atlas of the MSD's network (:func:`flnotes.atlas.write_shipped_atlases`, after its network).
 Each part spreads its networks (or, for the arm, its certification's boxes) over the workers; the files
 are written by this process. A run that stops (a killed worker, a lost connection) is resumed from the
 networks already finished (kept in the cache folder, :func:`flnotes.config.cache_dir`); ``--fresh`` starts
@@ -16,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-PARTS = ("references", "sweep", "arm", "unseen", "size")
+PARTS = ("references", "sweep", "arm", "unseen", "size", "atlas")
 
 
 def write_all(parts: Sequence[str] = PARTS, workers: Optional[int] = None, client=None, resume: bool = True,
@@ -46,6 +47,10 @@ def write_all(parts: Sequence[str] = PARTS, workers: Optional[int] = None, clien
         if "size" in parts:
             out += write_size_references(folder=None if folder is None else Path(folder) / "size", client=ex,
                                          progress=progress, resume=resume)
+        if "atlas" in parts:
+            from ..atlas import write_shipped_atlases
+
+            out += write_shipped_atlases(folder=folder)
     return out
 
 

@@ -1,0 +1,258 @@
+"""A bound atlas: LP node bounds of a ReLU network on a grid of cells over its domain, computed once and read
+for any box inside the domain.
+
+LP tightening (:func:`flnotes.lp_bounds`) with the output bound ``|Phi_NN| <= u`` (eq. Phi_NN_ep) gives, for a
+cell ``C`` of the grid, bounds ``L^k <= W^k y^{k-1} + b^k <= U^k`` (eq. MIP_general_c) that hold at every point of
+``C`` whose output meets the bound. A box ``B`` inside the domain lies in the union of the cells it meets, so the
+elementwise minimum of their ``L`` and maximum of their ``U`` hold at every point of ``B`` whose output meets the
+bound: valid node bounds for ``B``, read with a few array reductions instead of two LPs per neuron
+(:meth:`BoundAtlas.cover`). A cell without such a point (its LP relaxation is empty) is left out of every cover.
+The cells are smaller than the boxes an MPC asks about, and each cell's LP relaxation is tighter than a box's, so
+the cover is often tighter than the box's own LP bounds.
+
+The MPC reads its node bounds from an atlas where it would otherwise solve LPs (``fl.MPC(..., atlas=...)``,
+:mod:`flnotes.mpc.levers`): exact, since the bounds stay valid. An atlas costs ``2 n`` LPs per cell for ``n``
+neurons, once per network, domain and bound ``u`` (about 30 s for the MSD's (20, 20, 20) network on 576 cells):
+the book ships the MSD's (:func:`shipped_atlas`), and :func:`bound_atlas` computes one for another network.
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from ._checks import as_vector, check_box
+from .network import ReLUNet, fingerprint
+from .tightening import EmptyBoxError, lp_bounds
+
+Array = np.ndarray
+
+__all__ = ["BoundAtlas", "bound_atlas", "check_atlas", "load_atlas", "shipped_atlas"]
+
+#: Points of the fixed sample that :func:`check_atlas` checks an atlas on.
+N_SAMPLE = 4096
+
+#: The atlases shipped in ``flnotes/data``: file name -> the cells per input of its grid (written by
+#: :func:`write_shipped_atlases`).
+SHIPPED = {"MSD.atlas.npz": (16, 16, 6)}
+
+
+@dataclass(frozen=True, eq=False)
+class BoundAtlas:
+    """LP node bounds of a network on the cells of a grid over its domain (see the module).
+
+    Attributes
+    ----------
+    edges
+        Per input, the grid's increasing edges; cell ``c`` of input ``i`` is ``[edges[i][c], edges[i][c + 1]]``.
+    L, U
+        Per hidden layer, shape ``cells + (n_k,)``: the cell's bounds of eq. (MIP_general_c); ``+inf`` and ``-inf``
+        for a cell without an input whose output meets ``|Phi_NN| <= u``.
+    u
+        The output bound the cells were tightened with, shape (n_out,).
+    net_id
+        :func:`flnotes.network.fingerprint` of the network.
+    """
+
+    edges: tuple
+    L: tuple
+    U: tuple
+    u: Array
+    net_id: str
+
+    def __post_init__(self) -> None:
+        for a in (*self.edges, *self.L, *self.U, self.u):
+            a.setflags(write=False)  # an atlas is shared by every controller of its network: never changed in place
+
+    @property
+    def cells(self) -> tuple:
+        """Cells per input."""
+        return tuple(len(e) - 1 for e in self.edges)
+
+    @property
+    def lo(self) -> Array:
+        """The domain's lower corner."""
+        return np.array([e[0] for e in self.edges])
+
+    @property
+    def hi(self) -> Array:
+        """The domain's upper corner."""
+        return np.array([e[-1] for e in self.edges])
+
+    @property
+    def empty(self) -> Array:
+        """Cells (shape ``cells``) without an input whose output meets the bound."""
+        return np.isinf(self.L[0][..., 0]) & (self.L[0][..., 0] > 0)
+
+    def covers(self, lo: Array, hi: Array) -> Array:
+        """Per box (rows of ``lo, hi``, shape (T, n_in)), whether it lies in the domain."""
+        lo, hi = np.atleast_2d(lo), np.atleast_2d(hi)
+        return np.all(lo >= self.lo, axis=1) & np.all(hi <= self.hi, axis=1)
+
+    def cover(self, lo: Array, hi: Array) -> tuple[list, list]:
+        """Node bounds of the boxes ``lo, hi`` (shape (T, n_in), each inside the domain) from the cells they meet.
+
+        Returns ``(L, U)``, per hidden layer an array (T, n_k): the minimum of the cells' ``L`` and the maximum of
+        their ``U``. A box that meets only empty cells gets ``L = +inf``, ``U = -inf`` (no admissible input in it).
+        """
+        lo, hi = np.atleast_2d(np.asarray(lo, float)), np.atleast_2d(np.asarray(hi, float))
+        if lo.shape != hi.shape or lo.shape[1] != len(self.edges):
+            raise ValueError(f"lo and hi must have shape (T, {len(self.edges)}), got {lo.shape} and {hi.shape}")
+        if np.any(lo > hi):
+            raise ValueError("a box is empty (lo > hi in some input)")
+        if not np.all(self.covers(lo, hi)):
+            raise ValueError("a box reaches outside the atlas's domain: its cells say nothing there")
+        out_L = [np.empty((lo.shape[0], a.shape[-1])) for a in self.L]
+        out_U = [np.empty((lo.shape[0], a.shape[-1])) for a in self.U]
+        for t in range(lo.shape[0]):
+            # the cells [edges[c], edges[c+1]] meeting [lo, hi]: edges[c+1] >= lo and edges[c] <= hi
+            sl = tuple(slice(int(np.searchsorted(e[1:], lo[t, i], side="left")),
+                             int(np.searchsorted(e[:-1], hi[t, i], side="right")))
+                       for i, e in enumerate(self.edges))
+            for k in range(len(self.L)):
+                out_L[k][t] = self.L[k][sl].reshape(-1, self.L[k].shape[-1]).min(axis=0)
+                out_U[k][t] = self.U[k][sl].reshape(-1, self.U[k].shape[-1]).max(axis=0)
+        return out_L, out_U
+
+    def save(self, path: Union[str, Path]) -> None:
+        """Write the atlas to an ``.npz`` file (:func:`load_atlas` reads it)."""
+        np.savez_compressed(path, n_in=len(self.edges), n_layers=len(self.L), u=self.u, net_id=self.net_id,
+                            **{f"edges{i}": e for i, e in enumerate(self.edges)},
+                            **{f"L{k}": a for k, a in enumerate(self.L)}, **{f"U{k}": a for k, a in enumerate(self.U)})
+
+
+def load_atlas(path: Union[str, Path]) -> BoundAtlas:
+    """The atlas written by :meth:`BoundAtlas.save` (check it against its network with :func:`check_atlas`)."""
+    with np.load(path, allow_pickle=False) as f:
+        n_in, n_layers = int(f["n_in"]), int(f["n_layers"])
+        return BoundAtlas(tuple(np.array(f[f"edges{i}"], float) for i in range(n_in)),
+                          tuple(np.array(f[f"L{k}"], float) for k in range(n_layers)),
+                          tuple(np.array(f[f"U{k}"], float) for k in range(n_layers)),
+                          np.array(f["u"], float), str(f["net_id"]))
+
+
+def bound_atlas(net: ReLUNet, lo, hi, u, cells: Sequence[int]) -> BoundAtlas:
+    """LP node bounds (:func:`flnotes.lp_bounds` with ``out_bounds=(-u, u)``) on every cell of a grid over the box.
+
+    Parameters
+    ----------
+    net
+        The network (at least one hidden layer).
+    lo, hi
+        The domain box over the network's input ``[z, v]``, shape (n_in,).
+    u
+        The output bound ``u_max^eps`` (eq. Phi_NN_ep), positive, shape (n_out,) or a number: the atlas serves
+        every controller whose ``u_max^eps`` is at most this.
+    cells
+        Cells per input (positive integers, n_in of them): equal widths per input.
+
+    Returns
+    -------
+    BoundAtlas
+        Checked on a fixed sample (:func:`check_atlas`) before it is returned.
+    """
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if net.K < 2:
+        raise ValueError("the network has no hidden layer: it has no node bounds to keep")
+    lo, hi = check_box(lo, hi, net.n_in)
+    if np.any(hi <= lo):
+        raise ValueError("the domain box needs hi > lo in every input")
+    u = as_vector(u, net.n_out, "u") if np.ndim(u) else np.full(net.n_out, float(u))
+    if not np.all(np.isfinite(u)) or np.any(u <= 0):
+        raise ValueError(f"u must be positive and finite, got {u}")
+    cells = tuple(cells)
+    if len(cells) != net.n_in or any(isinstance(c, bool) or int(c) != c or c < 1 for c in cells):
+        raise ValueError(f"cells must be {net.n_in} positive integers (cells per input), got {cells!r}")
+    cells = tuple(int(c) for c in cells)
+    edges = tuple(np.linspace(lo[i], hi[i], c + 1) for i, c in enumerate(cells))
+    widths = [len(b) for b in net.b[:-1]]
+    L = [np.full(cells + (n,), np.inf) for n in widths]
+    U = [np.full(cells + (n,), -np.inf) for n in widths]
+    for idx in itertools.product(*(range(c) for c in cells)):
+        c_lo = np.array([edges[i][j] for i, j in enumerate(idx)])
+        c_hi = np.array([edges[i][j + 1] for i, j in enumerate(idx)])
+        try:
+            nb = lp_bounds(net, c_lo, c_hi, out_bounds=(-u, u))
+        except EmptyBoxError:
+            continue
+        for k in range(len(widths)):
+            L[k][idx], U[k][idx] = nb.L[k], nb.U[k]
+    atlas = BoundAtlas(edges, tuple(L), tuple(U), u, fingerprint(net))
+    check_atlas(net, atlas)
+    return atlas
+
+
+def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
+    """Raise ValueError unless ``atlas`` is of ``net`` (same :func:`flnotes.network.fingerprint`, shapes) and
+    holds at a fixed sample of its domain: every point whose output meets ``|Phi_NN| <= u`` has its pre-activations
+    within its cell's bounds (a sample cannot prove the bounds, but it finds any computed for another network, box
+    or bound, or changed)."""
+    if not isinstance(atlas, BoundAtlas):
+        raise TypeError(f"expected a flnotes.BoundAtlas, got {type(atlas).__name__}")
+    if atlas.net_id != fingerprint(net):
+        raise ValueError("the atlas was computed for another network (its parameters differ): compute it with "
+                         "fl.bound_atlas(net, lo, hi, u, cells)")
+    widths = [len(b) for b in net.b[:-1]]
+    if len(atlas.edges) != net.n_in or [a.shape[-1] for a in atlas.L] != widths or atlas.u.shape != (net.n_out,):
+        raise ValueError("the atlas's shapes do not fit the network (inputs, hidden layers or outputs)")
+    X = np.random.default_rng(seed).uniform(atlas.lo, atlas.hi, size=(N_SAMPLE, net.n_in))
+    out, pre = net.forward(X)
+    ok = np.all(np.abs(out) <= atlas.u, axis=1)
+    idx = tuple(np.clip(np.searchsorted(e, X[:, i], side="right") - 1, 0, len(e) - 2)
+                for i, e in enumerate(atlas.edges))
+    for k, a in enumerate(pre):
+        L, U = atlas.L[k][idx], atlas.U[k][idx]
+        tol = 1e-9 * (1.0 + np.abs(a))
+        bad = ok[:, None] & ((a < L - tol) | (a > U + tol))
+        if np.any(bad):
+            i = int(np.flatnonzero(bad.any(axis=1))[0])
+            raise ValueError(f"the atlas does not hold for this network: at x = {X[i]} (output within u) a "
+                             f"pre-activation of hidden layer {k + 1} leaves its cell's bounds")
+
+
+def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
+    """The shipped atlas of ``net`` (``flnotes/data``, :data:`SHIPPED`) when it serves the box ``[lo, hi]`` and the
+    bound ``u`` (the box inside its domain, ``u`` at most its own), else ``None``."""
+    folder = Path(__file__).resolve().parent / "data"
+    net_id = fingerprint(net)
+    for name in SHIPPED:
+        atlas = _load_shipped(folder / name)
+        if atlas is not None and atlas.net_id == net_id and atlas.covers(np.asarray(lo, float), np.asarray(hi, float))[0] \
+                and np.all(np.asarray(u, float) <= atlas.u):
+            if (name, net_id) not in _CHECKED:
+                check_atlas(net, atlas)  # the file holds for this network on a sample (once per process)
+                _CHECKED.add((name, net_id))
+            return atlas
+    return None
+
+
+_SHIPPED_CACHE: dict = {}
+_CHECKED: set = set()
+
+
+def _load_shipped(path: Path) -> Optional[BoundAtlas]:
+    if path not in _SHIPPED_CACHE:
+        _SHIPPED_CACHE[path] = load_atlas(path) if path.exists() else None
+    return _SHIPPED_CACHE[path]
+
+
+def write_shipped_atlases(folder: Optional[Union[str, Path]] = None) -> list[str]:
+    """Compute and write the atlases of :data:`SHIPPED` (the MSD's network of the book, on its domain box, with
+    ``u = u_max - eps`` of its certified ``eps``). Only to change them on purpose: commit the result."""
+    from . import paper
+
+    folder = Path(__file__).resolve().parent / "data" if folder is None else Path(folder)
+    out = []
+    for name, cells in SHIPPED.items():
+        system = name.split(".atlas")[0]
+        net, _ = paper.paper_net(system)
+        sysm = paper.system(system)
+        eps = float(np.max(paper.paper_eps(system).upper))
+        atlas = bound_atlas(net, sysm.lo, sysm.hi, np.asarray(sysm.u_max, float) - eps, cells)
+        atlas.save(folder / name)
+        out.append(name)
+    return out
