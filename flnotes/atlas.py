@@ -12,8 +12,9 @@ the cover is often tighter than the box's own LP bounds.
 
 The MPC reads its node bounds from an atlas where it would otherwise solve LPs (``fl.MPC(..., atlas=...)``,
 :mod:`flnotes.mpc.levers`): exact, since the bounds stay valid. An atlas costs ``2 n`` LPs per cell for ``n``
-neurons, once per network, domain and bound ``u`` (about 30 s for the MSD's (20, 20, 20) network on 576 cells):
-the book ships the MSD's (:func:`shipped_atlas`), and :func:`bound_atlas` computes one for another network.
+neurons, once per network, domain and bound ``u`` (about 90 s on one core for the MSD's (20, 20, 20) network on
+16 x 16 x 6 cells): the book ships the MSD's (:func:`shipped_atlas`), and :func:`bound_atlas` computes one for another
+network.
 """
 from __future__ import annotations
 
