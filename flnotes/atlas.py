@@ -18,6 +18,7 @@ network.
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,12 +34,15 @@ Array = np.ndarray
 
 __all__ = ["BoundAtlas", "bound_atlas", "check_atlas", "load_atlas", "shipped_atlas"]
 
+#: The folder of the shipped atlases.
+DATA = Path(__file__).resolve().parent / "data"
+
 #: Points of the fixed sample that :func:`check_atlas` checks an atlas on.
 N_SAMPLE = 4096
 
-#: The atlases shipped in ``flnotes/data``: file name -> the cells per input of its grid (written by
-#: :func:`write_shipped_atlases`).
-SHIPPED = {"MSD.atlas.npz": (16, 16, 6)}
+#: The atlases shipped in ``flnotes/data``: file name -> (the cells per input of its grid, the :attr:`BoundAtlas.digest`
+#: of the file as written by :func:`write_shipped_atlases`). A shipped file whose contents differ is refused.
+SHIPPED = {"MSD.atlas.npz": ((16, 16, 6), "8017837e4d0b1d440ae56f6d4b9e6118e80e5d9d72012de4397243f997b5429d")}
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,8 +69,40 @@ class BoundAtlas:
     net_id: str
 
     def __post_init__(self) -> None:
+        def frozen(a, name: str) -> Array:
+            a = np.asarray(a, dtype=float)
+            if np.any(np.isnan(a)):
+                raise ValueError(f"BoundAtlas.{name} must not hold NaN")
+            # backed by bytes: read-only for good (an atlas is shared by every controller of its network)
+            return np.frombuffer(np.ascontiguousarray(a).tobytes(), dtype=float).reshape(a.shape)
+
+        if not isinstance(self.net_id, str):
+            raise TypeError(f"BoundAtlas.net_id must be a str (fingerprint(net)), got {type(self.net_id).__name__}")
+        edges = tuple(frozen(e, "edges") for e in self.edges)
+        if not edges or any(e.ndim != 1 or e.size < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0)
+                            for e in edges):
+            raise ValueError("BoundAtlas.edges must be one finite, increasing array of at least 2 edges per input")
+        cells = tuple(e.size - 1 for e in edges)
+        L, U = tuple(frozen(a, "L") for a in self.L), tuple(frozen(a, "U") for a in self.U)
+        if not L or len(L) != len(U) or any(a.shape != b.shape or a.ndim != len(cells) + 1 or a.shape[:-1] != cells
+                                            for a, b in zip(L, U)):
+            raise ValueError(f"BoundAtlas.L and U must hold, per hidden layer, arrays of the same shape cells + (n_k,) "
+                             f"with cells = {cells} (from the edges)")
+        u = frozen(self.u, "u")
+        if u.ndim != 1 or not np.all(np.isfinite(u)) or np.any(u <= 0):
+            raise ValueError(f"BoundAtlas.u must be a positive, finite vector (n_out,), got {u}")
+        for k, v in dict(edges=edges, L=L, U=U, u=u).items():
+            object.__setattr__(self, k, v)
+
+    @property
+    def digest(self) -> str:
+        """SHA-256 of the atlas's contents (edges, bounds, ``u``, network): the shipped atlas is checked against its
+        recorded digest (:data:`SHIPPED`)."""
+        h = hashlib.sha256(self.net_id.encode())
         for a in (*self.edges, *self.L, *self.U, self.u):
-            a.setflags(write=False)  # an atlas is shared by every controller of its network: never changed in place
+            h.update(repr(a.shape).encode())
+            h.update(a.tobytes())
+        return h.hexdigest()
 
     @property
     def cells(self) -> tuple:
@@ -90,7 +126,9 @@ class BoundAtlas:
 
     def covers(self, lo: Array, hi: Array) -> Array:
         """Per box (rows of ``lo, hi``, shape (T, n_in)), whether it lies in the domain."""
-        lo, hi = np.atleast_2d(lo), np.atleast_2d(hi)
+        lo, hi = np.atleast_2d(np.asarray(lo, float)), np.atleast_2d(np.asarray(hi, float))
+        if lo.shape != hi.shape or lo.ndim != 2 or lo.shape[1] != len(self.edges):
+            raise ValueError(f"lo and hi must have shape (T, {len(self.edges)}), got {lo.shape} and {hi.shape}")
         return np.all(lo >= self.lo, axis=1) & np.all(hi <= self.hi, axis=1)
 
     def cover(self, lo: Array, hi: Array) -> tuple[list, list]:
@@ -166,7 +204,8 @@ def bound_atlas(net: ReLUNet, lo, hi, u, cells: Sequence[int]) -> BoundAtlas:
     if not np.all(np.isfinite(u)) or np.any(u <= 0):
         raise ValueError(f"u must be positive and finite, got {u}")
     cells = tuple(cells)
-    if len(cells) != net.n_in or any(isinstance(c, bool) or int(c) != c or c < 1 for c in cells):
+    if len(cells) != net.n_in or any(isinstance(c, bool) or not isinstance(c, (int, np.integer)) or c < 1
+                                     for c in cells):
         raise ValueError(f"cells must be {net.n_in} positive integers (cells per input), got {cells!r}")
     cells = tuple(int(c) for c in cells)
     edges = tuple(np.linspace(lo[i], hi[i], c + 1) for i, c in enumerate(cells))
@@ -190,8 +229,9 @@ def bound_atlas(net: ReLUNet, lo, hi, u, cells: Sequence[int]) -> BoundAtlas:
 def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
     """Raise ValueError unless ``atlas`` is of ``net`` (same :func:`flnotes.network.fingerprint`, shapes) and
     holds at a fixed sample of its domain: every point whose output meets ``|Phi_NN| <= u`` has its pre-activations
-    within its cell's bounds (a sample cannot prove the bounds, but it finds any computed for another network, box
-    or bound, or changed)."""
+    within its cell's bounds. A sample cannot prove the bounds: it finds an atlas computed for another network, box or
+    bound, or one changed grossly, not bounds lowered below the cells' true extremes but above the sample's. Use
+    atlases from :func:`bound_atlas` or the shipped ones (whose contents are checked against a recorded digest)."""
     if not isinstance(atlas, BoundAtlas):
         raise TypeError(f"expected a flnotes.BoundAtlas, got {type(atlas).__name__}")
     if atlas.net_id != fingerprint(net):
@@ -218,21 +258,21 @@ def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
 def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
     """The shipped atlas of ``net`` (``flnotes/data``, :data:`SHIPPED`) when it serves the box ``[lo, hi]`` and the
     bound ``u`` (the box inside its domain, ``u`` at most its own), else ``None``."""
-    folder = Path(__file__).resolve().parent / "data"
+    folder = DATA
     net_id = fingerprint(net)
-    for name in SHIPPED:
+    for name, (_, digest) in SHIPPED.items():
         atlas = _load_shipped(folder / name)
-        if atlas is not None and atlas.net_id == net_id and atlas.covers(np.asarray(lo, float), np.asarray(hi, float))[0] \
-                and np.all(np.asarray(u, float) <= atlas.u):
-            if (name, net_id) not in _CHECKED:
-                check_atlas(net, atlas)  # the file holds for this network on a sample (once per process)
-                _CHECKED.add((name, net_id))
+        if atlas is None or atlas.net_id != net_id:
+            continue
+        if atlas.digest != digest:  # checked at every call: the object handed out is the file as shipped
+            raise ValueError(f"the shipped atlas {name} is not the one written by flnotes.atlas.write_shipped_atlases "
+                             "(its contents changed): restore it, or pass atlas=False")
+        if atlas.covers(np.asarray(lo, float), np.asarray(hi, float))[0] and np.all(np.asarray(u, float) <= atlas.u):
             return atlas
     return None
 
 
 _SHIPPED_CACHE: dict = {}
-_CHECKED: set = set()
 
 
 def _load_shipped(path: Path) -> Optional[BoundAtlas]:
@@ -243,17 +283,18 @@ def _load_shipped(path: Path) -> Optional[BoundAtlas]:
 
 def write_shipped_atlases(folder: Optional[Union[str, Path]] = None) -> list[str]:
     """Compute and write the atlases of :data:`SHIPPED` (the MSD's network of the book, on its domain box, with
-    ``u = u_max - eps`` of its certified ``eps``). Only to change them on purpose: commit the result."""
+    ``u = u_max - eps`` of its certified ``eps``). Only to change them on purpose: commit the files and record
+    their digests (:attr:`BoundAtlas.digest`, returned beside each name) in :data:`SHIPPED`."""
     from . import paper
 
-    folder = Path(__file__).resolve().parent / "data" if folder is None else Path(folder)
+    folder = DATA if folder is None else Path(folder)
     out = []
-    for name, cells in SHIPPED.items():
+    for name, (cells, _) in SHIPPED.items():
         system = name.split(".atlas")[0]
         net, _ = paper.paper_net(system)
         sysm = paper.system(system)
         eps = float(np.max(paper.paper_eps(system).upper))
         atlas = bound_atlas(net, sysm.lo, sysm.hi, np.asarray(sysm.u_max, float) - eps, cells)
         atlas.save(folder / name)
-        out.append(name)
+        out.append(f"{name} (digest {atlas.digest})")
     return out

@@ -195,3 +195,58 @@ def test_the_reports_rows_give_the_same_verdict_with_and_without_the_atlas():
     rows = M.atlas_rows(s, M.cold_states(s, 3, seed=2)[1:3])
     assert len(rows) == 2 and all(r["same optimum"] for r in rows)
     assert {"binaries without", "binaries with", "cpu s without", "cpu s with"} <= set(rows[0])
+
+
+def test_an_atlas_cannot_be_changed_in_place_and_a_changed_shipped_file_is_refused(small, tmp_path, monkeypatch):
+    net, lo, hi, u, atlas = small
+    with pytest.raises(ValueError):
+        atlas.U[0][0, 0, 0, 0] = -1e9
+    with pytest.raises(ValueError):
+        atlas.U[0].setflags(write=True)  # backed by bytes: read-only for good
+    src = np.array(atlas.L[0])  # an atlas built from a writable array keeps a copy of its own
+    built = BoundAtlas(atlas.edges, (src,) + atlas.L[1:], atlas.U, atlas.u, atlas.net_id)
+    src[...] = 0.0
+    assert np.array_equal(built.L[0], atlas.L[0])
+    # the shipped file with one bound lowered (within what a sample of the domain sees): refused by its digest
+    import flnotes.atlas as A
+
+    s = M.setting()
+    shipped = M.controller(s).atlas
+    U = [np.array(a) for a in shipped.U]
+    U[1][..., 1] -= 1e-3
+    tampered = BoundAtlas(shipped.edges, shipped.L, tuple(U), shipped.u, shipped.net_id)
+    tampered.save(tmp_path / "MSD.atlas.npz")
+    monkeypatch.setattr(A, "_SHIPPED_CACHE", {})
+    monkeypatch.setattr(A, "DATA", tmp_path)
+    with pytest.raises(ValueError, match="contents changed"):
+        M.controller(s)
+
+
+def test_bad_atlas_arguments_get_short_clear_errors(small):
+    net, lo, hi, u, atlas = small
+    s = M.setting()
+    with pytest.raises(ValueError) as err:
+        M.controller(s, atlas=M.controller(s).atlas, bounds="box")
+    assert len(str(err.value)) < 400 and "compute none" in str(err.value)
+    for cells in ((2.0, 2, 2), (np.nan, 2, 2), (2, 2, 0), (True, 2, 2)):
+        with pytest.raises(ValueError, match="cells must be"):
+            fl.bound_atlas(net, lo, hi, u, cells)
+    with pytest.raises(ValueError, match="same shape"):
+        BoundAtlas(atlas.edges, atlas.L, tuple(a[..., :-1] for a in atlas.U), atlas.u, atlas.net_id)
+    with pytest.raises(ValueError, match="cells"):
+        BoundAtlas(atlas.edges[:-1] + (atlas.edges[-1][:-1],), atlas.L, atlas.U, atlas.u, atlas.net_id)
+    with pytest.raises(ValueError, match="NaN"):
+        BoundAtlas(atlas.edges, (np.full_like(atlas.L[0], np.nan),) + atlas.L[1:], atlas.U, atlas.u, atlas.net_id)
+    with pytest.raises(ValueError, match="shape"):
+        atlas.covers(lo[:2], hi[:2])
+
+
+def test_the_msd_mpc_near_the_domain_corner_with_lp_true_is_optimal():
+    """Found by an independent attack: with the atlas and ``lp=True`` DAQP's point failed the check on a QP and
+    HiGHS ended in "Solve error" (status "error"); SCIP now decides such a QP."""
+    s = M.setting()
+    z, R = np.array([-4.999995, 4.999995]), np.tile([4.5, 0.0], (s["horizon"] + 1, 1))
+    plain = M.controller(s, atlas=False)(z, R)
+    res = M.controller(s, lp=True)(z, R)
+    assert plain.status == res.status == "optimal"
+    assert res.objective == pytest.approx(plain.objective, rel=1e-6)

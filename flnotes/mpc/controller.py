@@ -503,11 +503,13 @@ class MPC:
         if atlas is False:
             return None
         if not lp_runs:
-            raise ValueError(f"atlas={atlas!r} replaces the engine's LP node bounds, and these options compute none "
+            raise ValueError(f"atlas={atlas if isinstance(atlas, str) else type(atlas).__name__} replaces the engine's "
+                             "LP node bounds, and these options compute none "
                              "(they need the network engine with bounds='lp', or 'levelset' with lp=True or 'auto'): "
                              "leave atlas unset")
         if not isinstance(atlas, BoundAtlas):
-            raise TypeError(f"atlas must be 'auto', False or a flnotes.BoundAtlas, got {atlas!r}")
+            raise TypeError(f"atlas must be 'auto', False or a flnotes.BoundAtlas, got {type(atlas).__name__} "
+                            f"{atlas!r:.60}")
         check_atlas(net, atlas)  # of this network, and it holds on a sample of its domain
         if not atlas.covers(lo, hi)[0]:
             raise ValueError(f"the atlas's domain [{atlas.lo}, {atlas.hi}] must contain the program's box [{lo}, {hi}]: "
