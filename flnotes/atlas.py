@@ -41,8 +41,10 @@ DATA = Path(__file__).resolve().parent / "data"
 N_SAMPLE = 4096
 
 #: The atlases shipped in ``flnotes/data``: file name -> (the cells per input of its grid, the :attr:`BoundAtlas.digest`
-#: of the file as written by :func:`write_shipped_atlases`). A shipped file whose contents differ is refused.
-SHIPPED = {"MSD.atlas.npz": ((16, 16, 6), "8017837e4d0b1d440ae56f6d4b9e6118e80e5d9d72012de4397243f997b5429d")}
+#: of the file as written by :func:`write_shipped_atlases`, the fingerprint of its network). For that network a file
+#: that is missing, unreadable or whose contents differ is refused.
+SHIPPED = {"MSD.atlas.npz": ((16, 16, 6), "8017837e4d0b1d440ae56f6d4b9e6118e80e5d9d72012de4397243f997b5429d",
+                           "33c77a133143ebad174d280c8f5ca919a89da189484095fa55fffc5b6ce603e7")}
 
 
 @dataclass(frozen=True, eq=False)
@@ -258,12 +260,11 @@ def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
 def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
     """The shipped atlas of ``net`` (``flnotes/data``, :data:`SHIPPED`) when it serves the box ``[lo, hi]`` and the
     bound ``u`` (the box inside its domain, ``u`` at most its own), else ``None``."""
-    folder = DATA
     net_id = fingerprint(net)
-    for name, (_, digest) in SHIPPED.items():
-        atlas = _load_shipped(folder / name)
-        if atlas is None or atlas.net_id != net_id:
+    for name, (_, digest, shipped_for) in SHIPPED.items():
+        if shipped_for != net_id:
             continue
+        atlas = _load_shipped(DATA / name)
         if atlas.digest != digest:  # checked at every call: the object handed out is the file as shipped
             raise ValueError(f"the shipped atlas {name} is not the one written by flnotes.atlas.write_shipped_atlases "
                              "(its contents changed): restore it, or pass atlas=False")
@@ -275,21 +276,26 @@ def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
 _SHIPPED_CACHE: dict = {}
 
 
-def _load_shipped(path: Path) -> Optional[BoundAtlas]:
+def _load_shipped(path: Path) -> BoundAtlas:
     if path not in _SHIPPED_CACHE:
-        _SHIPPED_CACHE[path] = load_atlas(path) if path.exists() else None
+        try:
+            _SHIPPED_CACHE[path] = load_atlas(path)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"the shipped atlas {path.name} cannot be read ({type(exc).__name__}: {exc}): restore "
+                             "the package's data folder, or pass atlas=False") from None
     return _SHIPPED_CACHE[path]
 
 
 def write_shipped_atlases(folder: Optional[Union[str, Path]] = None) -> list[str]:
     """Compute and write the atlases of :data:`SHIPPED` (the MSD's network of the book, on its domain box, with
     ``u = u_max - eps`` of its certified ``eps``). Only to change them on purpose: commit the files and record
-    their digests (:attr:`BoundAtlas.digest`, returned beside each name) in :data:`SHIPPED`."""
+    their digests (:attr:`BoundAtlas.digest`, returned beside each name) and their network's fingerprint in
+    :data:`SHIPPED`."""
     from . import paper
 
     folder = DATA if folder is None else Path(folder)
     out = []
-    for name, (cells, _) in SHIPPED.items():
+    for name, (cells, _, _) in SHIPPED.items():
         system = name.split(".atlas")[0]
         net, _ = paper.paper_net(system)
         sysm = paper.system(system)

@@ -220,6 +220,15 @@ def test_an_atlas_cannot_be_changed_in_place_and_a_changed_shipped_file_is_refus
     monkeypatch.setattr(A, "DATA", tmp_path)
     with pytest.raises(ValueError, match="contents changed"):
         M.controller(s)
+    (tmp_path / "MSD.atlas.npz").unlink()  # missing, or not an atlas: refused too, never run without it silently
+    monkeypatch.setattr(A, "_SHIPPED_CACHE", {})
+    with pytest.raises(ValueError, match="cannot be read"):
+        M.controller(s)
+    (tmp_path / "MSD.atlas.npz").write_bytes(b"not an atlas")
+    monkeypatch.setattr(A, "_SHIPPED_CACHE", {})
+    with pytest.raises(ValueError, match="cannot be read"):
+        M.controller(s)
+    assert M.controller(s, atlas=False).atlas is None  # the way out the message names
 
 
 def test_bad_atlas_arguments_get_short_clear_errors(small):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -281,9 +282,11 @@ _BADLY_SCALED = json.loads((Path(__file__).parent / "data" / "badly_scaled_lp_ca
 
 @pytest.mark.parametrize("case", _BADLY_SCALED, ids=[c["name"] for c in _BADLY_SCALED])
 def test_lp_bounds_hold_on_badly_scaled_networks_whatever_the_lp_solver_says(case):
-    """Networks whose weights span 1e-9 to 1e6 (found by an independent attack): HiGHS called non-optimal points
-    optimal (a bound 1e-3 too tight at a box corner, 18.7 on 2.5e7) and one feasible LP infeasible. The bounds are
-    now the dual's safe bounds, so each stored witness ``x`` (in the box, meeting ``out_bounds``) lies within them."""
+    """Networks whose weights span 1e-9 to 1e6 (found by independent attacks): HiGHS called non-optimal points
+    optimal (a bound 1e-3 too tight at a box corner, 18.7 on 2.5e7) and feasible LPs infeasible, and interval
+    arithmetic without outward rounding cut a corner by 140 units in the last place (and, as the LP's rows, emptied a
+    box 2e-12 wide). The bounds are now the dual's safe bounds on outward-rounded intervals, so each stored witness
+    ``x`` (in the box, meeting ``out_bounds``) lies within them, in exact arithmetic where the case says so."""
     net = fl.ReLUNet([np.array(w, float) for w in case["W"]], [np.array(v, float) for v in case["b"]])
     lo, hi, x = (np.array(case[k], float) for k in ("lo", "hi", "x"))
     ob = None if case["out_bounds"] is None else tuple(np.array(v, float) for v in case["out_bounds"])
@@ -294,6 +297,14 @@ def test_lp_bounds_hold_on_badly_scaled_networks_whatever_the_lp_solver_says(cas
     for a, L, U in list(zip(pre, nb.L, nb.U)) + [(y, nb.out_L, nb.out_U)]:
         tol = 1e-9 * (1.0 + np.abs(a[0]))
         assert np.all(a[0] >= L - tol) and np.all(a[0] <= U + tol)
+    if case.get("exact"):  # the witness's pre-activations in exact arithmetic, against the bounds with no tolerance
+        yk = [Fraction(float(v)) for v in x]
+        for k, (W, b) in enumerate(zip(net.W, net.b)):
+            a = [sum((Fraction(float(W[i, j])) * yk[j] for j in range(len(yk))), Fraction(float(b[i])))
+                 for i in range(W.shape[0])]
+            L, U = (nb.L[k], nb.U[k]) if k < net.K - 1 else (nb.out_L, nb.out_U)
+            assert all(Fraction(float(lo_)) <= v <= Fraction(float(hi_)) for v, lo_, hi_ in zip(a, L, U)), k
+            yk = [max(v, Fraction(0)) for v in a]
 
 
 def test_lp_bounds_of_a_network_without_a_hidden_layer_are_its_exact_output_range():
