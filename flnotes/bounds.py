@@ -81,21 +81,24 @@ class NodeBounds:
         return f"{self.method} bounds: " + "; ".join(per)
 
 
-#: Outward rounding of :func:`interval_affine`: its bounds are widened by this times the number of terms plus two,
-#: times ``|W| max(|l|, |u|) + |b|`` (twice the unit round-off: the bound of the floating-point error of a sum of
-#: ``n`` products, Higham 2002, once for the bounds and once for the forward pass they must contain).
+#: Outward rounding of :func:`interval_affine` (``outward=True``): its bounds are widened by this times the number of
+#: terms plus two, times ``|W| max(|l|, |u|) + |b|`` (twice the unit round-off: the bound of the floating-point error
+#: of a sum of ``n`` products, Higham 2002, once for the bounds and once for the forward pass they must contain).
 ROUNDING = 2.0 * np.finfo(float).eps
 
 
-def interval_affine(W: Array, b: Array, l: Array, u: Array) -> tuple[Array, Array]:
-    """Range of ``W y + b`` over the box ``l <= y <= u`` (rows of l, u are boxes), rounded outward.
+def interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = False) -> tuple[Array, Array]:
+    """Range of ``W y + b`` over the box ``l <= y <= u`` (rows of l, u are boxes).
 
-    The exact range, widened by the floating-point error of its sums (:data:`ROUNDING`): it contains ``W y + b`` for
-    every ``y`` of the box, computed exactly or by a forward pass in floating point. Without the widening, weights of
-    1e6 and biases of 1e6 gave a bound 140 units in the last place below a corner's pre-activation.
+    With ``outward=True`` it is widened by the floating-point error of its sums (:data:`ROUNDING`), so that it
+    contains ``W y + b`` for every ``y`` of the box, computed exactly or by a forward pass in floating point (LP
+    tightening starts from it: without the widening, weights and biases of 1e6 gave a bound 140 units in the last
+    place below a corner's pre-activation, and a box 2e-12 wide was declared empty).
     """
     Wp, Wm = np.maximum(W, 0.0), np.minimum(W, 0.0)
     L, U = l @ Wp.T + u @ Wm.T + b, u @ Wp.T + l @ Wm.T + b
+    if not outward:
+        return L, U
     mag = np.maximum(np.abs(l), np.abs(u)) @ np.abs(W).T + np.abs(b)
     err = ROUNDING * (W.shape[1] + 2) * mag
     return L - err, U + err
@@ -111,7 +114,7 @@ def _check_net_box(net: ReLUNet, lo, hi) -> None:
                          f"shape ({net.n_in},) or (T, {net.n_in}), a box over the network's input (z, v)")
 
 
-def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
+def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = False) -> NodeBounds:
     """Node bounds by interval propagation (FBBT, Grimstad & Andersson 2019, Sec. 4.3).
 
     Parameters
@@ -122,6 +125,9 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
         Input box over ``y^0 = [z, v]``: shape (n_in,), or (T, n_in) for T
         boxes at once (e.g. the reachable boxes along an MPC horizon). A
         coordinate with ``lo == hi`` is fixed (a measured state).
+    outward
+        Round every interval outward by the error bound of its sums (:func:`interval_affine`); the LP tightening
+        (:func:`flnotes.lp_bounds`) starts from these.
 
     Returns
     -------
@@ -134,10 +140,10 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array) -> NodeBounds:
     l, u = lo_a, hi_a
     Ls, Us = [], []
     for W, b in zip(net.W[:-1], net.b[:-1]):
-        L, U = interval_affine(W, b, l, u)
+        L, U = interval_affine(W, b, l, u, outward)
         Ls.append(L), Us.append(U)
         l, u = np.maximum(L, 0.0), np.maximum(U, 0.0)
-    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u)
+    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u, outward)
     if not batch:
         Ls, Us, oL, oU = [a[0] for a in Ls], [a[0] for a in Us], oL[0], oU[0]
     return NodeBounds(Ls, Us, oL, oU, method="fbbt")

@@ -67,7 +67,7 @@ def intersect(a: NodeBounds, b: NodeBounds, method: Optional[str] = None) -> Nod
                       method=method or f"{a.method}&{b.method}")
 
 
-def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0
+def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0, outward: bool = False
               ) -> tuple[list[Array], list[Array], Array, Array]:
     """Interval propagation from layer ``start`` on: layers after it get ``max(their bounds, interval bounds)``.
 
@@ -77,10 +77,10 @@ def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int =
     L, U = [np.asarray(x, float).copy() for x in L], [np.asarray(x, float).copy() for x in U]
     l, u = np.maximum(L[start], 0.0), np.maximum(U[start], 0.0)
     for k in range(start + 1, net.K - 1):
-        Lk, Uk = interval_affine(net.W[k], net.b[k], l, u)
+        Lk, Uk = interval_affine(net.W[k], net.b[k], l, u, outward)
         L[k], U[k] = np.maximum(L[k], Lk), np.minimum(U[k], Uk)
         l, u = np.maximum(L[k], 0.0), np.maximum(U[k], 0.0)
-    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u)
+    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u, outward)
     return L, U, oL, oU
 
 
@@ -350,7 +350,7 @@ class LPTightener:
                  deadline: Optional[float]) -> NodeBounds:
         net = self.net
         self.restart()
-        start = fbbt(net, lo, hi)
+        start = fbbt(net, lo, hi, outward=True)  # rounded outward: the LP's rows must not cut a point of the box
         if prior is not None:
             start = intersect(start, prior)
         L, U = [a.copy() for a in start.L], [a.copy() for a in start.U]
@@ -374,7 +374,7 @@ class LPTightener:
                     L[k][j] = U[k][j] = 0.5 * (L[k][j] + U[k][j])
                 self.set_neuron(k, j, L[k][j], U[k][j])
             # later layers: interval bounds from the tightened layer
-            L, U, oL, oU = propagate(net, L, U, start=k)
+            L, U, oL, oU = propagate(net, L, U, start=k, outward=True)
             for kk in range(k + 1, net.K - 1):
                 self.set_layer(kk, L[kk], U[kk])
         if output:
@@ -473,7 +473,7 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
 def _affine_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds, batch: bool) -> NodeBounds:
     """:func:`lp_bounds` of a network without a hidden layer: no node bounds, the output's exact interval over each
     box (cut to ``out_bounds``); :class:`EmptyBoxError` when an output's interval misses ``out_bounds``."""
-    oL, oU = interval_affine(net.W[0], net.b[0], lo, hi)  # rows: the boxes
+    oL, oU = interval_affine(net.W[0], net.b[0], lo, hi, outward=True)  # rows: the boxes
     if out_bounds is not None:
         olo, ohi = np.asarray(out_bounds[0], float), np.asarray(out_bounds[1], float)
         if np.any(oL > ohi) or np.any(oU < olo):

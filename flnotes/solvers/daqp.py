@@ -19,6 +19,21 @@ from .problem import _INF, FEAS_TOL, MIQP, Array, MIQPResult, _result
 # ---------------------------------------------------------------------------
 # DAQP
 # ---------------------------------------------------------------------------
+
+def _confirm_qp(solver, p, backend: str, w, time_limit, gap, t0, claim: str, nodes: int):
+    """:func:`flnotes.solvers.base._confirm`, and for a continuous QP that HiGHS (its verifier) fails on, SCIP.
+
+    On an MSD program at the domain's corner DAQP's point failed the check and HiGHS's QP solver ended in "Solve
+    error": the step returned "error" where SCIP proves the optimum. (Only here: SCIP's own polisher is a HiGHS QP.)
+    """
+    out = _confirm(solver, p, backend, w, time_limit, gap, t0, claim, nodes)
+    if backend == "highs" and not p.is_mip and out.status == "error":
+        left = None if time_limit is None else time_limit - (time.perf_counter() - t0)
+        if left is None or left > 1e-3:
+            return _confirm(solver, p, "scip", w, time_limit, gap, t0, f"{claim}; highs failed ({out.message})",
+                            out.nodes)
+    return out
+
 class DaqpSolver(Solver):
     """DAQP (Arnström, Bemporad & Axehill 2022): dual active-set QP with branch and bound over binaries.
 
@@ -183,15 +198,15 @@ class DaqpSolver(Solver):
         if limit is not time_limit and (res.status == "time_limit" or (
                 res.status == "unproven" and time.perf_counter() - t0 >= handover)):
             # no time limit: SCIP takes over the program (DAQP may also stop at its limit with an undocumented flag)
-            return _confirm(self, p, verifier, res.w, None, gap, t0,
+            return _confirm_qp(self, p, verifier, res.w, None, gap, t0,
                             f"daqp: no answer after the hand-over time of {handover:g} s", res.nodes)
         trust = self.options.get("verify_nodes", VERIFY_NODES)
         if p.is_mip and res.status == "optimal" and trust is not None and res.nodes > trust:
             # DAQP's depth-first search has returned sub-optimal points as optimal after long searches
-            return _confirm(self, p, verifier, res.w, time_limit, gap, t0,
+            return _confirm_qp(self, p, verifier, res.w, time_limit, gap, t0,
                             f"daqp: {res.message}, after {res.nodes} nodes (more than {trust})", res.nodes)
         if res.status == "unproven":
-            return _confirm(self, p, verifier, res.w, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
+            return _confirm_qp(self, p, verifier, res.w, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
         if res.status == "infeasible" and ((p.is_mip and self.options.get("verify_infeasible", True)) or self._eps_prox):
             # DAQP's branch and bound (and its proximal iterations on a singular H) have declared feasible
             # big-M programs infeasible, or found nothing below a warm start that was not optimal
@@ -212,15 +227,15 @@ class DaqpSolver(Solver):
                 feas = MIQP(None, np.zeros(p.n), 0.0, p.A, p.rl, p.ru, p.lb, p.ub, p.integrality)
                 chk = _confirm(self, feas, verifier, None, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
                 if chk.status != "infeasible":  # feasible after all (or undecided): the program itself
-                    return _confirm(self, p, verifier, None, time_limit, gap, t0,
+                    return _confirm_qp(self, p, verifier, None, time_limit, gap, t0,
                                     f"daqp: {res.message} (the feasibility MILP: {chk.status})", chk.nodes)
                 chk.message += " (the feasibility MILP with the same rows)"
                 return chk
-            return _confirm(self, p, verifier, incumbent, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
+            return _confirm_qp(self, p, verifier, incumbent, time_limit, gap, t0, f"daqp: {res.message}", res.nodes)
         if res.status == "error":
             fb = self.options.get("fallback", "scip")
             if fb and fb != "daqp":
-                return _confirm(self, p, fb if p.is_mip else "highs", incumbent, time_limit, gap, t0,
+                return _confirm_qp(self, p, fb if p.is_mip else "highs", incumbent, time_limit, gap, t0,
                                 f"daqp failed ({res.message})", res.nodes)
         return res
 

@@ -236,10 +236,6 @@ class HighsSolver(Solver):
             if w is None or p.violation(w) > FEAS_TOL:
                 status = "error"
                 text += (": no point" if w is None else f": the point violates the program by {p.violation(w):.1e}")
-        if status == "error" and p.H is not None and not p.is_mip:
-            # HiGHS's QP solver ended in "Solve error" (or on a point outside the rows) on a convex QP of the MSD's
-            # engine at the domain's corner, where DAQP's point also failed the check: SCIP decides it
-            return _confirm(self, p, "scip", None, time_limit, gap, t0, f"highs: {text}", nodes)
         if status == "infeasible" and p.is_mip:
             # HiGHS has declared feasible big-M programs infeasible with the optimum on the network bound:
             # SCIP confirms (or refutes) the claim
