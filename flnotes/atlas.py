@@ -8,7 +8,7 @@ elementwise minimum of their ``L`` and maximum of their ``U`` hold at every poin
 bound: valid node bounds for ``B``, read with a few array reductions instead of two LPs per neuron
 (:meth:`BoundAtlas.cover`). A cell without such a point (its LP relaxation is empty) is left out of every cover.
 The cells are smaller than the boxes an MPC asks about, and each cell's LP relaxation is tighter than a box's, so
-the cover is often tighter than the box's own LP bounds.
+the cover can be tighter than the box's own LP bounds.
 
 The MPC reads its node bounds from an atlas where it would otherwise solve LPs (``fl.MPC(..., atlas=...)``,
 :mod:`flnotes.mpc.levers`): exact, since the bounds stay valid. An atlas costs ``2 n`` LPs per cell for ``n``
