@@ -440,6 +440,59 @@ def test_a_verdict_under_tightened_rows_is_not_called_proven_beyond_the_untighte
     assert r.message.startswith("not proven: no plan with u_max^eps tightened by"), r.message
 
 
+def _late_ridge_case():
+    """One double integrator (N_p = 6) with a random (12, 10) network at a state where the optimum lies within the
+    solvers' tolerance of ``u_max^eps``: a round's point is over the bound, the rows are tightened, and the verdict
+    comes from a later, higher level."""
+    rng = np.random.default_rng(21)
+    sysm = integrator_system([2], [-5.0, -5.0, -3.0], [5.0, 5.0, 3.0], [1.0])
+    W = [rng.normal(size=(12, 3)) * 0.6, rng.normal(size=(10, 12)) * 0.4, rng.normal(size=(1, 10)) * 0.8]
+    net = fl.ReLUNet(W, [rng.normal(size=12) * 0.3, rng.normal(size=10) * 0.3, np.array([0.1])])
+    z = np.array([float.fromhex("0x1.d61b105234c23p+1"), float.fromhex("-0x1.d4959f5022148p-1")])
+    z_ref = np.zeros((7, 2))
+    z_ref[:, 0] = -4.75
+    return sysm, net, z, z_ref
+
+
+@pytest.mark.parametrize("options", [dict(bounds="lp"), dict(lp=True), dict(bounds="lp", screening=False)])
+def test_a_tightened_verdict_of_a_later_round_is_backed_by_that_rounds_untightened_bound(options):
+    """A verdict under tightened rows counts where the untightened program's lower bound backs it. That bound used
+    to come from the round where the rows were first tightened only: a level-set round whose level (410.17) lies
+    below the optimum (410.3038), so the later round's optimum was "not proven" and the step an ``"error"`` (a
+    plan 3e-5 above the optimum applied). Now SCIP bounds the deciding round's untightened program, and the step is
+    the cold reference's optimum."""
+    sysm, net, z, z_ref = _late_ridge_case()
+    kw = dict(horizon=6, ts=0.1, atlas=False)
+    r_ref = fl.MPC(sysm, net, 0.1, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)(z, z_ref)
+    assert r_ref.status == "optimal", r_ref.message
+    mpc = fl.MPC(sysm, net, 0.1, **kw, **options)
+    r = mpc(z, z_ref)
+    assert r.status == "optimal" and mpc.plan_feasible(r.z_pred, r.v_pred), r.message
+    assert abs(r.objective - r_ref.objective) <= 1e-6 * abs(r_ref.objective), (r.objective, r_ref.objective)
+    assert r.bound <= r.objective + 1e-9 * abs(r.objective)
+    # the premise: the rows were tightened and the later round's untightened bound decided
+    assert r.info["tightened"] >= 1 and "untightened round's" in r.message, r.message
+
+
+def test_the_untightened_rounds_own_plan_is_the_optimum_where_it_passes_the_check():
+    """The book's MSD (N_p = 10, ``lp=True``) at a state on the domain's face with a constant reference: the rows
+    were tightened in a level-set round below the optimum, and the step used to be an ``"error"`` ("not proven"). The
+    deciding round's untightened program, solved by SCIP, has a plan that passes the forward-pass check within the
+    gap of its bound: it is the optimum, the default's."""
+    from flnotes.bench import msd_realtime
+
+    s = msd_realtime.setting()
+    z = np.array([5.0, float.fromhex("-0x1.d027312650e74p+0")])
+    z_ref = np.zeros((s["horizon"] + 1, 2))
+    z_ref[:, 0] = float.fromhex("-0x1.fa2b99dd902f3p-1")
+    mpc = msd_realtime.controller(s, lp=True)
+    r, r_def = mpc(z, z_ref), msd_realtime.controller(s)(z, z_ref)
+    assert r_def.status == r.status == "optimal" and mpc.plan_feasible(r.z_pred, r.v_pred), r.message
+    assert abs(r.objective - r_def.objective) <= 1e-6 * abs(r_def.objective), (r.objective, r_def.objective)
+    assert r.bound <= r.objective + 1e-9 * abs(r.objective)
+    assert r.info["tightened"] >= 1 and "untightened round's" in r.message, r.message  # the premise
+
+
 @pytest.mark.parametrize("options", [dict(), dict(backend="daqp")])
 def test_a_daqp_point_over_the_bound_is_solved_again_by_scip_before_any_row_is_tightened(monkeypatch, options):
     """The ridge network above, with only DAQP's plans 1e-7 past the ridge (DAQP's primal tolerance is 1e-6) and

@@ -67,6 +67,11 @@ HOLD_MAX_S = 2.0
 #: HiGHS model built and solved, 4 to 6 ms on the systems of the benchmark).
 TIGHTENED_QP_MIN_LEFT = 0.008
 
+#: Appended to the message of a verdict of tightened rows that an untightened SCIP bound of its round backs, and
+#: of one that the untightened round's own plan replaces (it passed the forward-pass check, within the gap).
+BACKED = "; backed by the untightened round's bound (scip)"
+BACKED_PLAN = "; the untightened round's plan (scip) passes the forward-pass check and is optimal to the gap"
+
 #: Solver of the convex relaxation that recentres the level set after LP tightening: it must be the exact
 #: optimum (a perturbed one would shift the ellipsoid), so HiGHS's active-set QP, not DAQP's regularized one.
 _RELAX = "highs"
@@ -400,6 +405,63 @@ class NetworkEngine:
         def unproven(J: float) -> bool:  # a verdict of the tightened program that the untightened bound cannot back
             return self.margin > 0.0 and not J <= lb_free + max(gap, TIGHTENED_GAP) * max(1.0, abs(J))
 
+        def back(J: float, V: Optional[Array], round_: tuple) -> Optional[tuple[Optional[Array], float]]:
+            """A verdict of the tightened rows (a plan ``V`` of cost ``J``; ``J = inf``, ``V = None``: no plan),
+            backed to the gap by the untightened program: the plan and cost to report, or ``None`` (not proven).
+
+            The lower bound ``lb_free`` comes from the round where the rows were first tightened; a later round (a
+            higher level, or the whole program) proves more. So where that bound falls short, SCIP (1e-9) solves
+            the deciding round's program with the untightened bound (``round_ = (nb, enc, lo, hi, J_up)``, ``lo``
+            and ``hi`` ``None`` for the whole program): a relaxation of the tightened one (``V`` is a warm start)
+            that holds every plan cheaper than ``J_up``. Its bound, capped at ``J_up``, is a lower bound of eq.
+            (MPC_form_miqp) (``J_up`` when it is infeasible). Where its own plan passes the forward-pass check, costs
+            at most ``J_up`` and lies within the gap of its bound, that plan is the optimum and is returned."""
+            nonlocal lb_free
+            if np.isfinite(J) and not unproven(J):
+                return V, J
+            if out_of_time(VERIFY_MIN_LEFT) or (work and nodes_left() <= 0):
+                return None
+            nb_r, enc_r, lo_r, hi_r, J_up_r = round_
+            free = compact_program(pred, z0, f, c0, nb_r, enc_r, pred.u_eps, eliminate_stable=o.eliminate_stable,
+                                   lo=lo_r, hi=hi_r, order=self.order)
+            w0 = (plan_vector(pred, z0, V, nb_r, enc_r, free, o.eliminate_stable, self.order)
+                  if V is not None else None)
+            solver = make_solver(free, "scip", **self.solver_options.get("scip", {}))
+            if not work:
+                limit = remaining()
+            else:  # under a work budget the caller's clock is a safety net only
+                limit = None if safety_deadline is None else max(safety_deadline - time.perf_counter(), 1e-3)
+            r = solver.solve(warm_start=w0, time_limit=limit, gap=gap, node_limit=nodes_left())
+            if time_limit is not None or work:
+                retire(solver)
+            st["nodes"] += int(r.nodes)
+            st["scip_programs"] = st.get("scip_programs", 0) + 1
+            s = _status(r.status)
+            if s == "infeasible":
+                b = np.inf
+            elif s in ("optimal", "time_limit") and r.bound is not None and np.isfinite(r.bound):
+                b = float(r.bound)
+            else:
+                return None
+            lb_free = max(lb_free, min(b, J_up_r))
+            tol = max(gap, TIGHTENED_GAP)
+            if s == "optimal" and r.w is not None:
+                V2 = np.asarray(r.w[: N * m], float)
+                J2 = pred.cost(V2, f, c0)
+                if (pred.feasible(z0, V2) and J2 <= J and J2 <= J_up_r + 1e-9 * max(1.0, abs(J_up_r))
+                        and J2 <= lb_free + tol * max(1.0, abs(J2))):
+                    st["backed"] = BACKED_PLAN
+                    return V2, J2
+            if not np.isfinite(J):  # "no plan": only the untightened program's infeasibility backs it
+                if s == "infeasible":
+                    st["backed"] = BACKED
+                    return None, np.inf
+                return None
+            if unproven(J):
+                return None
+            st["backed"] = BACKED
+            return V, J
+
         def not_proven(what: str) -> StepResult:  # the step's plan is dropped (the controller's fallback applies)
             return done("error", None, -np.inf,
                         f"not proven: {what} with u_max^eps tightened by {self.margin:.1e} (a solver's tolerance let "
@@ -586,21 +648,30 @@ class NetworkEngine:
                     return done("error", None, -np.inf, "the program's optimum fails the forward-pass check")
                 self.active_prev = tuple(enc)
                 if full or J <= J_up + 1e-9 * max(1.0, abs(J_up)):
-                    if unproven(J):
+                    got = back(J, V, (nb, enc, lo if restrict else None, hi if restrict else None, J_up))
+                    if got is None:
                         return not_proven(f"an optimum of cost {J:.9g}")
+                    if got[0] is not V:  # the untightened round's own plan
+                        return done("optimal", got[0], lb_free, f"{res.backend}: {res.message}" + st["backed"])
                     bound = res.bound if np.isfinite(res.bound) else J
                     if self.margin > 0.0:
                         bound = min(bound, lb_free)
-                    return done("optimal", V, bound, f"{res.backend}: {res.message}")
+                    return done("optimal", V, bound, f"{res.backend}: {res.message}" + st.get("backed", ""))
                 if J < inc_J:
                     inc_V, inc_J, incumbent_from = V, J, "an earlier round"
                     publish(inc_V, inc_J, lb, incumbent_from)
             elif status == "infeasible":
                 if full and inc_V is None:
-                    if self.margin > 0.0:
-                        return not_proven("no plan")
                     said = res.message if "proven by" in res.message else f"{res.backend}: {res.message}"
-                    return done("infeasible", None, np.inf, f"the program is infeasible ({said})")
+                    if self.margin > 0.0:
+                        got = back(np.inf, None, (nb, enc, None, None, np.inf))
+                        if got is None:
+                            return not_proven("no plan")
+                        if got[0] is not None:  # the untightened program's plan passes the check
+                            return done("optimal", got[0], lb_free, f"the tightened program is infeasible ({said})"
+                                        + st["backed"])
+                    return done("infeasible", None, np.inf, f"the program is infeasible ({said})"
+                                + st.get("backed", ""))
             elif status == "time_limit":
                 # the solver's bound holds for the program it solved: a relaxation of eq. (MPC_form_miqp) restricted
                 # to the plans cheaper than J_up (constraint generation encodes fewer steps), unless the rows were
@@ -614,10 +685,15 @@ class NetworkEngine:
             else:
                 return done("error", None, -np.inf, f"{res.backend}: {res.status} {res.message}")
             if J_up >= inc_J or full:  # nothing below J_up in the restricted program
-                if inc_V is not None and unproven(inc_J):
-                    return not_proven(f"nothing cheaper than the incumbent's {inc_J:.9g}")
+                if inc_V is not None and self.margin > 0.0:
+                    got = back(inc_J, inc_V, (nb, enc, lo if restrict else None, hi if restrict else None, J_up))
+                    if got is None:
+                        return not_proven(f"nothing cheaper than the incumbent's {inc_J:.9g}")
+                    if got[0] is not inc_V:
+                        return done("optimal", got[0], lb_free, "the untightened round's plan is optimal"
+                                    + st["backed"])
                 return done("optimal", inc_V, inc_J,
-                            f"the incumbent is optimal ({incumbent_from}; nothing cheaper)")
+                            f"the incumbent is optimal ({incumbent_from}; nothing cheaper)" + st.get("backed", ""))
             delta *= 4.0
 
     def _improve(self, z0: Array, f: Array, c0: float, V_c: Array, inc_V: Optional[Array], inc_J: float,

@@ -71,7 +71,10 @@ binaries name, each with the region's margin and then without it, the forward-pa
 the gap, at least :data:`TIGHTENED_GAP`, of the solver's; a constant output row never gets a margin), and the MPC has
 SCIP (1e-9) solve a round again whose DAQP point (1e-6) is over the bound. A verdict of tightened rows (an optimum,
 "nothing cheaper", no plan) counts as a proof only where the untightened program's lower bound backs it to the gap
-(at least :data:`TIGHTENED_GAP`); otherwise the step is an ``"error"`` whose message starts "not proven".
+(at least :data:`TIGHTENED_GAP`): the bound of the round where the rows were first tightened, or, where that one falls
+short (a level-set round below the optimum), the bound SCIP gives for the deciding round's untightened program, whose
+own plan is the answer where it passes the forward-pass check within the gap. Otherwise the step is an ``"error"``
+whose message starts "not proven".
 
 Limits: ``Solver.solve(time_limit=...)`` on the wall clock, and ``node_limit=...``, a work budget of the branch and
 bound that stops the same program at the same node on every machine and load (``Solver.supports_node_limit``: SCIP's
