@@ -87,13 +87,14 @@ class NodeBounds:
 ROUNDING = 2.0 * np.finfo(float).eps
 
 
-def interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = False) -> tuple[Array, Array]:
+def interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = True) -> tuple[Array, Array]:
     """Range of ``W y + b`` over the box ``l <= y <= u`` (rows of l, u are boxes).
 
-    With ``outward=True`` it is widened by the floating-point error of its sums (:data:`ROUNDING`), so that it
-    contains ``W y + b`` for every ``y`` of the box, computed exactly or by a forward pass in floating point (LP
-    tightening starts from it: without the widening, weights and biases of 1e6 gave a bound 140 units in the last
-    place below a corner's pre-activation, and a box 2e-12 wide was declared empty).
+    With ``outward=True`` (the default) it is widened by the floating-point error of its sums (:data:`ROUNDING`),
+    so that it contains ``W y + b`` for every ``y`` of the box, computed exactly or by a forward pass in floating
+    point. Without the widening, weights and biases of 1e6 gave a bound 140 units in the last place below a
+    corner's pre-activation, and LP tightening declared a box 2e-12 wide empty. ``outward=False``: the plain
+    floating-point interval.
     """
     Wp, Wm = np.maximum(W, 0.0), np.minimum(W, 0.0)
     L, U = l @ Wp.T + u @ Wm.T + b, u @ Wp.T + l @ Wm.T + b
@@ -114,7 +115,7 @@ def _check_net_box(net: ReLUNet, lo, hi) -> None:
                          f"shape ({net.n_in},) or (T, {net.n_in}), a box over the network's input (z, v)")
 
 
-def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = False) -> NodeBounds:
+def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = True) -> NodeBounds:
     """Node bounds by interval propagation (FBBT, Grimstad & Andersson 2019, Sec. 4.3).
 
     Parameters
@@ -126,8 +127,10 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = False) -> NodeBound
         boxes at once (e.g. the reachable boxes along an MPC horizon). A
         coordinate with ``lo == hi`` is fixed (a measured state).
     outward
-        Round every interval outward by the error bound of its sums (:func:`interval_affine`); the LP tightening
-        (:func:`flnotes.lp_bounds`) starts from these.
+        Round every interval outward by the error bound of its sums (:func:`interval_affine`), a few units in the
+        last place, so that the bounds contain every pre-activation as a floating-point forward pass computes it
+        (the default; ``False`` gives the plain intervals, which on badly scaled networks can be a few units in the
+        last place too tight).
 
     Returns
     -------

@@ -67,12 +67,13 @@ def intersect(a: NodeBounds, b: NodeBounds, method: Optional[str] = None) -> Nod
                       method=method or f"{a.method}&{b.method}")
 
 
-def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0, outward: bool = False
+def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int = 0, outward: bool = True
               ) -> tuple[list[Array], list[Array], Array, Array]:
     """Interval propagation from layer ``start`` on: layers after it get ``max(their bounds, interval bounds)``.
 
     ``L[start]``, ``U[start]`` are kept; every later layer is intersected with
-    the interval image of the previous one (what FBBT does from the input).
+    the interval image of the previous one (what FBBT does from the input), rounded outward unless ``outward=False``
+    (:func:`flnotes.bounds.interval_affine`).
     """
     L, U = [np.asarray(x, float).copy() for x in L], [np.asarray(x, float).copy() for x in U]
     l, u = np.maximum(L[start], 0.0), np.maximum(U[start], 0.0)

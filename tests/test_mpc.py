@@ -625,20 +625,6 @@ def test_programs_where_daqp_claimed_a_suboptimal_plan_optimal(name, options):
                                                                                         r_ref.objective)
 
 
-def test_daqp_alone_is_wrong_on_a_stored_program_so_its_long_searches_are_verified():
-    """The premise of the verification of DAQP's long searches (``verify_nodes``): trusted whatever its search, DAQP
-    claims a plan 2 % above the optimum optimal on a stored program; verified, the engine returns the optimum."""
-    sysm, net, z, z_ref = stored_integrator_case("daqp_long_search_program.npz")
-    kw = dict(horizon=5, ts=0.2, Q=[1.0], R=0.1)
-    J = {}
-    for trust in (None, "default"):
-        daqp = {"handover": None} if trust == "default" else {"handover": None, "verify_nodes": None}
-        r = fl.MPC(sysm, net, 0.0, **kw, solver_options={"daqp": daqp, "scip": {}})(z, z_ref)
-        assert r.status == "optimal"
-        J[trust] = r.objective
-    assert J[None] > J["default"] * (1 + 1e-3), J
-
-
 @pytest.mark.parametrize("daqp", [dict(handover=0.0), dict(verify_nodes=-1), dict(reg_mode="lower")])
 def test_bad_daqp_options_are_refused_when_the_controller_is_built(daqp):
     """Not at the first program DAQP gets (which may come many steps later)."""

@@ -797,6 +797,25 @@ def _stored_program(name: str) -> MIQP:
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
+def test_daqp_alone_is_wrong_on_a_stored_program_so_its_long_searches_are_verified():
+    """The premise of the verification of DAQP's long searches (``verify_nodes``): on a stored program (the engine's
+    level-set round of a random (4, 5) network, one integrator, N_p = 5, 32 binaries), DAQP trusted whatever its
+    search claims a plan 2 % above the optimum optimal after thousands of nodes; verified (the default), the answer is
+    SCIP's proven optimum."""
+    from flnotes.solvers.daqp import VERIFY_NODES
+
+    p = _stored_program("daqp_wrong_long_search_miqp.npz")
+    ref = make_solver(p, "scip").solve(gap=1e-9)
+    assert ref.status == "optimal"
+    alone = make_solver(p, "daqp", handover=None, verify_nodes=None).solve()
+    assert alone.status == "optimal" and alone.nodes > VERIFY_NODES, alone.message
+    assert alone.objective > ref.objective * (1 + 1e-3), (alone.objective, ref.objective)
+    r = make_solver(p, "daqp", handover=None).solve()
+    assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
+    assert "proven by scip" in r.message, r.message
+
+
+@pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
 def test_daqp_hands_a_long_search_over_to_scip():
     """A program of a random (6, 4) network over 5 steps (43 binaries) where DAQP's depth-first search runs for
     seconds (SCIP: a tenth of a second). Without a time limit DAQP gets ``handover`` seconds, then SCIP solves the

@@ -322,3 +322,39 @@ def test_lp_bounds_follow_a_network_changed_in_place():
     assert lp_bounds(net, np.zeros(1), np.ones(1)).U[1][0] == pytest.approx(1.0, rel=1e-6)
     net.W[0][0, 0] = 5.0  # the same object, other parameters: the LP built for the old ones must not be reused
     assert lp_bounds(net, np.zeros(1), np.ones(1)).U[1][0] == pytest.approx(5.0, rel=1e-6)
+
+
+def _exact_preactivations(net, x) -> list:
+    """The pre-activations of every layer at ``x`` in exact rational arithmetic (the output last)."""
+    yk, out = [Fraction(float(v)) for v in x], []
+    for W, b in zip(net.W, net.b):
+        a = [sum((Fraction(float(W[i, j])) * yk[j] for j in range(len(yk))), Fraction(float(b[i])))
+             for i in range(W.shape[0])]
+        out.append(a)
+        yk = [max(v, Fraction(0)) for v in a]
+    return out
+
+
+def test_fbbt_contains_every_preactivation_of_badly_scaled_networks_exactly_and_in_floating_point():
+    """``fl.fbbt`` rounds every interval outward by the error bound of its sums: on the stored networks whose weights
+    span 1e-9 to 1e6 its bounds contain each witness's pre-activations with no tolerance, computed exactly and by the
+    floating-point forward pass. Without the rounding (``outward=False``) some are cut (the premise)."""
+    cut = 0
+    for case in _BADLY_SCALED:
+        net = fl.ReLUNet([np.array(w, float) for w in case["W"]], [np.array(v, float) for v in case["b"]])
+        lo, hi, x = (np.array(case[k], float) for k in ("lo", "hi", "x"))
+        corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(lo, hi)], indexing="ij")).reshape(len(lo), -1).T
+        for nb_kw in (dict(), dict(outward=False)):
+            nb = fl.fbbt(net, lo, hi, **nb_kw)
+            Ls, Us = list(nb.L) + [nb.out_L], list(nb.U) + [nb.out_U]
+            ok = True
+            for p in np.vstack([x[None], corners[:16]]):
+                y, pre = net.forward(p[None])
+                for a, ex, L, U in zip(list(pre) + [y], _exact_preactivations(net, p), Ls, Us):
+                    ok &= bool(np.all(a[0] >= L) and np.all(a[0] <= U))
+                    ok &= all(Fraction(float(lo_)) <= v <= Fraction(float(hi_)) for v, lo_, hi_ in zip(ex, L, U))
+            if nb_kw:
+                cut += not ok
+            else:
+                assert ok, case["name"]
+    assert cut >= 1, "the premise: the plain intervals cut a pre-activation of some stored network"
