@@ -816,6 +816,35 @@ def test_daqp_alone_is_wrong_on_a_stored_program_so_its_long_searches_are_verifi
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
+def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified():
+    """A stored program (the engine's round of a random network under ``bounds="lp"``, 24 binaries) where DAQP's
+    branch and bound claims optimal, after 161 nodes, a point that costs more than the feasible warm start in the
+    very program it solved: with the warm start its certificate (bounded by the warm start's cost) called the warm
+    start, 2.5e-4 above the optimum, optimal. That claim is now no proof, and SCIP's optimum is the answer."""
+    import daqp
+
+    p = _stored_program("daqp_warm_start_wrong_miqp.npz")
+    w0 = np.load(os.path.join(os.path.dirname(__file__), "data", "daqp_warm_start_wrong_miqp.npz"))["w0"]
+    assert p.violation(w0) <= 1e-9  # the premise: a feasible warm start ...
+    ref = make_solver(p, "scip").solve(gap=1e-9)
+    assert ref.status == "optimal" and p.objective(w0) > ref.objective * (1 + 1e-4)  # ... that is not optimal
+    seen = []
+    solve = daqp.solve
+
+    def spy(H, c, A, bu, bl, sense, **settings):
+        out = solve(H, c, A, bu, bl, sense, **settings)
+        seen.append((out[2], 0.5 * out[0] @ H @ out[0] + c @ out[0]))
+        return out
+
+    s = make_solver(p, "daqp", verify_nodes=None)
+    s._daqp.solve = spy
+    r = s.solve(warm_start=w0, gap=1e-6)
+    assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
+    assert "more than the warm start" in r.message and "proven by scip" in r.message, r.message
+    assert seen[0][0] == 1  # the premise: DAQP said optimal
+
+
+@pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
 def test_daqp_hands_a_long_search_over_to_scip():
     """A program of a random (6, 4) network over 5 steps (43 binaries) where DAQP's depth-first search runs for
     seconds (SCIP: a tenth of a second). Without a time limit DAQP gets ``handover`` seconds, then SCIP solves the

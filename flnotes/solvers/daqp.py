@@ -81,7 +81,9 @@ class DaqpSolver(Solver):
     provided DAQP's branch and bound is right, which on the degenerate big-M
     rows it has not always been: an exit flag -1 on a mixed-integer program
     (with or without warm start) is verified by SCIP unless the option
-    ``verify_infeasible=False`` is given (``make bench`` measures both).
+    ``verify_infeasible=False`` is given (``make bench`` measures both). An optimum DAQP claims that costs more
+    than the warm start in the program it solved contradicts the claim (its search missed a node): it is no proof,
+    and SCIP verifies it.
     Without an incumbent the claim is about the feasible set only: with
     ``verify_feasibility="relaxation"`` (default) an infeasible continuous
     relaxation (an LP solved by HiGHS, a millisecond where building a SCIP model
@@ -337,6 +339,14 @@ class DaqpSolver(Solver):
                 msg += " but the point violates the program"
             cand = [v for v in (w, incumbent) if v is not None]
             best = min(cand, key=p.objective) if cand else None
+            if status == "optimal" and w is not None and incumbent is not None:
+                J_w, J_i = J_s(w), J_s(incumbent)
+                if J_w > J_i + 1e-9 * max(1.0, abs(J_i)):
+                    # the program DAQP solved is cheaper at the warm start than at its "optimum": its branch and
+                    # bound missed the node of a better point (seen after 161 nodes: a plan 2.5e-4 above the optimum)
+                    return _result(p, "unproven", best, -np.inf, nodes, t0, self.name,
+                                   msg + f" (its point costs {J_w - J_i:.1e} more than the warm start in the "
+                                   "program it solved: no proof)")
             if status == "optimal" and w is not None and (B > 0 or (secant and pert.any())):
                 # certificate of the perturbed problem: J* >= J_s(w) (secant) or J* >= J_r(w) - B
                 bound = min(J_s(w), float(fval) + const) if secant else J_s(w) - B
