@@ -816,11 +816,14 @@ def test_daqp_alone_is_wrong_on_a_stored_program_so_its_long_searches_are_verifi
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
-def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified():
+def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified(monkeypatch):
     """A stored program (the engine's round of a random network under ``bounds="lp"``, 24 binaries) where DAQP's
-    branch and bound claims optimal, after 161 nodes, a point that costs more than the feasible warm start in the
-    very program it solved: with the warm start its certificate (bounded by the warm start's cost) called the warm
-    start, 2.5e-4 above the optimum, optimal. That claim is now no proof, and SCIP's optimum is the answer."""
+    branch and bound misses the optimum's node: cold it claims optimal, after 161 nodes, a point that costs more
+    than a feasible warm start in the very program it solved. The warm start's bound once reached DAQP in the wrong
+    units (so it pruned nothing) and the certificate, bounded by the warm start's cost, called the warm start,
+    2.5e-4 above the optimum, optimal. Now DAQP prunes at the warm start and its "nothing better" is verified; and
+    where its optimum costs more than the warm start (as with a bound it ignores), that is no proof either: SCIP's
+    optimum is the answer both ways."""
     import daqp
 
     p = _stored_program("daqp_warm_start_wrong_miqp.npz")
@@ -828,20 +831,51 @@ def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified():
     assert p.violation(w0) <= 1e-9  # the premise: a feasible warm start ...
     ref = make_solver(p, "scip").solve(gap=1e-9)
     assert ref.status == "optimal" and p.objective(w0) > ref.objective * (1 + 1e-4)  # ... that is not optimal
-    seen = []
-    solve = daqp.solve
+    r = make_solver(p, "daqp", verify_nodes=None).solve(warm_start=w0, gap=1e-6)
+    assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
+    assert "proven by scip" in r.message and "nothing better than the warm start" in r.message, r.message
+    seen, solve = [], daqp.solve
 
-    def spy(H, c, A, bu, bl, sense, **settings):
+    def without_bound(H, c, A, bu, bl, sense, **settings):  # DAQP as if it ignored the warm start's bound
+        settings.pop("fval_bound", None)
         out = solve(H, c, A, bu, bl, sense, **settings)
-        seen.append((out[2], 0.5 * out[0] @ H @ out[0] + c @ out[0]))
+        seen.append(out[2])
         return out
 
-    s = make_solver(p, "daqp", verify_nodes=None)
-    s._daqp.solve = spy
-    r = s.solve(warm_start=w0, gap=1e-6)
+    monkeypatch.setattr(daqp, "solve", without_bound)
+    r = make_solver(p, "daqp", verify_nodes=None).solve(warm_start=w0, gap=1e-6)
+    assert seen[0] == 1  # the premise: DAQP said optimal
     assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
     assert "more than the warm start" in r.message and "proven by scip" in r.message, r.message
-    assert seen[0][0] == 1  # the premise: DAQP said optimal
+
+
+@pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
+@pytest.mark.parametrize("seed", range(4))
+def test_daqps_branch_and_bound_compares_its_bound_with_the_objective_itself(seed):
+    """Unlike its QP solve (the least-distance form, test above), DAQP's branch and bound prunes against
+    ``0.5 w'Hw + c'w`` itself: just above a mixed-integer optimum it solves, just below it finds nothing. So the
+    back-end gives a warm start's cost in those units, and a warm start at the optimum makes the search no longer."""
+    import daqp
+
+    rng = np.random.default_rng(seed)
+    n, nb = 8, 4
+    F = rng.normal(size=(n, n))
+    H, c = F.T @ F + 0.1 * np.eye(n), 10.0 * rng.normal(size=n)
+    A = rng.normal(size=(5, n))
+    ru = np.abs(rng.normal(size=5)) + 0.5
+    bu, bl = np.r_[np.ones(n), ru], np.r_[np.zeros(nb), -np.ones(n - nb), -ru]
+    sense = np.zeros(n + 5, dtype=np.int32)
+    sense[:nb] = 16
+    x, J, flag, info = daqp.solve(H, c, A, bu, bl, sense)
+    assert flag == 1
+    for factor, expected in ((1e-6, 1), (-1e-6, -1)):
+        assert daqp.solve(H, c, A, bu, bl, sense, fval_bound=J + factor * max(1.0, abs(J)))[2] == expected, factor
+    integrality = np.r_[np.ones(nb, dtype=int), np.zeros(n - nb, dtype=int)]
+    p = MIQP(sp.csc_matrix(H), c, 0.0, sp.csr_matrix(A), -ru, ru, bl[:n], bu[:n], integrality)
+    cold = make_solver(p, "daqp", reg=None).solve()
+    warm = make_solver(p, "daqp", reg=None).solve(warm_start=cold.w)
+    assert cold.status == warm.status == "optimal" and rel(warm.objective, cold.objective) <= RTOL, warm.message
+    assert warm.nodes <= cold.nodes
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")

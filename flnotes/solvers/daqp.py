@@ -75,9 +75,10 @@ class DaqpSolver(Solver):
     by SCIP.
 
     Warm start. A feasible warm start ``w_ws`` gives the incumbent bound
-    ``fval_bound = J(w_ws)`` (``+ B`` with ``reg_mode="upper"``), given in the units DAQP compares it in (the
-    objective of its least-distance form, ``J + 0.5 c'H^-1 c``): DAQP then only explores nodes that can beat
-    it. If none does (exit flag -1 under the bound), ``w_ws`` is optimal
+    ``fval_bound = J(w_ws)`` (``+ B`` with ``reg_mode="upper"``, plus :data:`INCUMBENT_SLACK`), given in the units
+    DAQP compares it in: its objective itself in the branch and bound, the objective of its least-distance form
+    (``J + 0.5 c'H^-1 c``) in a QP's active-set solve (the tests check both). DAQP then only explores nodes that
+    can match it. If none does (exit flag -1 under the bound), ``w_ws`` is optimal
     provided DAQP's branch and bound is right, which on the degenerate big-M
     rows it has not always been: an exit flag -1 on a mixed-integer program
     (with or without warm start) is verified by SCIP unless the option
@@ -307,13 +308,16 @@ class DaqpSolver(Solver):
             q = dr * (w - lbv) * (w - ubv) if secant else dr * w ** 2
             return p.objective(w) + 0.5 * float(np.sum(q[pert]))
 
-        offset = None if (incumbent is None or settings.get("eps_prox")) else _ldp_offset(Hr, c_r)
+        bnb = bool(np.any(sense[: free.size] == 16))
+        # DAQP's branch and bound compares fval_bound with its objective 0.5 w'Hw + c'w; a QP's active-set solve
+        # compares it with the objective of its least-distance form, J + 0.5 c' H^-1 c (``offset``)
+        offset = (None if incumbent is None or settings.get("eps_prox") else 0.0 if bnb else _ldp_offset(Hr, c_r))
         if offset is not None and np.isfinite(B):
-            # Any w better than the incumbent has J_s(w) < J(incumbent) (secant) or J_r(w) < J(incumbent) + B:
-            # nodes above that are pruned. DAQP compares fval_bound with the objective of its least-distance form,
-            # J + 0.5 c' H^-1 c (``offset``), not with J.
+            # Any w at least as good as the incumbent has J_s(w) <= J(incumbent) (secant) or J_r(w) <= J(incumbent)
+            # + B: nodes above that are pruned; the bound lies just above it, so that the incumbent's own node is
+            # kept and a search that finds nothing better ends with it as its optimum, not with "infeasible"
             J_full = p.objective(incumbent)
-            settings["fval_bound"] = J_full + B - const + offset - 1e-9 * max(1.0, abs(J_full))
+            settings["fval_bound"] = J_full + B - const + offset + INCUMBENT_SLACK * max(1.0, abs(J_full))
         if free.size == 0:
             w = xf.copy()
             ok = p.violation(w) <= 1e-6
@@ -373,6 +377,10 @@ class DaqpSolver(Solver):
             return _result(p, "time_limit", incumbent, -np.inf, nodes, t0, self.name, msg)
         return _result(p, "error", None, -np.inf, nodes, t0, self.name, msg)
 
+
+#: How far above the warm start's cost (relative) DAQP's branch and bound prunes its nodes (``fval_bound``): far
+#: below the gap, so that the pruning keeps the warm start's own node, whose regularized objective can equal its cost.
+INCUMBENT_SLACK = 1e-9
 
 #: Seconds DAQP's branch and bound gets on a mixed-integer program solved without a time limit before SCIP takes
 #: the program over (option ``handover``; ``None``: no hand-over). On the book's programs DAQP answers in
