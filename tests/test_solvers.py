@@ -878,6 +878,21 @@ def test_daqps_branch_and_bound_compares_its_bound_with_the_objective_itself(see
     assert warm.nodes <= cold.nodes
 
 
+def test_scip_solves_again_about_its_point_where_its_tolerance_on_the_epigraph_hides_the_gap():
+    """A stored program (an MPC round of a random network with weights Q up to 1e4, 152 binaries) whose epigraph
+    terms reach 1e5 while the linear part cancels them down to a cost of 73: SCIP meets them to its relative
+    tolerance, 5e-4 in absolute terms, and called a point 7.4e-6 (relative) above its own bound optimal to a gap of
+    1e-6. SCIP now solves the program again in the step from that point, and the answer holds the gap."""
+    from flnotes.solvers import FEAS_TOL
+
+    p = _stored_program("scip_epigraph_tolerance_miqp.npz")
+    r = make_solver(p, "scip").solve(gap=1e-6)
+    assert r.status == "optimal" and p.violation(r.w) <= FEAS_TOL, r.message
+    J = p.objective(r.w)
+    assert J - r.bound <= 1e-6 * max(1.0, abs(J)), (J, r.bound)
+    assert "above its bound" in r.message, r.message  # the premise: SCIP's first point missed the gap
+
+
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
 def test_daqp_hands_a_long_search_over_to_scip():
     """A program of a random (6, 4) network over 5 steps (43 binaries) where DAQP's depth-first search runs for
