@@ -878,19 +878,56 @@ def test_daqps_branch_and_bound_compares_its_bound_with_the_objective_itself(see
     assert warm.nodes <= cold.nodes
 
 
-def test_scip_solves_again_about_its_point_where_its_tolerance_on_the_epigraph_hides_the_gap():
-    """A stored program (an MPC round of a random network with weights Q up to 1e4, 152 binaries) whose epigraph
-    terms reach 1e5 while the linear part cancels them down to a cost of 73: SCIP meets them to its relative
-    tolerance, 5e-4 in absolute terms, and called a point 7.4e-6 (relative) above its own bound optimal to a gap of
-    1e-6. SCIP now solves the program again in the step from that point, and the answer holds the gap."""
+@pytest.mark.parametrize("quad", [False, True])
+def test_scips_gap_is_that_of_the_programs_cost_constant_included(quad):
+    """A knapsack MILP (40 binaries; with ``quad`` a small quadratic term too) whose constant ``c0`` brings a cost
+    made of terms of 3.6e4 down to about 1 at the optimum. SCIP's relative gap once ignored ``c0`` and called a
+    point 1.17 above its bound optimal for a gap of 1e-4; ``c0`` is now the model's objective offset. Updating
+    ``c0`` alone moves the bound with it."""
+    rng = np.random.default_rng(2)
+    nb, m = 40, 5
+    v = rng.uniform(1000, 2000, nb)
+    Wt = rng.integers(100, 1000, (m, nb)).astype(float)
+    H = sp.diags(np.full(nb, 1e-3)).tocsc() if quad else None
+    args = (sp.csr_matrix(Wt), np.full(m, -np.inf), 0.5 * Wt.sum(1) + 0.37, np.zeros(nb), np.ones(nb), np.ones(nb, int))
+    J_star = make_solver(MIQP(H, -v, 0.0, *args), "scip").solve(gap=0.0).objective
+    p = MIQP(H, -v, 1.0 - J_star, *args)  # the optimum costs 1
+    s = make_solver(p, "scip")
+    for c0 in (1.0 - J_star, 5.0 - J_star):
+        s.update(c0=c0)
+        r = s.solve(gap=1e-4)
+        J = s.problem.objective(r.w)
+        assert r.status == "optimal" and J - r.bound <= 1e-4 * max(1.0, abs(J)), (J, r.bound, r.message)
+        assert r.bound <= J_star + c0 + 1e-6, (r.bound, J_star + c0)
+
+
+def test_scip_solves_again_about_its_point_where_its_gap_fails_on_the_true_cost(monkeypatch):
+    """A stored program (an MPC round of a random network with weights Q up to 1e4, 152 binaries) where SCIP, with
+    ``c0`` left out of its model, called a point 7.4e-6 (relative) above its own bound optimal for a gap of 1e-6.
+    With ``c0`` in the model SCIP meets the gap here; the check on the true cost stays, and where it fails (made to
+    fail once here) the program is solved again in the step from SCIP's point, and the answer holds the gap."""
     from flnotes.solvers import FEAS_TOL
+    from flnotes.solvers import scip as scip_backend
 
     p = _stored_program("scip_epigraph_tolerance_miqp.npz")
+    r = make_solver(p, "scip").solve(gap=1e-6)
+    J = p.objective(r.w)
+    assert r.status == "optimal" and J - r.bound <= 1e-6 * max(1.0, abs(J)), (J, r.bound, r.message)
+    within, calls = scip_backend._within_gap, []
+
+    def fails_once(J, bound, gap):
+        calls.append(J)
+        return within(J, bound, gap) and len(calls) > 1
+
+    monkeypatch.setattr(scip_backend, "_within_gap", fails_once)
     r = make_solver(p, "scip").solve(gap=1e-6)
     assert r.status == "optimal" and p.violation(r.w) <= FEAS_TOL, r.message
     J = p.objective(r.w)
     assert J - r.bound <= 1e-6 * max(1.0, abs(J)), (J, r.bound)
-    assert "above its bound" in r.message, r.message  # the premise: SCIP's first point missed the gap
+    assert "solved again about that point" in r.message and len(calls) >= 2, r.message
+    monkeypatch.setattr(scip_backend, "_within_gap", lambda J, bound, gap: False)  # never within: never "optimal"
+    r = make_solver(p, "scip").solve(gap=1e-6)
+    assert r.status == "error" and "not optimal to the gap" in r.message, r.message
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")

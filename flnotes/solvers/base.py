@@ -129,6 +129,7 @@ class Solver:
             if not np.isfinite(c0):
                 raise ValueError(f"c0 must be finite, got {c0}")
             p.c0 = c0
+            changed["c0"] = True
         if rl is not None or ru is not None:
             new_rl = _vec(rl, p.m, "rl", allow_inf=True) if rl is not None else p.rl
             new_ru = _vec(ru, p.m, "ru", allow_inf=True) if ru is not None else p.ru
