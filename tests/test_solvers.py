@@ -909,7 +909,7 @@ def test_scip_solves_again_about_its_point_where_its_gap_fails_on_the_true_cost(
     from flnotes.solvers import FEAS_TOL
     from flnotes.solvers import scip as scip_backend
 
-    p = _stored_program("scip_epigraph_tolerance_miqp.npz")
+    p = _stored_program("scip_gap_without_c0_miqp.npz")
     r = make_solver(p, "scip").solve(gap=1e-6)
     J = p.objective(r.w)
     assert r.status == "optimal" and J - r.bound <= 1e-6 * max(1.0, abs(J)), (J, r.bound, r.message)
