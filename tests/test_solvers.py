@@ -322,25 +322,31 @@ def test_scip_objective_formulations_and_settings_find_the_brute_force_optimum(s
 
 def test_scip_default_miqp_profile_is_the_documented_one():
     """The default SCIP model of a mixed-integer QP is what ScipSolver's docstring says: the separable objective, the
-    aggregation separator and the primal heuristics off, one presolving round (LEAN_PRESOLVE_ROUNDS = 1) and SCIP's
-    restarts (LEAN_RESTARTS = -1); ``miqp_params="default"`` and an MILP keep SCIP's settings; the benchmark's profile
-    before spells out one round and SCIP's restarts, and its last setting is the default."""
+    aggregation separator and the primal heuristics off, one presolving round (LEAN_PRESOLVE_ROUNDS = 1) without
+    probing (LEAN_PROBING_ROUNDS = 0) and no restarts (LEAN_RESTARTS = 0); ``miqp_params="default"`` and an MILP
+    keep SCIP's settings; the benchmark's first profile spells out the one before (one round with probing, SCIP's
+    restarts), its second the lean one, and its last setting is the default."""
     from flnotes.bench.msd_realtime import SCIP_SETTINGS
     from flnotes.solvers import scip as S
 
-    assert S.LEAN_PRESOLVE_ROUNDS == 1 and S.LEAN_RESTARTS == -1
+    assert S.LEAN_PRESOLVE_ROUNDS == 1 and S.LEAN_RESTARTS == 0 and S.LEAN_PROBING_ROUNDS == 0
+    lean = {"presolving/maxrounds": 1, "presolving/maxrestarts": 0, "propagating/probing/maxprerounds": 0}
+    scip_own = {"presolving/maxrounds": -1, "presolving/maxrestarts": -1, "propagating/probing/maxprerounds": -1}
     p = random_program(0)
     s = make_solver(p, "scip")
     m = s._m
     assert s._sq and s._t is None  # the separable formulation: one epigraph per eigenvalue
-    assert m.getParam("presolving/maxrounds") == 1 and m.getParam("presolving/maxrestarts") == -1
+    assert {k: m.getParam(k) for k in lean} == lean
     assert m.getParam("separating/aggregation/freq") == -1 and m.getParam("heuristics/undercover/freq") == -1
     for other in (make_solver(p, "scip", miqp_params="default")._m, make_solver(random_program(0, quad=False), "scip")._m):
-        assert other.getParam("presolving/maxrounds") == -1 and other.getParam("presolving/maxrestarts") == -1
+        assert {k: other.getParam(k) for k in scip_own} == scip_own
         assert other.getParam("separating/aggregation/freq") != -1
-    before = make_solver(p, "scip", **SCIP_SETTINGS["separable, presolve 1, restarts (lean)"])._m
-    assert before.getParam("presolving/maxrounds") == 1 and before.getParam("presolving/maxrestarts") == -1
-    assert list(SCIP_SETTINGS.values())[-1] == {} and list(SCIP_SETTINGS)[-1].startswith("default")
+    names = list(SCIP_SETTINGS)
+    before = make_solver(p, "scip", **SCIP_SETTINGS[names[0]])._m
+    assert "before" in names[0] and {k: before.getParam(k) for k in lean} == {**scip_own, "presolving/maxrounds": 1}
+    spelled = make_solver(p, "scip", **SCIP_SETTINGS[names[1]])._m
+    assert "(lean)" in names[1] and {k: spelled.getParam(k) for k in lean} == lean
+    assert list(SCIP_SETTINGS.values())[-1] == {} and names[-1].startswith("default")
 
 
 @pytest.mark.parametrize("seed", range(3))

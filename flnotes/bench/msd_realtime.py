@@ -142,22 +142,29 @@ def configurations() -> list[tuple[str, dict]]:
 
 #: The SCIP settings for the mixed-integer QPs compared side by side (:func:`scip_settings_runs`): name -> the
 #: ``solver_options["scip"]`` of :class:`flnotes.MPC` (:class:`flnotes.solvers.ScipSolver`'s options). The first is
-#: the lean profile (one presolving round, restarts as SCIP's default), spelled out so that it stays what it is
-#: whatever the default; each other one spells out its presolving rounds and restarts too; the last is the
-#: back-end's default (:data:`flnotes.solvers.scip.LEAN_PRESOLVE_ROUNDS`, :data:`flnotes.solvers.scip.LEAN_RESTARTS`;
-#: today the same settings as the first, so the pair is also a same-work check of the table's spread).
+#: the profile before the current lean one (one presolving round with probing, SCIP's restarts), spelled out, the
+#: base of every speed-up; the second the lean profile spelled out, so that both stay what they are whatever the
+#: default; each other one spells out its presolving rounds, restarts and probing too; the last is the back-end's
+#: default (:data:`flnotes.solvers.scip.LEAN_PRESOLVE_ROUNDS`, :data:`flnotes.solvers.scip.LEAN_RESTARTS`,
+#: :data:`flnotes.solvers.scip.LEAN_PROBING_ROUNDS`; today the same settings as the second, so the pair is also a
+#: same-work check of the table's spread).
 SCIP_SETTINGS = {
-    "separable, presolve 1, restarts (lean)": dict(objective="separable", miqp_params="lean",
-                                                     params={"presolving/maxrounds": 1, "presolving/maxrestarts": -1}),
-    "separable, no presolve, restarts": dict(objective="separable",
-                                             params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
-    "epigraph, no presolve, restarts": dict(objective="epigraph",
-                                            params={"presolving/maxrounds": 0, "presolving/maxrestarts": -1}),
-    "epigraph, no presolve, no restarts": dict(objective="epigraph",
-                                               params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0}),
-    "separable, no presolve, no restarts": dict(objective="separable",
-                                                params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0}),
-    "default (separable, presolve 1, restarts)": {},
+    "separable, presolve 1, restarts, probing (before)": dict(
+        objective="separable", miqp_params="lean", params={"presolving/maxrounds": 1, "presolving/maxrestarts": -1,
+                                                           "propagating/probing/maxprerounds": -1}),
+    "separable, presolve 1, no restarts, no probing (lean)": dict(
+        objective="separable", miqp_params="lean", params={"presolving/maxrounds": 1, "presolving/maxrestarts": 0,
+                                                           "propagating/probing/maxprerounds": 0}),
+    "separable, presolve 1, no restarts, probing": dict(
+        objective="separable", params={"presolving/maxrounds": 1, "presolving/maxrestarts": 0,
+                                       "propagating/probing/maxprerounds": -1}),
+    "separable, no presolve, no restarts": dict(
+        objective="separable", params={"presolving/maxrounds": 0, "presolving/maxrestarts": 0,
+                                       "propagating/probing/maxprerounds": 0}),
+    "epigraph, presolve 1, no restarts, no probing": dict(
+        objective="epigraph", params={"presolving/maxrounds": 1, "presolving/maxrestarts": 0,
+                                      "propagating/probing/maxprerounds": 0}),
+    "default (separable, presolve 1, no restarts, no probing)": {},
 }
 
 
@@ -334,7 +341,8 @@ def run(fast: bool) -> dict:
              "SCIP setting rows: the default MIQP with each SCIP setting of SCIP_SETTINGS (solver_options['scip']) on "
              "the same states, interleaved state by state (the order reversed at every other state and in the second "
              "pass), two passes with fresh controllers; cpu: whole step; scip_steps: steps that handed a program to "
-             "SCIP; speedup: per state, cpu of the first setting (the lean profile, spelled out) / cpu of the row's, same pass, "
+             "SCIP; speedup: per state, cpu of the first setting (the profile before the lean one, spelled out) / "
+             "cpu of the row's, same pass, "
              "over the scip steps (median, min, max); same_optimum: every status the same and every objective within "
              f"{SAME_OPTIMUM:g} (relative) of the first setting's; run to run: per-state cpu of pass 1 / pass 2 of the "
              "same setting, the spread a speed-up must exceed (its cpu_total_s column: the ratio of the totals)."]

@@ -56,14 +56,28 @@ MIQP_PARAMS = ("lean", "default")
 #: proved the optimum at the root; one round stays, until a profile is both faster and as robust.
 LEAN_PRESOLVE_ROUNDS = 1
 
-#: ``miqp_params="lean"``: restarts of the root (SCIP's ``presolving/maxrestarts``, default -1: unlimited). With
-#: presolving off, a restart still presolves the program anew and solves the root again; on the programs of
-#: :data:`LEAN_PRESOLVE_ROUNDS` restarts cost time or nothing: no presolve with restarts against none without
-#: (speed-ups against the lean profile), Quad-1D loop at N_p = 20 x1.07 and x1.04 against x1.25 and x1.21, MSD
-#: loop x1.12 and x1.13 against x1.21 and x1.21, MSD (30, 30, 30) x1.06 and x1.06 against x1.09 and x1.10, MSD cold
-#: x1.21 and x1.25 against x1.22 and x1.23 (the same within the spread). Measured only together with no presolving
-#: round (see :data:`LEAN_PRESOLVE_ROUNDS`, not the default): SCIP's default (-1) stays.
-LEAN_RESTARTS = -1
+#: ``miqp_params="lean"``: restarts of the root (SCIP's ``presolving/maxrestarts``, default -1: unlimited) and
+#: probing rounds in presolving (``propagating/probing/maxprerounds``, default -1: unlimited). On the MSD's programs
+#: SCIP restarted the root up to ten times (eleven runs for one node), each run presolving anew, and probing took a
+#: seventh of a solve. Both off against both on, with one presolving round either way and the same optima
+#: everywhere:
+#:
+#: * whole MPC steps (:func:`flnotes.bench.msd_realtime.scip_settings_runs`, two passes, CPU time; per-state
+#:   speed-up over the steps that reached SCIP, each pass's median, min-max over both): the MSD's 24 cold states of
+#:   seed 1 (17 reached SCIP) x1.60 and x1.51 (1.25-2.46), its Monte Carlo loop (3 scenarios x 3 s, 13 steps)
+#:   x1.54 and x1.55 (0.97-2.89); the book's Quad-1D loop at N_p = 15 (2 steps) x1.17 and x1.37, at N_p = 20
+#:   (4 steps) x1.12 and x1.03 (0.82-1.18), where SCIP is a small part of a step; a setting's own two passes lay
+#:   within 0.68-1.40 per state;
+#: * the programs alone (the 60 SCIP programs of 48 other cold MSD states, seeds 2 and 3, and of the loop; the 25 of
+#:   the Quad-1D loops; every setting in turn on each program, the order reversed at every other one): per-program
+#:   median x2.01 (0.81-3.23) on the MSD, x1.40 (0.70-2.04) on the Quad-1D; restarts off alone x1.44 and x1.30.
+#:
+#: No presolving round (with no restarts) was as fast on the programs alone (x2.06 and x1.37) but is not as robust:
+#: on 50 badly scaled random mixed-integer QPs (entries of ``H`` of 1e3 to 3e6, big-M rows, a 5 s limit) it stopped
+#: unproven or ended in "error" on 5 that one round proved (and proved 3 that one round did not), while one round
+#: without restarts and probing searched as with them (the same node counts on the 10 programs checked).
+LEAN_RESTARTS = 0
+LEAN_PROBING_ROUNDS = 0
 
 
 #: What SoPlex (SCIP's LP solver) writes straight to the C streams, whatever SCIP's verbosity (``hideOutput`` does not
@@ -309,8 +323,9 @@ class ScipSolver(Solver):
     MSD loop's 56 to 220: no rule by size separates them, and ``"separable"`` stays the default. Option
     ``miqp_params`` (a program with ``H`` only): ``"lean"`` (default) turns SCIP's aggregation separator (c-MIR, flow
     cover, knapsack cover cuts) and its primal heuristics off, presolves :data:`LEAN_PRESOLVE_ROUNDS` round (one),
-    where the book's big-M programs spent much of their time without gain, and restarts the root as SCIP does
-    (:data:`LEAN_RESTARTS`) (chapter "Making it real-time", ``python -m flnotes.bench mpc`` and ``msd_realtime``);
+    where the book's big-M programs spent much of their time without gain, without probing
+    (:data:`LEAN_PROBING_ROUNDS`), and never restarts the root (:data:`LEAN_RESTARTS`) (chapter "Making it
+    real-time", ``python -m flnotes.bench mpc`` and ``msd_realtime``);
     ``"default"`` keeps SCIP's settings. Option ``params`` sets any SCIP parameter after these. Either never changes
     the optimum, only the time to prove it. The model is persistent: between solves it is returned to the problem
     stage (``freeTransform``) and bounds, row sides and coefficients are changed in place (``chgVarLb/Ub``,
@@ -393,6 +408,7 @@ class ScipSolver(Solver):
             m.setParam("separating/aggregation/freq", -1)
             m.setParam("presolving/maxrounds", LEAN_PRESOLVE_ROUNDS)
             m.setParam("presolving/maxrestarts", LEAN_RESTARTS)
+            m.setParam("propagating/probing/maxprerounds", LEAN_PROBING_ROUNDS)
         for k, v in self.options.get("params", {}).items():
             m.setParam(k, v.item() if isinstance(v, np.generic) else v)
         self._inf = m.infinity()
