@@ -911,12 +911,14 @@ def test_scip_solves_again_about_its_point_where_its_gap_fails_on_the_true_cost(
     """A stored program (an MPC round of a random network with weights Q up to 1e4, 152 binaries) where SCIP, with
     ``c0`` left out of its model, called a point 7.4e-6 (relative) above its own bound optimal for a gap of 1e-6.
     With ``c0`` in the model SCIP meets the gap here; the check on the true cost stays, and where it fails (made to
-    fail once here) the program is solved again in the step from SCIP's point, and the answer holds the gap."""
+    fail once here) the program is solved again in the step from SCIP's point, and the answer holds the gap; where it
+    always fails, "error", or "time_limit" (point and bound kept) where the time limit stopped that second solve."""
     from flnotes.solvers import FEAS_TOL
     from flnotes.solvers import scip as scip_backend
+    from flnotes.solvers.problem import _result
 
     p = _stored_program("scip_gap_without_c0_miqp.npz")
-    r = make_solver(p, "scip").solve(gap=1e-6)
+    r = ref = make_solver(p, "scip").solve(gap=1e-6)
     J = p.objective(r.w)
     assert r.status == "optimal" and J - r.bound <= 1e-6 * max(1.0, abs(J)), (J, r.bound, r.message)
     within, calls = scip_backend._within_gap, []
@@ -934,6 +936,19 @@ def test_scip_solves_again_about_its_point_where_its_gap_fails_on_the_true_cost(
     monkeypatch.setattr(scip_backend, "_within_gap", lambda J, bound, gap: False)  # never within: never "optimal"
     r = make_solver(p, "scip").solve(gap=1e-6)
     assert r.status == "error" and "not optimal to the gap" in r.message, r.message
+    # the time limit stops the solve about the point: unproven, not an error; the point and the bound are kept
+    solve = scip_backend.ScipSolver._solve
+
+    def stopped(self, ws, time_limit, gap, t0):
+        if not self._recentring:
+            return solve(self, ws, time_limit, gap, t0)
+        return _result(self.problem, "time_limit", None, -np.inf, 0, t0, self.name, "timelimit")
+
+    monkeypatch.setattr(scip_backend.ScipSolver, "_solve", stopped)
+    r = make_solver(p, "scip").solve(gap=1e-6, time_limit=60.0)
+    assert r.status == "time_limit" and "the time limit came before" in r.message, r.message
+    assert r.w is not None and p.violation(r.w) <= FEAS_TOL and r.bound <= p.objective(r.w) + 1e-9 * abs(r.bound)
+    assert r.bound <= ref.objective, (r.bound, ref.objective)  # a lower bound: at most the optimum's cost
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
