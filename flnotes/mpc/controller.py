@@ -72,7 +72,11 @@ CUT_OFF_MIN_S = 0.01
 #: machine. Measured (SCIP back-end without a limit, 12 cold states of the Quad-1D at N_p = 10 and at N_p = 20, on a
 #: loaded two-core machine): 4 and 7 nodes per CPU second of the whole step, most programs closing at the root node;
 #: the round 10 gives the root node alone at t_s = 0.1 s and two nodes at 0.2 s. ``python -m flnotes.bench deadline``
-#: counts the steps where the budget outlasted the limit (the safety net's hits).
+#: counts the steps where the budget outlasted the limit (the safety net's hits). Measured again on an idle machine
+#: when SCIP's lean profile stopped restarting the root (:data:`flnotes.solvers.scip.LEAN_RESTARTS`; 12 cold states
+#: of :func:`flnotes.bench.exactness.mpc_cases`, seed 2): 19 nodes per CPU second at both horizons with restarts,
+#: 20 and 44 without (a restart's root counted as a node; without restarts SCIP branches more, on cheaper nodes).
+#: The constant stays: a node of the budget now stands for less CPU time of a step (50 and 22 ms against 54 and 53 ms).
 NODES_PER_SECOND = 10.0
 
 #: The largest node budget a step takes (the solvers' node-limit parameters are C integers).
