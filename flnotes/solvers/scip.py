@@ -77,6 +77,9 @@ LEAN_PRESOLVE_ROUNDS = 1
 #: unproven or ended in "error" on 5 that one round proved (and proved 2 that one round did not), while one round
 #: without restarts and probing searched as with them (the same node counts on the 10 programs checked).
 LEAN_RESTARTS = 0
+
+#: ``miqp_params="lean"``: probing rounds in presolving (``propagating/probing/maxprerounds``); measured together
+#: with :data:`LEAN_RESTARTS` (see there).
 LEAN_PROBING_ROUNDS = 0
 
 
