@@ -67,7 +67,7 @@ LEAN_PRESOLVE_ROUNDS = 1
 #:   seed 1 (17 reached SCIP) x1.60 and x1.51 (1.25-2.46), its Monte Carlo loop (3 scenarios x 3 s, 13 steps)
 #:   x1.54 and x1.55 (0.97-2.89); the book's Quad-1D loop at N_p = 15 (2 steps) x1.17 and x1.37, at N_p = 20
 #:   (4 steps) x1.12 and x1.03 (0.82-1.18), where SCIP is a small part of a step; a setting's own two passes lay
-#:   within 0.68-1.40 per state;
+#:   within 0.68-1.49 per state;
 #: * the programs alone (the 60 SCIP programs of 48 other cold MSD states, seeds 2 and 3, and of the loop; the 25 of
 #:   the Quad-1D loops; every setting in turn on each program, the order reversed at every other one): per-program
 #:   median x2.01 (0.81-3.23) on the MSD, x1.40 (0.70-2.04) on the Quad-1D; restarts off alone x1.44 and x1.30.
@@ -75,7 +75,8 @@ LEAN_PRESOLVE_ROUNDS = 1
 #: No presolving round (with no restarts) was as fast on the programs alone (x2.06 and x1.37) but is not as robust:
 #: on 50 badly scaled random mixed-integer QPs (entries of ``H`` of 1e3 to 3e6, big-M rows, a 5 s limit) it stopped
 #: unproven or ended in "error" on 5 that one round proved (and proved 2 that one round did not), while one round
-#: without restarts and probing searched as with them (the same node counts on the 10 programs checked).
+#: without restarts and probing searched as with them (the same node counts, or both stopped at the limit, on the 10
+#: programs checked).
 LEAN_RESTARTS = 0
 
 #: ``miqp_params="lean"``: probing rounds in presolving (``propagating/probing/maxprerounds``); measured together
