@@ -57,9 +57,9 @@ MIQP_PARAMS = ("lean", "default")
 LEAN_PRESOLVE_ROUNDS = 1
 
 #: ``miqp_params="lean"``: restarts of the root (SCIP's ``presolving/maxrestarts``, default -1: unlimited) and
-#: probing rounds in presolving (``propagating/probing/maxprerounds``, default -1: unlimited). On the MSD's programs
-#: SCIP restarted the root up to ten times (eleven runs for one node), each run presolving anew, and probing took a
-#: seventh of a solve. Both off against both on, with one presolving round either way and the same optima
+#: probing rounds in presolving (``propagating/probing/maxprerounds``, default -1: unlimited). On one of the MSD's
+#: programs SCIP restarted the root ten times (eleven runs for one node), each run presolving anew, and on another
+#: probing took a seventh of a solve. Both off against both on, with one presolving round either way and the same optima
 #: everywhere:
 #:
 #: * whole MPC steps (:func:`flnotes.bench.msd_realtime.scip_settings_runs`, two passes, CPU time; per-state
