@@ -367,8 +367,8 @@ def test_every_scip_setting_the_benchmark_compares_gives_the_same_optimum(seed):
 
 
 def test_daqp_hands_its_scip_options_to_the_verification():
-    """DAQP's ``scip_options`` reach the SCIP model that checks a claim (here every claim of infeasibility of a
-    warm-started MIQP), and a bad value is an error that names the option."""
+    """DAQP's ``scip_options`` reach the SCIP model that checks a claim (here every claim, ``verify_nodes=0``), and a
+    bad value is an error that names the option."""
     from flnotes.solvers import scip as scip_module
 
     p = random_program(0)
@@ -382,8 +382,8 @@ def test_daqp_hands_its_scip_options_to_the_verification():
 
     scip_module.ScipSolver._build = spy
     try:
-        r = make_solver(p, "daqp", scip_options=dict(objective="epigraph", miqp_params="default")).solve(
-            warm_start=best.w)
+        r = make_solver(p, "daqp", verify_nodes=0, scip_options=dict(objective="epigraph",
+                                                                     miqp_params="default")).solve(warm_start=best.w)
     finally:
         scip_module.ScipSolver._build = orig
     assert r.status == "optimal" and rel(r.objective, best.objective) <= RTOL
@@ -461,7 +461,7 @@ def test_scip_does_not_polish_an_incumbent_after_its_time_limit(monkeypatch):
     from flnotes.solvers import scip
 
     p = random_program(1, quad=True, n_c=8, n_b=14, m_in=12)
-    w_feas = make_solver(p, "daqp").solve().w
+    w_feas = make_solver(p, "scip").solve().w
     polished = []
     monkeypatch.setattr(scip.ScipSolver, "_polish", lambda self, w, time_limit=None: polished.append(1) or (w, False))
     r = make_solver(p, "scip").solve(warm_start=w_feas, time_limit=1e-6)
@@ -824,12 +824,12 @@ def test_daqp_alone_is_wrong_on_a_stored_program_so_its_long_searches_are_verifi
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
 def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified(monkeypatch):
     """A stored program (the engine's round of a random network under ``bounds="lp"``, 24 binaries) where DAQP's
-    branch and bound misses the optimum's node: cold it claims optimal, after 161 nodes, a point that costs more
-    than a feasible warm start in the very program it solved. The warm start's bound once reached DAQP in the wrong
-    units (so it pruned nothing) and the certificate, bounded by the warm start's cost, called the warm start,
-    2.5e-4 above the optimum, optimal. Now DAQP prunes at the warm start and its "nothing better" is verified; and
-    where its optimum costs more than the warm start (as with a bound it ignores), that is no proof either: SCIP's
-    optimum is the answer both ways."""
+    branch and bound on the program as written (``scale=False``) misses the optimum's node: cold it claims optimal,
+    after 161 nodes, a point that costs more than a feasible warm start in the very program it solved. The warm
+    start's bound once reached DAQP in the wrong units (so it pruned nothing) and the certificate, bounded by the warm
+    start's cost, called the warm start, 2.5e-4 above the optimum, optimal. Now DAQP prunes at the warm start and its
+    "nothing better" is verified; and where its optimum costs more than the warm start (as with a bound it ignores),
+    that is no proof either: SCIP's optimum is the answer both ways."""
     import daqp
 
     p = _stored_program("daqp_warm_start_wrong_miqp.npz")
@@ -837,7 +837,7 @@ def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified(monkeypatch):
     assert p.violation(w0) <= 1e-9  # the premise: a feasible warm start ...
     ref = make_solver(p, "scip").solve(gap=1e-9)
     assert ref.status == "optimal" and p.objective(w0) > ref.objective * (1 + 1e-4)  # ... that is not optimal
-    r = make_solver(p, "daqp", verify_nodes=None).solve(warm_start=w0, gap=1e-6)
+    r = make_solver(p, "daqp", verify_nodes=None, scale=False).solve(warm_start=w0, gap=1e-6)
     assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
     assert "proven by scip" in r.message and "nothing better than the warm start" in r.message, r.message
     seen, solve = [], daqp.solve
@@ -849,10 +849,40 @@ def test_a_daqp_optimum_dearer_than_its_warm_start_is_verified(monkeypatch):
         return out
 
     monkeypatch.setattr(daqp, "solve", without_bound)
-    r = make_solver(p, "daqp", verify_nodes=None).solve(warm_start=w0, gap=1e-6)
+    r = make_solver(p, "daqp", verify_nodes=None, scale=False).solve(warm_start=w0, gap=1e-6)
     assert seen[0] == 1  # the premise: DAQP said optimal
     assert r.status == "optimal" and rel(r.objective, ref.objective) <= RTOL, r.message
     assert "more than the warm start" in r.message and "proven by scip" in r.message, r.message
+
+
+def _permuted(p: MIQP, perm: np.ndarray) -> MIQP:
+    """The program ``p`` with its variables in the order ``perm`` (the same program; DAQP branches in that order)."""
+    H = sp.csr_matrix(p.H.toarray()[np.ix_(perm, perm)])
+    return MIQP(H, p.c[perm], p.c0, sp.csr_matrix(p.A.toarray()[:, perm]), p.rl, p.ru, p.lb[perm], p.ub[perm],
+                p.integrality[perm])
+
+
+@pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")
+def test_daqp_scaled_finds_the_optimum_its_search_of_the_program_as_written_misses():
+    """The premise of the option ``scale`` (default): on the stored program of the test above, DAQP's own claims
+    (nothing verified) in five orders of the variables. As written, most are points above SCIP's proven optimum
+    called optimal; with each bounded continuous variable scaled to a unit range and each row to a unit max-norm,
+    every claim is the optimum, and its certified gap is far below the default gap (no verification needed)."""
+    p = _stored_program("daqp_warm_start_wrong_miqp.npz")
+    ref = make_solver(p, "scip").solve(gap=1e-9)
+    assert ref.status == "optimal"
+    rng = np.random.default_rng(1)
+    wrong = {True: 0, False: 0}
+    for perm in [np.arange(p.n)] + [rng.permutation(p.n) for _ in range(4)]:
+        q = _permuted(p, perm)
+        for scale in (False, True):
+            r = make_solver(q, "daqp", verify_nodes=None, handover=None, scale=scale).solve(gap=1e-4)
+            assert r.status == "optimal", (scale, r.message)
+            wrong[scale] += r.objective > ref.objective * (1 + 1e-6)
+            if scale:
+                assert "proven by" not in r.message and r.gap <= 1e-9, r.message
+    assert wrong[False] >= 3, wrong  # the premise: as written, DAQP misses the optimum in most orders
+    assert wrong[True] == 0, wrong
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")

@@ -697,8 +697,9 @@ def backend_overheads(n_repeat: int = 20) -> list:
     The QP's Hessian is positive definite on the continuous variables and zero on the binaries, the shape
     DAQP certifies by itself (its secant regularization vanishes at both values of a binary). The LP has a
     zero Hessian everywhere: DAQP's regularized answer then certifies a gap only through the continuous
-    variables' bounds, and when that gap exceeds the one requested the back-end re-solves the program with
-    SCIP (building a SCIP model inside the call). Column ``checked_by_other`` counts those calls, so a row's
+    variables' bounds (at most ``reg / 8`` per variable scaled to a unit range, the DAQP option ``scale``), and
+    when that gap exceeds the one requested the back-end re-solves the program with SCIP (building a SCIP model
+    inside the call). Column ``checked_by_other`` counts those calls, so a row's
     times say whether they are one solver's call or two solvers'. Times: the wall clock of
     :meth:`Solver.solve` and the process's CPU time around it (median and minimum over ``n_repeat`` calls).
     """
