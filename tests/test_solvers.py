@@ -969,16 +969,28 @@ def test_scip_solves_again_about_its_point_where_its_gap_fails_on_the_true_cost(
     # the time limit stops the solve about the point: unproven, not an error; the point and the bound are kept
     solve = scip_backend.ScipSolver._solve
 
+    budgets = []
+
     def stopped(self, ws, time_limit, gap, t0):
         if not self._recentring:
             return solve(self, ws, time_limit, gap, t0)
-        return _result(self.problem, "time_limit", None, -np.inf, 0, t0, self.name, "timelimit")
+        budgets.append(self._node_limit)
+        return _result(self.problem, "time_limit", None, -np.inf, 7, t0, self.name, "timelimit")
 
     monkeypatch.setattr(scip_backend.ScipSolver, "_solve", stopped)
     r = make_solver(p, "scip").solve(gap=1e-6, time_limit=60.0)
-    assert r.status == "time_limit" and "the time limit came before" in r.message, r.message
+    assert r.status == "time_limit" and "the time or node limit came before" in r.message, r.message
     assert r.w is not None and p.violation(r.w) <= FEAS_TOL and r.bound <= p.objective(r.w) + 1e-9 * abs(r.bound)
     assert r.bound <= ref.objective, (r.bound, ref.objective)  # a lower bound: at most the optimum's cost
+    # a node budget: the second solve gets what the first left of it, and the call counts the nodes of both
+    budgets.clear()
+    r = make_solver(p, "scip").solve(gap=1e-6, node_limit=10 ** 6)
+    assert len(budgets) == 1 and budgets[0] + (r.nodes - 7) == 10 ** 6, (budgets, r.nodes)
+    assert r.status == "time_limit" and r.w is not None, r.message
+    s = make_solver(p, "scip")  # the first solve used the whole budget: no second solve
+    s._node_limit = 5
+    w, bound, status, msg, more = s._recentred(ref.w, ref.bound, 1e-6, None, 0.0, "optimal", nodes=5)
+    assert len(budgets) == 1 and status == "time_limit" and more == 0 and w is ref.w, msg
 
 
 @pytest.mark.skipif("daqp" not in available_backends(), reason="DAQP not installed")

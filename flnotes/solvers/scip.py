@@ -341,8 +341,9 @@ class ScipSolver(Solver):
     polished point's true cost: where that lies further above the bound than the gap asked (a stored program, with
     ``c0`` left out of the model: 7.4e-6 for 1e-6), the program is solved once more in the step ``d`` from that
     point (:meth:`_recentred`: the same program, whose quadratic terms are then small); if the gap still fails the
-    status is ``"time_limit"`` where the time limit stopped that solve (the point and bound kept, unproven), else
-    ``"error"``, saying so; never ``"optimal"``.
+    status is ``"time_limit"`` where the time limit or the call's node budget stopped that solve (it gets what the
+    first solve left of ``node_limit``; the point and bound kept, unproven), else ``"error"``, saying so; never
+    ``"optimal"``.
     """
 
     name = "scip"
@@ -565,7 +566,8 @@ class ScipSolver(Solver):
                 and not _within_gap(p.objective(w), bound, gap)):
             # SCIP's gap is judged on its own values (the epigraph's terms met to its tolerance), not on its point's
             # true cost
-            w, bound, status, st = self._recentred(w, bound, gap, time_limit, t0, st)
+            w, bound, status, st, more = self._recentred(w, bound, gap, time_limit, t0, st, nodes)
+            nodes += more
         if status == "time_limit" and w is not None and p.violation(w) > FEAS_TOL:
             w = None
         if status == "infeasible":
@@ -573,8 +575,8 @@ class ScipSolver(Solver):
         return _result(p, status, w if status in ("optimal", "time_limit") else None,
                        bound if status != "error" else -np.inf, nodes, t0, self.name, st)
 
-    def _recentred(self, w: Array, bound: float, gap: float, time_limit: Optional[float], t0: float, st: str
-                   ) -> tuple[Optional[Array], float, str, str]:
+    def _recentred(self, w: Array, bound: float, gap: float, time_limit: Optional[float], t0: float, st: str,
+                   nodes: int = 0) -> tuple[Optional[Array], float, str, str, int]:
         """The program again, in the step ``d = w' - w`` from SCIP's (polished) point ``w``, where SCIP's true gap
         exceeds ``gap``.
 
@@ -583,15 +585,21 @@ class ScipSolver(Solver):
         ``[-w_i, 1 - w_i]``). Returns ``(point, bound, status, message)``: the better point with the larger bound
         and ``"optimal"`` where the gap then holds; where it does not, ``"time_limit"`` when the time limit stopped
         that solve or left no time for it (the point feasible and the bound valid, only unproven), otherwise
-        ``"error"`` saying so (SCIP's point kept for the caller's information only)."""
+        ``"error"`` saying so (SCIP's point kept for the caller's information only). The second solve gets what is
+        left of the call's node budget after the ``nodes`` of the first (``"time_limit"`` when nothing is left);
+        the last item is the nodes it searched."""
         p = self.problem
         J_w = p.objective(w)
         shifted = MIQP(p.H, p.c + p.H @ w, J_w, p.A, p.rl - p.A @ w, p.ru - p.A @ w, p.lb - w, p.ub - w,
                        p.integrality)
         solver = ScipSolver(shifted, **self.options)
         solver._recentring = True  # once: its own point is not moved again
+        nl = getattr(self, "_node_limit", None)
+        solver._node_limit = None if nl is None else nl - int(nodes)  # the rest of the call's work budget
         left = None if not time_limit else max(time_limit - (time.perf_counter() - t0), 1e-3)
-        r = solver._solve(np.zeros(p.n), left, gap, time.perf_counter()) if not left or left > 1e-3 else None
+        go = (not left or left > 1e-3) and (solver._node_limit is None or solver._node_limit >= 1)
+        r = solver._solve(np.zeros(p.n), left, gap, time.perf_counter()) if go else None
+        more = 0 if r is None else int(r.nodes)
         said = f"{st}; its point lay {(J_w - bound) / max(1.0, abs(J_w)):.1e} (relative) above its bound"
         if r is not None and r.w is not None and r.status in ("optimal", "time_limit"):
             w2 = w + r.w
@@ -600,11 +608,12 @@ class ScipSolver(Solver):
                 w, J_w = w2, p.objective(w2)
             bound = max(bound, float(r.bound)) if np.isfinite(r.bound) else bound
         if r is not None and _within_gap(J_w, bound, gap):
-            return w, bound, "optimal", f"{said}; solved again about that point: {r.message}"
+            return w, bound, "optimal", f"{said}; solved again about that point: {r.message}", more
         if r is None or r.status == "time_limit":
-            return w, bound, "time_limit", (f"{said}; the time limit came before solving again about that point "
-                                            f"proved it optimal to the gap {gap:.0e}")
-        return w, bound, "error", f"{said}, also solved again about that point: not optimal to the gap {gap:.0e}"
+            return w, bound, "time_limit", (f"{said}; the time or node limit came before solving again about that "
+                                            f"point proved it optimal to the gap {gap:.0e}"), more
+        return (w, bound, "error", f"{said}, also solved again about that point: not optimal to the gap {gap:.0e}",
+                more)
 
     def _polish(self, w: Array, time_limit: Optional[float] = None) -> tuple[Array, bool]:
         """The QP optimum with the integers fixed at ``w``'s (HiGHS), when it is better than ``w``.
