@@ -76,12 +76,13 @@ class DaqpSolver(Solver):
     units. The network's variables of a big-M program have ranges up to the node bounds (hundreds on the stored
     programs) and no cost: as written, DAQP's branch and bound on one stored program (24 binaries) called a point
     3.8e-4 above the optimum optimal after 161 nodes, and in 8 of 11 orders of its variables a point up to 3.8e-3
-    above; scaled, every order found the optimum, and the certified gap of the regularization fell from 2e-6 to
+    above; scaled, it proved the optimum itself in 10 orders (the 11th ended with an undocumented exit flag, which
+    goes to SCIP), and the certified gap of the regularization fell from 2e-6 to
     1e-11 (relative), so that DAQP proves more answers by itself. On 172 programs the engine sent DAQP (random
     networks, the Quad-1D, the MSD) no claim was wrong either way; of their cold solves DAQP proved 115 by itself
     against 98, and left 7 unproven against 28 (4 more points came back outside ``FEAS_TOL``: 10 against 6).
     Scaling does not cure DAQP's long searches: on the other stored program (2e-2 above the optimum after thousands
-    of nodes) it misses the optimum as often either way, so those are still verified
+    of nodes) it missed the optimum in 6 of 11 orders scaled and 4 unscaled, so those are still verified
     (:data:`VERIFY_NODES`). The point DAQP returns meets the program's rows to ``FEAS_TOL`` or is refused.
 
     Tolerances. DAQP's primal tolerance is its default, ``1e-6`` (option ``primal_tol``): with ``1e-7`` its branch
