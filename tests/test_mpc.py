@@ -492,10 +492,10 @@ class _FirstScipPointOver:
 @pytest.mark.parametrize("options", [dict(lp=True), dict()])
 def test_the_untightened_rounds_own_plan_is_the_optimum_where_it_passes_the_check(monkeypatch, options):
     """The book's MSD (N_p = 10) at a state on the domain's face with a constant reference, where SCIP's point in
-    a round lies over ``u_max^eps`` by its tolerance, so the rows are tightened (the region QP is off). With
-    ``lp=True`` that round was a level-set round below the optimum, and the step used to be an ``"error"`` ("not
-    proven"). The deciding round's untightened program, solved by SCIP, has a plan that passes the forward-pass
-    check within the gap of its bound: it is the optimum, the default's. Whether SCIP's own point lands over the
+    a round lies over ``u_max^eps`` by its tolerance, so the rows are tightened (the region QP is off). Where that
+    round was a level-set round below the optimum (``lp=True``, on the machine that found it), the step used to be
+    an ``"error"`` ("not proven"). The deciding round's untightened program, solved by SCIP, has a plan that passes
+    the forward-pass check within the gap of its bound: it is the optimum, the default's. Whether SCIP's own point lands over the
     bound by round-off depends on the machine, so the first SCIP point of the step is checked against the bound
     lowered by 1e-9 (its tolerance's size); every later check is the engine's own."""
     import flnotes.mpc.engine as engine
