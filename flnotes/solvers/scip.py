@@ -582,12 +582,12 @@ class ScipSolver(Solver):
 
         ``J(w + d) = J(w) + (c + H w)'d + 0.5 d'Hd``: near ``w`` the quadratic terms are small, so SCIP's relative
         tolerance on them is small in absolute terms too (a binary ``d_i`` stays integer, its bounds shifted to
-        ``[-w_i, 1 - w_i]``). Returns ``(point, bound, status, message)``: the better point with the larger bound
+        ``[-w_i, 1 - w_i]``). Returns ``(point, bound, status, message, nodes)``: the better point with the larger bound
         and ``"optimal"`` where the gap then holds; where it does not, ``"time_limit"`` when the time limit stopped
         that solve or left no time for it (the point feasible and the bound valid, only unproven), otherwise
         ``"error"`` saying so (SCIP's point kept for the caller's information only). The second solve gets what is
         left of the call's node budget after the ``nodes`` of the first (``"time_limit"`` when nothing is left);
-        the last item is the nodes it searched."""
+        the returned ``nodes`` are those it searched."""
         p = self.problem
         J_w = p.objective(w)
         shifted = MIQP(p.H, p.c + p.H @ w, J_w, p.A, p.rl - p.A @ w, p.ru - p.A @ w, p.lb - w, p.ub - w,
