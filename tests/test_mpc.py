@@ -682,19 +682,29 @@ def test_an_infeasible_program_ends_its_level_rounds_once_they_cut_nothing(optio
     assert r.rounds <= 4, (r.rounds, r.message)
 
 
-def test_auto_sends_a_program_without_an_incumbent_to_scip_above_its_threshold():
+@pytest.mark.parametrize("warm_threshold", [None, 50])
+def test_auto_sends_a_program_without_an_incumbent_to_scip_above_its_threshold(monkeypatch, warm_threshold):
     """``backend="auto"``: DAQP up to ``AUTO_DAQP_BINARIES`` binaries when the round has an incumbent (a warm start
     to prune on), up to ``AUTO_DAQP_COLD_BINARIES`` without one; an explicit back-end is kept either way. On the
     stored infeasible program (40 binaries, no plan to warm-start from) the default hands every round to SCIP, and
-    DAQP alone reaches the same verdict (its claim verified)."""
-    from flnotes.mpc.levers import AUTO_DAQP_BINARIES, AUTO_DAQP_COLD_BINARIES, pick_backend
+    DAQP alone reaches the same verdict (its claim verified). With the threshold for warm-started rounds moved above
+    40 (``warm_threshold=50``, the default before it was measured again), the cold rule alone sends it to SCIP."""
+    import flnotes.mpc.levers as levers
+    from flnotes.mpc.levers import pick_backend
 
-    assert AUTO_DAQP_COLD_BINARIES < 40 <= AUTO_DAQP_BINARIES  # the premise of the stored program
-    assert pick_backend("auto", 40, incumbent=True) == "daqp"
-    assert pick_backend("auto", 40, incumbent=False) == "scip"
-    assert pick_backend("auto", AUTO_DAQP_COLD_BINARIES, incumbent=False) == "daqp"
+    if warm_threshold is not None:
+        monkeypatch.setattr(levers, "AUTO_DAQP_BINARIES", warm_threshold)
+    warm, cold = levers.AUTO_DAQP_BINARIES, levers.AUTO_DAQP_COLD_BINARIES
+    assert cold < min(warm, 40)  # the premise of the stored program
+    assert pick_backend("auto", warm, incumbent=True) == "daqp"
+    assert pick_backend("auto", warm, incumbent=False) == ("daqp" if warm <= cold else "scip")
+    assert pick_backend("auto", cold, incumbent=False) == "daqp"
+    assert pick_backend("auto", cold + 1, incumbent=False) == "scip"
     assert pick_backend("daqp", 40, incumbent=False) == "daqp"
-    assert pick_backend("auto", AUTO_DAQP_BINARIES + 1, incumbent=True) == "scip"
+    assert pick_backend("scip", 1, incumbent=True) == "scip"
+    assert pick_backend("auto", warm + 1, incumbent=True) == "scip"
+    if warm_threshold is not None:
+        assert pick_backend("auto", 40, incumbent=True) == "daqp"  # only the missing incumbent sends it to SCIP
     sysm, net, z, z_ref = stored_integrator_case("infeasible_level_rounds_program.npz")
     kw = dict(horizon=5, ts=0.2, Q=[1.0], R=0.1)
     r = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)

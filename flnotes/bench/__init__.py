@@ -27,7 +27,7 @@ from typing import Optional
 from ..tables import Table
 
 SECTIONS = ("training", "error", "clfcbf", "mpc", "exactness", "deadline", "cheap_networks", "size", "unseen", "compare",
-            "msd_realtime", "cuts", "multi", "parallel")
+            "msd_realtime", "routing", "cuts", "multi", "parallel")
 
 #: Sections that start workers of their own: run in this process, after the others, never inside a worker.
 IN_PROCESS = ("parallel",)

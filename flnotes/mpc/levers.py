@@ -101,12 +101,19 @@ LP_AUTO_BINARIES = 48
 
 
 #: ``backend="auto"``: a program with more binaries than this goes to SCIP, one with at most this many to DAQP.
-#: Measured on the programs of the book's Quad-1D loops at N_p = 15 and 20 with DAQP branching layer by layer
-#: (``branching="layers"``; chapter "Making it real-time", ``python -m flnotes.bench mpc``): from 20 to 49 binaries
-#: DAQP took 2 to 6 times less time in sum than SCIP, from 50 to 59 the two were even, from 60 on SCIP was faster
-#: on every program (DAQP: up to 10 s; SCIP: at most 2.4 s). The loops with thresholds 40, 50 and 55 took 5.7,
-#: 5.7 and 6.1 s (N_p = 15) and 19.6, 17.5 and 18.4 s (N_p = 20).
-AUTO_DAQP_BINARIES = 50
+#: First chosen (50) on the programs of the book's Quad-1D loops at N_p = 15 and 20, where DAQP was faster up to 49
+#: binaries. Measured again on a wider set (``python -m flnotes.bench routing``): 499 warm-started programs of at most
+#: 60 binaries that the engine handed to a solver along the Quad-1D loops (N_p = 10, 15, 20), the five systems not in
+#: the book, cold MSD states and random networks of one integrator, each solved by both back-ends in one process.
+#: DAQP's time per node differs from system to system (0.2 ms on the Quad-1D, 1 to 2 ms on the Van der Pol and MSD
+#: programs). Up to 30 binaries DAQP took less time in sum than SCIP in every group (5.2 s against 14.4 s in all);
+#: from 31 to 50, SCIP took 8.6 s against DAQP's 16.2 s in all: much less on the Van der Pol, the MSD, the other
+#: Quad-1D and the random networks (DAQP took up to 0.5 s on programs SCIP proved in 40 to 70 ms), about as much or
+#: more on the book's Quad-1D, the pendulum and the cubic chain. With 30 instead of 50 the rule spent 15.1 s instead
+#: of 22.7 s on these programs, and the 95th percentile of one program was 127 ms instead of 261 ms. In closed loop
+#: (two interleaved runs each), the slowest step of each system not in the book took 22 to 60 % less; the book's
+#: Quad-1D loops took 8 to 10 % more CPU time in all, within the run-to-run spread the benchmark report measures (14 %).
+AUTO_DAQP_BINARIES = 30
 
 
 #: ``backend="auto"`` on a round without an incumbent (no warm start: DAQP's depth-first search cannot prune on a
