@@ -2,7 +2,6 @@
 the benchmark section ``routing`` (:mod:`flnotes.bench.routing`) measures the threshold. Asserted here: the recorder
 sees the programs the rule routed, and leaves the engine as it found it; both back-ends prove the same optimum on
 every recorded program; the threshold's context puts the old value back."""
-import numpy as np
 import pytest
 
 import flnotes.mpc.engine as engine
@@ -64,4 +63,8 @@ def test_the_threshold_context_puts_the_default_back():
         with R.threshold(3):
             raise RuntimeError("inside")
     assert levers.AUTO_DAQP_BINARIES == old
-    assert np.isfinite(old)
+    for bad in (30.9, "40", -1, True, None):
+        with pytest.raises(ValueError, match="integer"):
+            with R.threshold(bad):
+                pass
+        assert levers.AUTO_DAQP_BINARIES == old
