@@ -111,9 +111,9 @@ LP_AUTO_BINARIES = 48
 #: Quad-1D and the random networks (DAQP took up to 0.5 s on programs SCIP proved in 40 to 70 ms), about as much or
 #: more on the book's Quad-1D, the pendulum and the cubic chain. With 30 instead of 50 the rule spent 15.1 s instead
 #: of 22.7 s on these programs, and the 95th percentile of one program was 127 ms instead of 261 ms. In closed loop
-#: (two interleaved runs each), the slowest step of each system not in the book took 22 to 60 % less; on the book's
-#: Quad-1D loops the CPU time in all moved by less than the run-to-run spread the benchmark report measures (14 %),
-#: more in some runs and less in others.
+#: (two interleaved runs each), the slowest step of each system not in the book took 24 to 61 % less (mean of the two
+#: runs); on the book's Quad-1D loops the CPU time in all moved by less than the run-to-run spread the benchmark
+#: report measures (14 %), more in some runs and less in others.
 AUTO_DAQP_BINARIES = 30
 
 
