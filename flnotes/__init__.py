@@ -24,7 +24,7 @@ the README's architecture section.
 from .config import FAST, scale
 from .tables import Table, time_stats
 from . import repeats
-from .systems import FLSystem, brunovsky, discretize, msd, quad1d
+from .systems import FLSystem, brunovsky, discretize, integrators, msd, quad1d
 from .network import ReLUNet, TrainingReport, fit_relu, uniform_grid
 from .bounds import NodeBounds, fbbt, interval_affine, sample_preactivations
 from .encoding import BigMForm, Encoding, bigm_form, encode, forward_milp
@@ -54,8 +54,8 @@ from .terminal import RegionOfAttraction, TerminalSet, region_of_attraction, ter
 from .intersample import DriftBound, drift_curve, intersample_drift
 
 __all__ = [
-    'FAST', 'scale', 'Table', 'time_stats', 'repeats', 'FLSystem', 'brunovsky', 'discretize', 'msd', 'quad1d', 'ReLUNet',
-    'TrainingReport', 'fit_relu', 'uniform_grid', 'NodeBounds', 'fbbt', 'interval_affine',
+    'FAST', 'scale', 'Table', 'time_stats', 'repeats', 'FLSystem', 'brunovsky', 'discretize', 'integrators', 'msd', 'quad1d',
+    'ReLUNet', 'TrainingReport', 'fit_relu', 'uniform_grid', 'NodeBounds', 'fbbt', 'interval_affine',
     'sample_preactivations', 'BigMForm', 'Encoding', 'bigm_form', 'encode', 'forward_milp', 'SolverFailure',
     'Controller', 'FeedbackLaw', 'SimLog', 'StepResult', 'STATUSES', 'simulate', 'interval', 'plots', 'reference',
     'solvers', 'widgets',

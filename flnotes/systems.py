@@ -338,6 +338,38 @@ class FLSystem:
                 f"lo={self.lo}, hi={self.hi})")
 
 
+def integrators(orders: Union[int, Sequence[int]], lo: Sequence[float], hi: Sequence[float],
+                u_max: Union[float, Sequence[float]], name: str = "integrator") -> FLSystem:
+    """Chains of integrators, ``z' = A z + B u`` with ``(A, B) = brunovsky(orders)``: the system already in
+    Brunovsky form, so ``Phi(z, v) = v`` (eq. coor_Phi with ``u = v``) and the plant state is ``z``.
+
+    The simplest system to test a network or a controller on: the admissible set of eq. (contraint_new_set) is
+    ``|v| <= u_max``, known exactly, and any ReLU network on ``[z; v]`` may be handed to the controllers as an
+    approximation of it.
+
+    Parameters
+    ----------
+    orders
+        The order of each input's chain (an int for one input), as in :func:`brunovsky`.
+    lo, hi
+        The domain box of ``[z; v]``, length ``sum(orders) + len(orders)``.
+    u_max
+        The input bound, one per input (a float for one input).
+    name
+        Short label used in figures and tables.
+    """
+    A, B = brunovsky(orders)
+
+    def f(x: Array, u: Array) -> Array:
+        return A @ x + B @ u
+
+    def ident(x: Array) -> Array:
+        return np.asarray(x, float).copy()
+
+    return FLSystem(name, A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=lo, hi=hi, u_max=u_max, f=f,
+                    to_z=ident, to_x=ident)
+
+
 # --------------------------------------------------------------------------
 # The paper's two systems
 # --------------------------------------------------------------------------

@@ -33,19 +33,11 @@ def two_msd():
     return sysm, net
 
 
-def integrator_system(orders, lo, hi, u_max):
-    """Chains of integrators (``fl.brunovsky(orders)``) whose Phi is v, on the box ``[lo, hi]`` of ``[z; v]``."""
-    A, B = fl.brunovsky(list(orders))
-    return fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=lo, hi=hi, u_max=u_max,
-                       f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
-                       to_x=lambda z: np.asarray(z, float).copy())
-
-
 def stored_integrator_case(name: str):
     """A chain of integrators (one unless the file stores ``orders``) with a stored random network (``W0, b0, W1,
     ...``), state and reference (tests/data/NAME): ``(system, network, z, z_ref)``."""
     d = np.load(DATA / name)
-    sysm = integrator_system([int(r) for r in d["orders"]] if "orders" in d else [1], d["lo"], d["hi"], d["u_max"])
+    sysm = fl.integrators([int(r) for r in d["orders"]] if "orders" in d else [1], d["lo"], d["hi"], d["u_max"])
     layers = sum(1 for k in d.files if k.startswith("W"))
     net = fl.ReLUNet([d[f"W{i}"] for i in range(layers)], [d[f"b{i}"] for i in range(layers)])
     return sysm, net, d["z"], d["z_ref"]

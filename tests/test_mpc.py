@@ -8,7 +8,7 @@ import flnotes as fl
 from flnotes.mpc import MPC, sine_reference
 from flnotes.studies import closed_loop_checks, compare_to_reference, input_guarantee, recorded_problems
 
-from _nets import integrator_system, stored_integrator_case
+from _nets import stored_integrator_case
 
 S = fl.paper.QUAD_SETTING
 EPS = fl.paper.TABLE1["Quad-1D"]["eps"]
@@ -372,7 +372,7 @@ def _ridge_case():
     """One integrator whose network ``Phi_NN(z, v) = |v - 0.7| + 1`` with ``u_max = 1`` admits ``v = 0.7`` only."""
     net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 1.0]])],
                      [np.array([-0.7, 0.7]), np.array([1.0])])
-    return integrator_system([1], [-5.0, -2.0], [5.0, 2.0], [1.0]), net
+    return fl.integrators([1], [-5.0, -2.0], [5.0, 2.0], [1.0]), net
 
 
 class _PastTheRidge:
@@ -445,7 +445,7 @@ def _late_ridge_case():
     solvers' tolerance of ``u_max^eps``: a round's point is over the bound, the rows are tightened, and the verdict
     comes from a later, higher level."""
     rng = np.random.default_rng(21)
-    sysm = integrator_system([2], [-5.0, -5.0, -3.0], [5.0, 5.0, 3.0], [1.0])
+    sysm = fl.integrators([2], [-5.0, -5.0, -3.0], [5.0, 5.0, 3.0], [1.0])
     W = [rng.normal(size=(12, 3)) * 0.6, rng.normal(size=(10, 12)) * 0.4, rng.normal(size=(1, 10)) * 0.8]
     net = fl.ReLUNet(W, [rng.normal(size=12) * 0.3, rng.normal(size=10) * 0.3, np.array([0.1])])
     z = np.array([float.fromhex("0x1.d61b105234c23p+1"), float.fromhex("-0x1.d4959f5022148p-1")])

@@ -15,7 +15,7 @@ from flnotes.bench import exactness as ex
 from flnotes.control import ClfCbfController, DistanceCBF, QuadraticCLF
 from flnotes.mpc import MPC
 
-from _nets import integrator_system, stored_integrator_case, test_net
+from _nets import stored_integrator_case, test_net
 
 S = fl.paper.QUAD_SETTING
 EPS = 0.03  # above the small network's largest error on its training grid (0.028)
@@ -100,7 +100,7 @@ def _hand_case():
     """One integrator with the hand-made network ``1 + |v - 0.3| - 3 relu(v - 1)`` (3 neurons) and ``u_max = 1``."""
     net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0], [0.0, 1.0]]), np.array([[1.0, 1.0, -3.0]])],
                      [np.array([-0.3, 0.3, -1.0]), np.array([1.0])])
-    sysm = integrator_system([1], [-2.0, -2.0], [2.0, 2.0], [1.0])
+    sysm = fl.integrators([1], [-2.0, -2.0], [2.0, 2.0], [1.0])
     return sysm, net, np.array([0.0]), np.array([0.5]), dict(horizon=2, ts=0.2, Q=[1.0], R=0.1, P=[10.0])
 
 

@@ -96,11 +96,8 @@ def test_a_solver_point_over_the_bound_is_made_exact_on_its_region():
 def _flat_net_mpc(u_max: float = 1.0):
     """One integrator whose network is ``Phi_NN(z, v) = relu(v) - relu(v - 1)``: flat at exactly ``u_max = 1`` for
     ``v >= 1`` (both neurons active, output ``v - (v - 1)``), and a reference that pulls ``v`` up."""
-    A, B = fl.brunovsky([1])
     net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, 1.0]]), np.array([[1.0, -1.0]])], [np.array([0.0, -1.0]), np.zeros(1)])
-    sysm = fl.FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0, -2.0], hi=[5.0, 2.0],
-                       u_max=[u_max], f=lambda x, u: A @ x + B @ u, to_z=lambda x: np.asarray(x, float).copy(),
-                       to_x=lambda z: np.asarray(z, float).copy())
+    sysm = fl.integrators([1], lo=[-5.0, -2.0], hi=[5.0, 2.0], u_max=[u_max])
     return sysm, net, fl.MPC(sysm, net, 0.0, horizon=3, ts=0.5, Q=[1.0], R=0.01)
 
 

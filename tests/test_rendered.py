@@ -399,8 +399,12 @@ def _chrome(exe: str, profile: str, *args: str, timeout: int = 120) -> subproces
 @pytest.mark.parametrize("page", CHAPTERS)
 def test_page_renders_in_chromium(page, chromium, server, html_dir):
     url = f"{server}/{page}.html"
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    shot = SCREENSHOTS / (page.replace("/", "__") + ".png")
+    shot.unlink(missing_ok=True)
     with tempfile.TemporaryDirectory(prefix="flnotes-chrome-") as profile:
-        proc = _chrome(chromium, profile, "--dump-dom", url)
+        # one browser run: the DOM after the page's scripts ran, and a screenshot of the same rendering
+        proc = _chrome(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", "--dump-dom", url)
         dom = proc.stdout
         assert "<html" in dom.lower(), f"Chromium returned no DOM for {url}: {proc.stderr[-2000:]}"
         has_math = 'class="math' in (html_dir / f"{page}.html").read_text(encoding="utf-8")
@@ -412,10 +416,6 @@ def test_page_renders_in_chromium(page, chromium, server, html_dir):
         raw = re.findall(r"\$\$|\\\(|\\\[", text)
         assert not raw, f"{page}: raw TeX left in the rendered text: {raw[:5]}"
         assert "<mjx-merror" not in dom, f"{page}: MathJax reported a TeX error"
-
-        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
-        shot = SCREENSHOTS / (page.replace("/", "__") + ".png")
-        _chrome(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url)
         assert shot.is_file() and shot.stat().st_size > 10_000, f"{page}: no screenshot written"
 
 

@@ -12,7 +12,15 @@ def _fd_zdot(system, z, v, h=1e-6):
     return (np.asarray(system.to_z(x + h * f)) - np.asarray(system.to_z(x - h * f))) / (2 * h)
 
 
-@pytest.mark.parametrize("make", [fl.msd, fl.quad1d])
+def _two_chains():
+    """Chains of integrators of orders 2 and 1 (two inputs), Phi = v."""
+    return fl.integrators((2, 1), lo=[-2.0] * 3 + [-1.0] * 2, hi=[2.0] * 3 + [1.0] * 2, u_max=[1.0, 0.5])
+
+
+SYSTEMS = [fl.msd, fl.quad1d, _two_chains]
+
+
+@pytest.mark.parametrize("make", SYSTEMS)
 def test_feedback_linearization_identity(make):
     """u = Phi(z, v) on the true plant gives z' = A z + B v (eq. linearizedDyna) at random points."""
     system = make()
@@ -22,7 +30,7 @@ def test_feedback_linearization_identity(make):
         np.testing.assert_allclose(system.linearized_rhs(z, v), system.A @ z + system.B @ v)
 
 
-@pytest.mark.parametrize("make", [fl.msd, fl.quad1d])
+@pytest.mark.parametrize("make", SYSTEMS)
 def test_to_x_to_z_round_trip(make):
     system = make()
     Z = np.random.default_rng(1).uniform(system.lo[: system.n_z], system.hi[: system.n_z], (100, system.n_z))
@@ -43,6 +51,20 @@ def test_quad1d_phi_matches_paper_formula_and_singularity():
     assert np.abs(q.zeta(corners)).max() == pytest.approx(0.65)
     with pytest.raises(ValueError, match="zeta"):
         q.Phi([0.0, 0.0, 10.0], [0.0])  # zeta = 1: singular
+
+
+def test_integrators_phi_is_v_and_their_plant_is_the_chain():
+    """``fl.integrators``: Phi(z, v) = v for each input, the plant is ``A z + B u``, and the input bound is the one given."""
+    s = _two_chains()
+    assert (s.n_z, s.m) == (3, 2)
+    rng = np.random.default_rng(2)
+    Z, V = rng.uniform(-2, 2, (50, 3)), rng.uniform(-1, 1, (50, 2))
+    np.testing.assert_array_equal(s.Phi(Z, V), V)
+    A, B = fl.brunovsky((2, 1))
+    np.testing.assert_allclose(s.f(Z[0], V[0]), A @ Z[0] + B @ V[0])
+    np.testing.assert_array_equal(s.u_max, [1.0, 0.5])
+    with pytest.raises(ValueError):
+        fl.integrators(2, lo=[-1.0] * 2, hi=[1.0] * 2, u_max=1.0)  # the box lacks v's interval
 
 
 def test_msd_phi_is_v_plus_friction_plus_spring():

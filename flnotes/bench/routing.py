@@ -123,16 +123,13 @@ def random_loops(n_cases: int, seed: int = 0) -> None:
     """MPC steps of one integrator (order 1 or 2) with random (3-8, 3-8) networks, ``N_p = 5``, at random states,
     three per network, default options: programs of networks no one trained, for :func:`recorded_programs`."""
     from ..network import ReLUNet
-    from ..systems import FLSystem, brunovsky
+    from ..systems import integrators
 
     rng = np.random.default_rng(seed)
     for case in range(n_cases):
         order = int(rng.integers(1, 3))
         n1, n2 = int(rng.integers(3, 9)), int(rng.integers(3, 9))
-        A, B = brunovsky([order])
-        sysm = FLSystem("integrator", A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=[-5.0] * order + [-3.0],
-                        hi=[5.0] * order + [3.0], u_max=[1.0], f=lambda x, u, A=A, B=B: A @ x + B @ u,
-                        to_z=lambda x: np.asarray(x, float).copy(), to_x=lambda z: np.asarray(z, float).copy())
+        sysm = integrators(order, lo=[-5.0] * order + [-3.0], hi=[5.0] * order + [3.0], u_max=1.0)
         W = [rng.normal(size=(n1, order + 1)) * 0.6, rng.normal(size=(n2, n1)) * 0.4, rng.normal(size=(1, n2)) * 0.8]
         net = ReLUNet(W, [rng.normal(size=n1) * 0.3, rng.normal(size=n2) * 0.3, np.array([0.5])])
         mpc = MPC(sysm, net, 0.0, horizon=5, ts=0.2, Q=[1.0] * order, R=0.1)
