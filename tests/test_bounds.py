@@ -140,6 +140,13 @@ def test_exact_preactivation_range_is_the_true_range_and_within_fbbt():
     b = fl.fbbt(net, lo, hi)
     assert np.all(L <= pre.min(0) + 1e-7) and np.all(U >= pre.max(0) - 1e-7), "the exact range holds every sample"
     assert np.all(L >= b.L[-1][[0, 2, 4]] - 1e-7) and np.all(U <= b.U[-1][[0, 2, 4]] + 1e-7), "and lies within FBBT"
+    # and no wider than the range on a dense grid plus what the pre-activation can change between grid points
+    g1, g2 = np.linspace(lo[0], hi[0], 1201), np.linspace(lo[1], hi[1], 1201)
+    X = np.stack(np.meshgrid(g1, g2), -1).reshape(-1, 2)
+    grid = net.preactivations(X)[-1][:, [0, 2, 4]]
+    lip = np.prod([np.linalg.norm(W_k, 2) for W_k in net.W[:-1]])  # of every pre-activation of the last hidden layer
+    reach = lip * 0.5 * np.hypot(g1[1] - g1[0], g2[1] - g2[0])  # distance from any point of the box to the grid
+    assert np.all(U <= grid.max(0) + reach + 1e-9) and np.all(L >= grid.min(0) - reach - 1e-9), "the range is attained"
     with pytest.raises(ValueError, match="neurons must be indices"):
         fl.studies.exact_preactivation_range(net, lo, hi, neurons=[5])
 
