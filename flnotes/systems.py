@@ -36,9 +36,12 @@ def brunovsky(orders: Union[int, Sequence[int]]) -> tuple[Array, Array]:
         ``n_z = sum(orders)`` and ``m = len(orders)`` such that each chain reads
         ``z_1' = z_2, ..., z_r' = v``.
     """
-    orders = [int(orders)] if np.ndim(orders) == 0 else [int(r) for r in orders]
-    if not orders or min(orders) < 1:
-        raise ValueError(f"orders must be a non-empty list of positive chain lengths, got {orders!r}")
+    items = [orders] if np.ndim(orders) == 0 else list(orders) if np.ndim(orders) == 1 else None
+    if not items or any(isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or r < 1
+                        for r in items):
+        raise ValueError("orders must be a positive integer or a non-empty sequence of positive integers (the "
+                         f"length of each chain), got {orders!r}")
+    orders = [int(r) for r in items]
     n_z, m = sum(orders), len(orders)
     A, B = np.zeros((n_z, n_z)), np.zeros((n_z, m))
     start = 0
@@ -184,8 +187,11 @@ class FLSystem:
     params: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.A = np.atleast_2d(np.asarray(self.A, float))
-        self.B = np.asarray(self.B, float)
+        if not isinstance(self.name, str):
+            raise TypeError(f"name must be a string, got {type(self.name).__name__}")
+        # copies: the system owns its arrays, so a caller's later edit of the arrays it passed changes nothing here
+        self.A = np.atleast_2d(np.array(self.A, float))
+        self.B = np.array(self.B, float)
         if self.B.ndim == 1:
             self.B = self.B[:, None]
         n_z = self.A.shape[0]
@@ -194,10 +200,14 @@ class FLSystem:
         if self.B.shape[0] != n_z:
             raise ValueError(f"B must have n_z={n_z} rows, got shape {self.B.shape}")
         m = self.B.shape[1]
-        self.u_max = as_vector(self.u_max, m, "u_max")
+        self.u_max = as_vector(self.u_max, m, "u_max").copy()
         if np.any(self.u_max <= 0):
             raise ValueError(f"u_max must be positive, got {self.u_max}")
-        self.lo, self.hi = check_box(self.lo, self.hi, n_z + m, "lo", "hi")
+        lo, hi = check_box(self.lo, self.hi, n_z + m, "lo", "hi")
+        if np.any(lo >= hi):
+            raise ValueError(f"the domain box [lo, hi] must have a positive width in every coordinate of [z; v], got "
+                             f"lo = {lo} and hi = {hi}")
+        self.lo, self.hi = lo.copy(), hi.copy()
         what = dict(phi="phi(z (N, n_z), v (N, m)) -> u (N, m)", f="f(x, u) -> x'", to_z="to_z(x) -> z",
                     to_x="to_x(z) -> x", extra="extra(z, v) -> varphi (N, p), or None",
                     phi_interval="phi_interval(z, v) on flnotes.interval.Interval, or None")
@@ -345,7 +355,8 @@ def integrators(orders: Union[int, Sequence[int]], lo: Sequence[float], hi: Sequ
 
     The simplest system to test a network or a controller on: the admissible set of eq. (contraint_new_set) is
     ``|v| <= u_max``, known exactly, and any ReLU network on ``[z; v]`` may be handed to the controllers as an
-    approximation of it.
+    approximation of it (:func:`flnotes.certify_error` certifies its ``eps``: the system carries the interval version
+    of ``Phi``).
 
     Parameters
     ----------
@@ -366,8 +377,14 @@ def integrators(orders: Union[int, Sequence[int]], lo: Sequence[float], hi: Sequ
     def ident(x: Array) -> Array:
         return np.asarray(x, float).copy()
 
-    return FLSystem(name, A, B, phi=lambda z, v: v + 0.0 * z[:, :1], lo=lo, hi=hi, u_max=u_max, f=f,
-                    to_z=ident, to_x=ident)
+    def phi(z: Array, v: Array) -> Array:
+        return v + 0.0 * z[:, :1]
+
+    def phi_interval(z, v):  # Phi = v on flnotes.interval.Interval, for certifying eps (flnotes.error)
+        return v
+
+    return FLSystem(name, A, B, phi=phi, lo=lo, hi=hi, u_max=u_max, f=f, to_z=ident, to_x=ident,
+                    phi_interval=phi_interval)
 
 
 # --------------------------------------------------------------------------

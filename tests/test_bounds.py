@@ -151,6 +151,27 @@ def test_exact_preactivation_range_is_the_true_range_and_within_fbbt():
         fl.studies.exact_preactivation_range(net, lo, hi, neurons=[5])
 
 
+@pytest.mark.parametrize("seed", [0, 2])
+def test_exact_preactivation_range_of_a_deep_one_input_network_is_the_range_on_a_fine_grid(seed):
+    """One input, three hidden layers: a grid of 2,000,001 points is within ``reach`` (the Lipschitz constant times
+    half the spacing, a few 1e-6) of every point of the interval, so the exact range lies between the grid's range
+    and the grid's range widened by ``reach``; the samples of ``fl.sample_preactivations`` miss it by more (checked
+    here too, or the test could not tell the two apart). Seed 2 has a program where HiGHS, asked for a zero gap,
+    reports a round-off gap (1.65e-16) at its optimum."""
+    net = _random_net(1, (6, 5, 4), seed=seed)
+    lo, hi = np.array([-2.0]), np.array([3.0])
+    L, U = fl.studies.exact_preactivation_range(net, lo, hi)
+    x = np.linspace(lo[0], hi[0], 2_000_001)[:, None]
+    grid = net.preactivations(x)[-1]
+    reach = np.prod([np.linalg.norm(W_k, 2) for W_k in net.W[:-1]]) * 0.5 * (x[1, 0] - x[0, 0])
+    tol = 5e-7  # the solver's feasibility tolerance, on the scale of these pre-activations
+    assert np.all(U >= grid.max(0) - tol) and np.all(L <= grid.min(0) + tol), "not narrower than the grid's range"
+    assert np.all(U <= grid.max(0) + reach + tol) and np.all(L >= grid.min(0) - reach - tol), "nor wider by more"
+    sampled = fl.sample_preactivations(net, lo, hi)[-1]
+    assert np.max(np.r_[grid.max(0) - sampled.max(0), sampled.min(0) - grid.min(0)]) > 2 * tol, \
+        "premise: the samples' range is measurably narrower, so the first check would catch a sampled range"
+
+
 def test_slope_in_v_is_the_slope_of_the_piece():
     """Chapter 3's monotonicity check: Phi_NN = max(0, v) + 2 max(0, -v) + 0 z has slope 1 for v > 0, -2 for v < 0."""
     net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, 2.0]])], [np.zeros(2), np.zeros(1)])

@@ -42,6 +42,7 @@ from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
+import numpy as np
 import pytest
 import yaml
 
@@ -396,6 +397,19 @@ def _chrome(exe: str, profile: str, *args: str, timeout: int = 120) -> subproces
     return subprocess.run([exe, *flags, *args], capture_output=True, text=True, timeout=timeout)
 
 
+#: TeX that reached the page's visible text unconverted: inline ``$...$`` holding a command, or a command by itself
+#: (the text excludes code, scripts and MathJax's own output).
+_TEX_IN_TEXT = re.compile(r"\$[^$\n]*\\[A-Za-z]+[^$\n]*\$|\\(?:[A-Za-z]{2,})\b")
+
+
+def _colours(png: Path) -> int:
+    """Distinct colours in a screenshot (a page that drew nothing has one)."""
+    import matplotlib.image as mpimg
+
+    pixels = (mpimg.imread(png)[..., :3] * 255).astype(np.uint8).reshape(-1, 3)
+    return len(np.unique(pixels, axis=0))
+
+
 @pytest.mark.parametrize("page", CHAPTERS)
 def test_page_renders_in_chromium(page, chromium, server, html_dir):
     url = f"{server}/{page}.html"
@@ -413,10 +427,12 @@ def test_page_renders_in_chromium(page, chromium, server, html_dir):
         c = _Collector()
         c.feed(dom)
         text = "".join(c.text)
-        raw = re.findall(r"\$\$|\\\(|\\\[", text)
+        raw = re.findall(r"\$\$|\\\(|\\\[", text) + _TEX_IN_TEXT.findall(text)
         assert not raw, f"{page}: raw TeX left in the rendered text: {raw[:5]}"
         assert "<mjx-merror" not in dom, f"{page}: MathJax reported a TeX error"
+        assert 'mathcolor="red"' not in dom, f"{page}: MathJax drew a macro it does not know (in red)"
         assert shot.is_file() and shot.stat().st_size > 10_000, f"{page}: no screenshot written"
+        assert _colours(shot) >= 16, f"{page}: the screenshot is (nearly) one colour: nothing was drawn"
 
 
 # ----------------------------------------------------------------------------------

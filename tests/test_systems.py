@@ -107,6 +107,49 @@ def test_brunovsky_shapes(orders, n_z, m):
     assert np.linalg.matrix_rank(np.hstack([np.linalg.matrix_power(A, k) @ B for k in range(n_z)])) == n_z
     with pytest.raises(ValueError, match="orders"):
         fl.brunovsky([])
+    assert np.array_equal(fl.brunovsky(np.array(orders))[0], A)  # numpy integers are integers
+
+
+@pytest.mark.parametrize("orders", [2.5, [2.7], np.array([2.9]), True, "2", "21", None, {2}, [[2, 1]], float("nan"),
+                                    float("inf"), [2, 0], -1])
+def test_brunovsky_refuses_orders_that_are_not_positive_integers(orders):
+    """No silent truncation (2.5 is not a double integrator) and one message for every wrong kind."""
+    with pytest.raises(ValueError, match="orders must be a positive integer"):
+        fl.brunovsky(orders)
+
+
+def test_a_system_owns_its_arrays():
+    """The box, the bound and the Brunovsky pair are copied: editing the caller's arrays, or one system's,
+    changes no other system."""
+    lo, hi, u_max = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0]), np.array([1.0])
+    s1, s2 = fl.integrators(2, lo, hi, u_max), fl.integrators(2, lo, hi, u_max)
+    lo[2], u_max[0] = 5.0, -3.0
+    s1.hi[0] = 100.0
+    assert np.array_equal(s1.lo, [-1, -1, -1]) and np.array_equal(s2.hi, [1, 1, 1])
+    assert np.array_equal(s1.u_max, [1.0]) and np.array_equal(s2.u_max, [1.0])
+    A, B = fl.brunovsky(2)
+    s3 = fl.FLSystem("di", A, B, phi=lambda z, v: v, lo=[-1] * 3, hi=[1] * 3, u_max=1.0, f=lambda x, u: A @ x + B @ u,
+                     to_z=lambda x: x, to_x=lambda z: z)
+    A[0, 1] = 7.0
+    assert s3.A[0, 1] == 1.0
+
+
+def test_a_box_without_width_or_a_name_that_is_no_string_is_refused():
+    with pytest.raises(ValueError, match="positive width"):
+        fl.integrators(2, lo=[-1.0, -1.0, 0.0], hi=[1.0, 1.0, 0.0], u_max=1.0)
+    with pytest.raises(TypeError, match="name must be a string"):
+        fl.integrators(2, lo=[-1.0] * 3, hi=[1.0] * 3, u_max=1.0, name=None)
+
+
+def test_integrators_carry_phi_as_an_interval_function():
+    """certify_error needs no extra argument: the exactly-v network has error 0, a network off by a known amount
+    has that error, within the bracket."""
+    s = fl.integrators(1, [-1.0, -1.0], [1.0, 1.0], 1.0)
+    exact = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, -1.0]])], [np.zeros(2), np.zeros(1)])
+    assert fl.certify_error(s, exact, atol=1e-9).upper[0] <= 1e-9
+    off = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, -1.0]])], [np.zeros(2), np.array([0.25])])
+    br = fl.certify_error(s, off, atol=1e-9)
+    assert br.lower[0] - 1e-9 <= 0.25 <= br.upper[0] + 1e-9
 
 
 def _two_double_integrators():
