@@ -149,27 +149,45 @@ def test_exact_preactivation_range_is_the_true_range_and_within_fbbt():
     assert np.all(U <= grid.max(0) + reach + 1e-9) and np.all(L >= grid.min(0) - reach - 1e-9), "the range is attained"
     with pytest.raises(ValueError, match="neurons must be indices"):
         fl.studies.exact_preactivation_range(net, lo, hi, neurons=[5])
+    # every neuron stable on the box: the program is an LP (HiGHS reports no gap for it), its range still exact
+    stable = fl.ReLUNet([np.array([[1.0], [2.0]]), np.array([[1.0, 1.0]])], [np.zeros(2), np.zeros(1)])
+    for solver in ("HIGHS", "SCIP"):
+        L, U = fl.studies.exact_preactivation_range(stable, np.array([1.0]), np.array([3.0]), solver=solver)
+        assert np.allclose(L, [1.0, 2.0]) and np.allclose(U, [3.0, 6.0])
+
+
+def _knot_range(net, lo: float, hi: float):
+    """The range of every pre-activation of the last hidden layer of a one-input network over ``[lo, hi]``, without a
+    solver: it is piecewise affine in ``x``, with knots where a neuron of an earlier layer switches. Layer by layer,
+    each pre-activation is affine between the knots found so far, so its zeros there are new knots; the extremes lie
+    at the knots and the ends."""
+    knots = np.array([lo, hi], float)
+    for k in range(len(net.W) - 2):
+        pre = net.preactivations(knots[:, None])[k]
+        a, b = pre[:-1], pre[1:]
+        i, j = np.nonzero(a * b < 0)
+        knots = np.unique(np.r_[knots, knots[i] + (knots[i + 1] - knots[i]) * a[i, j] / (a[i, j] - b[i, j])])
+    last = net.preactivations(knots[:, None])[-1]
+    return last.min(0), last.max(0)
 
 
 @pytest.mark.parametrize("seed", [0, 2])
-def test_exact_preactivation_range_of_a_deep_one_input_network_is_the_range_on_a_fine_grid(seed):
-    """One input, three hidden layers: a grid of 2,000,001 points is within ``reach`` (the Lipschitz constant times
-    half the spacing, a few 1e-6) of every point of the interval, so the exact range lies between the grid's range
-    and the grid's range widened by ``reach``; the samples of ``fl.sample_preactivations`` miss it by more (checked
-    here too, or the test could not tell the two apart). Seed 2 has a program where HiGHS, asked for a zero gap,
-    reports a round-off gap (1.65e-16) at its optimum."""
+def test_exact_preactivation_range_of_a_deep_one_input_network_is_the_range_at_its_knots(seed):
+    """One input, three hidden layers: the range equals the one computed exactly at the knots (:func:`_knot_range`)
+    to 1e-9. Checked against the data too: a grid of 4,000,001 points lies inside the knots' range but misses it by
+    more than 1e-9, and so do the samples of ``fl.sample_preactivations``, so a range read off either would fail.
+    Seed 2 has a program where HiGHS, asked for a zero gap, reports a round-off gap (1.65e-16) at its optimum."""
     net = _random_net(1, (6, 5, 4), seed=seed)
-    lo, hi = np.array([-2.0]), np.array([3.0])
-    L, U = fl.studies.exact_preactivation_range(net, lo, hi)
-    x = np.linspace(lo[0], hi[0], 2_000_001)[:, None]
-    grid = net.preactivations(x)[-1]
-    reach = np.prod([np.linalg.norm(W_k, 2) for W_k in net.W[:-1]]) * 0.5 * (x[1, 0] - x[0, 0])
-    tol = 5e-7  # the solver's feasibility tolerance, on the scale of these pre-activations
-    assert np.all(U >= grid.max(0) - tol) and np.all(L <= grid.min(0) + tol), "not narrower than the grid's range"
-    assert np.all(U <= grid.max(0) + reach + tol) and np.all(L >= grid.min(0) - reach - tol), "nor wider by more"
-    sampled = fl.sample_preactivations(net, lo, hi)[-1]
-    assert np.max(np.r_[grid.max(0) - sampled.max(0), sampled.min(0) - grid.min(0)]) > 2 * tol, \
-        "premise: the samples' range is measurably narrower, so the first check would catch a sampled range"
+    lo, hi = -2.0, 3.0
+    L, U = fl.studies.exact_preactivation_range(net, np.array([lo]), np.array([hi]))
+    L_k, U_k = _knot_range(net, lo, hi)
+    tol = 1e-9
+    assert np.all(np.abs(U - U_k) <= tol) and np.all(np.abs(L - L_k) <= tol), (L - L_k, U - U_k)
+    grid = net.preactivations(np.linspace(lo, hi, 4_000_001)[:, None])[-1]
+    sampled = fl.sample_preactivations(net, np.array([lo]), np.array([hi]))[-1]
+    for pts in (grid, sampled):
+        assert np.all(pts.max(0) <= U_k + 1e-12) and np.all(pts.min(0) >= L_k - 1e-12), "the knots' range holds them"
+        assert np.max(np.r_[U_k - pts.max(0), pts.min(0) - L_k]) > 10 * tol, "premise: they miss the range"
 
 
 def test_slope_in_v_is_the_slope_of_the_piece():

@@ -397,9 +397,23 @@ def _chrome(exe: str, profile: str, *args: str, timeout: int = 120) -> subproces
     return subprocess.run([exe, *flags, *args], capture_output=True, text=True, timeout=timeout)
 
 
-#: TeX that reached the page's visible text unconverted: inline ``$...$`` holding a command, or a command by itself
-#: (the text excludes code, scripts and MathJax's own output).
-_TEX_IN_TEXT = re.compile(r"\$[^$\n]*\\[A-Za-z]+[^$\n]*\$|\\(?:[A-Za-z]{2,})\b")
+#: TeX commands of the book's math (Greek letters, operators, relations, fonts, environments): one of them in the
+#: page's visible text means TeX that was not converted. A list, not any backslash word, so that a Windows path or a
+#: regular expression in prose is no alarm.
+_TEX_COMMANDS = (
+    "alpha beta gamma delta epsilon varepsilon zeta eta theta vartheta iota kappa lambda mu nu xi pi rho sigma tau "
+    "upsilon phi varphi chi psi omega Gamma Delta Theta Lambda Xi Pi Sigma Upsilon Phi Psi Omega "
+    "frac dfrac tfrac sqrt sum prod int oint lim sup inf max min arg log exp sin cos tan "
+    "le leq ge geq ne neq approx sim equiv in notin subset subseteq supset cup cap setminus emptyset infty partial "
+    "nabla cdot cdots ldots dots times top mid forall exists to mapsto rightarrow leftarrow Rightarrow iff "
+    "mathbf mathcal mathrm mathbb mathit boldsymbol operatorname text textrm hat bar tilde dot ddot vec "
+    "underline overline underbrace overbrace left right big Big quad qquad begin end label ref eqref"
+).split()
+#: Unconverted TeX in the page's visible text (which excludes code, scripts and MathJax's own output): inline
+#: ``$...$`` holding one of the commands, or one of the commands by itself (also followed by ``_``, ``^``, a digit
+#: or a brace, as in ``\Phi_{NN}`` or ``\frac12``).
+_TEX_IN_TEXT = re.compile(r"\$[^$\n]*\\(?:%s)(?![A-Za-z])[^$\n]*\$|\\(?:%s)(?![A-Za-z])"
+                          % ("|".join(_TEX_COMMANDS), "|".join(_TEX_COMMANDS)))
 
 
 def _colours(png: Path) -> int:

@@ -331,8 +331,9 @@ def exact_preactivation_range(net, lo: Array, hi: Array, layer: int = -1,
                     raise RuntimeError(f"neuron {j}: SCIP returned {prob.status!r}, not a proved optimum")
             else:
                 prob.solve(solver="HIGHS", mip_rel_gap=0.0, mip_abs_gap=0.0)
-                gap = prob.solver_stats.extra_stats.mip_gap
-                if prob.status != "optimal" or not 0 <= gap <= ROUNDOFF_GAP:
+                # every neuron stable on the box: no binary is left and the program is an LP, proven without a gap
+                gap = prob.solver_stats.extra_stats.mip_gap if prob.is_mixed_integer() else 0.0
+                if prob.status != "optimal" or gap is None or not 0 <= gap <= ROUNDOFF_GAP:
                     raise RuntimeError(f"neuron {j}: HiGHS returned {prob.status!r} with gap {gap}, not a proved "
                                        "optimum")
             out[i] = sign * prob.value
