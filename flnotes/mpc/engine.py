@@ -72,16 +72,9 @@ TIGHTENED_QP_MIN_LEFT = 0.008
 BACKED = "; backed by the untightened round's bound (scip)"
 BACKED_PLAN = "; the untightened round's plan (scip) passes the forward-pass check and is optimal to the gap"
 
-#: Solver of the convex relaxation that recentres the level set after LP tightening: it must be the exact
-#: optimum (a perturbed one would shift the ellipsoid), so HiGHS's active-set QP, not DAQP's regularized one.
+#: Solver of the convex QP with the binaries fixed (:meth:`NetworkEngine._polish`): it must be the exact optimum, so
+#: HiGHS's active-set QP, not DAQP's regularized one.
 _RELAX = "highs"
-
-#: QP iterations the recentring relaxation of an LP-tightened round gets (HiGHS; its default limit is
-#: :func:`flnotes.solvers.highs.qp_iteration_limit`, thousands on these programs). Measured on the closed loops of
-#: the book's Quad-1D at N_p = 15 and 20 and of the VdP system: every recentring that changed the search finished
-#: within it (the same nodes with 500, 2000 and no cap), while those that ran into the default limit took 0.1 to
-#: 0.5 s each and gave no center. A relaxation stopped by the cap leaves the level set as it is (exact either way).
-RECENTER_QP_ITERATIONS = 500
 
 
 @dataclass(frozen=True, eq=False)
@@ -386,9 +379,6 @@ class NetworkEngine:
         if work:
             deadline = safety_deadline  # under a budget only the safety net stops the LPs (flagged where it does)
 
-        def limit_s() -> Optional[float]:  # what _lp_level reads: any limit (a work budget too) skips its recentring
-            return np.inf if work else remaining()
-
         delta = max(1e-3 * max(1.0, abs(J_c)), 1e-4) if level else np.inf
         if level and o.first_level == "incumbent":
             # the first level set holds the incumbent, hence the optimum; without an incumbent (no warm start, the
@@ -498,13 +488,11 @@ class NetworkEngine:
                             st_f = needed_steps(override, pred.u_eps, o.encode)
                             enc_f = (sorted(set(st_f) & active) if o.lazy else st_f) if st_f is not None else []
                             if st_f is not None and unstable_count(override, enc_f) > LP_AUTO_BINARIES:
-                                empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, enc_f,
-                                                                         deadline, limit_s())
+                                empty, lo, hi, override = self._lp_level(lo, hi, enc_f, deadline)
                                 lp_done = set(enc_f)
                                 st["lp_rounds"] += 1
                         elif not empty and o.lp:
-                            empty, lo, hi, override = self._lp_level(z0, f, c0, V_c, J_c, J_up, lo, hi, None,
-                                                                     deadline, limit_s())
+                            empty, lo, hi, override = self._lp_level(lo, hi, None, deadline)
                             st["lp_rounds"] += 1
                     except DeadlineReached:
                         st["safety"] = work
@@ -801,39 +789,31 @@ class NetworkEngine:
         r.message = f"{res.message}; re-solved with the pattern fixed under the tightened bound (HiGHS QP)"
         return r
 
-    def _lp_level(self, z0: Array, f: Array, c0: float, V_c: Array, J_c: float, J_up: float, lo: Array,
-                  hi: Array, lp_steps=None, deadline: Optional[float] = None, time_limit: Optional[float] = None
+    def _lp_level(self, lo: Array, hi: Array, lp_steps=None, deadline: Optional[float] = None
                   ) -> tuple[bool, Array, Array, Optional[NodeBounds]]:
-        """LP bounds on the level-set boxes, their relaxation as a better center, FBBT again.
+        """LP bounds on the level-set boxes ``lo``, ``hi``, and FBBT again.
 
         ``lp=True``: every needed step is LP-tightened; ``lp="auto"`` (a large round): ``lp_steps``, the steps
-        encoded first (:meth:`_lp_steps` adds the ones constraint generation brings in). Under a time limit no LP
-        starts after ``deadline`` (:class:`flnotes.tightening.DeadlineReached`), and the level set is not
-        recentered: that relaxation is a QP solved by HiGHS, which was measured to overrun its time limit by
-        tens of ms.
+        encoded first (:meth:`_lp_steps` adds the ones constraint generation brings in). No LP starts after
+        ``deadline`` (:class:`flnotes.tightening.DeadlineReached`).
         Returns ``(empty, lo, hi, node bounds to use or None)``.
+
+        The round keeps its level-set boxes. Earlier versions first solved the round's convex relaxation (the big-M
+        program with the LP node bounds, HiGHS's QP, at most 500 iterations) and, where it cost more than the first
+        QP, centred the level set's ellipsoid there. Measured with and without it (whole MPC steps, CPU time, two
+        passes in alternating order, the same verdicts and optima): the MSD's cold states
+        (:func:`flnotes.bench.msd_realtime.cold_states`, 40 of each of the seeds 1 and 2, 24 of seed 3) took 18 % and
+        17 % less time without it; there the relaxation (about 500 variables and 1,100 rows) took 65 to 85 ms and
+        ran into its cap in 10 of 18 rounds (seed 1), while the LP node bounds, read from the network's atlas, took
+        about 1 ms. The book's Quad-1D loop took 8 % less at N_p = 15 and 5 % more at N_p = 20; the closed loops and
+        20 cold states each of the five systems not in the book (:mod:`flnotes.studies.unseen`) were within 6 %
+        either way, less than a setting's own two passes differed.
         """
         pred, o = self.pred, self.opts
         nb_lp = node_bounds(pred, o, self.box, lo, hi, steps=lp_steps, use_lp=True, deadline=deadline,
                             cache=self.cache, atlas=self.atlas)
-        if nb_lp is None:
+        if nb_lp is None or needed_steps(nb_lp, pred.u_eps, o.encode) is None:
             return True, lo, hi, None
-        steps = needed_steps(nb_lp, pred.u_eps, o.encode)
-        if steps is None:
-            return True, lo, hi, None
-        if steps and time_limit is None:  # the relaxation (HiGHS) does not stop at a time limit: no recentering then
-            prob = compact_program(pred, z0, f, c0, nb_lp, steps, pred.u_eps - self.margin,
-                                   eliminate_stable=o.eliminate_stable, lo=lo, hi=hi)
-            rr = make_solver(MIQP(prob.H, prob.c, prob.c0, prob.A, prob.rl, prob.ru, prob.lb, prob.ub,
-                                  np.zeros(prob.n, dtype=int)), _RELAX,
-                             params={"qp_iteration_limit": RECENTER_QP_ITERATIONS}).solve()
-            if rr.status == "infeasible" or (rr.status == "optimal" and rr.objective > J_up):
-                return True, lo, hi, None
-            if rr.status == "optimal" and rr.objective > J_c:
-                lo, hi = pred.level_boxes(z0, rr.w[: pred.N * pred.m], max(J_up - rr.objective, 0.0), lo, hi)
-                if np.any(lo > hi + 1e-12):
-                    return True, lo, hi, None
-                hi = np.maximum(hi, lo)
         nb_f = fbbt(pred.net, lo, hi)
         both = intersect(nb_f, nb_lp, method="lp")
         both.out_L, both.out_U = nb_f.out_L, nb_f.out_U  # FBBT's: valid on the whole box
