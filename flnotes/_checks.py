@@ -6,9 +6,24 @@ from typing import Any, Optional
 import numpy as np
 
 
+#: Kinds of numpy arrays (``dtype.kind``) that :func:`_floats` refuses although numpy would convert them to floats:
+#: booleans, strings and bytes, complex numbers (numpy drops the imaginary part), dates and time spans.
+_NOT_REAL = {"b": "booleans", "U": "strings", "S": "bytes", "c": "complex numbers", "M": "dates",
+             "m": "time spans"}
+
+
 def _floats(x: Any, name: str) -> np.ndarray:
+    """``x`` as a float array; real numbers only (``True``, ``"1"`` or ``1j`` are refused, not converted)."""
     try:
-        return np.asarray(x, float)
+        raw = np.asarray(x)
+        kind = raw.dtype.kind
+        if kind == "O" or isinstance(x, (list, tuple)):  # Python objects (numpy turns [1, True] into integers)
+            items = np.asarray(x, dtype=object).reshape(-1).tolist()
+            bad = [e for e in items if isinstance(e, (bool, np.bool_, str, bytes, complex))]
+            kind = {bool: "b", np.bool_: "b", str: "U", bytes: "S", complex: "c"}[type(bad[0])] if bad else kind
+        if kind in _NOT_REAL:
+            raise TypeError(f"it holds {_NOT_REAL[kind]}")
+        return np.asarray(raw, float)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({exc})") from None
 

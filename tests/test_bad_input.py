@@ -348,6 +348,22 @@ def test_simulate_bad_arguments(msd, kw, exc, match):
         fl.simulate(**args)
 
 
+@pytest.mark.parametrize("bad, what", [(True, "booleans"), ("5", "strings"), ([5.0, True], "booleans"),
+                                       ((5.0, "1"), "strings"), (np.array(["5"]), "strings"), (5 + 0j, "complex"),
+                                       ([5.0, 1j], "complex"), (np.datetime64("2020"), "dates")])
+def test_numbers_are_never_read_from_booleans_strings_or_complex_numbers(msd, bad, what):
+    """numpy turns ``True``, ``"5"``, ``[5.0, True]`` and ``5 + 0j`` into floats without a word; the package's
+    checks refuse them and name the argument (here the bound of a system, the MPC's eps and a start state)."""
+    sysm, net = msd
+    with pytest.raises(ValueError, match=f"u_max must be numbers .*{what}"):
+        fl.integrators([1], [-1.0, -1.0], [1.0, 1.0], bad)
+    with pytest.raises(ValueError, match=f"eps must be numbers .*{what}"):
+        fl.MPC(sysm, net, bad, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1)
+    with pytest.raises(ValueError, match=f"z0 must be numbers .*{what}"):
+        fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=0.1, z0=bad)
+    assert fl.integrators([1], [-1.0, -1.0], [1.0, 1.0], [np.float32(5)]).u_max[0] == 5.0  # numbers of any kind pass
+
+
 @pytest.mark.parametrize("field, match", [("phi", "phi must be a function"), ("f", "f must be a function"),
                                           ("to_z", "to_z must be a function"),
                                           ("phi_interval", "phi_interval must be a function")])
