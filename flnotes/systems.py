@@ -36,8 +36,13 @@ def brunovsky(orders: Union[int, Sequence[int]]) -> tuple[Array, Array]:
         ``n_z = sum(orders)`` and ``m = len(orders)`` such that each chain reads
         ``z_1' = z_2, ..., z_r' = v``.
     """
-    items = [orders] if np.ndim(orders) == 0 else list(orders) if np.ndim(orders) == 1 else None
-    if not items or any(isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or r < 1
+    try:
+        nd = np.ndim(orders)
+    except ValueError:  # ragged nesting: numpy cannot tell its depth
+        nd = None
+    items = [orders] if nd == 0 else list(orders) if nd == 1 else None
+    items = [r.item() if isinstance(r, np.ndarray) else r for r in items or ()]  # a 0-d array is its number
+    if not items or any(isinstance(r, (bool, np.bool_, np.timedelta64)) or not isinstance(r, (int, np.integer)) or r < 1
                         for r in items):
         raise ValueError("orders must be a positive integer or a non-empty sequence of positive integers (the "
                          f"length of each chain), got {orders!r}")

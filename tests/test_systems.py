@@ -108,10 +108,13 @@ def test_brunovsky_shapes(orders, n_z, m):
     with pytest.raises(ValueError, match="orders"):
         fl.brunovsky([])
     assert np.array_equal(fl.brunovsky(np.array(orders))[0], A)  # numpy integers are integers
+    if len(orders) == 1:
+        assert np.array_equal(fl.brunovsky(np.array(orders[0]))[0], A)  # and a 0-d integer array is one
 
 
 @pytest.mark.parametrize("orders", [2.5, [2.7], np.array([2.9]), True, "2", "21", None, {2}, [[2, 1]], float("nan"),
-                                    float("inf"), [2, 0], -1])
+                                    float("inf"), [2, 0], -1, [[2], [1, 2]], [2, [1, 2]], np.timedelta64(2),
+                                    [np.timedelta64(2)], np.array(True), np.array(2.0)])
 def test_brunovsky_refuses_orders_that_are_not_positive_integers(orders):
     """No silent truncation (2.5 is not a double integrator) and one message for every wrong kind."""
     with pytest.raises(ValueError, match="orders must be a positive integer"):
