@@ -1,31 +1,56 @@
 """Argument checks with messages that say what to change."""
 from __future__ import annotations
 
+import datetime
+import decimal
+import numbers
+import warnings
 from typing import Any, Optional
 
 import numpy as np
 
 
-#: Kinds of numpy arrays (``dtype.kind``) that :func:`_floats` refuses although numpy would convert them to floats:
+#: Kinds of numpy arrays (``dtype.kind``) that :func:`as_floats` refuses although numpy would convert them to floats:
 #: booleans, strings and bytes, complex numbers (numpy drops the imaginary part), dates and time spans.
 _NOT_REAL = {"b": "booleans", "U": "strings", "S": "bytes", "c": "complex numbers", "M": "dates",
-             "m": "time spans"}
+             "m": "time spans", "V": "raw bytes"}
+
+#: The same for single Python or numpy objects (inside a list, a tuple or an array of objects).
+_NOT_REAL_TYPES = ((bool, np.bool_), "booleans"), ((str, np.str_), "strings"), \
+    ((bytes, bytearray, memoryview, np.bytes_), "bytes"), ((complex, np.complexfloating), "complex numbers"), \
+    ((np.datetime64, datetime.date), "dates"), ((np.timedelta64, datetime.timedelta), "time spans")
 
 
-def _floats(x: Any, name: str) -> np.ndarray:
-    """``x`` as a float array; real numbers only (``True``, ``"1"`` or ``1j`` are refused, not converted)."""
+def _not_real(e: Any) -> Optional[str]:
+    """What ``e`` is when it is no real number of its own (:data:`_NOT_REAL_TYPES`), else ``None``."""
+    for types, what in _NOT_REAL_TYPES:
+        if isinstance(e, types):
+            return what
+    return None
+
+
+def as_floats(x: Any, name: str) -> np.ndarray:
+    """``x`` as a float array (any shape): real numbers only. Booleans, strings, bytes, complex numbers, dates and time
+    spans, which numpy would convert without a word (``True`` to 1, ``"1"`` to 1, ``1 + 2j`` to 1), are refused with a
+    ``ValueError`` naming ``name``; so is anything numpy cannot read as an array of numbers."""
     try:
-        raw = np.asarray(x)
-        kind = raw.dtype.kind
-        if kind == "O" or isinstance(x, (list, tuple)):  # Python objects (numpy turns [1, True] into integers)
-            items = np.asarray(x, dtype=object).reshape(-1).tolist()
-            bad = [e for e in items if isinstance(e, (bool, np.bool_, str, bytes, complex))]
-            kind = {bool: "b", np.bool_: "b", str: "U", bytes: "S", complex: "c"}[type(bad[0])] if bad else kind
-        if kind in _NOT_REAL:
-            raise TypeError(f"it holds {_NOT_REAL[kind]}")
-        return np.asarray(raw, float)
-    except (TypeError, ValueError) as exc:
+        what = _not_real(x)
+        if what is None:
+            raw = np.asarray(x)
+            what = _NOT_REAL.get(raw.dtype.kind)
+            if what is None and (raw.dtype.kind == "O" or not isinstance(x, np.ndarray)):
+                # Python objects (numpy turns [1, True] into integers): each must be a real number
+                what = next(filter(None, map(_not_real, np.asarray(x, dtype=object).reshape(-1).tolist())), None)
+        if what is not None:
+            raise TypeError(f"it holds {what}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", np.exceptions.ComplexWarning)
+            return np.asarray(x, float)
+    except (TypeError, ValueError, np.exceptions.ComplexWarning) as exc:
         raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({exc})") from None
+
+
+_floats = as_floats
 
 
 def as_vector(x: Any, n: int, name: str) -> np.ndarray:
@@ -83,9 +108,6 @@ def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what
     refused, not clipped."""
     dom_lo, dom_hi = np.asarray(dom_lo, float), np.asarray(dom_hi, float)
     m = dom_lo.shape[0]
-    for x, nm in ((lo, names[0]), (hi, names[1])):
-        if np.asarray(x).dtype.kind not in "biuf":
-            raise ValueError(f"{nm} must be numbers, got {x!r:.80}")
     lo_a, hi_a = as_vector(lo, m, names[0]).copy(), as_vector(hi, m, names[1]).copy()
     if np.any(lo_a >= hi_a):
         raise ValueError(f"{what} is empty or a point: need {names[0]} < {names[1]} (a box of positive width), got "
@@ -105,7 +127,7 @@ def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what
 
 def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
     """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given."""
-    lo_a, hi_a = np.asarray(lo, float), np.asarray(hi, float)
+    lo_a, hi_a = as_floats(lo, "lo"), as_floats(hi, "hi")
     batch = lo_a.ndim == 2
     lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
     if lo2.shape != hi2.shape or lo2.shape[1] != n:
@@ -120,7 +142,7 @@ def weight_matrix(W, n: int, name: str, definite: bool = False) -> np.ndarray:
 
     Symmetric positive semidefinite, or positive definite with ``definite=True``; else a ValueError naming ``name``.
     """
-    W = np.asarray(W, float)
+    W = as_floats(W, name)
     if W.ndim == 0:
         W = W * np.eye(n)
     elif W.ndim == 1:
@@ -144,7 +166,7 @@ def weight_matrix(W, n: int, name: str, definite: bool = False) -> np.ndarray:
 
 def horizon_reference(z_ref: Any, horizon: int, n_z: int) -> np.ndarray:
     """A predictive controller's reference ``z_ref(k)``, k = 0..N_p: shape (N_p + 1, n_z), or (n_z,) repeated."""
-    R = np.asarray(z_ref, float)
+    R = as_floats(z_ref, "z_ref")
     if R.shape == (n_z,):
         R = np.repeat(R[None], horizon + 1, axis=0)
     if R.shape != (horizon + 1, n_z):
@@ -157,6 +179,8 @@ def horizon_reference(z_ref: Any, horizon: int, n_z: int) -> np.ndarray:
 
 def check_int(x: Any, name: str, low: int, what: str) -> int:
     """``x`` as an int ``>= low`` (``ValueError`` naming ``name`` and ``what`` it counts otherwise; ``bool`` refused)."""
+    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iu":  # a 0-d integer array is its number
+        x = x.item()
     if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)) or x < low:
         raise ValueError(f"{name} must be an integer >= {low} ({what}), got {x!r}")
     return int(x)
@@ -167,7 +191,10 @@ def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = 
     """``x`` as a finite float ``>= low`` (``> low`` if ``strict``; ``None`` kept if ``none``), else ``ValueError``."""
     if x is None and none:
         return None
-    ok = not isinstance(x, (bool, np.bool_)) and isinstance(x, (int, float, np.integer, np.floating)) and np.isfinite(x)
+    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf":  # a 0-d real array is its number
+        x = x.item()
+    ok = (not isinstance(x, (bool, np.bool_)) and isinstance(x, (numbers.Real, decimal.Decimal))
+          and bool(np.isfinite(float(x))))
     if not ok or (x <= low if strict else x < low):
         raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low:g} ({what})"
                          f"{' or None' if none else ''}, got {x!r}")

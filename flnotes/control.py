@@ -52,7 +52,7 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import as_vector, box_in_domain
+from ._checks import as_floats, as_vector, box_in_domain, check_bool, check_number
 from .bounds import NodeBounds, fbbt
 from .config import one_blas_thread
 from .network import ReLUNet
@@ -682,18 +682,19 @@ class ClfCbfController:
         self.V = as_certificate(V, "V")
         self.H = _cbf_list(H)
         self.k = k
-        if not (beta > 0 and kappa > 0):
-            raise ValueError(f"beta and kappa must be positive, got beta={beta!r}, kappa={kappa!r}")
-        self.beta, self.kappa = float(beta), float(kappa)
+        self.beta = check_number(beta, "beta", "the CLF's decay rate", strict=True)
+        self.kappa = check_number(kappa, "kappa", "the CBF's class-K gain", strict=True)
         self.v_lo, self.v_hi = box_in_domain(system.lo[n_z:] if v_lo is None else v_lo,
                                              system.hi[n_z:] if v_hi is None else v_hi,
                                              system.lo[n_z:], system.hi[n_z:], what="the v-box")
-        self.penalty = (float(penalty[0]), float(penalty[1]))
-        if not all(np.isfinite(w) and w > 0 for w in self.penalty):
+        pen = as_floats(penalty, "penalty")
+        if pen.shape != (2,) or not all(np.isfinite(w) and w > 0 for w in pen):
             raise ValueError(f"penalty = (rho_u, rho_H) must be two positive finite weights (a zero or negative weight "
                              f"makes a slack free in the softened program), got {penalty!r}")
-        self.time_limit, self.gap = time_limit, float(gap)
-        self.screening = bool(screening)
+        self.penalty = (float(pen[0]), float(pen[1]))
+        self.time_limit = check_number(time_limit, "time_limit", "seconds per step", strict=True, none=True)
+        self.gap = check_number(gap, "gap", "the relative optimality gap")
+        self.screening = check_bool(screening, "screening", "solve the program without the network constraint first")
         self.name = name or ("Lcost" if cost == "linear" else "Qcost")
         if backend not in CLF_CBF_BACKENDS:
             raise ValueError(f"backend must be one of {CLF_CBF_BACKENDS}, got {backend!r}")

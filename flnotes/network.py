@@ -17,7 +17,7 @@ from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
-from ._checks import as_batch, check_box
+from ._checks import as_batch, as_floats, check_box
 
 Array = np.ndarray
 
@@ -45,7 +45,7 @@ class ReLUNet:
         self.W: list[Array] = []
         self.b: list[Array] = []
         for k, (W, b) in enumerate(zip(weights, biases), start=1):
-            W, b = np.array(W, float, ndmin=2), np.array(b, float).reshape(-1)
+            W, b = np.array(as_floats(W, f"W^{k}"), ndmin=2), as_floats(b, f"b^{k}").reshape(-1)
             if W.shape[0] != b.shape[0]:
                 raise ValueError(f"layer {k}: W^{k} has {W.shape[0]} rows but b^{k} has {b.shape[0]} entries")
             if self.W and W.shape[1] != self.W[-1].shape[0]:

@@ -39,7 +39,7 @@ from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from ._checks import as_vector
+from ._checks import as_floats, as_vector
 from .errors import SolverFailure
 from .network import ReLUNet
 from .result import StepResult
@@ -66,7 +66,7 @@ class FeedbackLaw:
         self.k, self.name = k, name
 
     def __call__(self, z: Array) -> Array:
-        return np.atleast_1d(np.asarray(self.k(np.asarray(z, float)), float))
+        return np.atleast_1d(as_floats(self.k(np.asarray(z, float)), "the feedback law's v"))
 
     def step(self, z: Array, t: float, reference=None) -> StepResult:
         t0 = time.perf_counter()
@@ -221,7 +221,7 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
             _check_start(system, z_start, "z0")
         x = np.asarray(system.to_x(z_start), float).reshape(-1).copy()
     else:
-        x = np.asarray(x0, float).reshape(-1).copy()
+        x = as_floats(x0, "x0").reshape(-1).copy()
         if not np.all(np.isfinite(x)):
             raise ValueError(f"x0 contains NaN or inf: {x}")
         z_start = as_vector(system.to_z(x), system.n_z, f"to_z(x0) for x0 = {x}")
@@ -392,7 +392,7 @@ def _check_reference(reference, n_z: int, t_final: float, ts: float) -> None:
     for t, ok_shapes, what in ((0.0, [(n_z,), (1, n_z)], "t = 0.0"),
                                (times, [(T, n_z), (n_z,)], f"an array of {T} times")):
         try:
-            r = np.asarray(reference(t), float)
+            r = as_floats(reference(t), "the reference's z_ref")
         except Exception as exc:
             raise ValueError(f"reference must accept a time t and an array of times (T,) and return z_ref of shape "
                              f"(T, {n_z}); called on {what} it raised {type(exc).__name__}: {exc}") from exc

@@ -4,9 +4,12 @@ Every network here has explicit weights (no training), so no premise depends on 
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
+import datetime
 import importlib.util
 import math
+import re
 
 import cvxpy as cp
 import numpy as np
@@ -350,7 +353,11 @@ def test_simulate_bad_arguments(msd, kw, exc, match):
 
 @pytest.mark.parametrize("bad, what", [(True, "booleans"), ("5", "strings"), ([5.0, True], "booleans"),
                                        ((5.0, "1"), "strings"), (np.array(["5"]), "strings"), (5 + 0j, "complex"),
-                                       ([5.0, 1j], "complex"), (np.datetime64("2020"), "dates")])
+                                       ([5.0, 1j], "complex"), (np.datetime64("2020"), "dates"),
+                                       ([np.str_("5")], "strings"), ([np.complex128(5)], "complex"),
+                                       (bytearray(b"5"), "bytes"), (collections.deque([True, 5.0]), "booleans"),
+                                       (np.array([np.complex64(5 + 1j)], dtype=object), "complex"),
+                                       ([5.0, np.datetime64(1, "s")], "dates"), ([datetime.timedelta(1)], "time spans")])
 def test_numbers_are_never_read_from_booleans_strings_or_complex_numbers(msd, bad, what):
     """numpy turns ``True``, ``"5"``, ``[5.0, True]`` and ``5 + 0j`` into floats without a word; the package's
     checks refuse them and name the argument (here the bound of a system, the MPC's eps and a start state)."""
@@ -362,6 +369,34 @@ def test_numbers_are_never_read_from_booleans_strings_or_complex_numbers(msd, ba
     with pytest.raises(ValueError, match=f"z0 must be numbers .*{what}"):
         fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=0.1, z0=bad)
     assert fl.integrators([1], [-1.0, -1.0], [1.0, 1.0], [np.float32(5)]).u_max[0] == 5.0  # numbers of any kind pass
+
+
+@pytest.mark.parametrize("bad", [True, "1", 1j, [1.0, True]])
+def test_every_numeric_entry_point_refuses_what_is_no_real_number(msd, bad):
+    """The weights, the measured state and reference of a step, the CLF-CBF's gains, slack weights and limits, the
+    start of a simulation and what a feedback law returns, the boxes of the bound computations and the network's
+    weights: each refuses a boolean, a string or a complex number with a message that names it."""
+    sysm, net = msd
+    kw = dict(horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1)
+    two = bad if np.ndim(bad) == 1 else [bad, 0.0]  # the value in a vector of two
+    one = bad[-1] if np.ndim(bad) == 1 else bad  # a value on its own (True of [1.0, True])
+    mpc = fl.MPC(sysm, net, 0.5, **kw)
+    V, H = fl.QuadraticCLF(np.eye(2)), fl.DistanceCBF([3.0, 0.0], 0.5)
+    calls = {"Q": lambda: fl.MPC(sysm, net, 0.5, **{**kw, "Q": bad}),
+             "R": lambda: fl.MPC(sysm, net, 0.5, **{**kw, "R": bad}),
+             "z": lambda: mpc(two, np.zeros(2)),
+             "z_ref": lambda: mpc(np.zeros(2), two),
+             "beta": lambda: fl.ClfCbfController(sysm, net, 0.5, V, H, beta=bad),
+             "penalty": lambda: fl.ClfCbfController(sysm, net, 0.5, V, H, penalty=(1e6, bad)),
+             "gap": lambda: fl.ClfCbfController(sysm, net, 0.5, V, H, gap=bad),
+             "time_limit": lambda: fl.ClfCbfController(sysm, net, 0.5, V, H, time_limit=bad),
+             "x0": lambda: fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.2, ts=0.1, z0=None, x0=two),
+             "the feedback law's v": lambda: fl.simulate(sysm, lambda z: bad, t_final=0.2, ts=0.1, z0=[0.0, 0.0]),
+             "lo": lambda: fl.fbbt(net, [one, -1.0, -1.0], [1.0, 1.0, 1.0]),
+             "W^1": lambda: fl.ReLUNet([[[one]], [[1.0]]], [[0.0], [0.0]])}
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=re.escape(name) + " must be"):
+            call()
 
 
 @pytest.mark.parametrize("field, match", [("phi", "phi must be a function"), ("f", "f must be a function"),

@@ -17,7 +17,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
+from .._checks import as_floats, as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
 from ..bounds import fbbt
 from ..atlas import BoundAtlas, check_atlas, shipped_atlas
 from ..enclosure import AffineEnclosure, affine_enclosure, check_enclosure
@@ -702,7 +702,7 @@ class MPC:
 
     # ------------------------------------------------------------------ checks
     def _check_z(self, z) -> Array:
-        z = np.asarray(z, float)
+        z = as_floats(z, "z")
         if z.shape != (self.n_z,):
             raise ValueError(f"z must be the measured state of shape ({self.n_z},), got shape {z.shape}")
         if not np.all(np.isfinite(z)):
