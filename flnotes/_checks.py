@@ -1,6 +1,7 @@
 """Argument checks with messages that say what to change."""
 from __future__ import annotations
 
+import collections.abc
 import datetime
 import decimal
 import numbers
@@ -21,10 +22,27 @@ _NOT_REAL_TYPES = ((bool, np.bool_), "booleans"), ((str, np.str_), "strings"), \
     ((np.datetime64, datetime.date), "dates"), ((np.timedelta64, datetime.timedelta), "time spans")
 
 
-def _not_real(e: Any) -> Optional[str]:
-    """What ``e`` is when it is no real number of its own (:data:`_NOT_REAL_TYPES`), else ``None``."""
+def _not_real(e: Any, depth: int = 0) -> Optional[str]:
+    """What ``e`` holds that is no real number (:data:`_NOT_REAL_TYPES`, :data:`_NOT_REAL`), looked for in ``e``
+    itself, in a numpy array's type and, in arrays of objects and Python sequences, in every element at every level
+    (numpy reads ``[np.array(True), 1.0]`` or ``[bytearray(b"1")]`` as numbers); ``None`` when it holds none."""
     for types, what in _NOT_REAL_TYPES:
         if isinstance(e, types):
+            return what
+    if depth > 32:  # deeper than any array of numbers: numpy decides
+        return None
+    if isinstance(e, np.ndarray):
+        what = _NOT_REAL.get(e.dtype.kind)
+        if what is not None or e.dtype.kind != "O":
+            return what
+        items = e.reshape(-1).tolist() if e.ndim else [e.item()]
+    elif isinstance(e, (collections.abc.Sequence, collections.abc.Set)):
+        items = e
+    else:
+        return None
+    for item in items:
+        what = _not_real(item, depth + 1)
+        if what is not None:
             return what
     return None
 
@@ -35,18 +53,14 @@ def as_floats(x: Any, name: str) -> np.ndarray:
     ``ValueError`` naming ``name``; so is anything numpy cannot read as an array of numbers."""
     try:
         what = _not_real(x)
-        if what is None:
-            raw = np.asarray(x)
-            what = _NOT_REAL.get(raw.dtype.kind)
-            if what is None and (raw.dtype.kind == "O" or not isinstance(x, np.ndarray)):
-                # Python objects (numpy turns [1, True] into integers): each must be a real number
-                what = next(filter(None, map(_not_real, np.asarray(x, dtype=object).reshape(-1).tolist())), None)
         if what is not None:
             raise TypeError(f"it holds {what}")
         with warnings.catch_warnings():
             warnings.simplefilter("error", np.exceptions.ComplexWarning)
+            warnings.simplefilter("error", RuntimeWarning)  # e.g. a long double beyond the float range
             return np.asarray(x, float)
-    except (TypeError, ValueError, np.exceptions.ComplexWarning) as exc:
+    except (TypeError, ValueError, OverflowError, RecursionError, np.exceptions.ComplexWarning,
+            RuntimeWarning) as exc:
         raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({exc})") from None
 
 
@@ -181,7 +195,7 @@ def check_int(x: Any, name: str, low: int, what: str) -> int:
     """``x`` as an int ``>= low`` (``ValueError`` naming ``name`` and ``what`` it counts otherwise; ``bool`` refused)."""
     if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iu":  # a 0-d integer array is its number
         x = x.item()
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)) or x < low:
+    if isinstance(x, (bool, np.bool_, np.timedelta64)) or not isinstance(x, (int, np.integer)) or x < low:
         raise ValueError(f"{name} must be an integer >= {low} ({what}), got {x!r}")
     return int(x)
 
@@ -193,12 +207,17 @@ def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = 
         return None
     if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf":  # a 0-d real array is its number
         x = x.item()
-    ok = (not isinstance(x, (bool, np.bool_)) and isinstance(x, (numbers.Real, decimal.Decimal))
-          and bool(np.isfinite(float(x))))
-    if not ok or (x <= low if strict else x < low):
+    v = np.nan  # the value as a float, compared with low (Fraction(1, 10**400) is 0.0 > 0: refused where strict)
+    if not isinstance(x, (bool, np.bool_, np.timedelta64, np.datetime64)) and isinstance(x, (numbers.Real,
+                                                                                           decimal.Decimal)):
+        try:
+            v = float(x)
+        except (OverflowError, ValueError, TypeError):  # beyond the float range, a signalling NaN
+            v = np.nan
+    if not np.isfinite(v) or (v <= low if strict else v < low):
         raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low:g} ({what})"
-                         f"{' or None' if none else ''}, got {x!r}")
-    return float(x)
+                         f"{' or None' if none else ''}, got {x!r:.80}")
+    return float(v)
 
 
 def check_bool(x: Any, name: str, what: str) -> bool:

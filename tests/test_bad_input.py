@@ -9,6 +9,8 @@ import dataclasses
 import datetime
 import importlib.util
 import math
+from decimal import Decimal
+from fractions import Fraction
 import re
 
 import cvxpy as cp
@@ -357,7 +359,10 @@ def test_simulate_bad_arguments(msd, kw, exc, match):
                                        ([np.str_("5")], "strings"), ([np.complex128(5)], "complex"),
                                        (bytearray(b"5"), "bytes"), (collections.deque([True, 5.0]), "booleans"),
                                        (np.array([np.complex64(5 + 1j)], dtype=object), "complex"),
-                                       ([5.0, np.datetime64(1, "s")], "dates"), ([datetime.timedelta(1)], "time spans")])
+                                       ([5.0, np.datetime64(1, "s")], "dates"), ([datetime.timedelta(1)], "time spans"),
+                                       ([np.array(True)], "booleans"), ([bytearray(b"5")], "bytes"),
+                                       (np.array([np.array("5")], dtype=object), "strings"),
+                                       ([10 ** 400], "too large"), (np.longdouble("1e400"), "overflow")])
 def test_numbers_are_never_read_from_booleans_strings_or_complex_numbers(msd, bad, what):
     """numpy turns ``True``, ``"5"``, ``[5.0, True]`` and ``5 + 0j`` into floats without a word; the package's
     checks refuse them and name the argument (here the bound of a system, the MPC's eps and a start state)."""
@@ -397,6 +402,20 @@ def test_every_numeric_entry_point_refuses_what_is_no_real_number(msd, bad):
     for name, call in calls.items():
         with pytest.raises(ValueError, match=re.escape(name) + " must be"):
             call()
+
+
+@pytest.mark.parametrize("bad", [10 ** 400, Fraction(1, 10 ** 400), Decimal("sNaN"), np.timedelta64(3), True, "1",
+                                 np.array([1.0])])
+def test_a_scalar_setting_is_a_finite_real_number_of_its_kind(msd, bad):
+    """A positive setting refuses numbers beyond the float range, a positive number that is 0.0 as a float, a
+    signalling NaN, a time span, a boolean, a string and an array, naming the setting; any finite real number of
+    another type (a Fraction, a Decimal, a 0-d array) is that number."""
+    sysm, net = msd
+    V, H = fl.QuadraticCLF(np.eye(2)), fl.DistanceCBF([3.0, 0.0], 0.5)
+    with pytest.raises(ValueError, match="beta must be a finite number > 0"):
+        fl.ClfCbfController(sysm, net, 0.5, V, H, beta=bad)
+    for good in (Fraction(1, 1000), Decimal("0.001"), np.array(0.001), np.float32(0.001)):
+        assert fl.ClfCbfController(sysm, net, 0.5, V, H, beta=good).beta == float(good)
 
 
 @pytest.mark.parametrize("field, match", [("phi", "phi must be a function"), ("f", "f must be a function"),
