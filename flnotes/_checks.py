@@ -1,7 +1,7 @@
 """Argument checks with messages that say what to change."""
 from __future__ import annotations
 
-import collections.abc
+import collections
 import datetime
 import decimal
 import numbers
@@ -12,56 +12,91 @@ import numpy as np
 
 
 #: Kinds of numpy arrays (``dtype.kind``) that :func:`as_floats` refuses although numpy would convert them to floats:
-#: booleans, strings and bytes, complex numbers (numpy drops the imaginary part), dates and time spans.
-_NOT_REAL = {"b": "booleans", "U": "strings", "S": "bytes", "c": "complex numbers", "M": "dates",
-             "m": "time spans", "V": "raw bytes"}
+#: booleans, strings and bytes, complex numbers (numpy drops the imaginary part), dates and time spans, records.
+_NOT_REAL = {"b": "booleans", "U": "strings", "T": "strings", "S": "bytes", "c": "complex numbers", "M": "dates",
+             "m": "time spans", "V": "records or raw bytes"}
 
-#: The same for single Python or numpy objects (inside a list, a tuple or an array of objects).
-_NOT_REAL_TYPES = ((bool, np.bool_), "booleans"), ((str, np.str_), "strings"), \
-    ((bytes, bytearray, memoryview, np.bytes_), "bytes"), ((complex, np.complexfloating), "complex numbers"), \
-    ((np.datetime64, datetime.date), "dates"), ((np.timedelta64, datetime.timedelta), "time spans")
+#: The same for single Python or numpy objects (the elements of an array of objects).
+_NOT_REAL_TYPES = (((bool, np.bool_), "booleans"), ((str, np.str_), "strings"),
+                   ((bytes, bytearray, memoryview, np.bytes_), "bytes"), ((complex, np.complexfloating), "complex numbers"),
+                   ((np.datetime64, datetime.date), "dates"), ((np.timedelta64, datetime.timedelta), "time spans"),
+                   (type(None), "None (a missing value)"))
 
 
-def _not_real(e: Any, depth: int = 0) -> Optional[str]:
-    """What ``e`` holds that is no real number (:data:`_NOT_REAL_TYPES`, :data:`_NOT_REAL`), looked for in ``e``
-    itself, in a numpy array's type and, in arrays of objects and Python sequences, in every element at every level
-    (numpy reads ``[np.array(True), 1.0]`` or ``[bytearray(b"1")]`` as numbers); ``None`` when it holds none."""
-    for types, what in _NOT_REAL_TYPES:
-        if isinstance(e, types):
-            return what
-    if depth > 32:  # deeper than any array of numbers: numpy decides
-        return None
-    if isinstance(e, np.ndarray):
-        what = _NOT_REAL.get(e.dtype.kind)
-        if what is not None or e.dtype.kind != "O":
-            return what
-        items = e.reshape(-1).tolist() if e.ndim else [e.item()]
-    elif isinstance(e, (collections.abc.Sequence, collections.abc.Set)):
-        items = e
-    else:
-        return None
-    for item in items:
-        what = _not_real(item, depth + 1)
-        if what is not None:
+def _types_not_real(types: set) -> Optional[str]:
+    """What a value of one of ``types`` is when it is no real number (:data:`_NOT_REAL_TYPES`), else ``None``."""
+    for bad, what in _NOT_REAL_TYPES:
+        if any(issubclass(t, bad) for t in types):
             return what
     return None
 
 
+def _not_real(e: Any) -> Optional[str]:
+    """What the object ``e`` is when it is no real number (an array by its type, an array of objects by its elements),
+    else ``None``."""
+    if isinstance(e, np.ndarray):
+        return _NOT_REAL.get(e.dtype.kind) or (_objects_not_real(e.reshape(-1)) if e.dtype.kind == "O" else None)
+    return _types_not_real({type(e)})
+
+
+def _objects_not_real(items) -> Optional[str]:
+    """:func:`_not_real` over ``items`` (an iterable of objects): the types first (at C speed), then each array."""
+    items = list(items)
+    types = set(map(type, items))
+    what = _types_not_real(types)
+    if what is None and any(issubclass(t, np.ndarray) for t in types):
+        what = next(filter(None, (_not_real(e) for e in items if isinstance(e, np.ndarray))), None)
+    return what
+
+
+_SEQUENCES = (list, tuple, collections.deque)
+
+
+def _leaves(x, out: list, depth: int = 0) -> None:
+    """The leaves of the nested Python sequences ``x`` (lists, tuples, deques), appended to ``out``; numpy reads a
+    buffer or a 0-d array inside them as numbers, so they are looked at before numpy sees them."""
+    if depth > 64 or not any(isinstance(e, _SEQUENCES) for e in x):
+        out.extend(x)
+        return
+    for e in x:
+        if isinstance(e, _SEQUENCES):
+            _leaves(e, out, depth + 1)
+        else:
+            out.append(e)
+
+
 def as_floats(x: Any, name: str) -> np.ndarray:
-    """``x`` as a float array (any shape): real numbers only. Booleans, strings, bytes, complex numbers, dates and time
-    spans, which numpy would convert without a word (``True`` to 1, ``"1"`` to 1, ``1 + 2j`` to 1), are refused with a
-    ``ValueError`` naming ``name``; so is anything numpy cannot read as an array of numbers."""
+    """``x`` as a float array (any shape): real numbers only. Booleans, strings, bytes, complex numbers, dates, time
+    spans and ``None``, which numpy would convert without a word (``True`` to 1, ``"1"`` to 1, ``1 + 2j`` to 1,
+    ``None`` to NaN), are refused with a ``ValueError`` naming ``name``, also inside lists or arrays of objects; so is
+    anything numpy cannot read as an array of numbers, or only with a warning (e.g. beyond the float range).
+
+    An array is judged by its type (numpy's speed); an array of objects, nested Python lists, tuples and deques (where
+    numpy turns ``[1.0, True]`` into ``[1.0, 1.0]`` and ``[bytearray(b"1")]`` into ``[[49.0]]``) and other containers
+    numpy reads are judged by the types of their elements, at every depth, before or after numpy reads them."""
     try:
-        what = _not_real(x)
-        if what is not None:
-            raise TypeError(f"it holds {what}")
         with warnings.catch_warnings():
-            warnings.simplefilter("error", np.exceptions.ComplexWarning)
-            warnings.simplefilter("error", RuntimeWarning)  # e.g. a long double beyond the float range
-            return np.asarray(x, float)
-    except (TypeError, ValueError, OverflowError, RecursionError, np.exceptions.ComplexWarning,
-            RuntimeWarning) as exc:
-        raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({exc})") from None
+            warnings.simplefilter("error")  # a complex part dropped, an overflow: an error here
+            if isinstance(x, _SEQUENCES):
+                leaves: list = []
+                _leaves(x, leaves)
+                what = _objects_not_real(leaves)
+            else:
+                what = None if isinstance(x, np.ndarray) else _not_real(x)
+            if what is None:
+                raw = np.asarray(x)
+                what = _NOT_REAL.get(raw.dtype.kind)
+                if what is None and raw.dtype.kind == "O":
+                    what = _objects_not_real(raw.reshape(-1))
+                elif what is None and not isinstance(x, (np.ndarray, *_SEQUENCES)) and raw.ndim:
+                    # another container numpy reads (e.g. the sequence protocol): its elements, as objects
+                    what = _objects_not_real(np.asarray(x, dtype=object).reshape(-1))
+                if what is None:
+                    return np.asarray(raw, float)
+    except Exception as exc:  # numpy's errors, a warning, an element's own __float__: all say x is no array of numbers
+        raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({type(exc).__name__}: "
+                         f"{exc!s:.200})") from exc
+    raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} (it holds {what})")
 
 
 _floats = as_floats
@@ -205,7 +240,7 @@ def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = 
     """``x`` as a finite float ``>= low`` (``> low`` if ``strict``; ``None`` kept if ``none``), else ``ValueError``."""
     if x is None and none:
         return None
-    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf":  # a 0-d real array is its number
+    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iufO":  # a 0-d real array is its number
         x = x.item()
     v = np.nan  # the value as a float, compared with low (Fraction(1, 10**400) is 0.0 > 0: refused where strict)
     if not isinstance(x, (bool, np.bool_, np.timedelta64, np.datetime64)) and isinstance(x, (numbers.Real,

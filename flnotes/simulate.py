@@ -346,7 +346,7 @@ def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fall
                         f"lambda z: -K @ z")
     if hold not in ("v", "u"):
         raise ValueError(f"hold must be 'v' (hold v, u = Phi(z(t), v)) or 'u' (hold u), got {hold!r}")
-    if not all(isinstance(a, numbers.Real) and not isinstance(a, bool) for a in (ts, t_final)):
+    if not all(isinstance(a, numbers.Real) and not isinstance(a, (bool, np.bool_, np.timedelta64)) for a in (ts, t_final)):
         raise TypeError(f"ts and t_final must be numbers (seconds), got ts={ts!r}, t_final={t_final!r}")
     ts_f, tf_f = float(ts), float(t_final)
     if not (np.isfinite(ts_f) and ts_f > 0 and np.isfinite(tf_f) and tf_f >= ts_f):

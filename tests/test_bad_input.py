@@ -362,7 +362,10 @@ def test_simulate_bad_arguments(msd, kw, exc, match):
                                        ([5.0, np.datetime64(1, "s")], "dates"), ([datetime.timedelta(1)], "time spans"),
                                        ([np.array(True)], "booleans"), ([bytearray(b"5")], "bytes"),
                                        (np.array([np.array("5")], dtype=object), "strings"),
-                                       ([10 ** 400], "too large"), (np.longdouble("1e400"), "overflow")])
+                                       ([10 ** 400], "too large"), (np.longdouble("1e400"), "overflow"),
+                                       ([5.0, None], "None"), ([[[[[[[[[[[[True]]]]]]]]]]]], "booleans"),
+                                       (np.array(["5"], dtype=np.dtypes.StringDType()), "strings"),
+                                       (range(10 ** 12), "MemoryError")])
 def test_numbers_are_never_read_from_booleans_strings_or_complex_numbers(msd, bad, what):
     """numpy turns ``True``, ``"5"``, ``[5.0, True]`` and ``5 + 0j`` into floats without a word; the package's
     checks refuse them and name the argument (here the bound of a system, the MPC's eps and a start state)."""
@@ -416,6 +419,17 @@ def test_a_scalar_setting_is_a_finite_real_number_of_its_kind(msd, bad):
         fl.ClfCbfController(sysm, net, 0.5, V, H, beta=bad)
     for good in (Fraction(1, 1000), Decimal("0.001"), np.array(0.001), np.float32(0.001)):
         assert fl.ClfCbfController(sysm, net, 0.5, V, H, beta=good).beta == float(good)
+
+
+@pytest.mark.parametrize("key, match", [("ts", "ts must be"), ("time_limit", "time_limit must be"),
+                                        ("horizon", "horizon"), ("gap", "gap must be")])
+def test_the_mpc_settings_refuse_a_time_span(msd, key, match):
+    """numpy counts a time span as an integer: the MPC's sampling time, time limit, horizon and gap refuse it."""
+    sysm, net = msd
+    kw = dict(horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1)
+    with pytest.raises(ValueError, match=match):
+        fl.MPC(sysm, net, 0.5, **{**kw, key: np.timedelta64(1)})
+    assert fl.MPC(sysm, net, 0.5, **{**kw, "ts": Fraction(1, 10)}).ts == 0.1  # a Fraction is a number
 
 
 @pytest.mark.parametrize("field, match", [("phi", "phi must be a function"), ("f", "f must be a function"),

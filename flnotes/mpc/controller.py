@@ -399,16 +399,18 @@ class MPC:
         if net.n_in != system.n_in or net.n_out != system.m:
             raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but the system needs (z, v) in R^{system.n_in} "
                              f"-> u in R^{system.m}")
-        if isinstance(horizon, (bool, np.bool_)) or not isinstance(horizon, numbers.Real) or int(horizon) != horizon \
-                or horizon < 1:
+        if isinstance(horizon, (bool, np.bool_, np.timedelta64)) or not isinstance(horizon, numbers.Real) \
+                or int(horizon) != horizon or horizon < 1:
             raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
-        if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(time_limit, (int, float, np.number))
+        if time_limit is not None and (isinstance(time_limit, (bool, np.timedelta64))
+                                       or not isinstance(time_limit, (int, float, np.number))
                                        or not (np.isfinite(time_limit) and time_limit > 0)):
             raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
-        if (isinstance(gap, bool) or not isinstance(gap, (int, float, np.number))
+        if (isinstance(gap, (bool, np.timedelta64)) or not isinstance(gap, (int, float, np.number))
                 or not (np.isfinite(gap) and 0 <= gap < 1)):
             raise ValueError(f"gap must be a relative optimality gap in [0, 1) (e.g. 1e-6), got {gap!r}")
-        if isinstance(ts, (bool, np.bool_)) or not isinstance(ts, numbers.Real) or not (np.isfinite(ts) and ts > 0):
+        if isinstance(ts, (bool, np.bool_, np.timedelta64)) or not isinstance(ts, numbers.Real) \
+                or not (np.isfinite(float(ts)) and ts > 0):
             raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
         engine = o.constraint == "network" and not o.is_reference
         if cut_off is not None:
