@@ -4,6 +4,7 @@ from __future__ import annotations
 import collections
 import datetime
 import decimal
+import itertools
 import numbers
 import warnings
 from typing import Any, Optional
@@ -18,7 +19,7 @@ _NOT_REAL = {"b": "booleans", "U": "strings", "T": "strings", "S": "bytes", "c":
 
 #: The same for single Python or numpy objects (the elements of an array of objects).
 _NOT_REAL_TYPES = (((bool, np.bool_), "booleans"), ((str, np.str_), "strings"),
-                   ((bytes, bytearray, memoryview, np.bytes_), "bytes"), ((complex, np.complexfloating), "complex numbers"),
+                   ((bytes, bytearray, np.bytes_), "bytes"), ((complex, np.complexfloating), "complex numbers"),
                    ((np.datetime64, datetime.date), "dates"), ((np.timedelta64, datetime.timedelta), "time spans"),
                    (type(None), "None (a missing value)"))
 
@@ -52,17 +53,36 @@ def _objects_not_real(items) -> Optional[str]:
 _SEQUENCES = (list, tuple, collections.deque)
 
 
-def _leaves(x, out: list, depth: int = 0) -> None:
-    """The leaves of the nested Python sequences ``x`` (lists, tuples, deques), appended to ``out``; numpy reads a
-    buffer or a 0-d array inside them as numbers, so they are looked at before numpy sees them."""
-    if depth > 64 or not any(isinstance(e, _SEQUENCES) for e in x):
-        out.extend(x)
-        return
-    for e in x:
-        if isinstance(e, _SEQUENCES):
-            _leaves(e, out, depth + 1)
-        else:
-            out.append(e)
+def _sequence_not_real(x) -> Optional[str]:
+    """:func:`_not_real` over the leaves of the nested Python sequences ``x`` (lists, tuples, deques), read level by
+    level at C speed before numpy reads them: numpy reads a bytearray or a 0-d boolean array inside them as numbers."""
+    level, found = [x], set()
+    for _ in range(65):  # numpy reads at most 64 dimensions
+        items = list(itertools.chain.from_iterable(level))
+        types = set(map(type, items))
+        seq = {t for t in types if issubclass(t, _SEQUENCES)}
+        found |= types - seq
+        if any(issubclass(t, np.ndarray) for t in types):
+            what = next(filter(None, (_not_real(e) for e in items if isinstance(e, np.ndarray))), None)
+            if what is not None:
+                return what
+        if not seq:
+            break
+        level = items if seq == types else [e for e in items if isinstance(e, _SEQUENCES)]
+    return _types_not_real(found)
+
+
+def _reads_as_array(x) -> bool:
+    """Whether numpy reads ``x`` as an array of its own type (``__array__``, the array interface, a buffer), so that
+    the type of that array says what ``x`` holds; otherwise numpy reads it element by element (the sequence
+    protocol), and the elements are looked at."""
+    if any(hasattr(x, a) for a in ("__array__", "__array_interface__", "__array_struct__")):
+        return True
+    try:
+        memoryview(x)
+    except TypeError:
+        return False
+    return True
 
 
 def as_floats(x: Any, name: str) -> np.ndarray:
@@ -78,9 +98,7 @@ def as_floats(x: Any, name: str) -> np.ndarray:
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # a complex part dropped, an overflow: an error here
             if isinstance(x, _SEQUENCES):
-                leaves: list = []
-                _leaves(x, leaves)
-                what = _objects_not_real(leaves)
+                what = _sequence_not_real(x)
             else:
                 what = None if isinstance(x, np.ndarray) else _not_real(x)
             if what is None:
@@ -88,7 +106,7 @@ def as_floats(x: Any, name: str) -> np.ndarray:
                 what = _NOT_REAL.get(raw.dtype.kind)
                 if what is None and raw.dtype.kind == "O":
                     what = _objects_not_real(raw.reshape(-1))
-                elif what is None and not isinstance(x, (np.ndarray, *_SEQUENCES)) and raw.ndim:
+                elif what is None and not isinstance(x, _SEQUENCES) and raw.ndim and not _reads_as_array(x):
                     # another container numpy reads (e.g. the sequence protocol): its elements, as objects
                     what = _objects_not_real(np.asarray(x, dtype=object).reshape(-1))
                 if what is None:

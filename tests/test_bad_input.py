@@ -421,6 +421,28 @@ def test_a_scalar_setting_is_a_finite_real_number_of_its_kind(msd, bad):
         assert fl.ClfCbfController(sysm, net, 0.5, V, H, beta=good).beta == float(good)
 
 
+def test_numbers_in_any_container_numpy_reads_are_taken_as_they_are(msd):
+    """The check of numbers changes no real input: a buffer of floats, an array.array, an object with ``__array__``,
+    Fractions and Decimals, numpy scalars in a tuple give the network's and the bounds' results of the plain array."""
+    import array
+
+    class Wrapped:
+        def __init__(self, a):
+            self.a = a
+
+        def __array__(self, dtype=None, copy=None):
+            return np.asarray(self.a, dtype)
+
+    sysm, net = msd
+    X = np.array([0.3, -0.2, 1.5])
+    for x in (memoryview(X.copy()), Wrapped(X), array.array("d", X), [Fraction(3, 10), Decimal("-0.2"), 1.5],
+              tuple(np.float32(v) for v in (0.5, -0.25, 1.5)), np.asfortranarray(X[None])):
+        assert np.array_equal(net(x), net(np.asarray(x, float))), type(x)
+    lo, hi = np.array([-1.0, -1.0, -2.0]), np.array([1.0, 1.0, 2.0])
+    b = fl.fbbt(net, memoryview(lo.copy()), Wrapped(hi))
+    assert np.array_equal(b.out_L, fl.fbbt(net, lo, hi).out_L)
+
+
 @pytest.mark.parametrize("key, match", [("ts", "ts must be"), ("time_limit", "time_limit must be"),
                                         ("horizon", "horizon"), ("gap", "gap must be")])
 def test_the_mpc_settings_refuse_a_time_span(msd, key, match):
