@@ -6,6 +6,7 @@ import datetime
 import decimal
 import itertools
 import numbers
+import reprlib
 import warnings
 from typing import Any, Optional
 
@@ -32,9 +33,20 @@ def _types_not_real(types: set) -> Optional[str]:
     return None
 
 
+#: What a masked array with masked entries holds: numpy reads it without its mask (the hidden values, or NaN).
+_MASKED = "masked (missing) values"
+
+
+def _is_masked(e: Any) -> bool:
+    """Whether ``e`` is a masked array with at least one masked entry (``np.ma.masked`` included)."""
+    return isinstance(e, np.ma.MaskedArray) and bool(np.ma.is_masked(e))
+
+
 def _not_real(e: Any) -> Optional[str]:
     """What the object ``e`` is when it is no real number (an array by its type, an array of objects by its elements),
     else ``None``."""
+    if _is_masked(e):
+        return _MASKED
     if isinstance(e, np.ndarray):
         return _NOT_REAL.get(e.dtype.kind) or (_objects_not_real(e.reshape(-1)) if e.dtype.kind == "O" else None)
     return _types_not_real({type(e)})
@@ -48,6 +60,15 @@ def _objects_not_real(items) -> Optional[str]:
     if what is None and any(issubclass(t, np.ndarray) for t in types):
         what = next(filter(None, (_not_real(e) for e in items if isinstance(e, np.ndarray))), None)
     return what
+
+
+def _beyond_float(items) -> Optional[str]:
+    """Whether a finite number among ``items`` (the elements numpy turned into inf or NaN) lies beyond the float
+    range: a ``Decimal`` such as ``Decimal("1e400")`` becomes ``inf`` without a word (a Python int or a Fraction that
+    large raises)."""
+    if any(isinstance(e, decimal.Decimal) and e.is_finite() for e in items):
+        return "a number beyond the float range (too large)"
+    return None
 
 
 _SEQUENCES = (list, tuple, collections.deque)
@@ -85,11 +106,24 @@ def _reads_as_array(x) -> bool:
     return True
 
 
+_REPR = reprlib.Repr()
+_REPR.maxother = _REPR.maxstring = 80
+
+
+def brief(x: Any) -> str:
+    """A short one-line ``repr`` of ``x`` for a message (long containers and strings cut, whitespace folded)."""
+    try:
+        return " ".join(_REPR.repr(x).split())
+    except Exception:  # noqa: BLE001 - an object whose repr fails is still named by its type
+        return f"<{type(x).__name__}>"
+
+
 def as_floats(x: Any, name: str) -> np.ndarray:
     """``x`` as a float array (any shape): real numbers only. Booleans, strings, bytes, complex numbers, dates, time
-    spans and ``None``, which numpy would convert without a word (``True`` to 1, ``"1"`` to 1, ``1 + 2j`` to 1,
-    ``None`` to NaN), are refused with a ``ValueError`` naming ``name``, also inside lists or arrays of objects; so is
-    anything numpy cannot read as an array of numbers, or only with a warning (e.g. beyond the float range).
+    spans, ``None`` and masked entries, which numpy would convert without a word (``True`` to 1, ``"1"`` to 1,
+    ``1 + 2j`` to 1, ``None`` to NaN, a masked entry to the value it hides), are refused with a ``ValueError`` naming
+    ``name``, also inside lists or arrays of objects; so is anything numpy cannot read as an array of numbers, or only
+    with a warning (e.g. beyond the float range).
 
     An array is judged by its type (numpy's speed); an array of objects, nested Python lists, tuples and deques (where
     numpy turns ``[1.0, True]`` into ``[1.0, 1.0]`` and ``[bytearray(b"1")]`` into ``[[49.0]]``) and other containers
@@ -100,7 +134,7 @@ def as_floats(x: Any, name: str) -> np.ndarray:
             if isinstance(x, _SEQUENCES):
                 what = _sequence_not_real(x)
             else:
-                what = None if isinstance(x, np.ndarray) else _not_real(x)
+                what = (_MASKED if _is_masked(x) else None) if isinstance(x, np.ndarray) else _not_real(x)
             if what is None:
                 raw = np.asarray(x)
                 what = _NOT_REAL.get(raw.dtype.kind)
@@ -110,11 +144,15 @@ def as_floats(x: Any, name: str) -> np.ndarray:
                     # another container numpy reads (e.g. the sequence protocol): its elements, as objects
                     what = _objects_not_real(np.asarray(x, dtype=object).reshape(-1))
                 if what is None:
-                    return np.asarray(raw, float)
+                    out = np.asarray(raw, float)
+                    if raw.dtype.kind == "O" and not np.all(np.isfinite(out)):
+                        what = _beyond_float(raw.reshape(-1)[~np.isfinite(out.reshape(-1))])
+                    if what is None:
+                        return out
     except Exception as exc:  # numpy's errors, a warning, an element's own __float__: all say x is no array of numbers
-        raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} ({type(exc).__name__}: "
+        raise ValueError(f"{name} must be numbers (an array of floats), got {brief(x)} ({type(exc).__name__}: "
                          f"{exc!s:.200})") from exc
-    raise ValueError(f"{name} must be numbers (an array of floats), got {x!r:.80} (it holds {what})")
+    raise ValueError(f"{name} must be numbers (an array of floats), got {brief(x)} (it holds {what})")
 
 
 _floats = as_floats
@@ -160,7 +198,7 @@ def as_pair(box: Any, name: str) -> tuple[Any, Any]:
     """``box`` as its two parts ``(lo, hi)``: a tuple, list or array of length 2. Anything else (a third part, a
     single part, a string, a dict or a set) is an error."""
     if not isinstance(box, (tuple, list, np.ndarray)) or len(box) != 2:
-        raise ValueError(f"{name} must be a pair (lo, hi) (a tuple, list or array of length 2), got {box!r:.80}")
+        raise ValueError(f"{name} must be a pair (lo, hi) (a tuple, list or array of length 2), got {brief(box)}")
     return box[0], box[1]
 
 
@@ -253,13 +291,22 @@ def check_int(x: Any, name: str, low: int, what: str) -> int:
     return int(x)
 
 
+def check_count(x: Any, name: str, low: int, what: str) -> int:
+    """``x`` as an int ``>= low``, given as any real number that is an integer (``3``, ``3.0``, ``Decimal(3)``, a 0-d
+    array), else ``ValueError`` naming ``name`` (a boolean, a time span, ``2.5`` refused)."""
+    v = check_number(x, name, f"{what}, an integer", low=low)
+    if v != int(v):
+        raise ValueError(f"{name} must be an integer >= {low} ({what}), got {brief(x)}")
+    return int(v)
+
+
 def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = False,
                  none: bool = False) -> Optional[float]:
     """``x`` as a finite float ``>= low`` (``> low`` if ``strict``; ``None`` kept if ``none``), else ``ValueError``."""
     if x is None and none:
         return None
-    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iufO":  # a 0-d real array is its number
-        x = x.item()
+    if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iufO" and not _is_masked(x):
+        x = x.item()  # a 0-d real array is its number
     v = np.nan  # the value as a float, compared with low (Fraction(1, 10**400) is 0.0 > 0: refused where strict)
     if not isinstance(x, (bool, np.bool_, np.timedelta64, np.datetime64)) and isinstance(x, (numbers.Real,
                                                                                            decimal.Decimal)):
@@ -269,7 +316,7 @@ def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = 
             v = np.nan
     if not np.isfinite(v) or (v <= low if strict else v < low):
         raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low:g} ({what})"
-                         f"{' or None' if none else ''}, got {x!r:.80}")
+                         f"{' or None' if none else ''}, got {brief(x)}")
     return float(v)
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._checks import check_box, check_boxes
+from ._checks import as_floats, check_box, check_boxes
 from .network import ReLUNet
 
 Array = np.ndarray
@@ -105,14 +105,17 @@ def interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = True
     return L - err, U + err
 
 
-def _check_net_box(net: ReLUNet, lo, hi) -> None:
-    """``TypeError``/``ValueError`` naming ``net`` when it is not a network or its input size is not the box's."""
+def _check_net_box(net: ReLUNet, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """``TypeError``/``ValueError`` naming ``net`` when it is not a network or its input size is not the box's;
+    ``lo`` and ``hi`` as float arrays (:func:`as_floats`: numbers only, named)."""
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    lo, hi = as_floats(lo, "lo"), as_floats(hi, "hi")
     d = np.shape(lo)[-1] if np.ndim(lo) else None
     if d is not None and d != net.n_in and np.shape(lo) == np.shape(hi):
         raise ValueError(f"net has {net.n_in} inputs but the box lo, hi has {d} dimensions: lo and hi must have "
                          f"shape ({net.n_in},) or (T, {net.n_in}), a box over the network's input (z, v)")
+    return lo, hi
 
 
 def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = True) -> NodeBounds:
@@ -138,7 +141,7 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = True) -> NodeBounds
         ``L``, ``U`` of shape (n_k,) (or (T, n_k)) per hidden layer, and the
         output bounds.
     """
-    _check_net_box(net, lo, hi)
+    lo, hi = _check_net_box(net, lo, hi)
     lo_a, hi_a, batch = check_boxes(lo, hi, net.n_in)
     l, u = lo_a, hi_a
     Ls, Us = [], []
@@ -154,7 +157,7 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = True) -> NodeBounds
 
 def sample_preactivations(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000, seed: int = 0) -> list[Array]:
     """Pre-activations at ``n`` uniform samples of the box plus its corners (to check bounds)."""
-    _check_net_box(net, lo, hi)
+    lo, hi = _check_net_box(net, lo, hi)
     lo, hi = check_box(lo, hi, net.n_in)
     X = np.random.default_rng(seed).uniform(lo, hi, (n, net.n_in))
     if net.n_in <= 12:

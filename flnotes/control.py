@@ -112,9 +112,11 @@ class QuadraticCLF(Certificate):
     name = "V"
 
     def __init__(self, P: Array):
-        P = np.atleast_2d(np.asarray(P, float))
+        P = np.atleast_2d(as_floats(P, "P"))
         if P.ndim != 2 or P.shape[0] != P.shape[1]:
             raise ValueError(f"P must be a square matrix, got shape {P.shape}")
+        if not np.all(np.isfinite(P)):
+            raise ValueError(f"P contains NaN or inf: {P.tolist()}")
         if not np.allclose(P, P.T):
             raise ValueError("P must be symmetric: pass (P + P.T) / 2")
         if np.linalg.eigvalsh(P).min() <= 0:
@@ -148,10 +150,10 @@ class DistanceCBF(Certificate):
     name = "H"
 
     def __init__(self, z_o: Array, r_o: float):
-        self.z_o = np.asarray(z_o, float).reshape(-1)
-        if not (np.isfinite(r_o) and r_o > 0):
-            raise ValueError(f"r_o must be a positive radius, got {r_o!r}")
-        self.r_o = float(r_o)
+        self.z_o = as_floats(z_o, "z_o").reshape(-1)
+        if not (self.z_o.size and np.all(np.isfinite(self.z_o))):
+            raise ValueError(f"z_o must be the centre of the unsafe ball (a finite vector), got {z_o!r}")
+        self.r_o = check_number(r_o, "r_o", "the radius of the unsafe ball", strict=True)
 
     def value(self, Z: Array) -> Array:
         if Z.shape[1] != len(self.z_o):
@@ -185,12 +187,10 @@ class AffineCBF(Certificate):
     name = "h"
 
     def __init__(self, c: Array, d: float):
-        self.c = np.asarray(c, float).reshape(-1)
+        self.c = as_floats(c, "c").reshape(-1)
         if not np.all(np.isfinite(self.c)) or not np.any(self.c != 0):
             raise ValueError(f"c must be a finite, nonzero vector, got {self.c.tolist()}")
-        if not np.isfinite(d):
-            raise ValueError(f"d must be finite, got {d!r}")
-        self.d = float(d)
+        self.d = check_number(d, "d", "the offset of the safe half-space", low=-np.inf)
 
     def value(self, Z: Array) -> Array:
         if Z.shape[1] != len(self.c):

@@ -31,7 +31,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, check_bool, check_box, check_int, check_number
+from ._checks import as_batch, as_floats, check_bool, check_box, check_int, check_number
 from .config import one_blas_thread
 from .interval import Interval, NotCertifiable
 from .network import ReLUNet, uniform_grid
@@ -485,7 +485,7 @@ def _interval_f(f, net: ReLUNet, f_interval, lipschitz, fun) -> tuple[Callable[[
             f"cannot certify the error of {name!r}: a rigorous bound needs either f_interval (an interval version "
             f"of Phi written with flnotes.interval, e.g. FLSystem(phi_interval=...)) or lipschitz (constants L with "
             f"|Phi_i(x) - Phi_i(y)| <= sum_j L_ij |x_j - y_j| on the box). Sampling or PSO alone only give a lower bound.")
-    L = np.asarray(lipschitz, float)
+    L = as_floats(lipschitz, "lipschitz")
     if L.shape not in ((), (n,), (m, n)) or not np.all(np.isfinite(L)) or np.any(L < 0):
         raise ValueError(f"lipschitz must be a finite non-negative scalar, or of shape ({n},) (per input) or "
                          f"({m}, {n}) (per output and input); got shape {L.shape}")

@@ -65,7 +65,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_vector
+from ._checks import as_vector, check_number
 from .error import ErrorBracket, certify_error
 from .interval import Interval
 from .network import ReLUNet
@@ -228,8 +228,7 @@ def intersample_drift(system: FLSystem, ts: float, *, z_box: Optional[tuple] = N
         raise TypeError(f"system must be a flnotes.FLSystem, got {type(system).__name__}")
     if system.phi_interval is None:
         raise ValueError(f"{system.name} has no phi_interval: certifying the drift Delta needs Phi written with flnotes.interval")
-    if not (np.isfinite(ts) and ts > 0):
-        raise ValueError(f"ts must be a positive hold time, got {ts!r}")
+    ts = check_number(ts, "ts", "a positive hold time in seconds", strict=True)
     n, m = system.n_z, system.m
     _nilpotent_powers(system.A, system.B)
     zb = (system.lo[:n], system.hi[:n]) if z_box is None else z_box

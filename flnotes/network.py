@@ -17,7 +17,7 @@ from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 
-from ._checks import as_batch, as_floats, check_box
+from ._checks import as_batch, as_floats, check_box, check_int, check_number
 
 Array = np.ndarray
 
@@ -401,10 +401,16 @@ class TrainingReport:
 
 def uniform_grid(lo: Array, hi: Array, n_per_axis: Union[int, Sequence[int]]) -> Array:
     """All points of a uniform grid with ``n_per_axis`` points per axis over ``[lo, hi]``, (N, n)."""
-    lo, hi = check_box(lo, hi, len(np.atleast_1d(lo)))
-    n = np.broadcast_to(np.asarray(n_per_axis, int), lo.shape)
-    if np.any(n < 2):
-        raise ValueError(f"n_per_axis must be >= 2 on every axis, got {n}")
+    lo_a = as_floats(lo, "lo")
+    if lo_a.ndim > 1:
+        raise ValueError(f"lo must be a vector (the box's lower corner, shape (n,)), got shape {lo_a.shape}")
+    lo, hi = check_box(lo_a, hi, lo_a.size)
+    k = as_floats(n_per_axis, "n_per_axis")
+    if k.ndim > 1 or k.size not in (1, lo.size) or not np.all(np.isfinite(k)) or np.any(k != np.round(k)) \
+            or np.any(k < 2):
+        raise ValueError(f"n_per_axis must be an integer >= 2, or one per axis (shape ({lo.size},)), got "
+                         f"{n_per_axis!r}")
+    n = np.broadcast_to(k.astype(int), lo.shape)
     axes = [np.linspace(l, h, k) for l, h, k in zip(lo, hi, n)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(lo))
 
@@ -462,15 +468,29 @@ def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence
     if not callable(f):
         hint = " (for a system, pass system.phi_stacked)" if hasattr(f, "phi_stacked") else ""
         raise TypeError(f"f must be a function (N, n_in) -> (N, m) to approximate, got {type(f).__name__}{hint}")
-    lo, hi = check_box(lo, hi, len(np.atleast_1d(lo)))
-    widths = tuple(int(w) for w in widths)
-    if not widths or min(widths) < 1:
-        raise ValueError(f"widths must list at least one positive hidden width, got {widths}")
-    if threads is not None and (int(threads) != threads or threads < 1):
-        raise ValueError(f"threads must be a positive integer or None (leave the thread pools alone), got {threads!r}")
+    lo_a = as_floats(lo, "lo")
+    if lo_a.ndim > 1:
+        raise ValueError(f"lo must be a vector (the box's lower corner, shape (n_in,)), got shape {lo_a.shape}")
+    lo, hi = check_box(lo_a, hi, lo_a.size)
+    if isinstance(widths, (str, bytes)) or not hasattr(widths, "__iter__"):
+        raise ValueError(f"widths must list the hidden widths (n_1, ..., n_K-1), e.g. (20, 20, 20), got {widths!r}")
+    widths = tuple(check_int(w, "each of widths", 1, "neurons of a hidden layer") for w in widths)
+    if not widths:
+        raise ValueError("widths must list at least one hidden width, e.g. (20, 20, 20)")
+    for name, value, low in (("max_iter", max_iter, 1), ("seed", seed, 0)):
+        check_int(value, name, low, "of the training (MLPRegressor)")
+    if max_train is not None:
+        check_int(max_train, "max_train", 1, "most grid points used for training, or None for all")
+    if threads is not None:
+        check_int(threads, "threads", 1, "BLAS threads of the training, or None to leave the thread pools alone")
+    alpha = check_number(alpha, "alpha", "the L2 penalty of the training")
+    tol = check_number(tol, "tol", "the training's tolerance")
     t0 = time.perf_counter()
     X = uniform_grid(lo, hi, n_per_axis)
-    Y = np.asarray(f(X), float)
+    Y = as_floats(f(X), "f(X) on the training grid")
+    if Y.ndim not in (1, 2) or Y.shape[0] != len(X) or Y.size == 0:
+        raise ValueError(f"f must map the grid (N, n_in) = {X.shape} to values of shape (N,) or (N, m), got shape "
+                         f"{Y.shape}")
     Y = Y.reshape(len(X), -1)
     if not np.all(np.isfinite(Y)):
         raise ValueError("f returned NaN or inf on the training grid: shrink the box away from singularities")

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ._checks import as_vector, horizon_reference, weight_matrix
+from ._checks import as_vector, check_count, check_number, horizon_reference, weight_matrix
 from .errors import SolverFailure
 from .result import StepResult
 from .systems import FLSystem
@@ -189,16 +189,11 @@ class NonlinearMPC:
             raise ImportError("NonlinearMPC needs CasADi: pip install casadi") from exc
         if not isinstance(system, FLSystem):
             raise TypeError(f"system must be a flnotes.FLSystem, got {type(system).__name__}")
-        if isinstance(horizon, bool) or int(horizon) != horizon or horizon < 1:
-            raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
-        if not (np.isfinite(ts) and ts > 0):
-            raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
-        if isinstance(rk4_steps, bool) or int(rk4_steps) != rk4_steps or rk4_steps < 1:
-            raise ValueError(f"rk4_steps must be a positive integer, got {rk4_steps!r}")
-        if isinstance(max_iter, bool) or int(max_iter) != max_iter or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
-        if time_limit is not None and not (np.isfinite(time_limit) and time_limit > 0):
-            raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
+        horizon = check_count(horizon, "horizon (N_p)", 1, "steps of the prediction")
+        ts = check_number(ts, "ts", "a positive sampling time in seconds", strict=True)
+        rk4_steps = check_count(rk4_steps, "rk4_steps", 1, "RK4 steps per sampling interval")
+        max_iter = check_count(max_iter, "max_iter", 1, "IPOPT iterations per solve")
+        time_limit = check_number(time_limit, "time_limit", "seconds per solve", strict=True, none=True)
         self.time_limit = time_limit
         self.system, self.N, self.ts = system, int(horizon), float(ts)
         self.n_z, self.m = system.n_z, system.m

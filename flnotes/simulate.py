@@ -31,7 +31,6 @@ What stops a run, and what does not
 """
 from __future__ import annotations
 
-import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
@@ -39,7 +38,7 @@ from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from ._checks import as_floats, as_vector
+from ._checks import as_floats, as_vector, check_int, check_number
 from .errors import SolverFailure
 from .network import ReLUNet
 from .result import StepResult
@@ -210,7 +209,8 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         Any exception of the controller other than
         :class:`flnotes.SolverFailure`, as it was raised.
     """
-    _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fallback, rtol, atol)
+    t_final, ts, n_fine, rtol, atol = _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine,
+                                                  fallback, rtol, atol)
     ctrl = controller if isinstance(controller, Controller) else FeedbackLaw(controller)
     if check_domain is None:
         check_domain = isinstance(getattr(ctrl, "net", None), ReLUNet)
@@ -337,7 +337,9 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
 
 
 # ---------------------------------------------------------------------- argument checks
-def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fallback, rtol, atol) -> None:
+def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fallback, rtol,
+                atol) -> tuple[float, float, int, float, float]:
+    """Refuse bad arguments (naming them); return ``t_final``, ``ts``, ``n_fine``, ``rtol`` and ``atol`` as numbers."""
     if not isinstance(system, FLSystem):
         raise TypeError(f"system must be a flnotes.FLSystem (e.g. fl.msd()), got {type(system).__name__}")
     if not (isinstance(controller, Controller) or callable(controller)):
@@ -346,10 +348,9 @@ def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fall
                         f"lambda z: -K @ z")
     if hold not in ("v", "u"):
         raise ValueError(f"hold must be 'v' (hold v, u = Phi(z(t), v)) or 'u' (hold u), got {hold!r}")
-    if not all(isinstance(a, numbers.Real) and not isinstance(a, (bool, np.bool_, np.timedelta64)) for a in (ts, t_final)):
-        raise TypeError(f"ts and t_final must be numbers (seconds), got ts={ts!r}, t_final={t_final!r}")
-    ts_f, tf_f = float(ts), float(t_final)
-    if not (np.isfinite(ts_f) and ts_f > 0 and np.isfinite(tf_f) and tf_f >= ts_f):
+    ts_f = check_number(ts, "ts", "the sampling time in seconds", strict=True)
+    tf_f = check_number(t_final, "t_final", "the simulated time in seconds", strict=True)
+    if tf_f < ts_f:
         raise ValueError(f"need 0 < ts <= t_final, got ts={ts!r}, t_final={t_final!r}")
     if (x0 is None) == (z0 is None):
         raise ValueError("give exactly one initial condition: x0 (plant state) or z0 (linearizing state)")
@@ -359,12 +360,12 @@ def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fall
         if (net.n_in, net.n_out) != (system.n_in, system.m):
             raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but {system.name} needs (z, v) in "
                              f"R^{system.n_in} -> u in R^{system.m}: pass the network trained on this system")
-    if isinstance(n_fine, bool) or not isinstance(n_fine, (int, np.integer)) or n_fine < 1:
-        raise ValueError(f"n_fine must be a positive integer (points per sampling interval), got {n_fine!r}")
+    n_fine = check_int(n_fine, "n_fine", 1, "points per sampling interval")
     if fallback is not None and not callable(fallback):
         raise TypeError(f"fallback must be a function z -> v, got {type(fallback).__name__}")
-    if not (np.isfinite(rtol) and rtol > 0 and np.isfinite(atol) and atol > 0):
-        raise ValueError(f"rtol and atol must be positive tolerances, got rtol={rtol!r}, atol={atol!r}")
+    rtol = check_number(rtol, "rtol", "the integrator's relative tolerance", strict=True)
+    atol = check_number(atol, "atol", "the integrator's absolute tolerance", strict=True)
+    return tf_f, ts_f, n_fine, rtol, atol
 
 
 def _check_start(system: FLSystem, z: Array, name: str, x: Optional[Array] = None) -> None:

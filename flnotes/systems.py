@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 from scipy.linalg import expm
 
-from ._checks import as_batch, as_vector, check_box
+from ._checks import as_batch, as_vector, check_box, check_number
 
 Array = np.ndarray
 
@@ -84,8 +84,7 @@ def discretize(A: Array, B: Array, ts: float, method: str = "exact") -> tuple[Ar
     n = A.shape[0]
     if A.shape != (n, n) or B.shape[0] != n:
         raise ValueError(f"A must be square and B must have as many rows: got A {A.shape}, B {B.shape}")
-    if not np.isfinite(ts) or ts <= 0:
-        raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
+    ts = check_number(ts, "ts", "a positive sampling time in seconds", strict=True)
     if method == "exact":
         M = np.zeros((n + B.shape[1], n + B.shape[1]))
         M[:n, :n], M[:n, n:] = A, B

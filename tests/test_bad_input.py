@@ -336,10 +336,15 @@ def test_mpc_says_r_must_be_positive_definite(msd):
     (dict(system="msd"), TypeError, "system must be a flnotes.FLSystem"),
     (dict(net=np.ones(3)), TypeError, "net must be a flnotes.ReLUNet"),
     (dict(net="wrong size"), ValueError, r"net maps R\^4 -> R\^1"),
-    (dict(n_fine=0), ValueError, "n_fine must be a positive integer"),
+    (dict(n_fine=0), ValueError, "n_fine must be an integer >= 1"),
+    (dict(n_fine=2.5), ValueError, "n_fine must be an integer >= 1"),
     (dict(fallback=0.0), TypeError, "fallback must be a function"),
-    (dict(ts="0.1"), TypeError, "ts and t_final must be numbers"),
-    (dict(rtol=0.0), ValueError, "rtol and atol must be positive"),
+    (dict(ts="0.1"), ValueError, "ts must be a finite number > 0"),
+    (dict(ts=np.timedelta64(1)), ValueError, "ts must be a finite number > 0"),
+    (dict(t_final=True), ValueError, "t_final must be a finite number > 0"),
+    (dict(ts=0.5), ValueError, r"need 0 < ts <= t_final"),
+    (dict(rtol=0.0), ValueError, "rtol must be a finite number > 0"),
+    (dict(atol="1e-9"), ValueError, "atol must be a finite number > 0"),
     (dict(z0=[0.0, np.nan]), ValueError, "z0 contains NaN"),
     (dict(z0=None, x0=[0.0, np.inf]), ValueError, "x0 contains NaN or inf"),
 ])
@@ -363,6 +368,7 @@ def test_simulate_bad_arguments(msd, kw, exc, match):
                                        ([np.array(True)], "booleans"), ([bytearray(b"5")], "bytes"),
                                        (np.array([np.array("5")], dtype=object), "strings"),
                                        ([10 ** 400], "too large"), (np.longdouble("1e400"), "overflow"),
+                                       ([Decimal("1e400")], "too large"), (np.ma.masked, "masked"),
                                        ([5.0, None], "None"), ([[[[[[[[[[[[True]]]]]]]]]]]], "booleans"),
                                        (np.array(["5"], dtype=np.dtypes.StringDType()), "strings"),
                                        (range(10 ** 12), "MemoryError")])
@@ -454,6 +460,26 @@ def test_the_mpc_settings_refuse_a_time_span(msd, key, match):
     assert fl.MPC(sysm, net, 0.5, **{**kw, "ts": Fraction(1, 10)}).ts == 0.1  # a Fraction is a number
 
 
+def test_the_mpc_and_simulate_take_any_real_number_for_their_settings(msd):
+    """A Fraction, a Decimal, a 0-d array or an integral float is the number it holds, in the MPC's horizon, sampling
+    time, time limit and gap and in simulate's times; a horizon that is no integer is refused, naming it."""
+    sysm, net = msd
+    kw = dict(ts=0.1, Q=[10.0, 1.0], R=0.1)
+    for h in (Decimal(3), np.array(3), 3.0, Fraction(3), np.int64(3)):
+        mpc = fl.MPC(sysm, net, 0.5, horizon=h, time_limit=Decimal("0.5"), gap=Fraction(1, 10 ** 6), **kw)
+        assert (mpc.N, mpc.time_limit, mpc.gap) == (3, 0.5, 1e-6) and type(mpc.N) is int
+    for bad in (2.5, Fraction(5, 2), np.array(2.5), 0, True):
+        with pytest.raises(ValueError, match=r"horizon \(N_p\) must be"):
+            fl.MPC(sysm, net, 0.5, horizon=bad, **kw)
+    with pytest.raises(ValueError, match=r"gap must be a relative optimality gap in \[0, 1\)"):
+        fl.MPC(sysm, net, 0.5, horizon=3, gap=Decimal(1), **kw)
+    law = lambda z: np.zeros(1)  # noqa: E731
+    plain = fl.simulate(sysm, law, t_final=0.3, ts=0.1, z0=[0.0, 1.0])
+    for ts, tf in ((Fraction(1, 10), Decimal("0.3")), (np.array(0.1), np.float32(0.3))):
+        run = fl.simulate(sysm, law, t_final=tf, ts=ts, z0=[0.0, 1.0])
+        assert np.allclose(run.t, plain.t) and np.allclose(run.z, plain.z, atol=1e-6)
+
+
 @pytest.mark.parametrize("field, match", [("phi", "phi must be a function"), ("f", "f must be a function"),
                                           ("to_z", "to_z must be a function"),
                                           ("phi_interval", "phi_interval must be a function")])
@@ -479,3 +505,86 @@ def test_fit_relu_with_a_system_instead_of_a_function_names_f():
     s = fl.msd()
     with pytest.raises(TypeError, match=r"f must be a function.*phi_stacked"):
         fl.fit_relu(s, s.lo, s.hi, widths=(3,), n_per_axis=3)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(widths=(20.5, 20)), "each of widths must be an integer >= 1"),
+    (dict(widths=(True, 3)), "each of widths must be an integer >= 1"),
+    (dict(widths=20), "widths must list the hidden widths"),
+    (dict(widths="20"), "widths must list the hidden widths"),
+    (dict(widths=()), "at least one hidden width"),
+    (dict(n_per_axis=2.5), "n_per_axis must be an integer >= 2"),
+    (dict(n_per_axis=[3, 3]), "n_per_axis must be an integer >= 2, or one per axis"),
+    (dict(max_iter=0), "max_iter must be an integer >= 1"),
+    (dict(threads=1.5), "threads must be an integer >= 1"),
+    (dict(alpha=-1.0), "alpha must be a finite number >= 0"),
+    (dict(f=lambda X: X[:5, :1]), r"f must map the grid .* got shape \(5, 1\)"),
+    (dict(f=lambda X: X[:, :1] > 0), "f\\(X\\) on the training grid must be numbers .*booleans"),
+])
+def test_fit_relu_names_a_setting_that_means_nothing(kw, match):
+    """``int(20.5)`` is 20 and ``int(True)`` is 1: a width, a grid size or a training setting that is no count of its
+    kind is refused with its name, before any training; so is an ``f`` whose values are not one per grid point."""
+    args = dict(f=lambda X: np.sin(X[:, :1]), lo=[-1.0, -1.0, -1.0], hi=[1.0, 1.0, 1.0], widths=(3,), n_per_axis=3)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        fl.fit_relu(**args)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: fl.DistanceCBF([3.0, 0.0], True), "r_o must be a finite number > 0"),
+    (lambda: fl.DistanceCBF([3.0, 0.0], "0.5"), "r_o must be a finite number > 0"),
+    (lambda: fl.DistanceCBF([3.0, 0.0], 0.0), "r_o must be a finite number > 0"),
+    (lambda: fl.DistanceCBF([3.0, np.nan], 0.5), "z_o must be the centre"),
+    (lambda: fl.DistanceCBF(["3", 0.0], 0.5), "z_o must be numbers .*strings"),
+    (lambda: fl.AffineCBF([1.0, 0.0], np.nan), "d must be a finite number"),
+    (lambda: fl.AffineCBF([1.0, True], 1.0), "c must be numbers .*booleans"),
+    (lambda: fl.QuadraticCLF([[1.0, 0.0], [0.0, np.inf]]), "P contains NaN or inf"),
+    (lambda: fl.QuadraticCLF(np.eye(2) + 0j), "P must be numbers .*complex"),
+])
+def test_certificates_name_their_bad_parameters(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_a_masked_entry_is_refused_not_read_as_the_value_it_hides(msd):
+    """numpy reads a masked array without its mask: a masked entry would enter as the value it hides. Refused, named;
+    a masked array without masked entries is its values."""
+    sysm, net = msd
+    z = np.ma.array([0.5, 9.0], mask=[False, True])
+    with pytest.raises(ValueError, match="z0 must be numbers .*masked"):
+        fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.2, ts=0.1, z0=z)
+    with pytest.raises(ValueError, match="beta must be a finite number"):
+        fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(np.eye(2)), fl.DistanceCBF([3.0, 0.0], 0.5),
+                            beta=np.ma.array(0.1, mask=True))
+    with pytest.raises(ValueError, match="lo must be numbers .*masked"):
+        fl.fbbt(net, [np.ma.masked, -1.0, -1.0], [1.0, 1.0, 1.0])
+    X = np.array([[0.3, -0.2, 1.5]])
+    assert np.array_equal(net(np.ma.array(X, mask=False)), net(X))
+
+
+def test_lipschitz_constants_are_numbers(msd):
+    sysm, net = msd
+    with pytest.raises(ValueError, match="lipschitz must be numbers .*strings"):
+        fl.certify_error(sysm.phi_stacked, net, sysm.lo, sysm.hi, lipschitz=["1", 1.0, 1.0])
+
+
+@pytest.mark.parametrize("bad", [True, "0.1", np.timedelta64(1), 0.0, np.nan])
+def test_every_sampling_time_is_a_positive_real_number(msd, bad):
+    """``np.isfinite(True) and True > 0`` holds: a boolean sampling time would be read as 1 s. Every function with a
+    sampling or hold time refuses it, and a string or a time span, naming ``ts``."""
+    sysm, net = msd
+    calls = [lambda: sysm.discretize(bad), lambda: fl.intersample_drift(sysm, bad),
+             lambda: fl.NonlinearMPC(sysm, horizon=3, ts=bad),
+             lambda: fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=bad, z0=[0.0, 1.0]),
+             lambda: fl.MPC(sysm, net, 0.5, horizon=3, ts=bad, Q=[10.0, 1.0], R=0.1)]
+    for call in calls:
+        with pytest.raises(ValueError, match="ts must be a finite number > 0"):
+            call()
+
+
+@pytest.mark.parametrize("key", ["horizon", "rk4_steps", "max_iter"])
+def test_the_nonlinear_mpc_counts_are_integers(msd, key):
+    sysm, _ = msd
+    for bad in (2.5, True, "3", 0):
+        with pytest.raises(ValueError, match=f"{re.escape(key)}.* must be"):
+            fl.NonlinearMPC(sysm, **{"horizon": 3, "ts": 0.1, key: bad})

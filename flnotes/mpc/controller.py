@@ -8,7 +8,6 @@ levers), :class:`flnotes.mpc.reference.ReferenceProgram` (the cold SCIP referenc
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import threading
 import time
 import weakref
@@ -17,7 +16,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import as_floats, as_pair, as_vector, box_in_domain, horizon_reference, weight_matrix
+from .._checks import (as_floats, as_pair, as_vector, box_in_domain, check_count, check_number, horizon_reference,
+                       weight_matrix)
 from ..bounds import fbbt
 from ..atlas import BoundAtlas, check_atlas, shipped_atlas
 from ..enclosure import AffineEnclosure, affine_enclosure, check_enclosure
@@ -399,19 +399,13 @@ class MPC:
         if net.n_in != system.n_in or net.n_out != system.m:
             raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but the system needs (z, v) in R^{system.n_in} "
                              f"-> u in R^{system.m}")
-        if isinstance(horizon, (bool, np.bool_, np.timedelta64)) or not isinstance(horizon, numbers.Real) \
-                or int(horizon) != horizon or horizon < 1:
-            raise ValueError(f"horizon (N_p) must be a positive integer, got {horizon!r}")
-        if time_limit is not None and (isinstance(time_limit, (bool, np.timedelta64))
-                                       or not isinstance(time_limit, (int, float, np.number))
-                                       or not (np.isfinite(time_limit) and time_limit > 0)):
-            raise ValueError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
-        if (isinstance(gap, (bool, np.timedelta64)) or not isinstance(gap, (int, float, np.number))
-                or not (np.isfinite(gap) and 0 <= gap < 1)):
+        # any finite real number of its kind (a Fraction, a Decimal, a 0-d array), never a boolean or a time span
+        horizon = check_count(horizon, "horizon (N_p)", 1, "steps of the prediction")
+        time_limit = check_number(time_limit, "time_limit", "seconds per step", strict=True, none=True)
+        gap = check_number(gap, "gap", "a relative optimality gap in [0, 1), e.g. 1e-6")
+        if gap >= 1:
             raise ValueError(f"gap must be a relative optimality gap in [0, 1) (e.g. 1e-6), got {gap!r}")
-        if isinstance(ts, (bool, np.bool_, np.timedelta64)) or not isinstance(ts, numbers.Real) \
-                or not (np.isfinite(float(ts)) and ts > 0):
-            raise ValueError(f"ts must be a positive sampling time, got {ts!r}")
+        ts = check_number(ts, "ts", "a positive sampling time in seconds", strict=True)
         engine = o.constraint == "network" and not o.is_reference
         if cut_off is not None:
             if not isinstance(cut_off, bool):
