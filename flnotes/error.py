@@ -570,6 +570,10 @@ class _Evaluator:
 #: Relative tolerance of the consistency checks of f_interval / lipschitz against Phi (rounding only).
 _CHECK_RTOL = 1e-8
 
+#: The default absolute width of a bracket, relative to ``max(1, max |Phi|)`` on the samples (:func:`certify_error`):
+#: far below any useful ``eps``, far above what the outward rounding of the enclosures leaves.
+ATOL_ROUNDING = 1e-9
+
 
 def _check_enclosure(f_enc, fun, X0: Array, Y0: Array, whole: Interval, lo: Array, hi: Array, name: str,
                      seed: int, n_boxes: int = 64, per_box: int = 16) -> Interval:
@@ -634,7 +638,7 @@ def _check_lipschitz(fun, X0: Array, Y0: Array, lipschitz, lo: Array, hi: Array,
 
 def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array] = None, *,
                   f_interval: Optional[Callable[[Interval], Interval]] = None,
-                  lipschitz: Optional[Union[float, Array]] = None, rtol: float = 0.05, atol: float = 0.0,
+                  lipschitz: Optional[Union[float, Array]] = None, rtol: float = 0.05, atol: Optional[float] = None,
                   seeds: Optional[Union[Array, ErrorEstimate]] = None, n_samples: int = 10_000, seed: int = 0,
                   batch: int = 4096, initial_per_axis: int = 4, max_boxes: int = 20_000_000,
                   max_time: Optional[float] = None, keep_partition: bool = False, chunk: int = 1024,
@@ -698,7 +702,11 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         to about ``tolerance / L``; practical in one or two dimensions or for
         coarse tolerances only.
     rtol, atol
-        Stop when ``upper - lower <= max(atol, rtol * lower)``.
+        Stop when ``upper - lower <= max(atol, rtol * lower)``. The default ``atol=None`` is
+        :data:`ATOL_ROUNDING` times ``max(1, max |Phi|)`` over the starting samples: the width below
+        which the outward rounding of the enclosures, not the network, decides, so that a network equal
+        to ``Phi`` (error 0, where ``rtol * lower`` is 0) gives a converged bracket instead of running to
+        the budget; give ``atol=0`` for ``rtol`` alone (then a zero error is never converged).
     seeds
         Points (N, n_in) where the error is believed large, or an
         :class:`ErrorEstimate` (e.g. from :func:`pso_max_error`), used as first
@@ -779,8 +787,8 @@ def certify_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     """
     fun, lo, hi = _resolve(f, net, lo, hi)
     rtol = check_number(rtol, "rtol", "relative width of the bracket")
-    atol = check_number(atol, "atol", "absolute width of the bracket")
-    if rtol + atol <= 0:
+    atol = check_number(atol, "atol", "absolute width of the bracket", none=True)
+    if atol is not None and rtol + atol <= 0:
         raise ValueError(f"rtol or atol must be positive (the bracket's requested width), got rtol={rtol}, atol={atol}")
     batch = check_int(batch, "batch", 1, "boxes bisected per round")
     initial_per_axis = check_int(initial_per_axis, "initial_per_axis", 1, "first slices per axis")
@@ -831,6 +839,8 @@ def _certify(f, net, fun, lo, hi, f_interval, lipschitz, rtol, atol, seeds, n_sa
             raise ValueError("resume=True needs an interval version of Phi (f_interval, or an FLSystem's phi_interval): "
                              "with lipschitz only, Phi is seen at points, and a Phi changed between two runs could not "
                              "be told from the saved one; certify without resume, or give f_interval")
+    if atol is None:  # the width that rounding alone leaves: a network equal to Phi converges at it
+        atol = ATOL_ROUNDING * max(1.0, float(np.abs(Y0).max()))
     E0 = np.abs(Y0 - net(X0))
     # initial partition
     edges = [np.linspace(l, h, 1 if d else initial_per_axis + 1) for l, h, d in zip(lo, hi, degenerate)]

@@ -360,3 +360,20 @@ def test_enclosure_widths_sample_the_box_vertices():
     V = np.array(list(itertools.product(*zip(pt - r, pt + r))))
     assert row["sampled max error"] >= np.abs(msd.phi_stacked(V) - net(V))[:, 0].max()
     assert row["sampled max error"] <= row["certify_error's bound"] <= row["natural interval bound"] + 1e-12
+
+
+def test_a_network_equal_to_phi_gets_a_converged_bracket_at_the_rounding_floor():
+    """``Phi(z, v) = v`` and ``Phi_NN = relu(v) - relu(-v)``: the error is 0, so ``rtol * lower`` is 0 and only the
+    default absolute width (rounding, relative to Phi's scale) can end the search; with ``atol=0`` it cannot."""
+    net = fl.ReLUNet([np.array([[0.0, 1.0], [0.0, -1.0]]), np.array([[1.0, -1.0]])], [np.zeros(2), np.zeros(1)])
+    f = lambda X: 3.0 * X[:, 1:2]  # noqa: E731
+    net3 = fl.ReLUNet([net.W[0], 3.0 * net.W[1]], net.b)
+    br = fl.certify_error(f, net3, [-1.0, -1.0], [1.0, 1.0], f_interval=f, n_samples=200)
+    assert br.converged.all() and br.lower[0] == 0.0
+    assert fl.error.ATOL_ROUNDING * 2.9 < br.atol <= fl.error.ATOL_ROUNDING * 3.0  # |Phi| <= 3, nearly attained
+    assert 0.0 <= br.upper[0] <= br.atol
+    stuck = fl.certify_error(f, net3, [-1.0, -1.0], [1.0, 1.0], f_interval=f, n_samples=200, atol=0, max_boxes=500)
+    assert not stuck.converged.any() and stuck.upper[0] >= 0.0
+    wrong = fl.ReLUNet([net.W[0], 2.0 * net.W[1]], net.b)  # error |v| <= 1, attained at v = +-1
+    br = fl.certify_error(f, wrong, [-1.0, -1.0], [1.0, 1.0], f_interval=f, n_samples=200)
+    assert br.converged.all() and br.lower[0] <= 1.0 <= br.upper[0] <= 1.0 * (1 + br.rtol)
