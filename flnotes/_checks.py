@@ -295,7 +295,8 @@ def check_count(x: Any, name: str, low: int, what: str) -> int:
     """``x`` as an int ``>= low``, given as any real number that is an integer (``3``, ``3.0``, ``Decimal(3)``, a 0-d
     array), else ``ValueError`` naming ``name`` (a boolean, a time span, ``2.5`` refused)."""
     v = check_number(x, name, f"{what}, an integer", low=low)
-    if v != int(v):
+    y = x.item() if isinstance(x, np.ndarray) else x
+    if v != int(v) or y != int(v):  # exact: Decimal("2.99999999999999999999") is 3.0 as a float, no integer
         raise ValueError(f"{name} must be an integer >= {low} ({what}), got {brief(x)}")
     return int(v)
 

@@ -50,7 +50,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, as_vector
+from ._checks import as_batch, as_vector, check_number
 from .control import Certificate
 from .systems import FLSystem, brunovsky
 
@@ -79,9 +79,8 @@ def arm_parameters(l1: float = 0.5, l2: float = 0.5, m1: float = 1.0, m2: float 
     ``g(q) = [b_1 sin q_1 + b_2 sin(q_1 + q_2), b_2 sin(q_1 + q_2)]``.
     """
     vals = dict(l1=l1, l2=l2, m1=m1, m2=m2, g=g)
-    for k, x in vals.items():
-        if not (np.isfinite(x) and x > 0):
-            raise ValueError(f"{k} must be a positive number, got {x!r}")
+    l1, l2, m1, m2, g = (check_number(x, k, "a link length (m), mass (kg) or gravity (m/s^2)", strict=True)
+                         for k, x in vals.items())
     lc1, lc2 = l1 / 2, l2 / 2
     I1, I2 = m1 * l1**2 / 12, m2 * l2**2 / 12
     return dict(vals, a1=I1 + I2 + m1 * lc1**2 + m2 * (l1**2 + lc2**2), a2=m2 * l1 * lc2, a3=I2 + m2 * lc2**2,
@@ -156,9 +155,8 @@ def two_link_arm(tau_max=(8.0, 2.0), q1_box: float = 1.5, q2_box: float = 2.0, w
     """
     p = arm_parameters(l1, l2, m1, m2, g)
     u_max = as_vector(tau_max, 2, "tau_max")
-    for name, x in dict(q1_box=q1_box, q2_box=q2_box, w_box=w_box, v_box=v_box).items():
-        if not (np.isfinite(x) and x > 0):
-            raise ValueError(f"{name} must be a positive half-width, got {x!r}")
+    q1_box, q2_box, w_box, v_box = (check_number(x, name, "a half-width of the domain box", strict=True) for name, x
+                                    in dict(q1_box=q1_box, q2_box=q2_box, w_box=w_box, v_box=v_box).items())
     A, B = brunovsky((2, 2))
     a1, a2, a3, b1, b2 = (p[k] for k in ("a1", "a2", "a3", "b1", "b2"))
 
@@ -329,13 +327,12 @@ class ArmPointCBF(Certificate):
     def __init__(self, center: Array, radius: float, fraction: float = 1.0, k1: float = 2.0,
                  params: Optional[dict] = None):
         self.c = as_vector(center, 2, "center")
-        if not (np.isfinite(radius) and radius > 0):
-            raise ValueError(f"radius must be positive, got {radius!r}")
-        if not (0.0 <= fraction <= 1.0):
+        radius = check_number(radius, "radius", "of the obstacle (m)", strict=True)
+        fraction = check_number(fraction, "fraction", "the point on the forearm: 0 = elbow, 1 = hand")
+        if fraction > 1.0:
             raise ValueError(f"fraction must lie in [0, 1] (0 = elbow, 1 = hand), got {fraction!r}")
-        if not (np.isfinite(k1) and k1 > 0):
-            raise ValueError(f"k1 must be a positive gain, got {k1!r}")
-        self.R, self.s, self.k1 = float(radius), float(fraction), float(k1)
+        k1 = check_number(k1, "k1", "a positive gain", strict=True)
+        self.R, self.s, self.k1 = radius, fraction, k1
         self.p = arm_parameters(**_DEFAULTS) if params is None else params
 
     def _geometry(self, Z: Array):

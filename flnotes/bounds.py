@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._checks import as_floats, check_box, check_boxes
+from ._checks import as_floats, check_bool, check_box, check_boxes
 from .network import ReLUNet
 
 Array = np.ndarray
@@ -96,6 +96,14 @@ def interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = True
     corner's pre-activation, and LP tightening declared a box 2e-12 wide empty. ``outward=False``: the plain
     floating-point interval.
     """
+    W, b, l, u = as_floats(W, "W"), as_floats(b, "b"), as_floats(l, "l"), as_floats(u, "u")
+    if np.any(~(l <= u)):
+        raise ValueError("the box must satisfy l <= u in every coordinate (no NaN)")
+    return _interval_affine(W, b, l, u, outward)
+
+
+def _interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = True) -> tuple[Array, Array]:
+    """:func:`interval_affine` on float arrays with ``l <= u`` (the package's own propagation: no checks)."""
     Wp, Wm = np.maximum(W, 0.0), np.minimum(W, 0.0)
     L, U = l @ Wp.T + u @ Wm.T + b, u @ Wp.T + l @ Wm.T + b
     if not outward:
@@ -142,14 +150,15 @@ def fbbt(net: ReLUNet, lo: Array, hi: Array, outward: bool = True) -> NodeBounds
         output bounds.
     """
     lo, hi = _check_net_box(net, lo, hi)
+    outward = check_bool(outward, "outward", "whether to widen the bounds by the rounding of their sums")
     lo_a, hi_a, batch = check_boxes(lo, hi, net.n_in)
     l, u = lo_a, hi_a
     Ls, Us = [], []
     for W, b in zip(net.W[:-1], net.b[:-1]):
-        L, U = interval_affine(W, b, l, u, outward)
+        L, U = _interval_affine(W, b, l, u, outward)
         Ls.append(L), Us.append(U)
         l, u = np.maximum(L, 0.0), np.maximum(U, 0.0)
-    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u, outward)
+    oL, oU = _interval_affine(net.W[-1], net.b[-1], l, u, outward)
     if not batch:
         Ls, Us, oL, oU = [a[0] for a in Ls], [a[0] for a in Us], oL[0], oU[0]
     return NodeBounds(Ls, Us, oL, oU, method="fbbt")

@@ -95,7 +95,9 @@ class Certificate:
         raise NotImplementedError
 
     def __call__(self, z: Array) -> Union[float, Array]:
-        z = np.asarray(z, float)
+        z = as_floats(z, "z")
+        if z.ndim not in (1, 2):
+            raise ValueError(f"z must be one state (n_z,) or a batch (N, n_z), got shape {z.shape}")
         out = np.asarray(self.value(np.atleast_2d(z)), float).reshape(-1)
         return float(out[0]) if z.ndim == 1 else out
 
@@ -694,6 +696,8 @@ class ClfCbfController:
         self.penalty = (float(pen[0]), float(pen[1]))
         self.time_limit = check_number(time_limit, "time_limit", "seconds per step", strict=True, none=True)
         self.gap = check_number(gap, "gap", "the relative optimality gap")
+        if self.gap >= 1:
+            raise ValueError(f"gap must be a relative optimality gap in [0, 1) (e.g. 1e-6), got {gap!r}")
         self.screening = check_bool(screening, "screening", "solve the program without the network constraint first")
         self.name = name or ("Lcost" if cost == "linear" else "Qcost")
         if backend not in CLF_CBF_BACKENDS:

@@ -26,6 +26,7 @@ from typing import Optional, Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from ._checks import as_floats
 from .bounds import NodeBounds, fbbt
 from .network import ReLUNet
 
@@ -160,7 +161,13 @@ def encode(net: ReLUNet, x, bounds: Optional[NodeBounds] = None, L: Optional[Seq
             n_bin += n_k * (T or 1)
             cons += [ybar <= cp.multiply(Uk, alpha_full), yund <= cp.multiply(-Lk, 1 - alpha_full)]
         else:
-            Lk, Uk = _column_bounds(Lk, n_k, T, "L"), _column_bounds(Uk, n_k, T, "U")
+            Lk, Uk = _column_bounds(Lk, n_k, T, f"L^{k + 1}"), _column_bounds(Uk, n_k, T, f"U^{k + 1}")
+            bad = np.argwhere(~(Lk <= Uk))  # NaN too: a neuron with no interval would get no binary
+            if bad.size:
+                j = tuple(bad[0])
+                raise ValueError(f"L^{k + 1} <= U^{k + 1} must hold at every neuron (node bounds of a box), got "
+                                 f"L = {Lk[j]!r} and U = {Uk[j]!r} at neuron {j[0]}: compute them with fl.fbbt or "
+                                 f"fl.lp_bounds")
             alpha_full, alpha, nb = _alpha_expression(Lk, Uk, f"alpha{k + 1}")
             n_bin += nb
             # eq. (MIP_general_c) with alpha fixed for stable neurons
@@ -175,7 +182,7 @@ def encode(net: ReLUNet, x, bounds: Optional[NodeBounds] = None, L: Optional[Seq
 
 def _column_bounds(B, n_k: int, T: Optional[int], name: str) -> Array:
     """Bounds of shape (n_k,) for one point, or (n_k, T) per column (an (n_k,) array applies to all)."""
-    B = np.asarray(B, float)
+    B = as_floats(B, name)
     if T is None:
         if B.shape != (n_k,):
             raise ValueError(f"{name} of a layer with {n_k} neurons must have shape ({n_k},), got {B.shape}")
@@ -376,9 +383,11 @@ def forward_milp(net: ReLUNet, x: Array, bounds: Optional[NodeBounds] = None) ->
     """
     from scipy.optimize import LinearConstraint, milp, Bounds
 
-    x = np.asarray(x, float).reshape(-1)
+    x = as_floats(x, "x").reshape(-1)
     if x.shape != (net.n_in,):
         raise ValueError(f"x must have shape ({net.n_in},), got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"x contains NaN or inf: {x}")
     if bounds is None:
         bounds = fbbt(net, x, x)
     form = bigm_form(net, bounds)

@@ -264,10 +264,15 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
         ``time_s`` count all restarts (``time_s`` is the wall time of the whole call).
     """
     fun, lo, hi = _resolve(f, net, lo, hi)
-    if n_particles < 2 or n_iter < 1:
-        raise ValueError(f"need n_particles >= 2 and n_iter >= 1, got {n_particles} and {n_iter}")
-    if isinstance(restarts, bool) or not isinstance(restarts, (int, np.integer)) or restarts < 1:
-        raise ValueError(f"restarts must be an integer >= 1, got {restarts!r}")
+    n_particles = check_int(n_particles, "n_particles", 2, "particles of the swarm")
+    n_iter = check_int(n_iter, "n_iter", 1, "iterations of the swarm")
+    seed = check_int(seed, "seed", 0, "seed of the swarm")
+    restarts = check_int(restarts, "restarts", 1, "independent swarms")
+    inertia = check_number(inertia, "inertia", "the weight of a particle's velocity")
+    c_cognitive = check_number(c_cognitive, "c_cognitive", "the pull toward a particle's own best point")
+    c_social = check_number(c_social, "c_social", "the pull toward the swarm's best point")
+    nu_max = check_number(nu_max, "nu_max", "the largest step, a fraction of the box", strict=True)
+    record = check_bool(record, "record", "whether to keep the particles' paths")
     if restarts > 1:
         t0 = time.perf_counter()
         opts = dict(n_particles=n_particles, n_iter=n_iter, inertia=inertia, c_cognitive=c_cognitive,
@@ -348,6 +353,8 @@ def sample_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[A
                      seed: int = 0, chunk: int = 200_000) -> ErrorEstimate:
     """Largest error over ``n`` uniform random points of the box (a lower bound on eq. epsilon_find)."""
     fun, lo, hi = _resolve(f, net, lo, hi)
+    n, seed = check_int(n, "n", 1, "random points"), check_int(seed, "seed", 0, "seed of the points")
+    chunk = check_int(chunk, "chunk", 1, "points per batch")
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     eps, argmax = np.full(net.n_out, -np.inf), np.zeros((net.n_out, net.n_in))
@@ -363,6 +370,7 @@ def grid_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arr
                    n_per_axis: Union[int, tuple] = 41, chunk: int = 200_000) -> ErrorEstimate:
     """Largest error on a uniform grid with ``n_per_axis`` points per axis (a lower bound on eq. epsilon_find)."""
     fun, lo, hi = _resolve(f, net, lo, hi)
+    chunk = check_int(chunk, "chunk", 1, "points per batch")
     t0 = time.perf_counter()
     X = uniform_grid(lo, hi, n_per_axis)
     eps, argmax = np.full(net.n_out, -np.inf), np.zeros((net.n_out, net.n_in))
@@ -383,6 +391,10 @@ def de_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array
     from scipy.optimize import differential_evolution
 
     fun, lo, hi = _resolve(f, net, lo, hi)
+    seed = check_int(seed, "seed", 0, "seed of the population")
+    maxiter = check_int(maxiter, "maxiter", 1, "generations")
+    popsize = check_int(popsize, "popsize", 1, "population per input dimension")
+    tol = check_number(tol, "tol", "the relative convergence tolerance")
     t0 = time.perf_counter()
     m = net.n_out
     eps, argmax, hist, hist_evals, count = np.zeros(m), np.zeros((m, net.n_in)), [], [], [0]
@@ -423,6 +435,11 @@ def local_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Ar
     from scipy.optimize import minimize
 
     fun, lo, hi = _resolve(f, net, lo, hi)
+    n_starts = check_int(n_starts, "n_starts", 1, "random starts")
+    seed = check_int(seed, "seed", 0, "seed of the starts")
+    output = check_int(output, "output", 0, f"the output of Phi, 0..{net.n_out - 1}")
+    if output >= net.n_out:
+        raise ValueError(f"output must be an output of Phi in 0..{net.n_out - 1}, got {output}")
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     n_evals, finals, points = 0, [], []
@@ -1169,7 +1186,13 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
         ``violation`` (the largest ``|Phi| - u_max`` found among feasible
         points, per output), ``point`` (where), ``n_feasible``, ``n_points``.
     """
-    eps = np.broadcast_to(np.asarray(eps, float), (system.m,))
+    eps = as_floats(eps, "eps")
+    if eps.size not in (1, system.m) or eps.ndim > 1 or not np.all(np.isfinite(eps)) or np.any(eps < 0):
+        raise ValueError(f"eps must be a finite error bound >= 0, a scalar or one per input (shape ({system.m},)), "
+                         f"got {eps}")
+    eps = np.broadcast_to(eps.reshape(-1), (system.m,))
+    n_z, n_v = check_int(n_z, "n_z", 1, "random states"), check_int(n_v, "n_v", 2, "inputs per state")
+    seed, chunk = check_int(seed, "seed", 0, "seed of the states"), check_int(chunk, "chunk", 1, "points per batch")
     rng = np.random.default_rng(seed)
     n_z_dim = system.n_z
     Z = rng.uniform(system.lo[:n_z_dim], system.hi[:n_z_dim], (n_z, n_z_dim))

@@ -65,7 +65,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_vector, check_number
+from ._checks import as_floats, as_vector, check_bool, check_int, check_number
 from .error import ErrorBracket, certify_error
 from .interval import Interval
 from .network import ReLUNet
@@ -229,6 +229,10 @@ def intersample_drift(system: FLSystem, ts: float, *, z_box: Optional[tuple] = N
     if system.phi_interval is None:
         raise ValueError(f"{system.name} has no phi_interval: certifying the drift Delta needs Phi written with flnotes.interval")
     ts = check_number(ts, "ts", "a positive hold time in seconds", strict=True)
+    admissible = check_bool(admissible, "admissible", "whether to bound Delta over the admissible set only")
+    batch, n_samples = check_int(batch, "batch", 1, "boxes per round"), check_int(n_samples, "n_samples", 1, "samples")
+    seed, max_boxes = check_int(seed, "seed", 0, "seed of the samples"), check_int(max_boxes, "max_boxes", 1, "budget")
+    max_time = check_number(max_time, "max_time", "budget in seconds", strict=True, none=True)
     n, m = system.n_z, system.m
     _nilpotent_powers(system.A, system.B)
     zb = (system.lo[:n], system.hi[:n]) if z_box is None else z_box
@@ -379,7 +383,7 @@ def drift_curve(system: FLSystem, ts_values: Sequence[float], **kwargs) -> dict:
         ``time_s`` (len(ts_values),) and ``bounds`` (the :class:`DriftBound` s).
         ``kwargs`` go to :func:`intersample_drift`.
     """
-    ts_values = np.asarray(ts_values, float).reshape(-1)
+    ts_values = as_floats(ts_values, "ts_values").reshape(-1)
     if not len(ts_values) or np.any(~np.isfinite(ts_values)) or np.any(ts_values <= 0):
         raise ValueError(f"ts_values must be positive hold times, got {ts_values}")
     bounds = [intersample_drift(system, t, **kwargs) for t in ts_values]

@@ -90,12 +90,17 @@ class ReLUNet:
     # --------------------------------------------------------------- forward
     def __call__(self, x: Array) -> Array:
         """Evaluate the network: (N, n_in) -> (N, n_out); (n_in,) -> (n_out,)."""
-        single = np.ndim(x) == 1
-        y = self.forward(as_batch(x, self.n_in, "x"))[0]
-        return y[0] if single else y
+        a = as_floats(x, "x")
+        y = self._forward(as_batch(a, self.n_in, "x"))[0]
+        return y[0] if a.ndim == 1 else y
 
     def forward(self, X: Array) -> tuple[Array, list[Array]]:
-        """Output and the hidden pre-activations ``W^k y^{k-1} + b^k`` (each (N, n_k))."""
+        """Output (N, n_out) and the hidden pre-activations ``W^k y^{k-1} + b^k`` (each (N, n_k)) of a batch
+        ``X`` (N, n_in) (one point (n_in,) is a batch of one)."""
+        return self._forward(as_batch(X, self.n_in, "X"))
+
+    def _forward(self, X: Array) -> tuple[Array, list[Array]]:
+        """:meth:`forward` on a checked (N, n_in) float array."""
         y, pre = X, []
         for W, b in zip(self.W[:-1], self.b[:-1]):
             a = y @ W.T + b
@@ -105,7 +110,7 @@ class ReLUNet:
 
     def preactivations(self, x: Array) -> list[Array]:
         """Hidden pre-activations for a batch, one (N, n_k) array per hidden layer."""
-        return self.forward(as_batch(x, self.n_in, "x"))[1]
+        return self._forward(as_batch(x, self.n_in, "x"))[1]
 
     def activation_pattern(self, x: Array) -> list[Array]:
         """Which neurons are active (pre-activation > 0): the binaries ``alpha^k`` of eq. (MIP_general_c)."""
@@ -477,8 +482,8 @@ def fit_relu(f: Callable[[Array], Array], lo: Array, hi: Array, widths: Sequence
     widths = tuple(check_int(w, "each of widths", 1, "neurons of a hidden layer") for w in widths)
     if not widths:
         raise ValueError("widths must list at least one hidden width, e.g. (20, 20, 20)")
-    for name, value, low in (("max_iter", max_iter, 1), ("seed", seed, 0)):
-        check_int(value, name, low, "of the training (MLPRegressor)")
+    max_iter = check_int(max_iter, "max_iter", 1, "L-BFGS iterations of the training")
+    seed = check_int(seed, "seed", 0, "seed of the initial weights and of the training subset")
     if max_train is not None:
         check_int(max_train, "max_train", 1, "most grid points used for training, or None for all")
     if threads is not None:

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ._checks import as_vector, check_count, check_number, horizon_reference, weight_matrix
+from ._checks import as_floats, as_vector, check_bool, check_count, check_number, horizon_reference, weight_matrix
 from .errors import SolverFailure
 from .result import StepResult
 from .systems import FLSystem
@@ -201,7 +201,10 @@ class NonlinearMPC:
         self.R = weight_matrix(R if R is not None else np.eye(self.m), self.m, "R", definite=True)
         self.P = weight_matrix(P, self.n_z, "P") if P is not None else np.zeros((self.n_z, self.n_z))
         self.u_max = system.u_max.copy()
-        self.rk4_steps, self.warm_start, self.max_iter = int(rk4_steps), bool(warm_start), int(max_iter)
+        warm_start = check_bool(warm_start, "warm_start", "whether IPOPT starts from the shifted previous solution")
+        state_box = check_bool(state_box, "state_box", "whether the predictions keep the state box")
+        v_box = check_bool(v_box, "v_box", "whether v keeps its box")
+        self.rk4_steps, self.warm_start, self.max_iter = int(rk4_steps), warm_start, int(max_iter)
         x_probe = np.asarray(system.to_x(np.zeros(self.n_z)), float).reshape(-1)
         self.n_x = len(x_probe)
         self._ca = ca
@@ -336,7 +339,11 @@ class NonlinearMPC:
 
     def _guess(self, x0: Array, u_guess: Optional[Array] = None) -> Array:
         if u_guess is not None:
-            U = np.clip(np.asarray(u_guess, float).reshape(self.N, self.m), -self.u_max, self.u_max)
+            U = as_floats(u_guess, "u_guess")
+            if U.size != self.N * self.m or not np.all(np.isfinite(U)):
+                raise ValueError(f"u_guess must be finite inputs of shape (N_p, m) = ({self.N}, {self.m}), got "
+                                 f"shape {U.shape}")
+            U = np.clip(U.reshape(self.N, self.m), -self.u_max, self.u_max)
             return self._pack(self.rollout(x0, U), U)
         if self.warm_start and self._w is not None:
             X, U = self._split(self._w)
@@ -423,7 +430,7 @@ class NonlinearMPC:
         """
         t0 = time.perf_counter()
         R = (np.zeros((self.N + 1, self.n_z)) if reference is None
-             else np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float))
+             else as_floats(reference(t + self.ts * np.arange(self.N + 1)), "reference(t)"))
         s = self(z, R)
         u = s["u"]
         if not np.all(np.isfinite(u)):

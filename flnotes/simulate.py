@@ -38,7 +38,7 @@ from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from ._checks import as_floats, as_vector, check_int, check_number
+from ._checks import as_floats, as_vector, check_bool, check_int, check_number
 from .errors import SolverFailure
 from .network import ReLUNet
 from .result import StepResult
@@ -47,6 +47,10 @@ from .systems import FLSystem
 Array = np.ndarray
 
 #: Exceptions that signal a mistake in the code or the call, never a place the plant cannot go: always raised.
+#: The most sampling intervals of one run (``t_final / ts``): a sampling time given in the wrong unit is an error,
+#: not a run that never ends.
+MAX_STEPS = 10_000_000
+
 _PROGRAMMING_ERRORS = (TypeError, AttributeError, NameError, ImportError, KeyError, IndexError, NotImplementedError)
 
 
@@ -212,8 +216,11 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     t_final, ts, n_fine, rtol, atol = _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine,
                                                   fallback, rtol, atol)
     ctrl = controller if isinstance(controller, Controller) else FeedbackLaw(controller)
+    if progress is not None:
+        progress = check_bool(progress, "progress", "True, False or None (only on long runs)")
     if check_domain is None:
         check_domain = isinstance(getattr(ctrl, "net", None), ReLUNet)
+    check_domain = check_bool(check_domain, "check_domain", "whether to stop when z leaves the domain box")
     m = system.m
     if z0 is not None:
         z_start = as_vector(z0, system.n_z, "z0")
@@ -352,6 +359,9 @@ def _check_args(system, controller, t_final, ts, x0, z0, hold, net, n_fine, fall
     tf_f = check_number(t_final, "t_final", "the simulated time in seconds", strict=True)
     if tf_f < ts_f:
         raise ValueError(f"need 0 < ts <= t_final, got ts={ts!r}, t_final={t_final!r}")
+    if tf_f / ts_f > MAX_STEPS:
+        raise ValueError(f"t_final / ts = {tf_f / ts_f:.3g} sampling intervals is more than MAX_STEPS = {MAX_STEPS:,}: "
+                         f"give a larger ts or a shorter t_final (ts is in seconds)")
     if (x0 is None) == (z0 is None):
         raise ValueError("give exactly one initial condition: x0 (plant state) or z0 (linearizing state)")
     if net is not None:

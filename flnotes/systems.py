@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 from scipy.linalg import expm
 
-from ._checks import as_batch, as_vector, check_box, check_number
+from ._checks import as_batch, as_floats, as_vector, check_box, check_number
 
 Array = np.ndarray
 
@@ -78,7 +78,9 @@ def discretize(A: Array, B: Array, ts: float, method: str = "exact") -> tuple[Ar
     -------
     Ad, Bd
     """
-    A, B = np.atleast_2d(np.asarray(A, float)), np.asarray(B, float)
+    A, B = np.atleast_2d(as_floats(A, "A")), as_floats(B, "B")
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+        raise ValueError("A and B must be finite: they contain NaN or inf")
     if B.ndim == 1:
         B = B[:, None]
     n = A.shape[0]
@@ -88,14 +90,20 @@ def discretize(A: Array, B: Array, ts: float, method: str = "exact") -> tuple[Ar
     if method == "exact":
         M = np.zeros((n + B.shape[1], n + B.shape[1]))
         M[:n, :n], M[:n, n:] = A, B
-        E = expm(M * ts)
-        return E[:n, :n], E[:n, n:]
-    if method == "rk4":
+        with np.errstate(all="ignore"):
+            E = expm(M * ts)
+        Ad, Bd = E[:n, :n], E[:n, n:]
+    elif method == "rk4":
         hA, I = ts * A, np.eye(n)
-        Ad = I + hA + hA @ hA / 2 + hA @ hA @ hA / 6 + hA @ hA @ hA @ hA / 24
-        Bd = ts * (I + hA / 2 + hA @ hA / 6 + hA @ hA @ hA / 24) @ B
-        return Ad, Bd
-    raise ValueError(f"method must be 'exact' or 'rk4', got {method!r}")
+        with np.errstate(all="ignore"):
+            Ad = I + hA + hA @ hA / 2 + hA @ hA @ hA / 6 + hA @ hA @ hA @ hA / 24
+            Bd = ts * (I + hA / 2 + hA @ hA / 6 + hA @ hA @ hA / 24) @ B
+    else:
+        raise ValueError(f"method must be 'exact' or 'rk4', got {method!r}")
+    if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+        raise ValueError(f"the discretized model overflows at ts = {ts!r} (Ad, Bd beyond the float range): give a "
+                         f"sampling time on the scale of the system's dynamics")
+    return Ad, Bd
 
 
 def condense(Ad: Array, Bd: Array, horizon: int, Q: Array, R: Array, P: Array) -> tuple[Array, Array, Array]:
@@ -194,8 +202,10 @@ class FLSystem:
         if not isinstance(self.name, str):
             raise TypeError(f"name must be a string, got {type(self.name).__name__}")
         # copies: the system owns its arrays, so a caller's later edit of the arrays it passed changes nothing here
-        self.A = np.atleast_2d(np.array(self.A, float))
-        self.B = np.array(self.B, float)
+        self.A = np.atleast_2d(as_floats(self.A, "A")).copy()
+        self.B = as_floats(self.B, "B").copy()
+        if not (np.all(np.isfinite(self.A)) and np.all(np.isfinite(self.B))):
+            raise ValueError("A and B must be finite: they contain NaN or inf")
         if self.B.ndim == 1:
             self.B = self.B[:, None]
         n_z = self.A.shape[0]
@@ -326,12 +336,12 @@ class FLSystem:
 
     def grid(self, n_per_axis: int | Sequence[int]) -> Array:
         """Uniform grid over the domain box with ``n_per_axis`` points per axis, (N, n_in)."""
-        n = np.broadcast_to(np.asarray(n_per_axis, int), (self.n_in,))
-        axes = [np.linspace(l, h, k) for l, h, k in zip(self.lo, self.hi, n)]
-        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, self.n_in)
+        from .network import uniform_grid  # the one grid (and its checks of n_per_axis)
+
+        return uniform_grid(self.lo, self.hi, n_per_axis)
 
     def _pair(self, z: Array, v: Array) -> tuple[Array, Array, bool]:
-        z, v = np.asarray(z, float), np.asarray(v, float)
+        z, v = as_floats(z, "z"), as_floats(v, "v")
         single = z.ndim == 1
         Z = as_batch(z, self.n_z, "z")
         if v.ndim == 0 or (v.ndim == 1 and single):
@@ -407,6 +417,9 @@ def msd(u_max: float = 5.0, z_box: float = 5.0, v_box: float = 10.0) -> FLSystem
     """
     from .interval import msd_phi  # interval version of Phi, for certifying eps (flnotes.error)
 
+    u_max, z_box, v_box = (check_number(x, name, what, strict=True) for x, name, what in (
+        (u_max, "u_max", "the input bound"), (z_box, "z_box", "the half-width of the state box"),
+        (v_box, "v_box", "the half-width of the v box")))
     A, B = brunovsky([2])
 
     def phi(z: Array, v: Array) -> Array:
@@ -440,6 +453,14 @@ def quad1d(Gamma: float = 10.0, gamma: float = 0.3, tau: float = 0.2, u_max: flo
     """
     from .interval import make_quad1d_phi  # interval version of Phi, for certifying eps (flnotes.error)
 
+    gamma = check_number(gamma, "gamma", "the drag coefficient")
+    Gamma, tau, u_max, z_box, v_box = (check_number(x, name, what, strict=True) for x, name, what in (
+        (Gamma, "Gamma", "the thrust gain"),
+        (tau, "tau", "the pitch time constant (s)"), (u_max, "u_max", "the input bound (rad)"),
+        (z_box, "z_box", "the half-width of the state box"), (v_box, "v_box", "the half-width of the v box")))
+    zeta_max = check_number(zeta_max, "zeta_max", "the bound on |zeta(z)| of Remark 1, below 1", strict=True)
+    if zeta_max >= 1:
+        raise ValueError(f"zeta_max must lie in (0, 1) (|zeta| = 1 is the singularity of Remark 1), got {zeta_max!r}")
     A, B = brunovsky([3])
 
     def zeta(z: Array) -> Array:

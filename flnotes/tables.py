@@ -15,6 +15,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from ._checks import as_floats
+
 Array = np.ndarray
 
 
@@ -109,7 +111,7 @@ def time_stats(times_s: Sequence[float], percentiles: Sequence[float] = (50, 90,
         ``n``, ``min_ms``, ``median_ms`` / ``p<q>_ms``, ``max_ms``, ``mean_ms``
         (all NaN when there is no time).
     """
-    t = np.asarray(times_s, float).ravel()
+    t = as_floats(times_s, "times_s").ravel()
     t = t[np.isfinite(t)] * 1e3
     keys = ["median_ms" if q == 50 else f"p{q:g}_ms" for q in percentiles]
     if t.size == 0:

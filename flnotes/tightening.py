@@ -33,8 +33,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._checks import as_vector, check_box, check_boxes
-from .bounds import NodeBounds, fbbt, interval_affine
+from ._checks import (as_floats, as_pair, as_vector, check_bool, check_box, check_boxes, check_count,
+                      check_number)
+from .bounds import NodeBounds, _interval_affine, fbbt, interval_affine
 from .network import ReLUNet, fingerprint
 
 Array = np.ndarray
@@ -78,10 +79,10 @@ def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int =
     L, U = [np.asarray(x, float).copy() for x in L], [np.asarray(x, float).copy() for x in U]
     l, u = np.maximum(L[start], 0.0), np.maximum(U[start], 0.0)
     for k in range(start + 1, net.K - 1):
-        Lk, Uk = interval_affine(net.W[k], net.b[k], l, u, outward)
+        Lk, Uk = _interval_affine(net.W[k], net.b[k], l, u, outward)
         L[k], U[k] = np.maximum(L[k], Lk), np.minimum(U[k], Uk)
         l, u = np.maximum(L[k], 0.0), np.maximum(U[k], 0.0)
-    oL, oU = interval_affine(net.W[-1], net.b[-1], l, u, outward)
+    oL, oU = _interval_affine(net.W[-1], net.b[-1], l, u, outward)
     return L, U, oL, oU
 
 
@@ -116,7 +117,9 @@ class LPTightener:
     def __init__(self, net: ReLUNet, out_bounds: Optional[tuple[Array, Array]] = None, tol: float = 1e-7):
         import highspy
 
-        self.net, self.tol, self._hp = net, float(tol), highspy
+        if not isinstance(net, ReLUNet):
+            raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+        self.net, self.tol, self._hp = net, check_number(tol, "tol", "the relative margin added to every bound"), highspy
         n_in, widths = net.n_in, net.widths
         self.x = np.arange(n_in)
         self.y, self.alpha = [], []
@@ -168,13 +171,7 @@ class LPTightener:
         self.row_out = None
         self.b_row_L = [np.asarray(b, float).copy() for b in net.b[:-1]]
         if out_bounds is not None:
-            olo = (as_vector(out_bounds[0], net.n_out, "out_bounds[0]") if np.all(np.isfinite(out_bounds[0]))
-                   else np.asarray(out_bounds[0], float))
-            ohi = np.asarray(out_bounds[1], float)
-            if olo.shape != (net.n_out,) or ohi.shape != (net.n_out,):
-                raise ValueError(f"out_bounds must be a pair of arrays of shape ({net.n_out},)")
-            if np.any(olo > ohi):
-                raise ValueError("out_bounds: lower bound above upper bound")
+            olo, ohi = check_out_bounds(out_bounds, net.n_out)
             W, b = net.W[-1], net.b[-1]
             ro = []
             for i in range(net.n_out):
@@ -394,6 +391,24 @@ _TIGHTENERS: dict = {}
 _TIGHTENERS_LOCK = threading.Lock()
 
 
+def check_out_bounds(out_bounds, n_out: int) -> tuple[Array, Array]:
+    """``(out_lo, out_hi)`` as two float vectors of shape ``(n_out,)`` (a number is the same bound on every output),
+    ``out_lo <= out_hi``; an infinite end is one-sided (``-inf`` below, ``+inf`` above), NaN is refused.
+    ``ValueError`` naming ``out_bounds`` otherwise."""
+    olo, ohi = as_pair(out_bounds, "out_bounds")
+    olo, ohi = (np.full(n_out, float(a)) if a.ndim == 0 else a  # a number: the same bound on every output
+                for a in (as_floats(olo, "out_bounds[0]"), as_floats(ohi, "out_bounds[1]")))
+    if olo.shape != (n_out,) or ohi.shape != (n_out,):
+        raise ValueError(f"out_bounds must be a pair (out_lo, out_hi) of arrays of shape ({n_out},) (one per output "
+                         f"of the network), got shapes {olo.shape} and {ohi.shape}")
+    if np.isnan(olo).any() or np.isnan(ohi).any() or np.any(olo == np.inf) or np.any(ohi == -np.inf):
+        raise ValueError(f"out_bounds must be numbers (out_lo < +inf, out_hi > -inf; -inf or +inf for a one-sided "
+                         f"bound), got {olo} and {ohi}")
+    if np.any(olo > ohi):
+        raise ValueError(f"out_bounds is empty: out_lo = {olo} lies above out_hi = {ohi}")
+    return olo, ohi
+
+
 def _tightener(net: ReLUNet, out_bounds, tol: float) -> LPTightener:
     """One persistent LP per (network, output bounds), reused across calls (the model is only updated). The network
     is known by its parameters (:func:`flnotes.network.fingerprint`): one changed in place gets a new LP."""
@@ -450,7 +465,14 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     DeadlineReached
         When ``deadline`` passes before the last LP.
     """
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
     lo2, hi2, batch = check_boxes(lo, hi, net.n_in)
+    if out_bounds is not None:
+        out_bounds = check_out_bounds(out_bounds, net.n_out)
+    tol = check_number(tol, "tol", "the relative margin added to every bound")
+    skip_stable = check_bool(skip_stable, "skip_stable", "whether to solve LPs only for unstable neurons")
+    deadline = check_number(deadline, "deadline", "a time.perf_counter() value", none=True)
     if net.K == 1:
         return _affine_bounds(net, lo2, hi2, out_bounds, batch)
     tightener = _tightener(net, out_bounds, tol)
@@ -524,7 +546,9 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
         :data:`flnotes.solvers.BOX_TOL` (closer, it is projected onto the box) or
         no admissible input keeps the state in the box.
     """
-    Ad, Bd = np.atleast_2d(np.asarray(Ad, float)), np.atleast_2d(np.asarray(Bd, float))
+    Ad, Bd = np.atleast_2d(as_floats(Ad, "Ad")), np.atleast_2d(as_floats(Bd, "Bd"))
+    if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+        raise ValueError("Ad and Bd must be finite (the discretized model): they contain NaN or inf")
     n_z = Ad.shape[0]
     if Ad.shape != (n_z, n_z):
         raise ValueError(f"Ad must be square, got {Ad.shape}")
@@ -534,9 +558,7 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     z0 = as_vector(z0, n_z, "z0")
     z_lo, z_hi = check_box(z_lo, z_hi, n_z, "z_lo", "z_hi")
     v_lo, v_hi = check_box(v_lo, v_hi, m, "v_lo", "v_hi")
-    if not int(horizon) == horizon or horizon < 1:
-        raise ValueError(f"horizon must be a positive integer, got {horizon}")
-    horizon = int(horizon)
+    horizon = check_count(horizon, "horizon", 1, "steps of the prediction")
     from .solvers import BOX_TOL
 
     if np.any(z0 < z_lo - BOX_TOL) or np.any(z0 > z_hi + BOX_TOL):

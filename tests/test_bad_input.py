@@ -588,3 +588,85 @@ def test_the_nonlinear_mpc_counts_are_integers(msd, key):
     for bad in (2.5, True, "3", 0):
         with pytest.raises(ValueError, match=f"{re.escape(key)}.* must be"):
             fl.NonlinearMPC(sysm, **{"horizon": 3, "ts": 0.1, key: bad})
+
+
+def _cases_that_gave_wrong_answers(sysm, net):
+    """Calls that once ran on bad input and answered wrongly (unsound bounds, -inf, a hidden value, a truncated count):
+    each is refused now, with the argument's name."""
+    lo, hi = sysm.lo, sysm.hi
+    mpc = fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, Q=[10.0, 1.0], R=0.1)
+    Ad, Bd = sysm.discretize(0.1)
+    nmpc = fl.NonlinearMPC(fl.quad1d(), horizon=3, ts=0.1)  # the MSD's to_z is not CasADi-ready
+    hidden = np.ma.array(np.ones((4, 2)), mask=True)
+    return [
+        (lambda: fl.lp_bounds(net, lo, hi, tol=-0.5), "tol must be a finite number >= 0"),
+        (lambda: fl.lp_bounds(net, lo, hi, tol=True), "tol must be"),
+        (lambda: fl.lp_bounds(net, lo, hi, out_bounds=([-1.0], [True])), "out_bounds\\[1\\] must be numbers"),
+        (lambda: fl.lp_bounds(net, lo, hi, out_bounds=([-1.0], [np.nan])), "out_bounds must be numbers"),
+        (lambda: fl.lp_bounds(net, lo, hi, out_bounds=(["-1"], [1.0])), "out_bounds\\[0\\] must be numbers"),
+        (lambda: fl.lp_bounds(net, lo, hi, out_bounds=([1.0], [-1.0])), "out_bounds is empty"),
+        (lambda: fl.worst_violation(sysm, net, None, n_z=5, n_v=3), "eps must be"),
+        (lambda: fl.worst_violation(sysm, net, np.nan, n_z=5, n_v=3), "eps must be a finite error bound"),
+        (lambda: fl.worst_violation(sysm, net, -1.0, n_z=5, n_v=3), "eps must be a finite error bound"),
+        (lambda: fl.worst_violation(sysm, net, True, n_z=5, n_v=3), "eps must be numbers .*booleans"),
+        (lambda: fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, terminal=(np.array([["1", "0"]]), np.array(["1"]))),
+         "terminal F must be numbers .*strings"),
+        (lambda: fl.MPC(sysm, net, 0.5, horizon=3, ts=0.1, terminal=([[1.0, 0.0]], [True])),
+         "terminal g must be numbers .*booleans"),
+        (lambda: fl.horizon_boxes(Ad, Bd, [0, 0], [-5, -5], [5, 5], [-10], [10], True), "horizon must be"),
+        (lambda: fl.horizon_boxes(Ad, Bd, [0, 0], [-5, -5], [5, 5], [-10], [10], 2.5), "horizon must be"),
+        (lambda: sysm.grid(2.5), "n_per_axis must be an integer >= 2"),
+        (lambda: sysm.grid("3"), "n_per_axis must be numbers .*strings"),
+        (lambda: fl.MPC(sysm, net, 0.5, horizon=Decimal("2.99999999999999999999"), ts=0.1), "horizon \\(N_p\\) must"),
+        (lambda: mpc.step(np.zeros(2), 0.0, reference=lambda t: hidden), "reference\\(t\\) must be numbers .*masked"),
+        (lambda: fl.time_stats(np.ma.array([0.1, 99.0], mask=[0, 1])), "times_s must be numbers .*masked"),
+        (lambda: fl.drift_curve(sysm, np.ma.array([0.1, 5.0], mask=[0, 1])), "ts_values must be numbers .*masked"),
+        (lambda: fl.sine_reference(phase=1j), "phase must be a finite number"),
+        (lambda: fl.sine_reference(n_z=True), "n_z must be an integer >= 1"),
+        (lambda: nmpc.solve(np.zeros(3), np.zeros(3), u_guess=np.full(3, np.nan)), "u_guess must be finite"),
+        (lambda: sysm.Phi(["1", "2"], "3"), "z must be numbers .*strings"),
+        (lambda: sysm.Phi([0.0, 0.0], True), "v must be numbers .*booleans"),
+        (lambda: fl.discretize([["0", "1"], ["0", "0"]], [[0.0], [1.0]], 0.1), "A must be numbers .*strings"),
+        (lambda: fl.discretize(sysm.A, sysm.B, 1e300), "the discretized model overflows"),
+        (lambda: fl.quad1d(Gamma=True), "Gamma must be a finite number > 0"),
+        (lambda: fl.quad1d(tau=None), "tau must be a finite number > 0"),
+        (lambda: fl.two_link_arm(m1=True), "m1 must be a finite number > 0"),
+        (lambda: fl.two_link_arm(q1_box=True), "q1_box must be a finite number > 0"),
+        (lambda: fl.arm.ArmPointCBF([0.5, 0.5], radius=True), "radius must be a finite number > 0"),
+        (lambda: fl.interval_affine(np.eye(2), np.zeros(2), np.ones(2), np.zeros(2)), "l <= u"),
+        (lambda: fl.forward_milp(net, [np.nan, 0.0, 0.0]), "x contains NaN"),
+        (lambda: fl.sample_max_error(sysm, net, n=-5), "n must be an integer >= 1"),
+        (lambda: fl.sample_max_error(sysm, net, n=True), "n must be an integer >= 1"),
+        (lambda: fl.local_max_error(sysm, net, output=1, n_starts=1), "output must be an output of Phi"),
+        (lambda: fl.local_max_error(sysm, net, output=-1, n_starts=1), "output must be an integer >= 0"),
+        (lambda: fl.pso_max_error(sysm, net, n_iter=True), "n_iter must be an integer >= 1"),
+        (lambda: fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(np.eye(2)), fl.DistanceCBF([3.0, 0.0], 0.5),
+                                     gap=5.0), "gap must be a relative optimality gap in \\[0, 1\\)"),
+        (lambda: fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=1e-300, z0=[0.0, 1.0]), "MAX_STEPS"),
+        (lambda: fl.fbbt(net, lo, hi, outward="no"), "outward must be True or False"),
+        (lambda: fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.3, ts=0.1, z0=[0.0, 1.0], progress="no"),
+         "progress must be True or False"),
+        (lambda: fl.NonlinearMPC(sysm, horizon=3, ts=0.1, warm_start="no"), "warm_start must be True or False"),
+        (lambda: fl.intersample_drift(sysm, 0.1, admissible="no"), "admissible must be True or False"),
+        (lambda: net.forward(np.array([["1", "2", "3"]])), "X must be numbers .*strings"),
+        (lambda: fl.QuadraticCLF(np.eye(2))(["1", "2"]), "z must be numbers .*strings"),
+    ]
+
+
+def test_bad_input_that_once_gave_a_wrong_answer_is_refused_by_name(msd):
+    sysm, net = msd
+    for call, match in _cases_that_gave_wrong_answers(sysm, net):
+        with pytest.raises(ValueError, match=match):
+            call()
+
+
+def test_a_masked_array_without_masked_entries_and_real_numbers_of_any_kind_still_pass(msd):
+    sysm, net = msd
+    lo, hi = sysm.lo, sysm.hi
+    ref = fl.lp_bounds(net, lo, hi, out_bounds=(-np.array([4.5]), np.array([4.5])))
+    for ob in ((Fraction(-9, 2), Decimal("4.5")), ([-4.5], np.ma.array([4.5], mask=False)), ([-4.5], (4.5,))):
+        b = fl.lp_bounds(net, lo, hi, out_bounds=ob)
+        assert all(np.array_equal(x, y) for x, y in zip(b.L + b.U, ref.L + ref.U))
+    assert np.array_equal(sysm.grid(np.int64(3)), sysm.grid(3)) and sysm.grid(3).shape == (27, 3)
+    assert fl.time_stats(np.ma.array([0.1, 0.2], mask=False))["n"] == 2
+    assert fl.quad1d(Gamma=Fraction(10), tau=Decimal("0.2")).params == fl.quad1d().params

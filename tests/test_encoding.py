@@ -203,7 +203,7 @@ def test_encode_rejects_bad_shapes():
         fl.encode(net, cp.Variable(3))
     with pytest.raises(ValueError, match="one L and one U per hidden layer"):
         fl.encode(net, cp.Variable(3), L=[], U=[])
-    with pytest.raises(ValueError, match="L of a layer with 4 neurons"):
+    with pytest.raises(ValueError, match=r"L\^1 of a layer with 4 neurons"):
         fl.encode(net, cp.Variable(3), L=[np.zeros(5)], U=[np.ones(5)])
     batch = fl.fbbt(net, -np.ones((2, 3)), np.ones((2, 3)))
     with pytest.raises(ValueError, match="batch"):

@@ -190,6 +190,7 @@ def test_user_defined_multi_input_system():
 
 def test_bad_arguments_name_the_argument():
     m = fl.msd()
+    A2, B2 = fl.brunovsky([2])
     with pytest.raises(ValueError, match="z must have shape"):
         m.Phi(np.zeros(3), [0.0])
     with pytest.raises(ValueError, match="v must have shape"):
@@ -200,12 +201,15 @@ def test_bad_arguments_name_the_argument():
         m.Phi([np.nan, 0.0], [0.0])
     with pytest.raises(ValueError, match="v contains NaN"):
         m.Phi([0.0, 0.0], [np.nan])
-    with pytest.raises(ValueError, match=r"lo\[0\] = 2.0 > hi\[0\]"):
+    with pytest.raises(ValueError, match=r"z_box must be a finite number > 0 \(the half-width of the state box\)"):
         fl.msd(z_box=-2.0)
-    with pytest.raises(ValueError, match="u_max must be positive"):
+    with pytest.raises(ValueError, match="u_max must be a finite number > 0"):
         fl.msd(u_max=0.0)
-    with pytest.raises(ValueError, match="u_max must be positive"):
+    with pytest.raises(ValueError, match="u_max must be a finite number > 0"):
         fl.quad1d(u_max=-0.1)
+    with pytest.raises(ValueError, match="u_max must be positive"):  # the system's own check of the vector
+        fl.FLSystem(name="bad", A=A2, B=B2, phi=None, lo=[0, 0, 0], hi=[1, 1, 1], u_max=[0.0], f=None, to_z=None,
+                    to_x=None)
     with pytest.raises(ValueError, match="X must have shape"):
         m.split(np.zeros((2, 4)))
     A, B = fl.brunovsky([2])

@@ -16,8 +16,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import (as_floats, as_pair, as_vector, box_in_domain, check_count, check_number, horizon_reference,
-                       weight_matrix)
+from .._checks import (as_floats, as_pair, as_vector, box_in_domain, check_count, check_int, check_number,
+                       horizon_reference, weight_matrix)
 from ..bounds import fbbt
 from ..atlas import BoundAtlas, check_atlas, shipped_atlas
 from ..enclosure import AffineEnclosure, affine_enclosure, check_enclosure
@@ -93,11 +93,13 @@ def sine_reference(amplitude: float = 1.5, omega: float = 1.0, n_z: int = 3, pha
     with column ``i`` the ``i``-th time derivative of ``x_ref``, as the
     Brunovsky state ``z = [x, x', x'', ...]`` requires (the book's reference, Sec. IV-B: ``1.5 sin t``).
     """
-    if n_z < 1:
-        raise ValueError(f"n_z must be >= 1, got {n_z}")
+    n_z = check_int(n_z, "n_z", 1, "the state's dimension: x_ref and its derivatives")
+    amplitude = check_number(amplitude, "amplitude", "of the sine", low=-np.inf)
+    omega = check_number(omega, "omega", "the angular frequency in rad/s", low=-np.inf)
+    phase = check_number(phase, "phase", "in rad", low=-np.inf)
 
     def z_ref(t: Array) -> Array:
-        t = np.atleast_1d(np.asarray(t, float))
+        t = np.atleast_1d(as_floats(t, "t"))
         cols = [amplitude * omega**i * np.sin(omega * t + phase + i * np.pi / 2) for i in range(n_z)]
         return np.stack(cols, axis=-1)
 
@@ -457,7 +459,7 @@ class MPC:
             if not (isinstance(Fg, (tuple, list)) and len(Fg) == 2):
                 raise TypeError("terminal must be (F, g) or an object with constraint() -> (F, g), e.g. fl.TerminalSet")
         K = getattr(terminal, "K", None)
-        self.K_terminal = None if K is None else np.asarray(K, float).reshape(self.m, self.n_z)
+        self.K_terminal = None if K is None else as_floats(K, "terminal.K").reshape(self.m, self.n_z)
         self.time_limit, self.gap = time_limit, float(gap)
         self.cut_off = bool(time_limit is not None and engine and (cut_off is None or cut_off))
         self.reserve_share = RESERVE_SHARE
@@ -933,7 +935,7 @@ class MPC:
             if reference is None:
                 R = np.zeros((self.N + 1, self.n_z))
             else:
-                R = np.asarray(reference(t + self.ts * np.arange(self.N + 1)), float)
+                R = as_floats(reference(t + self.ts * np.arange(self.N + 1)), "reference(t)")
             return self(z, R)
         finally:
             if self.time_limit is not None:

@@ -12,6 +12,7 @@ from typing import Optional
 
 import numpy as np
 
+from .._checks import as_floats
 from ..enclosure import AffineEnclosure, contract, outer_rows
 from ..network import ReLUNet
 from ..solvers import BOUND_TOL, FEAS_TOL
@@ -79,7 +80,7 @@ class Prediction:
         self.F = self.g = None
         rows = [self.Su[1:].reshape(N * nz, N * m)]
         if terminal is not None:
-            F, g = (np.atleast_2d(np.asarray(a, float)) for a in terminal)
+            F, g = (np.atleast_2d(as_floats(a, name)) for a, name in zip(terminal, ("terminal F", "terminal g")))
             g = g.reshape(-1)
             if F.ndim != 2 or F.shape[1] != nz or g.shape != (F.shape[0],):
                 raise ValueError(f"terminal must be (F, g) with F of shape (r, {nz}) and g of shape (r,), got "
