@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._checks import as_floats, check_bool, check_box, check_boxes
+from ._checks import as_floats, check_bool, check_box, check_boxes, check_number
 from .network import ReLUNet
 
 Array = np.ndarray
@@ -73,6 +73,12 @@ class NodeBounds:
 
     def contains(self, pre: list[Array], tol: float = 1e-9) -> bool:
         """Do the bounds contain the given pre-activations (as from :meth:`ReLUNet.preactivations`)?"""
+        if not isinstance(pre, (list, tuple)) or len(pre) != len(self.L):
+            raise ValueError(f"pre must be a list of {len(self.L)} arrays of pre-activations, one per hidden layer "
+                             f"(net.preactivations(X)), got {type(pre).__name__} of length "
+                             f"{len(pre) if hasattr(pre, '__len__') else '?'}")
+        tol = check_number(tol, "tol", "the slack of the containment")
+        pre = [as_floats(a, f"pre[{k}]") for k, a in enumerate(pre)]
         return all(np.all(a >= L - tol) and np.all(a <= U + tol) for a, L, U in zip(pre, self.L, self.U))
 
     def summary(self) -> str:

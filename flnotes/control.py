@@ -98,7 +98,7 @@ class Certificate:
         z = as_floats(z, "z")
         if z.ndim not in (1, 2):
             raise ValueError(f"z must be one state (n_z,) or a batch (N, n_z), got shape {z.shape}")
-        out = np.asarray(self.value(np.atleast_2d(z)), float).reshape(-1)
+        out = as_floats(self.value(np.atleast_2d(z)), f"{self.name}(z)").reshape(-1)
         return float(out[0]) if z.ndim == 1 else out
 
 
@@ -290,14 +290,17 @@ def cbf_condition_fails(H: Certificate, Z: Array, A: Array, B: Array, kappa: flo
     numpy.ndarray
         Boolean mask, shape (N,).
     """
-    Z = np.atleast_2d(np.asarray(Z, float))
-    if not kappa > 0:
-        raise ValueError(f"kappa must be positive, got {kappa!r}")
-    G = np.array([H.grad(z) for z in Z])
-    if G.shape != Z.shape:
-        raise ValueError(f"grad H must have shape {Z.shape[1:]} per state, got {G.shape[1:]}")
-    no_authority = np.all(np.abs(G @ np.asarray(B, float)) <= tol, axis=1)
-    return no_authority & (np.einsum("ni,ni->n", G, Z @ np.asarray(A, float).T) + kappa * H.value(Z) < 0)
+    H = as_certificate(H, "H")
+    Z = np.atleast_2d(as_floats(Z, "Z"))
+    if Z.ndim != 2 or not np.all(np.isfinite(Z)):
+        raise ValueError(f"Z must be finite states of shape (N, n_z), got shape {Z.shape}")
+    A, B = as_floats(A, "A"), as_floats(B, "B")
+    kappa = check_number(kappa, "kappa", "the CBF gain", strict=True)
+    tol = check_number(tol, "tol", "the threshold of |grad H(z)^T B| read as no authority")
+    at = [_certificate_at(H, z, "H") for z in Z]
+    G, Hz = np.array([g for g, _ in at]).reshape(Z.shape), np.array([v for _, v in at])
+    no_authority = np.all(np.abs(G @ B) <= tol, axis=1)
+    return no_authority & (np.einsum("ni,ni->n", G, Z @ A.T) + kappa * Hz < 0)
 
 
 class _FunctionCertificate(Certificate):
@@ -305,10 +308,10 @@ class _FunctionCertificate(Certificate):
         self.fn, self._grad, self.name = fn, grad, name
 
     def value(self, Z: Array) -> Array:
-        return np.array([float(self.fn(z)) for z in Z])
+        return np.concatenate([as_floats(self.fn(z), f"{self.name}(z)").reshape(-1) for z in Z])
 
     def grad(self, z: Array) -> Array:
-        return np.asarray(self._grad(z), float).reshape(-1)
+        return as_floats(self._grad(z), f"{self.name}.grad(z)").reshape(-1)
 
 
 def as_certificate(obj: Any, name: str = "certificate") -> Certificate:
@@ -321,6 +324,19 @@ def as_certificate(obj: Any, name: str = "certificate") -> Certificate:
         return _FunctionCertificate(obj, obj.grad, name)
     raise ValueError(f"{name} must be a Certificate (e.g. QuadraticCLF, DistanceCBF), an object with __call__ "
                      f"and .grad, or a pair (fn, grad_fn); got {type(obj).__name__}")
+
+
+def _certificate_at(c: Certificate, z: Array, name: str) -> tuple[Array, float]:
+    """``grad c(z)`` (n_z,) and ``c(z)``, both finite real numbers, else ``ValueError`` naming ``name``: a NaN value
+    or gradient would drop its row from eq. (CLF_CBF) without a word."""
+    with np.errstate(all="ignore"):
+        g = as_floats(c.grad(z), f"{name}.grad(z)").reshape(-1)
+        v = as_floats(c(z), f"{name}(z)").reshape(-1)
+    if g.shape != z.shape or not np.all(np.isfinite(g)):
+        raise ValueError(f"{name}.grad(z) must be a finite vector of shape {z.shape} at z = {z}, got {g}")
+    if v.shape != (1,) or not np.isfinite(v[0]):
+        raise ValueError(f"{name}(z) must be a finite number at z = {z}, got {v}")
+    return g, float(v[0])
 
 
 def _cbf_list(H: Any) -> list[Certificate]:
@@ -362,7 +378,17 @@ class PiecewiseAffine1D:
         return len(self.slope)
 
     def __call__(self, v: Array) -> Array:
-        """Evaluate by linear interpolation between knots (exact, the function is affine there)."""
+        """Evaluate by linear interpolation between knots (exact, the function is affine there); ``v`` must lie in
+        ``[knots[0], knots[-1]]`` (outside it the pieces say nothing: ``ValueError``)."""
+        v = as_floats(v, "v")
+        tol = 1e-12 * max(1.0, float(self.knots[-1] - self.knots[0]))
+        if np.any(~((v >= self.knots[0] - tol) & (v <= self.knots[-1] + tol))):
+            raise ValueError(f"v must lie in the segment [{self.knots[0]}, {self.knots[-1]}] of the pieces, got "
+                             f"{v[~((v >= self.knots[0] - tol) & (v <= self.knots[-1] + tol))].ravel()[:3]}")
+        return self._at(v)
+
+    def _at(self, v: Array) -> Array:
+        """:meth:`__call__` without the checks (the package's own points of the segment)."""
         return np.interp(v, self.knots, self.values)
 
 
@@ -394,7 +420,13 @@ def network_pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> Piece
     -------
     PiecewiseAffine1D
     """
-    z = np.asarray(z, float).reshape(-1)
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    z = as_floats(z, "z").reshape(-1)
+    if not np.all(np.isfinite(z)):
+        raise ValueError(f"z contains NaN or inf: {z}")
+    v_lo = check_number(v_lo, "v_lo", "the lower end of the segment of v", low=-np.inf)
+    v_hi = check_number(v_hi, "v_hi", "the upper end of the segment of v", low=-np.inf)
     if net.n_in != len(z) + 1 or net.n_out != 1:
         raise ValueError(f"the exact 1-D method needs a single input v and a single output: the network has "
                          f"n_in = {net.n_in}, n_out = {net.n_out} and z has {len(z)} entries; use a MILP/MIQP backend")
@@ -471,8 +503,9 @@ def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, boun
     Array
         Shape (p, 2): rows ``[a_i, b_i]`` sorted, disjoint; (0, 2) when empty.
     """
+    bound = check_number(bound, "bound", "u_max^eps = u_max - eps", strict=True)
     pw = network_pieces_1d(net, z, v_lo, v_hi) if pieces is None else pieces
-    iv = _pieces_within(pw, float(bound))
+    iv = _pieces_within(pw, bound)
     iv = iv[iv[:, 0] <= iv[:, 1]]
     return _merge(iv, tol=1e-12)
 
@@ -498,7 +531,7 @@ def _objective_1d(v: Array, d: dict, cost: str, pw: Optional[PiecewiseAffine1D] 
     J = aV * v + d["Jc"] if cost == "linear" else (v - d["k"][0]) ** 2
     f = J + delta
     if pw is not None:
-        f = f + rho[0] * np.maximum(0.0, np.abs(pw(v)) - bound)
+        f = f + rho[0] * np.maximum(0.0, np.abs(pw._at(v)) - bound)
         if len(d["bH"]):
             f = f + rho[1] * np.maximum(0.0, -(np.outer(v, d["aH"][:, 0]) + d["bH"])).sum(axis=1)
     return f, delta
@@ -523,6 +556,11 @@ def solve_exact_1d(pw: PiecewiseAffine1D, d: dict, cost: str, bound: float, soft
     -------
     (v, delta, objective), or None when the program is infeasible.
     """
+    bound = check_number(bound, "bound", "u_max^eps = u_max - eps", strict=True)
+    r = as_floats(rho, "rho")
+    if r.shape != (2,) or not np.all(np.isfinite(r)) or np.any(r < 0):
+        raise ValueError(f"rho must be two finite penalties >= 0 (rho_u, rho_H), got {rho!r}")
+    rho = (float(r[0]), float(r[1]))
     aV, bV = d["aV"][0], d["bV"]
     if not soft:
         iv = _pieces_within(pw, bound)
@@ -666,6 +704,10 @@ class ClfCbfController:
                             backend=backend, solver=solver, v_lo=v_lo, v_hi=v_hi, penalty=penalty,
                             screening=screening, time_limit=time_limit, gap=gap, solver_options=solver_options,
                             name=name)
+        if not isinstance(system, FLSystem):
+            raise TypeError(f"system must be a flnotes.FLSystem (e.g. fl.msd()), got {type(system).__name__}")
+        if not isinstance(net, ReLUNet):
+            raise TypeError(f"net must be a flnotes.ReLUNet (e.g. fl.paper_net('MSD')[0]), got {type(net).__name__}")
         cost = {"lcost": "linear", "qcost": "quadratic"}.get(str(cost).lower(), str(cost).lower())
         if cost not in ("linear", "quadratic"):
             raise ValueError(f"cost must be 'linear' (eq. LP_cost) or 'quadratic' (eq. QP_cost), got {cost!r}")
@@ -755,12 +797,11 @@ class ClfCbfController:
         """
         A, B = self.system.A, self.system.B
         Az = A @ z
-        gV = self.V.grad(z)
-        Vz = self.V(z)
+        gV, Vz = _certificate_at(self.V, z, "V")
         d = dict(V=Vz, aV=B.T @ gV, Jc=float(gV @ Az), bV=float(gV @ Az + self.beta * Vz))
         if self.H:
-            gH = np.array([h.grad(z) for h in self.H])
-            Hz = np.array([h(z) for h in self.H])
+            at = [_certificate_at(h, z, "H" if len(self.H) == 1 else f"H[{j}]") for j, h in enumerate(self.H)]
+            gH, Hz = np.array([g for g, _ in at]), np.array([v for _, v in at])
         else:
             gH, Hz = np.zeros((0, len(z))), np.zeros(0)
         d.update(H=Hz, aH=gH @ B, bH=gH @ Az + self.kappa * Hz)
@@ -808,6 +849,7 @@ class ClfCbfController:
         ``|u| <= u_max``, is only guaranteed inside it. The step runs with one
         BLAS thread (:func:`flnotes.config.one_blas_thread`).
         """
+        check_number(t, "t", "the time of the step in seconds (unused: the program depends on z only)", low=-np.inf)
         with one_blas_thread():
             return self._solve_step(z)
 
@@ -934,7 +976,7 @@ class _ExactBackend:
                         detail=f"proven optimal: the closed-form minimum over all {pw.n_pieces} linear pieces of "
                                f"Phi_NN(z, .) on [v_lo, v_hi]")
         if soft:
-            sol.slack_u = np.maximum(0.0, np.abs(pw(np.array([v]))) - c.u_eps)
+            sol.slack_u = np.maximum(0.0, np.abs(pw._at(np.array([v]))) - c.u_eps)
             sol.slack_H = np.maximum(0.0, -(d["aH"][:, 0] * v + d["bH"]))
         return sol
 

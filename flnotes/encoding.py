@@ -271,6 +271,15 @@ class BigMForm:
         Only the big-M coefficients and the variable bounds change, so a
         persistent solver model can take them in place of the old ones.
         """
+        if not isinstance(bounds, NodeBounds):
+            raise TypeError(f"bounds must be a flnotes.NodeBounds, got {type(bounds).__name__}")
+        if len(bounds.L) != len(self.ub_rows_U) or len(bounds.U) != len(self.ub_rows_U):
+            raise ValueError(f"bounds must hold all {len(self.ub_rows_U)} hidden layers of the form, got "
+                             f"{len(bounds.L)}: the layers left out would keep their old big-M values")
+        for k, (L, U) in enumerate(zip(bounds.L, bounds.U)):
+            if np.shape(L) != (len(self.ub_rows_U[k]),) or np.any(~(np.asarray(L) <= np.asarray(U))):
+                raise ValueError(f"bounds of layer {k + 1} must have shape ({len(self.ub_rows_U[k])},) with L <= U "
+                                 f"(no NaN), got shape {np.shape(L)}")
         A_ub = self.A_ub.tolil(copy=True)
         b_ub, lb, ub = self.b_ub.copy(), self.lb.copy(), self.ub.copy()
         for k, (L, U) in enumerate(zip(bounds.L, bounds.U)):

@@ -190,12 +190,16 @@ def _resolve(f, net: ReLUNet, lo, hi) -> tuple[Callable[[Array], Array], Array, 
     m = net.n_out
 
     def fun(X: Array) -> Array:
-        Y = np.asarray(raw(X), float)
+        Y = as_floats(raw(X), f"{name}(X)")
         if Y.ndim == 1 and m == 1 and Y.shape[0] == len(X):
             Y = Y[:, None]
         if Y.shape != (len(X), m):
             raise ValueError(f"{name} returned shape {Y.shape} for {len(X)} input points; expected ({len(X)}, {m}) "
                              f"(one row per point, one column per network output)")
+        bad = ~np.isfinite(Y)
+        if bad.any():  # a NaN would drop out of every max: an estimate of -inf, or a bound that misses it
+            raise ValueError(f"Phi returned NaN or inf on the box ({name} at x = {X[bad.any(1)][0]}): bound the error "
+                             f"on a box where Phi is defined")
         return Y
 
     return fun, lo, hi
@@ -1191,6 +1195,9 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
         raise ValueError(f"eps must be a finite error bound >= 0, a scalar or one per input (shape ({system.m},)), "
                          f"got {eps}")
     eps = np.broadcast_to(eps.reshape(-1), (system.m,))
+    if np.any(eps >= system.u_max):
+        raise ValueError(f"eps = {eps} must lie below u_max = {system.u_max}: with eps >= u_max no input is feasible "
+                         f"(u_max - eps <= 0), and there is no point to search")
     n_z, n_v = check_int(n_z, "n_z", 1, "random states"), check_int(n_v, "n_v", 2, "inputs per state")
     seed, chunk = check_int(seed, "seed", 0, "seed of the states"), check_int(chunk, "chunk", 1, "points per batch")
     rng = np.random.default_rng(seed)

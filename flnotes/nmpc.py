@@ -429,6 +429,7 @@ class NonlinearMPC:
         flagged ``fallback=True``.
         """
         t0 = time.perf_counter()
+        t = check_number(t, "t", "the time of the step in seconds", low=-np.inf)
         R = (np.zeros((self.N + 1, self.n_z)) if reference is None
              else as_floats(reference(t + self.ts * np.arange(self.N + 1)), "reference(t)"))
         s = self(z, R)

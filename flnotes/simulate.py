@@ -150,7 +150,9 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
         A :class:`Controller` (``step(z, t, reference) -> StepResult``) or a
         plain function ``k(z) -> v``.
     t_final, ts
-        Horizon of the run and sampling time ``t_s`` (seconds).
+        Horizon of the run and sampling time ``t_s`` (seconds). The run has ``K = round(t_final / ts)``
+        sampling intervals and ends at ``K ts`` (``t_final = 0.25, ts = 0.1`` ends at 0.2): the log's
+        ``t`` holds the times.
     x0, z0
         Initial plant state, or initial linearizing state (converted by
         ``system.to_x``). Give exactly one.

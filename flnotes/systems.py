@@ -276,6 +276,7 @@ class FLSystem:
             Shapes (m,) and (m, m).
         """
         z = as_vector(z, self.n_z, "z")
+        rtol = check_number(rtol, "rtol", "the relative tolerance of the affine check", strict=True)
         m = self.m
         U = self.Phi(np.repeat(z[None], m + 1, axis=0), np.vstack([np.zeros(m), np.eye(m)]))
         a, B = U[0], (U[1:] - U[0]).T

@@ -54,7 +54,7 @@ from scipy.linalg import solve_discrete_are
 from scipy.optimize import Bounds, LinearConstraint, OptimizeWarning, linprog, milp
 
 from ._checks import (as_batch, as_floats, as_pair, as_vector, box_in_domain, check_box, check_count, check_int,
-                      weight_matrix)
+                      check_number, weight_matrix)
 from .bounds import fbbt
 from .encoding import bigm_form
 from .network import ReLUNet
@@ -123,9 +123,12 @@ def remove_redundant(F: Array, g: Array, tol: float = 1e-9) -> tuple[Array, Arra
     Rows are visited in order and a redundant row is removed at once, so the
     result describes the same set with no redundant row left.
     """
-    F, g = np.asarray(F, float), np.asarray(g, float).reshape(-1)
+    F, g = as_floats(F, "F"), as_floats(g, "g").reshape(-1)
     if F.ndim != 2 or F.shape[0] != g.shape[0]:
         raise ValueError(f"F must be (p, n) and g (p,), got {F.shape} and {g.shape}")
+    if not (np.all(np.isfinite(F)) and np.all(np.isfinite(g))):
+        raise ValueError("F and g must be finite: they contain NaN or inf")
+    tol = check_number(tol, "tol", "the relative tolerance of a redundant row")
     keep = np.ones(len(g), bool)
     for i in range(len(g)):
         keep[i] = False
@@ -160,15 +163,21 @@ def max_admissible_set(A_cl: Array, C: Array, d: Array, max_iter: int = 200,
         ``O_inf = {F_inf z <= f_inf}`` (``F = F_inf``, ``g = f_inf``; irredundant) and the determinedness
         index ``t^star``.
     """
-    A_cl = np.atleast_2d(np.asarray(A_cl, float))
+    A_cl = np.atleast_2d(as_floats(A_cl, "A_cl"))
     n = A_cl.shape[0]
     if A_cl.shape != (n, n):
         raise ValueError(f"A_cl must be square, got {A_cl.shape}")
+    if not np.all(np.isfinite(A_cl)):
+        raise ValueError("A_cl must be finite: it contains NaN or inf")
+    max_iter = check_int(max_iter, "max_iter", 1, "steps t of the iteration")
+    tol = check_number(tol, "tol", "the relative tolerance of an implied row")
     rho = np.max(np.abs(np.linalg.eigvals(A_cl)))
     if rho >= 1:
         raise ValueError(f"A_cl must be Schur stable (spectral radius {rho:.4g} >= 1): the closed loop with this K "
                          f"does not converge, so no bounded invariant set is determined by finitely many steps")
-    C, d = np.asarray(C, float), np.asarray(d, float).reshape(-1)
+    C, d = as_floats(C, "C"), as_floats(d, "d").reshape(-1)
+    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+        raise ValueError("C and d must be finite: they contain NaN or inf")
     if C.ndim != 2 or C.shape != (len(d), n):
         raise ValueError(f"C must be ({len(d)}, {n}) to match d and A_cl, got {C.shape}")
     if np.any(d <= 0):

@@ -33,7 +33,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._checks import (as_floats, as_pair, as_vector, check_bool, check_box, check_boxes, check_count,
+from ._checks import (as_floats, as_pair, as_vector, check_bool, check_box, check_boxes, check_count, check_int,
                       check_number)
 from .bounds import NodeBounds, _interval_affine, fbbt, interval_affine
 from .network import ReLUNet, fingerprint
@@ -60,8 +60,14 @@ class EmptyBoxError(ValueError):
 # ---------------------------------------------------------------------------
 def intersect(a: NodeBounds, b: NodeBounds, method: Optional[str] = None) -> NodeBounds:
     """Elementwise intersection of two valid bounds (valid, and at least as tight as either)."""
+    for name, x in (("a", a), ("b", b)):
+        if not isinstance(x, NodeBounds):
+            raise TypeError(f"{name} must be a flnotes.NodeBounds (e.g. prior=fl.fbbt(net, lo, hi)), got "
+                            f"{type(x).__name__}")
     if len(a.L) != len(b.L):
         raise ValueError(f"bounds have {len(a.L)} and {len(b.L)} hidden layers")
+    if any(np.isnan(x).any() for x in (*a.L, *a.U, *b.L, *b.U, b.out_L, b.out_U)):
+        raise ValueError(f"bounds ({b.method}) contain NaN: node bounds are numbers, L <= U")
     L = [np.maximum(x, y) for x, y in zip(a.L, b.L)]
     U = [np.minimum(x, y) for x, y in zip(a.U, b.U)]
     return NodeBounds(L, U, np.maximum(a.out_L, b.out_L), np.minimum(a.out_U, b.out_U),
@@ -76,7 +82,20 @@ def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int =
     the interval image of the previous one (what FBBT does from the input), rounded outward unless ``outward=False``
     (:func:`flnotes.bounds.interval_affine`).
     """
-    L, U = [np.asarray(x, float).copy() for x in L], [np.asarray(x, float).copy() for x in U]
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    if len(L) != net.K - 1 or len(U) != net.K - 1:
+        raise ValueError(f"need one L and one U per hidden layer ({net.K - 1}), got {len(L)} and {len(U)}")
+    L = [as_floats(x, f"L^{k + 1}").copy() for k, x in enumerate(L)]
+    U = [as_floats(x, f"U^{k + 1}").copy() for k, x in enumerate(U)]
+    for k, (a, b) in enumerate(zip(L, U)):
+        if a.shape != b.shape or a.shape[-1:] != (net.widths[k],) or np.any(~(a <= b)):
+            raise ValueError(f"L^{k + 1} <= U^{k + 1} must hold with shape ({net.widths[k]},) (no NaN), got shapes "
+                             f"{a.shape} and {b.shape}")
+    start = check_int(start, "start", 0, "the layer kept")
+    if start >= net.K - 1:
+        raise ValueError(f"start must be a hidden layer in 0..{net.K - 2}, got {start}")
+    outward = check_bool(outward, "outward", "whether to widen the bounds by the rounding of their sums")
     l, u = np.maximum(L[start], 0.0), np.maximum(U[start], 0.0)
     for k in range(start + 1, net.K - 1):
         Lk, Uk = _interval_affine(net.W[k], net.b[k], l, u, outward)
@@ -473,6 +492,9 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     tol = check_number(tol, "tol", "the relative margin added to every bound")
     skip_stable = check_bool(skip_stable, "skip_stable", "whether to solve LPs only for unstable neurons")
     deadline = check_number(deadline, "deadline", "a time.perf_counter() value", none=True)
+    if prior is not None and not isinstance(prior, NodeBounds):
+        raise TypeError(f"prior must be a flnotes.NodeBounds (e.g. prior=fl.fbbt(net, lo, hi)), got "
+                        f"{type(prior).__name__}")
     if net.K == 1:
         return _affine_bounds(net, lo2, hi2, out_bounds, batch)
     tightener = _tightener(net, out_bounds, tol)
@@ -625,9 +647,11 @@ def ellipsoid_box(S: Array, H_inv: Array, V_c: Array, offset: Array, delta: floa
     lo, hi
         Arrays of shape (r,).
     """
-    S = np.atleast_2d(np.asarray(S, float))
-    if delta < 0:
-        raise ValueError(f"delta = J_up - J_c must be >= 0, got {delta}")
-    center = S @ np.asarray(V_c, float) + np.asarray(offset, float)
-    rad = np.sqrt(2.0 * delta * np.maximum(np.einsum("ij,jk,ik->i", S, H_inv, S), 0.0))
+    S = np.atleast_2d(as_floats(S, "S"))
+    delta = check_number(delta, "delta", "J_up - J_c")
+    center = S @ as_floats(V_c, "V_c") + as_floats(offset, "offset")
+    rad = np.sqrt(2.0 * delta * np.maximum(np.einsum("ij,jk,ik->i", S, as_floats(H_inv, "H_inv"), S), 0.0))
+    if center.shape != (S.shape[0],) or not (np.all(np.isfinite(center)) and np.all(np.isfinite(rad))):
+        raise ValueError(f"the box of S V + offset must be finite of shape ({S.shape[0]},): check S, H_inv, V_c and "
+                         f"offset (shapes (r, n), (n, n), (n,), (r,)), got a centre of shape {center.shape}")
     return center - rad, center + rad

@@ -670,3 +670,119 @@ def test_a_masked_array_without_masked_entries_and_real_numbers_of_any_kind_stil
     assert np.array_equal(sysm.grid(np.int64(3)), sysm.grid(3)) and sysm.grid(3).shape == (27, 3)
     assert fl.time_stats(np.ma.array([0.1, 0.2], mask=False))["n"] == 2
     assert fl.quad1d(Gamma=Fraction(10), tau=Decimal("0.2")).params == fl.quad1d().params
+
+
+def test_a_certificate_that_is_nan_or_no_number_stops_the_clf_cbf_step(msd):
+    """A NaN barrier value or gradient would drop its row from eq. (CLF_CBF), and the step would be reported optimal
+    without it: refused, naming the certificate."""
+    sysm, net = msd
+    K, P = np.array([4.0, 3.0]), [[2.0, 0.5], [0.5, 1.0]]
+    kw = dict(k=lambda z: -K @ z, cost="quadratic")
+    ok = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(P), H=fl.DistanceCBF([3.0, 0.0], 1.0), **kw)
+    assert ok.step([1.5, 1.5]).status == "optimal"
+    for H, match in [((lambda z: np.nan, lambda z: np.array([1.0, 0.0])), r"H\(z\) must be a finite number"),
+                     ((lambda z: 1.0, lambda z: np.array([np.nan, np.nan])), r"H.grad\(z\) must be a finite vector"),
+                     ((lambda z: "1.5", lambda z: np.array([1.0, 0.0])), r"H\(z\) must be numbers .*strings"),
+                     ((lambda z: 1.0, lambda z: [True, False]), r"H.grad\(z\) must be numbers .*booleans"),
+                     ((lambda z: 1.0, lambda z: np.ones(3)), r"H.grad\(z\) must be a finite vector of shape \(2,\)")]:
+        c = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(P), H=H, **kw)
+        with pytest.raises(ValueError, match=match):
+            c.step([1.5, 1.5])
+    V = (lambda z: np.nan, lambda z: np.array([1.0, 0.0]))
+    with pytest.raises(ValueError, match=r"V\(z\) must be a finite number"):
+        fl.ClfCbfController(sysm, net, 0.5, V, H=fl.DistanceCBF([3.0, 0.0], 1.0), **kw).step([1.5, 1.5])
+
+
+def test_an_error_estimate_refuses_a_phi_that_is_nan_somewhere(msd):
+    """NaN drops out of every max: the estimators would return -inf or NaN as eps, or skip the point."""
+    sysm, net = msd
+
+    def f(X):
+        Y = sysm.phi_stacked(X).copy()
+        Y[X[:, 0] > 0] = np.nan  # half the box: every estimator meets it
+        return Y
+
+    for call in (lambda: fl.sample_max_error(f, net, sysm.lo, sysm.hi, n=2000),
+                 lambda: fl.grid_max_error(f, net, sysm.lo, sysm.hi, n_per_axis=7),
+                 lambda: fl.pso_max_error(f, net, sysm.lo, sysm.hi, n_particles=10, n_iter=3),
+                 lambda: fl.local_max_error(f, net, sysm.lo, sysm.hi, n_starts=3)):
+        with pytest.raises(ValueError, match="Phi returned NaN or inf on the box"):
+            call()
+    with pytest.raises(ValueError, match=r"\(X\) must be numbers .*booleans"):
+        fl.certify_error(lambda X: X[:, :1] > 0, net, sysm.lo, sysm.hi, lipschitz=100.0)
+
+
+def test_checks_that_once_answered_yes_to_nan_or_an_infinite_tolerance(msd):
+    import scipy.sparse as sp
+
+    from flnotes import terminal as tm
+
+    sysm, net = msd
+    P = fl.MIQP(None, [1.0, 1.0], 0.0, sp.csr_matrix([[1.0, 1.0]]), [1.0], [np.inf], [0, 0], [5, 5], [0, 1])
+    assert P.violation([np.nan, np.nan]) == np.inf and P.violation([np.nan, 7.5]) == np.inf
+    assert P.violation([0.5, 1.0]) == 0.0
+    C, d = np.vstack([np.eye(2), -np.eye(2)]), np.ones(4)
+    with pytest.raises(ValueError, match="tol must be a finite number"):
+        tm.max_admissible_set([[0.9, 0.1], [0.0, 0.8]], C, d, tol=np.inf)
+    with pytest.raises(ValueError, match="tol must be a finite number"):
+        tm.remove_redundant(C, d, tol=np.nan)
+    h = fl.AffineCBF([1.0, 0.0], 2.0)
+    assert fl.cbf_condition_fails(h, [[-5.0, -3.0]], sysm.A, sysm.B, 4.0).tolist() == [True]
+    for kw, match in [(dict(tol=-1), "tol must be a finite number >= 0"), (dict(tol=np.nan), "tol must be"),
+                      (dict(kappa=True), "kappa must be a finite number > 0")]:
+        args = {**dict(H=h, Z=[[-5.0, -3.0]], A=sysm.A, B=sysm.B, kappa=4.0), **kw}
+        with pytest.raises(ValueError, match=match):
+            fl.cbf_condition_fails(**args)
+    with pytest.raises(ValueError, match="Z must be finite"):
+        fl.cbf_condition_fails(h, [[np.nan, -3.0]], sysm.A, sysm.B, 4.0)
+    z = np.array([1.0, 0.0])
+    with pytest.raises(ValueError, match="z contains NaN"):
+        fl.exact_1d_feasible_set(net, [np.nan, 0.0], -10, 10, 4.0)
+    with pytest.raises(ValueError, match="bound must be a finite number > 0"):
+        fl.exact_1d_feasible_set(net, z, -10, 10, np.nan)
+    pw = fl.network_pieces_1d(net, z, -10, 10)
+    with pytest.raises(ValueError, match="v must lie in the segment"):
+        pw(1000.0)
+    assert np.isclose(pw(3.0), net([1.0, 0.0, 3.0])[0])
+    with pytest.raises(ValueError, match="eps = .* must lie below u_max"):
+        fl.worst_violation(sysm, net, 10.0, n_z=5, n_v=3)
+    with pytest.raises(ValueError, match="rtol must be a finite number > 0"):
+        sysm.input_map([0.0, 0.0], rtol=np.nan)
+    nb = fl.fbbt(net, sysm.lo, sysm.hi)
+    with pytest.raises(ValueError, match="bounds .* contain NaN"):
+        fl.lp_bounds(net, [0, 0, 0], [1, 1, 1], prior=fl.NodeBounds([a * np.nan for a in nb.L], nb.U, nb.out_L,
+                                                                    nb.out_U))
+    with pytest.raises(TypeError, match="must be a flnotes.NodeBounds"):
+        fl.lp_bounds(net, [0, 0, 0], [1, 1, 1], prior=(nb.L, nb.U))
+    with pytest.raises(ValueError, match="L\\^1 <= U\\^1 must hold"):
+        fl.propagate(net, [a * np.nan for a in nb.L], nb.U)
+    with pytest.raises(ValueError, match=f"pre must be a list of {len(nb.L)} arrays"):
+        nb.contains([])
+    with pytest.raises(ValueError, match="delta must be a finite number >= 0"):
+        fl.ellipsoid_box(np.eye(2), np.eye(2), np.zeros(2), np.zeros(2), np.nan)
+
+
+def test_the_mpc_methods_check_the_plans_they_are_given(msd):
+    sysm, net = msd
+    mpc = fl.MPC(sysm, net, 0.5, horizon=5, ts=0.1, Q=[10.0, 1.0], R=0.01)
+    V = np.zeros((5, 1))
+    Z = mpc.predict([1.0, 0.5], V)
+    assert mpc.plan_feasible(Z, V) in (True, False)
+    Zbad = Z.copy()
+    Zbad[2:] = 1e6  # the documented rule: the model's prediction from z_pred[0] is what is checked
+    assert mpc.plan_feasible(Zbad, V) == mpc.plan_feasible(Z, V)
+    with pytest.raises(ValueError, match="a plan is \\(z_pred, v_pred\\) of shapes"):
+        mpc.plan_feasible(Z[:3], V)
+    with pytest.raises(ValueError, match="a plan is \\(z_pred, v_pred\\) of shapes"):
+        mpc.cost(np.vstack([Z, np.ones((3, 2))]), V, np.zeros(2))
+    with pytest.raises(ValueError, match="must be finite"):
+        mpc.set_previous_plan((np.zeros((6, 2)), np.full((5, 1), np.nan)))
+    with pytest.raises(ValueError, match="v_pred must be numbers .*strings"):
+        mpc.predict([1.0, 0.5], [["0"]] * 5)
+    with pytest.raises(ValueError, match="t must be a finite number"):
+        mpc.step([1.0, 0.5], True)
+    with pytest.raises(TypeError, match="net must be a flnotes.ReLUNet"):
+        fl.MPC(sysm, "net", 0.5)
+    with pytest.raises(TypeError, match="system must be a flnotes.FLSystem"):
+        fl.ClfCbfController(None, net, 0.5, fl.QuadraticCLF(np.eye(2)))
+    assert np.isfinite(mpc.cost(Z, V, np.zeros(2)))

@@ -387,6 +387,10 @@ class MPC:
                                terminal=terminal, options=options, time_limit=time_limit, gap=gap, cut_off=cut_off,
                                work_limit=work_limit, enclosure=enclosure, atlas=atlas,
                                discretization=discretization, v_box=v_box, solver_options=solver_options, **levers)
+        if not isinstance(system, FLSystem):
+            raise TypeError(f"system must be a flnotes.FLSystem (e.g. fl.msd()), got {type(system).__name__}")
+        if not isinstance(net, ReLUNet):
+            raise TypeError(f"net must be a flnotes.ReLUNet (e.g. fl.paper_net('MSD')[0]), got {type(net).__name__}")
         if options is not None and levers:
             raise ValueError(f"give either options=MPCOptions(...) or the keywords {sorted(levers)}, not both")
         if options is None:
@@ -647,11 +651,25 @@ class MPC:
         if plan is None:
             self._plan = None
             return
-        Z, V = np.asarray(plan[0], float), np.asarray(plan[1], float)
+        self._plan = self._check_plan(*as_pair(plan, "plan"))
+
+    def _check_plan(self, z_pred, v_pred) -> tuple[Array, Array]:
+        """A plan ``(z_pred, v_pred)`` as finite float arrays of shapes (N_p + 1, n_z) and (N_p, m), else
+        ``ValueError`` naming what is wrong."""
+        Z, V = as_floats(z_pred, "z_pred"), as_floats(v_pred, "v_pred")
         if Z.shape != (self.N + 1, self.n_z) or V.shape != (self.N, self.m):
-            raise ValueError(f"plan must be (z_pred, v_pred) of shapes ({self.N + 1}, {self.n_z}) and ({self.N}, "
+            raise ValueError(f"a plan is (z_pred, v_pred) of shapes ({self.N + 1}, {self.n_z}) and ({self.N}, "
                              f"{self.m}), got {Z.shape} and {V.shape}")
-        self._plan = (Z, V)
+        if not (np.all(np.isfinite(Z)) and np.all(np.isfinite(V))):
+            raise ValueError("a plan (z_pred, v_pred) must be finite: it contains NaN or inf")
+        return Z.copy(), V.copy()
+
+    def _check_inputs(self, v_pred) -> Array:
+        V = as_floats(v_pred, "v_pred")
+        if V.shape != (self.N, self.m) or not np.all(np.isfinite(V)):
+            raise ValueError(f"v_pred must be finite inputs of shape (N_p, m) = ({self.N}, {self.m}), got shape "
+                             f"{V.shape}")
+        return V
 
     def clone(self, **changes) -> "MPC":
         """A new controller with the same settings except ``changes`` (no history, no previous plan).
@@ -678,15 +696,22 @@ class MPC:
     # ------------------------------------------------------------------ the model
     def predict(self, z: Array, v_pred: Array) -> Array:
         """Predicted states ``z(0..N_p)`` of eq. (MPC_form_miqp_c) for inputs ``v_pred`` of shape (N_p, m)."""
-        return self.pred.predict(z, v_pred)
+        return self.pred.predict(as_vector(z, self.n_z, "z"), self._check_inputs(v_pred))
 
     def cost(self, z_pred: Array, v_pred: Array, z_ref: Array) -> float:
-        """Eq. (MPC_form_miqp_a) for a plan."""
-        return self.pred.plan_cost(z_pred, v_pred, z_ref)
+        """Eq. (MPC_form_miqp_a) for a plan ``(z_pred, v_pred)`` and the reference ``z_ref`` ((N_p + 1, n_z) or
+        (n_z,))."""
+        Z, V = self._check_plan(z_pred, v_pred)
+        return self.pred.plan_cost(Z, V, self._check_ref(z_ref))
 
     def plan_feasible(self, z_pred: Array, v_pred: Array) -> bool:
-        """Does a plan satisfy eq. (MPC_form_miqp_b)-(d) and the terminal rows (:meth:`Prediction.feasible`)?"""
-        return self.pred.feasible(np.asarray(z_pred)[0], v_pred)
+        """Does a plan satisfy eq. (MPC_form_miqp_b)-(d) and the terminal rows (:meth:`Prediction.feasible`)?
+
+        Only ``z_pred[0]`` and ``v_pred`` are read: the states checked are the ones the model predicts from them
+        (eq. MPC_form_miqp_c), so a ``z_pred`` that is not that prediction is judged by the prediction, not by its
+        own rows (build plans with :meth:`predict`)."""
+        Z, V = self._check_plan(z_pred, v_pred)
+        return self.pred.feasible(Z[0], V)
 
     def problem(self, z: Array, z_ref, steps=None):
         """The assembled MIQP (:class:`flnotes.solvers.MIQP`) at ``z`` for ``z_ref``, for inspection and benchmarks.
@@ -932,6 +957,7 @@ class MPC:
         to the last (see :meth:`__call__`): no collection starts inside the step."""
         held = pause_for_step() if self.time_limit is not None else None  # first (see __call__)
         try:
+            t = check_number(t, "t", "the time of the step in seconds", low=-np.inf)
             if reference is None:
                 R = np.zeros((self.N + 1, self.n_z))
             else:
@@ -1161,10 +1187,10 @@ class MPC:
             return None
         V = self._plan[1]
         V = np.vstack([V[1:], V[-1:]])
-        Z = self.predict(z, V)
+        Z = self.pred.predict(z, V)
         V[-1] = (self.K_terminal @ Z[-2] if self.K_terminal is not None
                  else self.feasible_tail(Z[-2], V[-1], last=True))
-        return self.predict(z, V), V
+        return self.pred.predict(z, V), V
 
     def repair_plan(self, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
         """:func:`flnotes.mpc.fallback.repair_plan`: a plan built step by step from ``v_guess``."""
@@ -1176,11 +1202,12 @@ class MPC:
 
     def fallback_plan(self, z: Array) -> tuple[Array, Array, str, bool]:
         """:func:`flnotes.mpc.fallback.fallback_plan` from the measured ``z`` and the shifted previous plan."""
-        return fallback.fallback_plan(self.pred, np.asarray(z, float), self.shifted_plan(z))
+        z = as_vector(z, self.n_z, "z")
+        return fallback.fallback_plan(self.pred, z, self.shifted_plan(z))
 
     def safe_input(self, z: Array, v_guess: Array) -> tuple[Array, bool]:
         """:func:`flnotes.mpc.fallback.safe_input`: an admissible input, or the least-violation one."""
-        return fallback.safe_input(self.pred, z, v_guess)
+        return fallback.safe_input(self.pred, as_vector(z, self.n_z, "z"), as_vector(v_guess, self.m, "v_guess"))
 
     # ------------------------------------------------------------------ statistics
     def stats(self) -> dict:

@@ -136,8 +136,13 @@ class MIQP:
         return float(val)
 
     def violation(self, w: Array) -> float:
-        """Largest violation of rows, bounds and integrality at ``w`` (0 when feasible)."""
+        """Largest violation of rows, bounds and integrality at ``w`` (0 when feasible; ``inf`` at a point with a NaN
+        or an infinite entry, which no row can be checked at)."""
         w = np.asarray(w, float)
+        if w.shape != (self.n,):
+            raise ValueError(f"w must be a point of shape ({self.n},), got {w.shape}")
+        if not np.all(np.isfinite(w)):
+            return float("inf")
         Aw = self.A @ w
         v = [0.0]
         if self.m:
