@@ -26,7 +26,7 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from ._checks import as_vector, check_box
+from ._checks import as_vector, check_box, check_int
 from .network import ReLUNet, fingerprint
 from .tightening import EmptyBoxError, lp_bounds
 
@@ -202,14 +202,12 @@ def bound_atlas(net: ReLUNet, lo, hi, u, cells: Sequence[int]) -> BoundAtlas:
     lo, hi = check_box(lo, hi, net.n_in)
     if np.any(hi <= lo):
         raise ValueError("the domain box needs hi > lo in every input")
-    u = as_vector(u, net.n_out, "u") if np.ndim(u) else np.full(net.n_out, float(u))
-    if not np.all(np.isfinite(u)) or np.any(u <= 0):
+    u = as_vector(u, net.n_out, "u")
+    if np.any(u <= 0):
         raise ValueError(f"u must be positive and finite, got {u}")
-    cells = tuple(cells)
-    if len(cells) != net.n_in or any(isinstance(c, bool) or not isinstance(c, (int, np.integer)) or c < 1
-                                     for c in cells):
+    if not isinstance(cells, (tuple, list)) or len(cells) != net.n_in:
         raise ValueError(f"cells must be {net.n_in} positive integers (cells per input), got {cells!r}")
-    cells = tuple(int(c) for c in cells)
+    cells = tuple(check_int(c, "each of cells", 1, "cells per input") for c in cells)
     edges = tuple(np.linspace(lo[i], hi[i], c + 1) for i, c in enumerate(cells))
     widths = [len(b) for b in net.b[:-1]]
     L = [np.full(cells + (n,), np.inf) for n in widths]

@@ -123,8 +123,16 @@ class ReLUNet:
         Returns the network ``x -> y_offset + y_scale * net((x - x_offset) / x_scale)``,
         which works on raw units.
         """
-        xo, xs = np.asarray(x_offset, float), np.asarray(x_scale, float)
-        yo, ys = np.asarray(y_offset, float), np.asarray(y_scale, float)
+        xo, xs = (np.broadcast_to(as_floats(a, name), (self.n_in,)) if np.size(a) in (1, self.n_in) else
+                  as_floats(a, name) for a, name in ((x_offset, "x_offset"), (x_scale, "x_scale")))
+        yo, ys = (np.broadcast_to(as_floats(a, name), (self.n_out,)) if np.size(a) in (1, self.n_out) else
+                  as_floats(a, name) for a, name in ((y_offset, "y_offset"), (y_scale, "y_scale")))
+        for name, a, n in (("x_offset", xo, self.n_in), ("x_scale", xs, self.n_in), ("y_offset", yo, self.n_out),
+                           ("y_scale", ys, self.n_out)):
+            if a.shape != (n,) or not np.all(np.isfinite(a)):
+                raise ValueError(f"{name} must be finite, a number or shape ({n},), got {a}")
+        if np.any(xs == 0):
+            raise ValueError(f"x_scale must be nonzero (the input is divided by it), got {xs}")
         W, b = [w.copy() for w in self.W], [c.copy() for c in self.b]
         W[0] = self.W[0] / xs[None, :]
         b[0] = self.b[0] - W[0] @ xo

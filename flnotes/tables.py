@@ -112,6 +112,10 @@ def time_stats(times_s: Sequence[float], percentiles: Sequence[float] = (50, 90,
         (all NaN when there is no time).
     """
     t = as_floats(times_s, "times_s").ravel()
+    q = as_floats(percentiles, "percentiles").reshape(-1)
+    if not np.all((q >= 0) & (q <= 100)):
+        raise ValueError(f"percentiles must lie in [0, 100], got {q}")
+    percentiles = q.tolist()
     t = t[np.isfinite(t)] * 1e3
     keys = ["median_ms" if q == 50 else f"p{q:g}_ms" for q in percentiles]
     if t.size == 0:

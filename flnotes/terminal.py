@@ -537,8 +537,13 @@ def terminal_set(system: FLSystem, net: ReLUNet, eps, ts: float, Q, R, *, discre
     if net.n_in != system.n_in or net.n_out != system.m:
         raise ValueError(f"net maps R^{net.n_in} -> R^{net.n_out} but {system.name} needs (z, v) in R^{system.n_in} "
                          f"-> u in R^{system.m}")
-    if not (0 < tol < 1):
+    tol = check_number(tol, "tol", "the relative width of the bisection on psi", strict=True)
+    if tol >= 1:
         raise ValueError(f"tol must be in (0, 1), got {tol!r}")
+    max_bisections = check_int(max_bisections, "max_bisections", 1, "steps of the bisection on psi")
+    mip_rel_gap = check_number(mip_rel_gap, "mip_rel_gap", "the relative gap of the certifying MILPs")
+    if mip_rel_gap >= 1:
+        raise ValueError(f"mip_rel_gap must be in [0, 1), got {mip_rel_gap!r}")
     n, m = system.n_z, system.m
     eps = as_vector(eps, m, "eps")
     u_eps = system.u_max - eps

@@ -786,3 +786,38 @@ def test_the_mpc_methods_check_the_plans_they_are_given(msd):
     with pytest.raises(TypeError, match="system must be a flnotes.FLSystem"):
         fl.ClfCbfController(None, net, 0.5, fl.QuadraticCLF(np.eye(2)))
     assert np.isfinite(mpc.cost(Z, V, np.zeros(2)))
+
+
+def test_the_lower_layers_read_no_booleans_or_strings_as_numbers(msd):
+    """The solver layer, the atlas, the terminal set's settings, the network's transforms and the time table."""
+    import scipy.sparse as sp
+
+    sysm, net = msd
+    A = sp.csr_matrix([[1.0, 1.0]])
+    good = dict(H=None, c=[1.0, 1.0], c0=0.0, A=A, rl=[1.0], ru=[np.inf], lb=[0, 0], ub=[5, 5], integrality=[0, 1])
+    assert fl.MIQP(**good).n == 2
+    for kw, match in [(dict(c0="1"), "c0 must be a finite number"), (dict(c=["1", 1.0]), "c must be numbers"),
+                      (dict(lb=[True, 0]), "lb must be numbers .*booleans"),
+                      (dict(lb=[np.inf, 0], ub=[np.inf, 5]), "lb must be < \\+inf")]:
+        with pytest.raises(ValueError, match=match):
+            fl.MIQP(**{**good, **kw})
+    solver = fl.solvers.make_solver(fl.MIQP(**good), "highs")
+    for kw, match in [(dict(time_limit=True), "time_limit must be"), (dict(gap=True), "gap must be"),
+                      (dict(warm_start=["1", "0"]), "warm_start must be numbers")]:
+        with pytest.raises(ValueError, match=match):
+            solver.solve(**kw)
+    assert solver.solve().status == "optimal"
+    with pytest.raises(ValueError, match="u must be numbers .*strings"):
+        fl.bound_atlas(net, sysm.lo, sysm.hi, "4.79", (2, 2, 2))
+    with pytest.raises(ValueError, match="each of cells must be an integer >= 1"):
+        fl.bound_atlas(net, sysm.lo, sysm.hi, 4.5, (2, 2, 2.5))
+    with pytest.raises(ValueError, match="x_scale must be numbers .*strings"):
+        net.affine_wrapped(np.zeros(3), ["1", "1", "1"], 0.0, 1.0)
+    with pytest.raises(ValueError, match="x_scale must be nonzero"):
+        net.affine_wrapped(np.zeros(3), np.zeros(3), 0.0, 1.0)
+    X = np.array([[0.3, -0.2, 1.5]])
+    assert np.allclose(net.affine_wrapped(1.0, 2.0, 0.5, 3.0)(X), 0.5 + 3.0 * net((X - 1.0) / 2.0))
+    for kw, match in [(dict(percentiles=(150,)), "percentiles must lie in \\[0, 100\\]"),
+                      (dict(percentiles=(True,)), "percentiles must be numbers .*booleans")]:
+        with pytest.raises(ValueError, match=match):
+            fl.time_stats([0.1, 0.2], **kw)

@@ -14,6 +14,7 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
+from .._checks import as_floats, check_number
 from .problem import FEAS_TOL, MIQP, Array, MIQPResult, _check_order, _result, _vec
 
 #: Back-ends by name; ``"auto"`` is also accepted by :func:`make_solver`.
@@ -125,10 +126,7 @@ class Solver:
             p.c = _vec(c, p.n, "c")
             changed["c"] = True
         if c0 is not None:
-            c0 = float(c0)
-            if not np.isfinite(c0):
-                raise ValueError(f"c0 must be finite, got {c0}")
-            p.c0 = c0
+            p.c0 = check_number(c0, "c0", "the constant of the cost", low=-np.inf)
             changed["c0"] = True
         if rl is not None or ru is not None:
             new_rl = _vec(rl, p.m, "rl", allow_inf=True) if rl is not None else p.rl
@@ -177,15 +175,13 @@ class Solver:
         """
         ws = None
         if warm_start is not None:
-            ws = np.asarray(warm_start, float)
+            ws = as_floats(warm_start, "warm_start")
             if ws.shape != (self.problem.n,):
                 raise ValueError(f"warm_start must have shape ({self.problem.n},), got {ws.shape}")
             if not np.all(np.isfinite(ws)):
                 ws = None
-        if time_limit is not None and not time_limit > 0:
-            raise ValueError(f"time_limit must be positive seconds or None, got {time_limit}")
-        if not gap >= 0:
-            raise ValueError(f"gap must be >= 0, got {gap}")
+        time_limit = check_number(time_limit, "time_limit", "seconds", strict=True, none=True)
+        gap = check_number(gap, "gap", "the relative optimality gap")
         if node_limit is not None:
             if isinstance(node_limit, bool) or int(node_limit) != node_limit or node_limit < 1:
                 raise ValueError(f"node_limit must be a positive integer or None, got {node_limit!r}")

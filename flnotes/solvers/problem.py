@@ -11,6 +11,8 @@ from typing import Optional
 import numpy as np
 import scipy.sparse as sp
 
+from .._checks import as_floats, check_number
+
 Array = np.ndarray
 
 
@@ -74,9 +76,7 @@ class MIQP:
     def __post_init__(self) -> None:
         self.c = _vec(self.c, None, "c")
         n = self.c.size
-        self.c0 = float(self.c0)
-        if not np.isfinite(self.c0):
-            raise ValueError(f"c0 must be finite, got {self.c0}")
+        self.c0 = check_number(self.c0, "c0", "the constant of the cost", low=-np.inf)
         if self.H is not None:
             H = sp.csc_matrix(self.H, dtype=float)
             if H.shape != (n, n):
@@ -101,6 +101,10 @@ class MIQP:
         self.ub = _vec(self.ub, n, "ub", allow_inf=True)
         _check_order(self.rl, self.ru, "rl", "ru")
         _check_order(self.lb, self.ub, "lb", "ub")
+        for lo_name, lo, hi_name, hi in (("rl", self.rl, "ru", self.ru), ("lb", self.lb, "ub", self.ub)):
+            if np.any(lo == np.inf) or np.any(hi == -np.inf):
+                raise ValueError(f"{lo_name} must be < +inf and {hi_name} > -inf (no row or variable can be held at "
+                                 f"infinity): use -inf for no lower bound, +inf for no upper bound")
         integ = np.asarray(self.integrality)
         if integ.shape != (n,):
             raise ValueError(f"integrality must have shape ({n},) to match c, got {integ.shape}")
@@ -216,7 +220,7 @@ def _result(problem: MIQP, status: str, w, bound: float, nodes: int, t0: float, 
 # Checks
 # ---------------------------------------------------------------------------
 def _vec(x, n: Optional[int], name: str, allow_inf: bool = False) -> Array:
-    a = np.asarray(x, float)
+    a = as_floats(x, name)
     if a.ndim == 0 and n is not None:
         a = np.full(n, float(a))
     if a.ndim != 1 or (n is not None and a.shape != (n,)):
