@@ -73,12 +73,16 @@ class NodeBounds:
 
     def contains(self, pre: list[Array], tol: float = 1e-9) -> bool:
         """Do the bounds contain the given pre-activations (as from :meth:`ReLUNet.preactivations`)?"""
-        if not isinstance(pre, (list, tuple)) or len(pre) != len(self.L):
-            raise ValueError(f"pre must be a list of {len(self.L)} arrays of pre-activations, one per hidden layer "
-                             f"(net.preactivations(X)), got {type(pre).__name__} of length "
-                             f"{len(pre) if hasattr(pre, '__len__') else '?'}")
+        pre = list(pre) if hasattr(pre, "__iter__") else pre
+        if not isinstance(pre, list) or len(pre) != len(self.L):
+            raise ValueError(f"pre must hold {len(self.L)} arrays of pre-activations, one per hidden layer "
+                             f"(net.preactivations(X)), got {type(pre).__name__}")
         tol = check_number(tol, "tol", "the slack of the containment")
         pre = [as_floats(a, f"pre[{k}]") for k, a in enumerate(pre)]
+        for k, (a, L) in enumerate(zip(pre, self.L)):
+            if a.ndim == 0 or a.shape[-1] != np.shape(L)[-1]:
+                raise ValueError(f"pre[{k}] must hold pre-activations of layer {k + 1}: shape (N, {np.shape(L)[-1]}), "
+                                 f"got {a.shape}")
         return all(np.all(a >= L - tol) and np.all(a <= U + tol) for a, L, U in zip(pre, self.L, self.U))
 
     def summary(self) -> str:
@@ -103,8 +107,11 @@ def interval_affine(W: Array, b: Array, l: Array, u: Array, outward: bool = True
     floating-point interval.
     """
     W, b, l, u = as_floats(W, "W"), as_floats(b, "b"), as_floats(l, "l"), as_floats(u, "u")
-    if np.any(~(l <= u)):
-        raise ValueError("the box must satisfy l <= u in every coordinate (no NaN)")
+    if W.ndim != 2 or b.shape != (W.shape[0],) or l.shape != u.shape or l.shape[-1:] != (W.shape[1],):
+        raise ValueError(f"need W (p, n), b (p,) and l, u of shape (n,) or (T, n): got W {W.shape}, b {b.shape}, "
+                         f"l {l.shape}, u {u.shape}")
+    if not all(np.all(np.isfinite(a)) for a in (W, b, l, u)) or np.any(l > u):
+        raise ValueError("W, b and the box must be finite, with l <= u in every coordinate")
     return _interval_affine(W, b, l, u, outward)
 
 

@@ -96,7 +96,7 @@ class Certificate:
 
     def __call__(self, z: Array) -> Union[float, Array]:
         z = as_floats(z, "z")
-        if z.ndim not in (1, 2):
+        if z.ndim > 2:
             raise ValueError(f"z must be one state (n_z,) or a batch (N, n_z), got shape {z.shape}")
         out = as_floats(self.value(np.atleast_2d(z)), f"{self.name}(z)").reshape(-1)
         return float(out[0]) if z.ndim == 1 else out
@@ -294,7 +294,10 @@ def cbf_condition_fails(H: Certificate, Z: Array, A: Array, B: Array, kappa: flo
     Z = np.atleast_2d(as_floats(Z, "Z"))
     if Z.ndim != 2 or not np.all(np.isfinite(Z)):
         raise ValueError(f"Z must be finite states of shape (N, n_z), got shape {Z.shape}")
-    A, B = as_floats(A, "A"), as_floats(B, "B")
+    A, B = as_floats(A, "A"), np.atleast_2d(as_floats(B, "B").T).T
+    n = Z.shape[1]
+    if A.shape != (n, n) or B.shape[0] != n or not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+        raise ValueError(f"A must be finite ({n}, {n}) and B finite ({n}, m), got shapes {A.shape} and {B.shape}")
     kappa = check_number(kappa, "kappa", "the CBF gain", strict=True)
     tol = check_number(tol, "tol", "the threshold of |grad H(z)^T B| read as no authority")
     at = [_certificate_at(H, z, "H") for z in Z]
@@ -308,7 +311,10 @@ class _FunctionCertificate(Certificate):
         self.fn, self._grad, self.name = fn, grad, name
 
     def value(self, Z: Array) -> Array:
-        return np.concatenate([as_floats(self.fn(z), f"{self.name}(z)").reshape(-1) for z in Z])
+        out = [as_floats(self.fn(z), f"{self.name}(z)").reshape(-1) for z in Z]
+        if any(v.size != 1 for v in out):
+            raise ValueError(f"{self.name}(z) must be one number per state, got {next(v for v in out if v.size != 1)}")
+        return np.concatenate(out)
 
     def grad(self, z: Array) -> Array:
         return as_floats(self._grad(z), f"{self.name}.grad(z)").reshape(-1)
@@ -324,6 +330,11 @@ def as_certificate(obj: Any, name: str = "certificate") -> Certificate:
         return _FunctionCertificate(obj, obj.grad, name)
     raise ValueError(f"{name} must be a Certificate (e.g. QuadraticCLF, DistanceCBF), an object with __call__ "
                      f"and .grad, or a pair (fn, grad_fn); got {type(obj).__name__}")
+
+
+def _scalar(x):
+    """A number given as an array of one entry is that entry (other values go to the checks as they are)."""
+    return np.ravel(x)[0] if isinstance(x, np.ndarray) and x.size == 1 else x
 
 
 def _certificate_at(c: Certificate, z: Array, name: str) -> tuple[Array, float]:
@@ -503,8 +514,16 @@ def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, boun
     Array
         Shape (p, 2): rows ``[a_i, b_i]`` sorted, disjoint; (0, 2) when empty.
     """
-    bound = check_number(bound, "bound", "u_max^eps = u_max - eps", strict=True)
-    pw = network_pieces_1d(net, z, v_lo, v_hi) if pieces is None else pieces
+    bound = check_number(_scalar(bound), "bound", "u_max^eps = u_max - eps", strict=True)
+    if pieces is None:
+        pw = network_pieces_1d(net, z, v_lo, v_hi)
+    else:  # the pieces of this z on this segment: the segment at least is checked
+        pw = pieces
+        lo_hi = (check_number(v_lo, "v_lo", "the segment's lower end", low=-np.inf),
+                 check_number(v_hi, "v_hi", "the segment's upper end", low=-np.inf))
+        if not np.allclose(lo_hi, (pw.knots[0], pw.knots[-1]), rtol=1e-12, atol=1e-12):
+            raise ValueError(f"pieces cover [{pw.knots[0]}, {pw.knots[-1]}] but v_lo, v_hi = {lo_hi}: pass the "
+                             f"pieces of this segment (network_pieces_1d(net, z, v_lo, v_hi))")
     iv = _pieces_within(pw, bound)
     iv = iv[iv[:, 0] <= iv[:, 1]]
     return _merge(iv, tol=1e-12)
@@ -556,7 +575,7 @@ def solve_exact_1d(pw: PiecewiseAffine1D, d: dict, cost: str, bound: float, soft
     -------
     (v, delta, objective), or None when the program is infeasible.
     """
-    bound = check_number(bound, "bound", "u_max^eps = u_max - eps", strict=True)
+    bound = check_number(_scalar(bound), "bound", "u_max^eps = u_max - eps", strict=True)
     r = as_floats(rho, "rho")
     if r.shape != (2,) or not np.all(np.isfinite(r)) or np.any(r < 0):
         raise ValueError(f"rho must be two finite penalties >= 0 (rho_u, rho_H), got {rho!r}")

@@ -270,9 +270,9 @@ def pso_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Arra
     fun, lo, hi = _resolve(f, net, lo, hi)
     n_particles = check_int(n_particles, "n_particles", 2, "particles of the swarm")
     n_iter = check_int(n_iter, "n_iter", 1, "iterations of the swarm")
-    seed = check_int(seed, "seed", 0, "seed of the swarm")
+    seed = None if seed is None else check_int(seed, "seed", 0, "seed of the swarm")
     restarts = check_int(restarts, "restarts", 1, "independent swarms")
-    inertia = check_number(inertia, "inertia", "the weight of a particle's velocity")
+    inertia = check_number(inertia, "inertia", "the weight of a particle's velocity", low=-np.inf)
     c_cognitive = check_number(c_cognitive, "c_cognitive", "the pull toward a particle's own best point")
     c_social = check_number(c_social, "c_social", "the pull toward the swarm's best point")
     nu_max = check_number(nu_max, "nu_max", "the largest step, a fraction of the box", strict=True)
@@ -357,7 +357,8 @@ def sample_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[A
                      seed: int = 0, chunk: int = 200_000) -> ErrorEstimate:
     """Largest error over ``n`` uniform random points of the box (a lower bound on eq. epsilon_find)."""
     fun, lo, hi = _resolve(f, net, lo, hi)
-    n, seed = check_int(n, "n", 1, "random points"), check_int(seed, "seed", 0, "seed of the points")
+    n = check_int(n, "n", 1, "random points")
+    seed = None if seed is None else check_int(seed, "seed", 0, "seed of the points")
     chunk = check_int(chunk, "chunk", 1, "points per batch")
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -395,7 +396,7 @@ def de_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Array
     from scipy.optimize import differential_evolution
 
     fun, lo, hi = _resolve(f, net, lo, hi)
-    seed = check_int(seed, "seed", 0, "seed of the population")
+    seed = None if seed is None else check_int(seed, "seed", 0, "seed of the population")
     maxiter = check_int(maxiter, "maxiter", 1, "generations")
     popsize = check_int(popsize, "popsize", 1, "population per input dimension")
     tol = check_number(tol, "tol", "the relative convergence tolerance")
@@ -440,7 +441,7 @@ def local_max_error(f, net: ReLUNet, lo: Optional[Array] = None, hi: Optional[Ar
 
     fun, lo, hi = _resolve(f, net, lo, hi)
     n_starts = check_int(n_starts, "n_starts", 1, "random starts")
-    seed = check_int(seed, "seed", 0, "seed of the starts")
+    seed = None if seed is None else check_int(seed, "seed", 0, "seed of the starts")
     output = check_int(output, "output", 0, f"the output of Phi, 0..{net.n_out - 1}")
     if output >= net.n_out:
         raise ValueError(f"output must be an output of Phi in 0..{net.n_out - 1}, got {output}")
@@ -1198,8 +1199,9 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
     if np.any(eps >= system.u_max):
         raise ValueError(f"eps = {eps} must lie below u_max = {system.u_max}: with eps >= u_max no input is feasible "
                          f"(u_max - eps <= 0), and there is no point to search")
-    n_z, n_v = check_int(n_z, "n_z", 1, "random states"), check_int(n_v, "n_v", 2, "inputs per state")
-    seed, chunk = check_int(seed, "seed", 0, "seed of the states"), check_int(chunk, "chunk", 1, "points per batch")
+    n_z, n_v = check_int(n_z, "n_z", 1, "random states"), check_int(n_v, "n_v", 1, "inputs per state")
+    seed = None if seed is None else check_int(seed, "seed", 0, "seed of the states")
+    chunk = check_int(chunk, "chunk", 1, "points per batch")
     rng = np.random.default_rng(seed)
     n_z_dim = system.n_z
     Z = rng.uniform(system.lo[:n_z_dim], system.hi[:n_z_dim], (n_z, n_z_dim))

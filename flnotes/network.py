@@ -96,8 +96,13 @@ class ReLUNet:
 
     def forward(self, X: Array) -> tuple[Array, list[Array]]:
         """Output (N, n_out) and the hidden pre-activations ``W^k y^{k-1} + b^k`` (each (N, n_k)) of a batch
-        ``X`` (N, n_in) (one point (n_in,) is a batch of one)."""
-        return self._forward(as_batch(X, self.n_in, "X"))
+        ``X`` (N, n_in); one point (n_in,) gives (n_out,) and (n_k,), and any leading axes are kept."""
+        X = as_floats(X, "X")
+        if X.ndim == 0 or X.shape[-1] != self.n_in:
+            raise ValueError(f"X must have shape (N, {self.n_in}) or ({self.n_in},), got {X.shape}")
+        if not np.all(np.isfinite(X)):
+            raise ValueError("X contains NaN or inf")
+        return self._forward(X)
 
     def _forward(self, X: Array) -> tuple[Array, list[Array]]:
         """:meth:`forward` on a checked (N, n_in) float array."""

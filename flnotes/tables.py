@@ -111,8 +111,12 @@ def time_stats(times_s: Sequence[float], percentiles: Sequence[float] = (50, 90,
         ``n``, ``min_ms``, ``median_ms`` / ``p<q>_ms``, ``max_ms``, ``mean_ms``
         (all NaN when there is no time).
     """
+    if isinstance(times_s, (list, tuple)):  # None: a step without a solve, like NaN
+        times_s = [np.nan if x is None else x for x in times_s]
     t = as_floats(times_s, "times_s").ravel()
-    q = as_floats(percentiles, "percentiles").reshape(-1)
+    if np.any(t < 0) or np.any(np.isinf(t)):
+        raise ValueError(f"times_s must be times >= 0 (NaN for a step without a solve), got {t[(t < 0) | np.isinf(t)]}")
+    q = as_floats(percentiles if hasattr(percentiles, "__len__") else list(percentiles), "percentiles").reshape(-1)
     if not np.all((q >= 0) & (q <= 100)):
         raise ValueError(f"percentiles must lie in [0, 100], got {q}")
     percentiles = q.tolist()

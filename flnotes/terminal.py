@@ -53,7 +53,7 @@ import scipy.sparse as sp
 from scipy.linalg import solve_discrete_are
 from scipy.optimize import Bounds, LinearConstraint, OptimizeWarning, linprog, milp
 
-from ._checks import (as_batch, as_floats, as_pair, as_vector, box_in_domain, check_box, check_count, check_int,
+from ._checks import (as_batch, as_floats, as_pair, as_vector, box_in_domain, check_count, check_int,
                       check_number, weight_matrix)
 from .bounds import fbbt
 from .encoding import bigm_form
@@ -719,9 +719,10 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     if not (np.allclose(terminal.z_lo, system.lo[:n]) and np.allclose(terminal.z_hi, system.hi[:n])):
         raise ValueError("terminal was built for a state box other than the domain box: the MPC keeps its predictions "
                          "in the domain box, so build the terminal set with the default z_box")
-    if not (isinstance(axes, (tuple, list)) and len(axes) == 2):
+    axes = tuple(axes) if hasattr(axes, "__iter__") and not isinstance(axes, (str, bytes)) else (axes,)
+    if len(axes) != 2:
         raise ValueError(f"axes must be two different coordinates of z in 0..{n - 1}, got {axes!r}")
-    axes = tuple(check_int(a, "each of axes", 0, f"a coordinate of z in 0..{n - 1}") for a in axes)
+    axes = tuple(check_count(a, "each of axes", 0, f"a coordinate of z in 0..{n - 1}") for a in axes)
     if axes[0] == axes[1] or not all(a < n for a in axes):
         raise ValueError(f"axes must be two different coordinates of z in 0..{n - 1}, got {axes}")
     horizon = check_count(horizon, "horizon (N_p)", 1, "steps of the prediction")
@@ -729,14 +730,15 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     grid = (n_grid, n_grid) if np.ndim(n_grid) == 0 else tuple(n_grid)
     if len(grid) != 2:
         raise ValueError(f"n_grid must be an integer >= 2 or a pair of them (one per axis), got {n_grid!r}")
-    nx, ny = (check_int(k, "n_grid", 2, "grid points per axis") for k in grid)
+    nx, ny = (check_count(k, "n_grid", 2, "grid points per axis") for k in grid)
     if limits is None:
         limits = ((terminal.z_lo[axes[0]], terminal.z_hi[axes[0]]), (terminal.z_lo[axes[1]], terminal.z_hi[axes[1]]))
     else:
-        lx, ly = as_pair(limits, "limits")
-        limits = (check_box(*as_pair(lx, "limits[0]"), 1, "limits[0][0]", "limits[0][1]"),
-                  check_box(*as_pair(ly, "limits[1]"), 1, "limits[1][0]", "limits[1][1]"))
-        limits = tuple((float(a[0]), float(b[0])) for a, b in limits)
+        pairs = [as_floats(p, f"limits[{i}]") for i, p in enumerate(as_pair(limits, "limits"))]
+        if any(p.shape != (2,) or not np.all(np.isfinite(p)) or p[0] == p[1] for p in pairs):
+            raise ValueError(f"limits must be two pairs of different finite numbers ((x_lo, x_hi), (y_lo, y_hi)), "
+                             f"got {limits!r}")
+        limits = tuple((float(p[0]), float(p[1])) for p in pairs)
     x, y = np.linspace(*limits[0], nx), np.linspace(*limits[1], ny)
     t0 = time.perf_counter()
     common = dict(horizon=int(horizon), ts=terminal.ts, Q=terminal.Q, R=terminal.R,

@@ -89,13 +89,20 @@ def propagate(net: ReLUNet, L: Sequence[Array], U: Sequence[Array], start: int =
     L = [as_floats(x, f"L^{k + 1}").copy() for k, x in enumerate(L)]
     U = [as_floats(x, f"U^{k + 1}").copy() for k, x in enumerate(U)]
     for k, (a, b) in enumerate(zip(L, U)):
-        if a.shape != b.shape or a.shape[-1:] != (net.widths[k],) or np.any(~(a <= b)):
-            raise ValueError(f"L^{k + 1} <= U^{k + 1} must hold with shape ({net.widths[k]},) (no NaN), got shapes "
-                             f"{a.shape} and {b.shape}")
+        if a.shape != b.shape or a.shape != L[0].shape[:-1] + (net.widths[k],) \
+                or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))) or np.any(a > b):
+            raise ValueError(f"L^{k + 1} <= U^{k + 1} must hold, finite, of shape ({net.widths[k]},) (or (T, "
+                             f"{net.widths[k]}) in every layer), got shapes {a.shape} and {b.shape}")
     start = check_int(start, "start", 0, "the layer kept")
     if start >= net.K - 1:
         raise ValueError(f"start must be a hidden layer in 0..{net.K - 2}, got {start}")
     outward = check_bool(outward, "outward", "whether to widen the bounds by the rounding of their sums")
+    return _propagate(net, L, U, start, outward)
+
+
+def _propagate(net: ReLUNet, L: list, U: list, start: int, outward: bool) -> tuple[list[Array], list[Array], Array,
+                                                                                   Array]:
+    """:func:`propagate` on checked float arrays (the package's own calls; ``L``, ``U`` are changed in place)."""
     l, u = np.maximum(L[start], 0.0), np.maximum(U[start], 0.0)
     for k in range(start + 1, net.K - 1):
         Lk, Uk = _interval_affine(net.W[k], net.b[k], l, u, outward)
@@ -370,6 +377,7 @@ class LPTightener:
         start = fbbt(net, lo, hi, outward=True)  # rounded outward: the LP's rows must not cut a point of the box
         if prior is not None:
             start = intersect(start, prior)
+            _empty_if_crossed(start.L, start.U)
         L, U = [a.copy() for a in start.L], [a.copy() for a in start.U]
         self.set_box(lo, hi)
         for k in range(net.K - 1):
@@ -391,7 +399,8 @@ class LPTightener:
                     L[k][j] = U[k][j] = 0.5 * (L[k][j] + U[k][j])
                 self.set_neuron(k, j, L[k][j], U[k][j])
             # later layers: interval bounds from the tightened layer
-            L, U, oL, oU = propagate(net, L, U, start=k, outward=True)
+            L, U, oL, oU = _propagate(net, L, U, k, True)
+            _empty_if_crossed(L, U)
             for kk in range(k + 1, net.K - 1):
                 self.set_layer(kk, L[kk], U[kk])
         if output:
@@ -404,6 +413,15 @@ class LPTightener:
                 if o_hi is not None and np.isfinite(o_hi):
                     oU[i] = min(oU[i], o_hi + bk[i] + self.tol * (1 + abs(o_hi)))
         return NodeBounds(L, U, oL, oU, method="lp")
+
+
+def _empty_if_crossed(L: list, U: list) -> None:
+    """:class:`EmptyBoxError` when valid bounds cross (``L > U`` beyond round-off): no point of the box gives an
+    output within the bounds they were cut to."""
+    for a, b in zip(L, U):
+        if np.any(a > b + 1e-9 * (1.0 + np.abs(b))):
+            raise EmptyBoxError("the node bounds cross: no input in the box gives an output within out_bounds (the "
+                                "prior's bounds and the box's exclude each other)")
 
 
 _TIGHTENERS: dict = {}
@@ -495,6 +513,9 @@ def lp_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds: Optional[tuple[Arr
     if prior is not None and not isinstance(prior, NodeBounds):
         raise TypeError(f"prior must be a flnotes.NodeBounds (e.g. prior=fl.fbbt(net, lo, hi)), got "
                         f"{type(prior).__name__}")
+    if prior is not None and np.ndim(prior.L[0]) == 2 and len(prior.L[0]) != len(lo2):
+        raise ValueError(f"prior holds bounds of {len(prior.L[0])} boxes but lo, hi give {len(lo2)}: one prior per "
+                         f"box (or one for all)")
     if net.K == 1:
         return _affine_bounds(net, lo2, hi2, out_bounds, batch)
     tightener = _tightener(net, out_bounds, tol)
@@ -648,10 +669,13 @@ def ellipsoid_box(S: Array, H_inv: Array, V_c: Array, offset: Array, delta: floa
         Arrays of shape (r,).
     """
     S = np.atleast_2d(as_floats(S, "S"))
-    delta = check_number(delta, "delta", "J_up - J_c")
+    d = as_floats(delta, "delta").reshape(-1)
+    if d.size != 1 or not d[0] >= 0:  # +inf: the whole space (no level set yet)
+        raise ValueError(f"delta = J_up - J_c must be a number >= 0 (inf for no cut), got {delta!r}")
+    delta = float(d[0])
     center = S @ as_floats(V_c, "V_c") + as_floats(offset, "offset")
     rad = np.sqrt(2.0 * delta * np.maximum(np.einsum("ij,jk,ik->i", S, as_floats(H_inv, "H_inv"), S), 0.0))
-    if center.shape != (S.shape[0],) or not (np.all(np.isfinite(center)) and np.all(np.isfinite(rad))):
+    if center.shape != (S.shape[0],) or not np.all(np.isfinite(center)) or np.any(np.isnan(rad)):
         raise ValueError(f"the box of S V + offset must be finite of shape ({S.shape[0]},): check S, H_inv, V_c and "
                          f"offset (shapes (r, n), (n, n), (n,), (r,)), got a centre of shape {center.shape}")
     return center - rad, center + rad

@@ -756,9 +756,9 @@ def test_checks_that_once_answered_yes_to_nan_or_an_infinite_tolerance(msd):
         fl.lp_bounds(net, [0, 0, 0], [1, 1, 1], prior=(nb.L, nb.U))
     with pytest.raises(ValueError, match="L\\^1 <= U\\^1 must hold"):
         fl.propagate(net, [a * np.nan for a in nb.L], nb.U)
-    with pytest.raises(ValueError, match=f"pre must be a list of {len(nb.L)} arrays"):
+    with pytest.raises(ValueError, match=f"pre must hold {len(nb.L)} arrays"):
         nb.contains([])
-    with pytest.raises(ValueError, match="delta must be a finite number >= 0"):
+    with pytest.raises(ValueError, match="delta = J_up - J_c must be a number >= 0"):
         fl.ellipsoid_box(np.eye(2), np.eye(2), np.zeros(2), np.zeros(2), np.nan)
 
 
@@ -821,3 +821,51 @@ def test_the_lower_layers_read_no_booleans_or_strings_as_numbers(msd):
                       (dict(percentiles=(True,)), "percentiles must be numbers .*booleans")]:
         with pytest.raises(ValueError, match=match):
             fl.time_stats([0.1, 0.2], **kw)
+
+
+def test_legitimate_input_of_other_forms_is_still_taken(msd):
+    """Counts as integral reals, sequences as arrays or ranges, a flat plan of one input, one point through forward,
+    a seed of None, one-element arrays where one number is meant, None times in a table."""
+    sysm, net = msd
+    mpc = fl.MPC(sysm, net, 0.5, horizon=4, ts=0.1, Q=[10.0, 1.0], R=0.01)
+    V = np.full((4, 1), 0.01)
+    Z = mpc.predict([0.5, 0.0], V)
+    assert np.array_equal(mpc.predict([0.5, 0.0], V.ravel()), Z)
+    assert mpc.cost(Z, V.ravel(), np.zeros(2)) == mpc.cost(Z, V, np.zeros(2))
+    assert mpc.plan_feasible(Z, V.ravel()) == mpc.plan_feasible(Z, V)
+    out, pre = net.forward(np.array([0.5, -1.0, 2.0]))
+    assert out.shape == (1,) and pre[0].shape == (net.widths[0],)
+    assert np.allclose(out, net([0.5, -1.0, 2.0]))
+    a = fl.bound_atlas(net, sysm.lo, sysm.hi, 4.5, np.array([1, 2, 3]))
+    b = fl.bound_atlas(net, sysm.lo, sysm.hi, 4.5, range(1, 4))
+    assert all(np.array_equal(x, y) for x, y in zip(a.L, b.L))
+    assert np.isfinite(fl.sample_max_error(sysm, net, n=50, seed=None).eps).all()
+    assert fl.msd(u_max=np.array([5.0])).u_max.tolist() == [5.0]
+    assert fl.QuadraticCLF([[2.0]])(3.0) == 18.0
+    assert fl.time_stats([0.001, None, 0.002])["n"] == 2
+    with pytest.raises(ValueError, match="times_s must be times >= 0"):
+        fl.time_stats([-1.0, 0.001])
+
+
+def test_a_certificate_of_several_values_and_bad_matrices_are_refused(msd):
+    sysm, net = msd
+    H1, H2 = fl.DistanceCBF([3.0, 0.0], 1.0), fl.DistanceCBF([2.8, 0.2], 0.5)
+    both = (lambda z: np.array([H2(z), H1(z)]), H2.grad)
+    c = fl.ClfCbfController(sysm, net, 0.5, fl.QuadraticCLF(np.eye(2)), both, lambda z: -z, cost="quadratic")
+    with pytest.raises(ValueError, match=r"H\(z\) must be one number per state"):
+        c.step([2.0, 0.9])
+    A = sysm.A.copy()
+    A[0, 1] = np.nan
+    with pytest.raises(ValueError, match="A must be finite"):
+        fl.cbf_condition_fails(H1, [[2.0, 1.0]], A, sysm.B, 4.0)
+    with pytest.raises(ValueError, match="W, b and the box must be finite"):
+        fl.interval_affine([[1.0, 0.0]], [0.0], [-np.inf, 0.0], [0.0, 1.0])
+    with pytest.raises(ValueError, match="need W \\(p, n\\), b \\(p,\\)"):
+        fl.interval_affine(np.eye(2), [5.0], [0.0, 0.0], [1.0, 1.0])
+    lo, hi = sysm.lo, sysm.hi
+    with pytest.raises(ValueError, match="prior holds bounds of 3 boxes"):
+        fl.lp_bounds(net, np.stack([lo / 4, lo / 3]), np.stack([hi / 4, hi / 3]),
+                     prior=fl.fbbt(net, np.stack([lo / 10, lo / 10, lo]), np.stack([hi / 10, hi / 10, hi])))
+    pw = fl.network_pieces_1d(net, [0.3, -0.2], -10.0, 10.0)
+    with pytest.raises(ValueError, match="pieces cover"):
+        fl.exact_1d_feasible_set(net, [0.3, -0.2], -1.0, 1.0, 4.8, pieces=pw)

@@ -358,3 +358,21 @@ def test_fbbt_contains_every_preactivation_of_badly_scaled_networks_exactly_and_
             else:
                 assert ok, case["name"]
     assert cut >= 1, "the premise: the plain intervals cut a pre-activation of some stored network"
+
+
+def test_a_box_whose_bounds_cross_the_prior_is_empty_not_bounded():
+    """With out_bounds and a valid prior, a box where the network stays far outside out_bounds has no feasible point:
+    the bounds cross and that is an EmptyBoxError, never crossed bounds returned as if valid."""
+    net, _ = fl.paper_net("MSD")
+    msd = fl.msd()
+    lo, hi = msd.lo, msd.hi
+    ob = (np.array([-2.0]), np.array([2.0]))
+    P = lp_bounds(net, lo, hi, out_bounds=ob)
+    rng = np.random.default_rng(0)
+    X = rng.uniform(lo, hi, (20000, 3))
+    far = X[np.argsort(-np.abs(net(X)[:, 0]))[:40]]
+    assert np.all(np.abs(net(far)[:, 0]) > 10.0)  # premise: far outside out_bounds
+    for p in far[:10]:
+        blo, bhi = np.maximum(p - 0.05, lo), np.minimum(p + 0.05, hi)
+        with pytest.raises(fl.tightening.EmptyBoxError):
+            lp_bounds(net, blo, bhi, out_bounds=ob, prior=P, skip_stable=True)

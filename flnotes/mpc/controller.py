@@ -657,6 +657,8 @@ class MPC:
         """A plan ``(z_pred, v_pred)`` as finite float arrays of shapes (N_p + 1, n_z) and (N_p, m), else
         ``ValueError`` naming what is wrong."""
         Z, V = as_floats(z_pred, "z_pred"), as_floats(v_pred, "v_pred")
+        if V.shape == (self.N * self.m,):  # flat, as Prediction takes it
+            V = V.reshape(self.N, self.m)
         if Z.shape != (self.N + 1, self.n_z) or V.shape != (self.N, self.m):
             raise ValueError(f"a plan is (z_pred, v_pred) of shapes ({self.N + 1}, {self.n_z}) and ({self.N}, "
                              f"{self.m}), got {Z.shape} and {V.shape}")
@@ -666,6 +668,8 @@ class MPC:
 
     def _check_inputs(self, v_pred) -> Array:
         V = as_floats(v_pred, "v_pred")
+        if V.shape == (self.N * self.m,):  # flat, as Prediction takes it
+            V = V.reshape(self.N, self.m)
         if V.shape != (self.N, self.m) or not np.all(np.isfinite(V)):
             raise ValueError(f"v_pred must be finite inputs of shape (N_p, m) = ({self.N}, {self.m}), got shape "
                              f"{V.shape}")

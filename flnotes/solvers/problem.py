@@ -142,9 +142,10 @@ class MIQP:
     def violation(self, w: Array) -> float:
         """Largest violation of rows, bounds and integrality at ``w`` (0 when feasible; ``inf`` at a point with a NaN
         or an infinite entry, which no row can be checked at)."""
-        w = np.asarray(w, float)
-        if w.shape != (self.n,):
+        w = as_floats(w, "w")
+        if w.size != self.n:
             raise ValueError(f"w must be a point of shape ({self.n},), got {w.shape}")
+        w = w.reshape(-1)
         if not np.all(np.isfinite(w)):
             return float("inf")
         Aw = self.A @ w
