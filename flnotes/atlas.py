@@ -205,7 +205,9 @@ def bound_atlas(net: ReLUNet, lo, hi, u, cells: Sequence[int]) -> BoundAtlas:
     u = as_vector(u, net.n_out, "u")
     if np.any(u <= 0):
         raise ValueError(f"u must be positive and finite, got {u}")
-    cells = tuple(cells) if hasattr(cells, "__iter__") and not isinstance(cells, (str, bytes)) else (cells,)
+    if isinstance(cells, (str, bytes, dict, set, frozenset)):
+        raise ValueError(f"cells must be {net.n_in} positive integers in order (a tuple, list or array), got {cells!r}")
+    cells = tuple(cells) if hasattr(cells, "__iter__") else (cells,)
     if len(cells) != net.n_in:
         raise ValueError(f"cells must be {net.n_in} positive integers (cells per input), got {cells!r}")
     cells = tuple(check_int(c, "each of cells", 1, "cells per input") for c in cells)

@@ -98,8 +98,8 @@ class Certificate:
         z = as_floats(z, "z")
         if z.ndim > 2:
             raise ValueError(f"z must be one state (n_z,) or a batch (N, n_z), got shape {z.shape}")
-        out = as_floats(self.value(np.atleast_2d(z)), f"{self.name}(z)").reshape(-1)
-        return float(out[0]) if z.ndim == 1 else out
+        out = as_floats(self.value(np.atleast_2d(z) if z.ndim else z.reshape(1, 1)), f"{self.name}(z)").reshape(-1)
+        return float(out[0]) if z.ndim <= 1 else out
 
 
 class QuadraticCLF(Certificate):
@@ -507,7 +507,8 @@ def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, boun
     bound
         ``u_max^eps = u_max - eps``, > 0.
     pieces
-        The result of :func:`network_pieces_1d` if already computed.
+        The result of :func:`network_pieces_1d` if already computed, for this ``z`` and this segment (the segment
+        is checked; the pieces do not record their ``z``, so that is the caller's part).
 
     Returns
     -------

@@ -116,7 +116,9 @@ def time_stats(times_s: Sequence[float], percentiles: Sequence[float] = (50, 90,
     t = as_floats(times_s, "times_s").ravel()
     if np.any(t < 0) or np.any(np.isinf(t)):
         raise ValueError(f"times_s must be times >= 0 (NaN for a step without a solve), got {t[(t < 0) | np.isinf(t)]}")
-    q = as_floats(percentiles if hasattr(percentiles, "__len__") else list(percentiles), "percentiles").reshape(-1)
+    if hasattr(percentiles, "__iter__") and not hasattr(percentiles, "__len__"):  # a generator
+        percentiles = list(percentiles)
+    q = as_floats(percentiles, "percentiles").reshape(-1)  # one number: one percentile
     if not np.all((q >= 0) & (q <= 100)):
         raise ValueError(f"percentiles must lie in [0, 100], got {q}")
     percentiles = q.tolist()

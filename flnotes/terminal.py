@@ -734,7 +734,7 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     if limits is None:
         limits = ((terminal.z_lo[axes[0]], terminal.z_hi[axes[0]]), (terminal.z_lo[axes[1]], terminal.z_hi[axes[1]]))
     else:
-        pairs = [as_floats(p, f"limits[{i}]") for i, p in enumerate(as_pair(limits, "limits"))]
+        pairs = [as_floats(p, f"limits[{i}]").reshape(-1) for i, p in enumerate(as_pair(limits, "limits"))]
         if any(p.shape != (2,) or not np.all(np.isfinite(p)) or p[0] == p[1] for p in pairs):
             raise ValueError(f"limits must be two pairs of different finite numbers ((x_lo, x_hi), (y_lo, y_hi)), "
                              f"got {limits!r}")

@@ -674,7 +674,8 @@ def ellipsoid_box(S: Array, H_inv: Array, V_c: Array, offset: Array, delta: floa
         raise ValueError(f"delta = J_up - J_c must be a number >= 0 (inf for no cut), got {delta!r}")
     delta = float(d[0])
     center = S @ as_floats(V_c, "V_c") + as_floats(offset, "offset")
-    rad = np.sqrt(2.0 * delta * np.maximum(np.einsum("ij,jk,ik->i", S, as_floats(H_inv, "H_inv"), S), 0.0))
+    q = np.maximum(np.einsum("ij,jk,ik->i", S, as_floats(H_inv, "H_inv"), S), 0.0)
+    rad = np.where(q > 0, np.sqrt(2.0 * delta * np.where(q > 0, q, 1.0)), 0.0)  # a row it cannot move: radius 0
     if center.shape != (S.shape[0],) or not np.all(np.isfinite(center)) or np.any(np.isnan(rad)):
         raise ValueError(f"the box of S V + offset must be finite of shape ({S.shape[0]},): check S, H_inv, V_c and "
                          f"offset (shapes (r, n), (n, n), (n,), (r,)), got a centre of shape {center.shape}")

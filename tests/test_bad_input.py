@@ -869,3 +869,14 @@ def test_a_certificate_of_several_values_and_bad_matrices_are_refused(msd):
     pw = fl.network_pieces_1d(net, [0.3, -0.2], -10.0, 10.0)
     with pytest.raises(ValueError, match="pieces cover"):
         fl.exact_1d_feasible_set(net, [0.3, -0.2], -1.0, 1.0, 4.8, pieces=pw)
+
+
+def test_the_last_review_s_forms(msd):
+    sysm, net = msd
+    assert fl.time_stats([0.1, 0.2], 50)["median_ms"] == fl.time_stats([0.1, 0.2], (50,))["median_ms"]
+    lo, hi = fl.ellipsoid_box(np.array([[1.0, 0.0], [0.0, 0.0]]), np.eye(2), np.zeros(2), np.zeros(2), np.inf)
+    assert lo.tolist() == [-np.inf, 0.0] and hi.tolist() == [np.inf, 0.0]
+    with pytest.raises(ValueError, match="in order"):
+        fl.bound_atlas(net, sysm.lo, sysm.hi, 4.5, {2: 1, 3: 1, 4: 1})
+    c1 = fl.control.as_certificate((lambda z: float(z[0] ** 2), lambda z: 2 * z))
+    assert c1(0.5) == 0.25 and c1(np.array([0.5])) == 0.25
