@@ -183,6 +183,9 @@ def encode(net: ReLUNet, x, bounds: Optional[NodeBounds] = None, L: Optional[Seq
 def _column_bounds(B, n_k: int, T: Optional[int], name: str) -> Array:
     """Bounds of shape (n_k,) for one point, or (n_k, T) per column (an (n_k,) array applies to all)."""
     B = as_floats(B, name)
+    if not np.all(np.isfinite(B)):
+        raise ValueError(f"{name} must be finite node bounds (a big-M of inf is no bound): compute them with "
+                         f"fl.fbbt or fl.lp_bounds on a bounded box")
     if T is None:
         if B.shape != (n_k,):
             raise ValueError(f"{name} of a layer with {n_k} neurons must have shape ({n_k},), got {B.shape}")
@@ -277,9 +280,10 @@ class BigMForm:
             raise ValueError(f"bounds must hold all {len(self.ub_rows_U)} hidden layers of the form, got "
                              f"{len(bounds.L)}: the layers left out would keep their old big-M values")
         for k, (L, U) in enumerate(zip(bounds.L, bounds.U)):
-            if np.shape(L) != (len(self.ub_rows_U[k]),) or np.any(~(np.asarray(L) <= np.asarray(U))):
-                raise ValueError(f"bounds of layer {k + 1} must have shape ({len(self.ub_rows_U[k])},) with L <= U "
-                                 f"(no NaN), got shape {np.shape(L)}")
+            if np.shape(L) != (len(self.ub_rows_U[k]),) or np.any(~(np.asarray(L) <= np.asarray(U))) \
+                    or not (np.all(np.isfinite(L)) and np.all(np.isfinite(U))):
+                raise ValueError(f"bounds of layer {k + 1} must be finite, of shape ({len(self.ub_rows_U[k])},) "
+                                 f"with L <= U, got shape {np.shape(L)}")
         A_ub = self.A_ub.tolil(copy=True)
         b_ub, lb, ub = self.b_ub.copy(), self.lb.copy(), self.ub.copy()
         for k, (L, U) in enumerate(zip(bounds.L, bounds.U)):

@@ -880,3 +880,23 @@ def test_the_last_review_s_forms(msd):
         fl.bound_atlas(net, sysm.lo, sysm.hi, 4.5, {2: 1, 3: 1, 4: 1})
     c1 = fl.control.as_certificate((lambda z: float(z[0] ** 2), lambda z: 2 * z))
     assert c1(0.5) == 0.25 and c1(np.array([0.5])) == 0.25
+
+
+def test_the_program_s_matrices_and_node_bounds_are_numbers_and_finite(msd):
+    import cvxpy as cp
+    import scipy.sparse as sp
+
+    sysm, net = msd
+    good = dict(H=None, c=[1.0, 1.0], c0=0.0, A=sp.csr_matrix([[1.0, 1.0]]), rl=[1.0], ru=[np.inf], lb=[0, 0],
+                ub=[5, 5], integrality=[0, 1])
+    assert fl.MIQP(**{**good, "H": np.eye(2), "A": [[1.0, 1.0]]}).n == 2
+    for kw, match in [(dict(H=np.eye(2, dtype=bool)), "H must be numbers .*booleans"),
+                      (dict(A=[["1", "1"]]), "A must be numbers .*strings"),
+                      (dict(A=np.ma.array([[1.0, 1.0]], mask=[[0, 1]])), "A must be numbers .*masked"),
+                      (dict(A=sp.csr_matrix(np.array([[True, True]]))), "A must hold real numbers")]:
+        with pytest.raises(ValueError, match=match):
+            fl.MIQP(**{**good, **kw})
+    nb = fl.fbbt(net, sysm.lo, sysm.hi)
+    x = cp.Variable(3)
+    with pytest.raises(ValueError, match="L\\^1 must be finite node bounds"):
+        fl.encode(net, x, L=[np.full_like(a, -np.inf) for a in nb.L], U=list(nb.U))

@@ -78,7 +78,7 @@ class MIQP:
         n = self.c.size
         self.c0 = check_number(self.c0, "c0", "the constant of the cost", low=-np.inf)
         if self.H is not None:
-            H = sp.csc_matrix(self.H, dtype=float)
+            H = sp.csc_matrix(_matrix(self.H, "H"), dtype=float)
             if H.shape != (n, n):
                 raise ValueError(f"H must have shape ({n}, {n}) to match c, got {H.shape}")
             if H.nnz and not np.all(np.isfinite(H.data)):
@@ -87,7 +87,7 @@ class MIQP:
                 raise ValueError("H must be symmetric: pass (H + H.T) / 2")
             H.eliminate_zeros()
             self.H = H if H.nnz else None
-        A = sp.csr_matrix(self.A, dtype=float)
+        A = sp.csr_matrix(_matrix(self.A, "A"), dtype=float)
         if A.ndim != 2 or A.shape[1] != n:
             raise ValueError(f"A must have shape (m, {n}) to match c, got {A.shape}")
         if A.nnz and not np.all(np.isfinite(A.data)):
@@ -220,6 +220,16 @@ def _result(problem: MIQP, status: str, w, bound: float, nodes: int, t0: float, 
 # ---------------------------------------------------------------------------
 # Checks
 # ---------------------------------------------------------------------------
+def _matrix(M, name: str):
+    """A sparse matrix as it is (its entries are checked as floats after conversion), anything else through
+    :func:`as_floats` (booleans, strings and masked entries refused by name)."""
+    if sp.issparse(M):
+        if M.dtype.kind not in "iuf":
+            raise ValueError(f"{name} must hold real numbers, got a sparse matrix of {M.dtype}")
+        return M
+    return as_floats(M, name)
+
+
 def _vec(x, n: Optional[int], name: str, allow_inf: bool = False) -> Array:
     a = as_floats(x, name)
     if a.ndim == 0 and n is not None:
