@@ -291,6 +291,12 @@ def check_int(x: Any, name: str, low: int, what: str) -> int:
     return int(x)
 
 
+def one_number(x: Any, name: str) -> Any:
+    """``x``, or its single entry when it is an array, list or tuple of one number (``u_max=[5.0]`` of a single
+    input, a bound as ``np.array([4.8])``); anything else is returned as it is, for :func:`check_number` to judge."""
+    return as_floats(x, name).reshape(-1)[0] if np.size(x) == 1 and np.ndim(x) > 0 else x
+
+
 def check_count(x: Any, name: str, low: int, what: str) -> int:
     """``x`` as an int ``>= low``, given as any real number that is an integer (``3``, ``3.0``, ``Decimal(3)``, a 0-d
     array), else ``ValueError`` naming ``name`` (a boolean, a time span, ``2.5`` refused)."""

@@ -52,7 +52,7 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import as_floats, as_vector, box_in_domain, check_bool, check_number
+from ._checks import as_floats, as_vector, box_in_domain, check_bool, check_number, one_number
 from .bounds import NodeBounds, fbbt
 from .config import one_blas_thread
 from .network import ReLUNet
@@ -332,11 +332,6 @@ def as_certificate(obj: Any, name: str = "certificate") -> Certificate:
                      f"and .grad, or a pair (fn, grad_fn); got {type(obj).__name__}")
 
 
-def _scalar(x):
-    """A number given as an array of one entry is that entry (other values go to the checks as they are)."""
-    return np.ravel(x)[0] if isinstance(x, np.ndarray) and x.size == 1 else x
-
-
 def _certificate_at(c: Certificate, z: Array, name: str) -> tuple[Array, float]:
     """``grad c(z)`` (n_z,) and ``c(z)``, both finite real numbers, else ``ValueError`` naming ``name``: a NaN value
     or gradient would drop its row from eq. (CLF_CBF) without a word."""
@@ -515,7 +510,7 @@ def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, boun
     Array
         Shape (p, 2): rows ``[a_i, b_i]`` sorted, disjoint; (0, 2) when empty.
     """
-    bound = check_number(_scalar(bound), "bound", "u_max^eps = u_max - eps", strict=True)
+    bound = check_number(one_number(bound, "bound"), "bound", "u_max^eps = u_max - eps", strict=True)
     if pieces is None:
         pw = network_pieces_1d(net, z, v_lo, v_hi)
     else:  # the pieces of this z on this segment: the segment at least is checked
@@ -576,7 +571,7 @@ def solve_exact_1d(pw: PiecewiseAffine1D, d: dict, cost: str, bound: float, soft
     -------
     (v, delta, objective), or None when the program is infeasible.
     """
-    bound = check_number(_scalar(bound), "bound", "u_max^eps = u_max - eps", strict=True)
+    bound = check_number(one_number(bound, "bound"), "bound", "u_max^eps = u_max - eps", strict=True)
     r = as_floats(rho, "rho")
     if r.shape != (2,) or not np.all(np.isfinite(r)) or np.any(r < 0):
         raise ValueError(f"rho must be two finite penalties >= 0 (rho_u, rho_H), got {rho!r}")

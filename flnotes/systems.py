@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 from scipy.linalg import expm
 
-from ._checks import as_batch, as_floats, as_vector, check_box, check_number
+from ._checks import as_batch, as_floats, as_vector, check_box, check_number, one_number
 
 Array = np.ndarray
 
@@ -418,7 +418,7 @@ def msd(u_max: float = 5.0, z_box: float = 5.0, v_box: float = 10.0) -> FLSystem
     """
     from .interval import msd_phi  # interval version of Phi, for certifying eps (flnotes.error)
 
-    u_max = _one_number(u_max, "u_max")
+    u_max = one_number(u_max, "u_max")
     u_max, z_box, v_box = (check_number(x, name, what, strict=True) for x, name, what in (
         (u_max, "u_max", "the input bound"), (z_box, "z_box", "the half-width of the state box"),
         (v_box, "v_box", "the half-width of the v box")))
@@ -440,11 +440,6 @@ def msd(u_max: float = 5.0, z_box: float = 5.0, v_box: float = 10.0) -> FLSystem
     )
 
 
-def _one_number(x, name: str):
-    """``x``, or its single entry when it is an array or list of one number (``u_max=[5.0]`` of a single input)."""
-    return as_floats(x, name).reshape(-1)[0] if np.size(x) == 1 and np.ndim(x) > 0 else x
-
-
 def quad1d(Gamma: float = 10.0, gamma: float = 0.3, tau: float = 0.2, u_max: float = 0.1745,
            z_box: float = 5.0, v_box: float = 15.0, zeta_max: float = 0.99) -> FLSystem:
     """The horizontal 1-D quadrotor of eq. (quad1D_nonlinear).
@@ -461,7 +456,7 @@ def quad1d(Gamma: float = 10.0, gamma: float = 0.3, tau: float = 0.2, u_max: flo
     from .interval import make_quad1d_phi  # interval version of Phi, for certifying eps (flnotes.error)
 
     gamma = check_number(gamma, "gamma", "the drag coefficient")
-    u_max = _one_number(u_max, "u_max")
+    u_max = one_number(u_max, "u_max")
     Gamma, tau, u_max, z_box, v_box = (check_number(x, name, what, strict=True) for x, name, what in (
         (Gamma, "Gamma", "the thrust gain"),
         (tau, "tau", "the pitch time constant (s)"), (u_max, "u_max", "the input bound (rad)"),

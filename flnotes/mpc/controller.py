@@ -656,17 +656,17 @@ class MPC:
     def _check_plan(self, z_pred, v_pred) -> tuple[Array, Array]:
         """A plan ``(z_pred, v_pred)`` as finite float arrays of shapes (N_p + 1, n_z) and (N_p, m), else
         ``ValueError`` naming what is wrong."""
-        Z, V = as_floats(z_pred, "z_pred"), as_floats(v_pred, "v_pred")
-        if V.shape == (self.N * self.m,):  # flat, as Prediction takes it
-            V = V.reshape(self.N, self.m)
-        if Z.shape != (self.N + 1, self.n_z) or V.shape != (self.N, self.m):
+        Z, V = as_floats(z_pred, "z_pred"), self._check_inputs(v_pred)
+        if Z.shape != (self.N + 1, self.n_z):
             raise ValueError(f"a plan is (z_pred, v_pred) of shapes ({self.N + 1}, {self.n_z}) and ({self.N}, "
                              f"{self.m}), got {Z.shape} and {V.shape}")
-        if not (np.all(np.isfinite(Z)) and np.all(np.isfinite(V))):
-            raise ValueError("a plan (z_pred, v_pred) must be finite: it contains NaN or inf")
+        if not np.all(np.isfinite(Z)):
+            raise ValueError("a plan's z_pred must be finite: it contains NaN or inf")
         return Z.copy(), V.copy()
 
     def _check_inputs(self, v_pred) -> Array:
+        """``v_pred`` as finite inputs of shape (N_p, m) (a flat (N_p m,) array too, as :class:`Prediction` takes
+        it), else ``ValueError`` naming it."""
         V = as_floats(v_pred, "v_pred")
         if V.shape == (self.N * self.m,):  # flat, as Prediction takes it
             V = V.reshape(self.N, self.m)
