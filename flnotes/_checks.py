@@ -106,6 +106,18 @@ def _reads_as_array(x) -> bool:
     return True
 
 
+def _unwrapped(x: Any) -> tuple[Any, Optional[str]]:
+    """``(x, what)`` for an object that numpy reads through a protocol which would hide what it holds: a memoryview
+    of bytes (numpy reads its characters as uint8 numbers) is bytes; an object whose ``__array__`` gives a masked
+    array (numpy keeps the values and drops the mask) is read once, here, and judged by that array."""
+    if isinstance(x, memoryview):
+        return x, ("bytes" if isinstance(x.obj, (bytes, bytearray)) else None)
+    if hasattr(x, "__array__") and not isinstance(x, np.generic):
+        arr = x.__array__()
+        return arr, (_MASKED if _is_masked(arr) else None)
+    return x, None
+
+
 _REPR = reprlib.Repr()
 _REPR.maxother = _REPR.maxstring = 80
 
@@ -127,7 +139,10 @@ def as_floats(x: Any, name: str) -> np.ndarray:
 
     An array is judged by its type (numpy's speed); an array of objects, nested Python lists, tuples and deques (where
     numpy turns ``[1.0, True]`` into ``[1.0, 1.0]`` and ``[bytearray(b"1")]`` into ``[[49.0]]``) and other containers
-    numpy reads are judged by the types of their elements, at every depth, before or after numpy reads them."""
+    numpy reads are judged by the types of their elements, at every depth, before or after numpy reads them. A
+    memoryview of bytes is bytes, and an object whose ``__array__`` gives a masked array is judged by that array
+    (numpy would read the characters as numbers, and drop the mask)."""
+    given = x  # named in the messages (x may be unwrapped below)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # a complex part dropped, an overflow: an error here
@@ -135,6 +150,8 @@ def as_floats(x: Any, name: str) -> np.ndarray:
                 what = _sequence_not_real(x)
             else:
                 what = (_MASKED if _is_masked(x) else None) if isinstance(x, np.ndarray) else _not_real(x)
+            if what is None and not isinstance(x, np.ndarray):
+                x, what = _unwrapped(x)
             if what is None:
                 raw = np.asarray(x)
                 what = _NOT_REAL.get(raw.dtype.kind)
@@ -150,9 +167,9 @@ def as_floats(x: Any, name: str) -> np.ndarray:
                     if what is None:
                         return out
     except Exception as exc:  # numpy's errors, a warning, an element's own __float__: all say x is no array of numbers
-        raise ValueError(f"{name} must be numbers (an array of floats), got {brief(x)} ({type(exc).__name__}: "
+        raise ValueError(f"{name} must be numbers (an array of floats), got {brief(given)} ({type(exc).__name__}: "
                          f"{exc!s:.200})") from exc
-    raise ValueError(f"{name} must be numbers (an array of floats), got {brief(x)} (it holds {what})")
+    raise ValueError(f"{name} must be numbers (an array of floats), got {brief(given)} (it holds {what})")
 
 
 _floats = as_floats

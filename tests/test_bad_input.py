@@ -449,6 +449,30 @@ def test_numbers_in_any_container_numpy_reads_are_taken_as_they_are(msd):
     assert np.array_equal(b.out_L, fl.fbbt(net, lo, hi).out_L)
 
 
+def test_bytes_and_masks_behind_a_protocol_are_refused(msd):
+    """numpy reads a memoryview of bytes as its characters' codes and drops the mask of a masked array given by an
+    object's ``__array__``: both are refused by name, while a memoryview of a uint8 array and an ``__array__`` that
+    gives a plain (or unmasked) array are their numbers."""
+    class Wrapped:
+        def __init__(self, a):
+            self.a = a
+
+        def __array__(self, dtype=None, copy=None):
+            return self.a
+
+    sysm, net = msd
+    X = np.array([0.3, -0.2, 1.5])
+    with pytest.raises(ValueError, match="x must be numbers .*memory.*bytes"):
+        net(memoryview(b"123"))
+    with pytest.raises(ValueError, match="x must be numbers .*bytes"):
+        net(memoryview(bytearray(b"123")))
+    with pytest.raises(ValueError, match="x must be numbers .*masked"):
+        net(Wrapped(np.ma.masked_array(X, [False, True, False])))
+    assert np.array_equal(net(Wrapped(np.ma.masked_array(X, [False, False, False]))), net(X))
+    u8 = np.array([1, 2, 3], np.uint8)
+    assert np.array_equal(net(memoryview(u8)), net(u8.astype(float)))
+
+
 @pytest.mark.parametrize("key, match", [("ts", "ts must be"), ("time_limit", "time_limit must be"),
                                         ("horizon", "horizon"), ("gap", "gap must be")])
 def test_the_mpc_settings_refuse_a_time_span(msd, key, match):
