@@ -326,7 +326,8 @@ def check_count(x: Any, name: str, low: int, what: str) -> int:
 
 def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = False,
                  none: bool = False) -> Optional[float]:
-    """``x`` as a finite float ``>= low`` (``> low`` if ``strict``; ``None`` kept if ``none``), else ``ValueError``."""
+    """``x`` as a finite float ``>= low`` (``> low`` if ``strict``; ``None`` kept if ``none``; ``low=-inf``: any
+    finite number), else ``ValueError``."""
     if x is None and none:
         return None
     if isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iufO" and not _is_masked(x):
@@ -339,8 +340,8 @@ def check_number(x: Any, name: str, what: str, low: float = 0.0, strict: bool = 
         except (OverflowError, ValueError, TypeError):  # beyond the float range, a signalling NaN
             v = np.nan
     if not np.isfinite(v) or (v <= low if strict else v < low):
-        raise ValueError(f"{name} must be a finite number {'>' if strict else '>='} {low:g} ({what})"
-                         f"{' or None' if none else ''}, got {brief(x)}")
+        bound = "" if low == -np.inf else f" {'>' if strict else '>='} {low:g}"  # low = -inf: any finite number
+        raise ValueError(f"{name} must be a finite number{bound} ({what}){' or None' if none else ''}, got {brief(x)}")
     return float(v)
 
 

@@ -50,7 +50,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, as_vector, check_number
+from ._checks import as_batch, as_floats, as_vector, check_count, check_number, one_number
 from .control import Certificate
 from .systems import FLSystem, brunovsky
 
@@ -266,8 +266,8 @@ def arm_link_points(q: Array, fractions: Sequence[float], p: Optional[dict] = No
     """
     p = arm_parameters(**_DEFAULTS) if p is None else p
     Q = as_batch(q, 2, "q")
-    s = np.asarray(fractions, float).reshape(-1)
-    if np.any((s < 0) | (s > 1)):
+    s = as_floats(fractions, "fractions").reshape(-1)
+    if not np.all((s >= 0) & (s <= 1)):  # NaN too
         raise ValueError(f"fractions must lie in [0, 1] (0 = elbow, 1 = hand), got {s.tolist()}")
     elbow = p["l1"] * np.column_stack([np.sin(Q[:, 0]), -np.cos(Q[:, 0])])
     q12 = Q[:, 0] + Q[:, 1]
@@ -392,6 +392,9 @@ def arm_obstacle_cbfs(center: Array, radius: float, n_points: int = 5, k1: float
     chord, so its distance is at least ``sqrt(bar r_o^2 - (d/2)^2) = r_o``. (The first
     link must not reach the disc: ``||c_o|| > l_1 + r_o``; checked.)
 
+    ``radius`` must be a finite number > 0 and ``n_points`` an integer >= 2 (any real type: ``5``, ``5.0``); anything
+    else is a ``ValueError`` naming the argument.
+
     Returns
     -------
     list of ArmPointCBF
@@ -399,10 +402,8 @@ def arm_obstacle_cbfs(center: Array, radius: float, n_points: int = 5, k1: float
     """
     p = arm_parameters(**_DEFAULTS) if params is None else params
     c = as_vector(center, 2, "center")
-    if not (np.isfinite(radius) and radius > 0):
-        raise ValueError(f"radius must be positive, got {radius!r}")
-    if not (isinstance(n_points, (int, np.integer)) and n_points >= 2):
-        raise ValueError(f"n_points must be an integer >= 2 (elbow and hand at least), got {n_points!r}")
+    radius = check_number(one_number(radius, "radius"), "radius", "of the obstacle (m)", strict=True)
+    n_points = check_count(n_points, "n_points", 2, "points on the second link: elbow and hand at least")
     if np.linalg.norm(c) <= p["l1"] + radius:
         raise ValueError(f"the first link reaches the disc (||center|| = {np.linalg.norm(c):.3g} <= l1 + radius = "
                          f"{p['l1'] + radius:.3g}): these barriers guard the second link only; move the obstacle")

@@ -26,7 +26,7 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from ._checks import as_vector, check_box, check_int
+from ._checks import as_vector, check_box, check_boxes, check_int
 from .network import ReLUNet, fingerprint
 from .tightening import EmptyBoxError, lp_bounds
 
@@ -127,24 +127,38 @@ class BoundAtlas:
         return np.isinf(self.L[0][..., 0]) & (self.L[0][..., 0] > 0)
 
     def covers(self, lo: Array, hi: Array) -> Array:
-        """Per box (rows of ``lo, hi``, shape (T, n_in)), whether it lies in the domain."""
+        """Per box (rows of ``lo, hi``, shape (T, n_in), or one box (n_in,)), whether it lies in the domain.
+
+        ``lo <= hi`` must be finite numbers of these shapes (``ValueError`` naming them otherwise)."""
+        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
+        return self._covers(lo2, hi2)
+
+    def _covers(self, lo: Array, hi: Array) -> Array:
+        """:meth:`covers` without the checks of its numbers (the callers here pass checked boxes)."""
         lo, hi = np.atleast_2d(np.asarray(lo, float)), np.atleast_2d(np.asarray(hi, float))
         if lo.shape != hi.shape or lo.ndim != 2 or lo.shape[1] != len(self.edges):
             raise ValueError(f"lo and hi must have shape (T, {len(self.edges)}), got {lo.shape} and {hi.shape}")
         return np.all(lo >= self.lo, axis=1) & np.all(hi <= self.hi, axis=1)
 
     def cover(self, lo: Array, hi: Array) -> tuple[list, list]:
-        """Node bounds of the boxes ``lo, hi`` (shape (T, n_in), each inside the domain) from the cells they meet.
+        """Node bounds of the boxes ``lo, hi`` (shape (T, n_in), or one box (n_in,); each inside the domain) from the
+        cells they meet.
 
         Returns ``(L, U)``, per hidden layer an array (T, n_k): the minimum of the cells' ``L`` and the maximum of
         their ``U``. A box that meets only empty cells gets ``L = +inf``, ``U = -inf`` (no admissible input in it).
+        ``lo <= hi`` must be finite numbers of these shapes (``ValueError`` naming them otherwise).
         """
+        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
+        return self._cover(lo2, hi2)
+
+    def _cover(self, lo: Array, hi: Array) -> tuple[list, list]:
+        """:meth:`cover` without the checks of its numbers (the callers here pass checked boxes)."""
         lo, hi = np.atleast_2d(np.asarray(lo, float)), np.atleast_2d(np.asarray(hi, float))
         if lo.shape != hi.shape or lo.shape[1] != len(self.edges):
             raise ValueError(f"lo and hi must have shape (T, {len(self.edges)}), got {lo.shape} and {hi.shape}")
         if np.any(lo > hi):
             raise ValueError("a box is empty (lo > hi in some input)")
-        if not np.all(self.covers(lo, hi)):
+        if not np.all(self._covers(lo, hi)):
             raise ValueError("a box reaches outside the atlas's domain: its cells say nothing there")
         out_L = [np.empty((lo.shape[0], a.shape[-1])) for a in self.L]
         out_U = [np.empty((lo.shape[0], a.shape[-1])) for a in self.U]
@@ -237,6 +251,9 @@ def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
     atlases from :func:`bound_atlas` or the shipped ones (whose contents are checked against a recorded digest)."""
     if not isinstance(atlas, BoundAtlas):
         raise TypeError(f"expected a flnotes.BoundAtlas, got {type(atlas).__name__}")
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    seed = check_int(seed, "seed", 0, "seed of the sample the atlas is checked on")
     if atlas.net_id != fingerprint(net):
         raise ValueError("the atlas was computed for another network (its parameters differ): compute it with "
                          "fl.bound_atlas(net, lo, hi, u, cells)")
@@ -260,7 +277,14 @@ def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
 
 def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
     """The shipped atlas of ``net`` (``flnotes/data``, :data:`SHIPPED`) when it serves the box ``[lo, hi]`` and the
-    bound ``u`` (the box inside its domain, ``u`` at most its own), else ``None``."""
+    bound ``u`` (the box inside its domain, ``u`` at most its own), else ``None``.
+
+    ``lo <= hi`` must be finite numbers (n_in,) each and ``u`` finite numbers, one per output or one for all
+    (``ValueError`` naming the argument otherwise; ``TypeError`` for a ``net`` that is no network)."""
+    if not isinstance(net, ReLUNet):
+        raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+    lo, hi = check_box(lo, hi, net.n_in)
+    u = as_vector(u, net.n_out, "u")
     net_id = fingerprint(net)
     for name, (_, digest, shipped_for) in SHIPPED.items():
         if shipped_for != net_id:
@@ -269,7 +293,7 @@ def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
         if atlas.digest != digest:  # checked at every call: the object handed out is the file as shipped
             raise ValueError(f"the shipped atlas {name} is not the one written by flnotes.atlas.write_shipped_atlases "
                              "(its contents changed): restore it, or pass atlas=False")
-        if atlas.covers(np.asarray(lo, float), np.asarray(hi, float))[0] and np.all(np.asarray(u, float) <= atlas.u):
+        if atlas._covers(lo, hi)[0] and np.all(u <= atlas.u):
             return atlas
     return None
 

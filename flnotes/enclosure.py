@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import check_boxes
+from ._checks import as_batch, as_floats, brief, check_boxes, check_number
 from .encoding import bigm_form
 from .network import ReLUNet, fingerprint  # noqa: F401 - fingerprint: kept importable from here
 from .solvers import MIQP, make_solver
@@ -105,26 +105,67 @@ class AffineEnclosure:
         if not isinstance(self.net_id, str):
             raise TypeError(f"AffineEnclosure.net_id must be a str (fingerprint(net)), got {self.net_id!r}")
 
+    def _check_net(self, net) -> None:
+        """``TypeError`` unless ``net`` is a :class:`ReLUNet`; ``ValueError`` unless its inputs and outputs fit."""
+        if not isinstance(net, ReLUNet):
+            raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
+        if (net.n_out, net.n_in) != self.a.shape:
+            raise ValueError(f"net must have {self.a.shape[1]} inputs and {self.a.shape[0]} outputs (those of the "
+                             f"enclosure), got a network with {net.n_in} and {net.n_out}")
+
     def residual(self, net: ReLUNet, X: Array) -> Array:
-        """``Phi_NN(x) - a x`` at the points ``X`` (N, n_in) -> (N, n_out)."""
+        """``Phi_NN(x) - a x`` at the points ``X`` (N, n_in) -> (N, n_out); one point (n_in,) is taken as (1, n_in).
+
+        ``X`` must be finite numbers of that shape, ``net`` a network with the enclosure's inputs and outputs
+        (``ValueError``, or ``TypeError`` for no network, naming the argument otherwise)."""
+        self._check_net(net)
+        return self._residual(net, as_batch(X, self.a.shape[1], "X"))
+
+    def _residual(self, net: ReLUNet, X: Array) -> Array:
+        """:meth:`residual` without its checks."""
         X = np.atleast_2d(np.asarray(X, float))
         return net(X) - X @ self.a.T
 
     def contains(self, net: ReLUNet, X: Array, tol: float = 0.0) -> bool:
-        """Do the points ``X`` (of the box) satisfy the enclosure (to ``tol``)?"""
-        r = self.residual(net, X)
+        """Do the points ``X`` (of the box) satisfy the enclosure (to ``tol``, a finite number >= 0)?"""
+        self._check_net(net)
+        X = as_batch(X, self.a.shape[1], "X")
+        return self._contains(net, X, check_number(tol, "tol", "the margin allowed beyond the bounds"))
+
+    def _contains(self, net: ReLUNet, X: Array, tol: float = 0.0) -> bool:
+        """:meth:`contains` without its checks."""
+        r = self._residual(net, X)
         return bool(np.all(r >= self.r_lo - tol) and np.all(r <= self.r_hi + tol))
 
     def slab(self, u: Array) -> tuple[Array, Array]:
         """Bounds ``(s_lo, s_hi)`` (n_out,) of ``a x`` over the points of the box with ``|Phi_NN(x)| <= u``:
-        ``s_lo = -u - r_hi``, ``s_hi = u - r_lo``."""
+        ``s_lo = -u - r_hi``, ``s_hi = u - r_lo``.
+
+        ``u`` must be finite numbers >= 0, one per output (a number for a single output); anything else is a
+        ``ValueError`` naming it."""
+        u_a = as_floats(u, "u").reshape(-1)
+        if u_a.shape != self.r_lo.shape:
+            raise ValueError(f"u must have shape {self.r_lo.shape} (one bound per output), got {np.shape(u)}")
+        if not np.all(np.isfinite(u_a)) or np.any(u_a < 0):
+            raise ValueError(f"u must be finite output bounds >= 0, got {brief(u)}")
+        return self._slab(u_a)
+
+    def _slab(self, u: Array) -> tuple[Array, Array]:
+        """:meth:`slab` without the checks of its numbers (the callers here pass the controller's bound)."""
         u = np.asarray(u, float).reshape(-1)
         if u.shape != self.r_lo.shape:
             raise ValueError(f"u must have shape {self.r_lo.shape} (one bound per output), got {u.shape}")
         return -u - self.r_hi, u - self.r_lo
 
     def covers(self, lo: Array, hi: Array) -> bool:
-        """Does the enclosure's box contain the box ``[lo, hi]``?"""
+        """Does the enclosure's box contain the box ``[lo, hi]`` (every box, for a batch (T, n_in))?
+
+        ``lo <= hi`` must be finite numbers of shape (n_in,) or (T, n_in) (``ValueError`` naming them otherwise)."""
+        lo2, hi2, _ = check_boxes(lo, hi, self.lo.shape[0])
+        return self._covers(lo2, hi2)
+
+    def _covers(self, lo: Array, hi: Array) -> bool:
+        """:meth:`covers` without its checks."""
         return bool(np.all(self.lo <= np.asarray(lo, float)) and np.all(np.asarray(hi, float) <= self.hi))
 
 
@@ -221,8 +262,8 @@ def _compute(net: ReLUNet, lo: Array, hi: Array, X: Array, net_id: str) -> Affin
 def _checked(net: ReLUNet, enc: AffineEnclosure, X: Array) -> AffineEnclosure:
     """``enc``, once it holds at the sample ``X``, the witnesses and the box's two corners (else RuntimeError)."""
     pts = np.vstack([X, enc.x_lo, enc.x_hi, enc.lo, enc.hi])
-    if not enc.contains(net, pts):
-        r = enc.residual(net, pts)
+    if not enc._contains(net, pts):
+        r = enc._residual(net, pts)
         raise RuntimeError(f"the enclosure's proved bounds [{enc.r_lo}, {enc.r_hi}] do not hold at every sampled point "
                            f"(residuals from {r.min(axis=0)} to {r.max(axis=0)}): a solver's bound is wrong; "
                            "nothing is returned")
@@ -255,7 +296,7 @@ def outer_rows(enc: AffineEnclosure, T: Array, Zf: Array, u: Array, nz: int,
     (N_p + 1, n_z) the free response; ``u`` the output bound. Step 0's rows are left out when ``z(0)`` lies
     outside the enclosure's box (``z0_inside`` False): the enclosure says nothing there.
     """
-    s_lo, s_hi = enc.slab(u)
+    s_lo, s_hi = enc._slab(u)
     N = T.shape[0]
     ks = [k for k in range(N) if k > 0 or z0_inside]
     G = np.vstack([enc.a @ T[k] for k in ks])                                  # (len(ks) n_out, N_p m)
@@ -272,7 +313,7 @@ def contract(enc: AffineEnclosure, lo: Array, hi: Array, u: Array, rounds: int =
     somewhere. Only boxes inside the enclosure's box may be cut (the slab says nothing outside).
     """
     lo, hi = np.array(lo, float), np.array(hi, float)
-    s_lo, s_hi = enc.slab(u)
+    s_lo, s_hi = enc._slab(u)
     for _ in range(int(rounds)):
         for j, a in enumerate(enc.a):
             pos, neg = np.maximum(a, 0.0), np.minimum(a, 0.0)

@@ -1190,6 +1190,14 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
     dict
         ``violation`` (the largest ``|Phi| - u_max`` found among feasible
         points, per output), ``point`` (where), ``n_feasible``, ``n_points``.
+
+    Raises
+    ------
+    ValueError
+        When no sampled point satisfies ``|Phi_NN| <= u_max - eps`` (e.g.
+        ``eps`` just below ``u_max``): nothing was checked, and no violation
+        (not ``-inf``, a margin it never measured) is returned. Sample more
+        states ``n_z`` or inputs ``n_v``, or test a smaller ``eps``.
     """
     eps = as_floats(eps, "eps")
     if eps.size not in (1, system.m) or eps.ndim > 1 or not np.all(np.isfinite(eps)) or np.any(eps < 0):
@@ -1224,6 +1232,10 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
         if viol[j].max() > best.max():
             point = Xf[j]
         best = np.maximum(best, viol.max(0))
+    if n_feas == 0:
+        raise ValueError(f"no sampled point satisfies |Phi_NN| <= u_max - eps = {system.u_max - eps} (of {len(Z) * n_v} "
+                         f"points: {len(Z)} states, n_v = {n_v} inputs each), so nothing was checked: sample more states "
+                         f"(n_z) or inputs (n_v), or test a smaller eps")
     return dict(violation=best, point=point, n_feasible=n_feas, n_points=len(Z) * n_v)
 
 

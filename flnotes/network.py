@@ -351,7 +351,7 @@ def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
         if not (isinstance(input_map, tuple) and len(input_map) == 2 and np.ndim(input_map[0]) == 2):
             raise ValueError("input_map with a matrix must be a pair (M, c) (a tuple of two: M of shape (net.n_in, n) "
                              f"and c of shape (net.n_in,)), got a {type(input_map).__name__} of {len(input_map)}")
-        M, c = np.asarray(input_map[0], float), np.asarray(input_map[1], float).reshape(-1)
+        M, c = as_floats(input_map[0], "input_map's M"), as_floats(input_map[1], "input_map's c").reshape(-1)
         if M.shape[0] != n_net or c.shape != (n_net,):
             raise ValueError(f"input_map = (M, c) must have M of shape ({n_net}, n) and c of shape ({n_net},) for a network "
                              f"with {n_net} inputs, got M {M.shape} and c {c.shape}")
@@ -362,6 +362,8 @@ def _input_map(input_map, n_net: int) -> tuple[Array, Array]:
         perm = np.asarray(input_map)
     except ValueError:
         perm = np.asarray(None)
+    if perm.ndim == 1 and perm.dtype.kind in "iu":  # its entries as numbers: a True among integers is no index
+        as_floats(input_map, "input_map")
     if perm.ndim != 1 or perm.dtype.kind not in "iu":
         raise ValueError("input_map must be a permutation (a list of integers: the network's input i is variable "
                          f"input_map[i] of [z, v]) or a pair (M, c) with M a 2-D array; got {input_map!r}")
@@ -382,7 +384,7 @@ def _is_array_like(x) -> bool:
 def _output_map(output_map, n_net: int) -> tuple[Array, Array]:
     if not (isinstance(output_map, tuple) and len(output_map) == 2):
         raise ValueError(f"output_map must be a pair (D, d): u = D @ net(...) + d, got {output_map!r}")
-    D, d = np.asarray(output_map[0], float), np.asarray(output_map[1], float).reshape(-1)
+    D, d = as_floats(output_map[0], "output_map's D"), as_floats(output_map[1], "output_map's d").reshape(-1)
     if D.ndim == 1:  # a diagonal scaling, one scale per output (or one scale of a single output)
         if D.shape[0] != n_net:
             raise ValueError(f"output_map = (D, d) with D a vector: a diagonal scaling needs {n_net} scales (one per output "

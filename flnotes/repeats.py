@@ -19,6 +19,8 @@ from typing import Sequence
 
 import numpy as np
 
+from ._checks import as_floats, brief, check_number, one_number
+
 __all__ = ["spread", "against_spread", "separation", "VERDICTS"]
 
 
@@ -26,11 +28,13 @@ def spread(times: Sequence[float]) -> float:
     """The run-to-run spread of repeated measurements of the same work: ``max / min - 1`` (0.1 for 10 %).
 
     ``times`` are two or more positive times (any unit) of runs that did the same work, e.g. the same controller on
-    the same states; :func:`against_spread` reads a comparison of two settings against it.
+    the same states; :func:`against_spread` reads a comparison of two settings against it. Anything else (a
+    boolean, a string, NaN, a time <= 0) is a ``ValueError`` naming ``times``.
     """
-    t = np.asarray(times, float).ravel()
+    t = as_floats(times, "times").ravel()
     if t.size < 2 or not np.all(np.isfinite(t) & (t > 0)):
-        raise ValueError(f"spread needs at least two positive finite times of the same work, got {t.tolist()}")
+        raise ValueError(f"times must hold at least two positive finite times of the same work (for the spread), "
+                         f"got {t.tolist()}")
     return float(t.max() / t.min() - 1.0)
 
 
@@ -48,18 +52,30 @@ def against_spread(a: float, b: float, spread_: float) -> str:
     - ``"beyond the run-to-run spread"`` when ``d > 2 spread_``.
 
     The verdict is a phrase for prose that must read with each of the three (:data:`VERDICTS`), e.g. "the ratio is
-    {verdict}" or "1.6 s, {verdict} of the CPU time in all".
+    {verdict}" or "1.6 s, {verdict} of the CPU time in all". ``a`` and ``b`` must be positive finite numbers and
+    ``spread_`` a finite number >= 0 (``ValueError`` naming the argument otherwise).
     """
-    if not (np.isfinite(spread_) and spread_ >= 0):
-        raise ValueError(f"against_spread needs a spread >= 0, got {spread_}")
+    try:
+        spread_ = check_number(one_number(spread_, "spread_"), "spread_", "a run-to-run spread of spread(), e.g. 0.1 for 10 %")
+    except ValueError as exc:
+        raise ValueError(f"against_spread needs a spread >= 0: {exc}") from None
+    a = check_number(one_number(a, "a"), "a", "the time of the first setting", strict=True)
+    b = check_number(one_number(b, "b"), "b", "the time of the second setting", strict=True)
     d = spread((a, b))
     return VERDICTS[0] if d <= spread_ else VERDICTS[1] if d <= 2 * spread_ else VERDICTS[2]
 
 
 def separation(a: Sequence[float], b: Sequence[float]) -> str:
     """How the values ``b`` of repeated runs stand against the values ``a``: ``"lower"`` if every ``b`` is below
-    every ``a``, ``"higher"`` if every ``b`` is above every ``a``, else ``"overlapping"`` (no direction shown)."""
-    a, b = np.asarray(a, float).reshape(-1), np.asarray(b, float).reshape(-1)
+    every ``a``, ``"higher"`` if every ``b`` is above every ``a``, else ``"overlapping"`` (no direction shown).
+    Both must be numbers, at least one each, none NaN (``ValueError`` naming the argument otherwise)."""
+    a_in, b_in = a, b
+    a, b = as_floats(a, "a").reshape(-1), as_floats(b, "b").reshape(-1)
     if a.size == 0 or b.size == 0:
-        raise ValueError("separation needs at least one value on each side")
+        raise ValueError(f"a and b must hold at least one value each (separation compares them), got {a.size} and "
+                         f"{b.size} values")
+    for name, x, given in (("a", a, a_in), ("b", b, b_in)):
+        if np.any(np.isnan(x)):
+            raise ValueError(f"{name} must be the values of runs, without NaN (leave out a run that has no value), "
+                             f"got {brief(given)}")
     return "lower" if b.max() < a.min() else "higher" if b.min() > a.max() else "overlapping"

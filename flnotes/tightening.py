@@ -33,8 +33,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._checks import (as_floats, as_pair, as_vector, check_bool, check_box, check_boxes, check_count, check_int,
-                      check_number)
+from ._checks import (as_floats, as_pair, as_vector, brief, check_bool, check_box, check_boxes, check_count,
+                      check_int, check_number, one_number)
 from .bounds import NodeBounds, _interval_affine, fbbt, interval_affine
 from .network import ReLUNet, fingerprint
 
@@ -261,12 +261,50 @@ class LPTightener:
         np.abs(self._A, out=self._absA)
 
     def set_box(self, lo: Array, hi: Array) -> None:
-        """Bounds of the input ``x``."""
+        """Bounds of the input ``x``: the box ``[lo, hi]``, finite, (n_in,) each (a number is taken for every
+        input), ``lo <= hi``; anything else is a ``ValueError`` naming the argument."""
+        self._set_box(*check_box(lo, hi, self.net.n_in))
+
+    def _set_box(self, lo: Array, hi: Array) -> None:
+        """:meth:`set_box` without its checks (the callers here pass checked boxes)."""
         self._lb[self.x], self._ub[self.x] = lo, hi
         self.h.changeColsBounds(len(self.x), self.x.astype(np.int32), np.asarray(lo, float), np.asarray(hi, float))
 
+    def _layer_index(self, k, hidden: bool = True) -> int:
+        """``k`` as the index (0-based) of a hidden layer, or of any layer (the output layer too) when not
+        ``hidden``; else ``ValueError`` naming it."""
+        n = self.net.K - 1 if hidden else self.net.K
+        what = "hidden layers" if hidden else "layers (the output layer last)"
+        k = check_int(k, "k", 0, f"the index of a layer, 0-based: the network has {n} {what}")
+        if k >= n:
+            raise ValueError(f"k must be the index (0-based) of one of the network's {n} {what}: 0..{n - 1}, got {k}")
+        return k
+
+    def _neuron_index(self, k: int, j) -> int:
+        """``j`` as the index (0-based) of a neuron of layer ``k``, else ``ValueError`` naming it."""
+        n = self.net.W[k].shape[0]
+        j = check_int(j, "j", 0, f"the index of a neuron, 0-based: layer k = {k} has {n}")
+        if j >= n:
+            raise ValueError(f"j must be the index (0-based) of one of the {n} neurons of layer k = {k}: 0..{n - 1}, "
+                             f"got {j}")
+        return j
+
     def set_neuron(self, k: int, j: int, L: float, U: float) -> None:
-        """Write the big-M constants of neuron ``j`` of hidden layer ``k`` (0-based) into the LP."""
+        """Write the big-M constants of neuron ``j`` of hidden layer ``k`` (0-based) into the LP.
+
+        ``k`` and ``j`` must be integers that index a hidden neuron of the network, ``L <= U`` finite numbers;
+        anything else is a ``ValueError`` naming the argument."""
+        k = self._layer_index(k)
+        j = self._neuron_index(k, j)
+        L = check_number(one_number(L, "L"), "L", "the neuron's lower node bound", low=-np.inf)
+        U = check_number(one_number(U, "U"), "U", "the neuron's upper node bound", low=-np.inf)
+        if L > U:
+            raise ValueError(f"L must be <= U (the node bounds of neuron j = {j} of layer k = {k}), got L = {L!r} > "
+                             f"U = {U!r}")
+        self._set_neuron(k, j, L, U)
+
+    def _set_neuron(self, k: int, j: int, L: float, U: float) -> None:
+        """:meth:`set_neuron` without its checks (the callers here pass valid indices and bounds)."""
         h = self.h
         Up, Lm = max(U, 0.0), min(L, 0.0)
         ia = int(self.alpha[k][j])
@@ -285,8 +323,28 @@ class LPTightener:
         self._lb[iy], self._ub[iy] = 0.0, Up
 
     def set_layer(self, k: int, L: Array, U: Array) -> None:
+        """:meth:`set_neuron` for every neuron of hidden layer ``k``: ``L <= U`` finite, (n_k,) each (``ValueError``
+        naming the argument otherwise)."""
+        k = self._layer_index(k)
+        n = self.net.W[k].shape[0]
+        L_a, U_a = as_floats(L, "L"), as_floats(U, "U")
+        for name, a, given in (("L", L_a, L), ("U", U_a, U)):
+            if a.shape != (n,):
+                raise ValueError(f"{name} must have shape ({n},) (one bound per neuron of layer k = {k}), got "
+                                 f"{np.shape(given)}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"{name} must be finite node bounds (layer k = {k}), got {brief(given)}")
+        bad = np.flatnonzero(L_a > U_a)
+        if bad.size:
+            j = int(bad[0])
+            raise ValueError(f"L must be <= U (node bounds of layer k = {k}), got L[{j}] = {L_a[j]!r} > U[{j}] = "
+                             f"{U_a[j]!r}")
+        self._set_layer(k, L_a, U_a)
+
+    def _set_layer(self, k: int, L: Array, U: Array) -> None:
+        """:meth:`set_layer` without its checks."""
         for j in range(len(L)):
-            self.set_neuron(k, j, float(L[j]), float(U[j]))
+            self._set_neuron(k, j, float(L[j]), float(U[j]))
 
     # -- LPs -----------------------------------------------------------------------
     def _optimize(self, cols: Array, coef: Array, sense: float) -> Optional[float]:
@@ -344,7 +402,15 @@ class LPTightener:
         return float(r.sum() + c.sum() - err)
 
     def preactivation_range(self, k: int, j: int) -> tuple[Optional[float], Optional[float]]:
-        """LP minimum and maximum of ``W^k_j y^{k-1} + b^k_j`` (None: the LP is infeasible)."""
+        """LP minimum and maximum of ``W^k_j y^{k-1} + b^k_j`` (None: the LP is infeasible).
+
+        ``k`` indexes a layer (0-based; ``K - 1`` the output layer) and ``j`` a neuron of it: integers of that
+        range, else ``ValueError`` naming the argument."""
+        k = self._layer_index(k, hidden=False)
+        return self._preactivation_range(k, self._neuron_index(k, j))
+
+    def _preactivation_range(self, k: int, j: int) -> tuple[Optional[float], Optional[float]]:
+        """:meth:`preactivation_range` without its checks."""
         W, b = self.net.W[k], self.net.b[k]
         prev = self.x if k == 0 else self.y[k - 1]
         lo = self._optimize(prev, W[j], 1.0)
@@ -379,16 +445,16 @@ class LPTightener:
             start = intersect(start, prior)
             _empty_if_crossed(start.L, start.U)
         L, U = [a.copy() for a in start.L], [a.copy() for a in start.U]
-        self.set_box(lo, hi)
+        self._set_box(lo, hi)
         for k in range(net.K - 1):
-            self.set_layer(k, L[k], U[k])
+            self._set_layer(k, L[k], U[k])
         for k in range(net.K - 1):
             for j in range(len(L[k])):
                 if skip_stable and (L[k][j] >= 0 or U[k][j] <= 0):
                     continue
                 if deadline is not None and time.perf_counter() > deadline:
                     raise DeadlineReached("LP tightening stopped at the deadline")
-                a_lo, a_hi = self.preactivation_range(k, j)
+                a_lo, a_hi = self._preactivation_range(k, j)
                 if a_lo is None:
                     raise EmptyBoxError("the LP relaxation is infeasible: no input in the box gives an output "
                                         "within out_bounds")
@@ -397,12 +463,12 @@ class LPTightener:
                 U[k][j] = min(U[k][j], a_hi + slack_hi)
                 if L[k][j] > U[k][j]:  # only by round-off: the LP was feasible
                     L[k][j] = U[k][j] = 0.5 * (L[k][j] + U[k][j])
-                self.set_neuron(k, j, L[k][j], U[k][j])
+                self._set_neuron(k, j, L[k][j], U[k][j])
             # later layers: interval bounds from the tightened layer
             L, U, oL, oU = _propagate(net, L, U, k, True)
             _empty_if_crossed(L, U)
             for kk in range(k + 1, net.K - 1):
-                self.set_layer(kk, L[kk], U[kk])
+                self._set_layer(kk, L[kk], U[kk])
         if output:
             Wk, bk = net.W[-1], net.b[-1]
             for i in range(net.n_out):

@@ -924,3 +924,298 @@ def test_the_program_s_matrices_and_node_bounds_are_numbers_and_finite(msd):
     x = cp.Variable(3)
     with pytest.raises(ValueError, match="L\\^1 must be finite node bounds"):
         fl.encode(net, x, L=[np.full_like(a, -np.inf) for a in nb.L], U=list(nb.U))
+
+
+# --------------------------------------------------------------------------- inputs read without checks before
+@pytest.fixture(scope="module")
+def msd_mpc(msd):
+    sysm, net = msd
+    return fl.MPC(sysm, net, 0.5, horizon=4, ts=0.1, Q=[10.0, 1.0], R=0.01)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda m, fb: m.repair_plan([1.0, np.nan], np.zeros((4, 1))), "z contains NaN"),
+    (lambda m, fb: m.repair_plan([1.0, 0.5], np.zeros((3, 1))), r"v_guess must be inputs of shape \(N_p, m\)"),
+    (lambda m, fb: m.repair_plan([1.0, 0.5], [["0"]] * 4), "v_guess must be numbers .*strings"),
+    (lambda m, fb: m.repair_plan([1.0, 0.5], np.full((4, 1), np.inf)), "v_guess must be finite"),
+    (lambda m, fb: m.repair_plan([1.0, 0.5], np.zeros((4, 1)), first="yes"), "first must be True or False"),
+    (lambda m, fb: m.repair_plan([1.0, 0.5], np.zeros((4, 1)), first=1), "first must be True or False"),
+    (lambda m, fb: m.feasible_tail([1.0, 0.5], [True]), "v_guess must be numbers .*booleans"),
+    (lambda m, fb: m.feasible_tail([1.0, 0.5, 0.0], 0.0), r"z must have shape \(2,\)"),
+    (lambda m, fb: m.feasible_tail([1.0, 0.5], np.nan), "v_guess contains NaN"),
+    (lambda m, fb: m.feasible_tail([1.0, 0.5], 0.0, last=None), "last must be True or False"),
+    (lambda m, fb: fb.feasible_tail(m.pred, [1.0, 0.5], 0.0, n_grid=2.5), "n_grid must be an integer >= 1"),
+    (lambda m, fb: fb.feasible_tail(m.pred, [1.0, 0.5], 0.0, n_grid=0), "n_grid must be"),
+    (lambda m, fb: fb.feasible_tail(m.pred, [1.0, 0.5], 0.0, n_grid=True), "n_grid must be"),
+    (lambda m, fb: fb.repair_plan(m.pred, [1.0, 0.5], np.zeros(4), deadline="now"), "deadline must be a finite number"),
+])
+def test_the_repairs_check_what_they_are_given(msd_mpc, call, match):
+    from flnotes.mpc import fallback as fb
+
+    with pytest.raises(ValueError, match=match):
+        call(msd_mpc, fb)
+
+
+def test_the_repairs_take_other_forms_and_name_a_model_of_the_wrong_kind(msd_mpc):
+    from flnotes.mpc import fallback as fb
+
+    mpc = msd_mpc
+    Z, V = mpc.repair_plan([1.0, 0.5], np.zeros((4, 1)))
+    Z2, V2 = mpc.repair_plan(np.array([Fraction(1), Decimal("0.5")], dtype=object), [0, 0, 0, 0])
+    assert np.array_equal(Z, Z2) and np.array_equal(V, V2) and V2.dtype == float
+    v = mpc.feasible_tail([1.0, 0.5], 0.0)
+    assert np.array_equal(mpc.feasible_tail([1.0, 0.5], [Fraction(0)]), v)
+    assert np.array_equal(fb.feasible_tail(mpc.pred, [1.0, 0.5], np.array(0.0), n_grid=np.array(2001.0)), v)
+    with pytest.raises(TypeError, match="pred must be a flnotes.mpc.prediction.Prediction"):
+        fb.repair_plan(mpc, [1.0, 0.5], np.zeros((4, 1)))
+
+
+@pytest.fixture(scope="module")
+def tightener():
+    from flnotes.tightening import LPTightener
+
+    return LPTightener(_random_net(3, (4, 3)))
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda T: T.set_box([1.0, -1.0, -1.0], [-1.0, 1.0, 1.0]), r"box is empty: lo\[0\]"),
+    (lambda T: T.set_box([np.nan, -1.0, -1.0], [1.0, 1.0, 1.0]), "lo contains NaN or inf"),
+    (lambda T: T.set_box([-1.0, -1.0, -1.0], [1.0, 1.0, np.inf]), "hi contains NaN or inf"),
+    (lambda T: T.set_box([-1.0, -1.0], [1.0, 1.0]), r"lo must have shape \(3,\)"),
+    (lambda T: T.set_box([-1.0, -1.0, -1.0], [1.0, True, 1.0]), "hi must be numbers .*booleans"),
+    (lambda T: T.set_neuron(2, 0, -1.0, 1.0), "k must be the index .* 2 hidden layers"),
+    (lambda T: T.set_neuron(-1, 0, -1.0, 1.0), "k must be an integer >= 0"),
+    (lambda T: T.set_neuron(True, 0, -1.0, 1.0), "k must be an integer"),
+    (lambda T: T.set_neuron(0, 4, -1.0, 1.0), "j must be the index .* 4 neurons of layer k = 0"),
+    (lambda T: T.set_neuron(0, 1.0, -1.0, 1.0), "j must be an integer"),
+    (lambda T: T.set_neuron(0, 0, 1.0, -1.0), "L must be <= U"),
+    (lambda T: T.set_neuron(0, 0, -np.inf, 1.0), "L must be a finite number"),
+    (lambda T: T.set_neuron(0, 0, -1.0, np.nan), "U must be a finite number"),
+    (lambda T: T.set_neuron(0, 0, "-1", 1.0), "L must be a finite number"),
+    (lambda T: T.set_layer(0, [-1.0] * 3, [1.0] * 4), r"L must have shape \(4,\)"),
+    (lambda T: T.set_layer(1, [-1.0] * 3, [-2.0] * 3), r"L must be <= U .* L\[0\]"),
+    (lambda T: T.preactivation_range(3, 0), "k must be the index .* 3 layers"),
+    (lambda T: T.preactivation_range(2, 1), "j must be the index .* 1 neurons of layer k = 2"),
+])
+def test_the_lp_tightener_checks_its_box_and_its_neurons(tightener, call, match):
+    with pytest.raises(ValueError, match=match):
+        call(tightener)
+
+
+def test_the_lp_tightener_takes_numbers_of_any_real_type(tightener):
+    T = tightener
+    T.restart()
+    T.set_box(-1, [Fraction(1)] * 3)
+    assert T._lb[T.x].tolist() == [-1.0] * 3 and T._ub[T.x].tolist() == [1.0] * 3
+    nb = fl.fbbt(T.net, -np.ones(3), np.ones(3))
+    for k in range(2):
+        T.set_layer(k, nb.L[k].tolist(), nb.U[k])
+    lo, hi = T.preactivation_range(np.int64(0), 0)
+    assert isinstance(lo, float) and nb.L[0][0] - 1e-6 <= lo <= hi <= nb.U[0][0] + 1e-6
+    T.set_neuron(np.int64(1), np.array(2), Fraction(-1, 2), np.array([1.5]))
+    ia = int(T.alpha[1][2])
+    assert T._A[int(T.row_U[1][2]), ia] == -1.5 and T._A[int(T.row_L[1][2]), ia] == 0.5
+    T.restart()
+
+
+@pytest.fixture(scope="module")
+def small_enclosure():
+    net = _random_net(3, (4, 3))
+    return net, fl.affine_enclosure(net, -np.ones(3), np.ones(3))
+
+
+@pytest.mark.parametrize("call, exc, match", [
+    (lambda e, n: e.covers([-0.5] * 3, [0.5, 0.5, np.nan]), ValueError, "hi contains NaN"),
+    (lambda e, n: e.covers([-0.5] * 3, [True] * 3), ValueError, "hi must be numbers .*booleans"),
+    (lambda e, n: e.covers([0.5] * 3, [-0.5] * 3), ValueError, "box is empty"),
+    (lambda e, n: e.covers([-0.5] * 2, [0.5] * 2), ValueError, "lo and hi must have shape"),
+    (lambda e, n: e.slab(np.nan), ValueError, "u must be finite output bounds >= 0"),
+    (lambda e, n: e.slab(-1.0), ValueError, "u must be finite output bounds >= 0"),
+    (lambda e, n: e.slab("1"), ValueError, "u must be numbers .*strings"),
+    (lambda e, n: e.residual(n, [0.1, 0.2]), ValueError, r"X must have shape \(N, 3\)"),
+    (lambda e, n: e.residual(n, [[0.1, 0.2, np.nan]]), ValueError, "X contains NaN"),
+    (lambda e, n: e.residual("net", [0.1, 0.2, 0.3]), TypeError, "net must be a flnotes.ReLUNet"),
+    (lambda e, n: e.contains(_random_net(2), [0.1, 0.2]), ValueError, "net must have 3 inputs"),
+    (lambda e, n: e.contains(n, [0.1, 0.2, 0.3], tol=np.nan), ValueError, "tol must be a finite number >= 0"),
+    (lambda e, n: e.contains(n, [0.1, 0.2, 0.3], tol=True), ValueError, "tol must be a finite number >= 0"),
+])
+def test_the_enclosure_s_methods_check_their_arguments(small_enclosure, call, exc, match):
+    net, enc = small_enclosure
+    with pytest.raises(exc, match=match):
+        call(enc, net)
+
+
+def test_the_enclosure_s_methods_take_other_forms(small_enclosure):
+    net, enc = small_enclosure
+    assert enc.covers([-0.5] * 3, np.array([Fraction(1, 2)] * 3, dtype=object)) is True
+    assert enc.covers(np.array([[-0.5] * 3, [-2.0] * 3]), [[0.5] * 3, [0.0] * 3]) is False
+    s_lo, s_hi = enc.slab([Fraction(1)])
+    assert s_lo.dtype == float and np.array_equal((s_lo, s_hi), enc.slab(np.array(1.0)))
+    assert np.array_equal(enc.residual(net, [0.1, 0.2, 0.3]), enc.residual(net, np.array([[0.1, 0.2, 0.3]])))
+    assert enc.contains(net, [[0.1, 0.2, 0.3]], tol=Decimal("0.1")) is True
+
+
+@pytest.fixture(scope="module")
+def small_atlas():
+    net = _random_net(3, (4, 3))
+    return net, fl.bound_atlas(net, -np.ones(3), np.ones(3), 5.0, (2, 1, 1))
+
+
+@pytest.mark.parametrize("call, exc, match", [
+    (lambda a, n: a.covers([-0.5] * 3, [0.5, 0.5, np.nan]), ValueError, "hi contains NaN"),
+    (lambda a, n: a.covers([-0.5] * 3, ["0.5"] * 3), ValueError, "hi must be numbers .*strings"),
+    (lambda a, n: a.covers([0.5] * 3, [-0.5] * 3), ValueError, "box is empty"),
+    (lambda a, n: a.cover([-0.5] * 3, [0.5, True, 0.5]), ValueError, "hi must be numbers .*booleans"),
+    (lambda a, n: a.cover([np.nan] * 3, [0.5] * 3), ValueError, "lo contains NaN"),
+    (lambda a, n: fl.atlas.shipped_atlas(n, -np.ones(3), np.ones(3), "5"), ValueError, "u must be numbers .*strings"),
+    (lambda a, n: fl.atlas.shipped_atlas(n, np.ones(3), -np.ones(3), 5.0), ValueError, "box is empty"),
+    (lambda a, n: fl.atlas.shipped_atlas("net", -np.ones(3), np.ones(3), 5.0), TypeError, "net must be"),
+    (lambda a, n: fl.check_atlas(n, a, seed=1.5), ValueError, "seed must be an integer"),
+])
+def test_the_atlas_s_methods_check_their_arguments(small_atlas, call, exc, match):
+    net, atlas = small_atlas
+    with pytest.raises(exc, match=match):
+        call(atlas, net)
+
+
+def test_the_atlas_s_methods_take_other_forms(small_atlas):
+    net, atlas = small_atlas
+    assert atlas.covers([-0.5] * 3, [Fraction(1, 2)] * 3).tolist() == [True]
+    assert atlas.covers(np.array([[-0.5] * 3, [-2.0] * 3]), [[0.5] * 3, [0.0] * 3]).tolist() == [True, False]
+    L, U = atlas.cover([-0.5] * 3, [0.5] * 3)
+    L2, U2 = atlas.cover(np.array([[-0.5] * 3]), np.array([[Decimal("0.5")] * 3], dtype=object))
+    assert all(np.array_equal(a, b) and a.dtype == float for a, b in zip(L + U, L2 + U2))
+    assert fl.atlas.shipped_atlas(net, [-1] * 3, [1] * 3, 5) is None
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(input_map=[2, True, 0]), "input_map must be numbers .*booleans"),
+    (dict(input_map=(np.eye(3, dtype=bool), np.zeros(3))), "input_map's M must be numbers .*booleans"),
+    (dict(input_map=([["1", "0", "0"], ["0", "1", "0"], ["0", "0", "1"]], np.zeros(3))),
+     "input_map's M must be numbers .*strings"),
+    (dict(input_map=(np.eye(3), ["0", 0, 0])), "input_map's c must be numbers .*strings"),
+    (dict(input_map=(np.eye(3), np.ma.array([0.0, 0.0, 0.0], mask=[0, 1, 0]))), "input_map's c must be numbers .*masked"),
+    (dict(output_map=([True], [0.0])), "output_map's D must be numbers .*booleans"),
+    (dict(output_map=([[2.0]], ["1"])), "output_map's d must be numbers .*strings"),
+])
+def test_mapped_reads_its_maps_as_numbers(kw, match):
+    net = _random_net(3, (4,))
+    with pytest.raises(ValueError, match=match):
+        net.mapped(**kw)
+
+
+def test_mapped_takes_maps_of_other_forms():
+    net = _random_net(3, (4,))
+    X = np.array([[0.3, -0.2, 1.5]])
+    a = net.mapped(input_map=(np.eye(3)[[2, 0, 1]], np.zeros(3)), output_map=(np.array([2.0]), np.array([1.0])))
+    b = net.mapped(input_map=[2, 0, 1], output_map=([Fraction(2)], Decimal(1)))
+    c = net.mapped(input_map=np.array([2, 0, 1]), output_map=([[2]], [1]))
+    assert np.allclose(a(X), b(X)) and np.allclose(a(X), c(X)) and b.W[0].dtype == float
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda r: r.spread([1.0, True]), "times must be numbers .*booleans"),
+    (lambda r: r.spread(["1.0", "1.1"]), "times must be numbers .*strings"),
+    (lambda r: r.spread([1.0, np.nan]), "times must hold at least two positive finite times"),
+    (lambda r: r.against_spread(1.0, 1.1, True), "spread_ must be a finite number >= 0"),
+    (lambda r: r.against_spread(1.0, "1.1", 0.1), "b must be a finite number > 0"),
+    (lambda r: r.against_spread(True, 1.1, 0.1), "a must be a finite number > 0"),
+    (lambda r: r.separation([1.0, np.nan], [2.0]), "a must be the values of runs, without NaN"),
+    (lambda r: r.separation([1.0], ["2"]), "b must be numbers .*strings"),
+    (lambda r: r.separation([], [2.0]), "a and b must hold at least one value each"),
+])
+def test_the_repeats_helpers_read_numbers_only(call, match):
+    from flnotes import repeats
+
+    with pytest.raises(ValueError, match=match):
+        call(repeats)
+
+
+def test_the_repeats_helpers_take_numbers_of_any_real_type():
+    from flnotes import repeats
+
+    assert repeats.spread([Fraction(1), Decimal("1.1")]) == repeats.spread([1.0, 1.1])
+    assert repeats.against_spread(np.array([1.0]), Fraction(11, 10), np.array(0.2)) == repeats.VERDICTS[0]
+    assert repeats.separation([1.0], (Fraction(2),)) == "higher"
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda a: a.arm_link_points([[0.1, 0.2]], [0.5, np.nan]), "fractions must lie in \\[0, 1\\]"),
+    (lambda a: a.arm_link_points([[0.1, 0.2]], [True]), "fractions must be numbers .*booleans"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9], 0.1, n_points=True), "n_points must be"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9], 0.1, n_points=2.5), "n_points must be an integer >= 2"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9], "0.1"), "radius must be a finite number > 0"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9], True), "radius must be a finite number > 0"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9], np.nan), "radius must be a finite number > 0"),
+])
+def test_the_arm_helpers_check_their_numbers_and_counts(call, match):
+    from flnotes import arm
+
+    with pytest.raises(ValueError, match=match):
+        call(arm)
+
+
+def test_the_arm_helpers_take_counts_and_numbers_of_any_real_type():
+    from flnotes import arm
+
+    H = arm.arm_obstacle_cbfs([0.0, -0.9], 0.1, n_points=3)
+    H2 = arm.arm_obstacle_cbfs([0.0, -0.9], Fraction(1, 10), n_points=np.array(3.0))
+    assert [(h.R, h.s) for h in H] == [(h.R, h.s) for h in H2]
+    assert np.array_equal(arm.arm_link_points([[0.1, 0.2]], Fraction(1, 2)), arm.arm_link_points([[0.1, 0.2]], [0.5]))
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda P, s: P.deadline.gap_histogram({"a": [0.1, 0.2]}, bins=2.5), "bins must be an integer >= 1"),
+    (lambda P, s: P.deadline.gap_histogram({"a": [0.1, 0.2]}, bins=True), "bins must be"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=True), "n must be"),
+    (lambda P, s: P.foundations.plot_feasible_v(s, n="801"), "n must be"),
+    (lambda P, s: P.foundations.plot_feasible_set(s, n=1), "n must be a finite number >= 2"),
+    (lambda P, s: P.foundations.plot_line_cut(s, _identity_net(s), n=10.5), "n must be an integer >= 2"),
+    (lambda P, s: P.foundations.plot_error_slice(s, _identity_net(s), n=0), "n must be"),
+    (lambda P, s: P.foundations.unstable_fixed_z(s, _identity_net(s), n=2.5), "n must be an integer >= 1"),
+    (lambda P, s: P.foundations.unstable_vs_box_size(s, _identity_net(s), n_centers=True), "n_centers must be"),
+    (lambda P, s: P.foundations.bounds_looseness(_identity_net(s), s.lo, s.hi, n=0), "n must be"),
+    (lambda P, s: P.foundations.static_feasible_set(s, n_frames=4.5), "n_frames must be an integer >= 2"),
+    (lambda P, s: P.error.violation_line(s, _identity_net(s), [0.0, 0.0], {}, n=1), "n must be"),
+    (lambda P, s: P.static.frame_player(lambda x: None, {"a": [1]}, "x", dpi=0.5), "dpi must be"),
+    (lambda P, s: P.style.new_axes(0, 1), "nrows must be"),
+    (lambda P, s: P.style.new_axes(1, 1.5), "ncols must be an integer >= 1"),
+])
+def test_the_plotting_helpers_check_their_counts(call, match):
+    import matplotlib.pyplot as plt
+    from flnotes import plots as P
+    from flnotes.plots import deadline, error, foundations, static, style  # noqa: F401 - the submodules, as P's attributes
+
+    try:
+        with pytest.raises(ValueError, match=match):
+            call(P, fl.msd())
+    finally:
+        plt.close("all")
+
+
+def test_the_plotting_helpers_take_counts_of_any_real_type():
+    import matplotlib.pyplot as plt
+    from flnotes.plots import deadline, foundations, style
+
+    sysm = fl.msd()
+    try:
+        a = foundations.fl_identity_residual(sysm, n=np.array(5.0), seed=1)
+        b = foundations.fl_identity_residual(sysm, n=Fraction(5), seed=1)
+        assert np.array_equal(a, b) and a.dtype == float
+        deadline.gap_histogram({"a": [0.1, 0.2]}, bins=Decimal(4))
+        fig, axes = style.new_axes(2.0, np.int64(1))
+        assert len(axes) == 2
+        assert foundations.unstable_fixed_z(sysm, _identity_net(sysm), n=np.array(4)).shape == (4,)
+    finally:
+        plt.close("all")
+
+
+def test_worst_violation_refuses_to_answer_when_no_sampled_point_was_feasible(msd):
+    sysm, net = msd
+    with pytest.raises(ValueError, match=r"no sampled point satisfies \|Phi_NN\| <= u_max - eps .*nothing was "
+                                         r"checked.*n_z.*n_v.*smaller eps"):
+        fl.worst_violation(sysm, net, 4.999, n_z=3, n_v=3)
+    res = fl.worst_violation(sysm, net, 0.5, n_z=3, n_v=3)
+    assert res["n_feasible"] > 0 and np.all(np.isfinite(res["violation"]))
+    res2 = fl.worst_violation(sysm, net, np.array([Fraction(1, 2)], dtype=object), n_z=3, n_v=3)
+    assert np.array_equal(res["violation"], res2["violation"])

@@ -517,7 +517,7 @@ class MPC:
             raise TypeError(f"atlas must be 'auto', False or a flnotes.BoundAtlas, got {type(atlas).__name__} "
                             f"{atlas!r:.60}")
         check_atlas(net, atlas)  # of this network, and it holds on a sample of its domain
-        if not atlas.covers(lo, hi)[0]:
+        if not atlas._covers(lo, hi)[0]:
             raise ValueError(f"the atlas's domain [{atlas.lo}, {atlas.hi}] must contain the program's box [{lo}, {hi}]: "
                              "compute it on the network's domain box")
         if np.any(self.u_eps > atlas.u):
@@ -1193,15 +1193,20 @@ class MPC:
         V = np.vstack([V[1:], V[-1:]])
         Z = self.pred.predict(z, V)
         V[-1] = (self.K_terminal @ Z[-2] if self.K_terminal is not None
-                 else self.feasible_tail(Z[-2], V[-1], last=True))
+                 else fallback._feasible_tail(self.pred, Z[-2], V[-1], last=True))
         return self.pred.predict(z, V), V
 
     def repair_plan(self, z: Array, v_guess: Array, first: bool = True) -> tuple[Array, Array]:
-        """:func:`flnotes.mpc.fallback.repair_plan`: a plan built step by step from ``v_guess``."""
+        """:func:`flnotes.mpc.fallback.repair_plan`: a plan built step by step from ``v_guess`` ((N_p, m) or flat).
+
+        ``z`` and ``v_guess`` must be finite numbers of these shapes and ``first`` True or False (``ValueError``
+        naming the argument otherwise)."""
         return fallback.repair_plan(self.pred, z, v_guess, first)
 
     def feasible_tail(self, z: Array, v_guess: Array, last: bool = False) -> Array:
-        """:func:`flnotes.mpc.fallback.feasible_tail`: an admissible input closest to ``v_guess`` at ``z``."""
+        """:func:`flnotes.mpc.fallback.feasible_tail`: an admissible input closest to ``v_guess`` (m,) at ``z`` (n_z,).
+
+        Both must be finite numbers and ``last`` True or False (``ValueError`` naming the argument otherwise)."""
         return fallback.feasible_tail(self.pred, z, v_guess, last=last)
 
     def fallback_plan(self, z: Array) -> tuple[Array, Array, str, bool]:

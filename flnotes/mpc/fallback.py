@@ -18,6 +18,7 @@ from typing import Optional
 
 import numpy as np
 
+from .._checks import as_floats, as_vector, check_bool, check_count, check_number
 from ..solvers import BOUND_TOL
 from .prediction import Prediction
 
@@ -30,6 +31,36 @@ def _past(deadline: Optional[float]) -> bool:
     return deadline is not None and time.perf_counter() >= deadline
 
 
+def _check_pred(pred) -> None:
+    """``TypeError`` unless ``pred`` is a :class:`Prediction` (the model the repairs read)."""
+    if not isinstance(pred, Prediction):
+        raise TypeError(f"pred must be a flnotes.mpc.prediction.Prediction (an MPC's model, MPC.pred), got "
+                        f"{type(pred).__name__}")
+
+
+def _check_state(pred: Prediction, z) -> Array:
+    """The state ``z`` as a finite float vector (n_z,) (``ValueError`` naming it otherwise)."""
+    return as_vector(z, pred.nz, "z")
+
+
+def _check_guess(pred: Prediction, v_guess) -> Array:
+    """A plan's inputs ``v_guess`` as finite floats of shape (N_p, m) (a flat (N_p m,) array too)."""
+    V = as_floats(v_guess, "v_guess")
+    if V.shape == (pred.N * pred.m,):  # flat, as Prediction takes it
+        V = V.reshape(pred.N, pred.m)
+    if V.shape != (pred.N, pred.m):
+        raise ValueError(f"v_guess must be inputs of shape (N_p, m) = ({pred.N}, {pred.m}) or ({pred.N * pred.m},), "
+                         f"got shape {np.shape(v_guess)}")
+    if not np.all(np.isfinite(V)):
+        raise ValueError("v_guess must be finite inputs: it contains NaN or inf")
+    return V
+
+
+def _check_deadline(deadline) -> Optional[float]:
+    """``deadline`` as a float (a :func:`time.perf_counter` value) or ``None``."""
+    return check_number(deadline, "deadline", "a time.perf_counter() value", low=-np.inf, none=True)
+
+
 def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True,
                 deadline: Optional[float] = None) -> tuple[Array, Array]:
     """A plan built step by step from ``v_guess`` (N_p, m), each input replaced by :meth:`feasible_tail`.
@@ -37,14 +68,27 @@ def repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True,
     With ``first=False`` the first input is kept as given. The repair stops at ``deadline`` (a
     :func:`time.perf_counter` value; the later inputs are then kept as guessed). Check the result with
     :meth:`plan_feasible`.
+
+    ``z`` (n_z,) and ``v_guess`` ((N_p, m) or flat) must be finite numbers, ``first`` True or False; anything else
+    is a ``ValueError`` naming it.
     """
+    _check_pred(pred)
+    z = _check_state(pred, z)
+    V = _check_guess(pred, v_guess)
+    first = check_bool(first, "first", "whether the first input is repaired too")
+    return _repair_plan(pred, z, V, first, _check_deadline(deadline))
+
+
+def _repair_plan(pred: Prediction, z: Array, v_guess: Array, first: bool = True,
+                 deadline: Optional[float] = None) -> tuple[Array, Array]:
+    """:func:`repair_plan` without its checks (the callers here pass checked arrays)."""
     V = np.array(v_guess, float).reshape(pred.N, pred.m)
     zk = np.asarray(z, float)
     for k in range(pred.N):
         if _past(deadline):
             break
         if first or k:
-            V[k] = feasible_tail(pred, zk, V[k], last=k == pred.N - 1)
+            V[k] = _feasible_tail(pred, zk, V[k], last=k == pred.N - 1)
         zk = pred.Ad @ zk + pred.Bd @ V[k]
     return pred.predict(z, V), V
 
@@ -126,7 +170,21 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
     ``v_guess``. Every candidate is checked with the forward pass. ``v_guess`` is returned unchanged when it is
     admissible, when no candidate is, and for three or more inputs (no search there: a repair built from such a
     step is rejected by :meth:`Prediction.feasible`, and :func:`safe_input` handles the first input).
+
+    ``z`` (n_z,) and ``v_guess`` (m,) must be finite numbers, ``n_grid`` a count >= 1 and ``last`` True or False;
+    anything else is a ``ValueError`` naming it.
     """
+    _check_pred(pred)
+    z = _check_state(pred, z)
+    v_guess = as_vector(v_guess, pred.m, "v_guess")
+    n_grid = check_count(n_grid, "n_grid", 1, "grid points of the one-input search")
+    last = check_bool(last, "last", "whether the step is the plan's last (its next state in the terminal set)")
+    return _feasible_tail(pred, z, v_guess, n_grid, last)
+
+
+def _feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEASIBLE_TAIL_GRID,
+                   last: bool = False) -> Array:
+    """:func:`feasible_tail` without its checks (the callers here pass checked arrays)."""
     v_guess = np.asarray(v_guess, float).reshape(pred.m)
     z = np.asarray(z, float)
     if pred.m > 2 or _admissible(pred, z, v_guess[None], last)[0]:
@@ -194,7 +252,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
             x, _, _ = pred.qp(f, z, G, fixed if k else None, fixed if k else None)
             if x is not None:
                 guess = np.asarray(x, float).reshape(N, m)
-        V[k] = feasible_tail(pred, zk, guess[k], last=k == N - 1)
+        V[k] = _feasible_tail(pred, zk, guess[k], last=k == N - 1)
         resolve = not np.array_equal(V[k], guess[k])
         zk = pred.Ad @ zk + pred.Bd @ V[k]
     return pred.predict(z, V), V

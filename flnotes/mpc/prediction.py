@@ -91,7 +91,7 @@ class Prediction:
             rows.append(F @ self.Su[N])
         #: The state rows in ``V``: ``z(1..N_p)`` in the box, then ``F z(N_p) <= g``; see :meth:`state_bounds`.
         self.A_state = np.vstack(rows)
-        if enclosure is not None and not enclosure.covers(np.r_[z_lo, v_lo], np.r_[z_hi, v_hi]):
+        if enclosure is not None and not enclosure._covers(np.r_[z_lo, v_lo], np.r_[z_hi, v_hi]):
             raise ValueError("the enclosure's box must contain the program's box [z_lo, z_hi] x [v_lo, v_hi] (it says "
                              "nothing outside its box): compute it on the network's domain box")
         self.enclosure = enclosure

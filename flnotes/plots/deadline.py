@@ -5,6 +5,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .._checks import check_count
 from .style import COLORS, saved, series_axes
 
 __all__ = ["gap_histogram", "answer_times"]
@@ -24,10 +25,11 @@ def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None
     path
         Where to save the figure (returns the path), or ``None`` (returns the figure).
     """
+    bins = check_count(bins, "bins", 1, "bins of the histogram")
     fig, ax = series_axes(gaps, "gaps", ax)
     data = {k: np.asarray(v, float)[np.isfinite(np.asarray(v, float))] for k, v in gaps.items()}
     top = max([float(d.max()) for d in data.values() if d.size] + [1e-12])
-    edges = np.linspace(0.0, top * 1.0001, int(bins) + 1)
+    edges = np.linspace(0.0, top * 1.0001, bins + 1)
     for i, (lab, d) in enumerate(data.items()):
         ax.hist(d, bins=edges, histtype="step", lw=1.4, color=f"C{i}", label=f"{lab} ({d.size} steps)")
     ax.set_xlabel("optimality gap at the time limit, (J - J_lb) / max(1, |J|)")

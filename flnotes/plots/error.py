@@ -12,6 +12,7 @@ import numpy as np
 from matplotlib.collections import PatchCollection
 from matplotlib.patches import Rectangle
 
+from .._checks import check_count
 from .style import COLORS, new_axes
 
 __all__ = ["static_architecture", "error_slice", "pso_swarm",
@@ -60,6 +61,7 @@ def error_slice(system, net, dims: Sequence[int] = (1, 2), at: Optional[np.ndarr
         :class:`flnotes.error.ErrorEstimate` / ``ErrorBracket`` objects whose maximizers are marked.
     """
     dims = tuple(dims)
+    n = check_count(n, "n", 2, "grid points per axis")
     if at is None:
         at = estimates[0].argmax[output] if estimates else 0.5 * (system.lo + system.hi)
     A, Bm, X = _slice_grid(system.lo, system.hi, dims, at, n)
@@ -93,6 +95,7 @@ def pso_swarm(system, net, est, dims: Sequence[int] = (1, 2), iterations: Sequen
     """
     if est.swarm is None:
         raise ValueError("this estimate has no recorded swarm: run pso_max_error(..., record=True)")
+    n = check_count(n, "n", 2, "grid points per axis")
     fig, axes = new_axes(1, len(iterations), figsize=(3.4 * len(iterations) + 0.8, 3.4), sharey=True,
                          layout="constrained")  # room for the shared colorbar
     axes = np.asarray(axes).ravel()
@@ -240,6 +243,7 @@ def violation_line(system, net, z: np.ndarray, eps: dict, v_focus: Optional[floa
     """
     if system.m != 1:
         raise ValueError("violation_line draws single-input systems (m = 1)")
+    n = check_count(n, "n", 2, "points along v")
     z = np.asarray(z, float)[: system.n_z]
     u_max = float(system.u_max[0])
     panels = [(system.lo[-1], system.hi[-1])]

@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .._checks import as_vector, check_box
+from .._checks import as_vector, check_box, check_count
 from ..bounds import fbbt, sample_preactivations
 from ..network import ReLUNet
 from ..systems import FLSystem, brunovsky, discretize
@@ -68,7 +68,8 @@ def fl_identity_residual(system: FLSystem, n: int = 200, seed: int = 0, h: float
     Array
         Largest ``|dz/dt - (A z + B v)|`` per component of ``z``, shape (n_z,).
     """
-    X = np.random.default_rng(seed).uniform(system.lo, system.hi, (int(n), system.n_in))
+    n = check_count(n, "n", 1, "random points of the domain")
+    X = np.random.default_rng(seed).uniform(system.lo, system.hi, (n, system.n_in))
     Z, V = system.split(X)
     U = system.Phi(Z, V)
     res = np.zeros(system.n_z)
@@ -159,6 +160,7 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
     matplotlib.figure.Figure
     """
     _single_input(system, "plot_feasible_set")
+    n = check_count(n, "n", 2, "grid points per axis")
     if not 0 <= axis < system.n_z:
         raise ValueError(f"axis must index a component of z (0..{system.n_z - 1}), got {axis}")
     z0 = _z_point(system, z_fixed)
@@ -227,6 +229,7 @@ def plot_feasible_v(system: FLSystem, z: Optional[Array] = None, net: Optional[R
     matplotlib.figure.Figure
     """
     _single_input(system, "plot_feasible_v")
+    n = check_count(n, "n", 2, "points on the v axis")
     z = _z_point(system, z, "z")
     vs = _v_axis(system, None, n)
     Z = np.tile(z, (len(vs), 1))
@@ -327,9 +330,8 @@ def static_feasible_set(system: FLSystem, net: Optional[ReLUNet] = None, eps: Op
     from .static import frame_player
 
     _single_input(system, "static_feasible_set")
-    n = (5 if FAST else 9) if n_frames is None else int(n_frames)
-    if n < 2:
-        raise ValueError(f"n_frames must be at least 2, got {n_frames!r}")
+    n = (5 if FAST else 9) if n_frames is None else check_count(n_frames, "n_frames", 2, "values of the last "
+                                                                                         "component of z")
     i = system.n_z - 1
     values = np.round(np.linspace(system.lo[i], system.hi[i], n), 3)
 
@@ -360,7 +362,8 @@ def plot_zeta(system: FLSystem, extent: float = 15.0, n: int = 301):
     """
     if not hasattr(system, "zeta"):
         raise ValueError(f"system {system.name!r} has no zeta(z): plot_zeta is for the quadrotor (fl.quad1d())")
-    s = np.linspace(-extent, extent, int(n))
+    n = check_count(n, "n", 2, "grid points per axis")
+    s = np.linspace(-extent, extent, n)
     Z2, Z3 = np.meshgrid(s, s, indexing="xy")
     Z = np.column_stack([np.zeros(Z2.size), Z2.ravel(), Z3.ravel()])
     zeta = system.zeta(Z).reshape(Z2.shape)
@@ -467,7 +470,7 @@ def plot_error_slice(system: FLSystem, net: ReLUNet, axes: tuple[int, int] = (1,
     output
         Which input ``u_i`` for multi-input systems.
     """
-    x0, A_, B_, X = _slice_points(system, axes, x_fixed, n)
+    x0, A_, B_, X = _slice_points(system, axes, x_fixed, check_count(n, "n", 2, "grid points per axis"))
     err = np.abs(net(X) - system.phi_stacked(X))[:, output].reshape(A_.shape)
     fig, ax = new_axes(figsize=(6.0, 4.2))
     im = ax.pcolormesh(A_, B_, err, shading="auto", cmap="magma_r")
@@ -485,8 +488,9 @@ def plot_error_slice(system: FLSystem, net: ReLUNet, axes: tuple[int, int] = (1,
 def plot_line_cut(system: FLSystem, net: ReLUNet, axis: int = 1, x_fixed: Optional[Array] = None,
                   n: int = 2001, output: int = 0):
     """``Phi`` and ``Phi_NN`` along one coordinate of ``(z, v)`` (top) and their difference (bottom)."""
+    n = check_count(n, "n", 2, "points along the axis")
     x0 = (system.lo + system.hi) / 2 if x_fixed is None else as_vector(x_fixed, system.n_in, "x_fixed")
-    s = np.linspace(system.lo[axis], system.hi[axis], int(n))
+    s = np.linspace(system.lo[axis], system.hi[axis], n)
     X = np.tile(x0, (len(s), 1))
     X[:, axis] = s
     u, unn = system.phi_stacked(X)[:, output], net(X)[:, output]
@@ -555,6 +559,7 @@ def bounds_looseness(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000, seed:
     1 means FBBT is as tight as the sampled range (which itself under-estimates
     the true range); larger means looser big-M constants.
     """
+    n = check_count(n, "n", 1, "random samples of the box")
     b = fbbt(net, lo, hi)
     pre = sample_preactivations(net, lo, hi, n=n, seed=seed)
     return np.array([np.median((U - L) / np.maximum(a.max(0) - a.min(0), 1e-12)) for a, L, U in zip(pre, b.L, b.U)])
@@ -576,6 +581,8 @@ def plot_bounds_vs_samples(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000,
         Neurons drawn per layer (the first ones).
     """
     lo, hi = check_box(lo, hi, net.n_in)
+    n = check_count(n, "n", 1, "random samples of the box")
+    max_neurons = check_count(max_neurons, "max_neurons", 1, "neurons drawn per layer")
     b = fbbt(net, lo, hi)
     pre = sample_preactivations(net, lo, hi, n=n, seed=seed)
     fig, axs = new_axes(1, net.K - 1, figsize=(3.2 * (net.K - 1), 3.6), sharey=False)
@@ -606,7 +613,8 @@ def unstable_fixed_z(system: FLSystem, net: ReLUNet, n: int = 1000, seed: int = 
         Number of unstable neurons (binaries) per sampled state, shape (n,).
     """
     rng = np.random.default_rng(seed)
-    Z = rng.uniform(system.lo[: system.n_z], system.hi[: system.n_z], (int(n), system.n_z))
+    Z = rng.uniform(system.lo[: system.n_z], system.hi[: system.n_z], (check_count(n, "n", 1, "random states"),
+                                                                           system.n_z))
     lo = np.hstack([Z, np.tile(system.lo[system.n_z:], (len(Z), 1))])
     hi = np.hstack([Z, np.tile(system.hi[system.n_z:], (len(Z), 1))])
     b = fbbt(net, lo, hi)
@@ -639,7 +647,7 @@ def unstable_vs_box_size(system: FLSystem, net: ReLUNet, radii: Sequence[float] 
         Shape (len(radii),): mean over centres of ``n_unstable / sum n_k``.
     """
     rng = np.random.default_rng(seed)
-    C = rng.uniform(system.lo, system.hi, (int(n_centers), system.n_in))
+    C = rng.uniform(system.lo, system.hi, (check_count(n_centers, "n_centers", 1, "random centres"), system.n_in))
     half = system.hi - system.lo
     out = []
     for r in radii:

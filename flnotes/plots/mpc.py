@@ -9,6 +9,7 @@ from typing import Callable, Mapping, Optional, Sequence
 
 import numpy as np
 
+from .._checks import check_count
 from .style import COLORS, bound_lines, new_axes
 
 Array = np.ndarray
@@ -77,6 +78,7 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
     t_max
         Only draw ``t <= t_max``.
     """
+    every = check_count(every, "every", 1, "steps between the plans drawn")
     if ax is None:
         fig, ax = new_axes(figsize=(7.4, 3.8))
     else:
@@ -86,7 +88,7 @@ def plot_mpc_input(log, u_max: float, eps: float, predictions: bool = True, ever
     if predictions:
         drawn = False
         for k, st in enumerate(log.steps):
-            if k % max(1, int(every)) or log.t[k] > t_end:
+            if k % every or log.t[k] > t_end:
                 continue
             pred = st.u_nn_pred
             if pred is None:

@@ -6,6 +6,7 @@ from typing import Optional, Sequence
 import numpy as np
 from matplotlib.patches import Circle, Polygon as _Patch
 
+from .._checks import check_count
 from .style import COLORS, bound_lines, new_axes
 
 __all__ = ["input_sets_plot", "arm_workspace_plot", "arm_torques_plot"]
@@ -97,6 +98,7 @@ def arm_workspace_plot(logs: dict, center: Sequence[float], radius: float, frame
     """
     from ..arm import arm_joint_positions
 
+    frames = check_count(frames, "frames", 1, "arm configurations drawn per run")
     if ax is None:
         fig, ax = new_axes(figsize=(4.6, 4.4))
     else:

@@ -24,6 +24,8 @@ from typing import Callable, Mapping, Sequence
 
 import matplotlib.pyplot as plt
 
+from .._checks import check_count
+
 __all__ = ["FramePlayer", "frame_player"]
 
 
@@ -118,6 +120,7 @@ def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], n
         raise ValueError(f"name must start with a letter and hold only letters, digits, '-' and '_', got {name!r}")
     if not sliders:
         raise ValueError("sliders must hold at least one {label: values} entry")
+    dpi = check_count(dpi, "dpi", 1, "dots per inch of the frames")
     axes = [list(v) for v in sliders.values()]
     if any(len(v) == 0 for v in axes):
         raise ValueError(f"every slider needs at least one value, got lengths {[len(v) for v in axes]}")

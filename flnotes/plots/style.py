@@ -7,6 +7,8 @@ from typing import Optional, Sequence
 import matplotlib as mpl
 import matplotlib.pyplot as plt
 
+from .._checks import check_count
+
 #: Colours used consistently: the true input, the network, bounds, references, the three controllers.
 COLORS = dict(
     true="#1f4e79", nn="#d95f02", u_max="#1f77b4", u_max_eps="#2ca02c", ref="0.6",
@@ -27,6 +29,8 @@ def use_book_style() -> None:
 
 def new_axes(nrows: int = 1, ncols: int = 1, figsize: Optional[Sequence[float]] = None, **kw):
     """``plt.subplots`` with the book's style; returns ``(fig, axes)``."""
+    nrows = check_count(nrows, "nrows", 1, "rows of axes")
+    ncols = check_count(ncols, "ncols", 1, "columns of axes")
     use_book_style()
     return plt.subplots(nrows, ncols, figsize=figsize, squeeze=False if (nrows * ncols > 1) else True, **kw)
 
