@@ -252,9 +252,10 @@ def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]
     lo_a, hi_a = as_floats(lo, "lo"), as_floats(hi, "hi")
     batch = lo_a.ndim == 2
     lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
-    if lo2.shape != hi2.shape or lo2.shape[1] != n:
+    if lo2.shape != hi2.shape or lo2.ndim != 2 or lo2.shape[1] != n:
         raise ValueError(f"lo and hi must have shape ({n},) or (T, {n}), got {np.shape(lo)} and {np.shape(hi)}")
-    for t in range(len(lo2)):
+    ok = np.all(np.isfinite(lo2), axis=1) & np.all(np.isfinite(hi2), axis=1) & np.all(lo2 <= hi2, axis=1)
+    for t in np.flatnonzero(~ok)[:1]:  # the first bad box, named as check_box names it
         check_box(lo2[t], hi2[t], n)
     return lo2, hi2, batch
 

@@ -81,7 +81,7 @@ def _atlas_steps(atlas: BoundAtlas, nb: NodeBounds, lo: Array, hi: Array, todo: 
     inside = [k for k, ok in zip(todo, atlas._covers(lo[todo], hi[todo])) if ok]
     if not inside:
         return todo
-    cL, cU = atlas._cover(lo[inside], hi[inside])
+    cL, cU = atlas.cover(lo[inside], hi[inside])
     L = [np.maximum(nb.L[layer][inside], cL[layer]) for layer in range(len(nb.L))]
     U = [np.minimum(nb.U[layer][inside], cU[layer]) for layer in range(len(nb.U))]
     ok = np.all([np.all(a <= b, axis=1) for a, b in zip(L, U)], axis=0)
