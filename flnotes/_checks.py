@@ -5,6 +5,7 @@ import collections
 import datetime
 import decimal
 import itertools
+import mmap
 import numbers
 import reprlib
 import warnings
@@ -53,13 +54,47 @@ def _not_real(e: Any) -> Optional[str]:
 
 
 def _objects_not_real(items) -> Optional[str]:
-    """:func:`_not_real` over ``items`` (an iterable of objects): the types first (at C speed), then each array."""
+    """:func:`_not_real` over ``items`` (an iterable of objects): the types first (at C speed), then each array, then
+    any other object (:func:`_others_not_real`)."""
     items = list(items)
     types = set(map(type, items))
     what = _types_not_real(types)
     if what is None and any(issubclass(t, np.ndarray) for t in types):
         what = next(filter(None, (_not_real(e) for e in items if isinstance(e, np.ndarray))), None)
+    if what is None:
+        what = _others_not_real(items, types)
     return what
+
+
+#: Values judged by their type alone (:data:`_NOT_REAL_TYPES`) or, arrays, by :func:`_not_real`.
+_PLAIN = (numbers.Number, decimal.Decimal, np.generic, np.ndarray, str, bytes, bytearray, type(None), datetime.date,
+          datetime.timedelta)
+
+
+class _NotReal(ValueError):
+    """What an argument holds that is no real number (raised inside :func:`_read`)."""
+
+    def __init__(self, what: str):
+        super().__init__(what)
+        self.what = what
+
+
+def _others_not_real(items, types: set) -> Optional[str]:
+    """What the first element of ``items`` that is neither a plain value (:data:`_PLAIN`) nor a Python sequence holds
+    when it is no real number, judged as a whole argument (:func:`_read`): a memoryview, an object with ``__array__``,
+    another sequence (e.g. a ``UserList``) inside a list hide their contents from a look at the types."""
+    other = {t for t in types if not issubclass(t, _PLAIN + _SEQUENCES)}
+    if not other:
+        return None
+    for e in items:
+        if type(e) in other:
+            try:
+                _read(e)
+            except _NotReal as exc:
+                return exc.what
+            except Exception as exc:  # noqa: BLE001 - any failure to read the element says it is no number
+                return f"an element numpy cannot read as numbers ({type(exc).__name__})"
+    return None
 
 
 def _beyond_float(items) -> Optional[str]:
@@ -87,6 +122,9 @@ def _sequence_not_real(x) -> Optional[str]:
             what = next(filter(None, (_not_real(e) for e in items if isinstance(e, np.ndarray))), None)
             if what is not None:
                 return what
+        what = _others_not_real(items, types - seq)
+        if what is not None:
+            return what
         if not seq:
             break
         level = items if seq == types else [e for e in items if isinstance(e, _SEQUENCES)]
@@ -110,10 +148,12 @@ def _unwrapped(x: Any) -> tuple[Any, Optional[str]]:
     """``(x, what)`` for an object that numpy reads through a protocol which would hide what it holds: a memoryview
     of bytes (numpy reads its characters as uint8 numbers) is bytes; an object whose ``__array__`` gives a masked
     array (numpy keeps the values and drops the mask) is read once, here, and judged by that array."""
-    if isinstance(x, memoryview):
-        return x, ("bytes" if isinstance(x.obj, (bytes, bytearray)) else None)
+    if isinstance(x, (mmap.mmap, memoryview)):
+        return x, ("bytes" if isinstance(x, mmap.mmap) or isinstance(x.obj, (bytes, bytearray, mmap.mmap)) else None)
     if hasattr(x, "__array__") and not isinstance(x, np.generic):
         arr = x.__array__()
+        if not isinstance(arr, np.ndarray):  # numpy refuses it too
+            return x, f"an __array__ method that gives no array ({type(arr).__name__})"
         return arr, (_MASKED if _is_masked(arr) else None)
     return x, None
 
@@ -142,34 +182,40 @@ def as_floats(x: Any, name: str) -> np.ndarray:
     numpy reads are judged by the types of their elements, at every depth, before or after numpy reads them. A
     memoryview of bytes is bytes, and an object whose ``__array__`` gives a masked array is judged by that array
     (numpy would read the characters as numbers, and drop the mask)."""
-    given = x  # named in the messages (x may be unwrapped below)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # a complex part dropped, an overflow: an error here
-            if isinstance(x, _SEQUENCES):
-                what = _sequence_not_real(x)
-            else:
-                what = (_MASKED if _is_masked(x) else None) if isinstance(x, np.ndarray) else _not_real(x)
-            if what is None and not isinstance(x, np.ndarray):
-                x, what = _unwrapped(x)
-            if what is None:
-                raw = np.asarray(x)
-                what = _NOT_REAL.get(raw.dtype.kind)
-                if what is None and raw.dtype.kind == "O":
-                    what = _objects_not_real(raw.reshape(-1))
-                elif what is None and not isinstance(x, _SEQUENCES) and raw.ndim and not _reads_as_array(x):
-                    # another container numpy reads (e.g. the sequence protocol): its elements, as objects
-                    what = _objects_not_real(np.asarray(x, dtype=object).reshape(-1))
-                if what is None:
-                    out = np.asarray(raw, float)
-                    if raw.dtype.kind == "O" and not np.all(np.isfinite(out)):
-                        what = _beyond_float(raw.reshape(-1)[~np.isfinite(out.reshape(-1))])
-                    if what is None:
-                        return out
+            return _read(x)
+    except _NotReal as exc:
+        raise ValueError(f"{name} must be numbers (an array of floats), got {brief(x)} (it holds {exc.what})") from None
     except Exception as exc:  # numpy's errors, a warning, an element's own __float__: all say x is no array of numbers
-        raise ValueError(f"{name} must be numbers (an array of floats), got {brief(given)} ({type(exc).__name__}: "
+        raise ValueError(f"{name} must be numbers (an array of floats), got {brief(x)} ({type(exc).__name__}: "
                          f"{exc!s:.200})") from exc
-    raise ValueError(f"{name} must be numbers (an array of floats), got {brief(given)} (it holds {what})")
+
+
+def _read(x: Any) -> np.ndarray:
+    """The body of :func:`as_floats`: ``x`` as a float array, or :class:`_NotReal` saying what it holds."""
+    if isinstance(x, _SEQUENCES):
+        what = _sequence_not_real(x)
+    else:
+        what = (_MASKED if _is_masked(x) else None) if isinstance(x, np.ndarray) else _not_real(x)
+    if what is None and not isinstance(x, np.ndarray):
+        x, what = _unwrapped(x)
+    if what is None:
+        raw = np.asarray(x)
+        what = _NOT_REAL.get(raw.dtype.kind)
+        if what is None and raw.dtype.kind == "O":
+            what = _objects_not_real(raw.reshape(-1))
+        elif what is None and not isinstance(x, _SEQUENCES) and raw.ndim and not _reads_as_array(x):
+            # another container numpy reads (e.g. the sequence protocol): its elements, as objects
+            what = _objects_not_real(np.asarray(x, dtype=object).reshape(-1))
+        if what is None:
+            out = np.asarray(raw, float)
+            if raw.dtype.kind == "O" and not np.all(np.isfinite(out)):
+                what = _beyond_float(raw.reshape(-1)[~np.isfinite(out.reshape(-1))])
+            if what is None:
+                return out
+    raise _NotReal(what)
 
 
 _floats = as_floats
@@ -255,8 +301,8 @@ def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]
     if lo2.shape != hi2.shape or lo2.ndim != 2 or lo2.shape[1] != n:
         raise ValueError(f"lo and hi must have shape ({n},) or (T, {n}), got {np.shape(lo)} and {np.shape(hi)}")
     ok = np.all(np.isfinite(lo2), axis=1) & np.all(np.isfinite(hi2), axis=1) & np.all(lo2 <= hi2, axis=1)
-    for t in np.flatnonzero(~ok)[:1]:  # the first bad box, named as check_box names it
-        check_box(lo2[t], hi2[t], n)
+    for t in np.flatnonzero(~ok)[:1]:  # the first bad box, named as check_box names it (its row in a batch)
+        check_box(lo2[t], hi2[t], n, *((f"lo[{t}]", f"hi[{t}]") if batch else ("lo", "hi")))
     return lo2, hi2, batch
 
 

@@ -473,6 +473,47 @@ def test_bytes_and_masks_behind_a_protocol_are_refused(msd):
     assert np.array_equal(net(memoryview(u8)), net(u8.astype(float)))
 
 
+def test_what_hides_inside_a_list_is_judged_as_an_argument_of_its_own(msd):
+    """Inside a list, a memoryview of bytes, an ``__array__`` object giving a masked array or booleans, and another
+    kind of sequence holding a boolean are refused as they are on their own; an ``__array__`` that gives no array
+    and a memory map of text are refused; the same containers of real numbers are their numbers."""
+    import collections
+    import mmap
+
+    class Wrapped:
+        def __init__(self, a):
+            self.a = a
+
+        def __array__(self, dtype=None, copy=None):
+            return self.a
+
+    sysm, net = msd
+    mm = mmap.mmap(-1, 3)
+    mm.write(b"123")
+    bad = [([memoryview(b"123")], "bytes"), ([Wrapped(np.ma.masked_array([0.3, -0.2, 1.5], [0, 1, 0]))], "masked"),
+           ([collections.UserList([0.3, True, 1.5])], "booleans"), ([Wrapped(np.array([True, False, True]))], "booleans"),
+           (Wrapped([0.3, -0.2, 1.5]), "gives no array"), (Wrapped(Wrapped(np.zeros(3))), "gives no array"),
+           (mm, "bytes"), (memoryview(mm), "bytes"), ([mm], "bytes")]
+    for x, what in bad:
+        with pytest.raises(ValueError, match=f"x must be numbers .*{what}"):
+            net(x)
+    X = np.array([[0.3, -0.2, 1.5]])
+    for x in ([Wrapped(X[0])], [collections.UserList(X[0].tolist())], [memoryview(X[0].copy())]):
+        assert np.array_equal(net(x), net(X)), x
+
+
+def test_a_bad_box_of_a_batch_is_named_by_its_row(msd):
+    """In a batch of boxes, the first empty or non-finite box is named by its row."""
+    sysm, net = msd
+    lo, hi = -np.ones((3, 3)), np.ones((3, 3))
+    lo[2, 1] = 2.0
+    with pytest.raises(ValueError, match=r"box is empty: lo\[2\]\[1\] = 2.0 > hi\[2\]\[1\]"):
+        fl.fbbt(net, lo, hi)
+    lo[2, 1], hi[1, 0] = -1.0, np.inf
+    with pytest.raises(ValueError, match=r"hi\[1\] contains NaN or inf"):
+        fl.fbbt(net, lo, hi)
+
+
 @pytest.mark.parametrize("key, match", [("ts", "ts must be"), ("time_limit", "time_limit must be"),
                                         ("horizon", "horizon"), ("gap", "gap must be")])
 def test_the_mpc_settings_refuse_a_time_span(msd, key, match):
