@@ -294,8 +294,10 @@ def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what
 
 
 def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
-    """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given."""
+    """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given; a number
+    is taken for every coordinate of one box."""
     lo_a, hi_a = as_floats(lo, "lo"), as_floats(hi, "hi")
+    lo_a, hi_a = (np.full(n, float(a)) if a.ndim == 0 else a for a in (lo_a, hi_a))
     batch = lo_a.ndim == 2
     lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
     if lo2.shape != hi2.shape or lo2.ndim != 2 or lo2.shape[1] != n:

@@ -106,17 +106,21 @@ class AffineEnclosure:
             raise TypeError(f"AffineEnclosure.net_id must be a str (fingerprint(net)), got {self.net_id!r}")
 
     def _check_net(self, net) -> None:
-        """``TypeError`` unless ``net`` is a :class:`ReLUNet`; ``ValueError`` unless its inputs and outputs fit."""
+        """``TypeError`` unless ``net`` is a :class:`ReLUNet`; ``ValueError`` unless it is the enclosure's network
+        (its inputs and outputs, then its :func:`fingerprint`)."""
         if not isinstance(net, ReLUNet):
             raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
         if (net.n_out, net.n_in) != self.a.shape:
             raise ValueError(f"net must have {self.a.shape[1]} inputs and {self.a.shape[0]} outputs (those of the "
                              f"enclosure), got a network with {net.n_in} and {net.n_out}")
+        if fingerprint(net) != self.net_id:
+            raise ValueError("net must be the network the enclosure was computed for (its parameters differ): "
+                             "compute the enclosure of this one with fl.affine_enclosure(net, lo, hi)")
 
     def residual(self, net: ReLUNet, X: Array) -> Array:
         """``Phi_NN(x) - a x`` at the points ``X`` (N, n_in) -> (N, n_out); one point (n_in,) is taken as (1, n_in).
 
-        ``X`` must be finite numbers of that shape, ``net`` a network with the enclosure's inputs and outputs
+        ``X`` must be finite numbers of that shape, ``net`` the network the enclosure was computed for
         (``ValueError``, or ``TypeError`` for no network, naming the argument otherwise)."""
         self._check_net(net)
         return self._residual(net, as_batch(X, self.a.shape[1], "X"))
@@ -160,7 +164,8 @@ class AffineEnclosure:
     def covers(self, lo: Array, hi: Array) -> bool:
         """Does the enclosure's box contain the box ``[lo, hi]`` (every box, for a batch (T, n_in))?
 
-        ``lo <= hi`` must be finite numbers of shape (n_in,) or (T, n_in) (``ValueError`` naming them otherwise)."""
+        ``lo <= hi`` must be finite numbers of shape (n_in,) or (T, n_in), or a number for every input
+        (``ValueError`` naming them otherwise)."""
         lo2, hi2, _ = check_boxes(lo, hi, self.lo.shape[0])
         return self._covers(lo2, hi2)
 

@@ -1181,7 +1181,8 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
         (a uniform grid when m = 1, random otherwise): violations sit where
         ``Phi_NN`` reaches ``u_max - eps``, which a scan over ``v`` finds.
     at
-        Optional extra points (N, n_in) whose ``z`` is scanned too.
+        Optional extra points (N, n_in) whose ``z`` is scanned too; their ``z`` must lie in the domain box
+        (``ValueError`` otherwise: eps is certified there only).
     seed, chunk
         Seed of the random states; evaluation chunk size.
 
@@ -1214,7 +1215,9 @@ def worst_violation(system: FLSystem, net: ReLUNet, eps: Union[float, Array], n_
     n_z_dim = system.n_z
     Z = rng.uniform(system.lo[:n_z_dim], system.hi[:n_z_dim], (n_z, n_z_dim))
     if at is not None:
-        Z = np.vstack([as_batch(at, system.n_in, "at")[:, :n_z_dim], Z])
+        At = as_batch(at, system.n_in, "at")
+        system.check_domain(At[:, :n_z_dim], what="a state of at")  # eps holds inside the domain only
+        Z = np.vstack([At[:, :n_z_dim], Z])
     vlo, vhi = system.lo[n_z_dim:], system.hi[n_z_dim:]
     V = (np.linspace(vlo, vhi, n_v) if system.m == 1 else rng.uniform(vlo, vhi, (n_v, system.m))).reshape(n_v, -1)
     best, point, n_feas = np.full(system.m, -np.inf), None, 0

@@ -250,12 +250,16 @@ class LPTightener:
         self._cost = np.zeros(self.n)
         self._all = np.arange(self.n, dtype=np.int32)
         self.n_lp = 0
+        self._box_set, self._known = False, [np.zeros(n_k, bool) for n_k in widths]  # what preactivation_range needs
         self.lock = threading.Lock()  # one tighten() at a time: HiGHS models are not thread-safe
 
     # -- model changes -------------------------------------------------------------
     def restart(self) -> None:
         """Back to the model as built (its matrix layout, no basis): what follows depends on nothing done before."""
         self.h.passModel(self._lp)
+        self._box_set = False
+        for known in self._known:
+            known[:] = False
         self._lb[:], self._ub[:] = self._lp.col_lower_, self._lp.col_upper_
         self._A[:], self._rl[:], self._ru[:] = self._A0, self._rl0, self._ru0
         np.abs(self._A, out=self._absA)
@@ -268,6 +272,7 @@ class LPTightener:
     def _set_box(self, lo: Array, hi: Array) -> None:
         """:meth:`set_box` without its checks (the callers here pass checked boxes)."""
         self._lb[self.x], self._ub[self.x] = lo, hi
+        self._box_set = True
         self.h.changeColsBounds(len(self.x), self.x.astype(np.int32), np.asarray(lo, float), np.asarray(hi, float))
 
     def _layer_index(self, k, hidden: bool = True) -> int:
@@ -306,6 +311,7 @@ class LPTightener:
     def _set_neuron(self, k: int, j: int, L: float, U: float) -> None:
         """:meth:`set_neuron` without its checks (the callers here pass valid indices and bounds)."""
         h = self.h
+        self._known[k][j] = True
         Up, Lm = max(U, 0.0), min(L, 0.0)
         ia = int(self.alpha[k][j])
         h.changeCoeff(int(self.row_U[k][j]), ia, -Up)
@@ -407,7 +413,16 @@ class LPTightener:
         ``k`` indexes a layer (0-based; ``K - 1`` the output layer) and ``j`` a neuron of it: integers of that
         range, else ``ValueError`` naming the argument."""
         k = self._layer_index(k, hidden=False)
-        return self._preactivation_range(k, self._neuron_index(k, j))
+        j = self._neuron_index(k, j)
+        if not self._box_set:
+            raise ValueError("set the input box first (set_box): the LP has no bounds on x yet")
+        for i, known in enumerate(self._known):  # a neuron without node bounds has its big-M entries at zero, which
+            missing = np.flatnonzero(~known)  # pins its pre-activation to 0: no relaxation of the network then
+            if missing.size:
+                raise ValueError(f"set the node bounds of every hidden neuron first (set_layer or set_neuron): neuron "
+                                 f"j = {int(missing[0])} of layer {i} has none, and the LP then pins its pre-activation "
+                                 f"to 0 (no relaxation of the network)")
+        return self._preactivation_range(k, j)
 
     def _preactivation_range(self, k: int, j: int) -> tuple[Optional[float], Optional[float]]:
         """:meth:`preactivation_range` without its checks."""

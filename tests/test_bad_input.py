@@ -1059,6 +1059,75 @@ def test_the_lp_tightener_takes_numbers_of_any_real_type(tightener):
     T.restart()
 
 
+def test_the_lp_tightener_answers_only_once_its_lp_relaxes_the_network(tightener):
+    """Before the input box and the node bounds of every hidden neuron are set, the LP is no relaxation of the
+    network (its big-M entries are zero): a pre-activation range then is refused, never answered "infeasible"."""
+    T = tightener
+    T.restart()
+    with pytest.raises(ValueError, match="set the input box first"):
+        T.preactivation_range(0, 0)
+    T.set_box(-1.0, 1.0)
+    with pytest.raises(ValueError, match="neuron j = 0 of layer 0 has none"):
+        T.preactivation_range(0, 0)
+    nb = fl.fbbt(T.net, -np.ones(3), np.ones(3))
+    T.set_layer(0, nb.L[0], nb.U[0])
+    with pytest.raises(ValueError, match="of layer 1 has none"):
+        T.preactivation_range(0, 0)
+    T.set_layer(1, nb.L[1], nb.U[1])
+    X = np.random.default_rng(0).uniform(-1.0, 1.0, (2000, 3))
+    a = np.maximum(np.maximum(X @ T.net.W[0].T + T.net.b[0], 0.0) @ T.net.W[1].T + T.net.b[1], 0.0) @ T.net.W[2].T \
+        + T.net.b[2]
+    lo, hi = T.preactivation_range(2, 0)
+    assert lo <= a[:, 0].min() and a[:, 0].max() <= hi  # a sound range of the output's pre-activation
+    T.restart()
+    with pytest.raises(ValueError, match="set the input box first"):  # a restart forgets what was set
+        T.preactivation_range(0, 0)
+
+
+def test_the_repairs_take_a_state_of_its_shape_and_plans_of_theirs(msd_mpc):
+    """A number is no state (it used to be taken for every coordinate); a plan with axes of length 1, or flat, is
+    the plan of (N_p, m)."""
+    mpc = msd_mpc
+    z = np.array([0.5, -0.2])
+    for call in (lambda: mpc.repair_plan(1.0, np.zeros((mpc.N, 1))), lambda: mpc.feasible_tail(1.0, 0.0),
+                 lambda: mpc.repair_plan([0.5, -0.2, 0.0], np.zeros((mpc.N, 1)))):
+        with pytest.raises(ValueError, match=r"z must have shape \(2,\)"):
+            call()
+    Z, V = mpc.repair_plan(z, np.zeros((mpc.N, 1)))
+    for guess in (np.zeros(mpc.N), np.zeros((1, mpc.N)), np.zeros((mpc.N, 1, 1))):
+        Z2, V2 = mpc.repair_plan(z, guess)
+        assert np.array_equal(V2, V) and np.array_equal(Z2, Z)
+    with pytest.raises(ValueError, match="v_guess must be inputs of shape"):
+        mpc.repair_plan(z, np.zeros((mpc.N + 1, 1)))
+    with pytest.raises(ValueError, match="v_guess must be one input"):
+        mpc.feasible_tail(z, [0.0, 0.0])
+    assert np.array_equal(mpc.feasible_tail(z, [0.0]), mpc.feasible_tail(z, 0.0))
+
+
+def test_the_enclosure_reads_only_its_own_network(small_enclosure):
+    """residual and contains refuse a network of the same shape but other parameters; covers takes a number for
+    every input."""
+    net, enc = small_enclosure
+    other = _random_net(3, (4, 3), seed=7)
+    X = np.zeros((2, 3))
+    for call in (lambda: enc.contains(other, X), lambda: enc.residual(other, X)):
+        with pytest.raises(ValueError, match="net must be the network the enclosure was computed for"):
+            call()
+    assert enc.contains(net, X)
+    assert enc.covers(-0.5, 0.5) == enc.covers([-0.5] * 3, [0.5] * 3) is True
+    assert enc.covers(-2.0, 0.5) is False
+
+
+def test_worst_violation_scans_only_states_of_the_domain(msd):
+    """Extra states ``at`` outside the domain box, where eps is not certified, are refused."""
+    sysm, net = msd
+    with pytest.raises(ValueError, match="outside the network's trained domain"):
+        fl.worst_violation(sysm, net, 0.1, n_z=3, n_v=3, at=[[-3.0, 1000.0, 0.0]])
+    inside = np.r_[0.5 * (sysm.lo + sysm.hi)]
+    r = fl.worst_violation(sysm, net, 0.1, n_z=3, n_v=3, at=[inside])
+    assert r["n_points"] == 4 * 3
+
+
 @pytest.fixture(scope="module")
 def small_enclosure():
     net = _random_net(3, (4, 3))

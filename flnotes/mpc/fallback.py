@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from .._checks import as_floats, as_vector, check_bool, check_count, check_number
+from .._checks import as_floats, check_bool, check_count, check_number
 from ..solvers import BOUND_TOL
 from .prediction import Prediction
 
@@ -39,15 +39,22 @@ def _check_pred(pred) -> None:
 
 
 def _check_state(pred: Prediction, z) -> Array:
-    """The state ``z`` as a finite float vector (n_z,) (``ValueError`` naming it otherwise)."""
-    return as_vector(z, pred.nz, "z")
+    """The state ``z`` as a finite float vector of shape (n_z,) exactly (a number is no state: ``ValueError`` naming
+    it otherwise)."""
+    a = as_floats(z, "z")
+    if a.shape != (pred.nz,):
+        raise ValueError(f"z must have shape ({pred.nz},) (one state; a number is no state), got shape {np.shape(z)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"z contains NaN or inf: {a}")
+    return a
 
 
 def _check_guess(pred: Prediction, v_guess) -> Array:
     """A plan's inputs ``v_guess`` as finite floats of shape (N_p, m) (a flat (N_p m,) array too)."""
     V = as_floats(v_guess, "v_guess")
-    if V.shape == (pred.N * pred.m,):  # flat, as Prediction takes it
-        V = V.reshape(pred.N, pred.m)
+    if V.shape != (pred.N, pred.m) and np.squeeze(V).shape in {np.squeeze(np.empty((pred.N, pred.m))).shape,
+                                                               (pred.N * pred.m,)}:
+        V = V.reshape(pred.N, pred.m)  # flat as Prediction takes it, or with axes of length 1 (e.g. (1, N_p) for m = 1)
     if V.shape != (pred.N, pred.m):
         raise ValueError(f"v_guess must be inputs of shape (N_p, m) = ({pred.N}, {pred.m}) or ({pred.N * pred.m},), "
                          f"got shape {np.shape(v_guess)}")
@@ -176,7 +183,12 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
     """
     _check_pred(pred)
     z = _check_state(pred, z)
-    v_guess = as_vector(v_guess, pred.m, "v_guess")
+    v_guess = as_floats(v_guess, "v_guess")
+    if v_guess.size != pred.m or (v_guess.ndim > 1 and np.squeeze(v_guess).ndim > 1):
+        raise ValueError(f"v_guess must be one input of shape ({pred.m},), got shape {v_guess.shape}")
+    v_guess = v_guess.reshape(pred.m)
+    if not np.all(np.isfinite(v_guess)):
+        raise ValueError(f"v_guess contains NaN or inf: {v_guess}")
     n_grid = check_count(n_grid, "n_grid", 1, "grid points of the one-input search")
     last = check_bool(last, "last", "whether the step is the plan's last (its next state in the terminal set)")
     return _feasible_tail(pred, z, v_guess, n_grid, last)
