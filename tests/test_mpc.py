@@ -464,10 +464,14 @@ def test_a_tightened_verdict_of_a_later_round_is_backed_by_that_rounds_untighten
     back-end did on every optimum when the case was found): the polished point lies over the bound by HiGHS's
     tolerance, which is what tightens the rows; SCIP's own point meets the bound, and the step is then optimal at
     once."""
+    import flnotes.mpc.engine as engine
     from flnotes.solvers import scip as scip_backend
 
     monkeypatch.setattr(scip_backend, "_needs_polish", lambda p, status, w, bound, gap: status in ("optimal",
                                                                                                     "time_limit"))
+    # the case as found: the step that decides is added by a later round (the steps near the bound, which the
+    # first round now encodes too, would hold it from the start)
+    monkeypatch.setattr(engine, "NEAR_ACTIVE", None)
     sysm, net, z, z_ref = _late_ridge_case()
     kw = dict(horizon=6, ts=0.1, atlas=False)
     r_ref = fl.MPC(sysm, net, 0.1, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)(z, z_ref)
@@ -509,6 +513,7 @@ def test_the_untightened_rounds_own_plan_is_the_optimum_where_it_passes_the_chec
     from flnotes.bench import msd_realtime
     from flnotes.mpc import prediction
 
+    monkeypatch.setattr(engine, "NEAR_ACTIVE", None)  # the case as found: its rounds without the near steps
     s = msd_realtime.setting()
     z = np.array([5.0, float.fromhex("-0x1.d027312650e74p+0")])
     z_ref = np.zeros((s["horizon"] + 1, 2))

@@ -54,6 +54,23 @@ def test_configurations_start_with_the_default_and_name_no_highs_row():
     assert not any("HIGHS" in n.upper() for n, _ in rows)
 
 
+def test_a_row_of_engine_constants_sets_them_while_it_runs_only():
+    """The row without the near steps runs with ``NEAR_ACTIVE = None`` and leaves the engine's value as it was."""
+    from flnotes.mpc import engine
+
+    before = engine.NEAR_ACTIVE
+    assert "default without the near steps" in dict(B.configurations())
+    with B.engine_constants("default without the near steps"):
+        assert engine.NEAR_ACTIVE is None
+    assert engine.NEAR_ACTIVE == before is not None
+    with pytest.raises(RuntimeError):
+        with B.engine_constants("default without the near steps"):
+            raise RuntimeError("a row that fails")
+    assert engine.NEAR_ACTIVE == before
+    with B.engine_constants("default (auto)"):
+        assert engine.NEAR_ACTIVE == before
+
+
 def test_hardest_picks_the_longest_steps_in_order():
     recs = [dict(cpu=c) for c in (0.1, 3.0, 0.2, 5.0, 3.0)]
     assert B.hardest(recs, 2) == [1, 3]

@@ -18,11 +18,13 @@ asserted in tests; the machine may be shared, so single timings are noisy (CPU t
 from __future__ import annotations
 
 import time
-from typing import Optional, Sequence
+from contextlib import contextmanager
+from typing import Iterator, Optional, Sequence
 
 import numpy as np
 
 from ..mpc import MPC
+from ..mpc import engine as _engine
 from ..solvers import available_backends
 from ..studies import compare as C
 from ..tables import time_stats
@@ -119,10 +121,31 @@ def replay(ctrl: MPC, groups: Sequence[Sequence[tuple[Array, Array]]]) -> list[d
     return out
 
 
+#: Rows that differ from the default by a constant of the engine, not by an option: name -> ``{constant: value}``
+#: (set in :mod:`flnotes.mpc.engine` while the row runs, :func:`engine_constants`).
+ENGINE_CONSTANTS = {"default without the near steps": {"NEAR_ACTIVE": None}}
+
+
+@contextmanager
+def engine_constants(name: str) -> Iterator[None]:
+    """The engine's constants of row ``name`` (:data:`ENGINE_CONSTANTS`; none for the other rows) while it runs."""
+    new = ENGINE_CONSTANTS.get(name, {})
+    saved = {k: getattr(_engine, k) for k in new}
+    try:
+        for k, v in new.items():
+            setattr(_engine, k, v)
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(_engine, k, v)
+
+
 def configurations() -> list[tuple[str, dict]]:
     """The rows: the default; the default without constraint generation (every needed step encoded at once: measured
     on hard MSD states, fewer rounds on cold states, more work along the loop, where the warm start and the steps active
-    at the previous solve seed the rounds); the default without the network's affine enclosure in its relaxation
+    at the previous solve seed the rounds); the default without the steps near the bound in the first round of
+    constraint generation (:data:`flnotes.mpc.engine.NEAR_ACTIVE` ``= None``, :data:`ENGINE_CONSTANTS`); the default
+    without the network's affine enclosure in its relaxation
     (``enclosure=False``: the QP without the network, as before the enclosure); the default without the shipped bound
     atlas (``atlas=False``: LP node bounds solved at each step, :mod:`flnotes.atlas`); then one back-end for every program
     (SCIP, DAQP, and Gurobi/CPLEX when importable), these with :data:`ROW_LIMIT` seconds per step.
@@ -131,7 +154,7 @@ def configurations() -> list[tuple[str, dict]]:
     (the engine uses it for its LP bounds and QPs in every row).
     """
     one = lambda b: dict(backend=b, time_limit=ROW_LIMIT, cut_off=False)  # noqa: E731
-    rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)),
+    rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)), ("default without the near steps", {}),
             ("default without the affine enclosure", dict(enclosure=False)),
             ("default without the bound atlas", dict(atlas=False)), ("SCIP only", one("scip")),
             ("DAQP only", one("daqp"))]
@@ -298,7 +321,10 @@ def run(fast: bool) -> dict:
     loops = loop_states(s, n_sc, t_final)
     cold = cold_states(s, n_cold)
     sets = {"loop": loops, "cold": [[(z, R)] for _, z, R in cold]}
-    recs = {name: {k: replay(controller(s, **opts), g) for k, g in sets.items()} for name, opts in configurations()}
+    recs = {}
+    for name, opts in configurations():
+        with engine_constants(name):
+            recs[name] = {k: replay(controller(s, **opts), g) for k, g in sets.items()}
     refs, n_proven = {}, {}
     for k, g in sets.items():  # the cold reference at the states the default found hardest (fast mode: quickest)
         flat = [x for grp in g for x in grp]

@@ -135,6 +135,13 @@ class Prediction:
         u = self.net(np.hstack([self.predict(z0, V)[: self.N], V]))
         return np.flatnonzero(np.any(np.abs(u) > self.u_eps + tol, axis=1))
 
+    def near_bound(self, z0: Array, V: Array, frac: float) -> Array:
+        """Predicted steps ``k`` of the plan ``V`` with ``|Phi_NN(z(k), v(k))| >= (1 - frac) u_max^eps`` for some
+        input (forward pass): the steps at or near the network bound."""
+        V = np.asarray(V, float).reshape(self.N, self.m)
+        u = self.net(np.hstack([self.predict(z0, V)[: self.N], V]))
+        return np.flatnonzero(np.any(np.abs(u) >= (1.0 - frac) * self.u_eps, axis=1))
+
     def excess(self, z0: Array, V: Array, steps) -> float:
         """``max |Phi_NN(z(k), v(k))| - u_max^eps`` over the predicted ``steps`` of the plan ``V``."""
         V = np.asarray(V, float).reshape(self.N, self.m)
