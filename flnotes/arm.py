@@ -45,12 +45,13 @@ CLF-CBF program exactly for two inputs.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Optional, Sequence
 
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, as_floats, as_vector, check_count, check_number, one_number
+from ._checks import as_batch, as_floats, as_vector, brief, check_count, check_number, one_number
 from .control import Certificate
 from .systems import FLSystem, brunovsky
 
@@ -87,10 +88,55 @@ def arm_parameters(l1: float = 0.5, l2: float = 0.5, m1: float = 1.0, m2: float 
                 b1=(m1 * lc1 + m2 * l1) * g, b2=m2 * lc2 * g)
 
 
+#: The keys of a parameter dict: the physical constants (arguments of :func:`arm_parameters`), the lumped ones it
+#: derives, and the settings :func:`two_link_arm` adds to its ``params`` (ignored here).
+_PHYSICAL = ("l1", "l2", "m1", "m2", "g")
+_LUMPED = ("a1", "a2", "a3", "b1", "b2")
+_SYSTEM = ("tau_max", "q1_box", "q2_box", "w_box", "v_box")
+
+
+def _params(p: Optional[dict], name: str = "p") -> dict:
+    """The arm's constants from ``p``: ``None`` (the shipped arm's), or a dict such as :func:`arm_parameters` returns
+    (or a system's ``params``). Missing physical constants take their defaults and missing lumped ones follow from
+    them; the values given must be finite numbers (the physical ones > 0) and the keys known, else a ``ValueError``
+    naming ``name`` and the key (``TypeError`` for no dict)."""
+    if p is None:
+        return arm_parameters(**_DEFAULTS)
+    if not isinstance(p, Mapping):
+        raise TypeError(f"{name} must be a dict of the arm's constants (fl.arm.arm_parameters(...)) or None, got "
+                        f"{type(p).__name__}")
+    unknown = [k for k in p if k not in _PHYSICAL + _LUMPED + _SYSTEM]
+    if unknown:
+        raise ValueError(f"{name} holds unknown keys {brief(unknown)}: the arm's constants are "
+                         f"{', '.join(_PHYSICAL + _LUMPED)} (make them with fl.arm.arm_parameters(...))")
+    base = {k: check_number(p.get(k, _DEFAULTS[k]), f"{name}[{k!r}]",
+                            "a link length (m), mass (kg) or gravity (m/s^2)", strict=True) for k in _PHYSICAL}
+    out = arm_parameters(**base)
+    for k in _LUMPED:
+        if k in p:
+            out[k] = check_number(p[k], f"{name}[{k!r}]", "a lumped constant of the dynamics", low=-np.inf)
+    return out
+
+
+def _point(x, name: str) -> Array:
+    """A point of the workspace: exactly two finite numbers ``(x, y)`` (m), else ``ValueError`` naming ``name`` (a
+    number is not broadcast to both coordinates)."""
+    a = as_floats(x, name)
+    if a.shape != (2,):
+        raise ValueError(f"{name} must be a point (x, y) of the workspace, shape (2,), got {brief(x)} of shape "
+                         f"{a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf: {a.tolist()}")
+    return a
+
+
 def arm_mass_matrix(z: Array, p: Optional[dict] = None) -> Array:
     """``M(q)`` at states ``z = (q_1, q_1', q_2, q_2')`` of shape (N, 4) -> (N, 2, 2)."""
-    p = arm_parameters(**_DEFAULTS) if p is None else p
-    Z = as_batch(z, 4, "z")
+    return _mass_matrix(as_batch(z, 4, "z"), _params(p))
+
+
+def _mass_matrix(Z: Array, p: dict) -> Array:
+    """:func:`arm_mass_matrix` without its checks (the callers here pass a checked batch and constants)."""
     c2 = np.cos(Z[:, 2])
     M = np.empty((len(Z), 2, 2))
     M[:, 0, 0] = p["a1"] + 2 * p["a2"] * c2
@@ -101,8 +147,11 @@ def arm_mass_matrix(z: Array, p: Optional[dict] = None) -> Array:
 
 def arm_bias(z: Array, p: Optional[dict] = None) -> Array:
     """``h(q, q') = C(q, q') q' + g(q)`` at states ``z`` of shape (N, 4) -> (N, 2)."""
-    p = arm_parameters(**_DEFAULTS) if p is None else p
-    Z = as_batch(z, 4, "z")
+    return _bias(as_batch(z, 4, "z"), _params(p))
+
+
+def _bias(Z: Array, p: dict) -> Array:
+    """:func:`arm_bias` without its checks (the callers here pass a checked batch and constants)."""
     q1, w1, q2, w2 = Z.T
     s2, s12 = np.sin(q2), np.sin(q1 + q2)
     return np.column_stack([-p["a2"] * s2 * (2 * w1 * w2 + w2**2) + p["b1"] * np.sin(q1) + p["b2"] * s12,
@@ -114,7 +163,7 @@ def arm_joint_positions(q: Array, p: Optional[dict] = None) -> tuple[Array, Arra
 
     Angles from the downward vertical: the elbow is at ``l_1 (sin q_1, -cos q_1)``.
     """
-    p = arm_parameters(**_DEFAULTS) if p is None else p
+    p = _params(p)
     Q = as_batch(q, 2, "q")
     elbow = p["l1"] * np.column_stack([np.sin(Q[:, 0]), -np.cos(Q[:, 0])])
     s = Q[:, 0] + Q[:, 1]
@@ -181,7 +230,7 @@ def two_link_arm(tau_max=(8.0, 2.0), q1_box: float = 1.5, q2_box: float = 2.0, w
     def f(x: Array, u: Array) -> Array:
         x = np.asarray(x, float)
         z = np.array([[x[0], x[2], x[1], x[3]]])
-        qdd = np.linalg.solve(arm_mass_matrix(z, p)[0], np.asarray(u, float).reshape(2) - arm_bias(z, p)[0])
+        qdd = np.linalg.solve(_mass_matrix(z, p)[0], np.asarray(u, float).reshape(2) - _bias(z, p)[0])
         return np.array([x[2], x[3], qdd[0], qdd[1]])
 
     def to_z(x: Array) -> Array:
@@ -200,8 +249,8 @@ def two_link_arm(tau_max=(8.0, 2.0), q1_box: float = 1.5, q2_box: float = 2.0, w
         state_names=("q1", "q1'", "q2", "q2'"), input_names=("v1 = q1''", "v2 = q2''"),
         params=dict(p, tau_max=u_max.tolist(), q1_box=q1_box, q2_box=q2_box, w_box=w_box, v_box=v_box),
     )
-    sysm.mass_matrix = lambda z: arm_mass_matrix(z, p)  # type: ignore[attr-defined]
-    sysm.bias = lambda z: arm_bias(z, p)  # type: ignore[attr-defined]
+    sysm.mass_matrix = lambda z: _mass_matrix(as_batch(z, 4, "z"), p)  # type: ignore[attr-defined]
+    sysm.bias = lambda z: _bias(as_batch(z, 4, "z"), p)  # type: ignore[attr-defined]
     return sysm
 
 
@@ -262,9 +311,10 @@ def arm_net():
 def arm_link_points(q: Array, fractions: Sequence[float], p: Optional[dict] = None) -> Array:
     """Points of the second link at the given fractions of its length (0 = elbow, 1 = hand): (N, k, 2).
 
-    ``r_s(q) = l_1 (sin q_1, -cos q_1) + s l_2 (sin(q_1 + q_2), -cos(q_1 + q_2))``.
+    ``r_s(q) = l_1 (sin q_1, -cos q_1) + s l_2 (sin(q_1 + q_2), -cos(q_1 + q_2))``. ``p``: the arm's constants
+    (:func:`arm_parameters`), default the shipped arm's.
     """
-    p = arm_parameters(**_DEFAULTS) if p is None else p
+    p = _params(p)
     Q = as_batch(q, 2, "q")
     s = as_floats(fractions, "fractions").reshape(-1)
     if not np.all((s >= 0) & (s <= 1)):  # NaN too
@@ -277,9 +327,9 @@ def arm_link_points(q: Array, fractions: Sequence[float], p: Optional[dict] = No
 
 def links_distance(q: Array, center: Array, p: Optional[dict] = None) -> Array:
     """Distance from ``center`` (2,) to the arm (both links as segments) at joint angles ``q`` (N, 2): (N,)."""
-    p = arm_parameters(**_DEFAULTS) if p is None else p
+    p = _params(p)
     Q = as_batch(q, 2, "q")
-    c = as_vector(center, 2, "center")
+    c = _point(center, "center")
     elbow, hand = arm_joint_positions(Q, p)
     out = np.full(len(Q), np.inf)
     for a, b in ((np.zeros_like(elbow), elbow), (elbow, hand)):
@@ -326,14 +376,14 @@ class ArmPointCBF(Certificate):
 
     def __init__(self, center: Array, radius: float, fraction: float = 1.0, k1: float = 2.0,
                  params: Optional[dict] = None):
-        self.c = as_vector(center, 2, "center")
+        self.c = _point(center, "center")
         radius = check_number(radius, "radius", "of the obstacle (m)", strict=True)
         fraction = check_number(fraction, "fraction", "the point on the forearm: 0 = elbow, 1 = hand")
         if fraction > 1.0:
             raise ValueError(f"fraction must lie in [0, 1] (0 = elbow, 1 = hand), got {fraction!r}")
         k1 = check_number(k1, "k1", "a positive gain", strict=True)
         self.R, self.s, self.k1 = radius, fraction, k1
-        self.p = arm_parameters(**_DEFAULTS) if params is None else params
+        self.p = _params(params, "params")
 
     def _geometry(self, Z: Array):
         q1, w1, q2, w2 = Z.T
@@ -392,16 +442,16 @@ def arm_obstacle_cbfs(center: Array, radius: float, n_points: int = 5, k1: float
     chord, so its distance is at least ``sqrt(bar r_o^2 - (d/2)^2) = r_o``. (The first
     link must not reach the disc: ``||c_o|| > l_1 + r_o``; checked.)
 
-    ``radius`` must be a finite number > 0 and ``n_points`` an integer >= 2 (any real type: ``5``, ``5.0``); anything
-    else is a ``ValueError`` naming the argument.
+    ``center`` must be a point (x, y) of the workspace, shape (2,), ``radius`` a finite number > 0 and ``n_points``
+    an integer >= 2 (any real type: ``5``, ``5.0``); anything else is a ``ValueError`` naming the argument.
 
     Returns
     -------
     list of ArmPointCBF
         Pass it as ``H`` to :class:`flnotes.ClfCbfController` (one condition (CLF_CBF_d) each).
     """
-    p = arm_parameters(**_DEFAULTS) if params is None else params
-    c = as_vector(center, 2, "center")
+    p = _params(params, "params")
+    c = _point(center, "center")
     radius = check_number(one_number(radius, "radius"), "radius", "of the obstacle (m)", strict=True)
     n_points = check_count(n_points, "n_points", 2, "points on the second link: elbow and hand at least")
     if np.linalg.norm(c) <= p["l1"] + radius:

@@ -26,7 +26,7 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from ._checks import as_vector, check_box, check_boxes, check_int
+from ._checks import as_floats, as_vector, brief, check_box, check_boxes, check_int
 from .network import ReLUNet, fingerprint
 from .tightening import EmptyBoxError, lp_bounds
 
@@ -129,9 +129,28 @@ class BoundAtlas:
     def covers(self, lo: Array, hi: Array) -> Array:
         """Per box (rows of ``lo, hi``, shape (T, n_in), or one box (n_in,)), whether it lies in the domain.
 
-        ``lo <= hi`` must be finite numbers of these shapes (``ValueError`` naming them otherwise)."""
-        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
+        ``lo <= hi`` must be finite numbers of these shapes, or a number for every input (``ValueError`` naming them
+        otherwise)."""
+        lo2, hi2, _ = check_boxes(*self._broadcast(lo, hi), len(self.edges))
         return self._covers(lo2, hi2)
+
+    def _broadcast(self, lo: Array, hi: Array) -> tuple[Array, Array]:
+        """``lo, hi`` with a number (a 0-d value) taken for every input: of every box of the other bound when that
+        is a batch (T, n_in), else of one box (n_in,). Other shapes are left to :func:`check_boxes` to judge."""
+        n = len(self.edges)
+        shapes = []
+        for x in (lo, hi):
+            try:
+                shapes.append(np.shape(x))
+            except Exception:  # noqa: BLE001 - a ragged list: check_boxes names it
+                shapes.append(None)
+        out = [lo, hi]
+        for i, name in enumerate(("lo", "hi")):
+            other = shapes[1 - i]
+            if shapes[i] == ():
+                shape = other if other is not None and len(other) == 2 and other[1] == n else (n,)
+                out[i] = np.full(shape, as_floats(out[i], name))
+        return out[0], out[1]
 
     def _covers(self, lo: Array, hi: Array) -> Array:
         """:meth:`covers` without the checks of its numbers (the callers here pass checked boxes)."""
@@ -146,9 +165,10 @@ class BoundAtlas:
 
         Returns ``(L, U)``, per hidden layer an array (T, n_k): the minimum of the cells' ``L`` and the maximum of
         their ``U``. A box that meets only empty cells gets ``L = +inf``, ``U = -inf`` (no admissible input in it).
-        ``lo <= hi`` must be finite numbers of these shapes (``ValueError`` naming them otherwise).
+        ``lo <= hi`` must be finite numbers of these shapes, or a number for every input (``ValueError`` naming them
+        otherwise).
         """
-        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
+        lo2, hi2, _ = check_boxes(*self._broadcast(lo, hi), len(self.edges))
         return self._cover(lo2, hi2)
 
     def _cover(self, lo: Array, hi: Array) -> tuple[list, list]:
@@ -248,12 +268,15 @@ def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
     holds at a fixed sample of its domain: every point whose output meets ``|Phi_NN| <= u`` has its pre-activations
     within its cell's bounds. A sample cannot prove the bounds: it finds an atlas computed for another network, box or
     bound, or one changed grossly, not bounds lowered below the cells' true extremes but above the sample's. Use
-    atlases from :func:`bound_atlas` or the shipped ones (whose contents are checked against a recorded digest)."""
+    atlases from :func:`bound_atlas` or the shipped ones (whose contents are checked against a recorded digest).
+
+    ``seed`` is the seed of the sample: an integer >= 0, or ``None`` for a fresh random sample."""
     if not isinstance(atlas, BoundAtlas):
         raise TypeError(f"expected a flnotes.BoundAtlas, got {type(atlas).__name__}")
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
-    seed = check_int(seed, "seed", 0, "seed of the sample the atlas is checked on")
+    if seed is not None:  # None: a fresh random sample, as numpy's default_rng(None)
+        seed = check_int(seed, "seed", 0, "seed of the sample the atlas is checked on, or None for a random one")
     if atlas.net_id != fingerprint(net):
         raise ValueError("the atlas was computed for another network (its parameters differ): compute it with "
                          "fl.bound_atlas(net, lo, hi, u, cells)")
@@ -279,12 +302,15 @@ def shipped_atlas(net: ReLUNet, lo, hi, u) -> Optional[BoundAtlas]:
     """The shipped atlas of ``net`` (``flnotes/data``, :data:`SHIPPED`) when it serves the box ``[lo, hi]`` and the
     bound ``u`` (the box inside its domain, ``u`` at most its own), else ``None``.
 
-    ``lo <= hi`` must be finite numbers (n_in,) each and ``u`` finite numbers, one per output or one for all
+    ``lo <= hi`` must be finite numbers (n_in,) each and ``u`` finite numbers > 0, one per output or one for all
     (``ValueError`` naming the argument otherwise; ``TypeError`` for a ``net`` that is no network)."""
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
     lo, hi = check_box(lo, hi, net.n_in)
     u = as_vector(u, net.n_out, "u")
+    if np.any(u <= 0):
+        raise ValueError(f"u must be positive (the output bound u_max^eps, one per output or one for all), got "
+                         f"{brief(u.tolist())}")
     net_id = fingerprint(net)
     for name, (_, digest, shipped_for) in SHIPPED.items():
         if shipped_for != net_id:

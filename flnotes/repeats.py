@@ -29,13 +29,27 @@ def spread(times: Sequence[float]) -> float:
 
     ``times`` are two or more positive times (any unit) of runs that did the same work, e.g. the same controller on
     the same states; :func:`against_spread` reads a comparison of two settings against it. Anything else (a
-    boolean, a string, NaN, a time <= 0) is a ``ValueError`` naming ``times``.
+    boolean, a string, NaN, a time <= 0) is a ``ValueError`` naming ``times``; so are times whose ratio
+    ``max / min`` lies beyond the float range (e.g. ``[5e-324, 1.0]``: no runs of the same work differ that much,
+    one of the times is in another unit or no time at all).
     """
     t = as_floats(times, "times").ravel()
     if t.size < 2 or not np.all(np.isfinite(t) & (t > 0)):
         raise ValueError(f"times must hold at least two positive finite times of the same work (for the spread), "
                          f"got {t.tolist()}")
-    return float(t.max() / t.min() - 1.0)
+    d = _ratio_minus_one(t)
+    if not np.isfinite(d):
+        raise ValueError(f"times must be times of the same work: max / min = {float(t.max())!r} / "
+                         f"{float(t.min())!r} overflows the float range (the smallest time is next to zero), so the "
+                         f"spread max / min - 1 has no value; give all times in one unit and leave out a run that "
+                         f"measured no time")
+    return d
+
+
+def _ratio_minus_one(t: np.ndarray) -> float:
+    """``max(t) / min(t) - 1`` of positive finite times, ``inf`` where the ratio overflows the float range."""
+    with np.errstate(over="ignore"):
+        return float(t.max() / t.min() - 1.0)
 
 
 #: The three verdicts of :func:`against_spread`, in order of the difference they describe.
@@ -52,7 +66,8 @@ def against_spread(a: float, b: float, spread_: float) -> str:
     - ``"beyond the run-to-run spread"`` when ``d > 2 spread_``.
 
     The verdict is a phrase for prose that must read with each of the three (:data:`VERDICTS`), e.g. "the ratio is
-    {verdict}" or "1.6 s, {verdict} of the CPU time in all". ``a`` and ``b`` must be positive finite numbers and
+    {verdict}" or "1.6 s, {verdict} of the CPU time in all". A ratio ``max(a, b) / min(a, b)`` beyond the float range
+    is beyond any spread. ``a`` and ``b`` must be positive finite numbers and
     ``spread_`` a finite number >= 0 (``ValueError`` naming the argument otherwise).
     """
     try:
@@ -61,7 +76,7 @@ def against_spread(a: float, b: float, spread_: float) -> str:
         raise ValueError(f"against_spread needs a spread >= 0: {exc}") from None
     a = check_number(one_number(a, "a"), "a", "the time of the first setting", strict=True)
     b = check_number(one_number(b, "b"), "b", "the time of the second setting", strict=True)
-    d = spread((a, b))
+    d = _ratio_minus_one(np.array([a, b]))  # inf when the ratio overflows: beyond any finite spread
     return VERDICTS[0] if d <= spread_ else VERDICTS[1] if d <= 2 * spread_ else VERDICTS[2]
 
 

@@ -1329,3 +1329,214 @@ def test_worst_violation_refuses_to_answer_when_no_sampled_point_was_feasible(ms
     assert res["n_feasible"] > 0 and np.all(np.isfinite(res["violation"]))
     res2 = fl.worst_violation(sysm, net, np.array([Fraction(1, 2)], dtype=object), n_z=3, n_v=3)
     assert np.array_equal(res["violation"], res2["violation"])
+
+
+# --------------------------------------------------------------------------- the plotting, atlas, arm and repeats
+# helpers: values read as numbers, settings as numbers > 0, indices as integers in range, points of exact shape
+@pytest.fixture(scope="module")
+def book_msd_net():
+    """The book's MSD network, of which an atlas is shipped."""
+    net, _ = fl.paper.paper_net("MSD")
+    return net, fl.paper.system("MSD")
+
+
+def _other_net():
+    """A network of the MSD's shape (3 inputs, 1 output) with known weights."""
+    return fl.ReLUNet([np.ones((2, 3)), np.ones((1, 2))], [np.zeros(2), np.zeros(1)])
+
+
+@pytest.mark.parametrize("call, exc, match", [
+    # the gaps and times of the deadline figures are numbers
+    (lambda P, s: P.deadline.gap_histogram({"a": ["0.1", "0.2"]}), ValueError, r"gaps\['a'\] must be numbers .*strings"),
+    (lambda P, s: P.deadline.gap_histogram({"a": [0.1, True]}), ValueError, r"gaps\['a'\] must be numbers .*booleans"),
+    (lambda P, s: P.deadline.answer_times({"a": ["1.0"]}, 100.0), ValueError, r"times_ms\['a'\] must be numbers"),
+    (lambda P, s: P.deadline.answer_times({"a": [1.0]}, True), ValueError, "t_s_ms must be a finite number > 0"),
+    # the step and the seed of the identity check
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, h=0.0), ValueError, "h must be a finite number > 0"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, h=-1), ValueError, "h must be a finite number > 0"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, h=True), ValueError, "h must be a finite number > 0"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, h=np.array([1e-6])), ValueError, "h must be a finite"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, seed=1.0), ValueError, "seed must be an integer >= 0"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, seed=True), ValueError, "seed must be an integer >= 0"),
+    (lambda P, s: P.foundations.fl_identity_residual(s, n=3, seed=-1), ValueError, "seed must be an integer >= 0"),
+    (lambda P, s: P.foundations.unstable_fixed_z(s, _other_net(), n=3, seed=0.5), ValueError, "seed must be"),
+    (lambda P, s: P.foundations.bounds_looseness(_other_net(), s.lo, s.hi, n=3, seed=True), ValueError,
+     "seed must be"),
+    # the extent of the zeta figure
+    (lambda P, s: P.foundations.plot_zeta(fl.quad1d(), extent=-5, n=5), ValueError, "extent must be a finite number > 0"),
+    (lambda P, s: P.foundations.plot_zeta(fl.quad1d(), extent=0, n=5), ValueError, "extent must be a finite number > 0"),
+    (lambda P, s: P.foundations.plot_zeta(fl.quad1d(), extent=True, n=5), ValueError, "extent must be"),
+    # indices: integers (no booleans, no floats) in range
+    (lambda P, s: P.foundations.plot_line_cut(s, _other_net(), axis=True, n=5), ValueError, "axis must be an integer"),
+    (lambda P, s: P.foundations.plot_line_cut(s, _other_net(), output=True, n=5), ValueError,
+     "output must be an integer"),
+    (lambda P, s: P.foundations.plot_line_cut(s, _other_net(), axis=3, n=5), ValueError, r"axis must index .*0\.\.2"),
+    (lambda P, s: P.foundations.plot_line_cut(s, _other_net(), output=1, n=5), ValueError, r"output must index .*0\.\.0"),
+    (lambda P, s: P.foundations.plot_feasible_set(s, axis=True, n=5), ValueError, "axis must be an integer"),
+    (lambda P, s: P.foundations.plot_feasible_set(s, axis=1.0, n=5), ValueError, "axis must be an integer"),
+    (lambda P, s: P.foundations.plot_feasible_set(s, axis=1, n=5, family=(0.5, [0.0])), ValueError,
+     r"family\[0\] must be an integer"),
+    (lambda P, s: P.foundations.plot_feasible_set(s, axis=1, n=5, family=(1, [0.0])), ValueError,
+     r"family\[0\] must index another component"),
+    (lambda P, s: P.foundations.plot_feasible_set(s, axis=1, n=5, family=(0, ["1"])), ValueError,
+     r"family\[1\] must be numbers"),
+    (lambda P, s: P.foundations.plot_error_slice(s, _other_net(), axes=(1, 1), n=5), ValueError,
+     "axes must be two different coordinates"),
+    (lambda P, s: P.foundations.plot_error_slice(s, _other_net(), axes=(1, 2.0), n=5), ValueError,
+     r"axes\[1\] must be an integer"),
+    (lambda P, s: P.foundations.plot_error_slice(s, _other_net(), output=True, n=5), ValueError,
+     "output must be an integer"),
+])
+def test_the_plotting_helpers_check_their_values_settings_and_indices(call, exc, match):
+    import matplotlib.pyplot as plt
+    from flnotes import plots as P
+    from flnotes.plots import deadline, foundations  # noqa: F401 - the submodules, as P's attributes
+
+    try:
+        with pytest.raises(exc, match=match):
+            call(P, fl.msd())
+    finally:
+        plt.close("all")
+
+
+def _hist_steps(fig):
+    """The outlines of the histograms drawn by gap_histogram."""
+    return [p.get_xy().tolist() for p in fig.axes[0].patches]
+
+
+def test_the_plotting_helpers_take_numbers_of_any_real_type():
+    import matplotlib.pyplot as plt
+    from flnotes.plots import deadline, foundations, static
+
+    sysm = fl.msd()
+    try:
+        a = _hist_steps(deadline.gap_histogram({"a": [0.1, 0.2, np.inf]}, bins=3))
+        b = _hist_steps(deadline.gap_histogram({"a": np.array([Fraction(1, 10), Decimal("0.2"), np.inf], dtype=object)},
+                                               bins=3))
+        c = _hist_steps(deadline.gap_histogram({"a": (np.float32(0.1), 0.2)}, bins=3))
+        assert a == b and len(a) == 1 and np.allclose(a, c)
+        r = foundations.fl_identity_residual(sysm, n=5, seed=1, h=1e-6)
+        assert np.array_equal(r, foundations.fl_identity_residual(sysm, n=5, seed=np.int64(1), h=Decimal("1e-6")))
+        assert np.array_equal(r, foundations.fl_identity_residual(sysm, n=5, seed=1, h=np.array(1e-6)))
+        assert foundations.fl_identity_residual(sysm, n=5, seed=None).shape == (2,)
+        fig = foundations.plot_line_cut(sysm, _other_net(), axis=np.int64(1), output=np.array(0), n=5)
+        assert np.array_equal(fig.axes[0].lines[0].get_xdata(),
+                              foundations.plot_line_cut(sysm, _other_net(), axis=1, n=5).axes[0].lines[0].get_xdata())
+        foundations.plot_feasible_set(sysm, axis=np.int32(1), n=5, family=(0, np.array([Fraction(0), 1.0], dtype=object)))
+        foundations.plot_zeta(fl.quad1d(), extent=Fraction(15), n=5)
+        player = static.frame_player(lambda x: plt.figure(figsize=(1, 1)), {"a": [1]}, "x", dpi=72.5)
+        assert len(player.frames) == 1
+    finally:
+        plt.close("all")
+
+
+@pytest.mark.parametrize("times", [[5e-324, 1.0], [1.0, 2.0, 1e-310], np.array([[4.0], [1e-309]])])
+def test_spread_refuses_times_whose_ratio_overflows(times):
+    from flnotes import repeats
+
+    with pytest.raises(ValueError, match=r"times must be times of the same work: max / min = .* overflows"):
+        repeats.spread(times)
+
+
+def test_spread_of_tiny_times_and_a_verdict_on_an_overflowing_ratio():
+    import warnings
+
+    from flnotes import repeats
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert repeats.spread([5e-324, 1e-323]) == 1.0  # the ratio of two tiny times is a number
+        assert repeats.against_spread(5e-324, 1.0, 0.1) == repeats.VERDICTS[2]  # beyond any finite spread
+
+
+@pytest.mark.parametrize("u", [-1.0, 0, 0.0, [0.0], np.array([-4.0])])
+def test_shipped_atlas_refuses_a_bound_that_is_not_positive(book_msd_net, u):
+    net, s = book_msd_net
+    a = fl.atlas.shipped_atlas(net, s.lo, s.hi, 1.0)  # premise: a positive bound is served, in any real form
+    assert a is not None and all(fl.atlas.shipped_atlas(net, s.lo, s.hi, x).digest == a.digest
+                                 for x in (np.array([1.0]), Fraction(1), [Decimal(1)]))
+    with pytest.raises(ValueError, match="u must be positive"):
+        fl.atlas.shipped_atlas(net, s.lo, s.hi, u)
+
+
+def test_check_atlas_takes_a_seed_of_none_as_numpy_does(small_atlas):
+    net, atlas = small_atlas
+    for seed in (None, 0, np.int64(3)):
+        fl.check_atlas(net, atlas, seed=seed)
+
+
+@pytest.mark.parametrize("seed", [True, 1.0, -1, "0"])
+def test_check_atlas_refuses_other_seeds(small_atlas, seed):
+    net, atlas = small_atlas
+    with pytest.raises(ValueError, match="seed must be an integer >= 0 .*or None"):
+        fl.check_atlas(net, atlas, seed=seed)
+
+
+def test_the_atlas_takes_a_number_for_every_input(small_atlas):
+    net, atlas = small_atlas
+    assert atlas.covers(-0.5, 0.5).tolist() == atlas.covers([-0.5] * 3, [0.5] * 3).tolist() == [True]
+    assert atlas.covers(-2.0, [0.5] * 3).tolist() == [False]
+    assert atlas.covers(-0.5, np.array([[0.5] * 3, [2.0] * 3])).tolist() == [True, False]
+    L, U = atlas.cover(-0.5, Fraction(1, 2))
+    L2, U2 = atlas.cover([-0.5] * 3, [0.5] * 3)
+    assert all(np.array_equal(a, b) for a, b in zip(L + U, L2 + U2))
+    L, U = atlas.cover(np.array(-0.5), [0.25, 0.5, 0.5])
+    L2, U2 = atlas.cover([-0.5] * 3, [0.25, 0.5, 0.5])
+    assert all(np.array_equal(a, b) for a, b in zip(L + U, L2 + U2))
+    # a number is checked as the vector is; a column (3, 1) stays refused (a batch of boxes of one input each)
+    for lo, hi, match in [(True, 0.5, "lo must be numbers .*booleans"), (-0.5, "0.5", "hi must be numbers .*strings"),
+                          (np.nan, 0.5, "lo contains NaN"), (0.5, -0.5, "box is empty"),
+                          (np.full((3, 1), -0.5), np.full((3, 1), 0.5), r"lo and hi must have shape \(3,\) or \(T, 3\)")]:
+        for method in (atlas.covers, atlas.cover):
+            with pytest.raises(ValueError, match=match):
+                method(lo, hi)
+
+
+@pytest.mark.parametrize("call, exc, match", [
+    (lambda a: a.arm_obstacle_cbfs(-0.9, 0.1), ValueError, r"center must be a point \(x, y\) .*shape \(2,\)"),
+    (lambda a: a.arm_obstacle_cbfs([[0.0, -0.9]], 0.1), ValueError, r"center must be a point .*shape \(1, 2\)"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9, 0.0], 0.1), ValueError, "center must be a point"),
+    (lambda a: a.ArmPointCBF(0.5, 0.1), ValueError, "center must be a point"),
+    (lambda a: a.links_distance([[0.1, 0.2]], -0.9), ValueError, "center must be a point"),
+    (lambda a: a.links_distance([[0.1, 0.2]], [0.0, np.inf]), ValueError, "center contains NaN or inf"),
+    (lambda a: a.arm_link_points([[0.1, 0.2]], 0.5, p={"l1": "1"}), ValueError,
+     r"p\['l1'\] must be a finite number > 0"),
+    (lambda a: a.arm_link_points([[0.1, 0.2]], 0.5, p={"l1": True}), ValueError, r"p\['l1'\] must be"),
+    (lambda a: a.arm_link_points([[0.1, 0.2]], 0.5, p={"l1": -0.5}), ValueError, r"p\['l1'\] must be"),
+    (lambda a: a.arm_link_points([[0.1, 0.2]], 0.5, p={"L1": 0.5}), ValueError, r"p holds unknown keys \['L1'\]"),
+    (lambda a: a.arm_link_points([[0.1, 0.2]], 0.5, p=[0.5, 0.5]), TypeError, "p must be a dict"),
+    (lambda a: a.arm_joint_positions([[0.1, 0.2]], p={"l2": np.array([0.5])}), ValueError, r"p\['l2'\] must be"),
+    (lambda a: a.arm_mass_matrix(np.zeros((1, 4)), p={"a1": "1"}), ValueError, r"p\['a1'\] must be a finite number"),
+    (lambda a: a.arm_bias(np.zeros((1, 4)), p={"b1": np.nan}), ValueError, r"p\['b1'\] must be a finite number"),
+    (lambda a: a.arm_obstacle_cbfs([0.0, -0.9], 0.1, params={"g": "9.81"}), ValueError,
+     r"params\['g'\] must be a finite number > 0"),
+    (lambda a: a.ArmPointCBF([0.0, -0.9], 0.1, params={"m": 1.0}), ValueError, r"params holds unknown keys"),
+])
+def test_the_arm_helpers_check_their_points_and_constants(call, exc, match):
+    from flnotes import arm
+
+    with pytest.raises(exc, match=match):
+        call(arm)
+
+
+def test_the_arm_helpers_take_their_constants_as_dicts_of_numbers():
+    from flnotes import arm
+
+    q = [[0.1, 0.2], [-0.3, 0.5]]
+    base = arm.arm_link_points(q, [0.0, 1.0])
+    p = arm.arm_parameters()
+    assert np.array_equal(arm.arm_link_points(q, [0.0, 1.0], p=p), base)
+    assert np.array_equal(arm.arm_link_points(q, [0.0, 1.0], p=arm.two_link_arm().params), base)
+    assert np.array_equal(arm.arm_link_points(q, [0.0, 1.0], p={"l1": Fraction(1, 2), "l2": np.float32(0.5)}), base)
+    assert np.array_equal(arm.arm_link_points(q, [0.0, 1.0], p={"l1": 1.0}),
+                          arm.arm_link_points(q, [0.0, 1.0], p=arm.arm_parameters(l1=1.0)))
+    Z = np.array([[0.1, 0.2, 0.3, -0.4]])
+    assert np.array_equal(arm.arm_mass_matrix(Z, {k: Decimal(repr(v)) for k, v in p.items()}), arm.arm_mass_matrix(Z))
+    assert np.array_equal(arm.arm_bias(Z, p), arm.arm_bias(Z))
+    c = np.array([0.31, -0.95])
+    assert np.array_equal(arm.links_distance(q, (0.31, -0.95)), arm.links_distance(q, c))
+    H = arm.arm_obstacle_cbfs(c, 0.06, params=p)
+    H2 = arm.arm_obstacle_cbfs([Fraction(31, 100), -0.95], 0.06)
+    assert [(h.c.tolist(), h.R, h.s) for h in H] == [(h.c.tolist(), h.R, h.s) for h in H2]
+    with pytest.raises(ValueError, match="center must be a point"):  # a number is no centre (not both coordinates)
+        arm.links_distance(q, 0.31)

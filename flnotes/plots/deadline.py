@@ -5,7 +5,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .._checks import check_count
+from .._checks import as_floats, check_count, check_number
 from .style import COLORS, saved, series_axes
 
 __all__ = ["gap_histogram", "answer_times"]
@@ -19,15 +19,18 @@ def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None
     gaps
         ``{label: gaps}``: the gap ``(J - J_lb) / max(1, |J|)`` of each step that hit the limit, where ``J``
         is the cost of the returned plan and ``J_lb`` a valid lower bound of eq. (MPC_form_miqp) (see
-        :func:`flnotes.bench.deadline.limit_gaps`). Non-finite gaps (no admissible plan) are left out.
+        :func:`flnotes.bench.deadline.limit_gaps`). Non-finite gaps (no admissible plan) are left out. The gaps
+        must be real numbers (a boolean or a string is a ``ValueError`` naming its series).
     bins
         Number of bins over ``[0, max gap]``.
     path
         Where to save the figure (returns the path), or ``None`` (returns the figure).
     """
     bins = check_count(bins, "bins", 1, "bins of the histogram")
+    if isinstance(gaps, Mapping):  # the values are read before a figure is made (series_axes refuses the rest)
+        data = {k: as_floats(v, f"gaps[{k!r}]").reshape(-1) for k, v in gaps.items()}
+        data = {k: d[np.isfinite(d)] for k, d in data.items()}
     fig, ax = series_axes(gaps, "gaps", ax)
-    data = {k: np.asarray(v, float)[np.isfinite(np.asarray(v, float))] for k, v in gaps.items()}
     top = max([float(d.max()) for d in data.values() if d.size] + [1e-12])
     edges = np.linspace(0.0, top * 1.0001, bins + 1)
     for i, (lab, d) in enumerate(data.items()):
@@ -44,15 +47,18 @@ def answer_times(times_ms: Mapping[str, Sequence[float]], t_s_ms: float, path=No
     Parameters
     ----------
     times_ms
-        ``{label: answer time of each step in ms}``.
+        ``{label: answer time of each step in ms}`` (real numbers; ``ValueError`` naming the series otherwise).
     t_s_ms
-        The time limit, drawn as a horizontal line.
+        The time limit, drawn as a horizontal line: a finite number > 0.
     path
         Where to save the figure (returns the path), or ``None`` (returns the figure).
     """
+    t_s_ms = check_number(t_s_ms, "t_s_ms", "the time limit in ms", strict=True)
+    if isinstance(times_ms, Mapping):  # the values are read before a figure is made (series_axes refuses the rest)
+        times_ms = {k: as_floats(v, f"times_ms[{k!r}]").reshape(-1) for k, v in times_ms.items()}
     fig, ax = series_axes(times_ms, "times_ms", ax)
     for i, (lab, t) in enumerate(times_ms.items()):
-        t = np.sort(np.asarray(t, float))
+        t = np.sort(t)
         ax.semilogy(100.0 * np.arange(1, t.size + 1) / max(t.size, 1), t, lw=1.2, color=f"C{i}", label=lab)
     ax.axhline(t_s_ms, color=COLORS["unsafe"], ls="--", lw=1, label=f"time limit ({t_s_ms:.0f} ms)")
     ax.set_xlabel("steps [%] (sorted)")

@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .._checks import as_vector, check_box, check_count
+from .._checks import as_floats, as_pair, as_vector, brief, check_box, check_count, check_int, check_number
 from ..bounds import fbbt, sample_preactivations
 from ..network import ReLUNet
 from ..systems import FLSystem, brunovsky, discretize
@@ -42,6 +42,23 @@ def _z_point(system: FLSystem, z: Optional[Array], name: str = "z_fixed") -> Arr
     return np.zeros(system.n_z) if z is None else as_vector(z, system.n_z, name)
 
 
+def _index(i, name: str, size: int, what: str) -> int:
+    """``i`` as an index 0..size-1 of ``what`` (an integer, not a boolean), else ``ValueError`` naming ``name``."""
+    i = check_int(i, name, 0, f"the index, 0-based, of {what}")
+    if i >= size:
+        raise ValueError(f"{name} must index {what}: 0..{size - 1}, got {i}")
+    return i
+
+
+def _seed(seed, name: str = "seed"):
+    """``seed`` for ``np.random.default_rng``: an integer >= 0, ``None`` (a fresh random sample) or numpy's own seed
+    objects (a ``Generator``, ``BitGenerator`` or ``SeedSequence``); anything else (a boolean, a float, a negative
+    integer) is a ``ValueError`` naming ``name``."""
+    if seed is None or isinstance(seed, (np.random.Generator, np.random.BitGenerator, np.random.SeedSequence)):
+        return seed
+    return check_int(seed, name, 0, "the seed of the random sample, or None for a fresh one")
+
+
 # --------------------------------------------------------------------------
 # Chapter 1: feedback linearization and its constraint set
 # --------------------------------------------------------------------------
@@ -59,9 +76,9 @@ def fl_identity_residual(system: FLSystem, n: int = 200, seed: int = 0, h: float
     system
         The system.
     n, seed
-        Number of random points and the seed.
+        Number of random points and the seed (an integer >= 0, or ``None`` for a fresh sample).
     h
-        Step of the central difference.
+        Step of the central difference: a finite number > 0.
 
     Returns
     -------
@@ -69,7 +86,8 @@ def fl_identity_residual(system: FLSystem, n: int = 200, seed: int = 0, h: float
         Largest ``|dz/dt - (A z + B v)|`` per component of ``z``, shape (n_z,).
     """
     n = check_count(n, "n", 1, "random points of the domain")
-    X = np.random.default_rng(seed).uniform(system.lo, system.hi, (n, system.n_in))
+    h = check_number(h, "h", "the step of the central difference, e.g. 1e-6", strict=True)
+    X = np.random.default_rng(_seed(seed)).uniform(system.lo, system.hi, (n, system.n_in))
     Z, V = system.split(X)
     U = system.Phi(Z, V)
     res = np.zeros(system.n_z)
@@ -143,12 +161,13 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
     system
         A single-input system.
     axis
-        Index of the component of ``z`` on the horizontal axis (0-based).
+        Index of the component of ``z`` on the horizontal axis (0-based, an integer).
     z_fixed
         Values of the other components of ``z``, shape (n_z,) (the ``axis``
         entry is ignored); default zero.
     family
-        Optional ``(index, values)``: draw one band per value of ``z[index]``.
+        Optional ``(index, values)``: draw one band per value of ``z[index]`` (an integer index other than
+        ``axis``, and numbers).
     v_lim
         Range of ``v`` drawn; default the domain box. The box's ``v`` limits are
         dashed.
@@ -161,9 +180,19 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
     """
     _single_input(system, "plot_feasible_set")
     n = check_count(n, "n", 2, "grid points per axis")
-    if not 0 <= axis < system.n_z:
-        raise ValueError(f"axis must index a component of z (0..{system.n_z - 1}), got {axis}")
+    axis = _index(axis, "axis", system.n_z, "a component of z")
     z0 = _z_point(system, z_fixed)
+    if family is not None:
+        fam_i, fam_v = as_pair(family, "family")
+        fam_i = _index(fam_i, "family[0]", system.n_z, "a component of z")
+        if fam_i == axis:
+            raise ValueError(f"family[0] must index another component of z than axis = {axis} (the horizontal "
+                             f"axis), got {fam_i}")
+        fam_v = as_floats(fam_v, "family[1]")
+        if fam_v.ndim != 1 or fam_v.size == 0 or not np.all(np.isfinite(fam_v)):
+            raise ValueError(f"family[1] must be a non-empty sequence of finite values of z[{fam_i}], got "
+                             f"{brief(family[1])}")
+        family = (fam_i, fam_v.tolist())
     zs = np.linspace(system.lo[axis], system.hi[axis], int(n))
     vs = _v_axis(system, v_lim, n)
     Zg, Vg = np.meshgrid(zs, vs, indexing="xy")
@@ -356,13 +385,14 @@ def plot_zeta(system: FLSystem, extent: float = 15.0, n: int = 301):
     system
         A system with a ``zeta(z)`` method (``fl.quad1d()``).
     extent
-        Half-width of the drawn ``(z_2, z_3)`` square.
+        Half-width of the drawn ``(z_2, z_3)`` square: a finite number > 0.
     n
         Grid points per axis.
     """
     if not hasattr(system, "zeta"):
         raise ValueError(f"system {system.name!r} has no zeta(z): plot_zeta is for the quadrotor (fl.quad1d())")
     n = check_count(n, "n", 2, "grid points per axis")
+    extent = check_number(extent, "extent", "the half-width of the drawn square", strict=True)
     s = np.linspace(-extent, extent, n)
     Z2, Z3 = np.meshgrid(s, s, indexing="xy")
     Z = np.column_stack([np.zeros(Z2.size), Z2.ravel(), Z3.ravel()])
@@ -462,15 +492,21 @@ def plot_error_slice(system: FLSystem, net: ReLUNet, axes: tuple[int, int] = (1,
     system, net
         The system and its network.
     axes
-        The two stacked-input coordinates on the axes (0-based; ``n_z`` is ``v``).
+        The two stacked-input coordinates on the axes (two different integers, 0-based; ``n_z`` is ``v``).
     x_fixed
         The other coordinates, shape (n_in,); default the box centre.
     n
         Grid points per axis.
     output
-        Which input ``u_i`` for multi-input systems.
+        Which input ``u_i`` for multi-input systems (an integer, 0-based).
     """
-    x0, A_, B_, X = _slice_points(system, axes, x_fixed, check_count(n, "n", 2, "grid points per axis"))
+    n = check_count(n, "n", 2, "grid points per axis")
+    axes = tuple(_index(a, f"axes[{k}]", system.n_in, "a coordinate of the stacked input (z, v)")
+                 for k, a in enumerate(as_pair(axes, "axes")))
+    if axes[0] == axes[1]:
+        raise ValueError(f"axes must be two different coordinates of the stacked input (z, v), got {axes}")
+    output = _index(output, "output", min(system.m, net.n_out), "an output of Phi (an input u_i)")
+    x0, A_, B_, X = _slice_points(system, axes, x_fixed, n)
     err = np.abs(net(X) - system.phi_stacked(X))[:, output].reshape(A_.shape)
     fig, ax = new_axes(figsize=(6.0, 4.2))
     im = ax.pcolormesh(A_, B_, err, shading="auto", cmap="magma_r")
@@ -487,8 +523,14 @@ def plot_error_slice(system: FLSystem, net: ReLUNet, axes: tuple[int, int] = (1,
 
 def plot_line_cut(system: FLSystem, net: ReLUNet, axis: int = 1, x_fixed: Optional[Array] = None,
                   n: int = 2001, output: int = 0):
-    """``Phi`` and ``Phi_NN`` along one coordinate of ``(z, v)`` (top) and their difference (bottom)."""
+    """``Phi`` and ``Phi_NN`` along one coordinate of ``(z, v)`` (top) and their difference (bottom).
+
+    ``axis`` indexes a coordinate of the stacked input ``(z, v)`` and ``output`` an output of ``Phi`` (integers,
+    0-based); ``x_fixed`` holds the other coordinates, shape (n_in,), default the box centre.
+    """
     n = check_count(n, "n", 2, "points along the axis")
+    axis = _index(axis, "axis", system.n_in, "a coordinate of the stacked input (z, v)")
+    output = _index(output, "output", min(system.m, net.n_out), "an output of Phi (an input u_i)")
     x0 = (system.lo + system.hi) / 2 if x_fixed is None else as_vector(x_fixed, system.n_in, "x_fixed")
     s = np.linspace(system.lo[axis], system.hi[axis], n)
     X = np.tile(x0, (len(s), 1))
@@ -560,6 +602,7 @@ def bounds_looseness(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000, seed:
     the true range); larger means looser big-M constants.
     """
     n = check_count(n, "n", 1, "random samples of the box")
+    seed = _seed(seed)
     b = fbbt(net, lo, hi)
     pre = sample_preactivations(net, lo, hi, n=n, seed=seed)
     return np.array([np.median((U - L) / np.maximum(a.max(0) - a.min(0), 1e-12)) for a, L, U in zip(pre, b.L, b.U)])
@@ -583,6 +626,7 @@ def plot_bounds_vs_samples(net: ReLUNet, lo: Array, hi: Array, n: int = 100_000,
     lo, hi = check_box(lo, hi, net.n_in)
     n = check_count(n, "n", 1, "random samples of the box")
     max_neurons = check_count(max_neurons, "max_neurons", 1, "neurons drawn per layer")
+    seed = _seed(seed)
     b = fbbt(net, lo, hi)
     pre = sample_preactivations(net, lo, hi, n=n, seed=seed)
     fig, axs = new_axes(1, net.K - 1, figsize=(3.2 * (net.K - 1), 3.6), sharey=False)
@@ -612,7 +656,7 @@ def unstable_fixed_z(system: FLSystem, net: ReLUNet, n: int = 1000, seed: int = 
     Array
         Number of unstable neurons (binaries) per sampled state, shape (n,).
     """
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(_seed(seed))
     Z = rng.uniform(system.lo[: system.n_z], system.hi[: system.n_z], (check_count(n, "n", 1, "random states"),
                                                                            system.n_z))
     lo = np.hstack([Z, np.tile(system.lo[system.n_z:], (len(Z), 1))])
@@ -646,7 +690,7 @@ def unstable_vs_box_size(system: FLSystem, net: ReLUNet, radii: Sequence[float] 
     Array
         Shape (len(radii),): mean over centres of ``n_unstable / sum n_k``.
     """
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(_seed(seed))
     C = rng.uniform(system.lo, system.hi, (check_count(n_centers, "n_centers", 1, "random centres"), system.n_in))
     half = system.hi - system.lo
     out = []

@@ -24,12 +24,12 @@ from typing import Callable, Mapping, Sequence
 
 import matplotlib.pyplot as plt
 
-from .._checks import check_count
+from .._checks import check_number
 
 __all__ = ["FramePlayer", "frame_player"]
 
 
-def _png_data_uri(fig, dpi: int) -> str:
+def _png_data_uri(fig, dpi: float) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
     plt.close(fig)
@@ -93,7 +93,7 @@ class FramePlayer:
 
 
 def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], name: str,
-                 start: Sequence[int] | None = None, dpi: int = 60) -> FramePlayer:
+                 start: Sequence[int] | None = None, dpi: float = 60) -> FramePlayer:
     """Draw ``draw(*values)`` for every combination of the slider values; return the browser-side player.
 
     Parameters
@@ -109,7 +109,8 @@ def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], n
     start
         Index of the first frame along each slider (default: the middle).
     dpi
-        Resolution of the PNG frames; keep it low, every frame is embedded.
+        Resolution of the PNG frames (dots per inch, a finite number >= 1, e.g. 60 or 72.5); keep it low, every frame
+        is embedded.
 
     Returns
     -------
@@ -120,7 +121,7 @@ def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], n
         raise ValueError(f"name must start with a letter and hold only letters, digits, '-' and '_', got {name!r}")
     if not sliders:
         raise ValueError("sliders must hold at least one {label: values} entry")
-    dpi = check_count(dpi, "dpi", 1, "dots per inch of the frames")
+    dpi = check_number(dpi, "dpi", "dots per inch of the frames; below 1 a frame has hardly a pixel", low=1.0)
     axes = [list(v) for v in sliders.values()]
     if any(len(v) == 0 for v in axes):
         raise ValueError(f"every slider needs at least one value, got lengths {[len(v) for v in axes]}")
