@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import collections
+import collections.abc
 import datetime
 import decimal
 import itertools
@@ -79,11 +80,21 @@ class _NotReal(ValueError):
         self.what = what
 
 
+def _container(t: type) -> bool:
+    """Whether numpy reads an object of type ``t`` as an array of its own contents: a buffer, an object with
+    ``__array__`` or the array interface, a memory map, or a sequence (``__len__`` and ``__getitem__``). Any other
+    object (e.g. one with ``__float__`` only, a set, a generator) is one element, which ``float()`` reads or refuses."""
+    return (issubclass(t, (memoryview, mmap.mmap)) or any(hasattr(t, a) for a in (
+        "__array__", "__array_interface__", "__array_struct__", "__buffer__")) or
+        (hasattr(t, "__len__") and hasattr(t, "__getitem__") and not issubclass(t, (dict, collections.abc.Mapping))))
+
+
 def _others_not_real(items, types: set) -> Optional[str]:
-    """What the first element of ``items`` that is neither a plain value (:data:`_PLAIN`) nor a Python sequence holds
-    when it is no real number, judged as a whole argument (:func:`_read`): a memoryview, an object with ``__array__``,
-    another sequence (e.g. a ``UserList``) inside a list hide their contents from a look at the types."""
-    other = {t for t in types if not issubclass(t, _PLAIN + _SEQUENCES)}
+    """What the first element of ``items`` that is a container other than a Python sequence (:func:`_container`)
+    holds when it is no real number, judged as a whole argument (:func:`_read`): a memoryview, an object with
+    ``__array__``, another sequence (e.g. a ``UserList``) inside a list hide their contents from a look at the
+    types."""
+    other = {t for t in types if not issubclass(t, _PLAIN + _SEQUENCES) and _container(t)}
     if not other:
         return None
     for e in items:
@@ -148,8 +159,14 @@ def _unwrapped(x: Any) -> tuple[Any, Optional[str]]:
     """``(x, what)`` for an object that numpy reads through a protocol which would hide what it holds: a memoryview
     of bytes (numpy reads its characters as uint8 numbers) is bytes; an object whose ``__array__`` gives a masked
     array (numpy keeps the values and drops the mask) is read once, here, and judged by that array."""
-    if isinstance(x, (mmap.mmap, memoryview)):
-        return x, ("bytes" if isinstance(x, mmap.mmap) or isinstance(x.obj, (bytes, bytearray, mmap.mmap)) else None)
+    if isinstance(x, mmap.mmap):  # numpy reads its bytes as uint8 numbers
+        return x, "bytes"
+    if isinstance(x, memoryview):  # of raw bytes, unless cast to another format (e.g. "d": floats)
+        raw = isinstance(x.obj, (bytes, bytearray, mmap.mmap)) and x.format.lstrip("@=<>!") in ("B", "b", "c")
+        return x, ("bytes" if raw else None)
+    na = getattr(getattr(x, "dtype", None), "na_value", None)  # pandas' nullable types: pd.NA would become NaN
+    if type(na).__name__ == "NAType" and callable(getattr(x, "isna", None)) and bool(np.asarray(x.isna()).any()):
+        return x, "missing values (pandas NA)"
     if hasattr(x, "__array__") and not isinstance(x, np.generic):
         arr = x.__array__()
         if not isinstance(arr, np.ndarray):  # numpy refuses it too
@@ -232,6 +249,16 @@ def as_vector(x: Any, n: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} contains NaN or inf: {a}")
     return a
+
+
+def as_state(x: Any, n: int, name: str) -> np.ndarray:
+    """``x`` as one state, a float vector of length ``n`` (:func:`as_vector`, without its broadcast): a number is a
+    state only when ``n == 1`` (``z = 0.5`` of a two-state system is refused, not read as ``[0.5, 0.5]``)."""
+    a = _floats(x, name)
+    if a.ndim == 0 and n != 1:
+        raise ValueError(f"{name} must have shape ({n},) (one state; a single number is no state of {n} "
+                         f"coordinates), got {brief(x)}")
+    return as_vector(a, n, name)
 
 
 def as_batch(x: Any, n: int, name: str) -> np.ndarray:

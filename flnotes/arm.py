@@ -51,7 +51,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_batch, as_floats, as_vector, brief, check_count, check_number, one_number
+from ._checks import as_state, as_batch, as_floats, as_vector, brief, check_count, check_number, one_number
 from .control import Certificate
 from .systems import FLSystem, brunovsky
 
@@ -412,7 +412,7 @@ class ArmPointCBF(Certificate):
 
     def grad(self, z: Array) -> Array:
         """``grad H_2(z)`` in the order of ``z = (q_1, q_1', q_2, q_2')``, shape (4,)."""
-        z = as_vector(z, 4, "z")
+        z = as_state(z, 4, "z")
         q1, w1, q2, w2 = (float(x) for x in z)
         l1, sl2, k1 = self.p["l1"], self.s * self.p["l2"], self.k1
         c1, s1, c12, s12 = math.cos(q1), math.sin(q1), math.cos(q1 + q2), math.sin(q1 + q2)

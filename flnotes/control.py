@@ -52,7 +52,7 @@ from typing import Any, Callable, Optional, Union
 import numpy as np
 import scipy.sparse as sp
 
-from ._checks import as_floats, as_vector, box_in_domain, check_bool, check_number, one_number
+from ._checks import as_state, as_floats, as_vector, box_in_domain, check_bool, check_number, one_number
 from .bounds import NodeBounds, fbbt
 from .config import one_blas_thread
 from .network import ReLUNet
@@ -870,7 +870,7 @@ class ClfCbfController:
 
     def _solve_step(self, z: Array) -> StepResult:
         t0, c0 = time.perf_counter(), time.thread_time()
-        z = as_vector(z, self.system.n_z, "z")
+        z = as_state(z, self.system.n_z, "z")
         self.system.check_domain(z, what="the measured state z")
         z = project_to_box(z, self.system.lo[: self.system.n_z], self.system.hi[: self.system.n_z], "z")
         d = self.program_data(z)

@@ -65,7 +65,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_floats, as_vector, check_bool, check_int, check_number
+from ._checks import as_state, as_floats, as_vector, check_bool, check_int, check_number
 from .error import ErrorBracket, certify_error
 from .interval import Interval
 from .network import ReLUNet
@@ -457,7 +457,7 @@ class AdmissibleLaw:
     def __call__(self, z: Array) -> Array:
         from .errors import SolverFailure
 
-        z = as_vector(z, self.system.n_z, "z")
+        z = as_state(z, self.system.n_z, "z")
         X = np.hstack([np.repeat(z[None], len(self.v_grid), 0), self.v_grid[:, None]])
         ok = np.abs(self.net(X)[:, 0]) <= self.u_bound[0]
         if not ok.any():

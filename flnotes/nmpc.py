@@ -31,7 +31,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from ._checks import as_floats, as_vector, check_bool, check_count, check_number, horizon_reference, weight_matrix
+from ._checks import as_state, as_floats, as_vector, check_bool, check_count, check_number, horizon_reference, weight_matrix
 from .errors import SolverFailure
 from .result import StepResult
 from .systems import FLSystem
@@ -371,7 +371,7 @@ class NonlinearMPC:
             primal feasibility, complementarity), ``solve_time`` (seconds).
         """
         t0 = time.perf_counter()
-        x0 = as_vector(x0, self.n_x, "x0")
+        x0 = as_state(x0, self.n_x, "x0")
         R = self._check_ref(z_ref)
         if u_guess is not None and np.shape(u_guess) not in ((self.N, self.m), (self.N * self.m,)):
             raise ValueError(f"u_guess must have shape (horizon, m) = ({self.N}, {self.m}), got {np.shape(u_guess)}")
@@ -418,7 +418,7 @@ class NonlinearMPC:
 
     def __call__(self, z: Array, z_ref) -> dict:
         """Solve for the measured linearizing state ``z`` (converted with ``to_x``); see :meth:`solve`."""
-        z = as_vector(z, self.n_z, "z")
+        z = as_state(z, self.n_z, "z")
         return self.solve(np.asarray(self.system.to_x(z), float).reshape(-1), z_ref)
 
     def step(self, z: Array, t: float, reference: Optional[Callable[[Array], Array]] = None) -> StepResult:

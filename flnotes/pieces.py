@@ -45,7 +45,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
-from ._checks import as_vector
+from ._checks import as_state, as_vector
 from .network import ReLUNet
 from .systems import FLSystem
 
@@ -274,7 +274,7 @@ def affine_in_v(system: FLSystem, z: Array, rtol: float = 1e-9) -> tuple[Array, 
     linearizing map is affine in ``v``. Checked at random points of the ``v``-box:
     a map that is not affine in ``v`` raises ``ValueError``.
     """
-    z = as_vector(z, system.n_z, "z")
+    z = as_state(z, system.n_z, "z")
     m = system.m
     I = np.vstack([np.zeros(m), np.eye(m)])
     U = system.Phi(np.repeat(z[None], m + 1, axis=0), I)
@@ -373,7 +373,7 @@ def input_sets(system: FLSystem, net: ReLUNet, eps: Any, states: Sequence[Array]
     v_lo, v_hi = system.lo[n_z:], system.hi[n_z:]
     out = []
     for z in states:
-        z = as_vector(z, n_z, "z")
+        z = as_state(z, n_z, "z")
         R = network_regions(net, z, v_lo, v_hi)
         out.append(dict(z=z, true=admissible_polygon(system, z),
                         network=network_polygons(net, z, v_lo, v_hi, system.u_max - eps, regions=R),

@@ -38,7 +38,7 @@ from typing import Any, Callable, Optional, Protocol, Union, runtime_checkable
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from ._checks import as_floats, as_vector, check_bool, check_int, check_number
+from ._checks import as_state, as_floats, as_vector, check_bool, check_int, check_number
 from .errors import SolverFailure
 from .network import ReLUNet
 from .result import StepResult
@@ -225,7 +225,7 @@ def simulate(system: FLSystem, controller: Union[Controller, Callable[[Array], A
     check_domain = check_bool(check_domain, "check_domain", "whether to stop when z leaves the domain box")
     m = system.m
     if z0 is not None:
-        z_start = as_vector(z0, system.n_z, "z0")
+        z_start = as_state(z0, system.n_z, "z0")
         if check_domain:
             _check_start(system, z_start, "z0")
         x = np.asarray(system.to_x(z_start), float).reshape(-1).copy()

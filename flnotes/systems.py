@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence, Union
 import numpy as np
 from scipy.linalg import expm
 
-from ._checks import as_batch, as_floats, as_vector, check_box, check_number, one_number
+from ._checks import as_state, as_batch, as_floats, as_vector, check_box, check_number, one_number
 
 Array = np.ndarray
 
@@ -275,7 +275,7 @@ class FLSystem:
         a, B
             Shapes (m,) and (m, m).
         """
-        z = as_vector(z, self.n_z, "z")
+        z = as_state(z, self.n_z, "z")
         rtol = check_number(rtol, "rtol", "the relative tolerance of the affine check", strict=True)
         m = self.m
         U = self.Phi(np.repeat(z[None], m + 1, axis=0), np.vstack([np.zeros(m), np.eye(m)]))
@@ -333,7 +333,7 @@ class FLSystem:
 
     def linearized_rhs(self, z: Array, v: Array) -> Array:
         """``A z + B v``, the Brunovsky dynamics of eq. (linearizedDyna)."""
-        return self.A @ as_vector(z, self.n_z, "z") + self.B @ as_vector(v, self.m, "v")
+        return self.A @ as_state(z, self.n_z, "z") + self.B @ as_vector(v, self.m, "v")
 
     def grid(self, n_per_axis: int | Sequence[int]) -> Array:
         """Uniform grid over the domain box with ``n_per_axis`` points per axis, (N, n_in)."""

@@ -53,7 +53,7 @@ import scipy.sparse as sp
 from scipy.linalg import solve_discrete_are
 from scipy.optimize import Bounds, LinearConstraint, OptimizeWarning, linprog, milp
 
-from ._checks import (as_batch, as_floats, as_pair, as_vector, box_in_domain, check_count, check_int,
+from ._checks import (as_state, as_batch, as_floats, as_pair, as_vector, box_in_domain, check_count, check_int,
                       check_number, weight_matrix)
 from .bounds import fbbt
 from .encoding import bigm_form
@@ -726,7 +726,7 @@ def region_of_attraction(system: FLSystem, net: ReLUNet, eps, terminal: Terminal
     if axes[0] == axes[1] or not all(a < n for a in axes):
         raise ValueError(f"axes must be two different coordinates of z in 0..{n - 1}, got {axes}")
     horizon = check_count(horizon, "horizon (N_p)", 1, "steps of the prediction")
-    z_fixed = np.zeros(n) if z_fixed is None else as_vector(z_fixed, n, "z_fixed")
+    z_fixed = np.zeros(n) if z_fixed is None else as_state(z_fixed, n, "z_fixed")
     grid = (n_grid, n_grid) if np.ndim(n_grid) == 0 else tuple(n_grid)
     if len(grid) != 2:
         raise ValueError(f"n_grid must be an integer >= 2 or a pair of them (one per axis), got {n_grid!r}")

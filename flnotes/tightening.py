@@ -33,8 +33,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._checks import (as_floats, as_pair, as_vector, brief, check_bool, check_box, check_boxes, check_count,
-                      check_int, check_number, one_number)
+from ._checks import (as_floats, as_pair, as_state, brief, check_bool, check_box, check_boxes,
+                      check_count, check_int, check_number, one_number)
 from .bounds import NodeBounds, _interval_affine, fbbt, interval_affine
 from .network import ReLUNet, fingerprint
 
@@ -266,8 +266,14 @@ class LPTightener:
 
     def set_box(self, lo: Array, hi: Array) -> None:
         """Bounds of the input ``x``: the box ``[lo, hi]``, finite, (n_in,) each (a number is taken for every
-        input), ``lo <= hi``; anything else is a ``ValueError`` naming the argument."""
-        self._set_box(*check_box(lo, hi, self.net.n_in))
+        input), ``lo <= hi``; anything else is a ``ValueError`` naming the argument.
+
+        The node bounds set before hold for the box they were computed on, not for this one: they are forgotten
+        (:meth:`preactivation_range` asks for them again), while the LP keeps its entries until they are set."""
+        lo, hi = check_box(lo, hi, self.net.n_in)
+        for known in self._known:
+            known[:] = False
+        self._set_box(lo, hi)
 
     def _set_box(self, lo: Array, hi: Array) -> None:
         """:meth:`set_box` without its checks (the callers here pass checked boxes)."""
@@ -679,7 +685,7 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     if Bd.ndim != 2 or Bd.shape[0] != n_z:
         raise ValueError(f"Bd must have shape ({n_z}, m), got {Bd.shape}")
     m = Bd.shape[1]
-    z0 = as_vector(z0, n_z, "z0")
+    z0 = as_state(z0, n_z, "z0")
     z_lo, z_hi = check_box(z_lo, z_hi, n_z, "z_lo", "z_hi")
     v_lo, v_hi = check_box(v_lo, v_hi, m, "v_lo", "v_hi")
     horizon = check_count(horizon, "horizon", 1, "steps of the prediction")

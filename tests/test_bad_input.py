@@ -502,6 +502,51 @@ def test_what_hides_inside_a_list_is_judged_as_an_argument_of_its_own(msd):
         assert np.array_equal(net(x), net(X)), x
 
 
+def test_a_number_like_object_is_read_once_and_a_missing_pandas_value_is_refused(msd):
+    """An object numpy reads as one element (``__float__`` or ``__index__`` only) is its number, at the top and in
+    a list (it used to send the check into a loop); a set, a dict or a generator is refused by numpy's own reason; a
+    memoryview of bytes cast to doubles is its floats; a pandas NA (which numpy reads as NaN) is refused."""
+    class FloatLike:
+        def __float__(self):
+            return 0.3
+
+    class IndexLike:
+        def __index__(self):
+            return 2
+
+    sysm, net = msd
+    X = np.array([[0.3, 2.0, 0.3]])
+    assert np.array_equal(net([FloatLike(), IndexLike(), FloatLike()]), net(X[0]))
+    for bad in ({0.3, 2.0, 1.0}, {0: 0.3}, (v for v in X[0])):
+        with pytest.raises(ValueError, match=f"x must be numbers .*TypeError: float.*{type(bad).__name__}"):
+            net(bad)
+    doubles = memoryview(bytearray(X[0].tobytes())).cast("d")
+    assert np.array_equal(net(doubles), net(X[0]))
+    pd = pytest.importorskip("pandas")
+    with pytest.raises(ValueError, match="x must be numbers .*pandas NA"):
+        net(pd.Series([0.3, None, 0.3], dtype="Float64"))
+    with pytest.raises(ValueError, match="x must be numbers .*pandas NA"):
+        net([pd.array([0.3, 2.0, None], dtype="Float64")])
+    assert np.array_equal(net(pd.Series(X[0], dtype="Float64")), net(X[0]))
+
+
+def test_a_number_is_no_state_of_several_coordinates(msd_mpc):
+    """Where a state is expected, a single number is refused (it used to be read as the same value in every
+    coordinate); a one-state system still takes a number."""
+    mpc = msd_mpc
+    sysm = mpc.system
+    for call in (lambda: mpc.fallback_plan(1.0), lambda: mpc.safe_input(1.0, 0.0),
+                 lambda: mpc.predict(1.0, np.zeros((mpc.N, 1))),
+                 lambda: fl.simulate(sysm, lambda z: np.zeros(1), t_final=0.1, ts=0.1, z0=0.5),
+                 lambda: sysm.linearized_rhs(0.5, 0.0)):
+        with pytest.raises(ValueError, match=r"must have shape \(2,\) \(one state"):
+            call()
+    assert np.array_equal(mpc.predict([0.5, 0.5], np.zeros((mpc.N, 1))), mpc.predict(np.full(2, 0.5),
+                                                                                   np.zeros(mpc.N)))
+    one = fl.integrators([1], [-1.0, -1.0], [1.0, 1.0], [1.0])
+    assert np.array_equal(one.linearized_rhs(0.5, 0.0), one.linearized_rhs([0.5], [0.0]))
+
+
 def test_a_bad_box_of_a_batch_is_named_by_its_row(msd):
     """In a batch of boxes, the first empty or non-finite box is named by its row."""
     sysm, net = msd
@@ -1079,6 +1124,9 @@ def test_the_lp_tightener_answers_only_once_its_lp_relaxes_the_network(tightener
         + T.net.b[2]
     lo, hi = T.preactivation_range(2, 0)
     assert lo <= a[:, 0].min() and a[:, 0].max() <= hi  # a sound range of the output's pre-activation
+    T.set_box(-2.0, 2.0)  # bounds of the smaller box do not hold on a larger one: forgotten
+    with pytest.raises(ValueError, match="neuron j = 0 of layer 0 has none"):
+        T.preactivation_range(2, 0)
     T.restart()
     with pytest.raises(ValueError, match="set the input box first"):  # a restart forgets what was set
         T.preactivation_range(0, 0)

@@ -16,7 +16,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .._checks import (as_floats, as_pair, as_vector, box_in_domain, check_count, check_int, check_number,
+from .._checks import (as_state, as_floats, as_pair, as_vector, box_in_domain, check_count, check_int, check_number,
                        horizon_reference, weight_matrix)
 from ..bounds import fbbt
 from ..atlas import BoundAtlas, check_atlas, shipped_atlas
@@ -700,7 +700,7 @@ class MPC:
     # ------------------------------------------------------------------ the model
     def predict(self, z: Array, v_pred: Array) -> Array:
         """Predicted states ``z(0..N_p)`` of eq. (MPC_form_miqp_c) for inputs ``v_pred`` of shape (N_p, m)."""
-        return self.pred.predict(as_vector(z, self.n_z, "z"), self._check_inputs(v_pred))
+        return self.pred.predict(as_state(z, self.n_z, "z"), self._check_inputs(v_pred))
 
     def cost(self, z_pred: Array, v_pred: Array, z_ref: Array) -> float:
         """Eq. (MPC_form_miqp_a) for a plan ``(z_pred, v_pred)`` and the reference ``z_ref`` ((N_p + 1, n_z) or
@@ -1211,12 +1211,12 @@ class MPC:
 
     def fallback_plan(self, z: Array) -> tuple[Array, Array, str, bool]:
         """:func:`flnotes.mpc.fallback.fallback_plan` from the measured ``z`` and the shifted previous plan."""
-        z = as_vector(z, self.n_z, "z")
+        z = as_state(z, self.n_z, "z")
         return fallback.fallback_plan(self.pred, z, self.shifted_plan(z))
 
     def safe_input(self, z: Array, v_guess: Array) -> tuple[Array, bool]:
         """:func:`flnotes.mpc.fallback.safe_input`: an admissible input, or the least-violation one."""
-        return fallback.safe_input(self.pred, as_vector(z, self.n_z, "z"), as_vector(v_guess, self.m, "v_guess"))
+        return fallback.safe_input(self.pred, as_state(z, self.n_z, "z"), as_vector(v_guess, self.m, "v_guess"))
 
     # ------------------------------------------------------------------ statistics
     def stats(self) -> dict:

@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .._checks import as_floats, as_pair, as_vector, brief, check_box, check_count, check_int, check_number
+from .._checks import as_state, as_floats, as_pair, as_vector, brief, check_box, check_count, check_int, check_number
 from ..bounds import fbbt, sample_preactivations
 from ..network import ReLUNet
 from ..systems import FLSystem, brunovsky, discretize
@@ -39,7 +39,7 @@ def _single_input(system: FLSystem, what: str) -> None:
 
 
 def _z_point(system: FLSystem, z: Optional[Array], name: str = "z_fixed") -> Array:
-    return np.zeros(system.n_z) if z is None else as_vector(z, system.n_z, name)
+    return np.zeros(system.n_z) if z is None else as_state(z, system.n_z, name)
 
 
 def _index(i, name: str, size: int, what: str) -> int:
