@@ -322,9 +322,10 @@ def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what
 
 def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
     """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given; a number
-    is taken for every coordinate of one box."""
+    is taken for every coordinate, of one box or of every box of the other bound's batch."""
     lo_a, hi_a = as_floats(lo, "lo"), as_floats(hi, "hi")
-    lo_a, hi_a = (np.full(n, float(a)) if a.ndim == 0 else a for a in (lo_a, hi_a))
+    shape = next((a.shape for a in (lo_a, hi_a) if a.ndim == 2), (n,))  # of the other bound's batch, if any
+    lo_a, hi_a = (np.full(shape, float(a)) if a.ndim == 0 else a for a in (lo_a, hi_a))
     batch = lo_a.ndim == 2
     lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
     if lo2.shape != hi2.shape or lo2.ndim != 2 or lo2.shape[1] != n:
@@ -382,6 +383,20 @@ def check_int(x: Any, name: str, low: int, what: str) -> int:
     if isinstance(x, (bool, np.bool_, np.timedelta64)) or not isinstance(x, (int, np.integer)) or x < low:
         raise ValueError(f"{name} must be an integer >= {low} ({what}), got {x!r}")
     return int(x)
+
+
+#: numpy's own seed objects, taken as they are by ``np.random.default_rng``.
+SEED_OBJECTS = (np.random.Generator, np.random.BitGenerator, np.random.SeedSequence)
+
+
+def check_seed(seed: Any, name: str = "seed", what: str = "the seed of the random sample, or None for a fresh one"):
+    """``seed`` for ``np.random.default_rng``: ``None`` (a fresh random sample), an integer >= 0 (a 0-d integer array
+    too) or numpy's own seed objects (a ``Generator``, ``BitGenerator`` or ``SeedSequence``), returned as given (an
+    integer as an ``int``); anything else (a boolean, a float, a negative integer) is a ``ValueError`` naming
+    ``name``."""
+    if seed is None or isinstance(seed, SEED_OBJECTS):
+        return seed
+    return check_int(seed, name, 0, what)
 
 
 def one_number(x: Any, name: str) -> Any:

@@ -51,7 +51,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from . import interval as iv
-from ._checks import as_state, as_batch, as_floats, as_vector, brief, check_count, check_number, one_number
+from ._checks import as_batch, as_floats, as_state, as_vector, brief, check_count, check_number
 from .control import Certificate
 from .systems import FLSystem, brunovsky
 
@@ -452,7 +452,7 @@ def arm_obstacle_cbfs(center: Array, radius: float, n_points: int = 5, k1: float
     """
     p = _params(params, "params")
     c = _point(center, "center")
-    radius = check_number(one_number(radius, "radius"), "radius", "of the obstacle (m)", strict=True)
+    radius = check_number(radius, "radius", "of the obstacle (m), a single number", strict=True)
     n_points = check_count(n_points, "n_points", 2, "points on the second link: elbow and hand at least")
     if np.linalg.norm(c) <= p["l1"] + radius:
         raise ValueError(f"the first link reaches the disc (||center|| = {np.linalg.norm(c):.3g} <= l1 + radius = "

@@ -22,11 +22,11 @@ import hashlib
 import itertools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Iterable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from ._checks import as_floats, as_vector, brief, check_box, check_boxes, check_int
+from ._checks import as_floats, as_vector, brief, check_box, check_boxes, check_int, check_seed
 from .network import ReLUNet, fingerprint
 from .tightening import EmptyBoxError, lp_bounds
 
@@ -62,6 +62,11 @@ class BoundAtlas:
         The output bound the cells were tightened with, shape (n_out,).
     net_id
         :func:`flnotes.network.fingerprint` of the network.
+
+    The constructor checks the fields: real numbers (no booleans or strings), edges finite and strictly increasing,
+    each cell's bounds finite or, for an empty cell, ``+inf`` and ``-inf`` throughout, ``u`` finite and > 0, shapes
+    consistent (``ValueError`` naming the field). Whether the bounds hold (``L <= U`` included) is
+    :func:`check_atlas`'s to judge.
     """
 
     edges: tuple
@@ -72,26 +77,34 @@ class BoundAtlas:
 
     def __post_init__(self) -> None:
         def frozen(a, name: str) -> Array:
-            a = np.asarray(a, dtype=float)
+            a = as_floats(a, name)  # real numbers only: booleans, strings and the like are refused by name
             if np.any(np.isnan(a)):
-                raise ValueError(f"BoundAtlas.{name} must not hold NaN")
+                raise ValueError(f"{name} must not hold NaN")
             # backed by bytes: read-only for good (an atlas is shared by every controller of its network)
             return np.frombuffer(np.ascontiguousarray(a).tobytes(), dtype=float).reshape(a.shape)
 
+        def parts(x, name: str, what: str) -> tuple:
+            if isinstance(x, (str, bytes, Mapping, set, frozenset)) or not isinstance(x, Iterable) or (
+                    isinstance(x, np.ndarray) and x.ndim == 0):
+                raise ValueError(f"BoundAtlas.{name} must be a tuple (or list) of arrays, {what}, got {brief(x)}")
+            return tuple(frozen(a, f"BoundAtlas.{name}[{i}]") for i, a in enumerate(x))
+
         if not isinstance(self.net_id, str):
             raise TypeError(f"BoundAtlas.net_id must be a str (fingerprint(net)), got {type(self.net_id).__name__}")
-        edges = tuple(frozen(e, "edges") for e in self.edges)
+        edges = parts(self.edges, "edges", "one per input")
         if not edges or any(e.ndim != 1 or e.size < 2 or not np.all(np.isfinite(e)) or np.any(np.diff(e) <= 0)
                             for e in edges):
-            raise ValueError("BoundAtlas.edges must be one finite, increasing array of at least 2 edges per input")
+            raise ValueError("BoundAtlas.edges must be one finite, strictly increasing array of at least 2 edges per "
+                             "input")
         cells = tuple(e.size - 1 for e in edges)
-        L, U = tuple(frozen(a, "L") for a in self.L), tuple(frozen(a, "U") for a in self.U)
+        L, U = parts(self.L, "L", "one per hidden layer"), parts(self.U, "U", "one per hidden layer")
         if not L or len(L) != len(U) or any(a.shape != b.shape or a.ndim != len(cells) + 1 or a.shape[:-1] != cells
                                             for a, b in zip(L, U)):
             raise ValueError(f"BoundAtlas.L and U must hold, per hidden layer, arrays of the same shape cells + (n_k,) "
                              f"with cells = {cells} (from the edges)")
-        u = frozen(self.u, "u")
-        if u.ndim != 1 or not np.all(np.isfinite(u)) or np.any(u <= 0):
+        _check_cell_bounds(L, U)
+        u = frozen(self.u, "BoundAtlas.u")
+        if u.ndim != 1 or u.size == 0 or not np.all(np.isfinite(u)) or np.any(u <= 0):
             raise ValueError(f"BoundAtlas.u must be a positive, finite vector (n_out,), got {u}")
         for k, v in dict(edges=edges, L=L, U=U, u=u).items():
             object.__setattr__(self, k, v)
@@ -131,26 +144,8 @@ class BoundAtlas:
 
         ``lo <= hi`` must be finite numbers of these shapes, or a number for every input (``ValueError`` naming them
         otherwise)."""
-        lo2, hi2, _ = check_boxes(*self._broadcast(lo, hi), len(self.edges))
+        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
         return self._covers(lo2, hi2)
-
-    def _broadcast(self, lo: Array, hi: Array) -> tuple[Array, Array]:
-        """``lo, hi`` with a number (a 0-d value) taken for every input: of every box of the other bound when that
-        is a batch (T, n_in), else of one box (n_in,). Other shapes are left to :func:`check_boxes` to judge."""
-        n = len(self.edges)
-        shapes = []
-        for x in (lo, hi):
-            try:
-                shapes.append(np.shape(x))
-            except Exception:  # noqa: BLE001 - a ragged list: check_boxes names it
-                shapes.append(None)
-        out = [lo, hi]
-        for i, name in enumerate(("lo", "hi")):
-            other = shapes[1 - i]
-            if shapes[i] == ():
-                shape = other if other is not None and len(other) == 2 and other[1] == n else (n,)
-                out[i] = np.full(shape, as_floats(out[i], name))
-        return out[0], out[1]
 
     def _covers(self, lo: Array, hi: Array) -> Array:
         """:meth:`covers` without the checks of its numbers (the callers here pass checked boxes)."""
@@ -168,7 +163,7 @@ class BoundAtlas:
         ``lo <= hi`` must be finite numbers of these shapes, or a number for every input (``ValueError`` naming them
         otherwise).
         """
-        lo2, hi2, _ = check_boxes(*self._broadcast(lo, hi), len(self.edges))
+        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
         return self._cover(lo2, hi2)
 
     def _cover(self, lo: Array, hi: Array) -> tuple[list, list]:
@@ -197,6 +192,32 @@ class BoundAtlas:
         np.savez_compressed(path, n_in=len(self.edges), n_layers=len(self.L), u=self.u, net_id=self.net_id,
                             **{f"edges{i}": e for i, e in enumerate(self.edges)},
                             **{f"L{k}": a for k, a in enumerate(self.L)}, **{f"U{k}": a for k, a in enumerate(self.U)})
+
+
+def _check_cell_bounds(L: tuple, U: tuple) -> None:
+    """Every cell's bounds are finite in every hidden layer or, for a cell without an input whose output meets the
+    bound (``L[0]`` of its first neuron ``+inf``), ``L = +inf`` and ``U = -inf`` throughout; else ``ValueError``
+    naming the first bad cell. (``L <= U`` is a matter of the bounds holding: :func:`check_atlas`.)"""
+    empty = np.isposinf(L[0][..., :1])
+    for k, (a, b) in enumerate(zip(L, U)):
+        bad = np.where(empty, ~(np.isposinf(a) & np.isneginf(b)), ~(np.isfinite(a) & np.isfinite(b)))
+        if np.any(bad):
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(
+                f"BoundAtlas.L[{k}] and U[{k}] at cell {idx[:-1]}, neuron {idx[-1]}: L = {float(a[idx])!r}, "
+                f"U = {float(b[idx])!r}; a cell's bounds must be finite, or L = +inf and U = -inf in every layer for a "
+                f"cell without an admissible input (L[0] = +inf marks it)")
+
+
+def _first_crossed(atlas: "BoundAtlas") -> Optional[str]:
+    """Where a cell with an admissible input has a lower bound above its upper bound (``L > U``), else ``None``."""
+    for k, (a, b) in enumerate(zip(atlas.L, atlas.U)):
+        bad = np.isfinite(a) & (a > b)
+        if np.any(bad):
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            return (f"at cell {idx[:-1]}, neuron {idx[-1]} of hidden layer {k + 1}: L = {float(a[idx])!r} > "
+                    f"U = {float(b[idx])!r}")
+    return None
 
 
 def load_atlas(path: Union[str, Path]) -> BoundAtlas:
@@ -270,19 +291,23 @@ def check_atlas(net: ReLUNet, atlas: BoundAtlas, seed: int = 0) -> None:
     bound, or one changed grossly, not bounds lowered below the cells' true extremes but above the sample's. Use
     atlases from :func:`bound_atlas` or the shipped ones (whose contents are checked against a recorded digest).
 
-    ``seed`` is the seed of the sample: an integer >= 0, or ``None`` for a fresh random sample."""
+    ``seed`` is the seed of the sample: an integer >= 0, ``None`` for a fresh random sample, or numpy's own seed
+    objects (a ``Generator``, ``BitGenerator`` or ``SeedSequence``), as ``np.random.default_rng`` takes them."""
     if not isinstance(atlas, BoundAtlas):
         raise TypeError(f"expected a flnotes.BoundAtlas, got {type(atlas).__name__}")
     if not isinstance(net, ReLUNet):
         raise TypeError(f"net must be a flnotes.ReLUNet, got {type(net).__name__}")
-    if seed is not None:  # None: a fresh random sample, as numpy's default_rng(None)
-        seed = check_int(seed, "seed", 0, "seed of the sample the atlas is checked on, or None for a random one")
+    seed = check_seed(seed, "seed", "the seed of the sample the atlas is checked on, or None for a fresh one")
     if atlas.net_id != fingerprint(net):
         raise ValueError("the atlas was computed for another network (its parameters differ): compute it with "
                          "fl.bound_atlas(net, lo, hi, u, cells)")
     widths = [len(b) for b in net.b[:-1]]
     if len(atlas.edges) != net.n_in or [a.shape[-1] for a in atlas.L] != widths or atlas.u.shape != (net.n_out,):
         raise ValueError("the atlas's shapes do not fit the network (inputs, hidden layers or outputs)")
+    crossed = _first_crossed(atlas)
+    if crossed is not None:
+        raise ValueError(f"the atlas does not hold: {crossed} (no pre-activation lies between them; a cell's bounds "
+                         f"need L <= U): compute it with fl.bound_atlas(net, lo, hi, u, cells)")
     X = np.random.default_rng(seed).uniform(atlas.lo, atlas.hi, size=(N_SAMPLE, net.n_in))
     out, pre = net.forward(X)
     ok = np.all(np.abs(out) <= atlas.u, axis=1)

@@ -68,10 +68,11 @@ def against_spread(a: float, b: float, spread_: float) -> str:
     The verdict is a phrase for prose that must read with each of the three (:data:`VERDICTS`), e.g. "the ratio is
     {verdict}" or "1.6 s, {verdict} of the CPU time in all". A ratio ``max(a, b) / min(a, b)`` beyond the float range
     is beyond any spread. ``a`` and ``b`` must be positive finite numbers and
-    ``spread_`` a finite number >= 0 (``ValueError`` naming the argument otherwise).
+    ``spread_`` a single finite number >= 0, not an array of one (``ValueError`` naming the argument otherwise).
     """
     try:
-        spread_ = check_number(one_number(spread_, "spread_"), "spread_", "a run-to-run spread of spread(), e.g. 0.1 for 10 %")
+        spread_ = check_number(spread_, "spread_", "a run-to-run spread of spread(), a single number, e.g. 0.1 for "
+                                                   "10 %")
     except ValueError as exc:
         raise ValueError(f"against_spread needs a spread >= 0: {exc}") from None
     a = check_number(one_number(a, "a"), "a", "the time of the first setting", strict=True)

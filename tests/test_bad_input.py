@@ -1588,3 +1588,183 @@ def test_the_arm_helpers_take_their_constants_as_dicts_of_numbers():
     assert [(h.c.tolist(), h.R, h.s) for h in H] == [(h.c.tolist(), h.R, h.s) for h in H2]
     with pytest.raises(ValueError, match="center must be a point"):  # a number is no centre (not both coordinates)
         arm.links_distance(q, 0.31)
+
+
+# --------------------------------------------------------------------------- the drawn range of v, the frame
+# player's start, sliders and draw, the atlas's fields, gaps and times that a figure would drop, one-element settings
+def _player(**kw):
+    import matplotlib.pyplot as plt
+    from flnotes.plots import static
+
+    args = dict(draw=lambda a, b: plt.figure(figsize=(0.5, 0.5)), sliders={"a": [1, 2, 3], "b": [0.5, 1.5]},
+                name="p", dpi=10)
+    args.update(kw)
+    return static.frame_player(**args)
+
+
+@pytest.mark.parametrize("call, exc, match", [
+    (lambda s: fl.plots.plot_feasible_set(s, n=5, v_lim=("-3", "3")), ValueError, r"v_lim\[0\] must be a finite number"),
+    (lambda s: fl.plots.plot_feasible_set(s, n=5, v_lim=(False, True)), ValueError, r"v_lim\[0\] must be a finite"),
+    (lambda s: fl.plots.plot_feasible_set(s, n=5, v_lim=(-3, 3, 99)), ValueError, r"v_lim must be a pair"),
+    (lambda s: fl.plots.plot_feasible_set(s, n=5, v_lim=3), ValueError, r"v_lim must be a pair"),
+    (lambda s: fl.plots.plot_feasible_set(s, n=5, v_lim=(3, -3)), ValueError, r"v_lim must be a range .*lo < hi"),
+    (lambda s: fl.plots.plot_feasible_set(s, n=5, v_lim=(-3, np.nan)), ValueError, r"v_lim\[1\] must be a finite"),
+    (lambda s: _player(start=[1.7, 0]), ValueError, r"start\[0\] must be an integer >= 0"),
+    (lambda s: _player(start=[True, 0]), ValueError, r"start\[0\] must be an integer >= 0"),
+    (lambda s: _player(start=[0, "1"]), ValueError, r"start\[1\] must be an integer >= 0"),
+    (lambda s: _player(start=[np.nan, 0]), ValueError, r"start\[0\] must be an integer >= 0"),
+    (lambda s: _player(start=1), ValueError, r"start must be a list of 2 indices"),
+    (lambda s: _player(start=[0]), ValueError, r"start must hold one index per slider \(2"),
+    (lambda s: _player(start=[0, 2]), ValueError, r"start\[1\] must index the values of slider 'b': 0\.\.1"),
+    (lambda s: _player(sliders={"a": 3}), ValueError, r"sliders\['a'\] must be a non-empty sequence"),
+    (lambda s: _player(sliders={"a": "abc", "b": [1]}), ValueError, r"sliders\['a'\] must be a non-empty sequence"),
+    (lambda s: _player(sliders={"a": [1], "b": {1, 2}}), ValueError, r"sliders\['b'\] must be a non-empty sequence"),
+    (lambda s: _player(sliders=[("a", [1]), ("b", [2])]), TypeError, r"sliders must be a dict"),
+    (lambda s: _player(draw=lambda a, b: None), TypeError, r"draw must return a matplotlib figure"),
+    (lambda s: _player(draw=None), TypeError, r"draw must be a function"),
+])
+def test_the_drawn_range_and_the_frame_player_check_their_arguments(call, exc, match):
+    import matplotlib.pyplot as plt
+
+    try:
+        with pytest.raises(exc, match=match):
+            call(fl.msd())
+    finally:
+        plt.close("all")
+
+
+def test_the_drawn_range_and_the_frame_player_take_other_forms():
+    import matplotlib.pyplot as plt
+    from flnotes.plots import foundations
+
+    s = fl.msd()
+    try:
+        vs = foundations._v_axis(s, (-20, 20), 7)
+        for v_lim in ([-20.0, 20.0], np.array([-20, 20]), (Fraction(-20), np.float32(20)), (np.array(-20), Decimal(20))):
+            assert np.array_equal(foundations._v_axis(s, v_lim, 7), vs)
+        fig = fl.plots.plot_feasible_set(s, n=5, v_lim=(Fraction(-20), 20.0))
+        assert fig.axes[0].get_ylim() == fl.plots.plot_feasible_set(s, n=5, v_lim=(-20, 20)).axes[0].get_ylim()
+        base = _player(start=[2, 0])
+        for kw in (dict(start=(np.int64(2), np.array(0))), dict(start=np.array([2, 0])),
+                   dict(sliders={"a": range(1, 4), "b": np.array([0.5, 1.5])}, start=[2, 0])):
+            p = _player(**kw)
+            assert p.start == base.start and p.frames.keys() == base.frames.keys() and len(p) == 6
+        assert _player().start == [1, 1]
+    finally:
+        plt.close("all")
+
+
+def _atlas_fields(atlas, **kw):
+    fields = dict(edges=atlas.edges, L=atlas.L, U=atlas.U, u=atlas.u, net_id=atlas.net_id)
+    fields.update(kw)
+    return fields
+
+
+def _with_cell(arrays, k, value):
+    out = [np.array(a) for a in arrays]
+    out[k][(0,) * out[k].ndim] = value
+    return tuple(out)
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda a: dict(edges=(["-1", "0", "1"],) + a.edges[1:]), r"BoundAtlas\.edges\[0\] must be numbers .*strings"),
+    (lambda a: dict(edges=(a.edges[0], [False, True]) + a.edges[2:]), r"BoundAtlas\.edges\[1\] must be numbers .*booleans"),
+    (lambda a: dict(u=[True]), r"BoundAtlas\.u must be numbers .*booleans"),
+    (lambda a: dict(L=tuple(np.zeros(x.shape, bool) for x in a.L)), r"BoundAtlas\.L\[0\] must be numbers .*booleans"),
+    (lambda a: dict(U=tuple(x.astype(str) for x in a.U)), r"BoundAtlas\.U\[0\] must be numbers .*strings"),
+    (lambda a: dict(L=_with_cell(a.L, 1, -np.inf)), r"L\[1\] and U\[1\] at cell \(0, 0, 0\), neuron 0: .*finite"),
+    (lambda a: dict(U=_with_cell(a.U, 0, np.inf)), r"L\[0\] and U\[0\] at cell \(0, 0, 0\), neuron 0: .*finite"),
+    (lambda a: dict(edges="abc"), r"BoundAtlas\.edges must be a tuple"),
+    (lambda a: dict(L=5.0), r"BoundAtlas\.L must be a tuple"),
+])
+def test_a_bound_atlas_checks_its_fields(small_atlas, change, match):
+    net, atlas = small_atlas
+    with pytest.raises(ValueError, match=match):
+        fl.BoundAtlas(**_atlas_fields(atlas, **change(atlas)))
+
+
+def test_an_atlas_with_crossed_bounds_is_refused_by_check_atlas(small_atlas):
+    net, atlas = small_atlas
+    L = _with_cell(atlas.L, 0, float(atlas.U[0][0, 0, 0, 0]) + 1.0)
+    crossed = fl.BoundAtlas(**_atlas_fields(atlas, L=L))
+    with pytest.raises(ValueError, match=r"does not hold: at cell \(0, 0, 0\), neuron 0 of hidden layer 1: L = .* > U"):
+        fl.check_atlas(net, crossed, seed=1)
+
+
+def test_a_bound_atlas_takes_its_fields_in_other_forms(small_atlas):
+    net, atlas = small_atlas
+    same = fl.BoundAtlas(edges=[e.tolist() for e in atlas.edges], L=list(atlas.L),
+                         U=tuple(np.array(a, dtype=object) for a in atlas.U), u=[Fraction(5)], net_id=atlas.net_id)
+    assert same.digest == atlas.digest
+    fl.check_atlas(net, same)
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda P: P.gap_histogram({"a": [-0.5, 0.1]}), r"gaps\['a'\] must be gaps >= 0 .*-0\.5 at position 0"),
+    (lambda P: P.gap_histogram({"a": [0.1, 0.2], "b": [0.1, -np.inf]}), r"gaps\['b'\] must be gaps >= 0 .*-inf"),
+    (lambda P: P.answer_times({"a": [-1.0, 5.0]}, 100), r"times_ms\['a'\] must be answer times .*-1\.0 at position 0"),
+    (lambda P: P.answer_times({"a": [1.0], "b": [5.0, np.nan]}, 100), r"times_ms\['b'\] must be answer times .*nan"),
+    (lambda P: P.answer_times({"a": [np.inf]}, 100), r"times_ms\['a'\] must be answer times .*inf"),
+])
+def test_the_deadline_figures_refuse_gaps_and_times_they_would_drop(call, match):
+    import matplotlib.pyplot as plt
+    from flnotes.plots import deadline
+
+    try:
+        with pytest.raises(ValueError, match=match):
+            call(deadline)
+    finally:
+        plt.close("all")
+
+
+def test_the_deadline_figures_leave_out_steps_without_a_plan_and_take_times_of_any_real_type():
+    import matplotlib.pyplot as plt
+    from flnotes.plots import deadline
+
+    try:
+        a = _hist_steps(deadline.gap_histogram({"a": [0.1, 0.2, np.nan, np.inf]}, bins=3))
+        assert a == _hist_steps(deadline.gap_histogram({"a": [0.1, 0.2]}, bins=3))
+        t = deadline.answer_times({"a": [5.0, 1.0, 0.0]}, 100).axes[0].lines[0].get_ydata()
+        t2 = deadline.answer_times({"a": (Decimal(5), Fraction(1), 0)}, 100).axes[0].lines[0].get_ydata()
+        assert np.array_equal(t, t2) and t.tolist() == [0.0, 1.0, 5.0]
+    finally:
+        plt.close("all")
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: fl.repeats.against_spread(1.0, 1.05, [0.1]), r"spread_ must be a finite number >= 0"),
+    (lambda: fl.repeats.against_spread(1.0, 1.05, np.array([0.1])), r"spread_ must be a finite number >= 0"),
+    (lambda: fl.arm.arm_obstacle_cbfs([0.0, -0.9], [0.1]), r"radius must be a finite number > 0"),
+    (lambda: fl.arm.arm_obstacle_cbfs([0.0, -0.9], np.array([0.1])), r"radius must be a finite number > 0"),
+])
+def test_scalar_settings_are_single_numbers_everywhere(call, match):
+    from flnotes import arm, repeats  # noqa: F401 - the submodules, as fl's attributes
+
+    with pytest.raises((ValueError, TypeError), match=match):
+        call()
+
+
+def test_a_number_for_every_input_of_a_batch_is_read_alike_by_the_enclosure_and_the_atlas(small_enclosure, small_atlas):
+    net, enc = small_enclosure
+    lo, hi = np.full((2, 3), -0.5), np.array([[0.5] * 3, [0.4] * 3])
+    assert enc.covers(-0.5, hi) == enc.covers(lo, hi) is True
+    assert enc.covers(lo, 0.5) == enc.covers(lo, np.full((2, 3), 0.5)) is True
+    assert enc.covers(-2.0, hi) == enc.covers(np.full((2, 3), -2.0), hi) is False
+    with pytest.raises(ValueError, match="box is empty"):
+        enc.covers(0.45, hi)
+    _, atlas = small_atlas
+    assert atlas.covers(-0.5, hi).tolist() == atlas.covers(lo, hi).tolist() == [True, True]
+
+
+@pytest.mark.parametrize("seed", [np.random.default_rng(0), np.random.SeedSequence(3), np.random.PCG64(2)])
+def test_check_atlas_takes_numpy_s_seed_objects_as_the_plotting_helpers_do(small_atlas, seed):
+    """One rule for a seed: what np.random.default_rng takes, without booleans, floats and negative integers."""
+    from flnotes.plots import foundations
+
+    net, atlas = small_atlas
+    fl.check_atlas(net, atlas, seed=seed)
+    fl.check_atlas(net, atlas, seed=np.int64(4))
+    for bad in (True, 1.0, -1):
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            fl.check_atlas(net, atlas, seed=bad)
+    assert foundations.fl_identity_residual(fl.msd(), n=3, seed=seed).shape == (2,)

@@ -11,6 +11,28 @@ from .style import COLORS, saved, series_axes
 __all__ = ["gap_histogram", "answer_times"]
 
 
+def _gaps(values, name: str) -> np.ndarray:
+    """The gaps of one series without those of steps without a plan (NaN, ``+inf``); a negative gap is a
+    ``ValueError`` naming ``name``."""
+    d = as_floats(values, name).reshape(-1)
+    bad = d < 0  # NaN compares False: a step without a plan
+    if np.any(bad):
+        raise ValueError(f"{name} must be gaps >= 0 ((J - J_lb) / max(1, |J|) with a lower bound J_lb <= J; NaN or "
+                         f"inf for a step without a plan), got {float(d[bad][0])!r} at position "
+                         f"{int(np.flatnonzero(bad)[0])}")
+    return d[np.isfinite(d)]
+
+
+def _times(values, name: str) -> np.ndarray:
+    """The answer times of one series: finite numbers >= 0, else ``ValueError`` naming ``name``."""
+    t = as_floats(values, name).reshape(-1)
+    bad = ~(np.isfinite(t) & (t >= 0))
+    if np.any(bad):
+        raise ValueError(f"{name} must be answer times in ms, finite numbers >= 0, got {float(t[bad][0])!r} at "
+                         f"position {int(np.flatnonzero(bad)[0])}")
+    return t
+
+
 def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None, ax=None):
     """Histogram of the relative optimality gaps of the steps that hit the time limit, one series per run.
 
@@ -19,8 +41,9 @@ def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None
     gaps
         ``{label: gaps}``: the gap ``(J - J_lb) / max(1, |J|)`` of each step that hit the limit, where ``J``
         is the cost of the returned plan and ``J_lb`` a valid lower bound of eq. (MPC_form_miqp) (see
-        :func:`flnotes.bench.deadline.limit_gaps`). Non-finite gaps (no admissible plan) are left out. The gaps
-        must be real numbers (a boolean or a string is a ``ValueError`` naming its series).
+        :func:`flnotes.bench.deadline.limit_gaps`). A gap is a number >= 0; NaN or ``+inf`` (no admissible plan,
+        no gap: what ``limit_gaps`` records) are left out. A negative gap or ``-inf`` (a bound above the cost: no
+        gap of eq. (MPC_form_miqp)), a boolean or a string is a ``ValueError`` naming its series.
     bins
         Number of bins over ``[0, max gap]``.
     path
@@ -28,8 +51,7 @@ def gap_histogram(gaps: Mapping[str, Sequence[float]], bins: int = 20, path=None
     """
     bins = check_count(bins, "bins", 1, "bins of the histogram")
     if isinstance(gaps, Mapping):  # the values are read before a figure is made (series_axes refuses the rest)
-        data = {k: as_floats(v, f"gaps[{k!r}]").reshape(-1) for k, v in gaps.items()}
-        data = {k: d[np.isfinite(d)] for k, d in data.items()}
+        data = {k: _gaps(v, f"gaps[{k!r}]") for k, v in gaps.items()}
     fig, ax = series_axes(gaps, "gaps", ax)
     top = max([float(d.max()) for d in data.values() if d.size] + [1e-12])
     edges = np.linspace(0.0, top * 1.0001, bins + 1)
@@ -47,7 +69,8 @@ def answer_times(times_ms: Mapping[str, Sequence[float]], t_s_ms: float, path=No
     Parameters
     ----------
     times_ms
-        ``{label: answer time of each step in ms}`` (real numbers; ``ValueError`` naming the series otherwise).
+        ``{label: answer time of each step in ms}``: finite numbers >= 0 (``ValueError`` naming the series
+        otherwise: a negative or NaN time would vanish from the logarithmic axis).
     t_s_ms
         The time limit, drawn as a horizontal line: a finite number > 0.
     path
@@ -55,7 +78,7 @@ def answer_times(times_ms: Mapping[str, Sequence[float]], t_s_ms: float, path=No
     """
     t_s_ms = check_number(t_s_ms, "t_s_ms", "the time limit in ms", strict=True)
     if isinstance(times_ms, Mapping):  # the values are read before a figure is made (series_axes refuses the rest)
-        times_ms = {k: as_floats(v, f"times_ms[{k!r}]").reshape(-1) for k, v in times_ms.items()}
+        times_ms = {k: _times(v, f"times_ms[{k!r}]") for k, v in times_ms.items()}
     fig, ax = series_axes(times_ms, "times_ms", ax)
     for i, (lab, t) in enumerate(times_ms.items()):
         t = np.sort(t)

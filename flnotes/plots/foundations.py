@@ -14,7 +14,8 @@ from typing import Optional, Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .._checks import as_state, as_floats, as_pair, as_vector, brief, check_box, check_count, check_int, check_number
+from .._checks import (as_floats, as_pair, as_state, as_vector, brief, check_box, check_count, check_int,
+                       check_number, check_seed)
 from ..bounds import fbbt, sample_preactivations
 from ..network import ReLUNet
 from ..systems import FLSystem, brunovsky, discretize
@@ -53,10 +54,8 @@ def _index(i, name: str, size: int, what: str) -> int:
 def _seed(seed, name: str = "seed"):
     """``seed`` for ``np.random.default_rng``: an integer >= 0, ``None`` (a fresh random sample) or numpy's own seed
     objects (a ``Generator``, ``BitGenerator`` or ``SeedSequence``); anything else (a boolean, a float, a negative
-    integer) is a ``ValueError`` naming ``name``."""
-    if seed is None or isinstance(seed, (np.random.Generator, np.random.BitGenerator, np.random.SeedSequence)):
-        return seed
-    return check_int(seed, name, 0, "the seed of the random sample, or None for a fresh one")
+    integer) is a ``ValueError`` naming ``name`` (:func:`flnotes._checks.check_seed`, the rule of every seed)."""
+    return check_seed(seed, name)
 
 
 # --------------------------------------------------------------------------
@@ -100,7 +99,14 @@ def fl_identity_residual(system: FLSystem, n: int = 200, seed: int = 0, h: float
 
 
 def _v_axis(system: FLSystem, v_lim: Optional[Sequence[float]], n: int) -> Array:
-    lo, hi = (system.lo[-1], system.hi[-1]) if v_lim is None else (float(v_lim[0]), float(v_lim[1]))
+    """``n`` points of ``v`` over ``v_lim`` (two finite numbers lo < hi), or over the domain box when it is None."""
+    if v_lim is None:
+        return np.linspace(system.lo[-1], system.hi[-1], int(n))
+    lo, hi = as_pair(v_lim, "v_lim")
+    lo, hi = (check_number(x, f"v_lim[{i}]", "an end of the drawn range of v", low=-np.inf)
+              for i, x in enumerate((lo, hi)))
+    if lo >= hi:
+        raise ValueError(f"v_lim must be a range (lo, hi) with lo < hi, got {brief(v_lim)}: give the lower end first")
     return np.linspace(lo, hi, int(n))
 
 
@@ -169,8 +175,8 @@ def plot_feasible_set(system: FLSystem, axis: int = 1, z_fixed: Optional[Array] 
         Optional ``(index, values)``: draw one band per value of ``z[index]`` (an integer index other than
         ``axis``, and numbers).
     v_lim
-        Range of ``v`` drawn; default the domain box. The box's ``v`` limits are
-        dashed.
+        Range ``(lo, hi)`` of ``v`` drawn, two finite numbers with ``lo < hi``; default the domain box. The box's
+        ``v`` limits are dashed.
     n
         Grid points per axis.
 

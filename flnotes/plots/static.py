@@ -23,10 +23,38 @@ import re
 from typing import Callable, Mapping, Sequence
 
 import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.figure import Figure
 
-from .._checks import check_number
+from .._checks import brief, check_int, check_number
 
 __all__ = ["FramePlayer", "frame_player"]
+
+
+def _slider_values(values, name: str) -> list:
+    """A slider's values as a list: a non-empty sequence (a list, tuple, range or 1-d array), else ``ValueError``
+    naming ``name``."""
+    ok = isinstance(values, (list, tuple, range)) or (isinstance(values, np.ndarray) and values.ndim == 1)
+    if not ok or len(values) == 0:
+        raise ValueError(f"{name} must be a non-empty sequence of values (a list, tuple, range or 1-d array) for the "
+                         f"slider to step through, got {brief(values)}")
+    return list(values)
+
+
+def _start(start, axes: list, labels: list) -> list:
+    """``start`` as one index per slider (integers, 0-based, each within its slider's values), else ``ValueError``."""
+    if not (isinstance(start, (list, tuple)) or (isinstance(start, np.ndarray) and start.ndim == 1)):
+        raise ValueError(f"start must be a list of {len(axes)} indices, one per slider (0-based), got {brief(start)}")
+    if len(start) != len(axes):
+        raise ValueError(f"start must hold one index per slider ({len(axes)}: {labels}), got {len(start)}: "
+                         f"{brief(start)}")
+    out = []
+    for d, (s, v) in enumerate(zip(start, axes)):
+        i = check_int(s, f"start[{d}]", 0, f"the index, 0-based, of the first value of slider {labels[d]!r}")
+        if i >= len(v):
+            raise ValueError(f"start[{d}] must index the values of slider {labels[d]!r}: 0..{len(v) - 1}, got {i}")
+        out.append(i)
+    return out
 
 
 def _png_data_uri(fig, dpi: float) -> str:
@@ -100,14 +128,16 @@ def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], n
     ----------
     draw
         Called with one value per slider (in the order of ``sliders``); returns
-        a matplotlib figure (closed after encoding).
+        a matplotlib figure (closed after encoding); anything else is a ``TypeError`` naming ``draw``.
     sliders
-        ``{label: sequence of values}``; each slider steps through its values.
+        ``{label: sequence of values}`` (a dict; each a non-empty list, tuple, range or 1-d array); each slider
+        steps through its values.
     name
         Identifier of the player in the page: letters, digits, ``-`` and ``_``,
         starting with a letter; unique within a page.
     start
-        Index of the first frame along each slider (default: the middle).
+        Index of the first frame along each slider (default: the middle): one integer per slider, 0-based,
+        within its values (``ValueError`` naming the entry otherwise: ``1.7``, ``True`` or ``"2"`` are no index).
     dpi
         Resolution of the PNG frames (dots per inch, a finite number >= 1, e.g. 60 or 72.5); keep it low, every frame
         is embedded.
@@ -117,24 +147,28 @@ def frame_player(draw: Callable[..., object], sliders: Mapping[str, Sequence], n
     FramePlayer
         Displayed as HTML by Jupyter and by the built book.
     """
+    if not callable(draw):
+        raise TypeError(f"draw must be a function of one value per slider returning a matplotlib figure, got "
+                        f"{brief(draw)}")
     if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name):
         raise ValueError(f"name must start with a letter and hold only letters, digits, '-' and '_', got {name!r}")
+    if not isinstance(sliders, Mapping):
+        raise TypeError(f"sliders must be a dict {{label: sequence of values}}, got {brief(sliders)}")
     if not sliders:
         raise ValueError("sliders must hold at least one {label: values} entry")
     dpi = check_number(dpi, "dpi", "dots per inch of the frames; below 1 a frame has hardly a pixel", low=1.0)
-    axes = [list(v) for v in sliders.values()]
-    if any(len(v) == 0 for v in axes):
-        raise ValueError(f"every slider needs at least one value, got lengths {[len(v) for v in axes]}")
+    axes = [_slider_values(v, f"sliders[{k!r}]") for k, v in sliders.items()]
     n_frames = 1
     for v in axes:
         n_frames *= len(v)
     if n_frames > 200:
         raise ValueError(f"{n_frames} frames would make the page heavy: use fewer slider values (at most 200 frames)")
-    start = [len(v) // 2 for v in axes] if start is None else [int(s) for s in start]
-    if len(start) != len(axes) or any(not 0 <= s < len(v) for s, v in zip(start, axes)):
-        raise ValueError(f"start must hold one valid index per slider, got {start} for lengths {[len(v) for v in axes]}")
+    start = [len(v) // 2 for v in axes] if start is None else _start(start, axes, list(sliders))
     frames = {}
     for idx in itertools.product(*[range(len(v)) for v in axes]):
         fig = draw(*[v[i] for v, i in zip(axes, idx)])
+        if not isinstance(fig, Figure):
+            raise TypeError(f"draw must return a matplotlib figure (e.g. fig, ax = plt.subplots(); ...; return fig), "
+                            f"got {brief(fig)} for the values {[v[i] for v, i in zip(axes, idx)]!r}")
         frames[",".join(map(str, idx))] = _png_data_uri(fig, dpi)
     return FramePlayer(name, dict(zip(sliders, axes)), frames, start)
