@@ -444,3 +444,18 @@ def test_the_steps_near_the_bound_encoded_first_leave_the_optimum(monkeypatch):
             rounds["plain"] += r.rounds
     assert checked >= 5, "the premise: states where the network constraint is active"
     assert rounds["near"] < rounds["plain"], f"the premise: the near steps save rounds ({rounds})"
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.0, float("nan"), True, "0.02"])
+def test_a_near_share_outside_zero_one_is_refused(monkeypatch, bad):
+    """``NEAR_ACTIVE`` is None or a share in [0, 1): anything else is refused by name at the first solve that uses
+    it, never read as 'every step' or 'none'."""
+    import flnotes.mpc.engine as engine
+
+    sysm, net, eps, kw = _small_quad(horizon=10)
+    mpc = MPC(sysm, net, eps, **kw)
+    monkeypatch.setattr(engine, "NEAR_ACTIVE", bad)
+    with pytest.raises(ValueError, match="NEAR_ACTIVE must be None or a share"):
+        for z0, zr in _random_problems(40, horizon=10):
+            mpc.reset()
+            mpc(z0, zr)

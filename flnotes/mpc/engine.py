@@ -24,6 +24,7 @@ the enclosure's slab alone leaves) is the whole program: its verdict is final.
 from __future__ import annotations
 
 import copy
+import numbers
 import threading
 import time
 from dataclasses import dataclass, field
@@ -63,6 +64,16 @@ FIRST_LEVEL_NO_INCUMBENT = 1.0
 #: value from 0.005 to 0.05 gave the same; 0 (the steps at the bound only) gained nothing. ``None``: none added (the
 #: first round holds the QP's violated steps and the previous step's only).
 NEAR_ACTIVE: Optional[float] = 0.02
+
+def _near_active() -> float:
+    """:data:`NEAR_ACTIVE` as a share in ``[0, 1)`` (``ValueError`` otherwise: 1 or more would encode every step, a
+    negative share none, like ``None``)."""
+    share = NEAR_ACTIVE
+    if isinstance(share, (bool, np.bool_)) or not isinstance(share, numbers.Real) or not 0.0 <= share < 1.0:
+        raise ValueError(f"flnotes.mpc.engine.NEAR_ACTIVE must be None or a share of u_max^eps in [0, 1), got "
+                         f"{share!r}")
+    return float(share)
+
 
 #: Seconds of the time limit that must be left to start a solver or a round: with less, the step returns its
 #: incumbent (a solver started then answered after the limit by its start-up and its overrun).
@@ -372,7 +383,7 @@ class NetworkEngine:
         active = set(pred.violated(z0, V_c).tolist()) if V_c is not None else set(range(N))
         active |= {k - 1 for k in self.active_prev if k >= 1}
         if inc_V is not None and NEAR_ACTIVE is not None:  # the steps where the incumbent is near the bound
-            active |= set(pred.near_bound(z0, inc_V, NEAR_ACTIVE).tolist())
+            active |= set(pred.near_bound(z0, inc_V, _near_active()).tolist())
         level = o.bounds == "levelset" and V_c is not None
 
         def remaining() -> Optional[float]:
