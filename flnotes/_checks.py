@@ -320,9 +320,10 @@ def box_in_domain(lo: Any, hi: Any, dom_lo: np.ndarray, dom_hi: np.ndarray, what
     return lo_a, hi_a
 
 
-def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]:
+def check_boxes(lo: Any, hi: Any, n: int, infinite: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
     """One box ``(n,)`` or a batch ``(T, n)`` of boxes as (T, n) arrays, and whether a batch was given; a number
-    is taken for every coordinate, of one box or of every box of the other bound's batch."""
+    is taken for every coordinate, of one box or of every box of the other bound's batch. Bounds are finite, or
+    with ``infinite`` ``±inf`` too (a box that reaches out without end; NaN is refused either way)."""
     lo_a, hi_a = as_floats(lo, "lo"), as_floats(hi, "hi")
     shape = next((a.shape for a in (lo_a, hi_a) if a.ndim == 2), (n,))  # of the other bound's batch, if any
     lo_a, hi_a = (np.full(shape, float(a)) if a.ndim == 0 else a for a in (lo_a, hi_a))
@@ -330,9 +331,18 @@ def check_boxes(lo: Any, hi: Any, n: int) -> tuple[np.ndarray, np.ndarray, bool]
     lo2, hi2 = np.atleast_2d(lo_a), np.atleast_2d(hi_a)
     if lo2.shape != hi2.shape or lo2.ndim != 2 or lo2.shape[1] != n:
         raise ValueError(f"lo and hi must have shape ({n},) or (T, {n}), got {np.shape(lo)} and {np.shape(hi)}")
-    ok = np.all(np.isfinite(lo2), axis=1) & np.all(np.isfinite(hi2), axis=1) & np.all(lo2 <= hi2, axis=1)
+    fine = (lambda a: ~np.isnan(a)) if infinite else np.isfinite
+    ok = np.all(fine(lo2), axis=1) & np.all(fine(hi2), axis=1) & np.all(lo2 <= hi2, axis=1)
     for t in np.flatnonzero(~ok)[:1]:  # the first bad box, named as check_box names it (its row in a batch)
-        check_box(lo2[t], hi2[t], n, *((f"lo[{t}]", f"hi[{t}]") if batch else ("lo", "hi")))
+        names = (f"lo[{t}]", f"hi[{t}]") if batch else ("lo", "hi")
+        if infinite:
+            for name, a in zip(names, (lo2[t], hi2[t])):
+                if np.any(np.isnan(a)):
+                    raise ValueError(f"{name} contains NaN: {a}")
+            i = int(np.flatnonzero(lo2[t] > hi2[t])[0])
+            raise ValueError(f"box is empty: {names[0]}[{i}] = {lo2[t][i]} > {names[1]}[{i}] = {hi2[t][i]}; every "
+                             f"lower bound must be <= its upper bound")
+        check_box(lo2[t], hi2[t], n, *names)
     return lo2, hi2, batch
 
 
@@ -390,12 +400,15 @@ SEED_OBJECTS = (np.random.Generator, np.random.BitGenerator, np.random.SeedSeque
 
 
 def check_seed(seed: Any, name: str = "seed", what: str = "the seed of the random sample, or None for a fresh one"):
-    """``seed`` for ``np.random.default_rng``: ``None`` (a fresh random sample), an integer >= 0 (a 0-d integer array
-    too) or numpy's own seed objects (a ``Generator``, ``BitGenerator`` or ``SeedSequence``), returned as given (an
-    integer as an ``int``); anything else (a boolean, a float, a negative integer) is a ``ValueError`` naming
-    ``name``."""
+    """``seed`` for ``np.random.default_rng``: ``None`` (a fresh random sample), an integer >= 0 (a 0-d integer
+    array too), a sequence of them (as a list) or numpy's own seed objects (a ``Generator``, ``BitGenerator`` or
+    ``SeedSequence``), returned as given (an integer as an ``int``); anything else (a boolean, a float, a negative
+    integer) is a ``ValueError`` naming ``name``."""
     if seed is None or isinstance(seed, SEED_OBJECTS):
         return seed
+    if isinstance(seed, (list, tuple, np.ndarray)) and np.ndim(seed) == 1 and len(seed):  # numpy's entropy sequence
+        return [check_int(e.item() if isinstance(e, np.generic) else e, f"{name}[{i}]", 0, what)
+                for i, e in enumerate(seed)]
     return check_int(seed, name, 0, what)
 
 

@@ -119,9 +119,11 @@ def _params(p: Optional[dict], name: str = "p") -> dict:
 
 
 def _point(x, name: str) -> Array:
-    """A point of the workspace: exactly two finite numbers ``(x, y)`` (m), else ``ValueError`` naming ``name`` (a
-    number is not broadcast to both coordinates)."""
+    """A point of the workspace: two finite numbers ``(x, y)`` (m; a (2, 1) or (1, 2) array too), else
+    ``ValueError`` naming ``name`` (a number is not broadcast to both coordinates)."""
     a = as_floats(x, name)
+    if a.ndim == 2 and 1 in a.shape:
+        a = a.reshape(-1)
     if a.shape != (2,):
         raise ValueError(f"{name} must be a point (x, y) of the workspace, shape (2,), got {brief(x)} of shape "
                          f"{a.shape}")

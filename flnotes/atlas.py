@@ -142,9 +142,9 @@ class BoundAtlas:
     def covers(self, lo: Array, hi: Array) -> Array:
         """Per box (rows of ``lo, hi``, shape (T, n_in), or one box (n_in,)), whether it lies in the domain.
 
-        ``lo <= hi`` must be finite numbers of these shapes, or a number for every input (``ValueError`` naming them
-        otherwise)."""
-        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges))
+        ``lo <= hi`` must be numbers of these shapes (``±inf`` for a box without end, which no domain holds), or a
+        number for every input (``ValueError`` naming them otherwise, NaN included)."""
+        lo2, hi2, _ = check_boxes(lo, hi, len(self.edges), infinite=True)
         return self._covers(lo2, hi2)
 
     def _covers(self, lo: Array, hi: Array) -> Array:

@@ -164,10 +164,11 @@ class AffineEnclosure:
     def covers(self, lo: Array, hi: Array) -> bool:
         """Does the enclosure's box contain the box ``[lo, hi]`` (every box, for a batch (T, n_in))?
 
-        ``lo <= hi`` must be finite numbers of shape (n_in,) or (T, n_in), or a number for every input (of every box
+        ``lo <= hi`` must be numbers of shape (n_in,) or (T, n_in) (``±inf`` for a box without end, which no
+        enclosure holds), or a number for every input (of every box
         of a batch given as the other bound, as :meth:`flnotes.BoundAtlas.covers` takes it; ``ValueError`` naming
         them otherwise)."""
-        lo2, hi2, _ = check_boxes(lo, hi, self.lo.shape[0])
+        lo2, hi2, _ = check_boxes(lo, hi, self.lo.shape[0], infinite=True)
         return self._covers(lo2, hi2)
 
     def _covers(self, lo: Array, hi: Array) -> bool:

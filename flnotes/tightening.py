@@ -268,11 +268,13 @@ class LPTightener:
         """Bounds of the input ``x``: the box ``[lo, hi]``, finite, (n_in,) each (a number is taken for every
         input), ``lo <= hi``; anything else is a ``ValueError`` naming the argument.
 
-        The node bounds set before hold for the box they were computed on, not for this one: they are forgotten
-        (:meth:`preactivation_range` asks for them again), while the LP keeps its entries until they are set."""
+        Node bounds that hold on a box hold on every box inside it, not on a larger one: a box that leaves the one
+        set before makes the node bounds set for that one forgotten (:meth:`preactivation_range` asks for them again;
+        the LP keeps its entries until they are set). Bounds set before any box are the caller's for the first box."""
         lo, hi = check_box(lo, hi, self.net.n_in)
-        for known in self._known:
-            known[:] = False
+        if self._box_set and not (np.all(lo >= self._lb[self.x]) and np.all(hi <= self._ub[self.x])):
+            for known in self._known:
+                known[:] = False
         self._set_box(lo, hi)
 
     def _set_box(self, lo: Array, hi: Array) -> None:

@@ -1124,9 +1124,21 @@ def test_the_lp_tightener_answers_only_once_its_lp_relaxes_the_network(tightener
         + T.net.b[2]
     lo, hi = T.preactivation_range(2, 0)
     assert lo <= a[:, 0].min() and a[:, 0].max() <= hi  # a sound range of the output's pre-activation
-    T.set_box(-2.0, 2.0)  # bounds of the smaller box do not hold on a larger one: forgotten
+    lo_s, hi_s = T.preactivation_range(2, 0)
+    T.set_box(-0.5, 0.5)  # bounds of a box hold on the boxes inside it: kept, and the range is sound and tighter
+    X = np.random.default_rng(1).uniform(-0.5, 0.5, (2000, 3))
+    a = np.maximum(np.maximum(X @ T.net.W[0].T + T.net.b[0], 0.0) @ T.net.W[1].T + T.net.b[1], 0.0) @ T.net.W[2].T \
+        + T.net.b[2]
+    lo_i, hi_i = T.preactivation_range(2, 0)
+    assert lo_s <= lo_i <= a[:, 0].min() and a[:, 0].max() <= hi_i <= hi_s
+    T.set_box(-2.0, 2.0)  # bounds of a smaller box do not hold on a larger one: forgotten
     with pytest.raises(ValueError, match="neuron j = 0 of layer 0 has none"):
         T.preactivation_range(2, 0)
+    T.restart()  # node bounds set before the first box are the caller's for that box
+    T.set_layer(0, nb.L[0], nb.U[0])
+    T.set_layer(1, nb.L[1], nb.U[1])
+    T.set_box(-1.0, 1.0)
+    assert T.preactivation_range(2, 0) == (lo, hi)
     T.restart()
     with pytest.raises(ValueError, match="set the input box first"):  # a restart forgets what was set
         T.preactivation_range(0, 0)
@@ -1542,7 +1554,7 @@ def test_the_atlas_takes_a_number_for_every_input(small_atlas):
 
 @pytest.mark.parametrize("call, exc, match", [
     (lambda a: a.arm_obstacle_cbfs(-0.9, 0.1), ValueError, r"center must be a point \(x, y\) .*shape \(2,\)"),
-    (lambda a: a.arm_obstacle_cbfs([[0.0, -0.9]], 0.1), ValueError, r"center must be a point .*shape \(1, 2\)"),
+    (lambda a: a.arm_obstacle_cbfs([[0.0, -0.9], [0.1, 0.2]], 0.1), ValueError, r"center must be a point .*shape \(2, 2\)"),
     (lambda a: a.arm_obstacle_cbfs([0.0, -0.9, 0.0], 0.1), ValueError, "center must be a point"),
     (lambda a: a.ArmPointCBF(0.5, 0.1), ValueError, "center must be a point"),
     (lambda a: a.links_distance([[0.1, 0.2]], -0.9), ValueError, "center must be a point"),
@@ -1616,9 +1628,10 @@ def _player(**kw):
     (lambda s: _player(start=1), ValueError, r"start must be a list of 2 indices"),
     (lambda s: _player(start=[0]), ValueError, r"start must hold one index per slider \(2"),
     (lambda s: _player(start=[0, 2]), ValueError, r"start\[1\] must index the values of slider 'b': 0\.\.1"),
-    (lambda s: _player(sliders={"a": 3}), ValueError, r"sliders\['a'\] must be a non-empty sequence"),
-    (lambda s: _player(sliders={"a": "abc", "b": [1]}), ValueError, r"sliders\['a'\] must be a non-empty sequence"),
-    (lambda s: _player(sliders={"a": [1], "b": {1, 2}}), ValueError, r"sliders\['b'\] must be a non-empty sequence"),
+    (lambda s: _player(sliders={"a": 3}), ValueError, r"sliders\['a'\] must be a non-empty ordered"),
+    (lambda s: _player(sliders={"a": "abc", "b": [1]}), ValueError, r"sliders\['a'\] must be a non-empty ordered"),
+    (lambda s: _player(sliders={"a": [1], "b": {1, 2}}), ValueError, r"sliders\['b'\] must be a non-empty ordered"),
+    (lambda s: _player(sliders={"a": [1], "b": []}), ValueError, r"sliders\['b'\] must be a non-empty ordered"),
     (lambda s: _player(sliders=[("a", [1]), ("b", [2])]), TypeError, r"sliders must be a dict"),
     (lambda s: _player(draw=lambda a, b: None), TypeError, r"draw must return a matplotlib figure"),
     (lambda s: _player(draw=None), TypeError, r"draw must be a function"),
@@ -1768,3 +1781,40 @@ def test_check_atlas_takes_numpy_s_seed_objects_as_the_plotting_helpers_do(small
         with pytest.raises(ValueError, match="seed must be an integer >= 0"):
             fl.check_atlas(net, atlas, seed=bad)
     assert foundations.fl_identity_residual(fl.msd(), n=3, seed=seed).shape == (2,)
+
+
+def test_what_numpy_and_python_take_legitimately_is_taken_again(msd):
+    """Forms a third review found refused although they are legitimate: a seed as a sequence of integers (numpy's
+    entropy), negative axes and outputs of the plots (counted from the end), a one-state system's state as a number
+    in the repairs, an integral float or a range as the frame player's start, a Series or a dict's keys as a
+    slider's values, a box without end in ``covers`` (no domain holds it: False), and a gap below 0 by round-off."""
+    import matplotlib.pyplot as plt
+    from flnotes.plots import deadline as D
+    from flnotes.plots import foundations as F
+
+    sysm, net = msd
+    a = F.fl_identity_residual(sysm, n=20, seed=[1, 2])
+    assert np.array_equal(a, F.fl_identity_residual(sysm, n=20, seed=np.array([1, 2])))
+    with pytest.raises(ValueError, match=r"seed\[1\] must be an integer >= 0"):
+        F.fl_identity_residual(sysm, n=20, seed=[1, True])
+    f1, f2 = F.plot_line_cut(sysm, net, axis=-1, n=11), F.plot_line_cut(sysm, net, axis=sysm.n_in - 1, n=11)
+    assert np.array_equal(f1.axes[0].lines[0].get_xdata(), f2.axes[0].lines[0].get_xdata())
+    with pytest.raises(ValueError, match=r"axis must be an integer >= -3"):
+        F.plot_line_cut(sysm, net, axis=-sysm.n_in - 1, n=11)
+    plt.close("all")
+    one = fl.integrators(1, [-2.0, -3.0], [2.0, 3.0], 2.5)
+    m1 = fl.MPC(one, _identity_net(one), 0.1, horizon=4, ts=0.1, Q=[1.0], R=0.1)
+    assert np.array_equal(m1.feasible_tail(0.5, 0.0), m1.feasible_tail([0.5], [0.0]))
+    assert np.array_equal(m1.repair_plan(0.5, np.zeros(4))[1], m1.repair_plan([[0.5]], np.zeros(4))[1])
+    assert _player(start=[1.0, 0]).start == _player(start=np.array([1, 0])).start == [1, 0]
+    assert _player(start=range(1, -1, -1)).start == [1, 0]
+    pd = pytest.importorskip("pandas")
+    p = _player(sliders={"a": pd.Series([1.0, 2.0]), "b": {0.5: None, 1.5: None}.keys()})
+    assert list(p.sliders["a"]) == [1.0, 2.0] and list(p.sliders["b"]) == [0.5, 1.5]
+    enc = fl.affine_enclosure(net, sysm.lo, sysm.hi)
+    assert enc.covers(sysm.lo - np.inf, sysm.hi) is False and enc.covers(sysm.lo, sysm.hi) is True
+    with pytest.raises(ValueError, match="lo contains NaN"):
+        enc.covers(np.full(sysm.n_in, np.nan), sysm.hi)
+    assert np.array_equal(D._gaps([0.1, -1e-15, np.nan, np.inf], "gaps['a']"), [0.1, 0.0])
+    with pytest.raises(ValueError, match=r"gaps\['a'\] must be gaps >= 0"):
+        D._gaps([0.1, -1e-6], "gaps['a']")

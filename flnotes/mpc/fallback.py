@@ -18,7 +18,7 @@ from typing import Optional
 
 import numpy as np
 
-from .._checks import as_floats, check_bool, check_count, check_number
+from .._checks import as_floats, as_state, check_bool, check_count, check_number
 from ..solvers import BOUND_TOL
 from .prediction import Prediction
 
@@ -39,14 +39,9 @@ def _check_pred(pred) -> None:
 
 
 def _check_state(pred: Prediction, z) -> Array:
-    """The state ``z`` as a finite float vector of shape (n_z,) exactly (a number is no state: ``ValueError`` naming
-    it otherwise)."""
-    a = as_floats(z, "z")
-    if a.shape != (pred.nz,):
-        raise ValueError(f"z must have shape ({pred.nz},) (one state; a number is no state), got shape {np.shape(z)}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"z contains NaN or inf: {a}")
-    return a
+    """The state ``z`` as a finite float vector (n_z,) (:func:`flnotes._checks.as_state`: a number is a state of one
+    coordinate only; ``ValueError`` naming it otherwise)."""
+    return as_state(z, pred.nz, "z")
 
 
 def _check_guess(pred: Prediction, v_guess) -> Array:

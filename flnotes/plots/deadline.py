@@ -11,16 +11,22 @@ from .style import COLORS, saved, series_axes
 __all__ = ["gap_histogram", "answer_times"]
 
 
+#: Relative gaps down to this far below 0 are round-off (a lower bound a rounding error above the cost): drawn as 0.
+GAP_ROUNDING = 1e-9
+
+
 def _gaps(values, name: str) -> np.ndarray:
-    """The gaps of one series without those of steps without a plan (NaN, ``+inf``); a negative gap is a
+    """The gaps of one series without those of steps without a plan (NaN, ``+inf``); a gap below 0 by round-off
+    (:data:`GAP_ROUNDING`: a lower bound a rounding error above the cost) counts as 0; a negative gap beyond it is a
     ``ValueError`` naming ``name``."""
     d = as_floats(values, name).reshape(-1)
-    bad = d < 0  # NaN compares False: a step without a plan
+    bad = d < -GAP_ROUNDING  # NaN compares False: a step without a plan
     if np.any(bad):
         raise ValueError(f"{name} must be gaps >= 0 ((J - J_lb) / max(1, |J|) with a lower bound J_lb <= J; NaN or "
                          f"inf for a step without a plan), got {float(d[bad][0])!r} at position "
                          f"{int(np.flatnonzero(bad)[0])}")
-    return d[np.isfinite(d)]
+    d = d[np.isfinite(d)]
+    return np.maximum(d, 0.0)
 
 
 def _times(values, name: str) -> np.ndarray:

@@ -44,11 +44,12 @@ def _z_point(system: FLSystem, z: Optional[Array], name: str = "z_fixed") -> Arr
 
 
 def _index(i, name: str, size: int, what: str) -> int:
-    """``i`` as an index 0..size-1 of ``what`` (an integer, not a boolean), else ``ValueError`` naming ``name``."""
-    i = check_int(i, name, 0, f"the index, 0-based, of {what}")
+    """``i`` as an index 0..size-1 of ``what`` (an integer, not a boolean; negative from the end, as Python counts),
+    else ``ValueError`` naming ``name``."""
+    i = check_int(i, name, -size, f"the index, 0-based (negative from the end), of {what}")
     if i >= size:
-        raise ValueError(f"{name} must index {what}: 0..{size - 1}, got {i}")
-    return i
+        raise ValueError(f"{name} must index {what}: 0..{size - 1} (or -{size}..-1), got {i}")
+    return i % size
 
 
 def _seed(seed, name: str = "seed"):

@@ -32,24 +32,32 @@ __all__ = ["FramePlayer", "frame_player"]
 
 
 def _slider_values(values, name: str) -> list:
-    """A slider's values as a list: a non-empty sequence (a list, tuple, range or 1-d array), else ``ValueError``
-    naming ``name``."""
-    ok = isinstance(values, (list, tuple, range)) or (isinstance(values, np.ndarray) and values.ndim == 1)
-    if not ok or len(values) == 0:
-        raise ValueError(f"{name} must be a non-empty sequence of values (a list, tuple, range or 1-d array) for the "
-                         f"slider to step through, got {brief(values)}")
-    return list(values)
+    """A slider's values as a list: a non-empty ordered collection (a list, tuple, range, 1-d array, pandas Series, a
+    dict's keys, a generator), else ``ValueError`` naming ``name`` (a string, a mapping, a set, which has no order, or
+    a single value)."""
+    unordered = isinstance(values, (str, bytes, Mapping, set, frozenset)) or (isinstance(values, np.ndarray)
+                                                                              and values.ndim != 1)
+    try:
+        out = None if unordered else list(values)
+    except TypeError:  # not iterable: a single value
+        out = None
+    if not out:
+        raise ValueError(f"{name} must be a non-empty ordered collection of values (a list, tuple, range or 1-d array) "
+                         f"for the slider to step through, got {brief(values)}")
+    return out
 
 
 def _start(start, axes: list, labels: list) -> list:
     """``start`` as one index per slider (integers, 0-based, each within its slider's values), else ``ValueError``."""
-    if not (isinstance(start, (list, tuple)) or (isinstance(start, np.ndarray) and start.ndim == 1)):
+    if not (isinstance(start, (list, tuple, range)) or (isinstance(start, np.ndarray) and start.ndim == 1)):
         raise ValueError(f"start must be a list of {len(axes)} indices, one per slider (0-based), got {brief(start)}")
     if len(start) != len(axes):
         raise ValueError(f"start must hold one index per slider ({len(axes)}: {labels}), got {len(start)}: "
                          f"{brief(start)}")
     out = []
     for d, (s, v) in enumerate(zip(start, axes)):
+        if isinstance(s, (float, np.floating)) and np.isfinite(s) and float(s).is_integer():
+            s = int(s)  # an integral float (1.0) is that index; 1.7 is none
         i = check_int(s, f"start[{d}]", 0, f"the index, 0-based, of the first value of slider {labels[d]!r}")
         if i >= len(v):
             raise ValueError(f"start[{d}] must index the values of slider {labels[d]!r}: 0..{len(v) - 1}, got {i}")
