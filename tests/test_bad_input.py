@@ -449,17 +449,20 @@ def test_numbers_in_any_container_numpy_reads_are_taken_as_they_are(msd):
     assert np.array_equal(b.out_L, fl.fbbt(net, lo, hi).out_L)
 
 
+class _ArrayOf:
+    """An object whose ``__array__`` gives ``a`` as it is (a masked array, booleans, or no array at all)."""
+
+    def __init__(self, a):
+        self.a = a
+
+    def __array__(self, dtype=None, copy=None):
+        return self.a
+
+
 def test_bytes_and_masks_behind_a_protocol_are_refused(msd):
     """numpy reads a memoryview of bytes as its characters' codes and drops the mask of a masked array given by an
     object's ``__array__``: both are refused by name, while a memoryview of a uint8 array and an ``__array__`` that
     gives a plain (or unmasked) array are their numbers."""
-    class Wrapped:
-        def __init__(self, a):
-            self.a = a
-
-        def __array__(self, dtype=None, copy=None):
-            return self.a
-
     sysm, net = msd
     X = np.array([0.3, -0.2, 1.5])
     with pytest.raises(ValueError, match="x must be numbers .*memory.*bytes"):
@@ -467,8 +470,8 @@ def test_bytes_and_masks_behind_a_protocol_are_refused(msd):
     with pytest.raises(ValueError, match="x must be numbers .*bytes"):
         net(memoryview(bytearray(b"123")))
     with pytest.raises(ValueError, match="x must be numbers .*masked"):
-        net(Wrapped(np.ma.masked_array(X, [False, True, False])))
-    assert np.array_equal(net(Wrapped(np.ma.masked_array(X, [False, False, False]))), net(X))
+        net(_ArrayOf(np.ma.masked_array(X, [False, True, False])))
+    assert np.array_equal(net(_ArrayOf(np.ma.masked_array(X, [False, False, False]))), net(X))
     u8 = np.array([1, 2, 3], np.uint8)
     assert np.array_equal(net(memoryview(u8)), net(u8.astype(float)))
 
@@ -480,25 +483,18 @@ def test_what_hides_inside_a_list_is_judged_as_an_argument_of_its_own(msd):
     import collections
     import mmap
 
-    class Wrapped:
-        def __init__(self, a):
-            self.a = a
-
-        def __array__(self, dtype=None, copy=None):
-            return self.a
-
     sysm, net = msd
     mm = mmap.mmap(-1, 3)
     mm.write(b"123")
-    bad = [([memoryview(b"123")], "bytes"), ([Wrapped(np.ma.masked_array([0.3, -0.2, 1.5], [0, 1, 0]))], "masked"),
-           ([collections.UserList([0.3, True, 1.5])], "booleans"), ([Wrapped(np.array([True, False, True]))], "booleans"),
-           (Wrapped([0.3, -0.2, 1.5]), "gives no array"), (Wrapped(Wrapped(np.zeros(3))), "gives no array"),
+    bad = [([memoryview(b"123")], "bytes"), ([_ArrayOf(np.ma.masked_array([0.3, -0.2, 1.5], [0, 1, 0]))], "masked"),
+           ([collections.UserList([0.3, True, 1.5])], "booleans"), ([_ArrayOf(np.array([True, False, True]))], "booleans"),
+           (_ArrayOf([0.3, -0.2, 1.5]), "gives no array"), (_ArrayOf(_ArrayOf(np.zeros(3))), "gives no array"),
            (mm, "bytes"), (memoryview(mm), "bytes"), ([mm], "bytes")]
     for x, what in bad:
         with pytest.raises(ValueError, match=f"x must be numbers .*{what}"):
             net(x)
     X = np.array([[0.3, -0.2, 1.5]])
-    for x in ([Wrapped(X[0])], [collections.UserList(X[0].tolist())], [memoryview(X[0].copy())]):
+    for x in ([_ArrayOf(X[0])], [collections.UserList(X[0].tolist())], [memoryview(X[0].copy())]):
         assert np.array_equal(net(x), net(X)), x
 
 
