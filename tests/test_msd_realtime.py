@@ -109,3 +109,16 @@ def test_scip_settings_table_runs_every_setting_side_by_side_with_the_same_optim
     for bad in (dict(passes=0), dict(passes=1.5), dict(settings={})):
         with pytest.raises(ValueError, match="scip_settings_runs"):
             B.scip_settings_runs(make, groups, **bad)
+
+
+def test_near_rows_compare_the_same_states_with_the_same_verdicts():
+    """The rows with and without the steps near the bound: one per state, the same verdict and optimum (the lever is
+    exact), no more programs in all on these states, and NEAR_ACTIVE as it was afterwards."""
+    from flnotes.mpc import engine
+
+    before = engine.NEAR_ACTIVE
+    s = B.setting()
+    rows = B.near_rows(s, B.cold_states(s, 4, seed=2))
+    assert len(rows) == 4 and all(r["same optimum"] for r in rows)
+    assert sum(r["programs with"] for r in rows) <= sum(r["programs without"] for r in rows)
+    assert engine.NEAR_ACTIVE == before

@@ -418,3 +418,24 @@ def atlas_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict
         rows.append({"state": kind, "status": a.status, "binaries without": a.n_binaries,
                      "binaries with": b.n_binaries, "cpu s without": cpu_a, "cpu s with": cpu_b, "same optimum": same})
     return rows
+
+
+def near_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict]:
+    """The default engine with and without the steps near the bound in its first program
+    (:data:`flnotes.mpc.engine.NEAR_ACTIVE`, ``None`` for the row without) at each cold state ``(kind, z, z_ref)``, in
+    alternating order: the programs solved (``StepResult.rounds``) and the CPU time (s) of each; ``same optimum``:
+    both of the same status and, when optimal, within 1e-6."""
+    with_near, without = controller(s), controller(s)
+    rows = []
+    for i, (kind, z, R) in enumerate(states):
+        out = {}
+        for name, ctrl in (("without", without), ("with", with_near))[:: 1 if i % 2 == 0 else -1]:
+            ctrl.reset()
+            with engine_constants("default without the near steps" if name == "without" else "default (auto)"):
+                out[name] = timed(ctrl, z, R)[:2]
+        (a, cpu_a), (b, cpu_b) = out["without"], out["with"]
+        same = a.status == b.status and (a.status != "optimal" or abs(a.objective - b.objective) <= SAME_OPTIMUM * max(
+            1.0, abs(a.objective)))
+        rows.append({"state": kind, "status": a.status, "programs without": a.rounds, "programs with": b.rounds,
+                     "cpu s without": cpu_a, "cpu s with": cpu_b, "same optimum": same})
+    return rows
