@@ -65,6 +65,7 @@ FIRST_LEVEL_NO_INCUMBENT = 1.0
 #: first round holds the QP's violated steps and the previous step's only).
 NEAR_ACTIVE: Optional[float] = 0.02
 
+
 def _near_active() -> float:
     """:data:`NEAR_ACTIVE` as a share in ``[0, 1)`` (``ValueError`` otherwise: 1 or more would encode every step, a
     negative share none, like ``None``)."""

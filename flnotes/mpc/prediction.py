@@ -129,18 +129,19 @@ class Prediction:
             hi = np.r_[hi, self.g - self.F @ (self.Sx[self.N] @ z0)]
         return lo, hi
 
+    def _outputs(self, z0: Array, V: Array) -> Array:
+        """``Phi_NN(z(k), v(k))`` at the predicted steps k = 0..N_p-1 of the plan ``V`` (forward pass), (N_p, m)."""
+        V = np.asarray(V, float).reshape(self.N, self.m)
+        return self.net(np.hstack([self.predict(z0, V)[: self.N], V]))
+
     def violated(self, z0: Array, V: Array, tol: float = BOUND_TOL) -> Array:
         """Predicted steps ``k`` with ``|Phi_NN(z(k), v(k))| > u_max^eps + tol`` (forward pass)."""
-        V = np.asarray(V, float).reshape(self.N, self.m)
-        u = self.net(np.hstack([self.predict(z0, V)[: self.N], V]))
-        return np.flatnonzero(np.any(np.abs(u) > self.u_eps + tol, axis=1))
+        return np.flatnonzero(np.any(np.abs(self._outputs(z0, V)) > self.u_eps + tol, axis=1))
 
     def near_bound(self, z0: Array, V: Array, frac: float) -> Array:
         """Predicted steps ``k`` of the plan ``V`` with ``|Phi_NN(z(k), v(k))| >= (1 - frac) u_max^eps`` for some
         input (forward pass): the steps at or near the network bound."""
-        V = np.asarray(V, float).reshape(self.N, self.m)
-        u = self.net(np.hstack([self.predict(z0, V)[: self.N], V]))
-        return np.flatnonzero(np.any(np.abs(u) >= (1.0 - frac) * self.u_eps, axis=1))
+        return np.flatnonzero(np.any(np.abs(self._outputs(z0, V)) >= (1.0 - frac) * self.u_eps, axis=1))
 
     def excess(self, z0: Array, V: Array, steps) -> float:
         """``max |Phi_NN(z(k), v(k))| - u_max^eps`` over the predicted ``steps`` of the plan ``V``."""
