@@ -52,7 +52,8 @@ class StepResult:
     n_binaries
         Binaries left free in the last mixed-integer program solved.
     encoded_steps
-        Predicted steps whose network constraint was encoded in that program.
+        Predicted steps whose network constraint was encoded in that program (step 0 included where, for one
+        input, its constraint was the bounds of its exact range of inputs: ``flnotes.mpc.engine.FIRST_RANGE``).
     rounds
         Programs solved in this step (constraint-generation rounds; 0 when screened).
     warm_started

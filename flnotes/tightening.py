@@ -33,7 +33,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._checks import (as_floats, as_pair, as_state, brief, check_bool, check_box, check_boxes,
+from ._checks import (as_floats, as_pair, as_state, as_vector, brief, check_bool, check_box, check_boxes,
                       check_count, check_int, check_number, one_number)
 from .bounds import NodeBounds, _interval_affine, fbbt, interval_affine
 from .network import ReLUNet, fingerprint
@@ -642,7 +642,7 @@ def _affine_bounds(net: ReLUNet, lo: Array, hi: Array, out_bounds, batch: bool) 
 # Reachable boxes along the horizon
 # ---------------------------------------------------------------------------
 def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_lo: Array, v_hi: Array,
-                  horizon: int) -> tuple[Array, Array]:
+                  horizon: int, first: Optional[tuple[Array, Array]] = None) -> tuple[Array, Array]:
     """Boxes containing ``[z(k), v(k)]``, k = 0..horizon-1, for every admissible input sequence.
 
     With ``z(0) = z0`` fixed and ``z(k+1) = Ad z(k) + Bd v(k)`` (eq. MPC_form_miqp_c),
@@ -663,6 +663,10 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
         State and input boxes.
     horizon
         ``N_p``.
+    first
+        Optional ``(a, b)``, each (m,): a narrower range of the first input, ``v(0)`` in ``[v_lo, v_hi]`` and in
+        ``[a, b]`` (e.g. its exact admissible range at ``z0``,
+        :meth:`flnotes.mpc.prediction.Prediction.first_range`); the later inputs keep ``[v_lo, v_hi]``.
 
     Returns
     -------
@@ -696,12 +700,21 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     if np.any(z0 < z_lo - BOX_TOL) or np.any(z0 > z_hi + BOX_TOL):
         raise EmptyBoxError(f"z0 = {z0} lies outside the state box [{z_lo}, {z_hi}] (tolerance {BOX_TOL:g})")
     z0 = np.clip(z0, z_lo, z_hi)  # on the face of the box up to round-off: on the face
+    v0_lo, v0_hi = v_lo, v_hi
+    if first is not None:
+        a, b = (as_vector(x, m, name) for x, name in zip(first, ("first's a", "first's b")))
+        v0_lo, v0_hi = np.maximum(v_lo, a), np.minimum(v_hi, b)
+        if np.any(v0_lo > v0_hi):
+            raise EmptyBoxError(f"the first input's range [{a}, {b}] misses the input box [{v_lo}, {v_hi}]")
     lo, hi = np.empty((horizon, n_z + m)), np.empty((horizon, n_z + m))
     lo[:, n_z:], hi[:, n_z:] = v_lo, v_hi
+    lo[0, n_z:], hi[0, n_z:] = v0_lo, v0_hi
     c_v, r_v = 0.5 * (v_hi + v_lo), 0.5 * (v_hi - v_lo)
+    c_0, r_0 = 0.5 * (v0_hi + v0_lo), 0.5 * (v0_hi - v0_lo)   # v(0)
     Bl, Bu = interval_affine(Bd, np.zeros(n_z), v_lo, v_hi)   # the box of Bd v
-    center, radius = z0.copy(), np.zeros(n_z)                 # the convolution box: center +- radius
-    AjB = Bd.copy()                                           # Ad^j Bd for the newest input
+    B0l, B0u = interval_affine(Bd, np.zeros(n_z), v0_lo, v0_hi)
+    center, rest = z0.copy(), np.zeros(n_z)                   # the convolution box: center +- radius
+    AjB = Bd.copy()                                           # Ad^j Bd
     zl, zu = z0.copy(), z0.copy()
     for k in range(horizon):
         lo[k, :n_z], hi[k, :n_z] = zl, zu
@@ -709,12 +722,14 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
             break
         # interval recursion with the state constraint
         nl, nu = interval_affine(Ad, np.zeros(n_z), zl, zu)
-        nl, nu = np.maximum(nl + Bl, z_lo), np.minimum(nu + Bu, z_hi)
-        # exact box of Ad^(k+1) z0 + sum_i Ad^(k-i) Bd v(i)
-        center = Ad @ center + Bd @ c_v
-        radius = np.abs(AjB) @ r_v + radius
+        nl, nu = (np.maximum(nl + B0l, z_lo), np.minimum(nu + B0u, z_hi)) if k == 0 else (
+            np.maximum(nl + Bl, z_lo), np.minimum(nu + Bu, z_hi))
+        # exact box of Ad^(k+1) z0 + sum_i Ad^(k-i) Bd v(i): v(0)'s term Ad^k Bd v(0), the others' summed by age
+        # (rest = sum_{j<k} |Ad^j Bd| r_v, in order of the input's age; both orders give the same sum)
+        center = Ad @ center + Bd @ (c_0 if k == 0 else c_v)
+        radius = rest + np.abs(AjB) @ r_0
+        rest = rest + np.abs(AjB) @ r_v
         AjB = Ad @ AjB
-        # (radius is accumulated in order of the input's age; both orders give the same sum)
         zl, zu = np.maximum(nl, center - radius), np.minimum(nu, center + radius)
         if np.any(zl > zu + 1e-9 * (1 + np.abs(zu))):
             raise EmptyBoxError(f"no admissible input keeps the predicted state in the box at step {k + 1}")

@@ -470,8 +470,10 @@ def test_a_tightened_verdict_of_a_later_round_is_backed_by_that_rounds_untighten
     monkeypatch.setattr(scip_backend, "_needs_polish", lambda p, status, w, bound, gap: status in ("optimal",
                                                                                                     "time_limit"))
     # the case as found: the step that decides is added by a later round (the steps near the bound, which the
-    # first round now encodes too, would hold it from the start)
+    # first round now encodes too, would hold it from the start), and step 0 encoded by its neurons (its exact
+    # range, imposed from the start, also changes the rounds)
     monkeypatch.setattr(engine, "NEAR_ACTIVE", None)
+    monkeypatch.setattr(engine, "FIRST_RANGE", False)
     sysm, net, z, z_ref = _late_ridge_case()
     kw = dict(horizon=6, ts=0.1, atlas=False)
     r_ref = fl.MPC(sysm, net, 0.1, backend="cvxpy-scip", bounds="box", gap=1e-9, **kw)(z, z_ref)
@@ -514,6 +516,7 @@ def test_the_untightened_rounds_own_plan_is_the_optimum_where_it_passes_the_chec
     from flnotes.mpc import prediction
 
     monkeypatch.setattr(engine, "NEAR_ACTIVE", None)  # the case as found: its rounds without the near steps
+    monkeypatch.setattr(engine, "FIRST_RANGE", False)  # and with step 0 encoded by its neurons
     s = msd_realtime.setting()
     z = np.array([5.0, float.fromhex("-0x1.d027312650e74p+0")])
     z_ref = np.zeros((s["horizon"] + 1, 2))
@@ -698,9 +701,11 @@ def test_an_infeasible_program_ends_its_level_rounds_once_they_cut_nothing(optio
 def test_auto_sends_a_program_without_an_incumbent_to_scip_above_its_threshold(monkeypatch, warm_threshold):
     """``backend="auto"``: DAQP up to ``AUTO_DAQP_BINARIES`` binaries when the round has an incumbent (a warm start
     to prune on), up to ``AUTO_DAQP_COLD_BINARIES`` without one; an explicit back-end is kept either way. On the
-    stored infeasible program (40 binaries, no plan to warm-start from) the default hands every round to SCIP, and
+    stored infeasible program (31 binaries, 40 with step 0's neurons; no plan to warm-start from) the default hands
+    every round to SCIP, and
     DAQP alone reaches the same verdict (its claim verified). With the threshold for warm-started rounds moved above
     40 (``warm_threshold=50``, the default before it was measured again), the cold rule alone sends it to SCIP."""
+    import flnotes.mpc.engine as engine
     import flnotes.mpc.levers as levers
     from flnotes.mpc.levers import pick_backend
 
@@ -720,6 +725,12 @@ def test_auto_sends_a_program_without_an_incumbent_to_scip_above_its_threshold(m
     sysm, net, z, z_ref = stored_integrator_case("infeasible_level_rounds_program.npz")
     kw = dict(horizon=5, ts=0.2, Q=[1.0], R=0.1)
     r = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)
+    # 31 binaries with step 0 written as its exact range (FIRST_RANGE), 40 with step 0's neurons: above the cold
+    # threshold either way
+    assert (r.status, r.backend, r.n_binaries) == ("infeasible", "scip", 31), r.message
+    with monkeypatch.context() as m:
+        m.setattr(engine, "FIRST_RANGE", False)
+        r = fl.MPC(sysm, net, 0.0, **kw)(z, z_ref)
     assert (r.status, r.backend, r.n_binaries) == ("infeasible", "scip", 40), r.message
     r_daqp = fl.MPC(sysm, net, 0.0, backend="daqp", **kw)(z, z_ref)
     assert (r_daqp.status, r_daqp.backend) == ("infeasible", "daqp"), r_daqp.message

@@ -269,6 +269,7 @@ def test_auto_lp_rounds_give_the_reference_optimum(monkeypatch):
     monkeypatch.setattr(engine, "LP_AUTO_BINARIES", 0)
     # steps added by constraint generation (the path of _lp_steps): the first round without the near steps
     monkeypatch.setattr(engine, "NEAR_ACTIVE", None)
+    monkeypatch.setattr(engine, "FIRST_RANGE", False)  # and step 0 encoded by its neurons, as when it was written
     calls = {"_lp_level": 0, "_lp_steps": 0}
     for name in calls:
         orig = getattr(engine.NetworkEngine, name)

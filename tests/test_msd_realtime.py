@@ -71,6 +71,29 @@ def test_a_row_of_engine_constants_sets_them_while_it_runs_only():
         assert engine.NEAR_ACTIVE == before
 
 
+def test_the_row_without_step_0s_range_sets_first_range_off_while_it_runs_only():
+    from flnotes.mpc import engine
+
+    assert "default without step 0's range" in dict(B.configurations())
+    with B.engine_constants("default without step 0's range"):
+        assert engine.FIRST_RANGE is False
+    assert engine.FIRST_RANGE is True
+
+
+def test_first_range_rows_compare_the_same_states_with_the_same_verdicts():
+    """The rows with and without step 0's exact range: one per state, the same verdict and optimum (the lever is
+    exact), fewer binaries in all on these states (the premise of the report's sentence), FIRST_RANGE as it was."""
+    from flnotes.mpc import engine
+
+    s = B.setting()
+    rows = B.first_range_rows(s, B.cold_states(s, 4, seed=2))
+    assert len(rows) == 4 and all(r["same optimum"] for r in rows)
+    assert sum(r["binaries with"] for r in rows) < sum(r["binaries without"] for r in rows)
+    assert engine.FIRST_RANGE is True
+    with pytest.raises(ValueError, match="row must be one of"):
+        B.without_rows(s, [], "default (auto)")
+
+
 def test_hardest_picks_the_longest_steps_in_order():
     recs = [dict(cpu=c) for c in (0.1, 3.0, 0.2, 5.0, 3.0)]
     assert B.hardest(recs, 2) == [1, 3]

@@ -123,7 +123,8 @@ def replay(ctrl: MPC, groups: Sequence[Sequence[tuple[Array, Array]]]) -> list[d
 
 #: Rows that differ from the default by a constant of the engine, not by an option: name -> ``{constant: value}``
 #: (set in :mod:`flnotes.mpc.engine` while the row runs, :func:`engine_constants`).
-ENGINE_CONSTANTS = {"default without the near steps": {"NEAR_ACTIVE": None}}
+ENGINE_CONSTANTS = {"default without the near steps": {"NEAR_ACTIVE": None},
+                    "default without step 0's range": {"FIRST_RANGE": False}}
 
 
 @contextmanager
@@ -145,6 +146,8 @@ def configurations() -> list[tuple[str, dict]]:
     on hard MSD states, fewer rounds on cold states, more work along the loop, where the warm start and the steps active
     at the previous solve seed the rounds); the default without the steps near the bound in the first round of
     constraint generation (:data:`flnotes.mpc.engine.NEAR_ACTIVE` ``= None``, :data:`ENGINE_CONSTANTS`); the default
+    with step 0 encoded by its neurons instead of its exact range of inputs (:data:`flnotes.mpc.engine.FIRST_RANGE`
+    ``= False``); the default
     without the network's affine enclosure in its relaxation
     (``enclosure=False``: the QP without the network, as before the enclosure); the default without the shipped bound
     atlas (``atlas=False``: LP node bounds solved at each step, :mod:`flnotes.atlas`); then one back-end for every program
@@ -155,6 +158,7 @@ def configurations() -> list[tuple[str, dict]]:
     """
     one = lambda b: dict(backend=b, time_limit=ROW_LIMIT, cut_off=False)  # noqa: E731
     rows = [("default (auto)", {}), ("default, lazy=False", dict(lazy=False)), ("default without the near steps", {}),
+            ("default without step 0's range", {}),
             ("default without the affine enclosure", dict(enclosure=False)),
             ("default without the bound atlas", dict(atlas=False)), ("SCIP only", one("scip")),
             ("DAQP only", one("daqp"))]
@@ -420,22 +424,37 @@ def atlas_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict
     return rows
 
 
-def near_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict]:
-    """The default engine with and without the steps near the bound in its first program
-    (:data:`flnotes.mpc.engine.NEAR_ACTIVE`, ``None`` for the row without) at each cold state ``(kind, z, z_ref)``, in
-    alternating order: the programs solved (``StepResult.rounds``) and the CPU time (s) of each; ``same optimum``:
-    both of the same status and, when optimal, within 1e-6."""
-    with_near, without = controller(s), controller(s)
+def without_rows(s: dict, states: Sequence[tuple[str, Array, Array]], row: str) -> list[dict]:
+    """The default engine with and without the engine constants of ``row`` (a row of :data:`ENGINE_CONSTANTS`) at each
+    cold state ``(kind, z, z_ref)``, in alternating order: the programs solved (``StepResult.rounds``), the binaries
+    of the last program (``StepResult.n_binaries``) and the CPU time (s) of each; ``same optimum``: both of the same
+    status and, when optimal, within :data:`SAME_OPTIMUM`."""
+    if row not in ENGINE_CONSTANTS:
+        raise ValueError(f"row must be one of {sorted(ENGINE_CONSTANTS)}, got {row!r}")
+    with_it, without = controller(s), controller(s)
     rows = []
     for i, (kind, z, R) in enumerate(states):
         out = {}
-        for name, ctrl in (("without", without), ("with", with_near))[:: 1 if i % 2 == 0 else -1]:
+        for name, ctrl in (("without", without), ("with", with_it))[:: 1 if i % 2 == 0 else -1]:
             ctrl.reset()
-            with engine_constants("default without the near steps" if name == "without" else "default (auto)"):
+            with engine_constants(row if name == "without" else "default (auto)"):
                 out[name] = timed(ctrl, z, R)[:2]
         (a, cpu_a), (b, cpu_b) = out["without"], out["with"]
         same = a.status == b.status and (a.status != "optimal" or abs(a.objective - b.objective) <= SAME_OPTIMUM * max(
             1.0, abs(a.objective)))
         rows.append({"state": kind, "status": a.status, "programs without": a.rounds, "programs with": b.rounds,
+                     "binaries without": a.n_binaries, "binaries with": b.n_binaries,
                      "cpu s without": cpu_a, "cpu s with": cpu_b, "same optimum": same})
     return rows
+
+
+def near_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict]:
+    """The default engine with and without the steps near the bound in its first program
+    (:data:`flnotes.mpc.engine.NEAR_ACTIVE`, ``None`` for the row without): :func:`without_rows`."""
+    return without_rows(s, states, "default without the near steps")
+
+
+def first_range_rows(s: dict, states: Sequence[tuple[str, Array, Array]]) -> list[dict]:
+    """The default engine with and without step 0 written as its exact range of inputs
+    (:data:`flnotes.mpc.engine.FIRST_RANGE`, ``False`` for the row without): :func:`without_rows`."""
+    return without_rows(s, states, "default without step 0's range")

@@ -143,6 +143,39 @@ class Prediction:
         input (forward pass): the steps at or near the network bound."""
         return np.flatnonzero(np.any(np.abs(self._outputs(z0, V)) >= (1.0 - frac) * self.u_eps, axis=1))
 
+    def first_range(self, z0: Array, bound: Array) -> Optional[tuple[Array, Array]]:
+        """The exact set of first inputs ``{v(0) in [v_lo, v_hi] : |Phi_NN(z0, v(0))| <= bound}`` when it is one
+        interval ``[a, b]`` (one input only: :func:`flnotes.exact_1d_feasible_set`, eq. Phi_NN_ep at the measured
+        state, where ``z(0) = z0`` is known); ``None`` for several inputs, an empty set or several intervals.
+
+        Each end is checked by the forward pass (``|Phi_NN(z0, a)| <= bound``; an end is moved inward, by a few units in
+        the last place, where round-off put it past the bound), so every ``v(0)`` of ``[a, b]`` meets the bound to the
+        forward pass's round-off (:data:`flnotes.solvers.BOUND_TOL`) and every other one breaks it: the bounds
+        ``a <= v(0) <= b`` are step 0's network constraint.
+        """
+        if self.m != 1:
+            return None
+        from ..control import exact_1d_feasible_set
+
+        z0 = np.asarray(z0, float)
+        u = float(np.asarray(bound, float).reshape(-1)[0])
+        iv = exact_1d_feasible_set(self.net, z0, float(self.v_lo[0]), float(self.v_hi[0]), u)
+        if iv.shape[0] != 1:
+            return None
+        a, b = float(iv[0, 0]), float(iv[0, 1])
+        da, db = float(np.spacing(a)), float(np.spacing(b))
+        for _ in range(64):  # inward by a step that doubles: a few units in the last place to 2^64 of them
+            out = np.abs(self.net(np.array([np.r_[z0, a], np.r_[z0, b]]))[:, 0])
+            if out[0] <= u and out[1] <= u:
+                return np.array([a]), np.array([b])
+            if out[0] > u:
+                a, da = a + abs(da), 2.0 * da
+            if out[1] > u:
+                b, db = b - abs(db), 2.0 * db
+            if a > b:
+                return None
+        return None
+
     def excess(self, z0: Array, V: Array, steps) -> float:
         """``max |Phi_NN(z(k), v(k))| - u_max^eps`` over the predicted ``steps`` of the plan ``V``."""
         V = np.asarray(V, float).reshape(self.N, self.m)
@@ -177,23 +210,29 @@ class Prediction:
         V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi)
         return V, fval, flag
 
-    def relaxation(self, f: Array, z0: Array) -> tuple[Optional[Array], float, int]:
+    def relaxation(self, f: Array, z0: Array, first: Optional[tuple[Array, Array]] = None
+                   ) -> tuple[Optional[Array], float, int]:
         """The convex relaxation of eq. (MPC_form_miqp) that the engine solves first: :meth:`qp` with, when the model
         has an :attr:`enclosure`, the slab that contains ``|Phi_NN(z(k), v(k))| <= u_max^eps`` at every step
         (:func:`flnotes.enclosure.outer_rows`; step 0's only when ``z0`` lies in the enclosure's box). Every plan of
         the program (to the forward-pass check's :data:`flnotes.solvers.BOUND_TOL`) satisfies its rows, so its optimum
-        is a lower bound of the program's, and the tighter the slab the closer. Returns what :meth:`qp` returns."""
+        is a lower bound of the program's, and the tighter the slab the closer. ``first``: step 0's exact range
+        (:meth:`first_range`), imposed on ``v(0)`` too. Returns what :meth:`qp` returns."""
         enc = self.enclosure
         if enc is None:
-            return self.qp(f, z0)
+            V, fval, flag, _ = self.qp_multipliers(f, z0, first=first)
+            return V, fval, flag
         z0 = np.asarray(z0, float)
         G, g_lo, g_hi = outer_rows(enc, self.T, self.Sx @ z0, self.u_eps + BOUND_TOL, self.nz, self._inside(z0))
-        return self.qp(f, z0, G, g_lo, g_hi)
+        V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi, first=first)
+        return V, fval, flag
 
     def qp_multipliers(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
-                       g_hi: Optional[Array] = None) -> tuple[Optional[Array], float, int, Optional[Array]]:
+                       g_hi: Optional[Array] = None, first: Optional[tuple[Array, Array]] = None
+                       ) -> tuple[Optional[Array], float, int, Optional[Array]]:
         """:meth:`qp` and the multipliers of the rows ``G`` at its optimum (DAQP's: positive on an active upper
-        bound ``g_hi``, negative on an active lower bound, zero on an inactive row); ``None`` without a plan."""
+        bound ``g_hi``, negative on an active lower bound, zero on an inactive row); ``None`` without a plan.
+        ``first = (a, b)``: ``v(0)`` within ``[a, b]`` as well (:meth:`first_range`)."""
         import daqp
 
         lo, hi = self.state_bounds(z0)
@@ -204,6 +243,9 @@ class Prediction:
         # DAQP: the first N m constraints are simple bounds on V, the rest rows of A
         bu_all = np.r_[np.tile(self.v_hi, N), np.minimum(bu, 1e30)]
         bl_all = np.r_[np.tile(self.v_lo, N), np.maximum(bl, -1e30)]
+        if first is not None:
+            m = self.m
+            bl_all[:m], bu_all[:m] = np.maximum(bl_all[:m], first[0]), np.minimum(bu_all[:m], first[1])
         x, fval, flag, info = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
                                          np.zeros(len(bu_all), dtype=np.int32))
         if flag not in (1, 2):
@@ -212,9 +254,10 @@ class Prediction:
         return np.asarray(x, float), float(fval), int(flag), lam
 
     # ------------------------------------------------------------------ boxes for the node bounds
-    def boxes(self, z0: Array) -> tuple[Array, Array]:
-        """Boxes of ``[z(k); v(k)]``, k = 0..N_p-1, over every admissible plan (:func:`flnotes.horizon_boxes`)."""
-        return horizon_boxes(self.Ad, self.Bd, z0, self.z_lo, self.z_hi, self.v_lo, self.v_hi, self.N)
+    def boxes(self, z0: Array, first: Optional[tuple[Array, Array]] = None) -> tuple[Array, Array]:
+        """Boxes of ``[z(k); v(k)]``, k = 0..N_p-1, over every admissible plan (:func:`flnotes.horizon_boxes`; ``first``:
+        the first input's exact range, :meth:`first_range`)."""
+        return horizon_boxes(self.Ad, self.Bd, z0, self.z_lo, self.z_hi, self.v_lo, self.v_hi, self.N, first)
 
     def level_boxes(self, z0: Array, V_c: Array, delta: float, lo: Array, hi: Array) -> tuple[Array, Array]:
         """``lo, hi`` cut by the ellipsoid ``0.5 ||V - V_c||_H^2 <= delta`` projected on each ``[z(k); v(k)]``, then,

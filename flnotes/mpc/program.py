@@ -105,7 +105,8 @@ def encoded_layers(pred: Prediction, z0: Array, nb: NodeBounds, steps: Sequence[
 
 def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBounds, steps: Sequence[int],
                     u_in: Array, *, eliminate_stable: bool = True, lo: Optional[Array] = None,
-                    hi: Optional[Array] = None, order: str = "layers") -> MIQP:
+                    hi: Optional[Array] = None, order: str = "layers",
+                    first: Optional[tuple[Array, Array]] = None) -> MIQP:
     """The condensed big-M program with the network encoded at ``steps``.
 
     Variables ``w = [V | y (encoded neurons) | alpha (encoded neurons)]``. Per encoded neuron with
@@ -132,6 +133,9 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
         Predicted steps whose network constraint is encoded.
     u_in
         The output bound written in the rows, (m,).
+    first
+        ``(a, b)``: step 0's network constraint as the bounds ``a <= v(0) <= b``
+        (:meth:`flnotes.mpc.prediction.Prediction.first_range` at ``u_in``); 0 must not be in ``steps`` then.
     """
     net, N, nz, m = pred.net, pred.N, pred.nz, pred.m
     nV = N * m
@@ -142,6 +146,10 @@ def compact_program(pred: Prediction, z0: Array, f: Array, c0: float, nb: NodeBo
     lb = np.r_[np.tile(pred.v_lo, N), np.zeros(2 * n_y)]
     ub = np.r_[np.tile(pred.v_hi, N), np.full(n_y, np.inf), np.ones(n_y)]
     integ = np.r_[np.zeros(nV + n_y, dtype=int), np.ones(n_y, dtype=int)]
+    if first is not None:
+        if 0 in steps:
+            raise ValueError("step 0's constraint is given as the bounds first = (a, b): leave 0 out of steps")
+        lb[:m], ub[:m] = np.maximum(lb[:m], first[0]), np.minimum(ub[:m], first[1])
     s_lo, s_hi = pred.state_bounds(z0)
     rows = [np.hstack([pred.A_state, np.zeros((pred.A_state.shape[0], n - nV))])]
     rl, ru = [s_lo], [s_hi]
