@@ -664,8 +664,8 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     horizon
         ``N_p``.
     first
-        Optional ``(a, b)``, each (m,): a narrower range of the first input, ``v(0)`` in ``[v_lo, v_hi]`` and in
-        ``[a, b]`` (e.g. its exact admissible range at ``z0``,
+        Optional pair ``(a, b)``, each (m,) with ``a <= b``: a narrower range of the first input, ``v(0)`` in
+        ``[v_lo, v_hi]`` and in ``[a, b]`` (e.g. its exact admissible range at ``z0``,
         :meth:`flnotes.mpc.prediction.Prediction.first_range`); the later inputs keep ``[v_lo, v_hi]``.
 
     Returns
@@ -702,7 +702,9 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
     z0 = np.clip(z0, z_lo, z_hi)  # on the face of the box up to round-off: on the face
     v0_lo, v0_hi = v_lo, v_hi
     if first is not None:
-        a, b = (as_vector(x, m, name) for x, name in zip(first, ("first's a", "first's b")))
+        a, b = (as_vector(x, m, name) for x, name in zip(as_pair(first, "first"), ("first's a", "first's b")))
+        if np.any(a > b):
+            raise ValueError(f"first = (a, b) needs a <= b (a range of the first input), got a = {a}, b = {b}")
         v0_lo, v0_hi = np.maximum(v_lo, a), np.minimum(v_hi, b)
         if np.any(v0_lo > v0_hi):
             raise EmptyBoxError(f"the first input's range [{a}, {b}] misses the input box [{v_lo}, {v_hi}]")

@@ -130,6 +130,37 @@ def test_horizon_boxes_refuse_a_first_range_outside_the_input_box_or_of_the_wron
         horizon_boxes(*args, first=(np.zeros(2), np.ones(2)))
     with pytest.raises(ValueError, match="first's b"):
         horizon_boxes(*args, first=(np.zeros(1), np.array([np.nan])))
+    for not_a_pair in ((np.zeros(1), np.ones(1), "junk"), (np.zeros(1), np.ones(1), np.ones(1)), (np.zeros(1),), 0.5):
+        with pytest.raises(ValueError, match="first must be a pair"):
+            horizon_boxes(*args, first=not_a_pair)
+    with pytest.raises(ValueError, match="needs a <= b"):
+        horizon_boxes(*args, first=(np.ones(1), -np.ones(1)))
+
+
+def test_the_first_range_ends_are_the_exact_methods_where_the_output_touches_the_bound():
+    """A bound equal to ``|Phi_NN(z0, v*)|`` at many ``v*`` (the output touches the bound): the range's ends are those of
+    :func:`flnotes.exact_1d_feasible_set` (not moved inward by the check's round-off), and each ``v*`` lies within
+    round-off (1e-12 of the input box's scale) of ``[a, b]``."""
+    net = fl.ReLUNet([np.array([[0.3, 0.7], [-0.2, 1.3]]), np.array([[0.9, -0.4]])],
+                     [np.array([0.05, -0.11]), np.array([0.137])])
+    z0 = np.array([0.41])
+    pred = Prediction(net, np.eye(1), np.ones((1, 1)), 2, np.eye(1), np.eye(1), np.eye(1), z_lo=-3 * np.ones(1),
+                      z_hi=3 * np.ones(1), v_lo=np.array([-2.0]), v_hi=np.array([2.0]), u_eps=np.array([1.0]))
+    seen = 0
+    for v_star in np.linspace(-2.0, 2.0, 801):
+        u = float(abs(net(np.r_[z0, v_star])[0]))
+        if u <= 0.0:
+            continue
+        fr = pred.first_range(z0, [u])
+        iv = fl.exact_1d_feasible_set(net, z0, -2.0, 2.0, u)
+        if iv.shape[0] != 1:
+            assert fr is None
+            continue
+        seen += 1
+        assert fr is not None and (fr[0][0], fr[1][0]) == (iv[0, 0], iv[0, 1])
+        tol = 1e-12 * 2.0  # the round-off of a root (an affine piece's zero) on the input box [-2, 2]
+        assert fr[0][0] - tol <= v_star <= fr[1][0] + tol
+    assert seen > 100
 
 
 def test_a_program_with_the_first_range_bounds_v0_and_refuses_step_0_among_the_encoded_steps(setting):

@@ -148,9 +148,10 @@ class Prediction:
         interval ``[a, b]`` (one input only: :func:`flnotes.exact_1d_feasible_set`, eq. Phi_NN_ep at the measured
         state, where ``z(0) = z0`` is known); ``None`` for several inputs, an empty set or several intervals.
 
-        Each end is checked by the forward pass (``|Phi_NN(z0, a)| <= bound``; an end is moved inward, by a few units in
-        the last place, where round-off put it past the bound), so every ``v(0)`` of ``[a, b]`` meets the bound to the
-        forward pass's round-off (:data:`flnotes.solvers.BOUND_TOL`) and every other one breaks it: the bounds
+        Each end is checked as every plan is, by the forward pass to its round-off (``|Phi_NN(z0, a)| <= bound +``
+        :data:`flnotes.solvers.BOUND_TOL`; an end past that would be moved inward by units in the last place), so
+        every ``v(0)`` of ``[a, b]`` meets the bound as the check reads it, and every input outside it by more than the
+        round-off of the ends (they are zeros of affine pieces, :func:`flnotes.exact_1d_feasible_set`) breaks it: the bounds
         ``a <= v(0) <= b`` are step 0's network constraint.
         """
         if self.m != 1:
@@ -165,7 +166,7 @@ class Prediction:
         a, b = float(iv[0, 0]), float(iv[0, 1])
         da, db = float(np.spacing(a)), float(np.spacing(b))
         for _ in range(64):  # inward by a step that doubles: a few units in the last place to 2^64 of them
-            out = np.abs(self.net(np.array([np.r_[z0, a], np.r_[z0, b]]))[:, 0])
+            out = np.abs(self.net(np.array([np.r_[z0, a], np.r_[z0, b]]))[:, 0]) - BOUND_TOL
             if out[0] <= u and out[1] <= u:
                 return np.array([a]), np.array([b])
             if out[0] > u:
