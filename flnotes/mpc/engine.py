@@ -69,12 +69,13 @@ NEAR_ACTIVE: Optional[float] = 0.02
 #: One input (``m = 1``): at the measured state ``z(0) = z0`` is known, so step 0's admissible inputs are exact (chapter
 #: 6's 1-D method); where they form one interval (:meth:`flnotes.mpc.prediction.Prediction.first_range`), step 0's
 #: network constraint is written as the bounds ``a <= v(0) <= b`` in every program instead of step 0's neurons and
-#: binaries, and the same bounds cut the relaxation (when its optimum's ``v(0)`` lies outside them) and the reachable
-#: boxes of the later steps. Exact: the bounds are step 0's constraint. Where the set is empty or several intervals,
-#: and for several inputs, step 0 is encoded like the others, as with ``False``. Measured side by side (one process,
-#: alternating, the same states), the same statuses and optima (within 3.3e-10): chapter 11's MSD (N_p = 10), 100
-#: cold states: CPU -13 to -15% (p90 0.185 -> 0.150 s, binaries 7,838 -> 7,080), its closed loops (5 scenarios x 3 s)
-#: -16% (max 0.19 -> 0.13 s); the book's Quad-1D, 80 cold states: -12% (median 30 -> 10 ms), at N_p = 20: -8%.
+#: binaries, and the same bounds cut the relaxation (a second QP, when the first one's ``v(0)`` lies outside them) and
+#: the reachable boxes of the later steps. Exact: the bounds are step 0's constraint. Where the set is empty or several
+#: intervals, and for several inputs, step 0 is encoded like the others, as with ``False``. Measured side by side (one
+#: process, alternating, the same states), the same statuses and optima (within 3.3e-10): chapter 11's MSD (N_p = 10),
+#: 100 cold states: CPU -13 to -16% (p90 0.18 -> 0.15 s, binaries 7,838 -> 7,049), its closed loops (5 scenarios x
+#: 3 s) -16 to -17% (max 0.19 -> 0.12 s); the book's Quad-1D, 80 cold states: -12 to -15% (median 29 -> 9 ms), at
+#: N_p = 20 (30 states): -8 to -9%.
 FIRST_RANGE: bool = True
 
 
