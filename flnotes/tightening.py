@@ -724,8 +724,8 @@ def horizon_boxes(Ad: Array, Bd: Array, z0: Array, z_lo: Array, z_hi: Array, v_l
             break
         # interval recursion with the state constraint
         nl, nu = interval_affine(Ad, np.zeros(n_z), zl, zu)
-        nl, nu = (np.maximum(nl + B0l, z_lo), np.minimum(nu + B0u, z_hi)) if k == 0 else (
-            np.maximum(nl + Bl, z_lo), np.minimum(nu + Bu, z_hi))
+        Bkl, Bku = (B0l, B0u) if k == 0 else (Bl, Bu)        # the box of Bd v(k)
+        nl, nu = np.maximum(nl + Bkl, z_lo), np.minimum(nu + Bku, z_hi)
         # exact box of Ad^(k+1) z0 + sum_i Ad^(k-i) Bd v(i): v(0)'s term Ad^k Bd v(0), the others' summed by age
         # (rest = sum_{j<k} |Ad^j Bd| r_v, in order of the input's age; both orders give the same sum)
         center = Ad @ center + Bd @ (c_0 if k == 0 else c_v)

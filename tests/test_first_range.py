@@ -225,3 +225,22 @@ def test_a_first_range_switch_that_is_not_a_flag_is_refused(monkeypatch, bad):
         for z in _states(q, 40, 2):
             mpc.reset()
             mpc(z, np.zeros((q["horizon"] + 1, q["system"].n_z)))
+
+
+def test_a_first_range_that_no_plan_can_keep_makes_the_step_infeasible_as_without_it(monkeypatch):
+    """At the lower face of the state box, keeping ``z(1)`` in the box needs ``v(0) >= 0``, while the network
+    ``Phi_NN(z, v) = v + u_max^eps + 1e-3`` admits only ``v(0) <= -1e-3``: the relaxation with the first range is
+    infeasible, and the step says so, with the verdict found without the range (SCIP on the encoded program)."""
+    u_max, eps = 1.0, 0.5
+    net = fl.ReLUNet([np.array([[0.0, 1.0]]), np.array([[1.0]])],
+                     [np.array([10.0]), np.array([(u_max - eps) + 1e-3 - 10.0])])
+    sysm = fl.integrators([1], [-1.0, -2.0], [1.0, 2.0], u_max)
+    z0, zr = np.array([-1.0]), np.full((4, 1), -1.0)
+    # no affine enclosure: this network is affine there, so its slab alone would already make the relaxation infeasible
+    kw = dict(horizon=3, ts=0.1, Q=[1.0], R=0.01, atlas=False, enclosure=False)
+    r = MPC(sysm, net, eps, **kw)(z0, zr)
+    assert r.status == "infeasible" and "exact admissible range" in r.message, r.message
+    with monkeypatch.context() as m:
+        m.setattr(engine, "FIRST_RANGE", False)
+        r0 = MPC(sysm, net, eps, **kw)(z0, zr)
+    assert r0.status == "infeasible" and "exact admissible range" not in r0.message, r0.message
