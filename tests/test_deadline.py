@@ -1664,6 +1664,43 @@ def test_late_answers_are_counted_per_system_with_the_load_recorded():
     assert len(dl.late_answers_notes(rows)) == 3
 
 
+def test_repeat_loops_runs_one_controller_again_and_keeps_the_input_bound():
+    """bench deadline's repeat_loops: the loop without a limit is the one fl.simulate gives; the limited controller
+    runs the number of runs asked, each of the loop's steps, and keeps the true |u| <= u_max; counts are consistent."""
+    from flnotes.bench import deadline as dl
+    from flnotes.studies import unseen as U
+
+    (r,) = dl.repeat_loops(["Pendulum-gain"], runs=2, t_final=0.4)
+    assert (r["system"], r["condition"], r["t_s_ms"], r["runs"], r["steps"]) == ("Pendulum-gain", "as found", 20.0, 2, 20)
+    c = U.case("Pendulum-gain")
+    free = U.unseen_mpc("Pendulum-gain", ts=0.02)
+    log = fl.simulate(free.system, free, t_final=0.4, ts=0.02, z0=np.array(c.z0, float), reference=c.reference(),
+                      progress=False)
+    assert r["rms_free"] == dl.tracking_rms(log, c.reference())
+    assert r["u_within"] and r["rms_min"] <= r["rms_max"]
+    assert r["rms_off_free"] >= max(abs(r["rms_min"] - r["rms_free"]), abs(r["rms_max"] - r["rms_free"])) - 1e-15
+    assert 0 <= r["optimal_min"] <= r["optimal_max"] <= r["steps"]
+    assert 0 <= r["limit_hits_min"] <= r["limit_hits_max"] <= r["steps"]
+    assert r["optimal_min"] + r["limit_hits_min"] <= r["steps"]
+    assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["runs"] * r["steps"] and 0 <= r["stopped_optimizing"] <= r["runs"]
+    assert len(dl.repeat_loops_notes([r])) == 2
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="runs must be"):
+            dl.repeat_loops(["Pendulum-gain"], runs=bad)
+    with pytest.raises(ValueError, match="ts must be"):
+        dl.repeat_loops(["Pendulum-gain"], ts=-0.02)
+
+
+def test_tracking_rms_is_the_position_error_over_the_second_half():
+    """bench deadline's tracking_rms on a hand-made log: the last two of four samples, errors -1 and 0."""
+    from types import SimpleNamespace
+
+    from flnotes.bench import deadline as dl
+
+    log = SimpleNamespace(t=np.arange(4.0), z=np.array([[5.0, 0.0], [5.0, 0.0], [1.0, 0.0], [3.0, 0.0]]))
+    assert dl.tracking_rms(log, lambda t: np.array([t, 1.0])) == pytest.approx(np.sqrt(0.5))
+
+
 def test_a_late_answer_counts_as_resumed_late_only_when_the_lag_covers_its_overrun():
     """bench deadline's _resumed_late: an answer after t_s counts only when its thread's lag after the cut-off covers
     the whole overrun and it was not waiting for a core (or the platform does not say); an answer on time never."""

@@ -426,8 +426,11 @@ def run(fast: bool) -> dict:
     notes += late_answers_notes(late)
     floor = budget_floor(steps=10 if fast else 100, n_states=3 if fast else 30)
     notes += budget_floor_notes(floor)
+    again = [r for loaded in (False, True)
+             for r in repeat_loops(runs=2 if fast else 6, loaded=loaded, t_final=1.0 if fast else None)]
+    notes += repeat_loops_notes(again)
     return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs,
-                late_answers=late, budget_floor=floor)
+                late_answers=late, budget_floor=floor, repeat_loops=again)
 
 
 def late_answers_notes(rows: Sequence[dict]) -> list[str]:
@@ -665,6 +668,96 @@ def budget_floor_notes(rows: Sequence[dict]) -> list[str]:
         out.append(f"{r['system']}, {r['run']}: {r['over_t_s']} of {r['steps']} steps over t_s = {r['t_s_ms']:g} ms "
                    f"with one node (CPU median {r['cpu_median_over_ts']:.2f} t_s, max {r['cpu_max_over_ts']:.2f} t_s); "
                    f"{r['budget_hits']} stopped by the budget, {r['safety_net']} by the clock{rep}")
+    return out
+
+
+# ----------------------------------------------------------------------------------- the same loop, run again
+#: The sampling period and time limit of :func:`repeat_loops`: shorter than any case's own (the shortest is 50 ms).
+SHORT_TS = 0.02
+
+#: The cases :func:`repeat_loops` runs at :data:`SHORT_TS`: the two second-order systems not in the book.
+REPEAT_SYSTEMS = ("Pendulum-gain", "VdP-gain")
+
+
+def tracking_rms(log, reference) -> float:
+    """The RMS error of the position ``z_1`` against ``reference(t)[0]`` over the second half of a closed loop
+    (:class:`flnotes.SimLog`): how well a run tracks once past its start."""
+    t, z = np.asarray(log.t), np.asarray(log.z)
+    r = np.array([np.ravel(reference(tk))[0] for tk in t])
+    h = len(t) // 2
+    return float(np.sqrt(np.mean((z[h:, 0] - r[h:]) ** 2)))
+
+
+def repeat_loops(names: Sequence[str] = REPEAT_SYSTEMS, ts: float = SHORT_TS, runs: int = 6, loaded: bool = False,
+                 t_final: Optional[float] = None) -> list[dict]:
+    """The same closed loop run ``runs`` times with ``time_limit = ts``: does a run flip between tracking and losing
+    the reference by timing alone?
+
+    Per case (:data:`flnotes.studies.unseen.CASES`, its network, weights, horizon, start and sine reference, sampled
+    at ``ts`` on the true plant for ``t_final`` seconds, the case's own by default): the loop without a time limit once
+    (``rms_free``: :func:`tracking_rms`), then one controller with ``time_limit = ts`` (default options) run
+    ``runs`` times through :func:`flnotes.simulate` (which resets it before each run). Per row: the spread of the
+    runs' tracking errors (``rms_min``, ``rms_max``, ``rms_off_free``: the largest distance from ``rms_free``), of
+    their optimal steps and limit hits, the answers after ``ts`` on the wall clock and of them those late by their
+    own CPU time, the slowest answer and the most CPU time over ``ts``, ``stopped_optimizing`` (runs with no optimal
+    step in their second half), and ``u_within`` (the true ``|u| <= u_max`` at every sample of every run, to
+    :data:`flnotes.solvers.BOUND_TOL`). ``loaded``: the limited runs are made with a second process keeping a core
+    busy (:class:`busy_core`).
+    """
+    from contextlib import nullcontext
+
+    from ..studies import unseen as U
+
+    if not (isinstance(runs, (int, np.integer)) and not isinstance(runs, bool) and runs >= 1):
+        raise ValueError(f"runs must be an integer >= 1, got {runs!r}")
+    if not (np.isscalar(ts) and np.isfinite(ts) and ts > 0):
+        raise ValueError(f"ts must be a positive number of seconds, got {ts!r}")
+    rows = []
+    for name in names:
+        c = U.case(name)
+        ref, z0, tf = c.reference(), np.array(c.z0, float), c.t_final if t_final is None else float(t_final)
+        free = U.unseen_mpc(name, ts=ts)
+        rms_free = tracking_rms(simulate(free.system, free, t_final=tf, ts=ts, z0=z0, reference=ref,
+                                         progress=False), ref)
+        mpc = free.clone(time_limit=ts)
+        u_max = np.asarray(mpc.system.u_max, float)
+        rms, optimal, hits, late, late_cpu, wall_max, cpu_max, stopped, within = [], [], [], 0, 0, 0.0, 0.0, 0, True
+        with busy_core() if loaded else nullcontext():
+            for _ in range(int(runs)):
+                timed = U.TimedController(mpc)
+                log = simulate(mpc.system, timed, t_final=tf, ts=ts, z0=z0, reference=ref, progress=False)
+                wall, cpu, st = np.array(timed.wall), np.array(timed.cpu), [s.status for s in mpc.history]
+                rms.append(tracking_rms(log, ref))
+                optimal.append(st.count("optimal"))
+                hits.append(st.count("time_limit"))
+                late += int(np.sum(wall > ts))
+                late_cpu += int(np.sum((wall > ts) & (cpu > ts)))
+                wall_max, cpu_max = max(wall_max, float(wall.max())), max(cpu_max, float(cpu.max()))
+                stopped += "optimal" not in st[len(st) // 2:]
+                within &= bool(np.all(np.abs(log.u) <= u_max + BOUND_TOL))
+        rows.append(dict(system=name, condition="busy process on a core" if loaded else "as found", t_s_ms=1e3 * ts,
+                         runs=int(runs), steps=len(st), rms_free=rms_free, rms_min=min(rms), rms_max=max(rms),
+                         rms_off_free=max(abs(e - rms_free) for e in rms), optimal_min=min(optimal),
+                         optimal_max=max(optimal), limit_hits_min=min(hits), limit_hits_max=max(hits),
+                         late_wall=late, late_cpu=late_cpu, wall_max_over_ts=wall_max / ts,
+                         cpu_max_over_ts=cpu_max / ts, stopped_optimizing=stopped, u_within=within))
+    return rows
+
+
+def repeat_loops_notes(rows: Sequence[dict]) -> list[str]:
+    """The rows of :func:`repeat_loops` as notes, one per case and condition."""
+    out = ["The same loop run again (time_limit = t_s, default options, one controller run several times; the two "
+           "second-order cases not in the book sampled faster than their own period): the spread of the runs' "
+           "tracking errors (RMS of the position over the second half) against the loop without a limit, optimal "
+           "steps and limit hits per run, answers after t_s, runs that stopped optimizing, true |u| <= u_max."]
+    for r in rows:
+        out.append(f"{r['system']}, t_s = {r['t_s_ms']:g} ms, {r['condition']}: {r['runs']} runs of {r['steps']} steps; "
+                   f"tracking error {r['rms_min']:.4g} to {r['rms_max']:.4g} (without the limit {r['rms_free']:.4g}; "
+                   f"farthest run {r['rms_off_free']:.2g} from it); optimal steps {r['optimal_min']}-{r['optimal_max']}, "
+                   f"limit hits {r['limit_hits_min']}-{r['limit_hits_max']}; {r['late_wall']} answers after t_s "
+                   f"({r['late_cpu']} late by CPU), slowest {r['wall_max_over_ts']:.2f} t_s wall, most CPU "
+                   f"{r['cpu_max_over_ts']:.2f} t_s; runs that stopped optimizing {r['stopped_optimizing']}; true "
+                   f"|u| <= u_max: {r['u_within']}")
     return out
 
 

@@ -290,15 +290,17 @@ def write_unseen_references(names: Optional[Sequence[str]] = None, folder=None, 
     return out
 
 
-def unseen_mpc(name: str, options: Optional[MPCOptions] = None, horizon: Optional[int] = None, **kwargs) -> MPC:
+def unseen_mpc(name: str, options: Optional[MPCOptions] = None, horizon: Optional[int] = None,
+                ts: Optional[float] = None, **kwargs) -> MPC:
     """:class:`flnotes.MPC` of the case ``name`` with its shipped network and ``eps`` (default options).
 
-    ``horizon`` overrides the case's ``N_p``; ``kwargs`` go to :class:`flnotes.MPC` (e.g. ``time_limit``).
+    ``horizon`` and ``ts`` override the case's ``N_p`` and sampling period; ``kwargs`` go to :class:`flnotes.MPC`
+    (e.g. ``time_limit``).
     """
     c = case(name)
     net, eps, _ = unseen_net(name)
-    return MPC(c.make(), net, eps, horizon=c.horizon if horizon is None else horizon, ts=c.ts, Q=list(c.Q), R=c.R,
-               options=options, **kwargs)
+    return MPC(c.make(), net, eps, horizon=c.horizon if horizon is None else horizon, ts=c.ts if ts is None else ts,
+               Q=list(c.Q), R=c.R, options=options, **kwargs)
 
 
 def definitions_table() -> list[dict]:
