@@ -1244,18 +1244,19 @@ class _CvxpyBackend:
             if sol.v is not None and self._feasible(z, d, sol.v, margin=EDGE_MARGIN):  # pragma: no cover - a bug
                 raise RuntimeError(f"{kind} found no admissible v at z = {z} but {sol.detail} returned an admissible "
                                    f"point {sol.v}: report this state")
-            ex.detail = f"{sol.detail}, not confirmed: infeasible by {kind} ({ex.detail})"
+            ex.detail = f"infeasible, proven by {kind} ({ex.detail}); the solver's answer was not confirmed: {sol.detail}"
             return ex
         J = ex.objective
         if sol.status == "optimal" and sol.v is not None and sol.objective <= J + EXACT_CHECK_TOL * max(1.0, abs(J)):
             sol.detail += f"; equal to the optimum of {kind} ({J:.10g})"
             return sol
         ex.slack_u, ex.slack_H = np.zeros(self.c.system.m), np.zeros(self.c.p)
+        # the message says first what was proven, then what the solver had answered
         if sol.v is None:
-            ex.detail = f"{sol.detail}, no point: the optimum of {kind} ({ex.detail}) is returned"
+            ex.detail = f"the optimum of {kind} ({ex.detail}) is returned; the solver gave no point: {sol.detail}"
         else:
-            ex.detail = (f"{sol.detail} at cost {sol.objective:.10g}, not the optimum: the optimum of {kind} "
-                         f"({ex.detail}) is returned")
+            ex.detail = (f"the optimum of {kind} ({ex.detail}) is returned; the solver's point, at cost "
+                         f"{sol.objective:.10g}, is not the optimum: {sol.detail}")
         return ex
 
 

@@ -179,7 +179,7 @@ def test_the_clf_cbf_cvxpy_backend_returns_the_exact_optimum(msd, cost, capfd):
 
 def test_a_cvxpy_failure_is_replaced_by_the_exact_optimum_and_said(msd, monkeypatch):
     """When cvxpy's solver fails (SolverError, as SCIP did near the domain edge), the step returns the exact
-    method's optimum, and its message says that the solver failed."""
+    method's optimum, and its message says first what was proven, then that the solver failed."""
     import cvxpy as cp
 
     sysm, net = msd
@@ -198,6 +198,7 @@ def test_a_cvxpy_failure_is_replaced_by_the_exact_optimum_and_said(msd, monkeypa
     assert r.status == "optimal" and not r.fallback
     assert r.objective == rx.objective and np.array_equal(r.v, rx.v)
     assert "failed" in r.message and "exact 1-D method" in r.message, r.message
+    assert r.message.startswith("the optimum of the exact 1-D method"), "the message says first what was proven"
 
 
 def test_the_qcost_cvxpy_backend_solves_through_the_solver_layer(msd):
