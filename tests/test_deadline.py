@@ -605,6 +605,32 @@ def test_a_step_answers_at_its_cut_off_while_the_solver_runs_on(quad, monkeypatc
     assert mpc.solver.answer_now().v is None
 
 
+def test_the_record_of_a_cut_off_step_ends_after_the_held_solve_is_released(quad, monkeypatch):
+    """At a cut-off the step releases the held solve (``answered``) as its last act; the released solve's thread may
+    take the interpreter lock at once, and the answering thread's wait for it is the caller's wait: ``solve_time``
+    (and ``exit_time``) include it, and the parts of the record still sum to ``solve_time``."""
+    setup, z, R, prev, exact = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=2.0)
+    gate = Gate(monkeypatch, mute=True)
+    mpc.set_previous_plan(prev)
+    real_answered = mpc.solver.answered
+
+    def answered_then_held():  # as if the released solve's thread held the lock for 60 ms
+        real_answered()
+        time.sleep(0.06)
+
+    monkeypatch.setattr(mpc.solver, "answered", answered_then_held)
+    w0 = time.perf_counter()
+    s = mpc(z, R)
+    wall = time.perf_counter() - w0
+    assert s.info["cut_off"] and gate.entered.is_set(), "premise: the answer came at the cut-off"
+    assert s.info["exit_time"] >= 0.06 and wall - 0.005 <= s.solve_time <= wall, (s.info["exit_time"], s.solve_time, wall)
+    parts = ("enter_time", "cut_off_s", "wake_lag", "after_wake", "exit_time")
+    assert abs(sum(s.info[k] for k in parts) - s.solve_time) <= 1e-3, ({k: s.info[k] for k in parts}, s.solve_time)
+    gate.release()
+    mpc.reset()
+
+
 def test_a_step_waits_for_the_previous_solve_until_its_own_cut_off_only(quad, monkeypatch):
     """The solve a step answered at its cut-off runs on (held) through the next step: that step does not wait for it
     past its own cut-off. It answers while the held solve still runs, without a solve (status time_limit, the fallback

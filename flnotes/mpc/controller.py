@@ -772,6 +772,7 @@ class MPC:
             # first, allocating nothing: the signals Python handles held back until the settings are back, and no
             # collection starts in the call (see config.no_cyclic_gc)
             held = pause_for_step()
+            step = None
             try:
                 f0, s0 = major_faults(), machine_steal()  # they allocate: after the pause
                 shared = ExitStack()  # process-wide settings, kept while a solve answered at its cut-off runs on
@@ -796,6 +797,11 @@ class MPC:
             finally:
                 if self._running is not None:  # the answer is out: a solve stopped at the cut-off goes on to its end
                     self.solver.answered()
+                    if step is not None:  # the solve it released may take the interpreter lock at once: this
+                        # thread's wait for it is the caller's wait too, so the record's end comes after it
+                        end = time.perf_counter() - t0
+                        step.info["exit_time"] = step.info.get("exit_time", 0.0) + end - step.solve_time
+                        step.solve_time = end
                 # last: a collection that fell due starts after the return, and the signals held back are delivered
                 resume_after_step(held)
             return step
