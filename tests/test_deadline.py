@@ -1710,11 +1710,29 @@ def test_repeat_loops_runs_one_controller_again_and_keeps_the_input_bound():
     assert r["optimal_min"] + r["limit_hits_min"] <= r["steps"]
     assert 0 <= r["late_cpu"] <= r["late_wall"] <= r["runs"] * r["steps"] and 0 <= r["stopped_optimizing"] <= r["runs"]
     assert len(dl.repeat_loops_notes([r])) == 2
+    assert len(r["rms_runs"]) == 2 and (r["rms_min"], r["rms_max"]) == (min(r["rms_runs"]), max(r["rms_runs"]))
+    assert r["N_p"] == c.horizon and r["work_limit"] is None and r["safety_net"] == 0  # no budget: no safety net
+    assert r["free_wall_max_over_ts"] > 0
+    (b,) = dl.repeat_loops(["Pendulum-gain"], runs=1, t_final=0.1, horizon=4, work_limit="auto")
+    assert (b["N_p"], b["work_limit"], b["steps"], b["runs"]) == (4, "auto", 5, 1) and b["u_within"]
+    assert 0 <= b["safety_net"] <= b["steps"]
     for bad in (0, 1.5, True):
         with pytest.raises(ValueError, match="runs must be"):
             dl.repeat_loops(["Pendulum-gain"], runs=bad)
     with pytest.raises(ValueError, match="ts must be"):
         dl.repeat_loops(["Pendulum-gain"], ts=-0.02)
+
+
+def test_spread_clause_says_whether_every_run_tracked():
+    """bench deadline's spread_clause: runs within 3 times the error of the loop without the limit all tracked; a run
+    above it is counted as lost, and every run's error is listed."""
+    from flnotes.bench import deadline as dl
+
+    row = dict(rms_free=0.05, rms_runs=[0.05, 0.12, 0.0501], runs=3)
+    assert dl.spread_clause(row).startswith("every run tracked") and "0.12" in dl.spread_clause(row)
+    row["rms_runs"] = [0.05, 1.2, 0.16]
+    out = dl.spread_clause(row)
+    assert out.startswith("2 of 3 runs lost the reference") and "1.2" in out and "timing" in out, out
 
 
 def test_tracking_rms_is_the_position_error_over_the_second_half():
