@@ -631,6 +631,45 @@ def test_the_record_of_a_cut_off_step_ends_after_the_held_solve_is_released(quad
     mpc.reset()
 
 
+def test_a_held_solve_released_by_the_answer_sleeps_before_it_builds_its_result(quad, monkeypatch):
+    """A solve stopped with hold=True waits for answered(); once released it sleeps ANSWER_GRACE_S before it builds its
+    result (the answering thread returns with the interpreter lock meanwhile); a solve that reaches its end after the
+    answer was given builds it at once."""
+    from flnotes.mpc import engine as E
+
+    setup, z, R, prev, exact = engine_state(quad)
+    eng = rt.make_mpc(setup).solver
+    starts = []
+    real = E._step_result
+
+    def recorded(*a, **k):
+        starts.append(time.perf_counter())
+        return real(*a, **k)
+
+    monkeypatch.setattr(E, "_step_result", recorded)
+    eng.go()
+    eng.stop(hold=True)  # this thread answers; the solve runs in another
+    out = {}
+    th = threading.Thread(target=lambda: out.update(r=eng.solve(z, R)))
+    th.start()
+    time.sleep(0.3)
+    assert th.is_alive() and not starts, "premise: the stopped solve waits for the answer"
+    t_answer = time.perf_counter()
+    eng.answered()
+    th.join(5.0)
+    assert not th.is_alive() and len(starts) == 1 and starts[0] - t_answer >= E.ANSWER_GRACE_S, (starts, t_answer)
+    assert out["r"].status == "time_limit"
+    sleeps = []
+    monkeypatch.setattr(E.time, "sleep", lambda s: sleeps.append(s))
+    eng.go()
+    eng.stop(hold=True)
+    eng.answered()  # answered before the solve ends: no wait, no sleep
+    th = threading.Thread(target=lambda: out.update(r=eng.solve(z, R)))
+    th.start()
+    th.join(5.0)
+    assert len(starts) == 2 and not sleeps, sleeps
+
+
 def test_a_step_waits_for_the_previous_solve_until_its_own_cut_off_only(quad, monkeypatch):
     """The solve a step answered at its cut-off runs on (held) through the next step: that step does not wait for it
     past its own cut-off. It answers while the held solve still runs, without a solve (status time_limit, the fallback

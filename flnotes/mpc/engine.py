@@ -105,6 +105,12 @@ SOLVE_MIN_LEFT = 0.002
 #: so that a caller that never calls ``answered()`` delays the solve's end instead of stopping it for good.
 HOLD_MAX_S = 2.0
 
+#: Seconds a solve held by :meth:`NetworkEngine.stop` (``hold=True``) sleeps once the caller's
+#: :meth:`NetworkEngine.answered` has released it, before it builds its result: the answering thread, which released
+#: it as its last act, then returns to its caller with the interpreter lock instead of waiting for it while this
+#: thread runs (on a loaded machine such a wait, with this thread off its core, held an answer 6 ms past t_s).
+ANSWER_GRACE_S = 0.002
+
 #: Seconds that must be left to polish a round's optimum under a tightened bound (:meth:`NetworkEngine._polish`: a
 #: HiGHS model built and solved, 4 to 6 ms on the systems of the benchmark).
 TIGHTENED_QP_MIN_LEFT = 0.008
@@ -368,7 +374,9 @@ class NetworkEngine:
 
         def done(status: str, V: Optional[Array], bound: float, msg: str, screened: bool = False) -> StepResult:
             if self._stop.is_set() and threading.get_ident() != self._holder:  # stopped by a caller that answers
-                self._answered.wait(HOLD_MAX_S)  # meanwhile in another thread: the result after its answer
+                if not self._answered.is_set():  # meanwhile in another thread: the result after its answer, and
+                    self._answered.wait(HOLD_MAX_S)  # after its return (the answering thread takes the lock first)
+                    time.sleep(ANSWER_GRACE_S)
             if work and status == "time_limit" and msg.startswith("time limit"):  # say which limit stopped it
                 msg = ("wall-clock safety net" if self._stop.is_set() or st.get("safety") else
                        f"work limit ({node_limit} nodes)") + msg[len("time limit"):]
