@@ -1763,15 +1763,44 @@ def test_repeat_loops_runs_one_controller_again_and_keeps_the_input_bound():
 
 
 def test_spread_clause_says_whether_every_run_tracked():
-    """bench deadline's spread_clause: runs within 3 times the error of the loop without the limit all tracked; a run
-    above it is counted as lost, and every run's error is listed."""
+    """bench deadline's spread_clause: runs within 3 times the error of the loop without the limit tracked alike; some
+    above it and some not is timing's doing; all above it is the limit's; round-off above an error of 0 is not worse;
+    no run, or an error that is not finite, is refused."""
     from flnotes.bench import deadline as dl
 
-    row = dict(rms_free=0.05, rms_runs=[0.05, 0.12, 0.0501], runs=3)
-    assert dl.spread_clause(row).startswith("every run tracked") and "0.12" in dl.spread_clause(row)
+    row = dict(rms_free=0.05, rms_runs=[0.05, 0.12, 0.0501])
+    assert dl.spread_clause(row).startswith("each of the 3 runs tracked within 3 times") and "0.12" in dl.spread_clause(row)
     row["rms_runs"] = [0.05, 1.2, 0.16]
     out = dl.spread_clause(row)
-    assert out.startswith("2 of 3 runs lost the reference") and "1.2" in out and "timing" in out, out
+    assert out.startswith("2 of 3 runs tracked worse") and "1.2" in out and "timing" in out, out
+    row["rms_runs"] = [1.1, 1.1, 1.1]
+    out = dl.spread_clause(row)
+    assert out.startswith("all 3 runs tracked worse") and "the limit decided" in out and "timing" not in out, out
+    assert dl.spread_clause(dict(rms_free=0.05, rms_runs=[1.0])).startswith("the run tracked worse")
+    assert dl.spread_clause(dict(rms_free=0.0, rms_runs=[0.0, 1e-15])).startswith("each of the 2 runs tracked within")
+    for bad in (dict(rms_free=0.05, rms_runs=[]), dict(rms_free=float("nan"), rms_runs=[0.05, 5.0]),
+                dict(rms_free=0.05, rms_runs=[0.05, float("nan")])):
+        with pytest.raises(ValueError):
+            dl.spread_clause(bad)
+
+
+def test_repeat_loops_refuses_bad_arguments_before_any_loop_runs(monkeypatch):
+    """bench deadline's repeat_loops: a name given as one string, an unknown name after a good one, a bad work_limit
+    and a ts that is no number are refused before any loop is simulated."""
+    from flnotes.bench import deadline as dl
+
+    def no_loop(*a, **k):
+        raise AssertionError("a loop ran before the arguments were checked")
+
+    monkeypatch.setattr(dl, "simulate", no_loop)
+    with pytest.raises(ValueError, match="not one string"):
+        dl.repeat_loops("Pendulum-gain", runs=1)
+    with pytest.raises(ValueError, match="unknown system"):
+        dl.repeat_loops(["Pendulum-gain", "nope"], runs=1)
+    with pytest.raises(ValueError, match="work_limit"):
+        dl.repeat_loops(["Pendulum-gain"], runs=1, work_limit="bogus")
+    with pytest.raises(ValueError, match="ts must be"):
+        dl.repeat_loops(["Pendulum-gain"], ts="abc")
 
 
 def test_tracking_rms_is_the_position_error_over_the_second_half():

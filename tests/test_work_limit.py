@@ -61,6 +61,21 @@ def test_the_same_loop_gives_the_same_answers_on_every_run_and_under_load(quad15
         assert all(np.array_equal(a, b) for a, b in zip(first[1], other[1]))
 
 
+def test_under_a_budget_the_incumbent_search_is_not_stopped_by_the_cut_off(quad, monkeypatch):
+    """The engine's incumbent search stops at the cut-off (``go(stop_at=...)``) under a time limit only; under a work
+    budget it runs to its end (the caller's stop() at the cut-off is the safety net, flagged as such)."""
+    seen = {}
+    for name, kw in (("clock", dict()), ("budget", dict(work_limit=1))):
+        mpc = rt.make_mpc(quad, time_limit=SAFE_LIMIT).clone(**kw)
+        real, calls = mpc.solver.go, seen.setdefault(name, [])
+        monkeypatch.setattr(mpc.solver, "go", lambda stop_at=None, _r=real, _c=calls: (_c.append(stop_at), _r(stop_at))[1])
+        R = quad["reference"](quad["ts"] * np.arange(mpc.N + 1))
+        mpc(quad["z0"], R)
+        mpc.finish()
+    assert any(isinstance(t, float) for t in seen["clock"]), seen
+    assert seen["budget"] and all(t is None for t in seen["budget"]), seen
+
+
 class _SlowClock:
     """``time`` as a machine a million times slower would show it to the engine: ``perf_counter`` runs 1e6x fast
     (``SAFE_LIMIT`` is then 30 us of real time: the step outlasts it on any machine)."""

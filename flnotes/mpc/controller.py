@@ -1030,7 +1030,9 @@ class MPC:
                 box["done"].set()
 
         cut = self._cut_off(start)
-        self.solver.go(stop_at=cut)
+        # the incumbent search stops at the cut-off by itself, except under a work budget, where no decision of the
+        # engine reads the clock (the caller's stop() at the cut-off is the safety net, flagged as such)
+        self.solver.go(stop_at=None if self.node_limit is not None else cut)
         worker = threading.Thread(target=run, name="flnotes-mpc-solve")
         box["done"] = threading.Event()
         self._running = (worker, box, budget)  # whatever ends this call, the next one waits for this solve first
