@@ -1804,13 +1804,14 @@ def test_repeat_loops_refuses_bad_arguments_before_any_loop_runs(monkeypatch):
 
 
 def test_tracking_rms_is_the_position_error_over_the_second_half():
-    """bench deadline's tracking_rms on a hand-made log: the last two of four samples, errors -1 and 0."""
+    """bench deadline's tracking_rms on a hand-made log and a vectorized reference: the last two of four samples,
+    errors -1 and 0."""
     from types import SimpleNamespace
 
     from flnotes.bench import deadline as dl
 
     log = SimpleNamespace(t=np.arange(4.0), z=np.array([[5.0, 0.0], [5.0, 0.0], [1.0, 0.0], [3.0, 0.0]]))
-    assert dl.tracking_rms(log, lambda t: np.array([t, 1.0])) == pytest.approx(np.sqrt(0.5))
+    assert dl.tracking_rms(log, lambda t: np.c_[t, np.ones_like(t)]) == pytest.approx(np.sqrt(0.5))
 
 
 def test_a_late_answer_counts_as_resumed_late_only_when_the_lag_covers_its_overrun():

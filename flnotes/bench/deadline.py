@@ -691,12 +691,12 @@ LONG_SYSTEM, LONG_HORIZON = "VdP-gain", 26
 
 
 def tracking_rms(log, reference) -> float:
-    """The RMS error of the position ``z_1`` against ``reference(t)[0]`` over the second half of a closed loop
-    (:class:`flnotes.SimLog`): how well a run tracks once past its start."""
-    t, z = np.asarray(log.t), np.asarray(log.z)
-    r = np.array([np.ravel(reference(tk))[0] for tk in t])
-    h = len(t) // 2
-    return float(np.sqrt(np.mean((z[h:, 0] - r[h:]) ** 2)))
+    """The RMS of :func:`flnotes.studies.mpc.tracking_error` (the position against a vectorized reference) over the
+    second half of a closed loop (:class:`flnotes.SimLog`): how well a run tracks once past its start."""
+    from ..studies.mpc import tracking_error
+
+    e = tracking_error(log, reference)
+    return float(np.sqrt(np.mean(e[len(e) // 2:] ** 2)))
 
 
 def repeat_loops(names: Sequence[str] = REPEAT_SYSTEMS, ts: float = SHORT_TS, runs: int = 6, loaded: bool = False,
