@@ -438,6 +438,12 @@ def network_pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> Piece
                          f"n_in = {net.n_in}, n_out = {net.n_out} and z has {len(z)} entries; use a MILP/MIQP backend")
     if not (np.isfinite(v_lo) and np.isfinite(v_hi) and v_lo < v_hi):
         raise ValueError(f"need finite v_lo < v_hi, got {v_lo!r}, {v_hi!r}")
+    return _pieces_1d(net, z, v_lo, v_hi)
+
+
+def _pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> PiecewiseAffine1D:
+    """:func:`network_pieces_1d` without its checks (``z`` a finite float vector of ``n_in - 1`` entries, one output,
+    finite ``v_lo < v_hi``): for callers that checked them, in a loop."""
     tol = 1e-12 * max(1.0, abs(v_hi - v_lo))
     knots = np.array([v_lo, v_hi], float)
     W1 = net.W[0]
@@ -520,6 +526,11 @@ def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, boun
         if not np.allclose(lo_hi, (pw.knots[0], pw.knots[-1]), rtol=1e-12, atol=1e-12):
             raise ValueError(f"pieces cover [{pw.knots[0]}, {pw.knots[-1]}] but v_lo, v_hi = {lo_hi}: pass the "
                              f"pieces of this segment (network_pieces_1d(net, z, v_lo, v_hi))")
+    return _within(pw, bound)
+
+
+def _within(pw: PiecewiseAffine1D, bound: float) -> Array:
+    """:func:`exact_1d_feasible_set` of the pieces ``pw`` without its checks (``bound`` > 0)."""
     iv = _pieces_within(pw, bound)
     iv = iv[iv[:, 0] <= iv[:, 1]]
     return _merge(iv, tol=1e-12)

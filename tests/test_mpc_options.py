@@ -209,7 +209,8 @@ def test_repaired_incumbent_and_first_level_give_the_reference_optimum(first_lev
     off = MPC(sysm, net, eps, first_level=first_level, repair=False, **kw)
     ref = MPC(sysm, net, eps, backend="cvxpy-scip", bounds="lp", **kw)
     repaired = rejected = checked = improved = 0
-    for c in mpc_cases(dict(system=sysm, N=8, ts=kw["ts"]), 40, seed=5):
+    # 100 states: an exact repair leaves the region QP little to improve (the premise below met at the 82nd)
+    for c in mpc_cases(dict(system=sysm, N=8, ts=kw["ts"]), 100, seed=5):
         on.reset()
         off.reset()
         s = on(c["z"], c["z_ref"])

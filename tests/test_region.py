@@ -56,11 +56,26 @@ def test_the_network_is_affine_on_the_region(quad15):
     assert checked >= 10, "premise: perturbed plans inside the region"
 
 
+def _one_switch(setup, pred, n, seed):
+    """Diverse states and their one-switch plans (flnotes.mpc.bang_bang, on a coarse grid): the other first incumbent
+    that the engine polishes with the region QP."""
+    from flnotes.mpc.bang_bang import bang_bang_incumbent
+
+    out = []
+    for c in ex.mpc_cases(setup, n, seed=seed):
+        f, c0 = pred.linear(c["z"], c["z_ref"])
+        got = bang_bang_incumbent(pred, c["z"], f, c0)
+        if got is not None:
+            out.append((c, f, c0, got[0]))
+    return out
+
+
 def test_region_qp_is_feasible_and_no_dearer(quad15):
-    """From repaired plans: the region QP's plan passes the forward-pass check and costs at most the repaired plan;
-    the moves to neighbouring regions cost at most the first region's optimum."""
+    """From the first incumbents (repaired relaxations and one-switch plans): the region QP's plan passes the
+    forward-pass check and costs at most its start; the moves to neighbouring regions cost at most the first
+    region's optimum."""
     setup, pred = quad15
-    cases = _repaired(setup, pred, fl.scale(16, 8), seed=4)
+    cases = _repaired(setup, pred, fl.scale(16, 8), seed=4) + _one_switch(setup, pred, fl.scale(8, 4), seed=4)
     better = 0
     for c, f, c0, V in cases:
         J = pred.cost(V, f, c0)

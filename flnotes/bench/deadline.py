@@ -433,8 +433,14 @@ def run(fast: bool) -> dict:
                                                                t_final=1.0 if fast else None, horizon=LONG_HORIZON,
                                                                work_limit=wl)]
     notes += repeat_loops_notes(again)
+    first = first_incumbent_times(repeats=2 if fast else 5)
+    notes.append(f"A cold step's first incumbent (the relaxation repaired along the QP, exact per step) at "
+                 f"{LONG_SYSTEM}'s z(0), t_s = {1e3 * SHORT_TS:g} ms: " + "; ".join(
+                     f"N_p = {r['N_p']}: {r['ms_median']:.1f} ms (max {r['ms_max']:.1f}, "
+                     f"{'passes' if r['passes'] else 'fails'} the check)" for r in first)
+                 + f"; a fresh controller's cut-off {first[0]['cut_off_ms']:.1f} ms after the step's start.")
     return dict(title="A guaranteed answer time (time_limit = t_s)", rows=res["rows"] + cut, notes=notes, figures=figs,
-                late_answers=late, budget_floor=floor, repeat_loops=again)
+                late_answers=late, budget_floor=floor, repeat_loops=again, first_incumbent=first)
 
 
 def late_answers_notes(rows: Sequence[dict]) -> list[str]:
@@ -682,12 +688,13 @@ SHORT_TS = 0.02
 #: The cases :func:`repeat_loops` runs at :data:`SHORT_TS`: the two second-order systems not in the book.
 REPEAT_SYSTEMS = ("Pendulum-gain", "VdP-gain")
 
-#: A case and horizon where a cold step at :data:`SHORT_TS` finds no plan within ``t_s`` (VdP-gain at N_p = 26
-#: instead of 12): a run that finds none in its first steps applies its fallback until a solve ends in time, and
-#: whether one does is the machine's timing (measured: 2 of 6 runs lost the reference, tracking errors 1.08 and 1.20
-#: against 0.047; at N_p = 24 one run of 6, at 20 all alike, at 28 all lost). A work budget of one node does not fit
-#: in t_s there: the clock decides (safety-net hits on nearly every step), so the runs differ as much.
-LONG_SYSTEM, LONG_HORIZON = "VdP-gain", 26
+#: A case and horizon where a cold step at :data:`SHORT_TS` finds no plan within ``t_s`` (VdP-gain at N_p = 40
+#: instead of 12): its first incumbent, the relaxation repaired step by step (:func:`first_incumbent_times`), takes
+#: about as long as the controller leaves its engine, so whether a run's first steps have a plan, and how well the run
+#: tracks, is the machine's timing (measured: tracking errors 0.042 to 0.178 in 6 runs against 0.042 without the
+#: limit; at N_p = 34 one run of 6 worse, at N_p <= 30 all alike). A work budget of one node does not fit in t_s
+#: there either: the clock decides (safety-net hits on nearly every step).
+LONG_SYSTEM, LONG_HORIZON = "VdP-gain", 40
 
 
 def tracking_rms(log, reference) -> float:
@@ -793,6 +800,48 @@ def spread_clause(row: dict, factor: float = 3.0) -> str:
                 f"error{'' if n == 1 else 's'} {each}): the limit decided, alike in every run")
     return (f"{worse} of {n} runs tracked worse than {ref} and the others did not (tracking errors {each}): the runs "
             "differ only in the machine's timing")
+
+
+def first_incumbent_times(name: str = LONG_SYSTEM, horizons: Sequence[int] = (12, 20, 26, 30, 34, 40),
+                          ts: float = SHORT_TS, repeats: int = 5) -> list[dict]:
+    """How long a cold step's first incumbent takes against the time a fresh controller leaves the engine.
+
+    At the case's start ``z(0)`` (:data:`flnotes.studies.unseen.CASES`, no previous plan, the reference at ``t = 0``)
+    and each horizon: the relaxation's optimum (:meth:`flnotes.mpc.prediction.Prediction.relaxation`) repaired along
+    the QP (:func:`flnotes.mpc.fallback.qp_repair`, what the engine's incumbent search runs first), timed ``repeats``
+    times in this thread (``ms_median``, ``ms_max``; CPU ``cpu_ms_median``), and the cut-off of a fresh controller with
+    ``time_limit = ts`` (``cut_off_ms``: what :meth:`flnotes.MPC.step` leaves the engine before it answers with what it
+    has). ``passes``: the repaired plan passes the forward-pass check (then it is the step's incumbent once it is built
+    before the cut-off). Where ``ms_max`` comes near ``cut_off_ms`` less the engine's set-up (a few ms), whether a cold
+    step has a plan, and so whether a loop that starts cold tracks, is the machine's timing (:func:`repeat_loops`).
+    """
+    from ..mpc.fallback import qp_repair
+    from ..studies import unseen as U
+
+    if not (isinstance(repeats, (int, np.integer)) and not isinstance(repeats, bool) and repeats >= 1):
+        raise ValueError(f"repeats must be an integer >= 1, got {repeats!r}")
+    c = U.case(name)
+    ref, z0 = c.reference(), np.array(c.z0, float)
+    rows = []
+    for N in horizons:
+        free = U.unseen_mpc(name, ts=ts, horizon=int(N))
+        pred = free.pred
+        f, _ = pred.linear(z0, np.asarray(ref(ts * np.arange(pred.N + 1)), float))
+        V_c, _, _ = pred.relaxation(f, z0)
+        if V_c is None:
+            raise ValueError(f"{name} at N_p = {N}: the relaxation has no plan at z(0); choose another horizon")
+        qp_repair(pred, z0, f, V_c)  # once untimed: the first call's imports and caches are no step's work
+        wall, cpu = [], []
+        for _ in range(int(repeats)):
+            t, p = time.perf_counter(), time.thread_time()
+            _, V_r = qp_repair(pred, z0, f, V_c)
+            wall.append(time.perf_counter() - t)
+            cpu.append(time.thread_time() - p)
+        cut = free.clone(time_limit=ts)._cut_off(0.0)
+        rows.append(dict(system=name, t_s_ms=1e3 * ts, N_p=pred.N, ms_median=1e3 * float(np.median(wall)),
+                         ms_max=1e3 * max(wall), cpu_ms_median=1e3 * float(np.median(cpu)), cut_off_ms=1e3 * cut,
+                         passes=bool(pred.feasible(z0, V_r))))
+    return rows
 
 
 def repeat_loops_notes(rows: Sequence[dict]) -> list[str]:

@@ -6,7 +6,7 @@ made admissible, and when no admissible input exists at the measured state the l
 returned and flagged. See :func:`fallback_plan`.
 
 The repairs (:func:`repair_plan`, :func:`qp_repair`) move one input at a time to an admissible one
-(:func:`feasible_tail`): exact for two inputs, a grid for one; with three or more inputs an input is kept as it
+(:func:`feasible_tail`): exact for one and two inputs; with three or more inputs an input is kept as it
 is, so a repair succeeds there only where the guess already satisfies the program, and :func:`safe_input`
 samples (its flag then means "none found", not "none exists").
 """
@@ -100,7 +100,7 @@ def _admissible(pred: Prediction, z: Array, cand: Array, last: bool) -> Array:
     ``A_d z + B_d v`` in the state box (and, for the ``last`` step, in the terminal set). ``z`` is one state (n_z,)
     or one per row of ``cand`` (n, n_z)."""
     z = np.broadcast_to(z, (len(cand), pred.nz))
-    u = pred.net(np.hstack([z, cand]))
+    u = pred.net._forward(np.hstack([z, cand]))[0]  # checked floats: the forward pass without its checks
     nxt = z @ pred.Ad.T + cand @ pred.Bd.T
     ok = (np.all(np.abs(u) <= pred.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= pred.z_lo, axis=1)
           & np.all(nxt <= pred.z_hi, axis=1))
@@ -116,9 +116,9 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
     """
     Az = pred.Ad @ z
     G = np.vstack([pred.Bd, -pred.Bd])
-    h = np.r_[Az - pred.z_hi, pred.z_lo - Az]
+    h = np.concatenate([Az - pred.z_hi, pred.z_lo - Az])
     if last and pred.F is not None:
-        G, h = np.vstack([G, pred.F @ pred.Bd]), np.r_[h, pred.F @ Az - pred.g]
+        G, h = np.vstack([G, pred.F @ pred.Bd]), np.concatenate([h, pred.F @ Az - pred.g])
     free = np.any(G != 0.0, axis=1)
     if np.any(h[~free] > 0.0):
         return None
@@ -128,10 +128,18 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
 def _step_interval(pred: Prediction, z: Array, last: bool = False) -> tuple[float, float]:
     """One input: the interval ``[lo, hi]`` of ``v`` that meets :func:`_step_rows` (the next state in its box, and in
     the terminal set when ``last``); empty (``lo > hi``) when no ``v`` does."""
-    rows = _step_rows(pred, z, last)
-    if rows is None:
-        return np.inf, -np.inf
-    g, h = rows[0][:, 0], rows[1]
+    if not (last and pred.F is not None):  # the box alone: b v + A_d z <= z_hi and -b v - A_d z <= -z_lo
+        Az, b = pred.Ad @ z, pred.Bd[:, 0]
+        g, h = np.concatenate([b, -b]), np.concatenate([Az - pred.z_hi, pred.z_lo - Az])
+        free = g != 0.0
+        if np.any(h[~free] > 0.0):
+            return np.inf, -np.inf
+        g, h = g[free], h[free]
+    else:
+        rows = _step_rows(pred, z, last)
+        if rows is None:
+            return np.inf, -np.inf
+        g, h = rows[0][:, 0], rows[1]
     up, down = g > 0, g < 0  # g v + h <= 0: v <= -h/g where g > 0, v >= -h/g where g < 0
     return (float(np.max(-h[down] / g[down], initial=-np.inf)), float(np.min(-h[up] / g[up], initial=np.inf)))
 
@@ -157,7 +165,8 @@ def _in_step_rows(pred: Prediction, z: Array, v: Array, last: bool) -> Array:
 #: when none of them is admissible.
 _NEAR = 128
 
-#: Grid points of a one-input search (:func:`feasible_tail`) over ``[v_lo, v_hi]``.
+#: Grid points of a one-input search (:func:`feasible_tail`) over ``[v_lo, v_hi]``, where the exact set gives no
+#: candidate that passes the forward pass.
 FEASIBLE_TAIL_GRID = 2001
 
 
@@ -166,7 +175,11 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
     """An input ``v`` with ``|Phi_NN(z, v)| <= u_max^eps`` and ``A_d z + B_d v`` in the state box (and, for the
     ``last`` step, in the terminal set), closest to ``v_guess``.
 
-    One input: searched on a grid of the ``v``-range (``n_grid`` points). Two inputs: exact, over the convex
+    One input: exact, over the intervals where ``|Phi_NN(z, v)| <= u_max^eps`` (chapter 6's exact 1-D method,
+    :func:`flnotes.exact_1d_feasible_set`) cut by the rows of the state box and the terminal set: the nearest point
+    of each interval, pulled inside only as far as the forward pass needs (:func:`_nearest_exact_1d`); a grid of the
+    ``v``-range (``n_grid`` points) only where none of those passes the forward pass (round-off) or the network has
+    more than one output. Two inputs: exact, over the convex
     polygons where the network is affine in ``v`` (:func:`flnotes.pieces.network_regions`, cut by the rows of
     the state box and the terminal set, then by the output bound): the point of each polygon nearest to
     ``v_guess``. Every candidate is checked with the forward pass. ``v_guess`` is returned unchanged when it is
@@ -197,8 +210,12 @@ def _feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEA
     if pred.m > 2 or _admissible(pred, z, v_guess[None], last)[0]:
         return v_guess
     if pred.m == 1:
-        # the grid in order of distance from the guess (ties in grid order), the nearest _NEAR points first: the
-        # first admissible point in that order is the nearest admissible one, as over the whole grid
+        v = _nearest_exact_1d(pred, z, v_guess, last)
+        if v is not None:
+            return v
+        # the grid (where no candidate of the exact set passes the forward pass, or the network has more outputs)
+        # in order of distance from the guess (ties in grid order), the nearest _NEAR points first: the first
+        # admissible point in that order is the nearest admissible one, as over the whole grid
         cand = np.linspace(pred.v_lo[0], pred.v_hi[0], n_grid)[:, None]
         keep = _in_step_rows(pred, z, cand[:, 0], last)  # only these can keep the next state in its box
         if not keep.any():
@@ -229,6 +246,44 @@ def _feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEA
     return cand[i[np.argmin(np.sum((cand[i] - v_guess) ** 2, axis=1))]].copy()
 
 
+#: How far (a share of its length) the exact method's candidates are pulled from an end of an admissible interval
+#: towards its inside (round-off at the ends; :func:`_nearest_exact_1d`), the nearest first.
+_PULLS = (0.0, 1e-12, 1e-9, 1e-6, 1e-3)
+
+
+def _nearest_exact_1d(pred: Prediction, z: Array, v_guess: Array, last: bool) -> Optional[Array]:
+    """One input: the admissible input nearest to ``v_guess`` over the exact set (eq. Phi_NN_ep at ``z``,
+    :func:`flnotes.exact_1d_feasible_set`) cut by the step's rows (:func:`_step_interval`), or ``None`` when that
+    set is empty or none of its candidates passes the forward pass (:func:`_admissible`).
+
+    The candidates of each interval ``[a, b]``: the guess clipped to it, pulled towards its inside by
+    :data:`_PULLS` of its length, and its midpoint; the nearest that passes :func:`_admissible` is returned. No
+    admissible input is nearer than the interval's clipped guess, so the answer is the exact nearest to within the
+    pull the forward pass needed.
+    """
+    from ..control import _pieces_1d, _within
+
+    net = pred.net
+    u = float(pred.u_eps[0])
+    if net.n_out != 1 or net.n_in != pred.nz + 1 or not u > 0.0:
+        return None
+    s_lo, s_hi = _step_interval(pred, z, last)
+    lo, hi = max(float(pred.v_lo[0]), s_lo), min(float(pred.v_hi[0]), s_hi)
+    if not lo < hi:
+        return None
+    iv = _within(_pieces_1d(net, z, lo, hi), u)  # exact_1d_feasible_set without its checks
+    if not len(iv):
+        return None
+    a, b = iv[:, 0], iv[:, 1]
+    near = np.clip(float(v_guess[0]), a, b)
+    inward = 0.5 * (a + b) - near  # towards the middle of its interval
+    cand = (near[:, None] + np.asarray(_PULLS)[None, :] * inward[:, None]).reshape(-1)
+    cand = np.concatenate([cand, 0.5 * (a + b)])
+    cand = cand[np.argsort(np.abs(cand - v_guess[0]), kind="stable")]
+    ok = _admissible(pred, z, cand[:, None], last)
+    return cand[[int(np.argmax(ok))]] if ok.any() else None
+
+
 def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
               deadline: Optional[float] = None, stop: Optional[threading.Event] = None) -> tuple[Array, Array]:
     """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
@@ -254,9 +309,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
             V[k:] = guess[k:]
             break
         if resolve:
-            G = np.eye(N * m)[: k * m] if k else None
-            fixed = V[:k].reshape(-1)
-            x, _, _ = pred.qp(f, z, G, fixed if k else None, fixed if k else None)
+            x, _, _ = pred.qp(f, z, fixed=V[:k].reshape(-1) if k else None)  # v(0..k-1) held where they are
             if x is not None:
                 guess = np.asarray(x, float).reshape(N, m)
         V[k] = _feasible_tail(pred, zk, guess[k], last=k == N - 1)

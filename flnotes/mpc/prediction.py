@@ -125,8 +125,8 @@ class Prediction:
         Zf = (self.Sx @ z0)[1:].reshape(-1)
         lo, hi = np.tile(self.z_lo, self.N) - Zf, np.tile(self.z_hi, self.N) - Zf
         if self.F is not None:
-            lo = np.r_[lo, np.full(self.g.size, -np.inf)]
-            hi = np.r_[hi, self.g - self.F @ (self.Sx[self.N] @ z0)]
+            lo = np.concatenate([lo, np.full(self.g.size, -np.inf)])
+            hi = np.concatenate([hi, self.g - self.F @ (self.Sx[self.N] @ z0)])
         return lo, hi
 
     def _outputs(self, z0: Array, V: Array) -> Array:
@@ -202,13 +202,14 @@ class Prediction:
         return (not network) or self.violated(z0, V).size == 0
 
     def qp(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
-           g_hi: Optional[Array] = None) -> tuple[Optional[Array], float, int]:
+           g_hi: Optional[Array] = None, fixed: Optional[Array] = None) -> tuple[Optional[Array], float, int]:
         """The QP ``min J(V)`` over the boxes and terminal rows (no network), plus optional rows ``g_lo <= G V <= g_hi``.
 
-        Solved by DAQP (``H`` is positive definite). Returns ``(V or None, J - c0, DAQP exit flag)``; a plan
-        only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
+        Solved by DAQP (``H`` is positive definite). ``fixed``: the first ``len(fixed)`` entries of the flat ``V``
+        (``v(0..k-1)``) held at these values (their simple bounds set to them). Returns ``(V or None, J - c0, DAQP
+        exit flag)``; a plan only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
         """
-        V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi)
+        V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi, fixed=fixed)
         return V, fval, flag
 
     def relaxation(self, f: Array, z0: Array, first: Optional[tuple[Array, Array]] = None
@@ -229,24 +230,30 @@ class Prediction:
         return V, fval, flag
 
     def qp_multipliers(self, f: Array, z0: Array, G: Optional[Array] = None, g_lo: Optional[Array] = None,
-                       g_hi: Optional[Array] = None, first: Optional[tuple[Array, Array]] = None
-                       ) -> tuple[Optional[Array], float, int, Optional[Array]]:
+                       g_hi: Optional[Array] = None, first: Optional[tuple[Array, Array]] = None,
+                       fixed: Optional[Array] = None) -> tuple[Optional[Array], float, int, Optional[Array]]:
         """:meth:`qp` and the multipliers of the rows ``G`` at its optimum (DAQP's: positive on an active upper
         bound ``g_hi``, negative on an active lower bound, zero on an inactive row); ``None`` without a plan.
-        ``first = (a, b)``: ``v(0)`` within ``[a, b]`` as well (:meth:`first_range`)."""
+        ``first = (a, b)``: ``v(0)`` within ``[a, b]`` as well (:meth:`first_range`); ``fixed``: as in :meth:`qp`."""
         import daqp
 
         lo, hi = self.state_bounds(z0)
         A, bl, bu = self.A_state, lo, hi
         if G is not None:
-            A, bl, bu = np.vstack([A, G]), np.r_[bl, g_lo], np.r_[bu, g_hi]
+            A, bl, bu = (np.vstack([A, G]), np.concatenate([bl, np.broadcast_to(g_lo, len(G))]),
+                         np.concatenate([bu, np.broadcast_to(g_hi, len(G))]))
         N = self.N
         # DAQP: the first N m constraints are simple bounds on V, the rest rows of A
-        bu_all = np.r_[np.tile(self.v_hi, N), np.minimum(bu, 1e30)]
-        bl_all = np.r_[np.tile(self.v_lo, N), np.maximum(bl, -1e30)]
+        bu_all = np.concatenate([np.tile(self.v_hi, N), np.minimum(bu, 1e30)])
+        bl_all = np.concatenate([np.tile(self.v_lo, N), np.maximum(bl, -1e30)])
         if first is not None:
             m = self.m
             bl_all[:m], bu_all[:m] = np.maximum(bl_all[:m], first[0]), np.minimum(bu_all[:m], first[1])
+        if fixed is not None:
+            fixed = np.asarray(fixed, float).reshape(-1)
+            if fixed.size > N * self.m:
+                raise ValueError(f"fixed holds {fixed.size} inputs; the plan has N_p m = {N * self.m}")
+            bl_all[: fixed.size] = bu_all[: fixed.size] = fixed
         x, fval, flag, info = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
                                          np.zeros(len(bu_all), dtype=np.int32))
         if flag not in (1, 2):
