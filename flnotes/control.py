@@ -444,14 +444,14 @@ def network_pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> Piece
 def _pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> PiecewiseAffine1D:
     """:func:`network_pieces_1d` without its checks (``z`` a finite float vector of ``n_in - 1`` entries, one output,
     finite ``v_lo < v_hi``): for callers that checked them, in a loop."""
-    tol = 1e-12 * max(1.0, abs(v_hi - v_lo))
+    tol = 1e-12 * (v_hi - v_lo)  # relative to the segment: a short segment keeps its narrow pieces
     knots = np.array([v_lo, v_hi], float)
     W1 = net.W[0]
     pre = (W1[:, :-1] @ z + net.b[0])[None, :] + knots[:, None] * W1[None, :, -1]   # layer 1, affine in v
     for k in range(1, net.K):
         # pre (n_knots, n_k) is affine between consecutive knots: its zero crossings are exact roots
         a0, a1 = pre[:-1], pre[1:]
-        i, j = np.nonzero(a0 * a1 < 0)
+        i, j = np.nonzero(((a0 < 0) & (a1 > 0)) | ((a0 > 0) & (a1 < 0)))  # signs, not a product that can underflow
         if len(i):
             t = a0[i, j] / (a0[i, j] - a1[i, j])
             roots = knots[i] + t * (knots[i + 1] - knots[i])
@@ -533,7 +533,8 @@ def _within(pw: PiecewiseAffine1D, bound: float) -> Array:
     """:func:`exact_1d_feasible_set` of the pieces ``pw`` without its checks (``bound`` > 0)."""
     iv = _pieces_within(pw, bound)
     iv = iv[iv[:, 0] <= iv[:, 1]]
-    return _merge(iv, tol=1e-12)
+    # touching intervals merged: a gap of round-off (1e-12, less on a segment shorter than 1) is no gap
+    return _merge(iv, tol=1e-12 * min(1.0, float(pw.knots[-1] - pw.knots[0])))
 
 
 def _halfline(a: Array, b: Array) -> tuple[float, float]:

@@ -243,6 +243,73 @@ def test_feasible_tail_for_one_input_at_every_scale(scale):
     assert moved >= 100, f"premise: guesses moved ({moved})"
 
 
+def _one_input_pred(Ws, bs, Ad, Bd, v_lo, v_hi, u_eps, z_lo, z_hi, terminal=None, N=2):
+    """A Prediction of one input built by hand (identity weights): for the edge cases of feasible_tail."""
+    from flnotes.mpc.prediction import Prediction
+
+    net = fl.ReLUNet([np.asarray(W, float) for W in Ws], [np.asarray(b, float) for b in bs])
+    Ad = np.atleast_2d(np.asarray(Ad, float))
+    n_z = Ad.shape[0]
+    return Prediction(net, Ad, np.asarray(Bd, float).reshape(-1, 1), N, np.eye(n_z), np.eye(1), np.eye(n_z),
+                      z_lo=np.asarray(z_lo, float).reshape(-1), z_hi=np.asarray(z_hi, float).reshape(-1),
+                      v_lo=np.array([float(v_lo)]), v_hi=np.array([float(v_hi)]), u_eps=np.array([float(u_eps)]),
+                      terminal=terminal)
+
+
+_C, _HW = 0.2e-10, 4e-13  # a tent of height 2 and half-width 4e-13 at 2e-11, on a v range of 1e-10
+_EDGE_CASES = {
+    # Phi = v; the terminal set (last step) or an equality face of the box leaves the one input v = c
+    "terminal set leaves one point": (
+        _one_input_pred([[[0, 1], [0, -1]], [[1, -1]]], [[0, 0], [0]], [[1.0]], [1.0], -1, 1, 1.0, [-10], [10],
+                        terminal=(np.array([[1.0], [-1.0]]), np.array([0.123456789, -0.123456789]))),
+        [0.0], 0.9, True, [0.123456789]),
+    "box face leaves one point": (
+        _one_input_pred([[[0, 1], [0, -1]], [[1, -1]]], [[0, 0], [0]], [[1.0]], [1.0], -1, 1, 1.0, [0.123456789],
+                        [0.123456789]), [0.0], 0.9, False, [0.123456789]),
+    # Phi = 3e170 relu(1e-170 v) - 1: the product of the pre-activations at the knots underflows
+    "pre-activations of 1e-170": (
+        _one_input_pred([[[0, 1e-170]], [[3e170]]], [[0.0], [-1.0]], [[1.0]], [0.0], -1, 1, 1.0, [-10], [10]),
+        [0.0], 0.9, False, [2 / 3]),
+    # a flat piece at u_max^eps + BOUND_TOL / 2: admissible for the forward-pass check
+    "flat piece within the check's tolerance": (
+        _one_input_pred([[[0, -1], [0, 1]], [[10, -10]]], [[0, -0.9], [1.0 + 0.5e-12]], [[1.0]], [0.0], -1, 1, 1.0,
+                        [-10], [10]), [0.0], -0.5, False, [0.0, -1e-14]),
+    # an inadmissible tent narrower than 1e-12 on a v range of 1e-10, the guess on its top
+    "a gap of 8e-13 on a range of 1e-10": (
+        _one_input_pred([[[0, 1], [0, 1], [0, 1]], [[2 / _HW, -4 / _HW, 2 / _HW]]], [[-(_C - _HW), -_C, -(_C + _HW)],
+                        [0.0]], [[1.0]], [0.0], 0, 1e-10, 1.0, [-10], [10]),
+        [0.0], _C, False, np.linspace(_C - 2 * _HW, _C + 2 * _HW, 4001)),
+    # u_max^eps = 0: only Phi = 0 (to the check's tolerance) is admissible
+    "u_max^eps = 0": (
+        _one_input_pred([[[0, 1], [0, -1]], [[1, -1]]], [[0, 0], [-0.1234567]], [[1.0]], [0.0], -1, 1, 0.0, [-10],
+                        [10]), [0.0], 0.9, False, [0.1234567]),
+    # Phi = 0; the terminal row's face: a batch's matrix product rounds otherwise than one row's
+    "a terminal face at round-off": (
+        _one_input_pred([[[0, 0, 1]], [[0.0]]], [[0.0], [0.0]], [[0.513, -0.298], [-0.53, -0.236]], [1.816, -0.05],
+                        -10, 10, 1.0, [-100, -100], [100, 100],
+                        terminal=(np.array([[0.087, -1.487]]), np.array([0.1])), N=1),
+        [1.647, 0.917], 10.0, True, []),
+}
+
+
+@pytest.mark.parametrize("case", list(_EDGE_CASES))
+def test_feasible_tail_for_one_input_on_edge_cases(case):
+    """feasible_tail for m = 1 where an exact set is easy to get wrong: the box or the terminal set leaves one input,
+    pre-activations whose product underflows, a piece flat within the check's tolerance, a gap narrower than 1e-12 on
+    a short v range, u_max^eps = 0, a face met at round-off. The answer passes the forward-pass check on its own and
+    lies no farther from the guess than the nearest admissible point of a dense grid (plus the known points)."""
+    pred, z, guess, last, extra = _EDGE_CASES[case]
+    z, g = np.asarray(z, float), np.array([guess])
+    v = fb.feasible_tail(pred, z, g, last=last)
+    assert fb._admissible(pred, z, v[None], last)[0], (case, v)
+    cand = np.unique(np.r_[np.linspace(pred.v_lo[0], pred.v_hi[0], 200001), np.asarray(extra, float)])
+    cand = cand[(cand >= pred.v_lo[0]) & (cand <= pred.v_hi[0])]
+    ok = fb._admissible(pred, z, cand[:, None], last)
+    assert ok.any(), "premise: an admissible input"
+    nearest = float(np.min(np.abs(cand[ok] - guess)))
+    assert abs(v[0] - guess) <= nearest + 1e-12 * (pred.v_hi[0] - pred.v_lo[0]), (case, v, nearest)
+
+
 def test_the_one_input_step_interval_is_the_set_that_keeps_the_state_in_its_box(quad):
     """_step_interval (one input: the v that keep A_d z + B_d v in the state box, and in the terminal set for the
     last step), which safe_input prefers, equals the grid points that meet those rows by a direct check, at states

@@ -179,7 +179,8 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
     :func:`flnotes.exact_1d_feasible_set`) cut by the rows of the state box and the terminal set: the nearest point
     of each interval, pulled inside only as far as the forward pass needs (:func:`_nearest_exact_1d`); a grid of the
     ``v``-range (``n_grid`` points) only where none of those passes the forward pass (round-off) or the network has
-    more than one output. Two inputs: exact, over the convex
+    more than one output (an admissible sliver narrower than 1e-12 of the ``v``-range can be missed: knots of the
+    pieces closer than that are one). Two inputs: exact, over the convex
     polygons where the network is affine in ``v`` (:func:`flnotes.pieces.network_regions`, cut by the rows of
     the state box and the terminal set, then by the output bound): the point of each polygon nearest to
     ``v_guess``. Every candidate is checked with the forward pass. ``v_guess`` is returned unchanged when it is
@@ -252,36 +253,44 @@ _PULLS = (0.0, 1e-12, 1e-9, 1e-6, 1e-3)
 
 
 def _nearest_exact_1d(pred: Prediction, z: Array, v_guess: Array, last: bool) -> Optional[Array]:
-    """One input: the admissible input nearest to ``v_guess`` over the exact set (eq. Phi_NN_ep at ``z``,
-    :func:`flnotes.exact_1d_feasible_set`) cut by the step's rows (:func:`_step_interval`), or ``None`` when that
-    set is empty or none of its candidates passes the forward pass (:func:`_admissible`).
+    """One input: the admissible input nearest to ``v_guess`` over the exact set (eq. Phi_NN_ep at ``z`` with the
+    forward-pass check's bound ``u_max^eps + BOUND_TOL``, piece by piece of ``Phi_NN(z, .)``,
+    :func:`flnotes.network_pieces_1d`) cut by the step's rows (:func:`_step_interval`), or ``None`` when that set is
+    empty or none of its candidates passes the forward pass (:func:`_admissible`).
 
-    The candidates of each interval ``[a, b]``: the guess clipped to it, pulled towards its inside by
-    :data:`_PULLS` of its length, and its midpoint; the nearest that passes :func:`_admissible` is returned. No
-    admissible input is nearer than the interval's clipped guess, so the answer is the exact nearest to within the
-    pull the forward pass needed.
+    The candidates of each piece's interval ``[a, b]``: the guess clipped to it, pulled towards its inside by
+    :data:`_PULLS` of its length, and its midpoint (intervals are not merged, so that a gap of round-off between two
+    of them costs no candidate). The nearest that passes :func:`_admissible`, checked again alone (a batch's matrix
+    product rounds otherwise than one row's), is returned. No admissible input is nearer than the clipped guesses, so
+    the answer is the exact nearest to within the pull the forward pass needed.
     """
-    from ..control import _pieces_1d, _within
+    from ..control import _pieces_1d, _pieces_within
 
     net = pred.net
-    u = float(pred.u_eps[0])
-    if net.n_out != 1 or net.n_in != pred.nz + 1 or not u > 0.0:
+    if net.n_out != 1 or net.n_in != pred.nz + 1:
         return None
+    bound = float(pred.u_eps[0]) + BOUND_TOL  # the forward-pass check's own bound
     s_lo, s_hi = _step_interval(pred, z, last)
     lo, hi = max(float(pred.v_lo[0]), s_lo), min(float(pred.v_hi[0]), s_hi)
-    if not lo < hi:
+    if not (lo <= hi and bound > 0.0):
         return None
-    iv = _within(_pieces_1d(net, z, lo, hi), u)  # exact_1d_feasible_set without its checks
-    if not len(iv):
-        return None
-    a, b = iv[:, 0], iv[:, 1]
-    near = np.clip(float(v_guess[0]), a, b)
-    inward = 0.5 * (a + b) - near  # towards the middle of its interval
-    cand = (near[:, None] + np.asarray(_PULLS)[None, :] * inward[:, None]).reshape(-1)
-    cand = np.concatenate([cand, 0.5 * (a + b)])
-    cand = cand[np.argsort(np.abs(cand - v_guess[0]), kind="stable")]
-    ok = _admissible(pred, z, cand[:, None], last)
-    return cand[[int(np.argmax(ok))]] if ok.any() else None
+    if lo == hi:  # the box or the terminal set leaves one input
+        cand = np.array([lo])
+    else:
+        iv = _pieces_within(_pieces_1d(net, z, lo, hi), bound)  # exact_1d_feasible_set, piece by piece
+        iv = iv[iv[:, 0] <= iv[:, 1]]
+        if not len(iv):
+            return None
+        a, b = iv[:, 0], iv[:, 1]
+        near = np.clip(float(v_guess[0]), a, b)
+        inward = 0.5 * (a + b) - near  # towards the middle of its interval
+        cand = np.concatenate([(near[:, None] + np.asarray(_PULLS)[None, :] * inward[:, None]).reshape(-1),
+                               0.5 * (a + b)])
+        cand = cand[np.argsort(np.abs(cand - v_guess[0]), kind="stable")]
+    for i in np.flatnonzero(_admissible(pred, z, cand[:, None], last)):
+        if _admissible(pred, z, cand[i:i + 1, None], last)[0]:
+            return cand[i:i + 1].copy()
+    return None
 
 
 def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
