@@ -253,10 +253,13 @@ _PULLS = (0.0, 1e-12, 1e-9, 1e-6, 1e-3)
 
 
 def _nearest_exact_1d(pred: Prediction, z: Array, v_guess: Array, last: bool) -> Optional[Array]:
-    """One input: the admissible input nearest to ``v_guess`` over the exact set (eq. Phi_NN_ep at ``z`` with the
-    forward-pass check's bound ``u_max^eps + BOUND_TOL``, piece by piece of ``Phi_NN(z, .)``,
-    :func:`flnotes.network_pieces_1d`) cut by the step's rows (:func:`_step_interval`), or ``None`` when that set is
-    empty or none of its candidates passes the forward pass (:func:`_admissible`).
+    """One input: the admissible input nearest to ``v_guess`` over the exact set (eq. Phi_NN_ep at ``z``, piece by
+    piece of ``Phi_NN(z, .)``, :func:`flnotes.network_pieces_1d`) cut by the step's rows (:func:`_step_interval`), or
+    ``None`` when that set is empty or none of its candidates passes the forward pass (:func:`_admissible`).
+
+    The set is the program's, ``|Phi_NN| <= u_max^eps``, not the check's ``u_max^eps +``
+    :data:`flnotes.solvers.BOUND_TOL`: an input at the check's own bound would fail it once the plan's states are
+    predicted again (:meth:`Prediction.feasible`), by their round-off; the check's tolerance stays that margin.
 
     The candidates of each piece's interval ``[a, b]``: the guess clipped to it, pulled towards its inside by
     :data:`_PULLS` of its length, and its midpoint (intervals are not merged, so that a gap of round-off between two
@@ -269,10 +272,10 @@ def _nearest_exact_1d(pred: Prediction, z: Array, v_guess: Array, last: bool) ->
     net = pred.net
     if net.n_out != 1 or net.n_in != pred.nz + 1:
         return None
-    bound = float(pred.u_eps[0]) + BOUND_TOL  # the forward-pass check's own bound
+    bound = float(pred.u_eps[0])  # the program's bound (see above)
     s_lo, s_hi = _step_interval(pred, z, last)
     lo, hi = max(float(pred.v_lo[0]), s_lo), min(float(pred.v_hi[0]), s_hi)
-    if not (lo <= hi and bound > 0.0):
+    if not (lo <= hi and bound >= 0.0):
         return None
     if lo == hi:  # the box or the terminal set leaves one input
         cand = np.array([lo])
