@@ -177,17 +177,17 @@ def _nearest_grid_distance(pred, z, guess, last, n):
 
 def test_feasible_tail_for_one_input_is_the_nearest_admissible_point(quad):
     """feasible_tail for m = 1 (the exact set of the step, eq. Phi_NN_ep at z cut by the next state's box and terminal
-    rows): the guess when it is admissible; otherwise an admissible input at least as near to the guess as every
-    admissible point of a grid 50 times finer than the fallback's own (so nearer than that grid's step to the exact
-    nearest), wherever such a point exists, and the guess back only where no grid point is admissible. Checked by
-    brute force at states all over the box and at its faces, with and without the terminal rows."""
+    rows): the guess when it is admissible; otherwise an admissible input within the program's bound u_max^eps, at
+    least as near to the guess as every admissible point of a grid 50 times finer than the fallback's own (10 under
+    FLNOTES_FAST), wherever such a point exists, and the guess back only where no grid point is admissible. Checked
+    by brute force at states all over the box and at its faces, with and without the terminal rows."""
     system, net, eps = quad["system"], quad["net"], quad["eps"]
     n_z = system.n_z
     F, g = np.vstack([np.eye(n_z), -np.eye(n_z)]), 0.5 * np.r_[system.hi[:n_z], -system.lo[:n_z]]
     mpc = MPC(system, net, eps, horizon=3, ts=0.1, terminal=(F, g))
     pred = mpc.pred
     rng = np.random.default_rng(5)
-    fine = 50 * (fb.FEASIBLE_TAIL_GRID - 1) + 1
+    fine = fl.scale(50, 10) * (fb.FEASIBLE_TAIL_GRID - 1) + 1
     lo, hi = system.lo[:n_z], system.hi[:n_z]
     states = np.vstack([rng.uniform(lo, hi, (40, n_z)), np.where(rng.random((40, n_z)) < 0.5, lo, hi)
                         * rng.uniform(0.97, 1.0, (40, n_z))])
@@ -207,6 +207,9 @@ def test_feasible_tail_for_one_input_is_the_nearest_admissible_point(quad):
             else:
                 assert ok_v, (z, last, guess, v)
                 assert abs(v[0] - guess[0]) <= d_fine + 1e-9, (z, last, guess, v, d_fine)
+                # a moved input meets the program's bound, not only the check's u_max^eps + BOUND_TOL: at the check's
+                # own bound a plan fails the check once its states are predicted again (round-off)
+                assert np.all(np.abs(pred.net(np.r_[z, v])) <= pred.u_eps + 1e-13), (z, last, v)
                 kinds.add("moved")
     assert kinds == {"guess admissible", "none admissible", "moved"}, f"premise: every case met, got {kinds}"
 
@@ -239,6 +242,9 @@ def test_feasible_tail_for_one_input_at_every_scale(scale):
             assert ok_v, (scale, B, z, v)
             # a grid point can pass the check by the round-off of z + v, about eps * scale beyond the exact face
             assert abs(v[0] - 1.0) <= d + 1e-12 + 4 * np.finfo(float).eps * scale, (scale, B, z, v, d)
+            # and it is the exact nearest: Phi = v, so |v| <= 0.5 and, where v moves the state, v <= (scale - z) / B
+            exact = min(0.5, (scale - z[0]) / B) if B else 0.5
+            assert abs(v[0] - exact) <= 1e-12 + 4 * np.finfo(float).eps * scale, (scale, B, z, v, exact)
             moved += v[0] != 1.0
     assert moved >= 100, f"premise: guesses moved ({moved})"
 
@@ -270,6 +276,11 @@ _EDGE_CASES = {
     "pre-activations of 1e-170": (
         _one_input_pred([[[0, 1e-170]], [[3e170]]], [[0.0], [-1.0]], [[1.0]], [0.0], -1, 1, 1.0, [-10], [10]),
         [0.0], 0.9, False, [2 / 3]),
+    # a flat piece at u_max^eps + BOUND_TOL / 2: within the check's tolerance, outside the program's bound (the
+    # nearest input within the bound is 0.9, where the piece drops)
+    "flat piece within the check's tolerance": (
+        _one_input_pred([[[0, -1], [0, 1]], [[10, -10]]], [[0, -0.9], [1.0 + 0.5e-12]], [[1.0]], [0.0], -1, 1, 1.0,
+                        [-10], [10]), [0.0], -0.5, False, [0.9, 0.9 + 1e-13]),
     # an inadmissible tent narrower than 1e-12 on a v range of 1e-10, the guess on its top
     "a gap of 8e-13 on a range of 1e-10": (
         _one_input_pred([[[0, 1], [0, 1], [0, 1]], [[2 / _HW, -4 / _HW, 2 / _HW]]], [[-(_C - _HW), -_C, -(_C + _HW)],
@@ -291,16 +302,18 @@ _EDGE_CASES = {
 @pytest.mark.parametrize("case", list(_EDGE_CASES))
 def test_feasible_tail_for_one_input_on_edge_cases(case):
     """feasible_tail for m = 1 where an exact set is easy to get wrong: the box or the terminal set leaves one input,
-    pre-activations whose product underflows, a gap narrower than 1e-12 on a short v range, u_max^eps = 0, a face met
-    at round-off. The answer passes the forward-pass check on its own and
-    lies no farther from the guess than the nearest admissible point of a dense grid (plus the known points)."""
+    pre-activations whose product underflows, a piece flat within the check's tolerance, a gap narrower than 1e-12 on
+    a short v range, u_max^eps = 0, a face met at round-off. The answer passes the forward-pass check on its own, meets
+    the program's bound |Phi_NN| <= u_max^eps (to round-off far below BOUND_TOL) and lies no farther from the guess
+    than the nearest such point of a dense grid (plus the known points)."""
     pred, z, guess, last, extra = _EDGE_CASES[case]
     z, g = np.asarray(z, float), np.array([guess])
     v = fb.feasible_tail(pred, z, g, last=last)
-    assert fb._admissible(pred, z, v[None], last)[0], (case, v)
+    within = lambda V: np.abs(pred.net(np.column_stack([np.repeat(z[None], len(V), 0), V]))[:, 0]) <= pred.u_eps[0] + 1e-13  # noqa: E731
+    assert fb._admissible(pred, z, v[None], last)[0] and within(v)[0], (case, v)
     cand = np.unique(np.r_[np.linspace(pred.v_lo[0], pred.v_hi[0], 200001), np.asarray(extra, float)])
     cand = cand[(cand >= pred.v_lo[0]) & (cand <= pred.v_hi[0])]
-    ok = fb._admissible(pred, z, cand[:, None], last)
+    ok = fb._admissible(pred, z, cand[:, None], last) & within(cand)
     assert ok.any(), "premise: an admissible input"
     nearest = float(np.min(np.abs(cand[ok] - guess)))
     assert abs(v[0] - guess) <= nearest + 1e-12 * (pred.v_hi[0] - pred.v_lo[0]), (case, v, nearest)
@@ -347,6 +360,25 @@ def test_qp_repair_from_the_relaxation_is_the_full_rebuild(quad):
     assert moved >= 2, "premise: states where the repair moves some input"
 
 
+def test_the_qp_with_fixed_steps_holds_them_and_refuses_what_means_nothing(quad):
+    """Prediction.qp(fixed=...): the first steps held at their values (to round-off) and the rest the QP's optimum with
+    them fixed (the same as with equality rows); values outside the v box, not finite, more than the plan holds, or
+    given with first, are a ValueError."""
+    pred = rt.make_mpc(quad).pred
+    c = next(iter(ex.mpc_cases(quad, 1, seed=3)))
+    f, _ = pred.linear(c["z"], c["z_ref"])
+    held = np.clip(np.linspace(-1.0, 1.0, 3), pred.v_lo[0], pred.v_hi[0])
+    x, _, flag = pred.qp(f, c["z"], fixed=held)
+    G = np.eye(pred.N * pred.m)[:3]
+    y, _, flag_rows = pred.qp(f, c["z"], G, held, held)
+    assert flag == flag_rows == 1 and np.allclose(x[:3], held, atol=1e-12) and np.allclose(x, y, atol=1e-7)
+    for bad in ([pred.v_hi[0] + 1.0], [np.nan], [np.inf], np.zeros(pred.N * pred.m + 1)):
+        with pytest.raises(ValueError, match="fixed"):
+            pred.qp(f, c["z"], fixed=bad)
+    with pytest.raises(ValueError, match="not both"):
+        pred.qp_multipliers(f, c["z"], first=(pred.v_lo, pred.v_hi), fixed=held[:1])
+
+
 def test_at_the_limit_the_first_incumbent_is_returned(quad):
     """A limit far below any solve: each step returns its first incumbent, the cheaper (both checked by the forward
     pass) of the shifted previous plan and the relaxation's optimum repaired along the QP, then optimized over the
@@ -358,7 +390,7 @@ def test_at_the_limit_the_first_incumbent_is_returned(quad):
     mpc = rt.make_mpc(setup, time_limit=TINY, cut_off=False)
     pred, z = mpc.pred, np.asarray(setup["z0"], float)
     seen = {"warm start": 0, "repaired relaxation": 0, "region": 0}
-    for k in range(30):  # 30 steps also under FLNOTES_FAST (about 2 s): the region QP improves few exact repairs
+    for k in range(30):  # 30 steps also under FLNOTES_FAST (under 2 s): the region QP improves few exact repairs
         R = setup["reference"](setup["ts"] * (k + np.arange(setup["N"] + 1)))
         shifted = mpc.shifted_plan(z)
         s = mpc(z, R)
@@ -1882,18 +1914,28 @@ def test_first_incumbent_times_time_the_engines_first_repair_against_a_fresh_cut
     c = U.case("VdP-gain")
     ts = dl.SHORT_TS
     keep = min(max(0.5 * ctl.RESERVE_SHARE * ts, ctl.CUT_OFF_MIN_S), ctl.RESERVE_MAX_SHARE * ts)
+    incumbents = set()
     for r in rows:
-        pred = U.unseen_mpc("VdP-gain", ts=ts, horizon=r["N_p"]).pred
+        # the engine's own cold step at z(0) (no limit): its first incumbent is the repaired relaxation exactly when
+        # the row says the repair passes (else the one-switch plans; none when the QP's optimum is screened)
         z0 = np.array(c.z0, float)
-        f, _ = pred.linear(z0, np.asarray(c.reference()(ts * np.arange(pred.N + 1)), float))
-        V_c, _, _ = pred.relaxation(f, z0)
-        assert r["passes"] == pred.feasible(z0, fb.qp_repair(pred, z0, f, V_c)[1])
+        R = np.asarray(c.reference()(ts * np.arange(r["N_p"] + 1)), float)
+        s = U.unseen_mpc("VdP-gain", ts=ts, horizon=r["N_p"])(z0, R)
+        if s.info.get("incumbent") is not None:
+            incumbents.add(s.info["incumbent"])
+            assert (s.info["incumbent"] == "repaired relaxation") == r["passes"], (r, s.info["incumbent"])
         assert 0 < r["ms_median"] <= r["ms_max"] and r["cpu_ms_median"] > 0
         assert r["cut_off_ms"] == pytest.approx(1e3 * (ts - keep))
     assert any(r["passes"] for r in rows), "premise: a repaired plan that passes the check"
+    assert "repaired relaxation" in incumbents, "premise: the engine's first incumbent compared"
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="repeats must be"):
             dl.first_incumbent_times("VdP-gain", horizons=(8,), repeats=bad)
+    for bad in ((8.5,), (0,), "12", (True,)):
+        with pytest.raises(ValueError, match="horizons must be"):
+            dl.first_incumbent_times("VdP-gain", horizons=bad)
+    with pytest.raises(ValueError, match="ts must be"):
+        dl.first_incumbent_times("VdP-gain", horizons=(8,), ts=-0.02)
 
 
 def test_repeat_loops_refuses_bad_arguments_before_any_loop_runs(monkeypatch):

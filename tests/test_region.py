@@ -75,9 +75,10 @@ def test_region_qp_is_feasible_and_no_dearer(quad15):
     forward-pass check and costs at most its start; the moves to neighbouring regions cost at most the first
     region's optimum."""
     setup, pred = quad15
-    cases = _repaired(setup, pred, fl.scale(16, 8), seed=4) + _one_switch(setup, pred, fl.scale(8, 4), seed=4)
-    better = 0
-    for c, f, c0, V in cases:
+    repaired = _repaired(setup, pred, fl.scale(16, 8), seed=4)
+    cases = repaired + _one_switch(setup, pred, fl.scale(8, 4), seed=4)
+    better = better_repaired = 0
+    for i, (c, f, c0, V) in enumerate(cases):
         J = pred.cost(V, f, c0)
         V1 = rg.region_qp(pred, c["z"], f, V, max_moves=0)
         V2 = rg.region_qp(pred, c["z"], f, V, max_moves=rg.REGION_MOVES)
@@ -86,7 +87,9 @@ def test_region_qp_is_feasible_and_no_dearer(quad15):
         J1, J2 = pred.cost(V1, f, c0), pred.cost(V2, f, c0)
         assert J1 <= J + 1e-9 * max(1.0, abs(J)) and J2 <= J1 + 1e-9 * max(1.0, abs(J1))
         better += J1 < J - 1e-6 * max(1.0, abs(J))
+        better_repaired += i < len(repaired) and J1 < J - 1e-6 * max(1.0, abs(J))
     assert len(cases) >= 3 and better >= 2, f"premise: states where the region QP improves ({len(cases)}, {better})"
+    assert better_repaired >= 1, "premise: a repaired relaxation that the region QP improves"
 
 
 def test_a_solver_point_over_the_bound_is_made_exact_on_its_region():

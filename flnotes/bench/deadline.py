@@ -807,19 +807,30 @@ def first_incumbent_times(name: str = LONG_SYSTEM, horizons: Sequence[int] = (12
     """How long a cold step's first incumbent takes against the time a fresh controller leaves the engine.
 
     At the case's start ``z(0)`` (:data:`flnotes.studies.unseen.CASES`, no previous plan, the reference at ``t = 0``)
-    and each horizon: the relaxation's optimum (:meth:`flnotes.mpc.prediction.Prediction.relaxation`) repaired along
-    the QP (:func:`flnotes.mpc.fallback.qp_repair`, what the engine's incumbent search runs first), timed ``repeats``
-    times in this thread (``ms_median``, ``ms_max``; CPU ``cpu_ms_median``), and the cut-off of a fresh controller with
-    ``time_limit = ts`` (``cut_off_ms``: what :meth:`flnotes.MPC.step` leaves the engine before it answers with what it
-    has). ``passes``: the repaired plan passes the forward-pass check (then it is the step's incumbent once it is built
-    before the cut-off). Where ``ms_max`` comes near ``cut_off_ms`` less the engine's set-up (a few ms), whether a cold
-    step has a plan, and so whether a loop that starts cold tracks, is the machine's timing (:func:`repeat_loops`).
+    and each horizon: the relaxation's optimum (:meth:`flnotes.mpc.prediction.Prediction.relaxation`, with ``v(0)`` in
+    its exact range when it breaks the bound there, :meth:`~flnotes.mpc.prediction.Prediction.first_range`, as the
+    engine does with :data:`flnotes.mpc.engine.FIRST_RANGE` on) repaired along the QP
+    (:func:`flnotes.mpc.fallback.qp_repair`, what the engine's incumbent search runs first), timed ``repeats`` times
+    in this thread, the relaxations not counted (``ms_median``, ``ms_max``; CPU ``cpu_ms_median``), and the cut-off of
+    a fresh controller with ``time_limit = ts`` (``cut_off_ms``: what :meth:`flnotes.MPC.step` leaves the engine
+    before it answers with what it has). ``passes``: the repaired plan passes the forward-pass check (then it is the
+    step's incumbent once it is built before the cut-off). Where ``ms_max`` comes near ``cut_off_ms`` less the
+    engine's set-up (a few ms), whether a cold step has a plan, and so whether a loop that starts cold tracks, is the
+    machine's timing (:func:`repeat_loops`).
     """
     from ..mpc.fallback import qp_repair
     from ..studies import unseen as U
 
+    from ..mpc import engine as E
+
     if not (isinstance(repeats, (int, np.integer)) and not isinstance(repeats, bool) and repeats >= 1):
         raise ValueError(f"repeats must be an integer >= 1, got {repeats!r}")
+    if isinstance(horizons, (str, bytes)) or not all(
+            isinstance(N, (int, np.integer)) and not isinstance(N, bool) and N >= 1 for N in horizons):
+        raise ValueError(f"horizons must be a sequence of integers >= 1, got {horizons!r}")
+    if not (isinstance(ts, (int, float, np.integer, np.floating)) and not isinstance(ts, bool) and np.isfinite(ts)
+            and ts > 0):
+        raise ValueError(f"ts must be a positive number of seconds, got {ts!r}")
     c = U.case(name)
     ref, z0 = c.reference(), np.array(c.z0, float)
     rows = []
@@ -828,6 +839,9 @@ def first_incumbent_times(name: str = LONG_SYSTEM, horizons: Sequence[int] = (12
         pred = free.pred
         f, _ = pred.linear(z0, np.asarray(ref(ts * np.arange(pred.N + 1)), float))
         V_c, _, _ = pred.relaxation(f, z0)
+        fr = pred.first_range(z0, pred.u_eps) if E._first_range_on() else None
+        if V_c is not None and fr is not None and (np.any(V_c[: pred.m] < fr[0]) or np.any(V_c[: pred.m] > fr[1])):
+            V_c, _, _ = pred.relaxation(f, z0, fr)  # v(0) breaks the bound: the engine's tighter relaxation
         if V_c is None:
             raise ValueError(f"{name} at N_p = {N}: the relaxation has no plan at z(0); choose another horizon")
         qp_repair(pred, z0, f, V_c)  # once untimed: the first call's imports and caches are no step's work

@@ -180,7 +180,8 @@ def feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEAS
     of each interval, pulled inside only as far as the forward pass needs (:func:`_nearest_exact_1d`); a grid of the
     ``v``-range (``n_grid`` points) only where none of those passes the forward pass (round-off) or the network has
     more than one output (an admissible sliver narrower than 1e-12 of the ``v``-range can be missed: knots of the
-    pieces closer than that are one). Two inputs: exact, over the convex
+    pieces closer than that are one). The exact path aims at the program's bound ``u_max^eps``; the guess and the
+    grid's points are judged by the check itself, to its :data:`flnotes.solvers.BOUND_TOL`. Two inputs: exact, over the convex
     polygons where the network is affine in ``v`` (:func:`flnotes.pieces.network_regions`, cut by the rows of
     the state box and the terminal set, then by the output bound): the point of each polygon nearest to
     ``v_guess``. Every candidate is checked with the forward pass. ``v_guess`` is returned unchanged when it is
@@ -247,8 +248,8 @@ def _feasible_tail(pred: Prediction, z: Array, v_guess: Array, n_grid: int = FEA
     return cand[i[np.argmin(np.sum((cand[i] - v_guess) ** 2, axis=1))]].copy()
 
 
-#: How far (a share of its length) the exact method's candidates are pulled from an end of an admissible interval
-#: towards its inside (round-off at the ends; :func:`_nearest_exact_1d`), the nearest first.
+#: How far (a share of the distance to its midpoint) the exact method's candidates are pulled from an end of an
+#: admissible interval towards its inside (round-off at the ends; :func:`_nearest_exact_1d`), the nearest first.
 _PULLS = (0.0, 1e-12, 1e-9, 1e-6, 1e-3)
 
 
@@ -261,8 +262,8 @@ def _nearest_exact_1d(pred: Prediction, z: Array, v_guess: Array, last: bool) ->
     :data:`flnotes.solvers.BOUND_TOL`: an input at the check's own bound would fail it once the plan's states are
     predicted again (:meth:`Prediction.feasible`), by their round-off; the check's tolerance stays that margin.
 
-    The candidates of each piece's interval ``[a, b]``: the guess clipped to it, pulled towards its inside by
-    :data:`_PULLS` of its length, and its midpoint (intervals are not merged, so that a gap of round-off between two
+    The candidates of each piece's interval ``[a, b]``: the guess clipped to it, pulled towards its midpoint by
+    :data:`_PULLS` of the distance to it, and the midpoint (intervals are not merged, so that a gap of round-off between two
     of them costs no candidate). The nearest that passes :func:`_admissible`, checked again alone (a batch's matrix
     product rounds otherwise than one row's), is returned. No admissible input is nearer than the clipped guesses, so
     the answer is the exact nearest to within the pull the forward pass needed.
@@ -313,7 +314,8 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     N, m = pred.N, pred.m
     z = np.asarray(z, float)
     V = np.zeros((N, m))
-    guess = np.zeros((N, m)) if V_qp is None else np.asarray(V_qp, float).reshape(N, m)
+    # without the QP's optimum, zero inputs (in the v box) until the first QP gives one
+    guess = np.clip(np.zeros((N, m)), pred.v_lo, pred.v_hi) if V_qp is None else np.asarray(V_qp, float).reshape(N, m)
     resolve = V_qp is None
     zk = z
     for k in range(N):

@@ -206,8 +206,9 @@ class Prediction:
         """The QP ``min J(V)`` over the boxes and terminal rows (no network), plus optional rows ``g_lo <= G V <= g_hi``.
 
         Solved by DAQP (``H`` is positive definite). ``fixed``: the first ``len(fixed)`` entries of the flat ``V``
-        (``v(0..k-1)``) held at these values (their simple bounds set to them). Returns ``(V or None, J - c0, DAQP
-        exit flag)``; a plan only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
+        (``v(0..k-1)``) held at these values (their simple bounds set to them; held to the solver's round-off), finite
+        and inside ``[v_lo, v_hi]``, else a ``ValueError``. Returns ``(V or None, J - c0, DAQP exit flag)``; a plan
+        only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
         """
         V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi, fixed=fixed)
         return V, fval, flag
@@ -251,8 +252,15 @@ class Prediction:
             bl_all[:m], bu_all[:m] = np.maximum(bl_all[:m], first[0]), np.minimum(bu_all[:m], first[1])
         if fixed is not None:
             fixed = np.asarray(fixed, float).reshape(-1)
+            if first is not None:
+                raise ValueError("give first (v(0)'s range) or fixed (the first steps' values), not both: fixed "
+                                 "would replace first's bounds")
             if fixed.size > N * self.m:
                 raise ValueError(f"fixed holds {fixed.size} inputs; the plan has N_p m = {N * self.m}")
+            box_lo, box_hi = bl_all[: fixed.size], bu_all[: fixed.size]
+            if not np.all(np.isfinite(fixed)) or np.any(fixed < box_lo - FEAS_TOL) or np.any(fixed > box_hi + FEAS_TOL):
+                raise ValueError(f"fixed must be finite inputs inside [v_lo, v_hi] = [{self.v_lo}, {self.v_hi}], got "
+                                 f"{fixed}")
             bl_all[: fixed.size] = bu_all[: fixed.size] = fixed
         x, fval, flag, info = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
                                          np.zeros(len(bu_all), dtype=np.int32))
