@@ -526,11 +526,6 @@ def exact_1d_feasible_set(net: ReLUNet, z: Array, v_lo: float, v_hi: float, boun
         if not np.allclose(lo_hi, (pw.knots[0], pw.knots[-1]), rtol=1e-12, atol=1e-12):
             raise ValueError(f"pieces cover [{pw.knots[0]}, {pw.knots[-1]}] but v_lo, v_hi = {lo_hi}: pass the "
                              f"pieces of this segment (network_pieces_1d(net, z, v_lo, v_hi))")
-    return _within(pw, bound)
-
-
-def _within(pw: PiecewiseAffine1D, bound: float) -> Array:
-    """:func:`exact_1d_feasible_set` of the pieces ``pw`` without its checks (``bound`` > 0)."""
     iv = _pieces_within(pw, bound)
     iv = iv[iv[:, 0] <= iv[:, 1]]
     # touching intervals merged: a gap of round-off (1e-12, less on a segment shorter than 1) is no gap

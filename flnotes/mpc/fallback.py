@@ -128,18 +128,10 @@ def _step_rows(pred: Prediction, z: Array, last: bool) -> Optional[tuple[Array, 
 def _step_interval(pred: Prediction, z: Array, last: bool = False) -> tuple[float, float]:
     """One input: the interval ``[lo, hi]`` of ``v`` that meets :func:`_step_rows` (the next state in its box, and in
     the terminal set when ``last``); empty (``lo > hi``) when no ``v`` does."""
-    if not (last and pred.F is not None):  # the box alone: b v + A_d z <= z_hi and -b v - A_d z <= -z_lo
-        Az, b = pred.Ad @ z, pred.Bd[:, 0]
-        g, h = np.concatenate([b, -b]), np.concatenate([Az - pred.z_hi, pred.z_lo - Az])
-        free = g != 0.0
-        if np.any(h[~free] > 0.0):
-            return np.inf, -np.inf
-        g, h = g[free], h[free]
-    else:
-        rows = _step_rows(pred, z, last)
-        if rows is None:
-            return np.inf, -np.inf
-        g, h = rows[0][:, 0], rows[1]
+    rows = _step_rows(pred, z, last)
+    if rows is None:
+        return np.inf, -np.inf
+    g, h = rows[0][:, 0], rows[1]
     up, down = g > 0, g < 0  # g v + h <= 0: v <= -h/g where g > 0, v >= -h/g where g < 0
     return (float(np.max(-h[down] / g[down], initial=-np.inf)), float(np.min(-h[up] / g[up], initial=np.inf)))
 
