@@ -691,9 +691,9 @@ REPEAT_SYSTEMS = ("Pendulum-gain", "VdP-gain")
 #: A case and horizon where a cold step at :data:`SHORT_TS` finds no plan within ``t_s`` (VdP-gain at N_p = 40
 #: instead of 12): its first incumbent, the relaxation repaired step by step (:func:`first_incumbent_times`), takes
 #: about as long as the controller leaves its engine, so whether a run's first steps have a plan, and how well the run
-#: tracks, is the machine's timing (measured: tracking errors 0.042 to 0.178 in 6 runs against 0.042 without the
-#: limit; at N_p = 34 one run of 6 worse, at N_p <= 30 all alike). A work budget of one node does not fit in t_s
-#: there either: the clock decides (safety-net hits on nearly every step).
+#: tracks, is the machine's timing (measured idle: tracking errors 0.045 to 0.149 in 6 runs against 0.042 without
+#: the limit; at N_p = 26, 30 and 34 all 6 runs alike). A work budget of one node does not fit in t_s there either:
+#: the clock decides (safety-net hits on nearly every step).
 LONG_SYSTEM, LONG_HORIZON = "VdP-gain", 40
 
 
@@ -818,10 +818,9 @@ def first_incumbent_times(name: str = LONG_SYSTEM, horizons: Sequence[int] = (12
     engine's set-up (a few ms), whether a cold step has a plan, and so whether a loop that starts cold tracks, is the
     machine's timing (:func:`repeat_loops`).
     """
+    from ..mpc import engine as E
     from ..mpc.fallback import qp_repair
     from ..studies import unseen as U
-
-    from ..mpc import engine as E
 
     if not (isinstance(repeats, (int, np.integer)) and not isinstance(repeats, bool) and repeats >= 1):
         raise ValueError(f"repeats must be an integer >= 1, got {repeats!r}")
