@@ -2726,3 +2726,103 @@ def test_a_gone_controllers_settings_come_back_even_when_its_wait_is_interrupted
     with pytest.raises(KeyboardInterrupt):
         held.finalize()
     assert closed == [True] and held.stack is None and Done.calls == 2
+
+
+def test_qp_repair_resumed_at_any_step_gives_the_uninterrupted_plan(quad):
+    """qp_repair publishes its state at its start and after each step; continued from any of them (``resume``) it
+    gives the plan of the build that was never stopped, to the last bit, and publishing changes nothing."""
+    pred, moved = rt.make_mpc(quad).pred, 0
+    for c in ex.mpc_cases(quad, fl.scale(10, 5), seed=11):
+        f, _ = pred.linear(c["z"], c["z_ref"])
+        V_c, _, _ = pred.qp(f, c["z"])
+        for start in ((V_c, None) if V_c is not None else (None,)):
+            states = []
+            Z_full, V_full = fb.qp_repair(pred, c["z"], f, start, publish=states.append)
+            assert np.array_equal(V_full, fb.qp_repair(pred, c["z"], f, start)[1])
+            assert [s.k for s in states] == list(range(pred.N + 1))
+            for s in states:
+                Z_r, V_r = fb.qp_repair(pred, c["z"], f, resume=s)
+                assert np.array_equal(V_r, V_full) and np.array_equal(Z_r, Z_full), s.k
+            moved += any(s.resolve for s in states[1:])
+    assert moved >= 2, "premise: builds that moved an input (the QP solved again after a resume)"
+
+
+def test_qp_repair_refuses_a_resume_that_means_nothing(quad):
+    """A resume of another kind, with a new start, for another state, cost or horizon, or without the cost's linear
+    part is refused with a message, never continued as if it fitted."""
+    import dataclasses
+
+    setup, z, R, _, _ = engine_state(quad)
+    pred = rt.make_mpc(setup).pred
+    f, _ = pred.linear(z, R)
+    states = []
+    fb.qp_repair(pred, z, f, publish=states.append)
+    s = states[3]
+    with pytest.raises(TypeError, match="RepairState"):
+        fb.qp_repair(pred, z, f, resume=(s.k, s.V))
+    with pytest.raises(ValueError, match="not both"):
+        fb.qp_repair(pred, z, f, s.guess, resume=s)
+    with pytest.raises(ValueError, match="another state"):
+        fb.qp_repair(pred, z + 1e-3, f, resume=s)
+    with pytest.raises(ValueError, match="another state"):
+        fb.qp_repair(pred, z, 2.0 * f, resume=s)
+    for bad in (dataclasses.replace(s, k=pred.N + 1), dataclasses.replace(s, V=s.V[:-1]),
+                dataclasses.replace(s, guess=np.zeros((pred.N + 1, pred.m)))):
+        with pytest.raises(ValueError, match="another horizon"):
+            fb.qp_repair(pred, z, f, resume=bad)
+    with pytest.raises(ValueError, match="needs the cost's linear part"):
+        fb.fallback_plan(pred, z, None, resume=s)
+
+
+def test_a_cut_off_answer_continues_the_first_incumbent_its_engine_had_begun(quad, monkeypatch):
+    """The cut-off comes while the engine builds its first incumbent (the relaxation repaired along the QP; here its
+    thread is held after step 3 until past the cut-off): the answer hands the build on and the fallback continues it,
+    so the plan applied is the one of the uninterrupted build, it passes the check, and the step says where the build
+    went on from. Without the hand-over the fallback would start the build again."""
+    setup, z, R, _, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup, time_limit=0.5, bang_bang=False)
+    mpc.fallback_deadline = False  # the continued build is not cut by the fallback's clock on a slow machine
+    engine, states = mpc.solver, []
+    real = engine._publish_repair
+
+    def held(state):
+        real(state)
+        states.append(state)
+        if state.k == 3:
+            time.sleep(0.6)  # past the cut-off (at most the 0.5 s limit after the call's start)
+
+    monkeypatch.setattr(engine, "_publish_repair", held)
+    mpc.reset()
+    s = mpc(z, R)
+    assert s.info["cut_off"] and s.fallback and s.status == "time_limit"
+    assert s.info["repair_resumed_at"] == 3 and "continued from its step 3" in s.message
+    assert "repair_state" not in s.info, "the build is handed on, not kept in the record"
+    f, _ = mpc.pred.linear(z, R)
+    _, V_full = fb.qp_repair(mpc.pred, z, f, states[0].guess)
+    assert not np.array_equal(V_full[3:], states[3].guess[3:]), "premise: the rest of the build moves inputs"
+    assert np.array_equal(s.v_pred, V_full) and s.info["plan_feasible"] and s.input_admissible
+    mpc.finish()
+
+
+def test_the_repaired_relaxation_is_published_before_the_region_moves(quad, monkeypatch):
+    """An answer at a cut-off during the region QP (the moves after the first incumbent) has the repaired plan: it is
+    published as soon as it passes the check, not after the moves."""
+    import flnotes.mpc.engine as E
+
+    setup, z, R, _, _ = engine_state(quad)
+    mpc = rt.make_mpc(setup)
+    engine, seen = mpc.solver, []
+    real = E.region_qp
+
+    def spy(*a, **k):
+        seen.append(engine.answer_now())
+        return real(*a, **k)
+
+    monkeypatch.setattr(E, "region_qp", spy)
+    mpc.reset()
+    s = mpc(z, R)
+    assert seen, "premise: the region QP ran"
+    a = seen[0]
+    assert s.info["incumbent"] == "repaired relaxation", "premise: the first incumbent is the repaired relaxation"
+    assert a.v is not None and "repaired relaxation" in a.message and a.info["incumbent"] == "repaired relaxation"
+    assert mpc.pred.feasible(z, a.v_pred) and a.objective >= s.objective - 1e-9

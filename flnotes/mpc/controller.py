@@ -290,7 +290,11 @@ class MPC:
         warm start), else
         :meth:`fallback_plan` (the shifted plan, its repairs, the plan built along the QP without the network;
         only when none passes the check, a plan whose first input is admissible, ``info["plan_feasible"]``
-        False). ``bound`` is a valid lower bound of eq. (MPC_form_miqp) (the QP without the network, the levels
+        False). The engine's best plan counts from the moment it passes the check (the relaxation repaired along the
+        QP is offered before the moves that improve it); a repair of the relaxation that the cut-off stopped part-way
+        is continued by the fallback, not started again (``info["repair_resumed_at"]``), so where its rest fits before
+        the fallback's deadline the plan is the one the uninterrupted repair gives. ``bound`` is a valid lower bound
+        of eq. (MPC_form_miqp) (the QP without the network, the levels
         proven empty, a solver's bound) and ``gap = (objective - bound) / max(1, |objective|)``; both NaN for a
         plan that fails the check. A solver call need not stop at its limit (DAQP reads its clock every 32
         iterations and nodes): :attr:`reserve` follows what this controller has measured of that, and with
@@ -1154,7 +1158,9 @@ class MPC:
         Under a time limit its repairs stop at ``t0 + time_limit`` less :data:`FALLBACK_POST_SHARE` of the limit
         (at least :data:`FALLBACK_POST_MIN_S`)
         (``deadline`` of :func:`flnotes.mpc.fallback.fallback_plan`; the first input is made admissible whatever the
-        time), and its CPU time is what :attr:`reserve` keeps back for it.
+        time), and its CPU time is what :attr:`reserve` keeps back for it. The engine's first incumbent that its
+        cut-off stopped while it was built (``info["repair_state"]`` of :meth:`NetworkEngine.answer_now`) is continued
+        there, not built again (``info["repair_resumed_at"]``: the step it went on from; ``None``: nothing to continue).
 
         When the fallback plan satisfies the whole program (:meth:`Prediction.feasible`), its optimality gap is
         recorded against a valid lower bound of eq. (MPC_form_miqp): the optimum ``J_c`` of the QP without the
@@ -1165,10 +1171,13 @@ class MPC:
         deadline = (None if self.time_limit is None or t0 is None or not self.fallback_deadline
                     else t0 + float(self.time_limit) - max(FALLBACK_POST_SHARE * float(self.time_limit),
                                                            FALLBACK_POST_MIN_S))
+        resume = step.info.pop("repair_state", None)  # the engine's first incumbent, cut short at the cut-off
         c_fb = time.thread_time()
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,
                                                 qp_repair_failed=bool(step.info.get("repair_failed")),
-                                                deadline=deadline, infeasible=step.status == "infeasible")
+                                                deadline=deadline, infeasible=step.status == "infeasible",
+                                                resume=resume)
+        step.info["repair_resumed_at"] = None if resume is None else resume.k
         self._fallback_s = max(self._fallback_s, time.thread_time() - c_fb)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)

@@ -28,7 +28,7 @@ import copy
 import numbers
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -41,7 +41,7 @@ from ..solvers.base import VERIFY_MIN_LEFT
 from ..tightening import DeadlineReached, EmptyBoxError, intersect
 from .bang_bang import bang_bang_incumbent
 from .bound_cache import BoundCache
-from .fallback import qp_repair
+from .fallback import RepairState, qp_repair
 from .region import REGION_MOVES, region_exact, region_qp
 from .levers import LP_AUTO_BINARIES, needed_steps, node_bounds, pick_backend, unstable_count
 from .options import MPCOptions
@@ -215,6 +215,10 @@ class NetworkEngine:
     progress
         The running (or last) solve's :class:`Progress`: its best plan and bound so far, replaced as they improve
         (``None`` before the first solve). :meth:`answer_now` reads it from another thread.
+    repair
+        The running (or last) solve's build of its first incumbent along the QP
+        (:class:`flnotes.mpc.fallback.RepairState`, replaced after each step; ``None`` before it starts), which
+        :meth:`answer_now` hands on where it has no plan yet, for the caller's fallback to continue.
     """
 
     def __init__(self, pred: Prediction, opts: MPCOptions, box: NodeBounds, solver_options: Optional[dict] = None,
@@ -226,6 +230,7 @@ class NetworkEngine:
         self.order = opts.branching or "layers"  # the binaries' column order (DAQP's branching order)
         self.cache = BoundCache() if opts.bound_cache else None  # LP bounds kept for later boxes
         self.progress: Optional[Progress] = None
+        self.repair: Optional[RepairState] = None
         self._stop = threading.Event()
         self._answered = threading.Event()  # cleared by stop(hold=True) until answered(): see stop
         self._answered.set()
@@ -260,6 +265,7 @@ class NetworkEngine:
         self._answered.set()
         self.stop_at = stop_at
         self.progress = None
+        self.repair = None
 
     def _stopped(self) -> bool:
         """Has the caller asked this solve to stop (:meth:`stop`), or has its cut-off (``stop_at``) passed?"""
@@ -267,12 +273,14 @@ class NetworkEngine:
 
     def answer_now(self) -> StepResult:
         """The answer of the running solve at this moment, from :attr:`progress`: status ``"time_limit"``, its best
-        plan that passed the forward-pass check (or no plan) and its lower bound, ``info["cut_off"]`` True.
+        plan that passed the forward-pass check (or no plan) and its lower bound, ``info["cut_off"]`` True. Without a
+        plan, ``info["repair_state"]`` is the first incumbent's build as far as it got (:attr:`repair`; ``None``: not
+        started), which :class:`flnotes.MPC`'s fallback continues instead of starting it again.
 
         Reads only :attr:`progress` (replaced whole by the solve, never changed in place) and the prediction
         model, so it can run while the solve goes on in another thread (:class:`flnotes.MPC` with a time limit).
         """
-        p = self.progress
+        p, r = self.progress, self.repair
         if p is None:
             res = StepResult(None, "time_limit", message="time limit: cut off before the solve started")
             res.bound = -np.inf
@@ -281,6 +289,10 @@ class NetworkEngine:
             res = _step_result(self.pred, p.z0, p.f, p.c0, "time_limit", p.V, p.bound,
                                f"time limit: cut off while a solver ran on; {what}", p.stats, p.warm)
         res.info["cut_off"] = True
+        if res.v is not None and res.info["incumbent"] is None:  # published before the search recorded it
+            res.info["incumbent"] = p.source
+        if res.v is None:
+            res.info["repair_state"] = r if r is not None and p is not None and np.array_equal(r.z, p.z0) else None
         return res
 
     def reset(self) -> None:
@@ -394,7 +406,7 @@ class NetworkEngine:
             self.progress = Progress(z0, f, c0, V, J, bound, source, inc_from_warm, dict(st))
 
         inc_V, inc_J, inc_from_warm = None, np.inf, False
-        self.progress = None
+        self.progress = self.repair = None
         if o.warm_start and incumbent is not None and pred.feasible(z0, incumbent):
             inc_V, inc_J, inc_from_warm = np.asarray(incumbent, float).reshape(-1), pred.cost(incumbent, f, c0), True
         publish(inc_V, inc_J, -np.inf, "warm start" if inc_V is not None else None)
@@ -778,13 +790,14 @@ class NetworkEngine:
         cut short by :meth:`stop` or ``stop_at``)``;
         the one-switch search's time (s) goes to ``st["bang_bang_s"]``."""
         pred, o = self.pred, self.opts
-        _, V_r = qp_repair(pred, z0, f, V_c, deadline=self.stop_at, stop=self._stop)
+        _, V_r = qp_repair(pred, z0, f, V_c, deadline=self.stop_at, stop=self._stop, publish=self._publish_repair)
         passed = pred.feasible(z0, V_r)
         failed = not passed and not self._stopped()  # not cut short by the caller's cut-off
         if passed:
             J_r = pred.cost(V_r, f, c0)
             if J_r < inc_J:
                 inc_V, inc_J, inc_from = V_r.reshape(-1), J_r, "repaired relaxation"
+                self._offer(inc_V, inc_J, inc_from)  # an answer at the cut-off has it before the moves below
         if inc_V is None and (o.bang_bang if o.bang_bang is not None else pred.m == 1):
             t_bb = time.perf_counter()
             found = bang_bang_incumbent(pred, z0, f, c0, deadline)
@@ -792,6 +805,7 @@ class NetworkEngine:
                 st["bang_bang_s"] = time.perf_counter() - t_bb
             if found is not None:
                 inc_V, inc_J, inc_from = found[0], found[1], "one-switch plan"
+                self._offer(inc_V, inc_J, inc_from)
         if inc_V is None:
             return None, np.inf, inc_from, False, failed
         if self._stopped():
@@ -802,6 +816,18 @@ class NetworkEngine:
             if J_p < inc_J:
                 return V_p, J_p, inc_from, True, failed
         return inc_V, inc_J, inc_from, False, failed
+
+    def _offer(self, V: Array, J: float, source: str) -> None:
+        """Publish ``V`` (cost ``J``, passed the forward-pass check) as the running solve's incumbent in
+        :attr:`progress` when it is cheaper than the one there: an answer at the cut-off has it at once."""
+        p = self.progress
+        if p is not None and J < p.J:
+            self.progress = replace(p, V=np.asarray(V, float).copy(), J=float(J), source=source,
+                                    stats={**p.stats, "incumbent": source})
+
+    def _publish_repair(self, state: RepairState) -> None:
+        """Keep the first incumbent's build as far as it got (:attr:`repair`, replaced whole)."""
+        self.repair = state
 
     def _lp_steps(self, nb: NodeBounds, lo: Array, hi: Array, steps: list,
                   deadline: Optional[float] = None) -> NodeBounds:

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Optional
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -289,8 +290,44 @@ def _nearest_exact_1d(pred: Prediction, z: Array, v_guess: Array, last: bool) ->
     return None
 
 
+@dataclass(frozen=True, eq=False)
+class RepairState:
+    """How far a build of :func:`qp_repair` got at ``z`` with the cost's linear part ``f``.
+
+    ``V[:k]`` are final (each moved to an admissible input at its predicted state), ``guess`` is the last QP's plan
+    (the build goes on from its step ``k``) and ``resolve`` says whether the QP must be solved again first (the input
+    before was moved). Published whole after each step and never changed in place, so another thread can read it
+    while the build goes on: the MPC's fallback continues the engine's build that its cut-off stopped
+    (``qp_repair(..., resume=state)``), which gives the plan the uninterrupted build gives.
+    """
+
+    z: Array
+    f: Array
+    k: int
+    V: Array
+    guess: Array
+    resolve: bool
+
+
+def _check_resume(pred: Prediction, z: Array, f: Array, resume, V_qp) -> None:
+    """A :class:`RepairState` that continues a build of :func:`qp_repair` for this ``z`` and ``f``, else an error."""
+    if not isinstance(resume, RepairState):
+        raise TypeError(f"resume must be a RepairState (the state qp_repair publishes), got {type(resume).__name__}")
+    if V_qp is not None:
+        raise ValueError("give V_qp (a new build's start) or resume (a build to continue), not both")
+    shape = (pred.N, pred.m)
+    if resume.V.shape != shape or resume.guess.shape != shape or not 0 <= resume.k <= pred.N:
+        raise ValueError(f"resume is a build of another horizon: V {resume.V.shape}, guess {resume.guess.shape}, "
+                         f"k = {resume.k}; this prediction's plans are {shape}")
+    if not (np.array_equal(resume.z, z) and np.array_equal(resume.f, np.asarray(f, float))):
+        raise ValueError("resume is a build for another state z or cost f: continue it only with the z and f it was "
+                         "started with")
+
+
 def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
-              deadline: Optional[float] = None, stop: Optional[threading.Event] = None) -> tuple[Array, Array]:
+              deadline: Optional[float] = None, stop: Optional[threading.Event] = None,
+              resume: Optional[RepairState] = None,
+              publish: Optional[Callable[[RepairState], None]] = None) -> tuple[Array, Array]:
     """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
 
     At step ``k`` the QP ``min J(V)`` over the boxes and terminal rows is solved with ``v(0..k-1)`` fixed
@@ -302,15 +339,29 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     :func:`time.perf_counter` value) or once ``stop`` is set (a controller answering at its cut-off); the later
     inputs are then the last QP's. Check the result with
     :meth:`Prediction.feasible`.
+
+    ``publish`` is called with the build's :class:`RepairState` at its start and after each step; ``resume`` (such a
+    state, for the same ``z`` and ``f``; not with ``V_qp``) continues that build where it stopped: the plan is then the
+    one the build would have given without the stop, to the last bit.
     """
     N, m = pred.N, pred.m
     z = np.asarray(z, float)
-    V = np.zeros((N, m))
-    # without the QP's optimum, zero inputs (in the v box) until the first QP gives one
-    guess = np.clip(np.zeros((N, m)), pred.v_lo, pred.v_hi) if V_qp is None else np.asarray(V_qp, float).reshape(N, m)
-    resolve = V_qp is None
-    zk = z
-    for k in range(N):
+    if resume is not None:
+        _check_resume(pred, z, f, resume, V_qp)
+        k0, V, guess, resolve = resume.k, resume.V.copy(), resume.guess.copy(), resume.resolve
+        zk = z
+        for j in range(k0):  # the same products as the build's own, so the same state to the last bit
+            zk = pred.Ad @ zk + pred.Bd @ V[j]
+    else:
+        k0, V = 0, np.zeros((N, m))
+        # without the QP's optimum, zero inputs (in the v box) until the first QP gives one
+        guess = (np.clip(np.zeros((N, m)), pred.v_lo, pred.v_hi) if V_qp is None
+                 else np.asarray(V_qp, float).reshape(N, m))
+        resolve = V_qp is None
+        zk = z
+    if publish is not None:
+        publish(RepairState(z, f, k0, V.copy(), guess.copy(), resolve))
+    for k in range(k0, N):
         if _past(deadline) or (stop is not None and stop.is_set()):
             V[k:] = guess[k:]
             break
@@ -321,12 +372,15 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
         V[k] = _feasible_tail(pred, zk, guess[k], last=k == N - 1)
         resolve = not np.array_equal(V[k], guess[k])
         zk = pred.Ad @ zk + pred.Bd @ V[k]
+        if publish is not None:
+            publish(RepairState(z, f, k + 1, V.copy(), guess.copy(), resolve))
     return pred.predict(z, V), V
 
 
 def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Array]],
                   f: Optional[Array] = None, qp_repair_failed: bool = False,
-                  deadline: Optional[float] = None, infeasible: bool = False) -> tuple[Array, Array, str, bool]:
+                  deadline: Optional[float] = None, infeasible: bool = False,
+                  resume: Optional[RepairState] = None) -> tuple[Array, Array, str, bool]:
     """The plan applied when a solve gives no plan (infeasible, time limit without one, solver failure).
 
     Safety first, in this order:
@@ -347,6 +401,10 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     proven the program infeasible at ``z`` (e.g. its QP without the network has no point): no plan can pass the
     check, so the repairs of 2. are skipped and step 3. starts at once.
 
+    ``resume``: the caller's own build of that plan, cut short (:class:`RepairState`: the MPC engine's at its cut-off,
+    for this ``z`` and ``f``): it is continued first, before any other repair, instead of built again, so the plan is
+    the one the uninterrupted build gives wherever the rest fits before ``deadline``.
+
     ``deadline`` (a :func:`time.perf_counter` value; ``None``: none) bounds the repairs of 2. and of the plan's rest in
     3.: none starts after it and each stops at it (a plan cut short is rejected by the check like any other). The
     shifted plan's check and step 3.'s first input (exact for one and two inputs) are made whatever the time: safety
@@ -360,11 +418,17 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     if shifted is not None and pred.feasible(z, shifted[1]):
         return shifted[0], shifted[1], "the previous plan shifted by one step", True
     found = []
+    if resume is not None and f is None:
+        raise ValueError("resume continues the build along the QP, which needs the cost's linear part f")
+    if resume is not None and not infeasible and not qp_repair_failed and not _past(deadline):
+        plan = qp_repair(pred, z, f, deadline=deadline, resume=resume)
+        found.append((plan, "the plan built along the QP without the network, repaired step by step (the build "
+                            f"continued from its step {resume.k} of {pred.N}, where the solve's cut-off stopped it)"))
     # infeasible (proven by the caller): no plan satisfies the program, so no repair of 2. can pass the check
     if shifted is not None and not infeasible and not _past(deadline):
         found.append((repair_plan(pred, z, shifted[1], deadline=deadline),
                       "the shifted previous plan repaired step by step"))
-    if f is not None and not infeasible and not qp_repair_failed and not _past(deadline):
+    if f is not None and resume is None and not infeasible and not qp_repair_failed and not _past(deadline):
         found.append((qp_repair(pred, z, f, deadline=deadline),
                       "the plan built along the QP without the network, repaired step by step"))
     found = [(plan, what) for plan, what in found if pred.feasible(z, plan[1])]
