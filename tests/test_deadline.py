@@ -2768,10 +2768,79 @@ def test_qp_repair_refuses_a_resume_that_means_nothing(quad):
         fb.qp_repair(pred, z, 2.0 * f, resume=s)
     for bad in (dataclasses.replace(s, k=pred.N + 1), dataclasses.replace(s, V=s.V[:-1]),
                 dataclasses.replace(s, guess=np.zeros((pred.N + 1, pred.m)))):
-        with pytest.raises(ValueError, match="another horizon"):
+        with pytest.raises(ValueError, match="not a build of this horizon"):
             fb.qp_repair(pred, z, f, resume=bad)
     with pytest.raises(ValueError, match="needs the cost's linear part"):
         fb.fallback_plan(pred, z, None, resume=s)
+    for bad in (dataclasses.replace(s, k=3.0), dataclasses.replace(s, k=True), dataclasses.replace(s, V=s.V.tolist()),
+                dataclasses.replace(s, V=np.full_like(s.V, np.nan))):
+        with pytest.raises(ValueError, match="resume is not a build of this horizon"):
+            fb.qp_repair(pred, z, f, resume=bad)
+    # a model with the same dynamics, weights and horizon (the same f) but another eps: not its build
+    other = rt.make_mpc(dict(setup, eps=0.5 * np.asarray(setup["eps"], float))).pred
+    assert np.array_equal(other.linear(z, R)[0], f), "premise: the same f"
+    with pytest.raises(ValueError, match="another prediction model"):
+        fb.qp_repair(other, z, f, resume=s)
+    # refused by the fallback whether or not it would use it: the shifted plan passes, the program is infeasible,
+    # the build failed, the deadline has passed
+    full = states[-1].V
+    assert pred.feasible(z, full), "premise: a shifted plan that passes the check"
+    for kw in (dict(shifted=(pred.predict(z, full), full), f=None), dict(shifted=None, f=f, infeasible=True),
+               dict(shifted=None, f=f, qp_repair_failed=True), dict(shifted=None, f=f, deadline=time.perf_counter() - 1)):
+        with pytest.raises(TypeError, match="RepairState"):
+            fb.fallback_plan(pred, z, resume=(s.k, s.V), **kw)
+        if kw["f"] is None:
+            with pytest.raises(ValueError, match="linear part"):
+                fb.fallback_plan(pred, z, resume=s, **kw)
+        else:
+            with pytest.raises(ValueError, match="another state"):
+                fb.fallback_plan(pred, z + 1e-3, resume=s, **kw)
+
+
+def test_a_published_repair_state_cannot_be_changed_by_its_build_or_its_caller(quad):
+    """The arrays of a published RepairState are read-only copies: the build's later steps and a caller that changes
+    its own z or f afterwards leave it as it was."""
+    setup, z, R, _, _ = engine_state(quad)
+    pred = rt.make_mpc(setup).pred
+    z = np.array(z, float)
+    f = np.array(pred.linear(z, R)[0], float)
+    states = []
+    _, V_full = fb.qp_repair(pred, z, f, publish=states.append)
+    s = states[2]
+    V_at_2 = s.V.copy()
+    z[:] += 1.0
+    f[:] *= 2.0
+    for a in (s.z, s.f, s.V, s.guess):
+        assert not a.flags.writeable
+        with pytest.raises(ValueError):
+            a[...] = 0.0
+    assert np.array_equal(s.V, V_at_2) and not np.array_equal(s.z, z) and not np.array_equal(s.f, f)
+    with pytest.raises(ValueError, match="another state"):
+        fb.qp_repair(pred, z, f, resume=s)
+    assert np.array_equal(fb.qp_repair(pred, s.z, s.f, resume=s)[1], V_full)
+
+
+def test_the_fallback_says_whether_its_plan_satisfies_the_program():
+    """Step 3 of the fallback (the repairs' deadline past: an admissible first input, the rest as far as repaired)
+    says "violates the program" only for a plan that fails the check, and says it satisfies the program otherwise."""
+    from flnotes.studies import unseen as U
+
+    kinds = set()
+    for name, N in (("VdP-gain", 40), ("VdP-gain", 8)):
+        mpc = U.unseen_mpc(name, ts=0.02, horizon=N)
+        c, pred = U.case(name), mpc.pred
+        rng = np.random.default_rng(3)
+        lo, hi = mpc.system.lo[: pred.nz], mpc.system.hi[: pred.nz]
+        for z in np.vstack([np.asarray(c.z0, float)[None, :], rng.uniform(0.8 * lo, 0.8 * hi, (8, pred.nz))]):
+            R = c.reference()(0.02 * np.arange(N + 1))
+            f, _ = pred.linear(z, R)
+            _, V, what, ok = fb.fallback_plan(pred, z, None, f=f, deadline=time.perf_counter() - 1.0)
+            if not ok:
+                continue
+            passes = pred.feasible(z, V)
+            assert ("satisfies the program" in what) == passes and ("violates the program" in what) == (not passes)
+            kinds.add(passes)
+    assert kinds == {True, False}, f"premise: plans that pass and plans that fail, got {kinds}"
 
 
 def test_a_cut_off_answer_continues_the_first_incumbent_its_engine_had_begun(quad, monkeypatch):
@@ -2801,6 +2870,14 @@ def test_a_cut_off_answer_continues_the_first_incumbent_its_engine_had_begun(qua
     _, V_full = fb.qp_repair(mpc.pred, z, f, states[0].guess)
     assert not np.array_equal(V_full[3:], states[3].guess[3:]), "premise: the rest of the build moves inputs"
     assert np.array_equal(s.v_pred, V_full) and s.info["plan_feasible"] and s.input_admissible
+    mpc.finish()
+    # the fallback's own deadline passed while the engine was held: the build is not continued, and no record says so
+    mpc.fallback_deadline = True
+    states.clear()
+    mpc.reset()
+    s = mpc(z, R)
+    assert s.info["cut_off"] and s.fallback and states and states[-1].k == 3
+    assert s.info["repair_resumed_at"] is None and "continued" not in s.message
     mpc.finish()
 
 

@@ -1160,7 +1160,8 @@ class MPC:
         (``deadline`` of :func:`flnotes.mpc.fallback.fallback_plan`; the first input is made admissible whatever the
         time), and its CPU time is what :attr:`reserve` keeps back for it. The engine's first incumbent that its
         cut-off stopped while it was built (``info["repair_state"]`` of :meth:`NetworkEngine.answer_now`) is continued
-        there, not built again (``info["repair_resumed_at"]``: the step it went on from; ``None``: nothing to continue).
+        there, not built again (``info["repair_resumed_at"]``: the step it went on from, where the plan applied is
+        that build continued to its end; ``None`` otherwise).
 
         When the fallback plan satisfies the whole program (:meth:`Prediction.feasible`), its optimality gap is
         recorded against a valid lower bound of eq. (MPC_form_miqp): the optimum ``J_c`` of the QP without the
@@ -1177,7 +1178,8 @@ class MPC:
                                                 qp_repair_failed=bool(step.info.get("repair_failed")),
                                                 deadline=deadline, infeasible=step.status == "infeasible",
                                                 resume=resume)
-        step.info["repair_resumed_at"] = None if resume is None else resume.k
+        # the step the engine's cut-off build went on from, where the plan applied is that build, continued to its end
+        step.info["repair_resumed_at"] = resume.k if resume is not None and what.startswith(fallback.CONTINUED) else None
         self._fallback_s = max(self._fallback_s, time.thread_time() - c_fb)
         step.v, step.z_pred, step.v_pred = V[0].copy(), Z, V
         step.objective = self.cost(Z, V, R)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
@@ -298,7 +298,8 @@ class RepairState:
     (the build goes on from its step ``k``) and ``resolve`` says whether the QP must be solved again first (the input
     before was moved). Published whole after each step and never changed in place, so another thread can read it
     while the build goes on: the MPC's fallback continues the engine's build that its cut-off stopped
-    (``qp_repair(..., resume=state)``), which gives the plan the uninterrupted build gives.
+    (``qp_repair(..., resume=state)``), which gives the plan the uninterrupted build gives. Its arrays are read-only
+    copies, and ``pred`` is the prediction model it was built with (a build continues only with that model).
     """
 
     z: Array
@@ -307,21 +308,45 @@ class RepairState:
     V: Array
     guess: Array
     resolve: bool
+    pred: Prediction = field(repr=False)
 
 
-def _check_resume(pred: Prediction, z: Array, f: Array, resume, V_qp) -> None:
-    """A :class:`RepairState` that continues a build of :func:`qp_repair` for this ``z`` and ``f``, else an error."""
+def _check_resume(pred: Prediction, z: Array, f, resume, V_qp=None) -> None:
+    """A :class:`RepairState` that continues a build of :func:`qp_repair` with this model, ``z`` and ``f``, else an
+    error that says what does not fit."""
     if not isinstance(resume, RepairState):
         raise TypeError(f"resume must be a RepairState (the state qp_repair publishes), got {type(resume).__name__}")
     if V_qp is not None:
         raise ValueError("give V_qp (a new build's start) or resume (a build to continue), not both")
+    if f is None:
+        raise ValueError("resume continues the build along the QP, which needs the cost's linear part f")
+    if resume.pred is not pred:
+        raise ValueError("resume is a build of another prediction model (another network, eps, weights or "
+                         "horizon): continue it only with the model it was built with")
     shape = (pred.N, pred.m)
-    if resume.V.shape != shape or resume.guess.shape != shape or not 0 <= resume.k <= pred.N:
-        raise ValueError(f"resume is a build of another horizon: V {resume.V.shape}, guess {resume.guess.shape}, "
-                         f"k = {resume.k}; this prediction's plans are {shape}")
+    arrays = all(isinstance(a, np.ndarray) and a.shape == shape and np.all(np.isfinite(a))
+                 for a in (resume.V, resume.guess))
+    k = resume.k
+    if not (arrays and isinstance(k, (int, np.integer)) and not isinstance(k, bool) and 0 <= k <= pred.N):
+        raise ValueError(f"resume is not a build of this horizon: V and guess must be finite arrays of shape {shape} "
+                         f"and k an integer in [0, {pred.N}], got k = {k!r}, V {np.shape(resume.V)}, guess "
+                         f"{np.shape(resume.guess)}")
     if not (np.array_equal(resume.z, z) and np.array_equal(resume.f, np.asarray(f, float))):
         raise ValueError("resume is a build for another state z or cost f: continue it only with the z and f it was "
                          "started with")
+
+
+#: How the message of :func:`fallback_plan` starts when its plan is a build of :func:`qp_repair` that it continued
+#: (``resume``) to the end: the plan the uninterrupted build gives.
+CONTINUED = ("the plan built along the QP without the network, repaired step by step (the build continued from its "
+             "step")
+
+
+def _frozen(a: Array) -> Array:
+    """A read-only copy of ``a``."""
+    a = np.array(a, float)
+    a.setflags(write=False)
+    return a
 
 
 def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
@@ -348,7 +373,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     z = np.asarray(z, float)
     if resume is not None:
         _check_resume(pred, z, f, resume, V_qp)
-        k0, V, guess, resolve = resume.k, resume.V.copy(), resume.guess.copy(), resume.resolve
+        k0, V, guess, resolve = int(resume.k), resume.V.copy(), resume.guess.copy(), bool(resume.resolve)
         zk = z
         for j in range(k0):  # the same products as the build's own, so the same state to the last bit
             zk = pred.Ad @ zk + pred.Bd @ V[j]
@@ -360,7 +385,8 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
         resolve = V_qp is None
         zk = z
     if publish is not None:
-        publish(RepairState(z, f, k0, V.copy(), guess.copy(), resolve))
+        z_s, f_s = _frozen(z), _frozen(f)  # the states' own: a caller's array changed later does not change them
+        publish(RepairState(z_s, f_s, k0, _frozen(V), _frozen(guess), resolve, pred))
     for k in range(k0, N):
         if _past(deadline) or (stop is not None and stop.is_set()):
             V[k:] = guess[k:]
@@ -373,7 +399,7 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
         resolve = not np.array_equal(V[k], guess[k])
         zk = pred.Ad @ zk + pred.Bd @ V[k]
         if publish is not None:
-            publish(RepairState(z, f, k + 1, V.copy(), guess.copy(), resolve))
+            publish(RepairState(z_s, f_s, k + 1, _frozen(V), _frozen(guess), resolve, pred))
     return pred.predict(z, V), V
 
 
@@ -392,8 +418,8 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
        without the network (:func:`qp_repair`), the cheaper of those that pass :meth:`Prediction.feasible`;
        then zero inputs repaired;
     3. otherwise only the first input is made safe: if any ``v`` with ``|Phi_NN(z, v)| <= u_max^eps``
-       exists at ``z`` (:func:`safe_input`), the closest to the plan's is applied (flagged: the rest of
-       the plan violates the program);
+       exists at ``z`` (:func:`safe_input`), the closest to the plan's is applied, the rest repaired while the
+       deadline allows (``what`` says whether the plan then satisfies the program);
     4. when none exists, the least-violation input (``input_admissible=False``).
 
     ``qp_repair_failed``: the caller has already built the plan along the QP for this ``z`` and ``f`` and seen it
@@ -415,15 +441,19 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     Returns ``(z_pred, v_pred, what, admissible)``.
     """
     z = np.asarray(z, float)
+    if resume is not None:  # refused whether or not it is used below
+        _check_resume(pred, z, f, resume)
     if shifted is not None and pred.feasible(z, shifted[1]):
         return shifted[0], shifted[1], "the previous plan shifted by one step", True
     found = []
-    if resume is not None and f is None:
-        raise ValueError("resume continues the build along the QP, which needs the cost's linear part f")
     if resume is not None and not infeasible and not qp_repair_failed and not _past(deadline):
-        plan = qp_repair(pred, z, f, deadline=deadline, resume=resume)
-        found.append((plan, "the plan built along the QP without the network, repaired step by step (the build "
-                            f"continued from its step {resume.k} of {pred.N}, where the solve's cut-off stopped it)"))
+        reached = [resume.k]
+        plan = qp_repair(pred, z, f, deadline=deadline, resume=resume,
+                         publish=lambda st: reached.__setitem__(0, st.k))
+        found.append((plan, f"{CONTINUED} {resume.k} of {pred.N}, where the solve's cut-off stopped it)"
+                      if reached[0] == pred.N else
+                      f"the plan built along the QP without the network, partly repaired (the build went on from its "
+                      f"step {resume.k} to {reached[0]} of {pred.N} and stopped at the step's deadline)"))
     # infeasible (proven by the caller): no plan satisfies the program, so no repair of 2. can pass the check
     if shifted is not None and not infeasible and not _past(deadline):
         found.append((repair_plan(pred, z, shifted[1], deadline=deadline),
@@ -448,8 +478,10 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
     if not stopped and _past(deadline):
         stopped = "; the repairs stopped at the step's deadline"
     if ok:
-        return Zr, Vr, ("an admissible first input (|Phi_NN(z, v)| <= u_max^eps at the measured state); "
-                        "the rest of the plan violates the program" + stopped), True
+        rest = ("the rest of the plan repaired step by step (the plan satisfies the program)" if pred.feasible(z, Vr)
+                else "the rest of the plan violates the program")
+        return Zr, Vr, ("an admissible first input (|Phi_NN(z, v)| <= u_max^eps at the measured state); " + rest
+                        + stopped), True
     return Zr, Vr, ("the least-violation input: no v satisfies |Phi_NN(z, v)| <= u_max^eps at the measured "
                     "state (input bound violated, flagged)" + stopped), False
 

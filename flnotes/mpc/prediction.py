@@ -262,7 +262,8 @@ class Prediction:
                 raise ValueError(f"fixed must be finite inputs inside [v_lo, v_hi] = [{self.v_lo}, {self.v_hi}], got "
                                  f"{fixed}")
             bl_all[: fixed.size] = bu_all[: fixed.size] = fixed
-        x, fval, flag, info = daqp.solve(self.H, np.asarray(f, float), A, bu_all, bl_all,
+        # f copied: DAQP refuses a read-only buffer (e.g. a RepairState's f)
+        x, fval, flag, info = daqp.solve(self.H, np.array(f, float), A, bu_all, bl_all,
                                          np.zeros(len(bu_all), dtype=np.int32))
         if flag not in (1, 2):
             return None, np.inf, int(flag), None
