@@ -2747,6 +2747,10 @@ def test_qp_repair_resumed_at_any_step_gives_the_uninterrupted_plan(quad):
     assert moved >= 2, "premise: builds that moved an input (the QP solved again after a resume)"
 
 
+class _NotAnArray(np.ndarray):
+    """A subclass of numpy's array (a resume's arrays must be plain float arrays)."""
+
+
 def test_qp_repair_refuses_a_resume_that_means_nothing(quad):
     """A resume of another kind, with a new start, for another state, cost or horizon, or without the cost's linear
     part is refused with a message, never continued as if it fitted."""
@@ -2773,9 +2777,17 @@ def test_qp_repair_refuses_a_resume_that_means_nothing(quad):
     with pytest.raises(ValueError, match="needs the cost's linear part"):
         fb.fallback_plan(pred, z, None, resume=s)
     for bad in (dataclasses.replace(s, k=3.0), dataclasses.replace(s, k=True), dataclasses.replace(s, V=s.V.tolist()),
-                dataclasses.replace(s, V=np.full_like(s.V, np.nan))):
+                dataclasses.replace(s, V=np.full_like(s.V, np.nan)), dataclasses.replace(s, V=s.V.astype(int)),
+                dataclasses.replace(s, V=s.V.astype(complex)), dataclasses.replace(s, V=s.V.view(_NotAnArray))):
         with pytest.raises(ValueError, match="resume is not a build of this horizon"):
             fb.qp_repair(pred, z, f, resume=bad)
+    out = np.array(s.V)
+    out[0] = pred.v_hi + 1.0
+    with pytest.raises(ValueError, match="leave the v box"):
+        fb.qp_repair(pred, z, f, resume=dataclasses.replace(s, V=out))
+    for resolve in (not s.resolve, "False", np.array([s.resolve])):
+        with pytest.raises(ValueError, match="resolve must be a bool"):
+            fb.qp_repair(pred, z, f, resume=dataclasses.replace(s, resolve=resolve))
     # a model with the same dynamics, weights and horizon (the same f) but another eps: not its build
     other = rt.make_mpc(dict(setup, eps=0.5 * np.asarray(setup["eps"], float))).pred
     assert np.array_equal(other.linear(z, R)[0], f), "premise: the same f"
@@ -2814,6 +2826,8 @@ def test_a_published_repair_state_cannot_be_changed_by_its_build_or_its_caller(q
         assert not a.flags.writeable
         with pytest.raises(ValueError):
             a[...] = 0.0
+        with pytest.raises(ValueError):
+            a.setflags(write=True)  # a view of a read-only copy cannot be made writable again
     assert np.array_equal(s.V, V_at_2) and not np.array_equal(s.z, z) and not np.array_equal(s.f, f)
     with pytest.raises(ValueError, match="another state"):
         fb.qp_repair(pred, z, f, resume=s)

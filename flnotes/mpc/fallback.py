@@ -20,7 +20,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .._checks import as_floats, as_state, check_bool, check_count, check_number
-from ..solvers import BOUND_TOL
+from ..solvers import BOUND_TOL, FEAS_TOL
 from .prediction import Prediction
 
 Array = np.ndarray
@@ -324,13 +324,22 @@ def _check_resume(pred: Prediction, z: Array, f, resume, V_qp=None) -> None:
         raise ValueError("resume is a build of another prediction model (another network, eps, weights or "
                          "horizon): continue it only with the model it was built with")
     shape = (pred.N, pred.m)
-    arrays = all(isinstance(a, np.ndarray) and a.shape == shape and np.all(np.isfinite(a))
+    arrays = all(type(a) is np.ndarray and a.dtype == np.float64 and a.shape == shape and np.all(np.isfinite(a))
                  for a in (resume.V, resume.guess))
     k = resume.k
     if not (arrays and isinstance(k, (int, np.integer)) and not isinstance(k, bool) and 0 <= k <= pred.N):
-        raise ValueError(f"resume is not a build of this horizon: V and guess must be finite arrays of shape {shape} "
-                         f"and k an integer in [0, {pred.N}], got k = {k!r}, V {np.shape(resume.V)}, guess "
+        raise ValueError(f"resume is not a build of this horizon: V and guess must be finite float arrays of shape "
+                         f"{shape} and k an integer in [0, {pred.N}], got k = {k!r}, V {np.shape(resume.V)}, guess "
                          f"{np.shape(resume.guess)}")
+    done = resume.V[:k]
+    if np.any(done < pred.v_lo - FEAS_TOL) or np.any(done > pred.v_hi + FEAS_TOL):
+        raise ValueError(f"resume is not a build of this model: its inputs v(0..k-1) leave the v box [{pred.v_lo}, "
+                         f"{pred.v_hi}]")
+    # a build solves the QP again exactly after a moved input (at k = 0: when it was given no start)
+    if not isinstance(resume.resolve, (bool, np.bool_)) or (
+            k > 0 and bool(resume.resolve) != (not np.array_equal(resume.V[k - 1], resume.guess[k - 1]))):
+        raise ValueError(f"resume is not a build's state: resolve must be a bool, True exactly when its input "
+                         f"v({k - 1}) was moved from the QP's, got {resume.resolve!r}")
     if not (np.array_equal(resume.z, z) and np.array_equal(resume.f, np.asarray(f, float))):
         raise ValueError("resume is a build for another state z or cost f: continue it only with the z and f it was "
                          "started with")
@@ -343,10 +352,10 @@ CONTINUED = ("the plan built along the QP without the network, repaired step by 
 
 
 def _frozen(a: Array) -> Array:
-    """A read-only copy of ``a``."""
+    """A read-only view of a read-only copy of ``a`` (numpy refuses to make such a view writable again)."""
     a = np.array(a, float)
     a.setflags(write=False)
-    return a
+    return a.view()
 
 
 def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None,
