@@ -1926,6 +1926,8 @@ def test_first_incumbent_times_time_the_engines_first_repair_against_a_fresh_cut
             assert (s.info["incumbent"] == "repaired relaxation") == r["passes"], (r, s.info["incumbent"])
         assert 0 < r["ms_median"] <= r["ms_max"] and r["cpu_ms_median"] > 0
         assert r["cut_off_ms"] == pytest.approx(1e3 * (ts - keep))
+        assert r["fallback_deadline_ms"] == pytest.approx(
+            1e3 * (ts - max(ctl.FALLBACK_POST_SHARE * ts, ctl.FALLBACK_POST_MIN_S)))
     assert any(r["passes"] for r in rows), "premise: a repaired plan that passes the check"
     assert "repaired relaxation" in incumbents, "premise: the engine's first incumbent compared"
     for bad in (0, 2.5, True):

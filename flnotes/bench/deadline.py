@@ -813,10 +813,11 @@ def first_incumbent_times(name: str = LONG_SYSTEM, horizons: Sequence[int] = (12
     (:func:`flnotes.mpc.fallback.qp_repair`, what the engine's incumbent search runs first), timed ``repeats`` times
     in this thread, the relaxations not counted (``ms_median``, ``ms_max``; CPU ``cpu_ms_median``), and the cut-off of
     a fresh controller with ``time_limit = ts`` (``cut_off_ms``: what :meth:`flnotes.MPC.step` leaves the engine
-    before it answers with what it has). ``passes``: the repaired plan passes the forward-pass check (then it is the
-    step's incumbent once it is built before the cut-off). Where ``ms_max`` comes near ``cut_off_ms`` less the
-    engine's set-up (a few ms), whether a cold step has a plan, and so whether a loop that starts cold tracks, is the
-    machine's timing (:func:`repeat_loops`).
+    before it answers with what it has; ``fallback_deadline_ms``: when its fallback's repairs stop, the end of the
+    time in which the fallback continues a repair the cut-off stopped). ``passes``: the repaired plan passes the
+    forward-pass check (then it is the step's incumbent once it is built before the cut-off). Where ``ms_max`` comes
+    near ``cut_off_ms`` less the engine's set-up (a few ms), whether a cold step has a plan, and so whether a loop
+    that starts cold tracks, is the machine's timing (:func:`repeat_loops`).
     """
     from ..mpc import engine as E
     from ..mpc.fallback import qp_repair
@@ -850,10 +851,11 @@ def first_incumbent_times(name: str = LONG_SYSTEM, horizons: Sequence[int] = (12
             _, V_r = qp_repair(pred, z0, f, V_c)
             wall.append(time.perf_counter() - t)
             cpu.append(time.thread_time() - p)
-        cut = free.clone(time_limit=ts)._cut_off(0.0)
+        limited = free.clone(time_limit=ts)
+        cut, until = limited._cut_off(0.0), limited._fallback_until(0.0)
         rows.append(dict(system=name, t_s_ms=1e3 * ts, N_p=pred.N, ms_median=1e3 * float(np.median(wall)),
                          ms_max=1e3 * max(wall), cpu_ms_median=1e3 * float(np.median(cpu)), cut_off_ms=1e3 * cut,
-                         passes=bool(pred.feasible(z0, V_r))))
+                         fallback_deadline_ms=1e3 * until, passes=bool(pred.feasible(z0, V_r))))
     return rows
 
 

@@ -1088,6 +1088,15 @@ class MPC:
                        RESERVE_MAX_SHARE * self.time_limit)
         return start + float(self.time_limit) - answer_s
 
+    def _fallback_until(self, start: float) -> Optional[float]:
+        """The deadline of the fallback's repairs in a call that started at ``start`` (a :func:`time.perf_counter`
+        value): ``start + time_limit`` less :data:`FALLBACK_POST_SHARE` of the limit, at least
+        :data:`FALLBACK_POST_MIN_S` (see :meth:`_fallback`); ``None`` without a time limit."""
+        if self.time_limit is None:
+            return None
+        tl = float(self.time_limit)
+        return start + tl - max(FALLBACK_POST_SHARE * tl, FALLBACK_POST_MIN_S)
+
     def _previous_ended(self, start: float, t0: float) -> Optional[dict]:
         """Wait for a solve that the previous step answered at its cut-off, until this step's own cut-off at most.
 
@@ -1169,9 +1178,7 @@ class MPC:
         """
         f, _ = self.pred.linear(z, R)
         engine_bound = step.bound
-        deadline = (None if self.time_limit is None or t0 is None or not self.fallback_deadline
-                    else t0 + float(self.time_limit) - max(FALLBACK_POST_SHARE * float(self.time_limit),
-                                                           FALLBACK_POST_MIN_S))
+        deadline = None if t0 is None or not self.fallback_deadline else self._fallback_until(t0)
         resume = step.info.pop("repair_state", None)  # the engine's first incumbent, cut short at the cut-off
         c_fb = time.thread_time()
         Z, V, what, ok = fallback.fallback_plan(self.pred, z, shifted, f=f,

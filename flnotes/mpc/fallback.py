@@ -347,8 +347,8 @@ def _check_resume(pred: Prediction, z: Array, f, resume, V_qp=None) -> None:
 
 #: How the message of :func:`fallback_plan` starts when its plan is a build of :func:`qp_repair` that it continued
 #: (``resume``) to the end: the plan the uninterrupted build gives.
-CONTINUED = ("the plan built along the QP without the network, repaired step by step (the build continued from its "
-             "step")
+_ALONG_QP = "the plan built along the QP without the network"
+CONTINUED = f"{_ALONG_QP}, repaired step by step (the build continued from its step"
 
 
 def _frozen(a: Array) -> Array:
@@ -456,20 +456,19 @@ def fallback_plan(pred: Prediction, z: Array, shifted: Optional[tuple[Array, Arr
         return shifted[0], shifted[1], "the previous plan shifted by one step", True
     found = []
     if resume is not None and not infeasible and not qp_repair_failed and not _past(deadline):
-        reached = [resume.k]
-        plan = qp_repair(pred, z, f, deadline=deadline, resume=resume,
-                         publish=lambda st: reached.__setitem__(0, st.k))
+        states: list = []  # how far the continued build gets (its last state)
+        plan = qp_repair(pred, z, f, deadline=deadline, resume=resume, publish=states.append)
+        reached = states[-1].k
         found.append((plan, f"{CONTINUED} {resume.k} of {pred.N}, where the solve's cut-off stopped it)"
-                      if reached[0] == pred.N else
-                      f"the plan built along the QP without the network, partly repaired (the build went on from its "
-                      f"step {resume.k} to {reached[0]} of {pred.N} and stopped at the step's deadline)"))
+                      if reached == pred.N else
+                      f"{_ALONG_QP}, partly repaired (the build went on from its step {resume.k} to {reached} of "
+                      f"{pred.N} and stopped at the step's deadline)"))
     # infeasible (proven by the caller): no plan satisfies the program, so no repair of 2. can pass the check
     if shifted is not None and not infeasible and not _past(deadline):
         found.append((repair_plan(pred, z, shifted[1], deadline=deadline),
                       "the shifted previous plan repaired step by step"))
     if f is not None and resume is None and not infeasible and not qp_repair_failed and not _past(deadline):
-        found.append((qp_repair(pred, z, f, deadline=deadline),
-                      "the plan built along the QP without the network, repaired step by step"))
+        found.append((qp_repair(pred, z, f, deadline=deadline), f"{_ALONG_QP}, repaired step by step"))
     found = [(plan, what) for plan, what in found if pred.feasible(z, plan[1])]
     if not found and not infeasible and not _past(deadline):
         plan = repair_plan(pred, z, np.zeros((pred.N, pred.m)), deadline=deadline)
