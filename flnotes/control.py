@@ -450,22 +450,24 @@ def _pieces_1d(net: ReLUNet, z: Array, v_lo: float, v_hi: float) -> PiecewiseAff
     pre = (W1[:, :-1] @ z + net.b[0])[None, :] + knots[:, None] * W1[None, :, -1]   # layer 1, affine in v
     for k in range(1, net.K):
         # pre (n_knots, n_k) is affine between consecutive knots: its zero crossings are exact roots
-        a0, a1 = pre[:-1], pre[1:]
-        i, j = np.nonzero(((a0 < 0) & (a1 > 0)) | ((a0 > 0) & (a1 < 0)))  # signs, not a product that can underflow
+        sg = np.sign(pre)  # signs, not a product of values that can underflow
+        i, j = np.nonzero(sg[:-1] * sg[1:] < 0)
         if len(i):
-            t = a0[i, j] / (a0[i, j] - a1[i, j])
+            a0, a1 = pre[i, j], pre[i + 1, j]
+            t = a0 / (a0 - a1)
             roots = knots[i] + t * (knots[i + 1] - knots[i])
             at_roots = pre[i] + t[:, None] * (pre[i + 1] - pre[i])   # exact: affine between the two knots
             at_roots[np.arange(len(i)), j] = 0.0
-            knots, pre = np.concatenate([knots, roots]), np.vstack([pre, at_roots])
+            knots, pre = np.concatenate([knots, roots]), np.concatenate([pre, at_roots])
             order = np.argsort(knots, kind="stable")
             knots, pre = knots[order], pre[order]
-            keep = np.concatenate([[True], np.diff(knots) > tol])   # one knot per breakpoint
+            keep = np.empty(knots.size, bool)  # one knot per breakpoint
+            keep[0], keep[1:] = True, knots[1:] - knots[:-1] > tol
             knots, pre = knots[keep], pre[keep]
             knots[0], knots[-1] = v_lo, v_hi
         pre = np.maximum(pre, 0.0) @ net.W[k].T + net.b[k]
     values = pre[:, 0]
-    slope = np.diff(values) / np.diff(knots)
+    slope = (values[1:] - values[:-1]) / (knots[1:] - knots[:-1])
     return PiecewiseAffine1D(knots=knots, values=values, slope=slope)
 
 

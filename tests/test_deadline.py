@@ -379,6 +379,83 @@ def test_the_qp_with_fixed_steps_holds_them_and_refuses_what_means_nothing(quad)
         pred.qp_multipliers(f, c["z"], first=(pred.v_lo, pred.v_hi), fixed=held[:1])
 
 
+def _held_bounds_qp(pred, f, z, fixed, G=None, g_lo=None, g_hi=None):
+    """The QP with the first entries held by setting their bounds to their values (Prediction.qp's formulation before
+    it solved the free entries alone): (V or None, J, multipliers of G's rows)."""
+    import daqp
+
+    lo, hi = pred.state_bounds(z)
+    A = pred.A_state if G is None else np.vstack([pred.A_state, G])
+    if G is not None:
+        lo, hi = np.r_[lo, np.broadcast_to(g_lo, len(G))], np.r_[hi, np.broadcast_to(g_hi, len(G))]
+    bu = np.r_[np.tile(pred.v_hi, pred.N), np.minimum(hi, 1e30)]
+    bl = np.r_[np.tile(pred.v_lo, pred.N), np.maximum(lo, -1e30)]
+    bl[: fixed.size] = bu[: fixed.size] = fixed
+    x, J, flag, info = daqp.solve(pred.H, np.array(f, float), A, bu, bl, np.zeros(len(bu), dtype=np.int32))
+    if flag not in (1, 2):
+        return None, np.inf, None
+    return np.asarray(x), J, None if G is None else np.asarray(info["lam"])[len(bu) - len(G):]
+
+
+def test_the_qp_over_the_free_inputs_is_the_qp_with_held_bounds():
+    """Prediction.qp(fixed=...) solves the QP over the inputs left free (the held ones eliminated): on the states of
+    repairs of the five systems not in the book at N_p = 10 and 40, at every step (and with every input held), its
+    plan, cost and the multipliers of extra rows are those of the QP whose held entries' bounds are set to their
+    values; held inputs that drive a state out of its box make both infeasible."""
+    from flnotes.studies import unseen as U
+
+    checked = infeasible = binding = whole = 0
+    for name in U.CASES:
+        for N in (10, 40):
+            mpc = U.unseen_mpc(name, horizon=N)
+            pred, c = mpc.pred, U.case(name)
+            z = np.asarray(c.z0, float)
+            f, _ = pred.linear(z, np.asarray(c.reference()(mpc.ts * np.arange(N + 1)), float))
+            states = []
+            fb.qp_repair(pred, z, f, publish=states.append)
+            rng = np.random.default_rng(N)
+            G = rng.normal(size=(1, N * pred.m))  # one row: its multiplier is unique where it binds
+            lo, hi = pred.state_bounds(z)
+            for st in states[1:]:
+                fixed = st.V[: st.k].reshape(-1)
+                x, J, flag = pred.qp(f, z, fixed=fixed)
+                y, J_ref, _ = _held_bounds_qp(pred, f, z, fixed)
+                assert (x is None) == (y is None)
+                if x is None:
+                    continue
+                assert flag in (1, 2) and np.array_equal(x[: fixed.size], fixed)
+                assert np.allclose(x, y, atol=1e-8, rtol=0) and abs(J - J_ref) <= 1e-9 * max(1.0, abs(J_ref))
+                # extra rows that cut the optimum off (G x <= G x* - 1e-4 where the held inputs leave room for it)
+                g = G @ x - 1e-4
+                x2, _, _, lam = pred.qp_multipliers(f, z, G, -np.inf, g, fixed=fixed)
+                y2, _, lam_ref = _held_bounds_qp(pred, f, z, fixed, G, -np.inf, g)
+                assert (x2 is None) == (y2 is None)
+                if x2 is not None:  # both to DAQP's primal tolerance (1e-6), where the two may differ
+                    s2 = pred.A_state @ x2
+                    assert np.all(s2 >= lo - 1e-6) and np.all(s2 <= hi + 1e-6) and np.all(G @ x2 <= g + 1e-6)
+                    J2, J2_ref = pred.cost(x2, f, 0.0), pred.cost(y2, f, 0.0)
+                    assert abs(J2 - J2_ref) <= 1e-6 * max(1.0, abs(J2_ref)) and np.allclose(x2, y2, atol=1e-4, rtol=0)
+                    assert np.allclose(lam, lam_ref, atol=1e-4, rtol=1e-3)
+                    binding += bool(np.any(lam != 0.0))
+                checked += 1
+            # every input held: the plan itself, or infeasible when it breaks a row
+            V = states[-1].V.reshape(-1)
+            x, J, flag = pred.qp(f, z, fixed=V)
+            assert (x is None) == (_held_bounds_qp(pred, f, z, V)[0] is None)
+            if x is not None:
+                assert flag == 1 and np.array_equal(x, V) and np.isclose(J, pred.cost(V, f, 0.0), rtol=1e-12)
+                whole += 1
+            # inputs at the box's end for the whole horizon: the state leaves its box (the QP with held bounds says
+            # infeasible too)
+            for end in (pred.v_lo, pred.v_hi):
+                held = np.tile(end, N)
+                x, _, flag = pred.qp(f, z, fixed=held[: N * pred.m - pred.m])
+                y, _, _ = _held_bounds_qp(pred, f, z, held[: N * pred.m - pred.m])
+                assert (x is None) == (y is None)
+                infeasible += x is None
+    assert checked >= 100 and infeasible >= 1 and binding >= 50 and whole >= 5, (checked, infeasible, binding, whole)
+
+
 def test_at_the_limit_the_first_incumbent_is_returned(quad):
     """A limit far below any solve: each step returns its first incumbent, the cheaper (both checked by the forward
     pass) of the shifted previous plan and the relaxation's optimum repaired along the QP, then optimized over the

@@ -100,11 +100,12 @@ def _admissible(pred: Prediction, z: Array, cand: Array, last: bool) -> Array:
     """Which rows of ``cand`` (n, m) meet ``|Phi_NN(z, v)| <= u_max^eps`` (forward pass) and keep
     ``A_d z + B_d v`` in the state box (and, for the ``last`` step, in the terminal set). ``z`` is one state (n_z,)
     or one per row of ``cand`` (n, n_z)."""
-    z = np.broadcast_to(z, (len(cand), pred.nz))
-    u = pred.net._forward(np.hstack([z, cand]))[0]  # checked floats: the forward pass without its checks
-    nxt = z @ pred.Ad.T + cand @ pred.Bd.T
-    ok = (np.all(np.abs(u) <= pred.u_eps + BOUND_TOL, axis=1) & np.all(nxt >= pred.z_lo, axis=1)
-          & np.all(nxt <= pred.z_hi, axis=1))
+    X = np.empty((len(cand), pred.nz + pred.m))  # [z, v] per row
+    X[:, :pred.nz], X[:, pred.nz:] = z, cand
+    u = pred.net._forward(X)[0]  # checked floats: the forward pass without its checks
+    nxt = X[:, :pred.nz] @ pred.Ad.T + cand @ pred.Bd.T
+    ok = ((np.abs(u) <= pred.u_eps + BOUND_TOL).all(axis=1) & (nxt >= pred.z_lo).all(axis=1)
+          & (nxt <= pred.z_hi).all(axis=1))
     if last and pred.F is not None:
         ok &= np.all(nxt @ pred.F.T <= pred.g, axis=1)
     return ok
@@ -365,14 +366,13 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     """A plan built step by step along the QP without the network (eq. MPC_form_miqp without (MPC_form_miqp_b)).
 
     At step ``k`` the QP ``min J(V)`` over the boxes and terminal rows is solved with ``v(0..k-1)`` fixed
-    (:meth:`Prediction.qp`); its ``v(k)`` is made admissible at ``z(k)`` by :func:`feasible_tail`. The QP keeps the
-    later steps' boxes in view, which a repair of a fixed guess does not. ``f`` is the cost's linear part
-    (:meth:`Prediction.linear`); ``V_qp`` the QP's optimum without fixed steps when the caller has it. The QP is
-    solved again only after a step whose ``v(k)`` was moved: fixing ``v(k)`` at the QP's own value leaves its
-    (unique: ``H`` is positive definite) optimum where it is. The build stops at ``deadline`` (a
+    (:meth:`Prediction.qp` with ``fixed``: over ``v(k..N_p-1)`` alone); its ``v(k)`` is made admissible at ``z(k)`` by
+    :func:`feasible_tail`. The QP keeps the later steps' boxes in view, which a repair of a fixed guess does not.
+    ``f`` is the cost's linear part (:meth:`Prediction.linear`); ``V_qp`` the QP's optimum without fixed steps when
+    the caller has it. The QP is solved again only after a step whose ``v(k)`` was moved: fixing ``v(k)`` at the QP's
+    own value leaves its (unique: ``H`` is positive definite) optimum where it is. The build stops at ``deadline`` (a
     :func:`time.perf_counter` value) or once ``stop`` is set (a controller answering at its cut-off); the later
-    inputs are then the last QP's. Check the result with
-    :meth:`Prediction.feasible`.
+    inputs are then the last QP's. Check the result with :meth:`Prediction.feasible`.
 
     ``publish`` is called with the build's :class:`RepairState` at its start and after each step; ``resume`` (such a
     state, for the same ``z`` and ``f``; not with ``V_qp``) continues that build where it stopped: the plan is then the
@@ -396,12 +396,19 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     if publish is not None:
         z_s, f_s = _frozen(z), _frozen(f)  # the states' own: a caller's array changed later does not change them
         publish(RepairState(z_s, f_s, k0, _frozen(V), _frozen(guess), resolve, pred))
+    # the QP with v(0..k-1) held is solved over the later inputs alone (Prediction._qp_fixed); its rows and boxes
+    # do not change along the build
+    lo, hi = pred.state_bounds(z)
+    v_lo, v_hi = np.tile(pred.v_lo, N), np.tile(pred.v_hi, N)
     for k in range(k0, N):
         if _past(deadline) or (stop is not None and stop.is_set()):
             V[k:] = guess[k:]
             break
         if resolve:
-            x, _, _ = pred.qp(f, z, fixed=V[:k].reshape(-1) if k else None)  # v(0..k-1) held where they are
+            if k:  # v(0..k-1) held where they are
+                x = pred._qp_fixed(f, pred.A_state, lo, hi, v_lo[k * m:], v_hi[k * m:], V[:k].reshape(-1))[0]
+            else:
+                x = pred.qp(f, z)[0]
             if x is not None:
                 guess = np.asarray(x, float).reshape(N, m)
         V[k] = _feasible_tail(pred, zk, guess[k], last=k == N - 1)

@@ -206,9 +206,10 @@ class Prediction:
         """The QP ``min J(V)`` over the boxes and terminal rows (no network), plus optional rows ``g_lo <= G V <= g_hi``.
 
         Solved by DAQP (``H`` is positive definite). ``fixed``: the first ``len(fixed)`` entries of the flat ``V``
-        (``v(0..k-1)``) held at these values (their simple bounds set to them; held to the solver's round-off), finite
-        and inside ``[v_lo, v_hi]``, else a ``ValueError``. Returns ``(V or None, J - c0, DAQP exit flag)``; a plan
-        only for flags 1 (optimal) and 2 (optimal, soft constraints); flag -1 means infeasible.
+        (``v(0..k-1)``) held at these values exactly (finite and inside ``[v_lo, v_hi]``, else a ``ValueError``): the QP
+        is solved over the later entries alone (:meth:`_qp_fixed`), and is infeasible (flag -1) where the held
+        entries alone break a row. Returns ``(V or None, J - c0, DAQP exit flag)``; a plan only for flags 1 (optimal)
+        and 2 (optimal, soft constraints); flag -1 means infeasible.
         """
         V, fval, flag, _ = self.qp_multipliers(f, z0, G, g_lo, g_hi, fixed=fixed)
         return V, fval, flag
@@ -261,7 +262,9 @@ class Prediction:
             if not np.all(np.isfinite(fixed)) or np.any(fixed < box_lo - FEAS_TOL) or np.any(fixed > box_hi + FEAS_TOL):
                 raise ValueError(f"fixed must be finite inputs inside [v_lo, v_hi] = [{self.v_lo}, {self.v_hi}], got "
                                  f"{fixed}")
-            bl_all[: fixed.size] = bu_all[: fixed.size] = fixed
+            if fixed.size:
+                return self._qp_fixed(f, A, bl, bu, bl_all[fixed.size:N * self.m], bu_all[fixed.size:N * self.m],
+                                      fixed, 0 if G is None else len(G))
         # f copied: DAQP refuses a read-only buffer (e.g. a RepairState's f)
         x, fval, flag, info = daqp.solve(self.H, np.array(f, float), A, bu_all, bl_all,
                                          np.zeros(len(bu_all), dtype=np.int32))
@@ -269,6 +272,44 @@ class Prediction:
             return None, np.inf, int(flag), None
         lam = None if G is None else np.asarray(info["lam"], float)[len(bu_all) - len(G):]
         return np.asarray(x, float), float(fval), int(flag), lam
+
+    def _qp_fixed(self, f: Array, A: Array, bl: Array, bu: Array, v_lo: Array, v_hi: Array, fixed: Array,
+                  n_G: int = 0) -> tuple[Optional[Array], float, int, Optional[Array]]:
+        """:meth:`qp_multipliers` with the first ``n_x = len(fixed)`` entries of ``V`` held (checked by the caller):
+        the QP over the free entries ``V_f`` alone, ``min 0.5 V_f' H_ff V_f + (f_f + H_fx fixed)' V_f`` subject to
+        ``bl - A_x fixed <= A_f V_f <= bu - A_x fixed`` and ``v_lo <= V_f <= v_hi`` (the free entries' bounds). Its
+        optimum is the one with the held entries' bounds set to their values, from a smaller QP whose working set does
+        not have to take in the held bounds one by one. Rows ``A`` without a free entry are constants: they must hold
+        to :data:`flnotes.solvers.FEAS_TOL` (otherwise the QP is infeasible, flag -1) and get no multiplier (0); the
+        last ``n_G`` rows of ``A`` are the rows whose multipliers are returned."""
+        import daqp
+
+        n_x, n = fixed.size, self.H.shape[0]
+        f = np.asarray(f, float).reshape(-1)
+        shift = A[:, :n_x] @ fixed
+        lo_r, hi_r = bl - shift, bu - shift
+        A_f = A[:, n_x:]
+        free = np.any(A_f != 0.0, axis=1)
+        if np.any(lo_r[~free] > FEAS_TOL) or np.any(hi_r[~free] < -FEAS_TOL):
+            return None, np.inf, -1, None
+        lam = np.zeros(n_G) if n_G else None
+        if n_x == n:  # nothing left to choose: the plan is the held one
+            x, flag = fixed.copy(), 1
+        else:
+            # contiguous copies: daqp.solve misreads a strided H or A (a slice), it does not refuse it
+            x_f, _, flag, info = daqp.solve(np.ascontiguousarray(self.H[n_x:, n_x:]),
+                                            f[n_x:] + self.H[n_x:, :n_x] @ fixed, np.ascontiguousarray(A_f[free]),
+                                            np.concatenate([v_hi, np.minimum(hi_r[free], 1e30)]),
+                                            np.concatenate([v_lo, np.maximum(lo_r[free], -1e30)]),
+                                            np.zeros(n - n_x + int(free.sum()), dtype=np.int32))
+            if flag not in (1, 2):
+                return None, np.inf, int(flag), None
+            x, flag = np.concatenate([fixed, np.asarray(x_f, float)]), int(flag)
+            if n_G:
+                lam_rows = np.zeros(len(A))
+                lam_rows[free] = np.asarray(info["lam"], float)[n - n_x:]
+                lam = lam_rows[len(A) - n_G:]
+        return x, float(0.5 * x @ (self.H @ x) + f @ x), flag, lam
 
     # ------------------------------------------------------------------ boxes for the node bounds
     def boxes(self, z0: Array, first: Optional[tuple[Array, Array]] = None) -> tuple[Array, Array]:
