@@ -456,6 +456,42 @@ def test_the_qp_over_the_free_inputs_is_the_qp_with_held_bounds():
     assert checked >= 100 and infeasible >= 1 and binding >= 50 and whole >= 5, (checked, infeasible, binding, whole)
 
 
+def test_the_qp_and_the_repair_refuse_arguments_that_do_not_fit(quad):
+    """Prediction.qp / qp_multipliers and qp_repair check what DAQP would read past its end or as numbers without a
+    word: f of another size or with NaN/inf, a state with NaN, G not (r, N_p m) or with NaN, bounds of G missing,
+    NaN or of another count, bounds without G; qp_repair also a missing f and a V_qp outside the v box. Each is a
+    ValueError naming it, with or without held inputs; G of no rows gives no multipliers (an empty array)."""
+    pred = rt.make_mpc(quad).pred
+    c = next(iter(ex.mpc_cases(quad, 1, seed=3)))
+    z, n = np.asarray(c["z"], float), pred.N * pred.m
+    f, _ = pred.linear(z, c["z_ref"])
+    G = np.ones((2, n))
+    bad_f = f.copy()
+    bad_f[1] = np.nan
+    cases = [(dict(f=f[:-2]), "f "), (dict(f=bad_f), "f "), (dict(f=np.r_[f, 0.0]), "f "),
+             (dict(z0=np.r_[np.nan, z[1:]]), "z0"), (dict(z0=z[:-1]), "z0"),
+             (dict(G=np.ones(n), g_lo=-1.0, g_hi=1.0), "G must"), (dict(G=np.ones((2, n - 1)), g_lo=-1.0, g_hi=1.0),
+                                                                  "G must"),
+             (dict(G=np.where(G > 0, np.nan, 0.0), g_lo=-1.0, g_hi=1.0), "G must"), (dict(G=G, g_hi=1.0), "needs both"),
+             (dict(G=G, g_lo=-1.0, g_hi=[1.0, np.nan]), "g_hi"), (dict(G=G, g_lo=np.zeros(3), g_hi=1.0), "g_lo"),
+             (dict(g_lo=-1.0, g_hi=1.0), "give them with G")]
+    for fixed in (None, np.zeros(0), np.zeros(2)):
+        for change, match in cases:
+            kw = dict(dict(f=f, z0=z), **change)
+            with pytest.raises(ValueError, match=match):
+                pred.qp_multipliers(kw.pop("f"), kw.pop("z0"), fixed=fixed, **kw)
+        lam = pred.qp_multipliers(f, z, np.zeros((0, n)), np.zeros(0), np.zeros(0), fixed=fixed)[3]
+        assert isinstance(lam, np.ndarray) and lam.shape == (0,)
+    _, V = fb.qp_repair(pred, z, f)
+    assert V.shape == (pred.N, pred.m)
+    V_out = np.asarray(pred.qp(f, z)[0], float)
+    V_out[0] = pred.v_lo[0] - 1e-5
+    for args, match in (((z, None), "linear part"), ((z, f[:-1]), "f "), ((z[:-1], f), "z"),
+                        ((z, f, V_out), "V_qp"), ((z, f, np.full(n, np.nan)), "V_qp")):
+        with pytest.raises(ValueError, match=match):
+            fb.qp_repair(pred, *args)
+
+
 def test_at_the_limit_the_first_incumbent_is_returned(quad):
     """A limit far below any solve: each step returns its first incumbent, the cheaper (both checked by the forward
     pass) of the shifted previous plan and the relaxation's optimum repaired along the QP, then optimized over the

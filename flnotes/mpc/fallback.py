@@ -45,17 +45,18 @@ def _check_state(pred: Prediction, z) -> Array:
     return as_state(z, pred.nz, "z")
 
 
-def _check_guess(pred: Prediction, v_guess) -> Array:
-    """A plan's inputs ``v_guess`` as finite floats of shape (N_p, m) (a flat (N_p m,) array too)."""
-    V = as_floats(v_guess, "v_guess")
+def _check_guess(pred: Prediction, v_guess, name: str = "v_guess") -> Array:
+    """A plan's inputs ``v_guess`` as finite floats of shape (N_p, m) (a flat (N_p m,) array too); ``name``: what
+    the errors call it."""
+    V = as_floats(v_guess, name)
     if V.shape != (pred.N, pred.m) and np.squeeze(V).shape in {np.squeeze(np.empty((pred.N, pred.m))).shape,
                                                                (pred.N * pred.m,)}:
         V = V.reshape(pred.N, pred.m)  # flat as Prediction takes it, or with axes of length 1 (e.g. (1, N_p) for m = 1)
     if V.shape != (pred.N, pred.m):
-        raise ValueError(f"v_guess must be inputs of shape (N_p, m) = ({pred.N}, {pred.m}) or ({pred.N * pred.m},), "
+        raise ValueError(f"{name} must be inputs of shape (N_p, m) = ({pred.N}, {pred.m}) or ({pred.N * pred.m},), "
                          f"got shape {np.shape(v_guess)}")
     if not np.all(np.isfinite(V)):
-        raise ValueError("v_guess must be finite inputs: it contains NaN or inf")
+        raise ValueError(f"{name} must be finite inputs: it contains NaN or inf")
     return V
 
 
@@ -346,6 +347,11 @@ def _check_resume(pred: Prediction, z: Array, f, resume, V_qp=None) -> None:
                          "started with")
 
 
+#: The QP solver's feasibility tolerance (DAQP's default primal tolerance): a QP's optimum given to :func:`qp_repair`
+#: (``V_qp``) may leave the v box by this much (its round-off); the plan built from it is judged by
+#: :meth:`Prediction.feasible` as every plan is.
+QP_TOL = 1e-6
+
 #: How the message of :func:`fallback_plan` starts when its plan is a build of :func:`qp_repair` that it continued
 #: (``resume``) to the end: the plan the uninterrupted build gives.
 _ALONG_QP = "the plan built along the QP without the network"
@@ -377,9 +383,20 @@ def qp_repair(pred: Prediction, z: Array, f: Array, V_qp: Optional[Array] = None
     ``publish`` is called with the build's :class:`RepairState` at its start and after each step; ``resume`` (such a
     state, for the same ``z`` and ``f``; not with ``V_qp``) continues that build where it stopped: the plan is then the
     one the build would have given without the stop, to the last bit.
+
+    ``z`` must be one finite state, ``f`` ``N_p m`` finite numbers and ``V_qp`` finite inputs of shape ``(N_p, m)``
+    (or flat) inside the v box to the QP solver's tolerance (:data:`QP_TOL`), else a ``ValueError`` that names it.
     """
     N, m = pred.N, pred.m
-    z = np.asarray(z, float)
+    _check_pred(pred)
+    if f is None:
+        raise ValueError("qp_repair builds along the QP, which needs the cost's linear part f (Prediction.linear)")
+    f, z = pred._qp_arguments(f, _check_state(pred, z), None, None, None)[:2]
+    if V_qp is not None:
+        V_qp = _check_guess(pred, V_qp, "V_qp")
+        if np.any(V_qp < pred.v_lo - QP_TOL) or np.any(V_qp > pred.v_hi + QP_TOL):
+            raise ValueError(f"V_qp (the QP's optimum) must lie inside the v box [{pred.v_lo}, {pred.v_hi}] (to "
+                             f"{QP_TOL:g}), got inputs from {V_qp.min(axis=0)} to {V_qp.max(axis=0)}")
     if resume is not None:
         _check_resume(pred, z, f, resume, V_qp)
         k0, V, guess, resolve = int(resume.k), resume.V.copy(), resume.guess.copy(), bool(resume.resolve)

@@ -236,14 +236,18 @@ class Prediction:
                        fixed: Optional[Array] = None) -> tuple[Optional[Array], float, int, Optional[Array]]:
         """:meth:`qp` and the multipliers of the rows ``G`` at its optimum (DAQP's: positive on an active upper
         bound ``g_hi``, negative on an active lower bound, zero on an inactive row); ``None`` without a plan.
-        ``first = (a, b)``: ``v(0)`` within ``[a, b]`` as well (:meth:`first_range`); ``fixed``: as in :meth:`qp`."""
+        ``first = (a, b)``: ``v(0)`` within ``[a, b]`` as well (:meth:`first_range`); ``fixed``: as in :meth:`qp`.
+
+        ``f`` must be ``N_p m`` finite numbers, ``z0`` one finite state, ``G`` a finite ``(r, N_p m)`` array given with
+        ``g_lo`` and ``g_hi`` (numbers or ``r`` of them, no NaN; ``-inf`` and ``inf`` leave a side open): anything
+        else is a ``ValueError`` that names it (DAQP reads arrays of the wrong size past their end without a word)."""
         import daqp
 
+        f, z0, G, g_lo, g_hi = self._qp_arguments(f, z0, G, g_lo, g_hi)
         lo, hi = self.state_bounds(z0)
         A, bl, bu = self.A_state, lo, hi
         if G is not None:
-            A, bl, bu = (np.vstack([A, G]), np.concatenate([bl, np.broadcast_to(g_lo, len(G))]),
-                         np.concatenate([bu, np.broadcast_to(g_hi, len(G))]))
+            A, bl, bu = np.vstack([A, G]), np.concatenate([bl, g_lo]), np.concatenate([bu, g_hi])
         N = self.N
         # DAQP: the first N m constraints are simple bounds on V, the rest rows of A
         bu_all = np.concatenate([np.tile(self.v_hi, N), np.minimum(bu, 1e30)])
@@ -264,7 +268,7 @@ class Prediction:
                                  f"{fixed}")
             if fixed.size:
                 return self._qp_fixed(f, A, bl, bu, bl_all[fixed.size:N * self.m], bu_all[fixed.size:N * self.m],
-                                      fixed, 0 if G is None else len(G))
+                                      fixed, None if G is None else len(G))
         # f copied: DAQP refuses a read-only buffer (e.g. a RepairState's f)
         x, fval, flag, info = daqp.solve(self.H, np.array(f, float), A, bu_all, bl_all,
                                          np.zeros(len(bu_all), dtype=np.int32))
@@ -273,15 +277,48 @@ class Prediction:
         lam = None if G is None else np.asarray(info["lam"], float)[len(bu_all) - len(G):]
         return np.asarray(x, float), float(fval), int(flag), lam
 
+    def _qp_arguments(self, f, z0, G, g_lo, g_hi) -> tuple:
+        """The arguments of :meth:`qp_multipliers` checked and read: ``(f, z0, G, g_lo, g_hi)`` as float arrays of
+        the program's sizes (``g_lo``, ``g_hi`` broadcast to ``G``'s rows), else a ``ValueError`` naming the first that
+        does not fit."""
+        n = self.N * self.m
+        f = f if type(f) is np.ndarray and f.dtype == np.float64 else as_floats(f, "f")
+        if f.size != n or f.ndim > 2 or not np.all(np.isfinite(f)):
+            raise ValueError(f"f (the cost's linear part, Prediction.linear) must be {n} finite numbers (N_p m), got "
+                             f"shape {f.shape}" + ("" if f.size != n else " with NaN or inf"))
+        z0 = z0 if type(z0) is np.ndarray and z0.dtype == np.float64 else as_floats(z0, "z0")
+        if z0.shape != (self.nz,) or not np.all(np.isfinite(z0)):
+            raise ValueError(f"z0 must be one finite state of shape ({self.nz},), got shape {z0.shape}"
+                             + ("" if z0.shape != (self.nz,) else " with NaN or inf"))
+        if G is None:
+            if g_lo is not None or g_hi is not None:
+                raise ValueError("g_lo and g_hi bound the rows G V: give them with G (or drop them)")
+            return f.reshape(-1), z0, None, None, None
+        G = as_floats(G, "G")
+        if G.ndim != 2 or G.shape[1] != n or not np.all(np.isfinite(G)):
+            raise ValueError(f"G must be a finite array of rows of shape (r, {n}) (N_p m columns), got shape "
+                             f"{G.shape}" + ("" if G.ndim != 2 or G.shape[1] != n else " with NaN or inf"))
+        if g_lo is None or g_hi is None:
+            raise ValueError("G needs both g_lo and g_hi (g_lo <= G V <= g_hi; -inf or inf leaves a side open)")
+        sides = []
+        for name, g in (("g_lo", g_lo), ("g_hi", g_hi)):
+            g = as_floats(g, name)
+            if g.ndim > 1 or g.size not in (1, len(G)) or np.any(np.isnan(g)):
+                raise ValueError(f"{name} must be a number or {len(G)} numbers (one per row of G), not NaN, got "
+                                 f"shape {g.shape}")
+            sides.append(np.broadcast_to(g.reshape(-1), (len(G),)))
+        return f.reshape(-1), z0, G, sides[0], sides[1]
+
     def _qp_fixed(self, f: Array, A: Array, bl: Array, bu: Array, v_lo: Array, v_hi: Array, fixed: Array,
-                  n_G: int = 0) -> tuple[Optional[Array], float, int, Optional[Array]]:
+                  n_G: Optional[int] = None) -> tuple[Optional[Array], float, int, Optional[Array]]:
         """:meth:`qp_multipliers` with the first ``n_x = len(fixed)`` entries of ``V`` held (checked by the caller):
         the QP over the free entries ``V_f`` alone, ``min 0.5 V_f' H_ff V_f + (f_f + H_fx fixed)' V_f`` subject to
         ``bl - A_x fixed <= A_f V_f <= bu - A_x fixed`` and ``v_lo <= V_f <= v_hi`` (the free entries' bounds). Its
         optimum is the one with the held entries' bounds set to their values, from a smaller QP whose working set does
         not have to take in the held bounds one by one. Rows ``A`` without a free entry are constants: they must hold
-        to :data:`flnotes.solvers.FEAS_TOL` (otherwise the QP is infeasible, flag -1) and get no multiplier (0); the
-        last ``n_G`` rows of ``A`` are the rows whose multipliers are returned."""
+        to :data:`flnotes.solvers.FEAS_TOL`, the tolerance of :meth:`feasible` (otherwise the QP is infeasible, flag
+        -1; DAQP holds the other rows to its own 1e-6), and get no multiplier (0); the last ``n_G`` rows of ``A`` are
+        the rows whose multipliers are returned (``None``: no such rows, no multipliers)."""
         import daqp
 
         n_x, n = fixed.size, self.H.shape[0]
@@ -292,7 +329,7 @@ class Prediction:
         free = np.any(A_f != 0.0, axis=1)
         if np.any(lo_r[~free] > FEAS_TOL) or np.any(hi_r[~free] < -FEAS_TOL):
             return None, np.inf, -1, None
-        lam = np.zeros(n_G) if n_G else None
+        lam = None if n_G is None else np.zeros(n_G)
         if n_x == n:  # nothing left to choose: the plan is the held one
             x, flag = fixed.copy(), 1
         else:
@@ -305,7 +342,7 @@ class Prediction:
             if flag not in (1, 2):
                 return None, np.inf, int(flag), None
             x, flag = np.concatenate([fixed, np.asarray(x_f, float)]), int(flag)
-            if n_G:
+            if n_G is not None:
                 lam_rows = np.zeros(len(A))
                 lam_rows[free] = np.asarray(info["lam"], float)[n - n_x:]
                 lam = lam_rows[len(A) - n_G:]
