@@ -692,8 +692,14 @@ REPEAT_SYSTEMS = ("Pendulum-gain", "VdP-gain")
 #: instead of 12): its first incumbent, the relaxation repaired step by step (:func:`first_incumbent_times`), takes
 #: about as long as the controller leaves its engine, so whether a run's first steps have a plan, and how well the run
 #: tracks, is the machine's timing (measured idle: tracking errors 0.045 to 0.149 in 6 runs against 0.042 without
-#: the limit; at N_p = 26, 30 and 34 all 6 runs alike). A work budget of one node does not fit in t_s there either:
-#: the clock decides (safety-net hits on nearly every step).
+#: the limit; at N_p = 26, 30 and 34 all 6 runs alike). On a machine where the same repair took about 1.5 times as
+#: long, every run at N_p = 40 lost the reference alike (1.08 against 0.042, every step at the limit, the shifted plan
+#: kept as incumbent), also with the repair's QPs solved over the free inputs (its time at z(0) 15.7 -> 12.6 ms); at
+#: N_p = 34 every run lost it before that change (18 of 18 at 1.08, against 0.043); after it 2 of 18 tracked (0.057,
+#: 0.062), 13 ended at 1.08 and 3 elsewhere (0.35, 0.95, 1.26): the horizon where timing decides moved, it did not go
+#: away. At the case's N_p = 12 every run tracked.
+#: A work budget of one node does not fit in t_s there either: the clock decides (safety-net hits on nearly every
+#: step).
 LONG_SYSTEM, LONG_HORIZON = "VdP-gain", 40
 
 
