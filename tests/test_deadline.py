@@ -468,7 +468,8 @@ def test_the_qp_and_the_repair_refuse_arguments_that_do_not_fit(quad):
     G = np.ones((2, n))
     bad_f = f.copy()
     bad_f[1] = np.nan
-    cases = [(dict(f=f[:-2]), "f "), (dict(f=bad_f), "f "), (dict(f=np.r_[f, 0.0]), "f "),
+    cases = [(dict(f=f[:-2]), "f .*got shape \\(\\d+,\\)$"), (dict(f=bad_f), "with NaN or inf"),
+             (dict(f=np.r_[f, 0.0]), "f "), (dict(f=f.reshape(1, 1, -1)), "f .*got shape \\(1, 1, \\d+\\)$"),
              (dict(z0=np.r_[np.nan, z[1:]]), "z0"), (dict(z0=z[:-1]), "z0"),
              (dict(G=np.ones(n), g_lo=-1.0, g_hi=1.0), "G must"), (dict(G=np.ones((2, n - 1)), g_lo=-1.0, g_hi=1.0),
                                                                   "G must"),

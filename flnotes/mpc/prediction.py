@@ -283,9 +283,10 @@ class Prediction:
         does not fit."""
         n = self.N * self.m
         f = f if type(f) is np.ndarray and f.dtype == np.float64 else as_floats(f, "f")
-        if f.size != n or f.ndim > 2 or not np.all(np.isfinite(f)):
+        sized = f.size == n and f.ndim <= 2
+        if not sized or not np.all(np.isfinite(f)):
             raise ValueError(f"f (the cost's linear part, Prediction.linear) must be {n} finite numbers (N_p m), got "
-                             f"shape {f.shape}" + ("" if f.size != n else " with NaN or inf"))
+                             f"shape {f.shape}" + (" with NaN or inf" if sized else ""))
         z0 = z0 if type(z0) is np.ndarray and z0.dtype == np.float64 else as_floats(z0, "z0")
         if z0.shape != (self.nz,) or not np.all(np.isfinite(z0)):
             raise ValueError(f"z0 must be one finite state of shape ({self.nz},), got shape {z0.shape}"
